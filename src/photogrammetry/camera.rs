@@ -1,0 +1,609 @@
+//! The camera model: the collinearity condition with 16 parameters per camera.
+//!
+//! Implements the design paper's Eq. (1)-(2) (collinearity), Eq. (3) (Brown
+//! lens distortion) and the two-parameter affine term of Eq. (5) in OpenPTV
+//! 0.3's form, together with the multimedia module of [`super::media`]
+//! (Eq. 6-12). Conventions follow OpenPTV exactly, so that calibrations move
+//! between the two systems unchanged:
+//!
+//! * rotation `R = Rx(omega) * Ry(phi) * Rz(kappa)` ([`rotation_matrix`]); the
+//!   camera looks along its own `-z` axis and `x = -c (Rᵀ d)_x / (Rᵀ d)_z`,
+//!   `y = -c (Rᵀ d)_y / (Rᵀ d)_z`, with `d` the direction of the ray in air;
+//! * "flat" image coordinates are ideal (undistorted) and relative to the
+//!   principal point; distortion runs from ideal to distorted and is applied
+//!   to coordinates relative to the sensor centre ([`Distortion::apply`]);
+//! * metric image coordinates (mm, y up, origin at the sensor centre) map to
+//!   pixels by `x_px = x / pix_x + width / 2`, `y_px = height / 2 - y / pix_y`,
+//!   so the centre of the top-left pixel is at (0.5, 0.5).
+//!
+//! A [`CameraParameters`] value is plain data as it is stored in files; a
+//! [`Camera`] is a validated one with its rotation and wall geometry
+//! precomputed, and is what every computation takes.
+
+use nalgebra::{Matrix2, Matrix2x3, Matrix3, Point2, Point3, Vector2, Vector3};
+use serde::{Deserialize, Serialize};
+
+use super::media::{Media, MediaGeometry};
+
+/// The image sensor: its size and pixel pitch.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Sensor {
+    /// Image width in pixels.
+    pub width: u32,
+    /// Image height in pixels.
+    pub height: u32,
+    /// Pixel pitch along x (mm).
+    pub pixel_size_x: f64,
+    /// Pixel pitch along y (mm).
+    pub pixel_size_y: f64,
+}
+
+impl Sensor {
+    /// Metric image coordinates (mm, y up, origin at the sensor centre) to pixels.
+    pub fn metric_to_pixel(&self, metric: Vector2<f64>) -> Point2<f64> {
+        Point2::new(
+            metric.x / self.pixel_size_x + f64::from(self.width) / 2.0,
+            f64::from(self.height) / 2.0 - metric.y / self.pixel_size_y,
+        )
+    }
+
+    /// Pixels to metric image coordinates; the inverse of [`Sensor::metric_to_pixel`].
+    pub fn pixel_to_metric(&self, pixel: Point2<f64>) -> Vector2<f64> {
+        Vector2::new(
+            (pixel.x - f64::from(self.width) / 2.0) * self.pixel_size_x,
+            (f64::from(self.height) / 2.0 - pixel.y) * self.pixel_size_y,
+        )
+    }
+
+    /// Whether a pixel position lies on the sensor.
+    pub fn contains(&self, pixel: Point2<f64>) -> bool {
+        pixel.x >= 0.0
+            && pixel.y >= 0.0
+            && pixel.x <= f64::from(self.width)
+            && pixel.y <= f64::from(self.height)
+    }
+}
+
+/// Exterior orientation: projective centre and rotation angles.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Exterior {
+    /// Projective centre X0, Y0, Z0 (mm).
+    pub position: Vector3<f64>,
+    /// Rotation about the x axis (rad).
+    pub omega: f64,
+    /// Rotation about the y axis (rad).
+    pub phi: f64,
+    /// Rotation about the z axis (rad).
+    pub kappa: f64,
+}
+
+/// Interior orientation.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Interior {
+    /// Principal distance c (mm).
+    pub c: f64,
+    /// Principal point x (mm, relative to the sensor centre).
+    pub xh: f64,
+    /// Principal point y (mm, relative to the sensor centre).
+    pub yh: f64,
+}
+
+/// Brown lens distortion and the affine terms (OpenPTV's `ap_52`).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Distortion {
+    /// Radial distortion, r^2 term (mm^-2).
+    pub k1: f64,
+    /// Radial distortion, r^4 term (mm^-4).
+    pub k2: f64,
+    /// Radial distortion, r^6 term (mm^-6).
+    pub k3: f64,
+    /// Decentering distortion (mm^-1).
+    pub p1: f64,
+    /// Decentering distortion (mm^-1).
+    pub p2: f64,
+    /// Scale of the x image coordinate (1 = none).
+    pub scx: f64,
+    /// Shear of the image axes (rad, 0 = none).
+    pub shear: f64,
+}
+
+impl Default for Distortion {
+    fn default() -> Self {
+        Distortion {
+            k1: 0.0,
+            k2: 0.0,
+            k3: 0.0,
+            p1: 0.0,
+            p2: 0.0,
+            scx: 1.0,
+            shear: 0.0,
+        }
+    }
+}
+
+/// Largest number of Newton steps when inverting the distortion.
+const MAX_UNDISTORT_ITERATIONS: usize = 30;
+
+impl Distortion {
+    /// Whether this is the identity (no distortion, no affine term).
+    pub fn is_identity(&self) -> bool {
+        *self == Distortion::default()
+    }
+
+    /// Ideal -> distorted, both relative to the sensor centre (mm).
+    ///
+    /// Eq. (3) followed by the affine term, exactly as OpenPTV 0.3's
+    /// `distort_brown_affin`: the x correction is applied first and the
+    /// `2 p1 x y` term of y uses the corrected x.
+    pub fn apply(&self, ideal: Vector2<f64>) -> Vector2<f64> {
+        self.apply_with_jacobian(ideal).0
+    }
+
+    /// [`Distortion::apply`] and its 2x2 Jacobian with respect to `ideal`.
+    pub fn apply_with_jacobian(&self, ideal: Vector2<f64>) -> (Vector2<f64>, Matrix2<f64>) {
+        let (x, y) = (ideal.x, ideal.y);
+        let r2 = x * x + y * y;
+        let radial = self.k1 * r2 + self.k2 * r2 * r2 + self.k3 * r2 * r2 * r2;
+        // d(radial)/d(x) = radial_prime * x, likewise for y.
+        let radial_prime = 2.0 * self.k1 + 4.0 * self.k2 * r2 + 6.0 * self.k3 * r2 * r2;
+
+        let xd = x * (1.0 + radial) + self.p1 * (r2 + 2.0 * x * x) + 2.0 * self.p2 * x * y;
+        let dxd_dx = 1.0 + radial + radial_prime * x * x + 6.0 * self.p1 * x + 2.0 * self.p2 * y;
+        let dxd_dy = radial_prime * x * y + 2.0 * self.p1 * y + 2.0 * self.p2 * x;
+
+        let yd = y * (1.0 + radial) + self.p2 * (r2 + 2.0 * y * y) + 2.0 * self.p1 * xd * y;
+        let dyd_dx = radial_prime * x * y + 2.0 * self.p2 * x + 2.0 * self.p1 * y * dxd_dx;
+        let dyd_dy = 1.0
+            + radial
+            + radial_prime * y * y
+            + 6.0 * self.p2 * y
+            + 2.0 * self.p1 * (xd + y * dxd_dy);
+
+        let (sin_she, cos_she) = self.shear.sin_cos();
+        let out = Vector2::new(self.scx * xd - sin_she * yd, cos_she * yd);
+        let jacobian = Matrix2::new(
+            self.scx * dxd_dx - sin_she * dyd_dx,
+            self.scx * dxd_dy - sin_she * dyd_dy,
+            cos_she * dyd_dx,
+            cos_she * dyd_dy,
+        );
+        (out, jacobian)
+    }
+
+    /// Distorted -> ideal, both relative to the sensor centre (mm): the exact
+    /// inverse of [`Distortion::apply`], solved by Newton's method to 1e-12 mm.
+    ///
+    /// Returns `None` where the distortion polynomial folds over (no unique
+    /// inverse near the point), which happens only far outside any sensor.
+    pub fn remove(&self, distorted: Vector2<f64>) -> Option<Vector2<f64>> {
+        if self.is_identity() {
+            return Some(distorted);
+        }
+        // Start from the inverse of the affine term alone.
+        let (sin_she, cos_she) = self.shear.sin_cos();
+        let y0 = distorted.y / cos_she;
+        let mut ideal = Vector2::new((distorted.x + sin_she * y0) / self.scx, y0);
+        for _ in 0..MAX_UNDISTORT_ITERATIONS {
+            let (value, jacobian) = self.apply_with_jacobian(ideal);
+            let step = jacobian.try_inverse()? * (distorted - value);
+            ideal += step;
+            if !ideal.x.is_finite() || !ideal.y.is_finite() {
+                return None;
+            }
+            if step.norm() <= 1e-13 * (1.0 + ideal.norm()) {
+                return Some(ideal);
+            }
+        }
+        None
+    }
+}
+
+/// The rotation matrix of OpenPTV's `rotation_matrix()`: `Rx(omega) Ry(phi) Rz(kappa)`.
+pub fn rotation_matrix(omega: f64, phi: f64, kappa: f64) -> Matrix3<f64> {
+    let (so, co) = omega.sin_cos();
+    let (sp, cp) = phi.sin_cos();
+    let (sk, ck) = kappa.sin_cos();
+    Matrix3::new(
+        cp * ck,
+        -cp * sk,
+        sp,
+        co * sk + so * sp * ck,
+        co * ck - so * sp * sk,
+        -so * cp,
+        so * sk - co * sp * ck,
+        so * ck + co * sp * sk,
+        co * cp,
+    )
+}
+
+/// The angles (omega, phi, kappa) of a rotation matrix; the inverse of
+/// [`rotation_matrix`] with phi in [-pi/2, pi/2].
+pub fn rotation_angles(rotation: &Matrix3<f64>) -> (f64, f64, f64) {
+    let phi = rotation[(0, 2)].clamp(-1.0, 1.0).asin();
+    let omega = (-rotation[(1, 2)]).atan2(rotation[(2, 2)]);
+    let kappa = (-rotation[(0, 1)]).atan2(rotation[(0, 0)]);
+    (omega, phi, kappa)
+}
+
+/// One camera's full model as plain data: the 16 parameters, its sensor and
+/// the media its rays pass.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct CameraParameters {
+    /// A name for people (e.g. "cam1").
+    pub name: String,
+    /// Image size and pixel pitch.
+    pub sensor: Sensor,
+    /// Position and angles.
+    pub exterior: Exterior,
+    /// Principal distance and principal point.
+    pub interior: Interior,
+    /// Lens distortion and affine terms.
+    pub distortion: Distortion,
+    /// Air, walls and object medium between the camera and the particles.
+    pub media: Media,
+}
+
+/// A parameter that cannot describe a real camera.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("{field}: {reason}")]
+pub struct InvalidCamera {
+    /// The field, named as in the calibration JSON (e.g. `pixel_size[0]`).
+    pub field: String,
+    /// What is wrong with it and what is expected.
+    pub reason: String,
+}
+
+impl InvalidCamera {
+    pub(crate) fn new(field: impl Into<String>, reason: impl Into<String>) -> Self {
+        InvalidCamera {
+            field: field.into(),
+            reason: reason.into(),
+        }
+    }
+}
+
+/// Why a point has no image, or a pixel no ray.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
+pub enum ProjectionError {
+    /// The point lies behind the camera (or in its projective centre's plane).
+    #[error("the point lies behind the camera")]
+    BehindCamera,
+    /// The point lies on the far side of the camera from its wall: no ray
+    /// through the media reaches it.
+    #[error("the point lies on the far side of the camera from its wall")]
+    AwayFromWall,
+    /// The ray from this pixel does not reach the wall, or is totally reflected.
+    #[error("the ray from this pixel does not enter the object medium")]
+    NoRefractedRay,
+    /// The lens distortion cannot be inverted at this image position.
+    #[error("the lens distortion cannot be inverted at this image position")]
+    Undistortable,
+}
+
+/// A ray in the object medium: where it enters the medium and its direction.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Ray {
+    /// Where the ray enters the object medium (for a camera without
+    /// refraction, the projective centre).
+    pub origin: Point3<f64>,
+    /// Unit direction of the ray inside the object medium.
+    pub direction: Vector3<f64>,
+}
+
+impl Ray {
+    /// The point at distance `t` (mm) along the ray from its origin.
+    pub fn at(&self, t: f64) -> Point3<f64> {
+        self.origin + self.direction * t
+    }
+
+    /// The point of the ray with world coordinate Z = `z` (OpenPTV's
+    /// `move_along_ray`); `None` if the ray runs parallel to that plane.
+    pub fn at_z(&self, z: f64) -> Option<Point3<f64>> {
+        if self.direction.z.abs() < 1e-15 {
+            return None;
+        }
+        Some(self.at((z - self.origin.z) / self.direction.z))
+    }
+}
+
+/// A validated camera with its rotation and wall geometry precomputed.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Camera {
+    parameters: CameraParameters,
+    /// `R` of Eq. (1), from camera to world axes.
+    rotation: Matrix3<f64>,
+    /// The refracting geometry, or `None` when all media share one index.
+    geometry: Option<MediaGeometry>,
+}
+
+fn check_finite(field: &str, value: f64) -> Result<(), InvalidCamera> {
+    if value.is_finite() {
+        Ok(())
+    } else {
+        Err(InvalidCamera::new(field, format!("must be a finite number, got {value}")))
+    }
+}
+
+fn check_positive(field: &str, value: f64) -> Result<(), InvalidCamera> {
+    if value.is_finite() && value > 0.0 {
+        Ok(())
+    } else {
+        Err(InvalidCamera::new(field, format!("must be positive, got {value}")))
+    }
+}
+
+impl Camera {
+    /// Validates the parameters and precomputes what projection needs.
+    pub fn new(parameters: CameraParameters) -> Result<Camera, InvalidCamera> {
+        let p = &parameters;
+        if p.sensor.width == 0 {
+            return Err(InvalidCamera::new("image_size[0]", "must be positive, got 0"));
+        }
+        if p.sensor.height == 0 {
+            return Err(InvalidCamera::new("image_size[1]", "must be positive, got 0"));
+        }
+        check_positive("pixel_size[0]", p.sensor.pixel_size_x)?;
+        check_positive("pixel_size[1]", p.sensor.pixel_size_y)?;
+        for (i, v) in p.exterior.position.iter().enumerate() {
+            check_finite(&format!("position[{i}]"), *v)?;
+        }
+        check_finite("angles[0]", p.exterior.omega)?;
+        check_finite("angles[1]", p.exterior.phi)?;
+        check_finite("angles[2]", p.exterior.kappa)?;
+        check_positive("principal_distance", p.interior.c)?;
+        check_finite("principal_point[0]", p.interior.xh)?;
+        check_finite("principal_point[1]", p.interior.yh)?;
+        let d = &p.distortion;
+        for (field, v) in [
+            ("radial[0]", d.k1),
+            ("radial[1]", d.k2),
+            ("radial[2]", d.k3),
+            ("decentering[0]", d.p1),
+            ("decentering[1]", d.p2),
+        ] {
+            check_finite(field, v)?;
+        }
+        check_positive("affine[0]", d.scx)?;
+        check_finite("affine[1]", d.shear)?;
+        if d.shear.abs() >= std::f64::consts::FRAC_PI_4 {
+            return Err(InvalidCamera::new(
+                "affine[1]",
+                format!("the shear must be below pi/4 rad in magnitude, got {}", d.shear),
+            ));
+        }
+        let geometry = MediaGeometry::new(&p.media, &p.exterior.position)?;
+        let rotation = rotation_matrix(p.exterior.omega, p.exterior.phi, p.exterior.kappa);
+        Ok(Camera {
+            parameters,
+            rotation,
+            geometry,
+        })
+    }
+
+    /// The parameters this camera was built from.
+    pub fn parameters(&self) -> &CameraParameters {
+        &self.parameters
+    }
+
+    /// The camera's name.
+    pub fn name(&self) -> &str {
+        &self.parameters.name
+    }
+
+    /// The sensor.
+    pub fn sensor(&self) -> &Sensor {
+        &self.parameters.sensor
+    }
+
+    /// The rotation matrix `R` (camera axes to world axes).
+    pub fn rotation(&self) -> &Matrix3<f64> {
+        &self.rotation
+    }
+
+    /// The projective centre (mm).
+    pub fn position(&self) -> Point3<f64> {
+        Point3::from(self.parameters.exterior.position)
+    }
+
+    /// The refracting geometry, `None` for a camera whose media share one index.
+    pub fn media_geometry(&self) -> Option<&MediaGeometry> {
+        self.geometry.as_ref()
+    }
+
+    /// Flat image coordinates (ideal, relative to the principal point, mm) of
+    /// a point in object space: Eq. (2) with the multimedia module.
+    pub fn project_flat(&self, point: &Point3<f64>) -> Result<Vector2<f64>, ProjectionError> {
+        let direction = match &self.geometry {
+            Some(geometry) => geometry.air_direction(&self.position(), point)?,
+            None => point - self.position(),
+        };
+        self.collinearity(&direction)
+    }
+
+    /// Pixel coordinates of a point in object space.
+    pub fn project(&self, point: &Point3<f64>) -> Result<Point2<f64>, ProjectionError> {
+        let flat = self.project_flat(point)?;
+        Ok(self.flat_to_pixel(flat))
+    }
+
+    /// Pixel coordinates of a point and their 2x3 Jacobian with respect to
+    /// the point (px/mm): the linearised observation equations of a spatial
+    /// intersection (Eq. 21-22 with the object coordinates as unknowns).
+    pub fn project_with_jacobian(
+        &self,
+        point: &Point3<f64>,
+    ) -> Result<(Point2<f64>, Matrix2x3<f64>), ProjectionError> {
+        let (direction, d_direction) = match &self.geometry {
+            Some(geometry) => geometry.air_direction_with_jacobian(&self.position(), point)?,
+            None => (point - self.position(), Matrix3::identity()),
+        };
+        let v = self.rotation.tr_mul(&direction);
+        if v.z >= 0.0 {
+            return Err(ProjectionError::BehindCamera);
+        }
+        let c = self.parameters.interior.c;
+        let flat = Vector2::new(-c * v.x / v.z, -c * v.y / v.z);
+        let d_flat_d_v = Matrix2x3::new(
+            -c / v.z,
+            0.0,
+            c * v.x / (v.z * v.z),
+            0.0,
+            -c / v.z,
+            c * v.y / (v.z * v.z),
+        );
+        let interior = &self.parameters.interior;
+        let (metric, d_metric) = self
+            .parameters
+            .distortion
+            .apply_with_jacobian(flat + Vector2::new(interior.xh, interior.yh));
+        let sensor = &self.parameters.sensor;
+        let d_pixel_d_metric = Matrix2::new(
+            1.0 / sensor.pixel_size_x,
+            0.0,
+            0.0,
+            -1.0 / sensor.pixel_size_y,
+        );
+        let jacobian = d_pixel_d_metric * d_metric * d_flat_d_v * self.rotation.transpose() * d_direction;
+        Ok((sensor.metric_to_pixel(metric), jacobian))
+    }
+
+    /// Eq. (2): flat image coordinates of a direction in air from the
+    /// projective centre.
+    fn collinearity(&self, direction: &Vector3<f64>) -> Result<Vector2<f64>, ProjectionError> {
+        let v = self.rotation.tr_mul(direction);
+        if v.z >= 0.0 {
+            return Err(ProjectionError::BehindCamera);
+        }
+        let c = self.parameters.interior.c;
+        Ok(Vector2::new(-c * v.x / v.z, -c * v.y / v.z))
+    }
+
+    /// Flat -> metric image coordinates (principal point, distortion, affine).
+    pub fn flat_to_metric(&self, flat: Vector2<f64>) -> Vector2<f64> {
+        let interior = &self.parameters.interior;
+        self.parameters
+            .distortion
+            .apply(flat + Vector2::new(interior.xh, interior.yh))
+    }
+
+    /// Metric -> flat image coordinates; the exact inverse of [`Camera::flat_to_metric`].
+    pub fn metric_to_flat(&self, metric: Vector2<f64>) -> Result<Vector2<f64>, ProjectionError> {
+        let interior = &self.parameters.interior;
+        let ideal = self
+            .parameters
+            .distortion
+            .remove(metric)
+            .ok_or(ProjectionError::Undistortable)?;
+        Ok(ideal - Vector2::new(interior.xh, interior.yh))
+    }
+
+    /// Flat image coordinates -> pixels.
+    pub fn flat_to_pixel(&self, flat: Vector2<f64>) -> Point2<f64> {
+        self.parameters
+            .sensor
+            .metric_to_pixel(self.flat_to_metric(flat))
+    }
+
+    /// Pixels -> flat image coordinates.
+    pub fn pixel_to_flat(&self, pixel: Point2<f64>) -> Result<Vector2<f64>, ProjectionError> {
+        self.metric_to_flat(self.parameters.sensor.pixel_to_metric(pixel))
+    }
+
+    /// The ray in the object medium that images at this pixel: Eq. (13)-(17),
+    /// Snell's law through every wall.
+    pub fn ray(&self, pixel: Point2<f64>) -> Result<Ray, ProjectionError> {
+        self.ray_from_flat(self.pixel_to_flat(pixel)?)
+    }
+
+    /// The ray in the object medium through flat image coordinates.
+    pub fn ray_from_flat(&self, flat: Vector2<f64>) -> Result<Ray, ProjectionError> {
+        let c = self.parameters.interior.c;
+        let direction = (self.rotation * Vector3::new(flat.x, flat.y, -c)).normalize();
+        match &self.geometry {
+            Some(geometry) => geometry.trace(&self.position(), &direction),
+            None => Ok(Ray {
+                origin: self.position(),
+                direction,
+            }),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn distortion() -> Distortion {
+        Distortion {
+            k1: 2.4e-4,
+            k2: -3e-7,
+            k3: 1e-9,
+            p1: -6.6e-6,
+            p2: 8.7e-6,
+            scx: 1.0015,
+            shear: -0.0015,
+        }
+    }
+
+    #[test]
+    fn rotation_matches_openptv_ori_matrix() {
+        // golden/rig_a/cam1.ori lists the matrix OpenPTV computed from its angles (7 decimals).
+        let r = rotation_matrix(0.04631075, 0.31469973, 0.12219835);
+        let expected = Matrix3::new(
+            0.9437986, -0.1159081, 0.3095310, 0.1359864, 0.9897322, -0.0440207, -0.3012504,
+            0.0836386, 0.9498699,
+        );
+        assert!((r - expected).abs().max() < 5e-8, "{r}");
+    }
+
+    #[test]
+    fn rotation_angles_invert_rotation_matrix() {
+        for &(o, p, k) in &[(0.1, -0.3, 2.0), (-2.5, 1.2, -0.4), (0.0, 0.0, 0.0), (3.0, -1.5, 3.1)] {
+            let r = rotation_matrix(o, p, k);
+            let (o2, p2, k2) = rotation_angles(&r);
+            assert!((rotation_matrix(o2, p2, k2) - r).abs().max() < 1e-14);
+        }
+    }
+
+    #[test]
+    fn pixel_convention_puts_first_pixel_centre_at_half() {
+        let sensor = Sensor {
+            width: 1280,
+            height: 1024,
+            pixel_size_x: 0.012,
+            pixel_size_y: 0.01,
+        };
+        // The top-left corner of the sensor is at metric (-w/2 * px, +h/2 * py).
+        let corner = sensor.metric_to_pixel(Vector2::new(-640.0 * 0.012, 512.0 * 0.01));
+        assert!((corner - Point2::new(0.0, 0.0)).norm() < 1e-12);
+        let back = sensor.pixel_to_metric(Point2::new(0.5, 0.5));
+        assert!((back - Vector2::new(-639.5 * 0.012, 511.5 * 0.01)).norm() < 1e-12);
+    }
+
+    #[test]
+    fn distortion_inverse_is_exact() {
+        let d = distortion();
+        for i in -10..=10 {
+            for j in -10..=10 {
+                let ideal = Vector2::new(f64::from(i) * 0.8, f64::from(j) * 0.65);
+                let distorted = d.apply(ideal);
+                let back = d.remove(distorted).expect("invertible on the sensor");
+                assert!((back - ideal).norm() < 1e-9, "{ideal} -> {back}");
+            }
+        }
+    }
+
+    #[test]
+    fn distortion_jacobian_matches_finite_differences() {
+        let d = distortion();
+        let at = Vector2::new(3.1, -2.2);
+        let (_, jac) = d.apply_with_jacobian(at);
+        let h = 1e-6;
+        for k in 0..2 {
+            let mut step = Vector2::zeros();
+            step[k] = h;
+            let numeric = (d.apply(at + step) - d.apply(at - step)) / (2.0 * h);
+            assert!((jac.column(k) - numeric).norm() < 1e-8, "column {k}");
+        }
+    }
+}

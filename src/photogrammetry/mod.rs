@@ -1,0 +1,19 @@
+//! The pure photogrammetric core: synchronous, deterministic, no I/O.
+//!
+//! Implements the mathematical model of Maas, Gruen, Papantoniou (1993),
+//! section 4: the collinearity condition with 16 parameters per camera
+//! ([`camera`]), the multimedia geometry through plane-parallel walls
+//! ([`media`]), least-squares spatial intersection ([`intersect`]), and the
+//! simulator that provides ground truth ([`simulate`]).
+//!
+//! This module never imports the service's shell (no tokio, axum, sqlx or
+//! utoipa): inputs and outputs are plain structs and nalgebra types.
+
+pub mod camera;
+pub mod intersect;
+pub mod media;
+pub mod simulate;
+
+pub use camera::{Camera, CameraParameters, Distortion, Exterior, Interior, ProjectionError, Ray, Sensor};
+pub use intersect::{intersect, Intersection, IntersectionError, Observation};
+pub use media::{Media, MediaGeometry, Wall};
