@@ -132,7 +132,12 @@ impl MediaGeometry {
         positive("media.n_object".into(), media.n_object)?;
         for (i, wall) in media.walls.iter().enumerate() {
             positive(format!("media.walls[{i}].n"), wall.n)?;
-            positive(format!("media.walls[{i}].thickness"), wall.thickness)?;
+            if !(wall.thickness.is_finite() && wall.thickness >= 0.0) {
+                return Err(InvalidCamera::new(
+                    format!("media.walls[{i}].thickness"),
+                    format!("must be zero or positive, got {}", wall.thickness),
+                ));
+            }
         }
         for (i, v) in media.glass_vector.iter().enumerate() {
             if !v.is_finite() {
@@ -175,7 +180,8 @@ impl MediaGeometry {
             end: air_height,
         });
         let mut start = air_height;
-        for wall in media.walls.iter().rev() {
+        // A wall of zero thickness (OpenPTV's way to say "no wall") bends no ray.
+        for wall in media.walls.iter().rev().filter(|w| w.thickness > 0.0) {
             layers.push(Layer {
                 n: wall.n,
                 start,

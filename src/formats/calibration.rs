@@ -1,0 +1,279 @@
+//! The project's calibration JSON.
+//!
+//! ```json
+//! {"cameras": [{"name": "cam1", "image_size": [1280, 1024], "pixel_size": [0.012, 0.012],
+//!   "position": [X0, Y0, Z0], "angles": [omega, phi, kappa], "principal_distance": c,
+//!   "principal_point": [xh, yh], "radial": [k1, k2, k3], "decentering": [p1, p2],
+//!   "affine": [scx, shear],
+//!   "media": {"n_air": 1.0, "walls": [{"n": 1.49, "thickness": 10.0}], "n_object": 1.33,
+//!             "glass_vector": [0, 0, 100]}}]}
+//! ```
+//!
+//! Lengths in mm, angles in rad, pixel coordinates as in [`crate::photogrammetry::camera`].
+//! Walls are listed from the water outward, the first starting at the glass
+//! vector's plane. Optional fields and their defaults: `name` (`camN`),
+//! `principal_point` (0, 0), `radial` (0, 0, 0), `decentering` (0, 0),
+//! `affine` (1, 0), `media.n_air` (1), `media.walls` (none),
+//! `media.glass_vector` (0, 0, 0; required when the media refract). Unknown
+//! fields are errors, so that a typo never silently falls back to a default.
+
+use nalgebra::Vector3;
+use serde::{Deserialize, Serialize};
+
+use super::FormatError;
+use crate::photogrammetry::{Camera, CameraParameters, Distortion, Exterior, Interior, Media, Sensor, Wall};
+
+/// The fewest cameras a calibration may have: a point needs two rays.
+pub const MIN_CAMERAS: usize = 2;
+
+#[derive(Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct CalibrationFile {
+    cameras: Vec<CameraJson>,
+}
+
+#[derive(Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct CameraJson {
+    #[serde(default)]
+    name: Option<String>,
+    image_size: [u32; 2],
+    pixel_size: [f64; 2],
+    position: [f64; 3],
+    angles: [f64; 3],
+    principal_distance: f64,
+    #[serde(default)]
+    principal_point: [f64; 2],
+    #[serde(default)]
+    radial: [f64; 3],
+    #[serde(default)]
+    decentering: [f64; 2],
+    #[serde(default = "identity_affine")]
+    affine: [f64; 2],
+    media: MediaJson,
+}
+
+fn identity_affine() -> [f64; 2] {
+    [1.0, 0.0]
+}
+
+fn one() -> f64 {
+    1.0
+}
+
+#[derive(Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct MediaJson {
+    #[serde(default = "one")]
+    n_air: f64,
+    #[serde(default)]
+    walls: Vec<WallJson>,
+    n_object: f64,
+    #[serde(default)]
+    glass_vector: [f64; 3],
+}
+
+#[derive(Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct WallJson {
+    n: f64,
+    thickness: f64,
+}
+
+impl CameraJson {
+    fn into_parameters(self, index: usize) -> CameraParameters {
+        CameraParameters {
+            name: self.name.unwrap_or_else(|| format!("cam{}", index + 1)),
+            sensor: Sensor {
+                width: self.image_size[0],
+                height: self.image_size[1],
+                pixel_size_x: self.pixel_size[0],
+                pixel_size_y: self.pixel_size[1],
+            },
+            exterior: Exterior {
+                position: Vector3::from(self.position),
+                omega: self.angles[0],
+                phi: self.angles[1],
+                kappa: self.angles[2],
+            },
+            interior: Interior {
+                c: self.principal_distance,
+                xh: self.principal_point[0],
+                yh: self.principal_point[1],
+            },
+            distortion: Distortion {
+                k1: self.radial[0],
+                k2: self.radial[1],
+                k3: self.radial[2],
+                p1: self.decentering[0],
+                p2: self.decentering[1],
+                scx: self.affine[0],
+                shear: self.affine[1],
+            },
+            media: Media {
+                n_air: self.media.n_air,
+                walls: self
+                    .media
+                    .walls
+                    .into_iter()
+                    .map(|w| Wall {
+                        n: w.n,
+                        thickness: w.thickness,
+                    })
+                    .collect(),
+                n_object: self.media.n_object,
+                glass_vector: Vector3::from(self.media.glass_vector),
+            },
+        }
+    }
+
+    fn from_parameters(p: &CameraParameters) -> CameraJson {
+        CameraJson {
+            name: Some(p.name.clone()),
+            image_size: [p.sensor.width, p.sensor.height],
+            pixel_size: [p.sensor.pixel_size_x, p.sensor.pixel_size_y],
+            position: p.exterior.position.into(),
+            angles: [p.exterior.omega, p.exterior.phi, p.exterior.kappa],
+            principal_distance: p.interior.c,
+            principal_point: [p.interior.xh, p.interior.yh],
+            radial: [p.distortion.k1, p.distortion.k2, p.distortion.k3],
+            decentering: [p.distortion.p1, p.distortion.p2],
+            affine: [p.distortion.scx, p.distortion.shear],
+            media: MediaJson {
+                n_air: p.media.n_air,
+                walls: p
+                    .media
+                    .walls
+                    .iter()
+                    .map(|w| WallJson {
+                        n: w.n,
+                        thickness: w.thickness,
+                    })
+                    .collect(),
+                n_object: p.media.n_object,
+                glass_vector: p.media.glass_vector.into(),
+            },
+        }
+    }
+}
+
+/// Parses and validates a calibration JSON document.
+pub fn from_json(text: &str, source: &str) -> Result<Vec<Camera>, FormatError> {
+    let deserializer = &mut serde_json::Deserializer::from_str(text);
+    let file: CalibrationFile = serde_path_to_error::deserialize(deserializer).map_err(|err| {
+        let path = err.path().to_string();
+        let location = if path == "." { "document".to_owned() } else { path };
+        FormatError::invalid(source, location, err.into_inner().to_string())
+    })?;
+    from_parameters(
+        file.cameras
+            .into_iter()
+            .enumerate()
+            .map(|(i, camera)| camera.into_parameters(i))
+            .collect(),
+        source,
+    )
+}
+
+/// Validates a list of camera parameters as a calibration: at least
+/// [`MIN_CAMERAS`] cameras, each one valid.
+pub fn from_parameters(parameters: Vec<CameraParameters>, source: &str) -> Result<Vec<Camera>, FormatError> {
+    if parameters.len() < MIN_CAMERAS {
+        return Err(FormatError::invalid(
+            source,
+            "cameras",
+            format!("a calibration needs at least {MIN_CAMERAS} cameras, got {}", parameters.len()),
+        ));
+    }
+    parameters
+        .into_iter()
+        .enumerate()
+        .map(|(i, p)| {
+            Camera::new(p).map_err(|e| FormatError::invalid(source, format!("cameras[{i}].{}", e.field), e.reason))
+        })
+        .collect()
+}
+
+/// Serialises cameras as calibration JSON (pretty-printed, every field
+/// written, numbers in their shortest exact form).
+pub fn to_json(cameras: &[Camera]) -> String {
+    let file = CalibrationFile {
+        cameras: cameras
+            .iter()
+            .map(|c| CameraJson::from_parameters(c.parameters()))
+            .collect(),
+    };
+    serde_json::to_string_pretty(&file).expect("plain data serialises") + "\n"
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const TWO_CAMERAS: &str = r#"{"cameras": [
+        {"name": "a", "image_size": [1280, 1024], "pixel_size": [0.012, 0.012],
+         "position": [0, 0, 600], "angles": [0, 0, 0], "principal_distance": 50,
+         "media": {"walls": [{"n": 1.5, "thickness": 10}], "n_object": 1.33, "glass_vector": [0, 0, 100]}},
+        {"image_size": [1280, 1024], "pixel_size": [0.012, 0.012],
+         "position": [300, 0, 520], "angles": [0, 0.5, 0], "principal_distance": 50,
+         "radial": [1e-4, 0, 0], "affine": [1.001, 0.001],
+         "media": {"walls": [{"n": 1.5, "thickness": 10}], "n_object": 1.33, "glass_vector": [0, 0, 100]}}
+    ]}"#;
+
+    fn error_of(text: &str) -> String {
+        from_json(text, "cal.json").unwrap_err().to_string()
+    }
+
+    #[test]
+    fn reads_defaults_and_round_trips_exactly() {
+        let cameras = from_json(TWO_CAMERAS, "cal.json").unwrap();
+        assert_eq!(cameras[1].name(), "cam2");
+        assert_eq!(cameras[0].parameters().distortion, Distortion::default());
+        assert_eq!(cameras[0].parameters().media.n_air, 1.0);
+        let again = from_json(&to_json(&cameras), "again").unwrap();
+        assert_eq!(again, cameras);
+    }
+
+    #[test]
+    fn unknown_field_is_named_with_its_path() {
+        let text = TWO_CAMERAS.replace("\"principal_distance\": 50,\n         \"radial\"", "\"principal_distanse\": 50, \"radial\"");
+        let message = error_of(&text);
+        assert!(message.contains("cameras[1]") && message.contains("principal_distanse"), "{message}");
+    }
+
+    #[test]
+    fn missing_field_is_named() {
+        let text = TWO_CAMERAS.replacen("\"pixel_size\": [0.012, 0.012],", "", 1);
+        let message = error_of(&text);
+        assert!(message.contains("cameras[0]") && message.contains("pixel_size"), "{message}");
+    }
+
+    #[test]
+    fn bad_values_are_named() {
+        for (from, to, field) in [
+            ("[0.012, 0.012]", "[0.012, -0.012]", "cameras[0].pixel_size[1]"),
+            ("\"n\": 1.5", "\"n\": 0", "cameras[0].media.walls[0].n"),
+            ("\"principal_distance\": 50", "\"principal_distance\": 0", "cameras[0].principal_distance"),
+            ("[1280, 1024]", "[0, 1024]", "cameras[0].image_size[0]"),
+            ("\"n_object\": 1.33", "\"n_object\": -1.33", "cameras[0].media.n_object"),
+            ("[0, 0, 600]", "[0, 0, 1e999]", "cameras[0].position"),
+        ] {
+            let message = error_of(&TWO_CAMERAS.replacen(from, to, 1));
+            assert!(message.contains(field), "{field}: {message}");
+        }
+    }
+
+    #[test]
+    fn one_camera_is_not_a_calibration() {
+        let one: serde_json::Value = serde_json::from_str(TWO_CAMERAS).unwrap();
+        let text = serde_json::json!({"cameras": [one["cameras"][0].clone()]}).to_string();
+        assert!(error_of(&text).contains("at least 2 cameras"));
+    }
+
+    #[test]
+    fn not_json_is_an_error_not_a_panic() {
+        for text in ["", "[]", "{\"cameras\": 3}", "NaN", "{\"cameras\": [{\"position\": [NaN, 0, 0]}]}"] {
+            assert!(from_json(text, "x").is_err(), "{text}");
+        }
+    }
+}

@@ -1,0 +1,1 @@
+//! Point and observation tables of the command line (CSV with a header).
