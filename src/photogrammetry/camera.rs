@@ -132,9 +132,11 @@ impl Distortion {
 
     /// Ideal -> distorted, both relative to the sensor centre (mm).
     ///
-    /// Eq. (3) followed by the affine term, exactly as OpenPTV 0.3's
-    /// `distort_brown_affin`: the x correction is applied first and the
-    /// `2 p1 x y` term of y uses the corrected x.
+    /// Eq. (3) followed by the affine term in the form of OpenPTV 0.3
+    /// (`distort_brown_affin` of optv 0.3.2, pinned by the rig_a golden
+    /// values to 1e-15 mm): with `(x', y')` the Brown-distorted coordinates,
+    /// `x'' = scx (x' - sin(she) y')` and `y'' = scx cos(she) y'`, i.e. `scx`
+    /// scales both axes and `she` shears y into x.
     pub fn apply(&self, ideal: Vector2<f64>) -> Vector2<f64> {
         self.apply_with_jacobian(ideal).0
     }
@@ -151,21 +153,17 @@ impl Distortion {
         let dxd_dx = 1.0 + radial + radial_prime * x * x + 6.0 * self.p1 * x + 2.0 * self.p2 * y;
         let dxd_dy = radial_prime * x * y + 2.0 * self.p1 * y + 2.0 * self.p2 * x;
 
-        let yd = y * (1.0 + radial) + self.p2 * (r2 + 2.0 * y * y) + 2.0 * self.p1 * xd * y;
-        let dyd_dx = radial_prime * x * y + 2.0 * self.p2 * x + 2.0 * self.p1 * y * dxd_dx;
-        let dyd_dy = 1.0
-            + radial
-            + radial_prime * y * y
-            + 6.0 * self.p2 * y
-            + 2.0 * self.p1 * (xd + y * dxd_dy);
+        let yd = y * (1.0 + radial) + self.p2 * (r2 + 2.0 * y * y) + 2.0 * self.p1 * x * y;
+        let dyd_dx = radial_prime * x * y + 2.0 * self.p2 * x + 2.0 * self.p1 * y;
+        let dyd_dy = 1.0 + radial + radial_prime * y * y + 6.0 * self.p2 * y + 2.0 * self.p1 * x;
 
         let (sin_she, cos_she) = self.shear.sin_cos();
-        let out = Vector2::new(self.scx * xd - sin_she * yd, cos_she * yd);
+        let out = Vector2::new(self.scx * (xd - sin_she * yd), self.scx * cos_she * yd);
         let jacobian = Matrix2::new(
-            self.scx * dxd_dx - sin_she * dyd_dx,
-            self.scx * dxd_dy - sin_she * dyd_dy,
-            cos_she * dyd_dx,
-            cos_she * dyd_dy,
+            self.scx * (dxd_dx - sin_she * dyd_dx),
+            self.scx * (dxd_dy - sin_she * dyd_dy),
+            self.scx * cos_she * dyd_dx,
+            self.scx * cos_she * dyd_dy,
         );
         (out, jacobian)
     }
@@ -181,8 +179,8 @@ impl Distortion {
         }
         // Start from the inverse of the affine term alone.
         let (sin_she, cos_she) = self.shear.sin_cos();
-        let y0 = distorted.y / cos_she;
-        let mut ideal = Vector2::new((distorted.x + sin_she * y0) / self.scx, y0);
+        let y0 = distorted.y / (self.scx * cos_she);
+        let mut ideal = Vector2::new(distorted.x / self.scx + sin_she * y0, y0);
         for _ in 0..MAX_UNDISTORT_ITERATIONS {
             let (value, jacobian) = self.apply_with_jacobian(ideal);
             let step = jacobian.try_inverse()? * (distorted - value);
