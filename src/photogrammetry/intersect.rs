@@ -174,3 +174,205 @@ fn adjust(cameras: &[Camera], observations: &[Observation], start: Point3<f64>) 
     }
     Err(IntersectionError::NoConvergence(MAX_ITERATIONS))
 }
+
+#[cfg(test)]
+mod tests {
+    use nalgebra::{Rotation3, Unit};
+    use proptest::prelude::*;
+
+    use super::*;
+    use crate::photogrammetry::simulate::{self, RigSpec, Tank};
+    use crate::photogrammetry::{CameraParameters, Distortion, Wall};
+
+    /// Rebuilds every camera with its wall plane turned by `tilt` about `axis`.
+    fn tilt_walls(cameras: Vec<Camera>, axis: Vector3<f64>, tilt: f64) -> Vec<Camera> {
+        let rotation = Rotation3::from_axis_angle(&Unit::new_normalize(axis), tilt);
+        cameras
+            .into_iter()
+            .map(|camera| {
+                let mut p: CameraParameters = camera.parameters().clone();
+                p.media.glass_vector = rotation * p.media.glass_vector;
+                Camera::new(p).expect("a tilted wall keeps the camera on its air side")
+            })
+            .collect()
+    }
+
+    /// Largest error of project -> back-project (rays) -> intersect over `points`.
+    fn round_trip_error(cameras: &[Camera], points: &[Point3<f64>]) -> f64 {
+        points
+            .iter()
+            .map(|point| {
+                let observations: Vec<Observation> = cameras
+                    .iter()
+                    .enumerate()
+                    .map(|(k, camera)| Observation {
+                        camera: k,
+                        pixel: camera.project(point).expect("the rig sees the volume"),
+                    })
+                    .collect();
+                let start = ray_midpoint(
+                    &observations
+                        .iter()
+                        .map(|o| cameras[o.camera].ray(o.pixel).unwrap())
+                        .collect::<Vec<_>>(),
+                )
+                .unwrap();
+                // Noise-free rays meet in the point itself.
+                assert!((start - point).norm() < 1e-6, "midpoint {start} for {point}");
+                let result = intersect(cameras, &observations).unwrap();
+                assert!(result.rms_px < 1e-6, "residuals {}", result.rms_px);
+                (result.point - point).norm()
+            })
+            .fold(0.0, f64::max)
+    }
+
+    fn rig_with_walls(walls: Vec<Wall>) -> (Vec<Camera>, Vec<Point3<f64>>) {
+        let mut spec = RigSpec::convergent(4);
+        spec.tank = Some(Tank {
+            walls,
+            ..Tank::glass_walled()
+        });
+        spec.distortion = Distortion {
+            k1: 1e-4,
+            p1: 2e-5,
+            scx: 1.002,
+            shear: 0.003,
+            ..Distortion::default()
+        };
+        let points = simulate::particles(&spec.volume, 200, &mut simulate::rng(1));
+        (spec.build().unwrap(), points)
+    }
+
+    #[test]
+    fn round_trip_through_one_wall() {
+        let (cameras, points) = rig_with_walls(vec![Wall { n: 1.49, thickness: 10.0 }]);
+        assert!(round_trip_error(&cameras, &points) < 1e-6);
+    }
+
+    #[test]
+    fn round_trip_through_three_walls() {
+        let walls = vec![
+            Wall { n: 1.49, thickness: 8.0 },
+            Wall { n: 1.0, thickness: 2.0 },
+            Wall { n: 1.52, thickness: 6.0 },
+        ];
+        let (cameras, points) = rig_with_walls(walls);
+        assert!(round_trip_error(&cameras, &points) < 1e-6);
+    }
+
+    #[test]
+    fn round_trip_through_a_tilted_wall() {
+        let (cameras, points) = rig_with_walls(vec![Wall { n: 1.49, thickness: 10.0 }]);
+        let cameras = tilt_walls(cameras, Vector3::new(1.0, 2.0, 0.5), 0.25);
+        assert!(round_trip_error(&cameras, &points) < 1e-6);
+    }
+
+    #[test]
+    fn round_trip_in_air() {
+        let mut spec = RigSpec::convergent(3);
+        spec.tank = None;
+        let points = simulate::particles(&spec.volume, 100, &mut simulate::rng(2));
+        assert!(round_trip_error(&spec.build().unwrap(), &points) < 1e-6);
+    }
+
+    #[test]
+    fn standard_deviations_match_the_scatter_of_noisy_intersections() {
+        // With image noise sigma, the a priori precision of X_i is
+        // sigma * sqrt(Qxx_ii) and E[sigma0^2] = sigma^2. Over N points the
+        // RMS of the normalised errors and the mean of sigma0^2 / sigma^2
+        // scatter around 1 by about 1/sqrt(2N) and sqrt(2/(f N)) (f = 5,
+        // the redundancy of 4 cameras); we allow four times that.
+        let spec = RigSpec::convergent(4);
+        let cameras = spec.build().unwrap();
+        let noise = 0.1;
+        let n = 2000;
+        let mut rng = simulate::rng(7);
+        let points = simulate::particles(&spec.volume, n, &mut rng);
+        let images = simulate::observe(&cameras, &points, noise, &mut rng);
+        let mut normalised_sq = Vector3::zeros();
+        let mut variance_ratio = 0.0;
+        for (j, point) in points.iter().enumerate() {
+            let observations: Vec<Observation> = (0..cameras.len())
+                .map(|k| Observation {
+                    camera: k,
+                    pixel: images[k][j].unwrap(),
+                })
+                .collect();
+            let result = intersect(&cameras, &observations).unwrap();
+            let q_sqrt = result.sigma / result.sigma0_px;
+            let error = result.point - point;
+            normalised_sq += error.component_div(&(q_sqrt * noise)).map(|e| e * e);
+            variance_ratio += (result.sigma0_px / noise).powi(2);
+        }
+        let rms = (normalised_sq / n as f64).map(f64::sqrt);
+        let mean_ratio = variance_ratio / n as f64;
+        let rms_tolerance = 4.0 / (2.0 * n as f64).sqrt();
+        let ratio_tolerance = 4.0 * (2.0 / (5.0 * n as f64)).sqrt();
+        for i in 0..3 {
+            assert!((rms[i] - 1.0).abs() < rms_tolerance, "axis {i}: {}", rms[i]);
+        }
+        assert!((mean_ratio - 1.0).abs() < ratio_tolerance, "{mean_ratio}");
+    }
+
+    #[test]
+    fn bad_observations_are_errors() {
+        let cameras = RigSpec::convergent(2).build().unwrap();
+        let pixel = Point2::new(640.0, 512.0);
+        assert_eq!(
+            intersect(&cameras, &[Observation { camera: 0, pixel }]),
+            Err(IntersectionError::TooFewObservations(1))
+        );
+        assert!(matches!(
+            intersect(&cameras, &[Observation { camera: 0, pixel }, Observation { camera: 5, pixel }]),
+            Err(IntersectionError::UnknownCamera { camera: 5, cameras: 2 })
+        ));
+        // Twice the same ray: parallel.
+        assert!(intersect(&cameras, &[Observation { camera: 0, pixel }, Observation { camera: 0, pixel }]).is_err());
+        // NaN pixels never panic.
+        let nan = Point2::new(f64::NAN, 1.0);
+        assert!(intersect(&cameras, &[Observation { camera: 0, pixel: nan }, Observation { camera: 1, pixel }]).is_err());
+    }
+
+    fn random_rig() -> impl Strategy<Value = (Vec<Camera>, Vec<Point3<f64>>)> {
+        let wall = (1.3..1.8f64, 1.0..20.0f64).prop_map(|(n, thickness)| Wall { n, thickness });
+        (
+            2usize..=8,
+            prop::collection::vec(wall, 1..=3),
+            1.33..1.5f64,
+            (-1.0..1.0f64, -1.0..1.0f64, -1.0..1.0f64, 0.0..0.3f64),
+            (-3e-4..3e-4f64, -3e-5..3e-5f64, -3e-5..3e-5f64, 0.995..1.005f64, -0.005..0.005f64),
+            (-0.1..0.1f64, -0.1..0.1f64),
+            any::<u64>(),
+        )
+            .prop_map(|(count, walls, n_object, tilt, d, pp, seed)| {
+                let mut spec = RigSpec::convergent(count);
+                spec.tank = Some(Tank {
+                    walls,
+                    n_object,
+                    ..Tank::glass_walled()
+                });
+                spec.distortion = Distortion {
+                    k1: d.0,
+                    p1: d.1,
+                    p2: d.2,
+                    scx: d.3,
+                    shear: d.4,
+                    ..Distortion::default()
+                };
+                spec.principal_point = nalgebra::Vector2::new(pp.0, pp.1);
+                let axis = Vector3::new(tilt.0, tilt.1, tilt.2 + 1e-3);
+                let cameras = tilt_walls(spec.build().unwrap(), axis, tilt.3);
+                let points = simulate::particles(&spec.volume, 5, &mut simulate::rng(seed));
+                (cameras, points)
+            })
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(64))]
+        #[test]
+        fn round_trip_over_random_rigs((cameras, points) in random_rig()) {
+            let error = round_trip_error(&cameras, &points);
+            prop_assert!(error < 1e-6, "error {error} mm");
+        }
+    }
+}
