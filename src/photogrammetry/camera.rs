@@ -24,6 +24,7 @@ use nalgebra::{Matrix2, Matrix2x3, Matrix3, Point2, Point3, Vector2, Vector3};
 use serde::{Deserialize, Serialize};
 
 use super::media::{Media, MediaGeometry};
+use super::volume::Volume;
 
 /// The image sensor: its size and pixel pitch.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -318,7 +319,10 @@ fn check_finite(field: &str, value: f64) -> Result<(), InvalidCamera> {
     if value.is_finite() {
         Ok(())
     } else {
-        Err(InvalidCamera::new(field, format!("must be a finite number, got {value}")))
+        Err(InvalidCamera::new(
+            field,
+            format!("must be a finite number, got {value}"),
+        ))
     }
 }
 
@@ -326,7 +330,10 @@ fn check_positive(field: &str, value: f64) -> Result<(), InvalidCamera> {
     if value.is_finite() && value > 0.0 {
         Ok(())
     } else {
-        Err(InvalidCamera::new(field, format!("must be positive, got {value}")))
+        Err(InvalidCamera::new(
+            field,
+            format!("must be positive, got {value}"),
+        ))
     }
 }
 
@@ -335,10 +342,16 @@ impl Camera {
     pub fn new(parameters: CameraParameters) -> Result<Camera, InvalidCamera> {
         let p = &parameters;
         if p.sensor.width == 0 {
-            return Err(InvalidCamera::new("image_size[0]", "must be positive, got 0"));
+            return Err(InvalidCamera::new(
+                "image_size[0]",
+                "must be positive, got 0",
+            ));
         }
         if p.sensor.height == 0 {
-            return Err(InvalidCamera::new("image_size[1]", "must be positive, got 0"));
+            return Err(InvalidCamera::new(
+                "image_size[1]",
+                "must be positive, got 0",
+            ));
         }
         check_positive("pixel_size[0]", p.sensor.pixel_size_x)?;
         check_positive("pixel_size[1]", p.sensor.pixel_size_y)?;
@@ -366,7 +379,10 @@ impl Camera {
         if d.shear.abs() >= std::f64::consts::FRAC_PI_4 {
             return Err(InvalidCamera::new(
                 "affine[1]",
-                format!("the shear must be below pi/4 rad in magnitude, got {}", d.shear),
+                format!(
+                    "the shear must be below pi/4 rad in magnitude, got {}",
+                    d.shear
+                ),
             ));
         }
         let geometry = MediaGeometry::new(&p.media, &p.exterior.position)?;
@@ -376,6 +392,16 @@ impl Camera {
             rotation,
             geometry,
         })
+    }
+
+    /// The same camera with the refraction solve tabulated over `volume`,
+    /// the optional accelerator of [`super::media`]: projection of points in
+    /// the volume gets about twice as fast, and results stay within 1e-11 mm
+    /// of the exact solution (the table only starts a Newton step).
+    pub fn with_refraction_table(mut self, volume: &Volume) -> Camera {
+        let position = self.position();
+        self.geometry = self.geometry.map(|g| g.with_table(&position, volume));
+        self
     }
 
     /// The parameters this camera was built from.
@@ -461,7 +487,8 @@ impl Camera {
             0.0,
             -1.0 / sensor.pixel_size_y,
         );
-        let jacobian = d_pixel_d_metric * d_metric * d_flat_d_v * self.rotation.transpose() * d_direction;
+        let jacobian =
+            d_pixel_d_metric * d_metric * d_flat_d_v * self.rotation.transpose() * d_direction;
         Ok((sensor.metric_to_pixel(metric), jacobian))
     }
 
@@ -556,7 +583,12 @@ mod tests {
 
     #[test]
     fn rotation_angles_invert_rotation_matrix() {
-        for &(o, p, k) in &[(0.1, -0.3, 2.0), (-2.5, 1.2, -0.4), (0.0, 0.0, 0.0), (3.0, -1.5, 3.1)] {
+        for &(o, p, k) in &[
+            (0.1, -0.3, 2.0),
+            (-2.5, 1.2, -0.4),
+            (0.0, 0.0, 0.0),
+            (3.0, -1.5, 3.1),
+        ] {
             let r = rotation_matrix(o, p, k);
             let (o2, p2, k2) = rotation_angles(&r);
             assert!((rotation_matrix(o2, p2, k2) - r).abs().max() < 1e-14);
@@ -587,6 +619,37 @@ mod tests {
                 let distorted = d.apply(ideal);
                 let back = d.remove(distorted).expect("invertible on the sensor");
                 assert!((back - ideal).norm() < 1e-9, "{ideal} -> {back}");
+            }
+        }
+    }
+
+    #[test]
+    fn refraction_table_keeps_projection_exact() {
+        use crate::photogrammetry::simulate::{self, RigSpec};
+        let spec = RigSpec::convergent(4);
+        let mut rng = simulate::rng(5);
+        // Inside the tabulated volume, and in a larger one around it where
+        // the table does not reach and the exact solve takes over.
+        let mut points = simulate::particles(&spec.volume, 2000, &mut rng);
+        let larger = Volume {
+            min: spec.volume.min * 1.5,
+            max: spec.volume.max * 1.5,
+        };
+        points.extend(simulate::particles(&larger, 500, &mut rng));
+        for camera in spec.build().unwrap() {
+            let tabulated = camera.clone().with_refraction_table(&spec.volume);
+            assert_ne!(tabulated, camera);
+            for point in &points {
+                let exact = camera.project_flat(point).unwrap();
+                let fast = tabulated.project_flat(point).unwrap();
+                assert!(
+                    (exact - fast).norm() < 1e-9,
+                    "{point}: {:e} mm",
+                    (exact - fast).norm()
+                );
+                let (_, j_exact) = camera.project_with_jacobian(point).unwrap();
+                let (_, j_fast) = tabulated.project_with_jacobian(point).unwrap();
+                assert!((j_exact - j_fast).norm() < 1e-6 * j_exact.norm());
             }
         }
     }

@@ -59,12 +59,12 @@ pub enum IntersectionError {
         cameras: usize,
     },
     /// A ray or projection could not be formed.
-    #[error("camera {camera}: {source}")]
+    #[error("camera {camera}: {reason}")]
     Projection {
         /// The camera.
         camera: usize,
         /// What failed.
-        source: ProjectionError,
+        reason: ProjectionError,
     },
     /// The rays are (nearly) parallel: the point is not determined.
     #[error("the rays are parallel: the point is not determined")]
@@ -95,27 +95,35 @@ pub fn ray_midpoint(rays: &[Ray]) -> Option<Point3<f64>> {
         rhs += projector * ray.origin.coords;
     }
     let solution = normal.cholesky()?.solve(&rhs);
-    solution.iter().all(|v| v.is_finite()).then(|| Point3::from(solution))
+    solution
+        .iter()
+        .all(|v| v.is_finite())
+        .then(|| Point3::from(solution))
 }
 
 /// Least-squares spatial intersection of two or more observations.
-pub fn intersect(cameras: &[Camera], observations: &[Observation]) -> Result<Intersection, IntersectionError> {
+pub fn intersect(
+    cameras: &[Camera],
+    observations: &[Observation],
+) -> Result<Intersection, IntersectionError> {
     if observations.len() < 2 {
         return Err(IntersectionError::TooFewObservations(observations.len()));
     }
     let camera_of = |observation: &Observation| {
-        cameras.get(observation.camera).ok_or(IntersectionError::UnknownCamera {
-            camera: observation.camera,
-            cameras: cameras.len(),
-        })
+        cameras
+            .get(observation.camera)
+            .ok_or(IntersectionError::UnknownCamera {
+                camera: observation.camera,
+                cameras: cameras.len(),
+            })
     };
     let mut rays = Vec::with_capacity(observations.len());
     for observation in observations {
         let ray = camera_of(observation)?
             .ray(observation.pixel)
-            .map_err(|source| IntersectionError::Projection {
+            .map_err(|reason| IntersectionError::Projection {
                 camera: observation.camera,
-                source,
+                reason,
             })?;
         rays.push(ray);
     }
@@ -124,7 +132,11 @@ pub fn intersect(cameras: &[Camera], observations: &[Observation]) -> Result<Int
 }
 
 /// Gauss-Newton adjustment of a point from a start value.
-fn adjust(cameras: &[Camera], observations: &[Observation], start: Point3<f64>) -> Result<Intersection, IntersectionError> {
+fn adjust(
+    cameras: &[Camera],
+    observations: &[Observation],
+    start: Point3<f64>,
+) -> Result<Intersection, IntersectionError> {
     let mut point = start;
     let mut residuals_px = vec![Vector2::zeros(); observations.len()];
     let mut jacobians = Vec::with_capacity(observations.len());
@@ -134,13 +146,12 @@ fn adjust(cameras: &[Camera], observations: &[Observation], start: Point3<f64>) 
         jacobians.clear();
         for (observation, residual) in observations.iter().zip(residuals_px.iter_mut()) {
             let camera = &cameras[observation.camera];
-            let (computed, jacobian) =
-                camera
-                    .project_with_jacobian(&point)
-                    .map_err(|source| IntersectionError::Projection {
-                        camera: observation.camera,
-                        source,
-                    })?;
+            let (computed, jacobian) = camera.project_with_jacobian(&point).map_err(|reason| {
+                IntersectionError::Projection {
+                    camera: observation.camera,
+                    reason,
+                }
+            })?;
             *residual = observation.pixel - computed;
             normal += jacobian.transpose() * jacobian;
             rhs += jacobian.transpose() * *residual;
@@ -218,7 +229,10 @@ mod tests {
                 )
                 .unwrap();
                 // Noise-free rays meet in the point itself.
-                assert!((start - point).norm() < 1e-6, "midpoint {start} for {point}");
+                assert!(
+                    (start - point).norm() < 1e-6,
+                    "midpoint {start} for {point}"
+                );
                 let result = intersect(cameras, &observations).unwrap();
                 assert!(result.rms_px < 1e-6, "residuals {}", result.rms_px);
                 (result.point - point).norm()
@@ -245,16 +259,28 @@ mod tests {
 
     #[test]
     fn round_trip_through_one_wall() {
-        let (cameras, points) = rig_with_walls(vec![Wall { n: 1.49, thickness: 10.0 }]);
+        let (cameras, points) = rig_with_walls(vec![Wall {
+            n: 1.49,
+            thickness: 10.0,
+        }]);
         assert!(round_trip_error(&cameras, &points) < 1e-6);
     }
 
     #[test]
     fn round_trip_through_three_walls() {
         let walls = vec![
-            Wall { n: 1.49, thickness: 8.0 },
-            Wall { n: 1.0, thickness: 2.0 },
-            Wall { n: 1.52, thickness: 6.0 },
+            Wall {
+                n: 1.49,
+                thickness: 8.0,
+            },
+            Wall {
+                n: 1.0,
+                thickness: 2.0,
+            },
+            Wall {
+                n: 1.52,
+                thickness: 6.0,
+            },
         ];
         let (cameras, points) = rig_with_walls(walls);
         assert!(round_trip_error(&cameras, &points) < 1e-6);
@@ -262,7 +288,10 @@ mod tests {
 
     #[test]
     fn round_trip_through_a_tilted_wall() {
-        let (cameras, points) = rig_with_walls(vec![Wall { n: 1.49, thickness: 10.0 }]);
+        let (cameras, points) = rig_with_walls(vec![Wall {
+            n: 1.49,
+            thickness: 10.0,
+        }]);
         let cameras = tilt_walls(cameras, Vector3::new(1.0, 2.0, 0.5), 0.25);
         assert!(round_trip_error(&cameras, &points) < 1e-6);
     }
@@ -323,14 +352,40 @@ mod tests {
             Err(IntersectionError::TooFewObservations(1))
         );
         assert!(matches!(
-            intersect(&cameras, &[Observation { camera: 0, pixel }, Observation { camera: 5, pixel }]),
-            Err(IntersectionError::UnknownCamera { camera: 5, cameras: 2 })
+            intersect(
+                &cameras,
+                &[
+                    Observation { camera: 0, pixel },
+                    Observation { camera: 5, pixel }
+                ]
+            ),
+            Err(IntersectionError::UnknownCamera {
+                camera: 5,
+                cameras: 2
+            })
         ));
         // Twice the same ray: parallel.
-        assert!(intersect(&cameras, &[Observation { camera: 0, pixel }, Observation { camera: 0, pixel }]).is_err());
+        assert!(intersect(
+            &cameras,
+            &[
+                Observation { camera: 0, pixel },
+                Observation { camera: 0, pixel }
+            ]
+        )
+        .is_err());
         // NaN pixels never panic.
         let nan = Point2::new(f64::NAN, 1.0);
-        assert!(intersect(&cameras, &[Observation { camera: 0, pixel: nan }, Observation { camera: 1, pixel }]).is_err());
+        assert!(intersect(
+            &cameras,
+            &[
+                Observation {
+                    camera: 0,
+                    pixel: nan
+                },
+                Observation { camera: 1, pixel }
+            ]
+        )
+        .is_err());
     }
 
     fn random_rig() -> impl Strategy<Value = (Vec<Camera>, Vec<Point3<f64>>)> {
@@ -340,7 +395,13 @@ mod tests {
             prop::collection::vec(wall, 1..=3),
             1.33..1.5f64,
             (-1.0..1.0f64, -1.0..1.0f64, -1.0..1.0f64, 0.0..0.3f64),
-            (-3e-4..3e-4f64, -3e-5..3e-5f64, -3e-5..3e-5f64, 0.995..1.005f64, -0.005..0.005f64),
+            (
+                -3e-4..3e-4f64,
+                -3e-5..3e-5f64,
+                -3e-5..3e-5f64,
+                0.995..1.005f64,
+                -0.005..0.005f64,
+            ),
             (-0.1..0.1f64, -0.1..0.1f64),
             any::<u64>(),
         )

@@ -3,7 +3,7 @@
 //! Implements the mathematical model of Maas, Gruen, Papantoniou (1993),
 //! section 4: the collinearity condition with 16 parameters per camera
 //! ([`camera`]), the multimedia geometry through plane-parallel walls
-//! ([`media`]), least-squares spatial intersection ([`intersect`]), and the
+//! ([`media`]), least-squares spatial intersection ([`mod@intersect`]), and the
 //! simulator that provides ground truth ([`simulate`]).
 //!
 //! This module never imports the service's shell (no tokio, axum, sqlx or
@@ -13,7 +13,11 @@ pub mod camera;
 pub mod intersect;
 pub mod media;
 pub mod simulate;
+pub mod volume;
 
-pub use camera::{Camera, CameraParameters, Distortion, Exterior, Interior, ProjectionError, Ray, Sensor};
+pub use camera::{
+    Camera, CameraParameters, Distortion, Exterior, Interior, ProjectionError, Ray, Sensor,
+};
 pub use intersect::{intersect, Intersection, IntersectionError, Observation};
 pub use media::{Media, MediaGeometry, Wall};
+pub use volume::Volume;

@@ -8,38 +8,15 @@
 //! experiment every run.
 
 use nalgebra::{Matrix3, Point2, Point3, Vector2, Vector3};
-use rand::{Rng, SeedableRng};
 use rand::rngs::StdRng;
+use rand::{Rng, SeedableRng};
 use rand_distr::{Distribution, Normal};
 
-use super::camera::{rotation_angles, Camera, CameraParameters, Distortion, Exterior, Interior, Sensor};
+use super::camera::{
+    rotation_angles, Camera, CameraParameters, Distortion, Exterior, Interior, Sensor,
+};
 use super::media::{Media, Wall};
-
-/// An axis-aligned box in object space (mm).
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct Volume {
-    /// Smallest corner.
-    pub min: Point3<f64>,
-    /// Largest corner.
-    pub max: Point3<f64>,
-}
-
-impl Volume {
-    /// The centre of the box.
-    pub fn centre(&self) -> Point3<f64> {
-        nalgebra::center(&self.min, &self.max)
-    }
-
-    /// Half the length of the box's diagonal.
-    pub fn radius(&self) -> f64 {
-        (self.max - self.min).norm() / 2.0
-    }
-
-    /// Whether `point` lies inside.
-    pub fn contains(&self, point: &Point3<f64>) -> bool {
-        (0..3).all(|i| point[i] >= self.min[i] && point[i] <= self.max[i])
-    }
-}
+use super::volume::Volume;
 
 /// A box-shaped water tank centred on the origin.
 #[derive(Clone, Debug, PartialEq)]
@@ -201,7 +178,11 @@ fn look_at(towards_camera: &Vector3<f64>) -> Matrix3<f64> {
     let z = towards_camera.normalize();
     let x = Vector3::y().cross(&z);
     // Looking straight down or up: any horizontal x will do.
-    let x = if x.norm() < 1e-9 { Vector3::x() } else { x.normalize() };
+    let x = if x.norm() < 1e-9 {
+        Vector3::x()
+    } else {
+        x.normalize()
+    };
     let y = z.cross(&x);
     Matrix3::from_columns(&[x, y, z])
 }
@@ -260,7 +241,10 @@ mod tests {
             let points = particles(&spec.volume, 500, &mut rng);
             let images = observe(&rig, &points, 0.0, &mut rng);
             for (k, camera) in images.iter().enumerate() {
-                assert!(camera.iter().all(Option::is_some), "{cameras} cameras: camera {k} misses points");
+                assert!(
+                    camera.iter().all(Option::is_some),
+                    "{cameras} cameras: camera {k} misses points"
+                );
             }
         }
     }
@@ -273,7 +257,11 @@ mod tests {
             let centre = Point2::new(640.0, 512.0);
             // Refraction at an oblique wall shifts the centre a little; it
             // must stay near the middle of the sensor.
-            assert!((pixel - centre).norm() < 150.0, "{}: {pixel}", camera.name());
+            assert!(
+                (pixel - centre).norm() < 150.0,
+                "{}: {pixel}",
+                camera.name()
+            );
         }
     }
 }
