@@ -41,7 +41,12 @@ fn goldens() -> Vec<Golden> {
     let (cameras, json) = load(
         "golden/test_cavity_camera_model.json",
         "test_cavity/parameters/ptv.par",
-        &["test_cavity/cal/cam1.tif.ori", "test_cavity/cal/cam2.tif.ori", "test_cavity/cal/cam3.tif.ori", "test_cavity/cal/cam4.tif.ori"],
+        &[
+            "test_cavity/cal/cam1.tif.ori",
+            "test_cavity/cal/cam2.tif.ori",
+            "test_cavity/cal/cam3.tif.ori",
+            "test_cavity/cal/cam4.tif.ori",
+        ],
     );
     let test_cavity = Golden {
         name: "test_cavity",
@@ -51,7 +56,11 @@ fn goldens() -> Vec<Golden> {
     let (cameras, json) = load(
         "golden/rig_a/golden.json",
         "golden/rig_a/ptv.par",
-        &["golden/rig_a/cam1.ori", "golden/rig_a/cam2.ori", "golden/rig_a/cam3.ori"],
+        &[
+            "golden/rig_a/cam1.ori",
+            "golden/rig_a/cam2.ori",
+            "golden/rig_a/cam3.ori",
+        ],
     );
     vec![
         test_cavity,
@@ -68,17 +77,30 @@ fn vec2(v: &Value) -> Vector2<f64> {
 }
 
 fn point3(v: &Value) -> Point3<f64> {
-    Point3::new(v[0].as_f64().unwrap(), v[1].as_f64().unwrap(), v[2].as_f64().unwrap())
+    Point3::new(
+        v[0].as_f64().unwrap(),
+        v[1].as_f64().unwrap(),
+        v[2].as_f64().unwrap(),
+    )
 }
 
 fn points(json: &Value) -> Vec<Point3<f64>> {
-    json["points"].as_array().unwrap().iter().map(point3).collect()
+    json["points"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(point3)
+        .collect()
 }
 
 #[test]
 fn import_matches_the_calibration_json_of_the_golden_files() {
     for golden in goldens() {
-        let from_json = ptv::formats::calibration::from_json(&golden.json["calibration"].to_string(), golden.name).unwrap();
+        let from_json = ptv::formats::calibration::from_json(
+            &golden.json["calibration"].to_string(),
+            golden.name,
+        )
+        .unwrap();
         // Names differ only by the image extension OpenPTV puts in .ori names.
         for (a, b) in golden.cameras.iter().zip(&from_json) {
             let (mut a, b) = (a.parameters().clone(), b.parameters());
@@ -109,10 +131,28 @@ fn flat_distorted_and_pixel_coordinates_match_openptv() {
                 }
             }
         }
-        println!("{}: worst flat {:.2e} mm, distorted {:.2e} mm, pixel {:.2e} px", golden.name, worst[0], worst[1], worst[2]);
-        assert!(worst[0] < IMAGE_TOLERANCE_MM, "{}: flat {}", golden.name, worst[0]);
-        assert!(worst[1] < IMAGE_TOLERANCE_MM, "{}: distorted {}", golden.name, worst[1]);
-        assert!(worst[2] < PIXEL_TOLERANCE, "{}: pixel {}", golden.name, worst[2]);
+        println!(
+            "{}: worst flat {:.2e} mm, distorted {:.2e} mm, pixel {:.2e} px",
+            golden.name, worst[0], worst[1], worst[2]
+        );
+        assert!(
+            worst[0] < IMAGE_TOLERANCE_MM,
+            "{}: flat {}",
+            golden.name,
+            worst[0]
+        );
+        assert!(
+            worst[1] < IMAGE_TOLERANCE_MM,
+            "{}: distorted {}",
+            golden.name,
+            worst[1]
+        );
+        assert!(
+            worst[2] < PIXEL_TOLERANCE,
+            "{}: pixel {}",
+            golden.name,
+            worst[2]
+        );
     }
 }
 
@@ -129,7 +169,12 @@ fn our_projection_is_exact_against_forward_ray_tracing() {
                 let miss = (rel - ray.direction * rel.dot(&ray.direction)).norm();
                 // An object-space miss maps to about c/distance (< 0.2) of it
                 // on the image plane, so this bounds the image error by 1e-9 mm.
-                assert!(miss < 1e-9, "{} {}: {point} missed by {miss:e} mm", golden.name, camera.name());
+                assert!(
+                    miss < 1e-9,
+                    "{} {}: {point} missed by {miss:e} mm",
+                    golden.name,
+                    camera.name()
+                );
             }
         }
     }
@@ -142,7 +187,13 @@ fn pixel_to_ideal_inverse_is_exact() {
             for point in points(&golden.json) {
                 let flat = camera.project_flat(&point).unwrap();
                 let back = camera.pixel_to_flat(camera.flat_to_pixel(flat)).unwrap();
-                assert!((back - flat).norm() < 1e-9, "{} {}: {:e}", golden.name, camera.name(), (back - flat).norm());
+                assert!(
+                    (back - flat).norm() < 1e-9,
+                    "{} {}: {:e}",
+                    golden.name,
+                    camera.name(),
+                    (back - flat).norm()
+                );
             }
         }
     }
@@ -179,8 +230,14 @@ fn openptv_pixel_to_flat(camera: &Camera, pixel: Point2<f64>) -> Vector2<f64> {
     let mut rq = x.hypot(y);
     for _ in 0..201 {
         let r = rq;
-        xq = (x + yq * d.shear.sin()) / d.scx - xq * radial(r) - d.p1 * (r * r + 2.0 * xq * xq) - 2.0 * d.p2 * xq * yq;
-        yq = y / d.shear.cos() - yq * radial(r) - d.p2 * (r * r + 2.0 * yq * yq) - 2.0 * d.p1 * xq * yq;
+        xq = (x + yq * d.shear.sin()) / d.scx
+            - xq * radial(r)
+            - d.p1 * (r * r + 2.0 * xq * xq)
+            - 2.0 * d.p2 * xq * yq;
+        yq = y / d.shear.cos()
+            - yq * radial(r)
+            - d.p2 * (r * r + 2.0 * yq * yq)
+            - 2.0 * d.p1 * xq * yq;
         rq = xq.hypot(yq);
         if rq > 1.2 * r {
             rq = 0.5 * r;
@@ -195,12 +252,24 @@ fn openptv_pixel_to_flat(camera: &Camera, pixel: Point2<f64>) -> Vector2<f64> {
 /// Our epipolar curve of a flat image point of camera `origin` in camera
 /// `target`, over the volume's depth range (plus a margin), sampled every
 /// 0.01 mm in Z so that the chords' sagitta is far below the tolerance.
-fn epipolar_curve(origin: &Camera, flat: Vector2<f64>, target: &Camera, z_range: (f64, f64)) -> Vec<Point2<f64>> {
+fn epipolar_curve(
+    origin: &Camera,
+    flat: Vector2<f64>,
+    target: &Camera,
+    z_range: (f64, f64),
+) -> Vec<Point2<f64>> {
     let ray = origin.ray_from_flat(flat).unwrap();
     let (from, to) = (z_range.0 - 1.0, z_range.1 + 1.0);
     let steps = ((to - from) / 0.01) as usize;
     (0..=steps)
-        .map(|s| target.project(&ray.at_z(from + (to - from) * s as f64 / steps as f64).unwrap()).unwrap())
+        .map(|s| {
+            target
+                .project(
+                    &ray.at_z(from + (to - from) * s as f64 / steps as f64)
+                        .unwrap(),
+                )
+                .unwrap()
+        })
         .collect()
 }
 
@@ -209,12 +278,22 @@ fn epipolar_curve(origin: &Camera, flat: Vector2<f64>, target: &Camera, z_range:
 /// `flat_of(i)`, and the largest distance between them (px).
 fn worst_epipolar_distance(golden: &Golden, flat_of: impl Fn(usize) -> Vector2<f64>) -> f64 {
     let volume = &golden.json["volume"];
-    let z_range = (volume["z_min"][0].as_f64().unwrap(), volume["z_max"][0].as_f64().unwrap());
+    let z_range = (
+        volume["z_min"][0].as_f64().unwrap(),
+        volume["z_max"][0].as_f64().unwrap(),
+    );
     let mut worst = 0f64;
     for (i, origin) in golden.cameras.iter().enumerate() {
-        let curves = golden.json["cameras"][i]["epipolar_curve_of_point0_px"].as_object().unwrap();
+        let curves = golden.json["cameras"][i]["epipolar_curve_of_point0_px"]
+            .as_object()
+            .unwrap();
         for (j, expected) in curves {
-            let curve = epipolar_curve(origin, flat_of(i), &golden.cameras[j.parse::<usize>().unwrap()], z_range);
+            let curve = epipolar_curve(
+                origin,
+                flat_of(i),
+                &golden.cameras[j.parse::<usize>().unwrap()],
+                z_range,
+            );
             for p in expected.as_array().unwrap() {
                 worst = worst.max(distance_to_polyline(&Point2::from(vec2(p)), &curve));
             }
@@ -228,16 +307,27 @@ fn epipolar_curves_pass_through_openptvs_points() {
     for golden in goldens() {
         let pixel0 = |i: usize| Point2::from(vec2(&golden.json["cameras"][i]["pixel"][0]));
         // Our exact model: the ray of the pixel at which point 0 images.
-        let ours = worst_epipolar_distance(&golden, |i| golden.cameras[i].pixel_to_flat(pixel0(i)).unwrap());
+        let ours = worst_epipolar_distance(&golden, |i| {
+            golden.cameras[i].pixel_to_flat(pixel0(i)).unwrap()
+        });
         // The same ray tracing started from OpenPTV's own (inconsistent)
         // pixel -> flat conversion.
-        let from_openptv_flat = worst_epipolar_distance(&golden, |i| openptv_pixel_to_flat(&golden.cameras[i], pixel0(i)));
+        let from_openptv_flat = worst_epipolar_distance(&golden, |i| {
+            openptv_pixel_to_flat(&golden.cameras[i], pixel0(i))
+        });
         println!(
             "{}: worst epipolar distance {ours:.2e} px; from OpenPTV's flat coordinates {from_openptv_flat:.2e} px",
             golden.name
         );
-        assert!(from_openptv_flat < PIXEL_TOLERANCE, "{}: {from_openptv_flat} px", golden.name);
-        let has_affine_scale = golden.cameras.iter().any(|c| c.parameters().distortion.scx != 1.0);
+        assert!(
+            from_openptv_flat < PIXEL_TOLERANCE,
+            "{}: {from_openptv_flat} px",
+            golden.name
+        );
+        let has_affine_scale = golden
+            .cameras
+            .iter()
+            .any(|c| c.parameters().distortion.scx != 1.0);
         if !has_affine_scale {
             // Without an x scale OpenPTV's inversion is consistent and the
             // exact rays agree too.
@@ -250,14 +340,23 @@ fn epipolar_curves_pass_through_openptvs_points() {
 fn our_epipolar_curves_pass_through_the_true_image_of_the_point() {
     for golden in goldens() {
         let volume = &golden.json["volume"];
-        let z_range = (volume["z_min"][0].as_f64().unwrap(), volume["z_max"][0].as_f64().unwrap());
+        let z_range = (
+            volume["z_min"][0].as_f64().unwrap(),
+            volume["z_max"][0].as_f64().unwrap(),
+        );
         let point0 = points(&golden.json)[0];
         for origin in &golden.cameras {
             let flat = origin.project_flat(&point0).unwrap();
             for target in &golden.cameras {
                 let curve = epipolar_curve(origin, flat, target, z_range);
                 let d = distance_to_polyline(&target.project(&point0).unwrap(), &curve);
-                assert!(d < 1e-6, "{} {} -> {}: {d} px", golden.name, origin.name(), target.name());
+                assert!(
+                    d < 1e-6,
+                    "{} {} -> {}: {d} px",
+                    golden.name,
+                    origin.name(),
+                    target.name()
+                );
             }
         }
     }
@@ -280,9 +379,13 @@ fn intersecting_noise_free_flat_coordinates_returns_the_points() {
                 .collect();
             let result = intersect(&golden.cameras, &observations).unwrap();
             worst = worst.max((result.point - point).norm());
-            worst_openptv = worst_openptv.max((point3(&golden.json["reconstructed_from_flat"][j]) - point).norm());
+            worst_openptv = worst_openptv
+                .max((point3(&golden.json["reconstructed_from_flat"][j]) - point).norm());
         }
-        println!("{}: worst intersection error {worst:.2e} mm (OpenPTV's own: {worst_openptv:.2e} mm)", golden.name);
+        println!(
+            "{}: worst intersection error {worst:.2e} mm (OpenPTV's own: {worst_openptv:.2e} mm)",
+            golden.name
+        );
         assert!(worst < 1e-3, "{}: {worst} mm", golden.name);
     }
 }

@@ -21,7 +21,9 @@ use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
 
 use super::FormatError;
-use crate::photogrammetry::{Camera, CameraParameters, Distortion, Exterior, Interior, Media, Sensor, Wall};
+use crate::photogrammetry::{
+    Camera, CameraParameters, Distortion, Exterior, Interior, Media, Sensor, Wall,
+};
 
 /// The fewest cameras a calibration may have: a point needs two rays.
 pub const MIN_CAMERAS: usize = 2;
@@ -162,7 +164,11 @@ pub fn from_json(text: &str, source: &str) -> Result<Vec<Camera>, FormatError> {
     let deserializer = &mut serde_json::Deserializer::from_str(text);
     let file: CalibrationFile = serde_path_to_error::deserialize(deserializer).map_err(|err| {
         let path = err.path().to_string();
-        let location = if path == "." { "document".to_owned() } else { path };
+        let location = if path == "." {
+            "document".to_owned()
+        } else {
+            path
+        };
         FormatError::invalid(source, location, err.into_inner().to_string())
     })?;
     from_parameters(
@@ -177,19 +183,27 @@ pub fn from_json(text: &str, source: &str) -> Result<Vec<Camera>, FormatError> {
 
 /// Validates a list of camera parameters as a calibration: at least
 /// [`MIN_CAMERAS`] cameras, each one valid.
-pub fn from_parameters(parameters: Vec<CameraParameters>, source: &str) -> Result<Vec<Camera>, FormatError> {
+pub fn from_parameters(
+    parameters: Vec<CameraParameters>,
+    source: &str,
+) -> Result<Vec<Camera>, FormatError> {
     if parameters.len() < MIN_CAMERAS {
         return Err(FormatError::invalid(
             source,
             "cameras",
-            format!("a calibration needs at least {MIN_CAMERAS} cameras, got {}", parameters.len()),
+            format!(
+                "a calibration needs at least {MIN_CAMERAS} cameras, got {}",
+                parameters.len()
+            ),
         ));
     }
     parameters
         .into_iter()
         .enumerate()
         .map(|(i, p)| {
-            Camera::new(p).map_err(|e| FormatError::invalid(source, format!("cameras[{i}].{}", e.field), e.reason))
+            Camera::new(p).map_err(|e| {
+                FormatError::invalid(source, format!("cameras[{i}].{}", e.field), e.reason)
+            })
         })
         .collect()
 }
@@ -236,26 +250,47 @@ mod tests {
 
     #[test]
     fn unknown_field_is_named_with_its_path() {
-        let text = TWO_CAMERAS.replace("\"principal_distance\": 50,\n         \"radial\"", "\"principal_distanse\": 50, \"radial\"");
+        let text = TWO_CAMERAS.replace(
+            "\"principal_distance\": 50,\n         \"radial\"",
+            "\"principal_distanse\": 50, \"radial\"",
+        );
         let message = error_of(&text);
-        assert!(message.contains("cameras[1]") && message.contains("principal_distanse"), "{message}");
+        assert!(
+            message.contains("cameras[1]") && message.contains("principal_distanse"),
+            "{message}"
+        );
     }
 
     #[test]
     fn missing_field_is_named() {
         let text = TWO_CAMERAS.replacen("\"pixel_size\": [0.012, 0.012],", "", 1);
         let message = error_of(&text);
-        assert!(message.contains("cameras[0]") && message.contains("pixel_size"), "{message}");
+        assert!(
+            message.contains("cameras[0]") && message.contains("pixel_size"),
+            "{message}"
+        );
     }
 
     #[test]
     fn bad_values_are_named() {
         for (from, to, field) in [
-            ("[0.012, 0.012]", "[0.012, -0.012]", "cameras[0].pixel_size[1]"),
+            (
+                "[0.012, 0.012]",
+                "[0.012, -0.012]",
+                "cameras[0].pixel_size[1]",
+            ),
             ("\"n\": 1.5", "\"n\": 0", "cameras[0].media.walls[0].n"),
-            ("\"principal_distance\": 50", "\"principal_distance\": 0", "cameras[0].principal_distance"),
+            (
+                "\"principal_distance\": 50",
+                "\"principal_distance\": 0",
+                "cameras[0].principal_distance",
+            ),
             ("[1280, 1024]", "[0, 1024]", "cameras[0].image_size[0]"),
-            ("\"n_object\": 1.33", "\"n_object\": -1.33", "cameras[0].media.n_object"),
+            (
+                "\"n_object\": 1.33",
+                "\"n_object\": -1.33",
+                "cameras[0].media.n_object",
+            ),
             ("[0, 0, 600]", "[0, 0, 1e999]", "cameras[0].position"),
         ] {
             let message = error_of(&TWO_CAMERAS.replacen(from, to, 1));
@@ -272,7 +307,13 @@ mod tests {
 
     #[test]
     fn not_json_is_an_error_not_a_panic() {
-        for text in ["", "[]", "{\"cameras\": 3}", "NaN", "{\"cameras\": [{\"position\": [NaN, 0, 0]}]}"] {
+        for text in [
+            "",
+            "[]",
+            "{\"cameras\": 3}",
+            "NaN",
+            "{\"cameras\": [{\"position\": [NaN, 0, 0]}]}",
+        ] {
             assert!(from_json(text, "x").is_err(), "{text}");
         }
     }

@@ -1,1 +1,542 @@
 //! Point and observation tables of the command line (CSV with a header).
+//!
+//! Three tables, comma-separated, each starting with a header line that
+//! names its columns:
+//!
+//! - points, read by `ptv project`: columns `x,y,z` (mm) in any order among
+//!   others, which are ignored. A point's index is its data row index,
+//!   counted from 0.
+//! - observations, written by `ptv project` and read by `ptv intersect`:
+//!   `point,camera,x,y`, a point id (non-negative integer), the 0-based index
+//!   of the camera in the calibration and the image position in pixels (the
+//!   convention of [`crate::photogrammetry::camera`]). Each (point, camera)
+//!   pair appears at most once.
+//! - intersections, written by `ptv intersect`:
+//!   `point,x,y,z,sx,sy,sz,rms_px`, the point (mm), its standard deviations
+//!   (mm) and the root mean square of its residuals (px).
+//!
+//! Readers match header names exactly after trimming surrounding
+//! whitespace, trim every field, skip a UTF-8 byte order mark and blank
+//! lines, require every data line to have as many fields as the header and
+//! every number to be finite. Errors name the source, the line (counted from
+//! 1 in the text as given) and the column.
+//!
+//! Writers print numbers with Rust's `{:?}` for `f64`: the shortest form that
+//! parses back to the same value (with an exponent for very small or large
+//! ones), so a table written and read again is identical bit for bit.
+
+use std::collections::BTreeMap;
+use std::fmt::Write as _;
+
+use nalgebra::{Point2, Point3};
+
+use super::FormatError;
+use crate::photogrammetry::{Intersection, Observation};
+
+/// The columns a points table must have.
+pub const POINT_COLUMNS: [&str; 3] = ["x", "y", "z"];
+/// The columns of an observations table.
+pub const OBSERVATION_COLUMNS: [&str; 4] = ["point", "camera", "x", "y"];
+/// The columns of an intersections table.
+pub const INTERSECTION_COLUMNS: [&str; 8] = ["point", "x", "y", "z", "sx", "sy", "sz", "rms_px"];
+
+/// A point id and its images: the rows of an observations table that share
+/// one `point`.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ObservedPoint {
+    /// The point's id.
+    pub point: u64,
+    /// Its image positions, at most one per camera.
+    pub observations: Vec<Observation>,
+}
+
+/// Reads a points table: one 3D point (mm) per data line, in file order.
+pub fn parse_points(text: &str, source: &str) -> Result<Vec<Point3<f64>>, FormatError> {
+    read_table(text, source, &POINT_COLUMNS)?
+        .iter()
+        .map(|row| Ok(Point3::new(row.number(0)?, row.number(1)?, row.number(2)?)))
+        .collect()
+}
+
+/// Reads an observations table for a calibration of `cameras` cameras:
+/// the points sorted by id, each with its observations in file order.
+pub fn parse_observations(
+    text: &str,
+    source: &str,
+    cameras: usize,
+) -> Result<Vec<ObservedPoint>, FormatError> {
+    // Per point: its observations and the line each came from.
+    let mut points: BTreeMap<u64, Vec<(Observation, u64)>> = BTreeMap::new();
+    for row in read_table(text, source, &OBSERVATION_COLUMNS)? {
+        let point = row.integer(0)?;
+        let camera = row.integer(1)?;
+        let camera = usize::try_from(camera)
+            .ok()
+            .filter(|&c| c < cameras)
+            .ok_or_else(|| {
+                row.error(
+                    1,
+                    format!(
+                        "camera {camera} does not exist: the calibration has {cameras} cameras, \
+                         numbered from 0 to {}",
+                        cameras.saturating_sub(1)
+                    ),
+                )
+            })?;
+        let pixel = Point2::new(row.number(2)?, row.number(3)?);
+        let seen = points.entry(point).or_default();
+        if let Some((_, line)) = seen.iter().find(|(o, _)| o.camera == camera) {
+            return Err(row.error(
+                1,
+                format!(
+                    "point {point} already has an observation in camera {camera}, on line {line}"
+                ),
+            ));
+        }
+        seen.push((Observation { camera, pixel }, row.line));
+    }
+    Ok(points
+        .into_iter()
+        .map(|(point, seen)| ObservedPoint {
+            point,
+            observations: seen.into_iter().map(|(o, _)| o).collect(),
+        })
+        .collect())
+}
+
+/// Writes a points table, `x,y,z`.
+pub fn format_points(points: &[Point3<f64>]) -> String {
+    let mut text = header(&POINT_COLUMNS);
+    for p in points {
+        let _ = writeln!(text, "{:?},{:?},{:?}", p.x, p.y, p.z);
+    }
+    text
+}
+
+/// Writes an observations table, `point,camera,x,y`: one row per
+/// observation, in the order given.
+pub fn format_observations(points: &[ObservedPoint]) -> String {
+    let mut text = header(&OBSERVATION_COLUMNS);
+    for point in points {
+        for o in &point.observations {
+            let _ = writeln!(
+                text,
+                "{},{},{:?},{:?}",
+                point.point, o.camera, o.pixel.x, o.pixel.y
+            );
+        }
+    }
+    text
+}
+
+/// Writes an intersections table, `point,x,y,z,sx,sy,sz,rms_px`, in the
+/// order given.
+pub fn format_intersections(points: &[(u64, Intersection)]) -> String {
+    let mut text = header(&INTERSECTION_COLUMNS);
+    for (id, i) in points {
+        let _ = writeln!(
+            text,
+            "{id},{:?},{:?},{:?},{:?},{:?},{:?},{:?}",
+            i.point.x, i.point.y, i.point.z, i.sigma.x, i.sigma.y, i.sigma.z, i.rms_px
+        );
+    }
+    text
+}
+
+fn header(columns: &[&str]) -> String {
+    columns.join(",") + "\n"
+}
+
+/// The longest field quoted whole in an error message.
+const MAX_QUOTED_CHARS: usize = 40;
+
+/// A field for an error message: on one line, shortened if long.
+fn quote(field: &str) -> String {
+    if field.chars().count() <= MAX_QUOTED_CHARS {
+        format!("{field:?}")
+    } else {
+        let head: String = field.chars().take(MAX_QUOTED_CHARS).collect();
+        format!("{head:?}...")
+    }
+}
+
+/// One data line of a table: the fields of the wanted columns.
+struct Row<'a> {
+    source: &'a str,
+    /// Line number (from 1) where the record starts.
+    line: u64,
+    /// Names of the wanted columns.
+    columns: &'a [&'a str],
+    /// The wanted columns' fields, trimmed, in the order of `columns`.
+    fields: Vec<String>,
+}
+
+impl Row<'_> {
+    fn error(&self, column: usize, reason: impl Into<String>) -> FormatError {
+        FormatError::invalid(
+            self.source,
+            format!("line {}, column {}", self.line, self.columns[column]),
+            reason,
+        )
+    }
+
+    fn number(&self, column: usize) -> Result<f64, FormatError> {
+        let field = &self.fields[column];
+        match field.parse::<f64>() {
+            Ok(value) if value.is_finite() => Ok(value),
+            _ if field.is_empty() => {
+                Err(self.error(column, "expected a number, found an empty field"))
+            }
+            _ => Err(self.error(
+                column,
+                format!("expected a finite number, got {}", quote(field)),
+            )),
+        }
+    }
+
+    fn integer(&self, column: usize) -> Result<u64, FormatError> {
+        let field = &self.fields[column];
+        field.parse::<u64>().map_err(|_| {
+            self.error(
+                column,
+                format!(
+                    "expected a non-negative integer (at most {}), got {}",
+                    u64::MAX,
+                    quote(field)
+                ),
+            )
+        })
+    }
+}
+
+/// Line numbers of the records the csv reader returns.
+///
+/// The reader reports a record's position as the end of the record before
+/// it, so its own line numbers miss blank lines and count `\r\n` as two
+/// breaks; this counts from the text itself instead.
+struct LineCounter<'t> {
+    text: &'t [u8],
+    /// Bytes already counted.
+    offset: usize,
+    /// The line (from 1) at `offset`.
+    line: u64,
+}
+
+impl<'t> LineCounter<'t> {
+    fn new(text: &'t str) -> Self {
+        LineCounter {
+            text: text.as_bytes(),
+            offset: 0,
+            line: 1,
+        }
+    }
+
+    /// The line of the record whose position the reader reports as `byte`:
+    /// the first line after it that is not empty (a record never starts
+    /// with a line break). Calls must come in order of increasing `byte`.
+    fn record_line(&mut self, byte: u64) -> u64 {
+        let text = self.text;
+        let mut start = usize::try_from(byte).map_or(text.len(), |b| b.min(text.len()));
+        while start < text.len() && matches!(text[start], b'\r' | b'\n') {
+            start += 1;
+        }
+        while self.offset < start {
+            // A break is `\n`, `\r\n` or a lone `\r`, as for the reader.
+            let is_break = match text[self.offset] {
+                b'\n' => true,
+                b'\r' => text.get(self.offset + 1) != Some(&b'\n'),
+                _ => false,
+            };
+            if is_break {
+                self.line += 1;
+            }
+            self.offset += 1;
+        }
+        self.line
+    }
+}
+
+/// Splits a table into its data rows, keeping the fields of `columns`.
+fn read_table<'a>(
+    text: &str,
+    source: &'a str,
+    columns: &'a [&'a str],
+) -> Result<Vec<Row<'a>>, FormatError> {
+    let expected = columns.join(",");
+    let text = text.strip_prefix('\u{feff}').unwrap_or(text);
+    let mut reader = csv::ReaderBuilder::new()
+        .has_headers(false)
+        .flexible(true)
+        .trim(csv::Trim::All)
+        .from_reader(text.as_bytes());
+    let mut lines = LineCounter::new(text);
+    let mut records = Vec::new();
+    for record in reader.records() {
+        let record = record.map_err(|error| {
+            let line = error.position().map_or(1, |p| lines.record_line(p.byte()));
+            FormatError::invalid(source, format!("line {line}"), error.to_string())
+        })?;
+        let line = record.position().map_or(1, |p| lines.record_line(p.byte()));
+        // A line of only whitespace reads as one empty field.
+        if !(record.len() == 1 && record[0].is_empty()) {
+            records.push((line, record));
+        }
+    }
+    let mut records = records.into_iter();
+
+    let Some(header) = records.next() else {
+        return Err(FormatError::invalid(
+            source,
+            "line 1",
+            format!("the table is empty; expected a header line naming the columns {expected}"),
+        ));
+    };
+    let (header_line, header) = header;
+    let mut indices = Vec::with_capacity(columns.len());
+    for &column in columns {
+        let mut found = header
+            .iter()
+            .enumerate()
+            .filter(|(_, name)| *name == column);
+        let Some((index, _)) = found.next() else {
+            let names: Vec<&str> = header.iter().collect();
+            return Err(FormatError::invalid(
+                source,
+                format!("line {header_line}, column {column}"),
+                format!(
+                    "the header has no column `{column}`: the first line must name the columns \
+                     {expected}, found {}",
+                    quote(&names.join(","))
+                ),
+            ));
+        };
+        if let Some((again, _)) = found.next() {
+            return Err(FormatError::invalid(
+                source,
+                format!("line {header_line}, column {column}"),
+                format!(
+                    "the header names column `{column}` twice, as fields {} and {}",
+                    index + 1,
+                    again + 1
+                ),
+            ));
+        }
+        indices.push(index);
+    }
+
+    let mut rows = Vec::new();
+    for (line, record) in records {
+        if record.len() != header.len() {
+            return Err(FormatError::invalid(
+                source,
+                format!("line {line}"),
+                format!(
+                    "has {} fields but the header has {}; every line needs one field per column",
+                    record.len(),
+                    header.len()
+                ),
+            ));
+        }
+        rows.push(Row {
+            source,
+            line,
+            columns,
+            fields: indices.iter().map(|&i| record[i].to_owned()).collect(),
+        });
+    }
+    Ok(rows)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::Vector3;
+    use proptest::prelude::*;
+
+    fn points_error(text: &str) -> String {
+        parse_points(text, "points.csv").unwrap_err().to_string()
+    }
+
+    fn observations_error(text: &str) -> String {
+        parse_observations(text, "obs.csv", 3)
+            .unwrap_err()
+            .to_string()
+    }
+
+    #[test]
+    fn points_columns_in_any_order_among_others() {
+        let text = "\u{feff}id, z ,x,y,note\n7,3,1,2,a\n\n8, -0.5e1 ,4.25,-1,\"b,c\"\r\n";
+        let points = parse_points(text, "points.csv").unwrap();
+        assert_eq!(
+            points,
+            vec![Point3::new(1.0, 2.0, 3.0), Point3::new(4.25, -1.0, -5.0)]
+        );
+    }
+
+    #[test]
+    fn header_only_is_no_points() {
+        assert!(parse_points("x,y,z\n", "p").unwrap().is_empty());
+        assert!(parse_observations("point,camera,x,y", "o", 2)
+            .unwrap()
+            .is_empty());
+    }
+
+    #[test]
+    fn points_errors_name_line_and_column() {
+        for (text, expected) in [
+            (
+                "x,y,z\n1,2,3\n4,abc,6\n",
+                "points.csv: line 3, column y: expected a finite number, got \"abc\"",
+            ),
+            ("x,y,z\n1,2,NaN\n", "line 2, column z"),
+            ("x,y,z\n1,inf,3\n", "line 2, column y"),
+            (
+                "x,y,z\n1,,3\n",
+                "line 2, column y: expected a number, found an empty field",
+            ),
+            (
+                "x,y\n1,2\n",
+                "points.csv: line 1, column z: the header has no column `z`",
+            ),
+            ("1,2,3\n", "line 1, column x: the header has no column `x`"),
+            (
+                "x,y,z,x\n1,2,3,4\n",
+                "line 1, column x: the header names column `x` twice",
+            ),
+            (
+                "x,y,z\n1,2,3\n\n4,5\n",
+                "points.csv: line 4: has 2 fields but the header has 3",
+            ),
+            ("x,y,z\n1,2,3,4\n", "line 2: has 4 fields"),
+            ("", "points.csv: line 1: the table is empty"),
+            ("  \n\n", "the table is empty"),
+        ] {
+            let message = points_error(text);
+            assert!(message.contains(expected), "{text:?}: {message}");
+        }
+    }
+
+    #[test]
+    fn line_numbers_count_blank_lines_and_any_line_break() {
+        for (text, line) in [
+            ("x,y,z\n1,2,3\n\n\n4,a,6\n", 5),
+            ("x,y,z\r\n1,2,3\r\n\r\n4,a,6\r\n", 4),
+            ("x,y,z\r1,2,3\r4,a,6\r", 3),
+            ("\n\nx,y,z\n1,2,3\n4,a,6", 5),
+            ("x,y,z\n1,\"2\n\n\",3\n4,a,6\n", 5),
+            ("x,y,z\n  \n1,2,3\n\t\n4,a,6\n", 5),
+            ("\u{feff}x,y,z\n4,a,6\n", 2),
+        ] {
+            let message = points_error(text);
+            assert!(
+                message.contains(&format!("line {line}, column y")),
+                "{text:?}: {message}"
+            );
+        }
+    }
+
+    #[test]
+    fn error_messages_stay_on_one_short_line() {
+        let long = "9".repeat(500);
+        let message = points_error(&format!("x,y,z\n1,\"a\nb\",3\n1,{long}e9999,3\n"));
+        assert!(
+            message.contains("line 2, column y") && !message.contains('\n'),
+            "{message}"
+        );
+        let message = points_error(&format!("x,y,z\n1,2,3\n1,{long}x,3\n"));
+        assert!(
+            message.contains("line 3, column y") && message.len() < 200,
+            "{message}"
+        );
+    }
+
+    #[test]
+    fn observations_are_grouped_and_sorted_by_point() {
+        let text = "point,camera,x,y\n12,2,1.5,2.5\n3,0,10,20\n12,0,-1,0.25\n3,1,11,21\n";
+        let points = parse_observations(text, "obs.csv", 3).unwrap();
+        let obs = |camera, x, y| Observation {
+            camera,
+            pixel: Point2::new(x, y),
+        };
+        assert_eq!(
+            points,
+            vec![
+                ObservedPoint {
+                    point: 3,
+                    observations: vec![obs(0, 10.0, 20.0), obs(1, 11.0, 21.0)],
+                },
+                ObservedPoint {
+                    point: 12,
+                    observations: vec![obs(2, 1.5, 2.5), obs(0, -1.0, 0.25)],
+                },
+            ]
+        );
+    }
+
+    #[test]
+    fn observations_errors_name_line_and_column() {
+        for (text, expected) in [
+            ("point,camera,x,y\n0,3,1,2\n", "obs.csv: line 2, column camera: camera 3 does not exist: the calibration has 3 cameras"),
+            ("point,camera,x,y\n0,-1,1,2\n", "line 2, column camera: expected a non-negative integer"),
+            ("point,camera,x,y\n-4,0,1,2\n", "line 2, column point: expected a non-negative integer"),
+            ("point,camera,x,y\n1.5,0,1,2\n", "line 2, column point"),
+            ("point,camera,x,y\n99999999999999999999,0,1,2\n", "line 2, column point"),
+            ("point,camera,x,y\n0,0,1,2\n1,0,1,2\n0,0,3,4\n", "line 4, column camera: point 0 already has an observation in camera 0, on line 2"),
+            ("point,camera,x,y\n0,0,NaN,2\n", "line 2, column x"),
+            ("point,camera,x,y\n0,0,1,-inf\n", "line 2, column y"),
+            ("point,x,y\n0,1,2\n", "line 1, column camera: the header has no column `camera`"),
+        ] {
+            let message = observations_error(text);
+            assert!(message.contains(expected), "{text:?}: {message}");
+        }
+    }
+
+    #[test]
+    fn intersections_table() {
+        let intersection = Intersection {
+            point: Point3::new(1.0, -2.5, 0.1),
+            sigma: Vector3::new(0.001, 0.002, 0.003),
+            sigma0_px: 0.1,
+            residuals_px: Vec::new(),
+            rms_px: 0.05,
+            iterations: 3,
+        };
+        assert_eq!(
+            format_intersections(&[(4, intersection)]),
+            "point,x,y,z,sx,sy,sz,rms_px\n4,1.0,-2.5,0.1,0.001,0.002,0.003,0.05\n"
+        );
+    }
+
+    fn finite() -> impl Strategy<Value = f64> {
+        prop_oneof![
+            -1e4..1e4f64,
+            any::<f64>().prop_filter("finite", |v| v.is_finite()),
+        ]
+    }
+
+    proptest! {
+        #[test]
+        fn points_round_trip_exactly(coords in prop::collection::vec((finite(), finite(), finite()), 0..20)) {
+            let points: Vec<Point3<f64>> = coords.into_iter().map(|(x, y, z)| Point3::new(x, y, z)).collect();
+            prop_assert_eq!(parse_points(&format_points(&points), "p").unwrap(), points);
+        }
+
+        #[test]
+        fn observations_round_trip_exactly(
+            table in prop::collection::btree_map(any::<u64>(), prop::collection::btree_map(0..4usize, (finite(), finite()), 0..4), 0..20)
+        ) {
+            let points: Vec<ObservedPoint> = table
+                .into_iter()
+                .filter(|(_, images)| !images.is_empty())
+                .map(|(point, images)| ObservedPoint {
+                    point,
+                    observations: images
+                        .into_iter()
+                        .map(|(camera, (x, y))| Observation { camera, pixel: Point2::new(x, y) })
+                        .collect(),
+                })
+                .collect();
+            prop_assert_eq!(parse_observations(&format_observations(&points), "o", 4).unwrap(), points);
+        }
+    }
+}

@@ -18,12 +18,13 @@ use std::path::{Path, PathBuf};
 #[derive(Debug, thiserror::Error)]
 pub enum FormatError {
     /// The file could not be read or written.
-    #[error("{path}: {source}")]
+    #[error("{path}: {reason}")]
     Io {
         /// The file.
         path: PathBuf,
-        /// The operating system's reason.
-        source: std::io::Error,
+        /// The operating system's reason (part of the message, not a
+        /// separate cause, so that it is printed once).
+        reason: std::io::Error,
     },
     /// A value is missing, malformed or out of range.
     #[error("{input}: {location}: {reason}")]
@@ -38,7 +39,11 @@ pub enum FormatError {
 }
 
 impl FormatError {
-    pub(crate) fn invalid(source: &str, location: impl Into<String>, reason: impl Into<String>) -> Self {
+    pub(crate) fn invalid(
+        source: &str,
+        location: impl Into<String>,
+        reason: impl Into<String>,
+    ) -> Self {
         FormatError::Invalid {
             input: source.to_owned(),
             location: location.into(),
@@ -49,16 +54,16 @@ impl FormatError {
 
 /// Reads a whole text file, naming it in the error.
 pub fn read_text(path: &Path) -> Result<String, FormatError> {
-    std::fs::read_to_string(path).map_err(|source| FormatError::Io {
+    std::fs::read_to_string(path).map_err(|reason| FormatError::Io {
         path: path.to_owned(),
-        source,
+        reason,
     })
 }
 
 /// Writes a whole text file, naming it in the error.
 pub fn write_text(path: &Path, text: &str) -> Result<(), FormatError> {
-    std::fs::write(path, text).map_err(|source| FormatError::Io {
+    std::fs::write(path, text).map_err(|reason| FormatError::Io {
         path: path.to_owned(),
-        source,
+        reason,
     })
 }

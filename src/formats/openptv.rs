@@ -22,7 +22,9 @@ use nalgebra::Vector3;
 
 use super::calibration;
 use super::{read_text, write_text, FormatError};
-use crate::photogrammetry::{Camera, CameraParameters, Distortion, Exterior, Interior, Media, Sensor, Wall};
+use crate::photogrammetry::{
+    Camera, CameraParameters, Distortion, Exterior, Interior, Media, Sensor, Wall,
+};
 
 /// The parts of OpenPTV's `ptv.par` that describe the cameras.
 #[derive(Clone, Debug, PartialEq)]
@@ -96,7 +98,10 @@ impl<'a> Tokens<'a> {
 }
 
 /// Parses a `.ori` file into exterior and interior orientation and the glass vector.
-pub fn parse_ori(text: &str, source: &str) -> Result<(Exterior, Interior, Vector3<f64>), FormatError> {
+pub fn parse_ori(
+    text: &str,
+    source: &str,
+) -> Result<(Exterior, Interior, Vector3<f64>), FormatError> {
     let mut t = Tokens::new(text, source);
     let position = Vector3::new(t.number("X0")?, t.number("Y0")?, t.number("Z0")?);
     let (omega, phi, kappa) = (t.number("omega")?, t.number("phi")?, t.number("kappa")?);
@@ -148,26 +153,49 @@ pub fn parse_ptv_par(text: &str, source: &str) -> Result<PtvPar, FormatError> {
             _ => Err(FormatError::invalid(
                 source,
                 format!("line {}", index + 1),
-                format!("expected {what}, found {}", if index < lines.len() { "an empty line" } else { "the end of the file" }),
+                format!(
+                    "expected {what}, found {}",
+                    if index < lines.len() {
+                        "an empty line"
+                    } else {
+                        "the end of the file"
+                    }
+                ),
             )),
         }
     };
     let parse = |index: usize, what: &str| -> Result<f64, FormatError> {
         let token = line(index, what)?;
-        token.parse::<f64>().ok().filter(|v| v.is_finite()).ok_or_else(|| {
-            FormatError::invalid(source, format!("line {}", index + 1), format!("{what} must be a number, got `{token}`"))
-        })
+        token
+            .parse::<f64>()
+            .ok()
+            .filter(|v| v.is_finite())
+            .ok_or_else(|| {
+                FormatError::invalid(
+                    source,
+                    format!("line {}", index + 1),
+                    format!("{what} must be a number, got `{token}`"),
+                )
+            })
     };
     let count = parse(0, "the number of cameras")?;
     if count < 1.0 || count.fract() != 0.0 || count > 1000.0 {
-        return Err(FormatError::invalid(source, "line 1", format!("the number of cameras must be a positive integer, got {count}")));
+        return Err(FormatError::invalid(
+            source,
+            "line 1",
+            format!("the number of cameras must be a positive integer, got {count}"),
+        ));
     }
     let count = count as usize;
     let mut image_names = Vec::with_capacity(count);
     for k in 0..count {
         image_names.push((
             line(1 + 2 * k, &format!("the image name of camera {}", k + 1))?.to_owned(),
-            line(2 + 2 * k, &format!("the calibration image name of camera {}", k + 1))?.to_owned(),
+            line(
+                2 + 2 * k,
+                &format!("the calibration image name of camera {}", k + 1),
+            )?
+            .to_owned(),
         ));
     }
     let base = 1 + 2 * count;
@@ -176,7 +204,11 @@ pub fn parse_ptv_par(text: &str, source: &str) -> Result<PtvPar, FormatError> {
         if value >= 1.0 && value.fract() == 0.0 && value <= f64::from(u32::MAX) {
             Ok(value as u32)
         } else {
-            Err(FormatError::invalid(source, format!("line {}", index + 1), format!("{what} must be a positive integer, got {value}")))
+            Err(FormatError::invalid(
+                source,
+                format!("line {}", index + 1),
+                format!("{what} must be a positive integer, got {value}"),
+            ))
         }
     };
     let width = size(base + 3, "the image width")?;
@@ -208,14 +240,20 @@ pub fn parse_ptv_par(text: &str, source: &str) -> Result<PtvPar, FormatError> {
 
 /// The `.addpar` file beside a `.ori` file: `cam1.tif.ori` -> `cam1.tif.addpar`.
 pub fn addpar_path(ori: &Path) -> PathBuf {
-    let name = ori.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+    let name = ori
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
     let stem = name.strip_suffix(".ori").unwrap_or(&name);
     ori.with_file_name(format!("{stem}.addpar"))
 }
 
 /// A camera name from a `.ori` path: `cal/cam1.tif.ori` -> `cam1`.
 fn camera_name(ori: &Path, index: usize) -> String {
-    let name = ori.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+    let name = ori
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
     let mut stem = name.strip_suffix(".ori").unwrap_or(&name);
     for extension in [".tif", ".tiff", ".png", ".bmp", ".jpg"] {
         if let Some(s) = stem.strip_suffix(extension) {
@@ -253,7 +291,12 @@ pub fn import(ptv_par: &Path, oris: &[PathBuf]) -> Result<Vec<Camera>, FormatErr
         let distortion = match std::fs::read_to_string(&addpar) {
             Ok(text) => parse_addpar(&text, &addpar.display().to_string())?,
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => Distortion::default(),
-            Err(source) => return Err(FormatError::Io { path: addpar, source }),
+            Err(reason) => {
+                return Err(FormatError::Io {
+                    path: addpar,
+                    reason,
+                })
+            }
         };
         parameters.push(CameraParameters {
             name: camera_name(ori, index),
@@ -285,7 +328,13 @@ pub fn format_ori(camera: &Camera) -> String {
     let _ = writeln!(text, "{} {} {}", e.position.x, e.position.y, e.position.z);
     let _ = writeln!(text, "    {} {} {}\n", e.omega, e.phi, e.kappa);
     for row in 0..3 {
-        let _ = writeln!(text, "    {:10.7} {:10.7} {:10.7}", r[(row, 0)], r[(row, 1)], r[(row, 2)]);
+        let _ = writeln!(
+            text,
+            "    {:10.7} {:10.7} {:10.7}",
+            r[(row, 0)],
+            r[(row, 1)],
+            r[(row, 2)]
+        );
     }
     let _ = writeln!(text, "\n    {} {}\n    {}\n", i.xh, i.yh, i.c);
     let _ = writeln!(text, "    {} {} {}", g.x, g.y, g.z);
@@ -295,7 +344,10 @@ pub fn format_ori(camera: &Camera) -> String {
 /// Writes a `.addpar` file's text.
 pub fn format_addpar(distortion: &Distortion) -> String {
     let d = distortion;
-    format!("{} {} {} {} {} {} {}\n", d.k1, d.k2, d.k3, d.p1, d.p2, d.scx, d.shear)
+    format!(
+        "{} {} {} {} {} {} {}\n",
+        d.k1, d.k2, d.k3, d.p1, d.p2, d.scx, d.shear
+    )
 }
 
 /// OpenPTV divides by the glass vector's length even without refraction, so
@@ -331,9 +383,15 @@ pub fn format_ptv_par(cameras: &[Camera]) -> Result<String, String> {
     for camera in cameras {
         let p = camera.parameters();
         if p.sensor != first.sensor {
-            return Err(format!("camera {} has another sensor than camera {}; OpenPTV's ptv.par has one for all", p.name, first.name));
+            return Err(format!(
+                "camera {} has another sensor than camera {}; OpenPTV's ptv.par has one for all",
+                p.name, first.name
+            ));
         }
-        if p.media.n_air != first.media.n_air || p.media.n_object != first.media.n_object || wall_of(p)? != wall {
+        if p.media.n_air != first.media.n_air
+            || p.media.n_object != first.media.n_object
+            || wall_of(p)? != wall
+        {
             return Err(format!(
                 "camera {} sees other media than camera {}; OpenPTV's ptv.par has one set of refractive indices and one wall for all",
                 p.name, first.name
@@ -348,7 +406,14 @@ pub fn format_ptv_par(cameras: &[Camera]) -> Result<String, String> {
     let _ = write!(
         text,
         "1\n0\n1\n{}\n{}\n{}\n{}\n0\n{}\n{}\n{}\n{}\n",
-        s.width, s.height, s.pixel_size_x, s.pixel_size_y, first.media.n_air, wall.n, first.media.n_object, wall.thickness
+        s.width,
+        s.height,
+        s.pixel_size_x,
+        s.pixel_size_y,
+        first.media.n_air,
+        wall.n,
+        first.media.n_object,
+        wall.thickness
     );
     Ok(text)
 }
@@ -356,7 +421,8 @@ pub fn format_ptv_par(cameras: &[Camera]) -> Result<String, String> {
 /// Writes `ptv.par` and, per camera, `NAME.ori` and `NAME.addpar` into
 /// `dir` (created if missing); returns the files written.
 pub fn export(cameras: &[Camera], dir: &Path) -> Result<Vec<PathBuf>, FormatError> {
-    let ptv_par = format_ptv_par(cameras).map_err(|reason| FormatError::invalid("calibration", "cameras", reason))?;
+    let ptv_par = format_ptv_par(cameras)
+        .map_err(|reason| FormatError::invalid("calibration", "cameras", reason))?;
     let mut names: Vec<&str> = cameras.iter().map(Camera::name).collect();
     names.sort_unstable();
     if let Some(pair) = names.windows(2).find(|w| w[0] == w[1]) {
@@ -366,16 +432,18 @@ pub fn export(cameras: &[Camera], dir: &Path) -> Result<Vec<PathBuf>, FormatErro
             format!("two cameras are named `{}`; OpenPTV files are named after the cameras, so names must differ", pair[0]),
         ));
     }
-    if let Some(bad) = cameras.iter().find(|c| c.name().is_empty() || c.name().contains(['/', '\\']) || c.name().starts_with('.')) {
+    if let Some(bad) = cameras.iter().find(|c| {
+        c.name().is_empty() || c.name().contains(['/', '\\']) || c.name().starts_with('.')
+    }) {
         return Err(FormatError::invalid(
             "calibration",
             "cameras",
             format!("camera name `{}` cannot be used as a file name", bad.name()),
         ));
     }
-    std::fs::create_dir_all(dir).map_err(|source| FormatError::Io {
+    std::fs::create_dir_all(dir).map_err(|reason| FormatError::Io {
         path: dir.to_owned(),
-        source,
+        reason,
     })?;
     let mut written = Vec::new();
     let mut write = |name: String, text: &str| -> Result<(), FormatError> {
@@ -387,7 +455,10 @@ pub fn export(cameras: &[Camera], dir: &Path) -> Result<Vec<PathBuf>, FormatErro
     write("ptv.par".into(), &ptv_par)?;
     for camera in cameras {
         write(format!("{}.ori", camera.name()), &format_ori(camera))?;
-        write(format!("{}.addpar", camera.name()), &format_addpar(&camera.parameters().distortion))?;
+        write(
+            format!("{}.addpar", camera.name()),
+            &format_addpar(&camera.parameters().distortion),
+        )?;
     }
     Ok(written)
 }
@@ -401,8 +472,14 @@ mod tests {
     #[test]
     fn parses_ori() {
         let (e, i, g) = parse_ori(ORI, "cam1.tif.ori").unwrap();
-        assert_eq!(e.position, Vector3::new(82.96897532, 12.21372353, -569.03076947));
-        assert_eq!((e.omega, e.phi, e.kappa), (-56.54284096, 2.97360259, 56.53126707));
+        assert_eq!(
+            e.position,
+            Vector3::new(82.96897532, 12.21372353, -569.03076947)
+        );
+        assert_eq!(
+            (e.omega, e.phi, e.kappa),
+            (-56.54284096, 2.97360259, 56.53126707)
+        );
         assert_eq!((i.xh, i.yh, i.c), (0.0, 0.0, 70.0));
         assert_eq!(g, Vector3::new(0.0, 0.0, -125.0));
     }
@@ -411,12 +488,21 @@ mod tests {
     fn ori_errors_name_the_line() {
         let truncated = ORI.replace("       0.0 0.0 -125.0\n", "       0.0 0.0\n");
         let message = parse_ori(&truncated, "cam1.ori").unwrap_err().to_string();
-        assert!(message.contains("cam1.ori") && message.contains("glass vector z"), "{message}");
+        assert!(
+            message.contains("cam1.ori") && message.contains("glass vector z"),
+            "{message}"
+        );
         let garbage = ORI.replace("70.0000", "seventy");
         let message = parse_ori(&garbage, "cam1.ori").unwrap_err().to_string();
-        assert!(message.contains("line 9") && message.contains("seventy"), "{message}");
+        assert!(
+            message.contains("line 9") && message.contains("seventy"),
+            "{message}"
+        );
         let extra = format!("{ORI} 5");
-        assert!(parse_ori(&extra, "x").unwrap_err().to_string().contains("extra"));
+        assert!(parse_ori(&extra, "x")
+            .unwrap_err()
+            .to_string()
+            .contains("extra"));
     }
 
     #[test]
@@ -436,7 +522,9 @@ mod tests {
 
     #[test]
     fn ptv_par_errors_name_the_line() {
-        let message = parse_ptv_par("2\na\nb\nc\n", "ptv.par").unwrap_err().to_string();
+        let message = parse_ptv_par("2\na\nb\nc\n", "ptv.par")
+            .unwrap_err()
+            .to_string();
         assert!(message.contains("line 5"), "{message}");
         let message = parse_ptv_par("two\n", "ptv.par").unwrap_err().to_string();
         assert!(message.contains("line 1"), "{message}");
