@@ -87,6 +87,9 @@ struct Layer {
     start: f64,
     /// Where it ends (`f64::INFINITY` for the object medium).
     end: f64,
+    /// The lowest index of this layer and all before it: the reference
+    /// index of a path that ends in this layer.
+    n_ref: f64,
 }
 
 /// A camera's refracting geometry, precomputed from its [`Media`] and position.
@@ -122,6 +125,9 @@ struct RefractionTable {
     /// Depth of the first row and the spacing (mm).
     depth_min: f64,
     depth_step: f64,
+    /// 1 / radial_step and 1 / depth_step.
+    radial_scale: f64,
+    depth_scale: f64,
     /// Nodes along radial distance and depth.
     radial_nodes: usize,
     depth_nodes: usize,
@@ -139,8 +145,8 @@ const TABLE_NODES: usize = 65;
 impl RefractionTable {
     /// Bilinear interpolation of `q`; `None` outside the table.
     fn lookup(&self, radial: f64, depth: f64) -> Option<f64> {
-        let u = (radial - self.radial_min) / self.radial_step;
-        let v = (depth - self.depth_min) / self.depth_step;
+        let u = (radial - self.radial_min) * self.radial_scale;
+        let v = (depth - self.depth_min) * self.depth_scale;
         if !(u >= 0.0 && v >= 0.0) {
             return None;
         }
@@ -184,8 +190,11 @@ struct RefractedPath {
 /// and `q = tan(beta_ref)`, `n_ref` the lowest index on the path (so every
 /// other layer's `tan(beta_i)` stays bounded as `q` grows).
 struct PathEquation<'a> {
-    geometry: &'a MediaGeometry,
-    depth: f64,
+    /// The layers the path crosses; the last one contains the point.
+    layers: &'a [Layer],
+    /// Height of the path in the last layer (mm).
+    last_height: f64,
+    /// The reference index.
     n_ref: f64,
 }
 
@@ -201,6 +210,16 @@ struct PathValue {
 }
 
 impl PathEquation<'_> {
+    /// Height of the path in layer `i`.
+    fn height(&self, i: usize) -> f64 {
+        if i + 1 == self.layers.len() {
+            self.last_height
+        } else {
+            self.layers[i].end - self.layers[i].start
+        }
+    }
+
+    #[inline]
     fn at(&self, q: f64) -> PathValue {
         let inv = 1.0 / (1.0 + q * q).sqrt();
         let sin_ref = q * inv;
@@ -210,24 +229,30 @@ impl PathEquation<'_> {
             slope: 0.0,
             tan_last: 0.0,
         };
-        for (layer, height) in self.geometry.layers_to(self.depth) {
-            let k = self.n_ref / layer.n;
-            let s = k * sin_ref;
-            let cos2 = 1.0 - s * s;
-            let cos = cos2.sqrt();
-            value.tan_last = s / cos;
-            value.radial += height * value.tan_last;
-            value.slope += height * k * cos3_ref / (cos2 * cos);
+        for (i, layer) in self.layers.iter().enumerate() {
+            let height = self.height(i);
+            if layer.n == self.n_ref {
+                // tan(beta_ref) = q, and its derivative is 1.
+                value.tan_last = q;
+                value.radial += height * q;
+                value.slope += height;
+            } else {
+                let k = self.n_ref / layer.n;
+                let s = k * sin_ref;
+                let inv_cos = 1.0 / (1.0 - s * s).sqrt();
+                value.tan_last = s * inv_cos;
+                value.radial += height * value.tan_last;
+                value.slope += height * k * cos3_ref * inv_cos * inv_cos * inv_cos;
+            }
         }
         value
     }
 
     /// Total height of the layers of the reference index.
     fn reference_height(&self) -> f64 {
-        self.geometry
-            .layers_to(self.depth)
-            .filter(|(layer, _)| layer.n == self.n_ref)
-            .map(|(_, h)| h)
+        (0..self.layers.len())
+            .filter(|&i| self.layers[i].n == self.n_ref)
+            .map(|i| self.height(i))
             .sum()
     }
 }
@@ -295,26 +320,23 @@ impl MediaGeometry {
             ));
         }
         let mut layers = Vec::with_capacity(media.walls.len() + 2);
-        layers.push(Layer {
-            n: media.n_air,
-            start: 0.0,
-            end: air_height,
-        });
+        let mut push = |n: f64, start: f64, end: f64| {
+            let n_ref = layers.last().map_or(n, |l: &Layer| l.n_ref.min(n));
+            layers.push(Layer {
+                n,
+                start,
+                end,
+                n_ref,
+            });
+        };
+        push(media.n_air, 0.0, air_height);
         let mut start = air_height;
         // A wall of zero thickness (OpenPTV's way to say "no wall") bends no ray.
         for wall in media.walls.iter().rev().filter(|w| w.thickness > 0.0) {
-            layers.push(Layer {
-                n: wall.n,
-                start,
-                end: start + wall.thickness,
-            });
+            push(wall.n, start, start + wall.thickness);
             start += wall.thickness;
         }
-        layers.push(Layer {
-            n: media.n_object,
-            start: camera_height,
-            end: f64::INFINITY,
-        });
+        push(media.n_object, camera_height, f64::INFINITY);
         Ok(Some(MediaGeometry {
             normal,
             layers,
@@ -384,6 +406,8 @@ impl MediaGeometry {
             radial_step,
             depth_min,
             depth_step,
+            radial_scale: 1.0 / radial_step,
+            depth_scale: 1.0 / depth_step,
             radial_nodes: TABLE_NODES,
             depth_nodes: TABLE_NODES,
             q,
@@ -393,15 +417,22 @@ impl MediaGeometry {
 
     /// The equation of the path to a point at `depth` (distance from the
     /// camera along the inward normal).
+    #[inline]
     fn path_to(&self, depth: f64) -> PathEquation<'_> {
-        let n_ref = self
-            .layers_to(depth)
-            .map(|(layer, _)| layer.n)
-            .fold(f64::INFINITY, f64::min);
+        // The layer that contains the point: the last one starting before it
+        // (the air layer starts at 0, and depth > 0).
+        let count = self
+            .layers
+            .iter()
+            .take_while(|layer| layer.start < depth)
+            .count()
+            .max(1);
+        let layers = &self.layers[..count];
+        let last = &layers[count - 1];
         PathEquation {
-            geometry: self,
-            depth,
-            n_ref,
+            layers,
+            last_height: depth.min(last.end) - last.start,
+            n_ref: last.n_ref,
         }
     }
 
@@ -437,9 +468,10 @@ impl MediaGeometry {
             }
             let step = next - q;
             q = next;
-            // Newton converges quadratically here: after a relative step of
-            // 1e-10 the remaining error is of order 1e-20, below rounding.
-            if step.abs() <= 1e-10 * q || hi - lo <= 1e-15 * hi {
+            // Newton converges quadratically here, the error after a step
+            // being about (step / q)^2 relative (the equation is close to
+            // linear in q): after a relative step of 1e-7 it is at rounding.
+            if step.abs() <= 1e-7 * q || hi - lo <= 1e-15 * hi {
                 break;
             }
         }
@@ -449,15 +481,17 @@ impl MediaGeometry {
     /// The ray to a point at `radial` distance from the camera's nadir line
     /// and `depth`: from the table and one Newton step where the table
     /// covers the point, else by [`MediaGeometry::solve_exact`].
+    #[inline]
     fn solve(&self, radial: f64, depth: f64) -> RefractedPath {
+        let equation = self.path_to(depth);
         let tabulated = self.table.as_ref().and_then(|table| {
             let start = table.lookup(radial, depth)?;
-            let at = self.path_to(depth).at(start);
+            let at = equation.at(start);
             let q = start - (at.radial - radial) / at.slope;
             ((q - start).abs() <= TABLE_STEP_LIMIT * q).then_some((q, at))
         });
         let (q, at) = tabulated.unwrap_or_else(|| self.solve_exact(radial, depth));
-        let ref_over_air = self.path_to(depth).n_ref / self.layers[0].n;
+        let ref_over_air = equation.n_ref / self.layers[0].n;
         let inv = 1.0 / (1.0 + q * q).sqrt();
         let sin_air = ref_over_air * q * inv;
         let cos_air = (1.0 - sin_air * sin_air).sqrt();
@@ -469,15 +503,6 @@ impl MediaGeometry {
             tan_last: at.tan_last,
             ref_over_air,
         }
-    }
-
-    /// The layers between the camera and a point at `depth`, with the height
-    /// of the path in each.
-    fn layers_to(&self, depth: f64) -> impl Iterator<Item = (&Layer, f64)> {
-        self.layers
-            .iter()
-            .take_while(move |layer| layer.start < depth)
-            .map(move |layer| (layer, depth.min(layer.end) - layer.start))
     }
 
     /// The radial unit vector and distance of a point from the camera's
