@@ -69,11 +69,7 @@ fn intersection(c: &mut Criterion) {
         .map(|c| c.clone().with_refraction_table(&volume))
         .collect();
     let observations: Vec<Vec<Observation>> = (0..points.len())
-        .map(|j| {
-            (0..cameras.len())
-                .filter_map(|k| images[k][j].map(|pixel| Observation { camera: k, pixel }))
-                .collect()
-        })
+        .map(|j| simulate::observations_of(&images, j))
         .collect();
     for (name, rig) in [("exact", &cameras), ("lookup table", &tabulated)] {
         group.bench_function(

@@ -358,12 +358,8 @@ mod tests {
         let mut normalised_sq = Vector3::zeros();
         let mut variance_ratio = 0.0;
         for (j, point) in points.iter().enumerate() {
-            let observations: Vec<Observation> = (0..cameras.len())
-                .map(|k| Observation {
-                    camera: k,
-                    pixel: images[k][j].unwrap(),
-                })
-                .collect();
+            let observations = simulate::observations_of(&images, j);
+            assert_eq!(observations.len(), cameras.len());
             let result = intersect(&cameras, &observations).unwrap();
             let q_sqrt = result.sigma / result.sigma0_px;
             let error = result.point - point;
@@ -392,9 +388,7 @@ mod tests {
         for noise in [0.1, 2.0] {
             let images = simulate::observe(&cameras, &points, noise, &mut rng);
             for j in 0..points.len() {
-                let observations: Vec<Observation> = (0..cameras.len())
-                    .filter_map(|k| images[k][j].map(|pixel| Observation { camera: k, pixel }))
-                    .collect();
+                let observations = simulate::observations_of(&images, j);
                 let quick = intersect(&cameras, &observations).unwrap();
                 let rays: Vec<Ray> = observations
                     .iter()

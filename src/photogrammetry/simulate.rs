@@ -15,6 +15,7 @@ use rand_distr::{Distribution, Normal};
 use super::camera::{
     rotation_angles, Camera, CameraParameters, Distortion, Exterior, Interior, Sensor,
 };
+use super::intersect::Observation;
 use super::media::{Media, Wall};
 use super::volume::Volume;
 
@@ -220,6 +221,16 @@ pub fn observe(
                 })
                 .collect()
         })
+        .collect()
+}
+
+/// The observations of one point in every camera that sees it, from the
+/// output of [`observe`].
+pub fn observations_of(images: &[Vec<Option<Point2<f64>>>], point: usize) -> Vec<Observation> {
+    images
+        .iter()
+        .enumerate()
+        .filter_map(|(camera, pixels)| pixels[point].map(|pixel| Observation { camera, pixel }))
         .collect()
 }
 
