@@ -31,6 +31,7 @@ use std::fmt::Write as _;
 use nalgebra::{Point2, Point3};
 
 use super::FormatError;
+use crate::photogrammetry::Target;
 use crate::photogrammetry::{Intersection, Observation};
 
 /// The columns a points table must have.
@@ -48,6 +49,70 @@ pub struct ObservedPoint {
     pub point: u64,
     /// Its image positions, at most one per camera.
     pub observations: Vec<Observation>,
+}
+
+/// The columns of a targets table; only `x` and `y` are required.
+pub const TARGET_COLUMNS: [&str; 6] = ["x", "y", "n", "nx", "ny", "sumg"];
+
+/// Reads a targets table (pixels; `n`, `nx`, `ny`, `sumg` optional, 0 when
+/// absent), in file order.
+pub fn parse_targets(text: &str, source: &str) -> Result<Vec<Target>, FormatError> {
+    // The optional columns this header has.
+    let header: Vec<String> = text
+        .trim_start_matches('\u{feff}')
+        .lines()
+        .find(|line| !line.trim().is_empty())
+        .unwrap_or("")
+        .split(',')
+        .map(|name| name.trim().trim_matches('"').to_owned())
+        .collect();
+    let columns: Vec<&str> = TARGET_COLUMNS
+        .iter()
+        .enumerate()
+        .filter(|(i, name)| *i < 2 || header.iter().any(|h| h == *name))
+        .map(|(_, name)| *name)
+        .collect();
+    let rows = read_table(text, source, &columns)?;
+    rows.iter()
+        .map(|row| {
+            let mut target = Target {
+                x: row.number(0)?,
+                y: row.number(1)?,
+                n: 0,
+                nx: 0,
+                ny: 0,
+                sumg: 0,
+            };
+            for (i, name) in columns.iter().enumerate().skip(2) {
+                let value = row.integer(i)?;
+                let small = || {
+                    u32::try_from(value).map_err(|_| {
+                        row.error(i, format!("{value} is too large for a pixel count"))
+                    })
+                };
+                match *name {
+                    "n" => target.n = small()?,
+                    "nx" => target.nx = small()?,
+                    "ny" => target.ny = small()?,
+                    _ => target.sumg = value,
+                }
+            }
+            Ok(target)
+        })
+        .collect()
+}
+
+/// Writes a targets table, `x,y,n,nx,ny,sumg`.
+pub fn format_targets(targets: &[Target]) -> String {
+    let mut text = header(&TARGET_COLUMNS);
+    for t in targets {
+        let _ = writeln!(
+            text,
+            "{:?},{:?},{},{},{},{}",
+            t.x, t.y, t.n, t.nx, t.ny, t.sumg
+        );
+    }
+    text
 }
 
 /// Reads a points table: one 3D point (mm) per data line, in file order.
@@ -489,6 +554,43 @@ mod tests {
             let message = observations_error(text);
             assert!(message.contains(expected), "{text:?}: {message}");
         }
+    }
+
+    #[test]
+    fn targets_with_and_without_optional_columns() {
+        let full = parse_targets("x,y,n,nx,ny,sumg\n1.5,2.5,9,3,3,400\n", "t.csv").unwrap();
+        assert_eq!(
+            full,
+            vec![Target {
+                x: 1.5,
+                y: 2.5,
+                n: 9,
+                nx: 3,
+                ny: 3,
+                sumg: 400
+            }]
+        );
+        assert_eq!(
+            parse_targets(&format_targets(&full), "again").unwrap(),
+            full
+        );
+        let bare = parse_targets("y,x\n2.5,1.5\n", "t.csv").unwrap();
+        assert_eq!(
+            bare,
+            vec![Target {
+                x: 1.5,
+                y: 2.5,
+                n: 0,
+                nx: 0,
+                ny: 0,
+                sumg: 0
+            }]
+        );
+        let message = parse_targets("x,y,n\n1,2,-3\n", "t.csv")
+            .unwrap_err()
+            .to_string();
+        assert!(message.contains("line 2, column n"), "{message}");
+        assert!(parse_targets("x,n\n1,2\n", "t.csv").is_err());
     }
 
     #[test]

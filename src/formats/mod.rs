@@ -2,7 +2,9 @@
 //!
 //! - [`calibration`]: the project's calibration JSON.
 //! - [`openptv`]: OpenPTV's `.ori`, `.addpar` and `ptv.par`.
-//! - [`csv`]: point and observation tables of the command line.
+//! - [`csv`]: point, observation and target tables of the command line.
+//!
+//! [`parse_targets`] reads targets in either format.
 //!
 //! Every parser takes the text and a `source` (a file name, or a label like
 //! `request body`) and returns a [`FormatError`] that names the source, the
@@ -49,6 +51,24 @@ impl FormatError {
             location: location.into(),
             reason: reason.into(),
         }
+    }
+}
+
+/// Reads a targets file in either format: OpenPTV `_targets` when the first
+/// non-blank line is a single integer (the count), else a CSV table with a
+/// header naming at least `x,y`.
+pub fn parse_targets(
+    text: &str,
+    source: &str,
+) -> Result<Vec<crate::photogrammetry::Target>, FormatError> {
+    let first = text
+        .lines()
+        .find(|line| !line.trim().is_empty())
+        .unwrap_or("");
+    if first.trim().parse::<u64>().is_ok() {
+        openptv::parse_targets(text, source)
+    } else {
+        csv::parse_targets(text, source)
     }
 }
 

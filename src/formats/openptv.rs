@@ -10,6 +10,10 @@
 //!   TIFF flag; image width; image height; pixel size x; pixel size y; field
 //!   flag; n1 (air); n2 (wall); n3 (object); wall thickness (mm).
 //!
+//! - `_targets` (`cam1.10001_targets`): the count, then per target
+//!   `pnr x y n nx ny sumg tnr` (pixels; `pnr` numbers the targets 0..N-1 in
+//!   file order; `tnr` links to a 3D result, -1 for none).
+//!
 //! OpenPTV describes one sensor and one wall for all cameras; export refuses
 //! calibrations that do not fit that rather than silently changing them.
 //! Numbers are written in their shortest exact form, so an export and
@@ -23,7 +27,7 @@ use nalgebra::Vector3;
 use super::calibration;
 use super::{read_text, write_text, FormatError};
 use crate::photogrammetry::{
-    Camera, CameraParameters, Distortion, Exterior, Interior, Media, Sensor, Wall,
+    Camera, CameraParameters, Distortion, Exterior, Interior, Media, Sensor, Target, Wall,
 };
 
 /// The parts of OpenPTV's `ptv.par` that describe the cameras.
@@ -142,6 +146,120 @@ pub fn parse_addpar(text: &str, source: &str) -> Result<Distortion, FormatError>
     };
     t.finish()?;
     Ok(distortion)
+}
+
+/// Parses a `_targets` file; the targets keep their file order, which is
+/// their `pnr`.
+pub fn parse_targets(text: &str, source: &str) -> Result<Vec<Target>, FormatError> {
+    let mut lines = text
+        .lines()
+        .enumerate()
+        .filter(|(_, l)| !l.trim().is_empty());
+    let count = match lines.next() {
+        Some((i, line)) => line.trim().parse::<usize>().map_err(|_| {
+            FormatError::invalid(
+                source,
+                format!("line {}", i + 1),
+                format!("expected the number of targets, got `{}`", line.trim()),
+            )
+        })?,
+        None => {
+            return Err(FormatError::invalid(
+                source,
+                "line 1",
+                "the file is empty; expected the number of targets",
+            ))
+        }
+    };
+    let mut targets = Vec::with_capacity(count.min(1 << 20));
+    for (i, line) in lines {
+        let at = format!("line {}", i + 1);
+        let fields: Vec<&str> = line.split_whitespace().collect();
+        if fields.len() != 8 {
+            return Err(FormatError::invalid(
+                source,
+                at,
+                format!(
+                    "expected 8 values `pnr x y n nx ny sumg tnr`, found {}",
+                    fields.len()
+                ),
+            ));
+        }
+        let integer = |k: usize, what: &str| -> Result<u64, FormatError> {
+            fields[k].parse::<u64>().map_err(|_| {
+                FormatError::invalid(
+                    source,
+                    at.clone(),
+                    format!("{what} must be a non-negative integer, got `{}`", fields[k]),
+                )
+            })
+        };
+        let small = |k: usize, what: &str| -> Result<u32, FormatError> {
+            u32::try_from(integer(k, what)?).map_err(|_| {
+                FormatError::invalid(source, at.clone(), format!("{what} is too large"))
+            })
+        };
+        let coordinate = |k: usize, what: &str| -> Result<f64, FormatError> {
+            fields[k]
+                .parse::<f64>()
+                .ok()
+                .filter(|v| v.is_finite())
+                .ok_or_else(|| {
+                    FormatError::invalid(
+                        source,
+                        at.clone(),
+                        format!("{what} must be a finite number, got `{}`", fields[k]),
+                    )
+                })
+        };
+        let pnr = integer(0, "pnr")?;
+        if pnr != targets.len() as u64 {
+            return Err(FormatError::invalid(
+                source,
+                at,
+                format!("pnr {pnr} out of sequence: targets must be numbered 0, 1, 2, ... in file order, expected {}", targets.len()),
+            ));
+        }
+        targets.push(Target {
+            x: coordinate(1, "x")?,
+            y: coordinate(2, "y")?,
+            n: small(3, "n")?,
+            nx: small(4, "nx")?,
+            ny: small(5, "ny")?,
+            sumg: integer(6, "sumg")?,
+        });
+        fields[7].parse::<i64>().map_err(|_| {
+            FormatError::invalid(
+                source,
+                format!("line {}", i + 1),
+                format!("tnr must be an integer, got `{}`", fields[7]),
+            )
+        })?;
+    }
+    if targets.len() != count {
+        return Err(FormatError::invalid(
+            source,
+            "line 1",
+            format!(
+                "announces {count} targets but the file lists {}",
+                targets.len()
+            ),
+        ));
+    }
+    Ok(targets)
+}
+
+/// Writes a `_targets` file (full precision; `tnr` -1).
+pub fn format_targets(targets: &[Target]) -> String {
+    let mut text = format!("{}\n", targets.len());
+    for (pnr, t) in targets.iter().enumerate() {
+        let _ = writeln!(
+            text,
+            "{pnr:4} {:?} {:?} {:5} {:5} {:5} {:5} -1",
+            t.x, t.y, t.n, t.nx, t.ny, t.sumg
+        );
+    }
+    text
 }
 
 /// Parses `ptv.par`.
@@ -518,6 +636,38 @@ mod tests {
         };
         assert_eq!(parse_addpar(&format_addpar(&d), "a").unwrap(), d);
         assert!(parse_addpar("1 2 3", "a").is_err());
+    }
+
+    #[test]
+    fn targets_round_trip_and_errors_name_the_line() {
+        let text = "2\n   0  126.0498    9.5295    10     3     6   271   671\n   1  128.0154   12.8830    16     5     5  1919    -1\n";
+        let targets = parse_targets(text, "cam1.10001_targets").unwrap();
+        assert_eq!(
+            targets[1],
+            Target {
+                x: 128.0154,
+                y: 12.883,
+                n: 16,
+                nx: 5,
+                ny: 5,
+                sumg: 1919
+            }
+        );
+        assert_eq!(
+            parse_targets(&format_targets(&targets), "again").unwrap(),
+            targets
+        );
+        for (bad, expected) in [
+            ("3\n   0  1 2 3 4 5 6 -1\n", "announces 3"),
+            ("1\n   1  1 2 3 4 5 6 -1\n", "line 2"),
+            ("1\n   0  1 x 3 4 5 6 -1\n", "line 2"),
+            ("1\n   0  1 2 3 4 5\n", "8 values"),
+            ("", "empty"),
+        ] {
+            let message = parse_targets(bad, "t").unwrap_err().to_string();
+            assert!(message.contains(expected), "{bad:?}: {message}");
+        }
+        assert_eq!(parse_targets("0\n", "t").unwrap(), vec![]);
     }
 
     #[test]

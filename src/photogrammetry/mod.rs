@@ -3,8 +3,9 @@
 //! Implements the mathematical model of Maas, Gruen, Papantoniou (1993),
 //! section 4: the collinearity condition with 16 parameters per camera
 //! ([`camera`]), the multimedia geometry through plane-parallel walls
-//! ([`media`]), least-squares spatial intersection ([`mod@intersect`]), and the
-//! simulator that provides ground truth ([`simulate`]).
+//! ([`media`]), least-squares spatial intersection ([`mod@intersect`]), the
+//! particle images of a frame ([`target`]), and the simulator that provides
+//! ground truth ([`simulate`]).
 //!
 //! This module never imports the service's shell (no tokio, axum, sqlx or
 //! utoipa): inputs and outputs are plain structs and nalgebra types.
@@ -13,6 +14,7 @@ pub mod camera;
 pub mod intersect;
 pub mod media;
 pub mod simulate;
+pub mod target;
 pub mod volume;
 
 pub use camera::{
@@ -20,4 +22,5 @@ pub use camera::{
 };
 pub use intersect::{intersect, Intersection, IntersectionError, Observation};
 pub use media::{Media, MediaGeometry, Wall};
+pub use target::Target;
 pub use volume::Volume;
