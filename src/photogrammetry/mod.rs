@@ -5,12 +5,15 @@
 //! ([`camera`]), the multimedia geometry through plane-parallel walls
 //! ([`media`]), least-squares spatial intersection ([`mod@intersect`]), the
 //! particle images of a frame ([`target`]), and the simulator that provides
-//! ground truth ([`simulate`]).
+//! ground truth ([`simulate`]); and section 6.1's particle detection in grey
+//! images ([`image`], [`mod@detect`]).
 //!
 //! This module never imports the service's shell (no tokio, axum, sqlx or
 //! utoipa): inputs and outputs are plain structs and nalgebra types.
 
 pub mod camera;
+pub mod detect;
+pub mod image;
 pub mod intersect;
 pub mod media;
 pub mod simulate;
@@ -20,6 +23,8 @@ pub mod volume;
 pub use camera::{
     Camera, CameraParameters, Distortion, Exterior, Interior, ProjectionError, Ray, Sensor,
 };
+pub use detect::{detect, detect_cameras, DetectionParameters, InvalidDetectionParameters};
+pub use image::{BitDepth, GreyImage, GreyPixels, ImageError, SensorMismatch};
 pub use intersect::{intersect, Intersection, IntersectionError, Observation};
 pub use media::{Media, MediaGeometry, Wall};
 pub use target::Target;
