@@ -7,6 +7,8 @@
 //!   the collinearity equations with the multimedia module (Eq. 1-12).
 //! - `ptv intersect` (`cli/intersect.rs`): images back to 3D points by
 //!   least-squares spatial intersection (section 4.3).
+//! - `ptv detect` (`cli/detect.rs`): the targets of one camera image
+//!   (section 6.1).
 //!
 //! Results go to standard output or a file; warnings about points left out
 //! go to standard error, one line each. Reading and parsing files is
@@ -15,6 +17,7 @@
 //! and prints a [`CliError`].
 
 mod calibration;
+mod detect;
 mod intersect;
 mod project;
 
@@ -23,8 +26,9 @@ use std::path::{Path, PathBuf};
 
 use clap::{Args, Parser, Subcommand};
 
+pub use self::detect::{DetectArgs, TargetFormat};
 use crate::formats::{self, FormatError};
-use crate::photogrammetry::Camera;
+use crate::photogrammetry::{Camera, InvalidDetectionParameters};
 
 /// 3D particle tracking velocimetry photogrammetry.
 #[derive(Debug, Parser)]
@@ -47,6 +51,9 @@ pub enum Command {
     /// Intersect observations (CSV point,camera,x,y in pixels) into 3D points;
     /// writes the CSV point,x,y,z,sx,sy,sz,rms_px (mm, px) to standard output.
     Intersect(IntersectArgs),
+    /// Find the particle images (targets) in one camera image; writes CSV
+    /// x,y,n,nx,ny,sumg (pixels) or an OpenPTV _targets file to standard output.
+    Detect(DetectArgs),
 }
 
 /// The `calibration` subcommands.
@@ -127,6 +134,9 @@ pub enum CliError {
         #[source]
         source: FormatError,
     },
+    /// The detection parameters contradict each other.
+    #[error("invalid detection parameters")]
+    Detection(#[from] InvalidDetectionParameters),
     /// Standard output or standard error could not be written.
     #[error("cannot write to {stream}")]
     Output {
@@ -154,6 +164,7 @@ pub fn run(
         }
         Command::Project(args) => project::run(&args, stdout, stderr),
         Command::Intersect(args) => intersect::run(&args, stdout, stderr),
+        Command::Detect(args) => detect::run(&args, stdout, stderr),
     }
 }
 

@@ -3,6 +3,7 @@
 //! - [`calibration`]: the project's calibration JSON.
 //! - [`openptv`]: OpenPTV's `.ori`, `.addpar` and `ptv.par`.
 //! - [`csv`]: point, observation and target tables of the command line.
+//! - [`image`]: camera images (greyscale PNG, TIFF, raw buffers).
 //!
 //! [`parse_targets`] reads targets in either format.
 //!
@@ -12,6 +13,7 @@
 
 pub mod calibration;
 pub mod csv;
+pub mod image;
 pub mod openptv;
 
 use std::path::{Path, PathBuf};

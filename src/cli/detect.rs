@@ -1,0 +1,132 @@
+//! `ptv detect`: the targets of one camera image, by
+//! [`crate::photogrammetry::detect()`] (section 6.1: high-pass filter,
+//! threshold, splitting of overlapping particles, grey value weighted
+//! centroids).
+//!
+//! The flags mirror [`DetectionParameters`]' fields (`--min-pixels` is
+//! `min_pixels`), and their defaults are its defaults. Targets go to
+//! standard output as CSV `x,y,n,nx,ny,sumg` or as an OpenPTV `_targets`
+//! file, in pixels with the top-left pixel's centre at (0.5, 0.5).
+
+use std::io::Write;
+use std::path::PathBuf;
+
+use clap::builder::TypedValueParser as _;
+use clap::{Args, ValueEnum};
+
+use super::{write_stderr_line, write_stdout, CliError};
+use crate::formats::{self, image::RawLayout};
+use crate::photogrammetry::{detect, BitDepth, DetectionParameters};
+
+/// How `ptv detect` writes its targets.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum TargetFormat {
+    /// CSV with the header `x,y,n,nx,ny,sumg`.
+    Csv,
+    /// OpenPTV's `_targets`: the count, then `pnr x y n nx ny sumg tnr` per line.
+    Openptv,
+}
+
+/// Arguments of `ptv detect`.
+#[derive(Debug, Args)]
+pub struct DetectArgs {
+    /// The camera image: greyscale PNG or TIFF (8 or 16 bits, TIFF also
+    /// LZW-compressed), or raw samples with --width, --height and --bits.
+    #[arg(long, value_name = "FILE")]
+    pub image: PathBuf,
+    /// Grey threshold, in the image's own grey levels: a pixel belongs to a
+    /// particle if its high-pass filtered value is larger [default: 10, meant
+    /// for 8-bit images]
+    #[arg(long, value_name = "T")]
+    pub threshold: Option<u16>,
+    /// Radius (px) of the window whose mean the high-pass filter subtracts;
+    /// 0 turns the filter off.
+    #[arg(long, value_name = "R", default_value_t = DetectionParameters::default().highpass_radius)]
+    pub highpass_radius: u32,
+    /// Fewest pixels of a target.
+    #[arg(long, value_name = "N", default_value_t = DetectionParameters::default().min_pixels)]
+    pub min_pixels: u32,
+    /// Most pixels of a target.
+    #[arg(long, value_name = "N", default_value_t = DetectionParameters::default().max_pixels)]
+    pub max_pixels: u32,
+    /// Smallest sum of grey values of a target.
+    #[arg(long, value_name = "S", default_value_t = DetectionParameters::default().min_sumg)]
+    pub min_sumg: u64,
+    /// How far (grey levels) the fainter of two touching particles' maxima
+    /// must rise above the saddle between them to be split off.
+    #[arg(long, value_name = "D", default_value_t = DetectionParameters::default().split_depth)]
+    pub split_depth: u16,
+    /// Do not split blobs of overlapping particles: one target per blob.
+    #[arg(long)]
+    pub no_split: bool,
+    /// Output format.
+    #[arg(long, value_enum, default_value_t = TargetFormat::Csv)]
+    pub format: TargetFormat,
+    /// Width (px) of a raw image.
+    #[arg(long, value_name = "W", requires_all = ["height", "bits"])]
+    pub width: Option<u32>,
+    /// Height (px) of a raw image.
+    #[arg(long, value_name = "H", requires_all = ["width", "bits"])]
+    pub height: Option<u32>,
+    /// Bits per sample of a raw image: 8, or 16 (little-endian).
+    #[arg(
+        long,
+        value_name = "B",
+        requires_all = ["width", "height"],
+        value_parser = clap::builder::PossibleValuesParser::new(["8", "16"])
+            .map(|bits| if bits == "8" { BitDepth::Eight } else { BitDepth::Sixteen }),
+    )]
+    pub bits: Option<BitDepth>,
+}
+
+impl DetectArgs {
+    fn parameters(&self) -> DetectionParameters {
+        let defaults = DetectionParameters::default();
+        DetectionParameters {
+            threshold: self.threshold.unwrap_or(defaults.threshold),
+            highpass_radius: self.highpass_radius,
+            min_pixels: self.min_pixels,
+            max_pixels: self.max_pixels,
+            min_sumg: self.min_sumg,
+            split: !self.no_split,
+            split_depth: self.split_depth,
+            ..defaults
+        }
+    }
+
+    fn raw_layout(&self) -> Option<RawLayout> {
+        Some(RawLayout {
+            width: self.width?,
+            height: self.height?,
+            bit_depth: self.bits?,
+        })
+    }
+}
+
+/// Detects the targets of the image and writes them to standard output.
+pub(super) fn run(
+    args: &DetectArgs,
+    stdout: &mut dyn Write,
+    stderr: &mut dyn Write,
+) -> Result<(), CliError> {
+    let parameters = args.parameters();
+    parameters.validate()?;
+    let image = formats::image::read_image(&args.image, args.raw_layout().as_ref())?;
+    if image.bit_depth() == BitDepth::Sixteen && args.threshold.is_none() {
+        write_stderr_line(
+            stderr,
+            &format!(
+                "warning: {} is a 16-bit image but no --threshold was given; the default ({}) is \
+                 meant for 8-bit images, give one in this image's grey levels",
+                args.image.display(),
+                parameters.threshold
+            ),
+        )?;
+    }
+    let targets = detect(&image, &parameters);
+    let text = match args.format {
+        TargetFormat::Csv => formats::csv::format_targets(&targets),
+        TargetFormat::Openptv => formats::openptv::format_targets(&targets),
+    };
+    write_stdout(stdout, &text)
+}
