@@ -90,14 +90,35 @@ const CONVERGED_STEP_MM: f64 = 1e-7;
 /// Minimises `sum_k |(I - d_k d_k') (X - o_k)|^2`; `None` if the rays are
 /// parallel.
 pub fn ray_midpoint(rays: impl IntoIterator<Item = Ray>) -> Option<Point3<f64>> {
-    let mut normal = Matrix3::zeros();
+    // The normal equations sum (I - d d') X = sum (I - d d') o, with the
+    // symmetric matrix kept as its six distinct entries and solved by its
+    // adjugate: this runs in the correspondence search's inner loop.
+    let (mut xx, mut xy, mut xz, mut yy, mut yz, mut zz) = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
     let mut rhs = Vector3::zeros();
     for ray in rays {
-        let projector = Matrix3::identity() - ray.direction * ray.direction.transpose();
-        normal += projector;
-        rhs += projector * ray.origin.coords;
+        let d = ray.direction;
+        let o = ray.origin.coords;
+        xx += 1.0 - d.x * d.x;
+        yy += 1.0 - d.y * d.y;
+        zz += 1.0 - d.z * d.z;
+        xy -= d.x * d.y;
+        xz -= d.x * d.z;
+        yz -= d.y * d.z;
+        rhs += o - d * d.dot(&o);
     }
-    let solution = normal.cholesky()?.solve(&rhs);
+    let (c00, c01, c02) = (yy * zz - yz * yz, xz * yz - xy * zz, xy * yz - xz * yy);
+    let determinant = xx * c00 + xy * c01 + xz * c02;
+    // Parallel rays leave the matrix singular; compare with its scale.
+    let scale = xx + yy + zz;
+    if !(determinant > 1e-12 * scale * scale * scale) {
+        return None;
+    }
+    let (c11, c12, c22) = (xx * zz - xz * xz, xy * xz - xx * yz, xx * yy - xy * xy);
+    let solution = Vector3::new(
+        c00 * rhs.x + c01 * rhs.y + c02 * rhs.z,
+        c01 * rhs.x + c11 * rhs.y + c12 * rhs.z,
+        c02 * rhs.x + c12 * rhs.y + c22 * rhs.z,
+    ) / determinant;
     solution
         .iter()
         .all(|v| v.is_finite())
@@ -137,6 +158,26 @@ pub fn intersect(
         return Err(error);
     }
     let start = start.ok_or(IntersectionError::Degenerate)?;
+    adjust(cameras, observations, start, CONVERGED_STEP_MM)
+}
+
+/// Least-squares spatial intersection from a given start point (for
+/// callers that already have the rays, e.g. the correspondence search,
+/// which passes their [`ray_midpoint`]).
+pub fn intersect_from(
+    cameras: &[Camera],
+    observations: &[Observation],
+    start: Point3<f64>,
+) -> Result<Intersection, IntersectionError> {
+    if observations.len() < 2 {
+        return Err(IntersectionError::TooFewObservations(observations.len()));
+    }
+    if let Some(bad) = observations.iter().find(|o| o.camera >= cameras.len()) {
+        return Err(IntersectionError::UnknownCamera {
+            camera: bad.camera,
+            cameras: cameras.len(),
+        });
+    }
     adjust(cameras, observations, start, CONVERGED_STEP_MM)
 }
 

@@ -113,7 +113,8 @@ pub struct MediaGeometry {
 /// (relative to `q`; this function is close to linear in `q`, so the
 /// constant is of order one). A step above [`TABLE_STEP_LIMIT`] (a point
 /// outside the tabulated region, or near a layer boundary where the
-/// interpolation is poor) continues with the full iteration. The error of a
+/// interpolation is poor) is followed by another, up to three, before the
+/// full iteration takes over. The error of a
 /// tabulated projection is therefore below about 1e-12 relative in the ray
 /// angle, 1e-11 mm on the image plane, and the tests check it against the
 /// exact solution at 1e-9 mm.
@@ -485,10 +486,18 @@ impl MediaGeometry {
     fn solve(&self, radial: f64, depth: f64) -> RefractedPath {
         let equation = self.path_to(depth);
         let tabulated = self.table.as_ref().and_then(|table| {
-            let start = table.lookup(radial, depth)?;
-            let at = equation.at(start);
-            let q = start - (at.radial - radial) / at.slope;
-            ((q - start).abs() <= TABLE_STEP_LIMIT * q).then_some((q, at))
+            let mut q = table.lookup(radial, depth)?;
+            // Usually one step; a start a little off (near the table's
+            // edges) takes one or two more.
+            for _ in 0..3 {
+                let at = equation.at(q);
+                let step = (at.radial - radial) / at.slope;
+                q -= step;
+                if step.abs() <= TABLE_STEP_LIMIT * q {
+                    return Some((q, at));
+                }
+            }
+            None
         });
         let (q, at) = tabulated.unwrap_or_else(|| self.solve_exact(radial, depth));
         let ref_over_air = equation.n_ref / self.layers[0].n;

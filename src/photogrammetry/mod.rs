@@ -12,6 +12,7 @@
 //! utoipa): inputs and outputs are plain structs and nalgebra types.
 
 pub mod camera;
+pub mod correspond;
 pub mod detect;
 pub mod image;
 pub mod intersect;

@@ -22,9 +22,11 @@ use rand_distr::{Distribution, Normal, Poisson};
 use super::camera::{
     rotation_angles, Camera, CameraParameters, Distortion, Exterior, Interior, Sensor,
 };
+use super::correspond::Particle;
 use super::image::{BitDepth, GreyImage};
 use super::intersect::Observation;
 use super::media::{Media, Wall};
+use super::target::Target;
 use super::volume::Volume;
 
 /// A box-shaped water tank centred on the origin.
@@ -134,7 +136,9 @@ impl RigSpec {
 
     /// Builds the cameras: each looks at the volume's centre, x axis
     /// horizontal, with a principal distance that lets the volume fill about
-    /// half of the sensor's shorter side.
+    /// 80% of the sensor's shorter side
+    /// (refraction at the walls magnifies it a little more; every point of
+    /// the box still images onto every sensor).
     pub fn build(&self) -> Result<Vec<Camera>, super::camera::InvalidCamera> {
         let centre = self.volume.centre();
         let half_sensor = f64::min(
@@ -142,7 +146,7 @@ impl RigSpec {
             f64::from(self.sensor.height) * self.sensor.pixel_size_y,
         ) / 2.0;
         let half_angle = (self.volume.radius() / self.distance).asin();
-        let c = 0.5 * half_sensor / half_angle.tan();
+        let c = 0.8 * half_sensor / half_angle.tan();
         self.azimuths
             .iter()
             .zip(&self.elevations)
@@ -317,7 +321,8 @@ fn erf(x: f64) -> f64 {
     let t = 1.0 / (1.0 + 0.327_591_1 * x.abs());
     let poly = t
         * (0.254_829_592
-            + t * (-0.284_496_736 + t * (1.421_413_741 + t * (-1.453_152_027 + t * 1.061_405_429))));
+            + t * (-0.284_496_736
+                + t * (1.421_413_741 + t * (-1.453_152_027 + t * 1.061_405_429))));
     let y = 1.0 - poly * (-x * x).exp();
     y.copysign(x)
 }
@@ -432,8 +437,10 @@ pub fn render_frame(
         .iter()
         .map(|camera| {
             let sensor = camera.sensor();
-            let pixels: Vec<Option<Point2<f64>>> =
-                points.iter().map(|point| camera.project(point).ok()).collect();
+            let pixels: Vec<Option<Point2<f64>>> = points
+                .iter()
+                .map(|point| camera.project(point).ok())
+                .collect();
             let visible: Vec<Point2<f64>> = pixels.iter().flatten().copied().collect();
             let image = render(sensor.width, sensor.height, &visible, spec, rng);
             let truth = pixels
@@ -448,6 +455,112 @@ pub fn render_frame(
 /// A seeded random number generator, so that experiments repeat.
 pub fn rng(seed: u64) -> StdRng {
     StdRng::seed_from_u64(seed)
+}
+
+/// One frame of targets per camera, as a detector would deliver it, with
+/// the truth: `truth[c][t]` is the particle that target `t` of camera `c`
+/// images.
+#[derive(Clone, Debug, PartialEq)]
+pub struct TargetFrame {
+    /// Per camera, its targets in random order.
+    pub targets: Vec<Vec<Target>>,
+    /// Per camera and target, the index of the particle it images.
+    pub truth: Vec<Vec<usize>>,
+}
+
+/// The targets of `points` in every camera: exact images plus Gaussian
+/// noise of `noise_px`, each image lost with probability `drop_fraction`
+/// (mimicking overlaps and weak particles), shuffled per camera so that the
+/// order tells nothing.
+pub fn target_frame(
+    cameras: &[Camera],
+    points: &[Point3<f64>],
+    noise_px: f64,
+    drop_fraction: f64,
+    rng: &mut impl Rng,
+) -> TargetFrame {
+    use rand::seq::SliceRandom;
+    let images = observe(cameras, points, noise_px, rng);
+    let mut targets = Vec::with_capacity(cameras.len());
+    let mut truth = Vec::with_capacity(cameras.len());
+    for pixels in images {
+        let mut kept: Vec<(usize, Point2<f64>)> = pixels
+            .into_iter()
+            .enumerate()
+            .filter_map(|(j, pixel)| pixel.map(|p| (j, p)))
+            .filter(|_| !rng.random_bool(drop_fraction.clamp(0.0, 1.0)))
+            .collect();
+        kept.shuffle(rng);
+        truth.push(kept.iter().map(|(j, _)| *j).collect());
+        targets.push(
+            kept.iter()
+                .map(|(_, p)| Target {
+                    x: p.x,
+                    y: p.y,
+                    n: 9,
+                    nx: 3,
+                    ny: 3,
+                    sumg: 900,
+                })
+                .collect(),
+        );
+    }
+    TargetFrame { targets, truth }
+}
+
+/// How matched particles compare with the truth of a [`TargetFrame`].
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct MatchScore {
+    /// Particles whose targets all image the same true particle.
+    pub correct: usize,
+    /// Particles whose targets image different true particles.
+    pub ghosts: usize,
+    /// Root mean square 3D error of the correct particles (mm).
+    pub rms_error: f64,
+    /// Mean reported standard deviation (the root mean square of
+    /// sigma_x, sigma_y, sigma_z) of the correct particles (mm).
+    pub mean_sigma: f64,
+    /// Largest 3D error of the correct particles (mm).
+    pub max_error: f64,
+    /// Particles found, by the number of cameras that see them (index =
+    /// camera count).
+    pub by_cameras: Vec<usize>,
+}
+
+impl MatchScore {
+    /// Scores `particles` found in `frame` of `points`.
+    pub fn of(particles: &[Particle], frame: &TargetFrame, points: &[Point3<f64>]) -> MatchScore {
+        let mut score = MatchScore {
+            by_cameras: vec![0; frame.targets.len() + 1],
+            ..MatchScore::default()
+        };
+        let (mut sum_sq, mut sigma_sq) = (0.0, 0.0);
+        for particle in particles {
+            score.by_cameras[particle.camera_count()] += 1;
+            let mut sources = particle
+                .targets
+                .iter()
+                .enumerate()
+                .filter_map(|(c, t)| t.map(|t| frame.truth[c][t]));
+            let first = sources.next();
+            match first {
+                Some(j) if sources.all(|other| other == j) => {
+                    score.correct += 1;
+                    let error = (particle.position - points[j]).norm();
+                    sum_sq += error * error;
+                    sigma_sq += particle.sigma.norm_squared() / 3.0;
+                    score.max_error = score.max_error.max(error);
+                }
+                _ => score.ghosts += 1,
+            }
+        }
+        if score.correct > 0 {
+            // Per axis, to compare with the per-axis sigmas.
+            score.rms_error = (sum_sq / (3.0 * score.correct as f64)).sqrt();
+            score.mean_sigma = (sigma_sq / score.correct as f64).sqrt();
+        }
+        score
+    }
 }
 
 #[cfg(test)]

@@ -1,9 +1,10 @@
 //! The observation volume: the box in object space where particles are sought.
 
 use nalgebra::Point3;
+use serde::{Deserialize, Serialize};
 
 /// An axis-aligned box in object space (mm).
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Volume {
     /// Smallest corner.
     pub min: Point3<f64>,

@@ -1,0 +1,1383 @@
+//! Stereo correspondences: which particle images in 2..N cameras belong to
+//! one particle, and where that particle is (design paper, section 6:
+//! establishment of correspondences by epipolar geometry with three and
+//! more cameras; 3D coordinates by spatial intersection, section 4.3).
+//!
+//! The search, for a frame of targets per camera:
+//!
+//! 1. Every target's ray into the object medium is traced once (Eq. 13-17).
+//!    Targets of each camera go into a uniform grid (a spatial index), so
+//!    that no search ever scans all targets.
+//! 2. **Seed pairs.** For camera pairs `(i, j)` chosen so that every set of
+//!    three cameras contains one of them (the cameras split into two halves,
+//!    all pairs within each half: 2 pairs for 4 cameras instead of 6), each
+//!    target of camera i has its ray cut by the observation volume; the
+//!    segment between the near and far points is projected into camera j as
+//!    a bent polyline (vertices enough for the bend error to stay below a
+//!    tenth of the tolerance) and widened by the tolerance: the epipolar
+//!    band. Its candidates come from the grid.
+//! 3. **Completion.** Each candidate pair's rays meet (nearly) in a 3D
+//!    point, which is projected into every other camera; targets within the
+//!    tolerance there join the group. A camera with several such targets
+//!    gives several candidate groups. A group is kept by the first seed
+//!    pair it contains, so each is considered once.
+//! 4. **Selection**, best first: larger groups before smaller (a fourth
+//!    camera cuts the ambiguities the design paper's Table 2 counts by at
+//!    least an order of magnitude), then by the rays' spread in pixels.
+//!    Each target is used at most once. A group is accepted when the
+//!    least-squares intersection's largest residual is within the
+//!    tolerance; a group of four or more with one bad member loses its worst
+//!    camera and is tried again.
+//! 5. **Pairs**, when two cameras suffice (`min_cameras = 2`): among the
+//!    targets still unused, a pair is accepted only when each target is the
+//!    other's single candidate in its band.
+//!
+//! There is no fixed limit on cameras or targets: memory grows linearly
+//! with the targets, and the work with the targets times the (small) number
+//! of band candidates.
+
+use nalgebra::{Point2, Point3, Vector3};
+use serde::{Deserialize, Serialize};
+
+use super::camera::{Camera, Ray};
+use super::intersect::{intersect_from, ray_midpoint, Observation};
+use super::target::Target;
+use super::volume::Volume;
+
+/// Default epipolar band half-width (px).
+pub const DEFAULT_TOLERANCE_PX: f64 = 1.0;
+
+/// Optional similarity criteria: a candidate's size and brightness must be
+/// within these factors of the target it is matched with (where both are
+/// known).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Similarity {
+    /// Largest ratio of pixel counts (>= 1).
+    pub max_size_ratio: f64,
+    /// Largest ratio of grey-value sums (>= 1).
+    pub max_brightness_ratio: f64,
+}
+
+/// How to match.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct MatchingParameters {
+    /// Half-width of the epipolar band, and the largest accepted residual
+    /// of a particle's intersection (px).
+    pub tolerance: f64,
+    /// The observation volume; `None` for the region all cameras look at
+    /// (see [`default_volume`]).
+    pub volume: Option<Volume>,
+    /// The fewest cameras that must see a particle (2..N).
+    pub min_cameras: usize,
+    /// Similarity criteria, if any.
+    pub similarity: Option<Similarity>,
+}
+
+impl Default for MatchingParameters {
+    fn default() -> Self {
+        MatchingParameters {
+            tolerance: DEFAULT_TOLERANCE_PX,
+            volume: None,
+            min_cameras: 2,
+            similarity: None,
+        }
+    }
+}
+
+/// Why matching cannot run.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum MatchError {
+    /// Fewer than two cameras.
+    #[error("matching needs at least 2 cameras, the calibration has {0}")]
+    TooFewCameras(usize),
+    /// A target list per camera is expected.
+    #[error("got targets for {targets} cameras, but the calibration has {cameras}; give one target list per camera, in camera order")]
+    CameraCount {
+        /// Target lists given.
+        targets: usize,
+        /// Cameras in the calibration.
+        cameras: usize,
+    },
+    /// The tolerance must be positive and finite.
+    #[error("the tolerance must be a positive number of pixels, got {0}")]
+    Tolerance(f64),
+    /// The volume is empty or not finite.
+    #[error("the observation volume is empty: every minimum must be below its maximum, got {0:?}")]
+    EmptyVolume(Volume),
+    /// `min_cameras` out of range.
+    #[error("min_cameras must be between 2 and the number of cameras ({cameras}), got {min}")]
+    MinCameras {
+        /// The value given.
+        min: usize,
+        /// Cameras in the calibration.
+        cameras: usize,
+    },
+    /// A similarity ratio below 1.
+    #[error("similarity ratios must be at least 1, got size {0} and brightness {1}")]
+    Similarity(f64, f64),
+    /// A target with a non-finite position.
+    #[error("camera {camera}, target {index}: its position is not a finite number")]
+    InvalidTarget {
+        /// The camera.
+        camera: usize,
+        /// The target's index in its list.
+        index: usize,
+    },
+}
+
+/// A particle found in the frame.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Particle {
+    /// Position (mm).
+    pub position: Point3<f64>,
+    /// Standard deviations of X, Y, Z from the intersection (mm).
+    pub sigma: Vector3<f64>,
+    /// Root mean square reprojection residual (px).
+    pub rms_px: f64,
+    /// Per camera, the index of its target, `None` where it has none.
+    pub targets: Vec<Option<usize>>,
+}
+
+impl Particle {
+    /// How many cameras see this particle.
+    pub fn camera_count(&self) -> usize {
+        self.targets.iter().filter(|t| t.is_some()).count()
+    }
+}
+
+/// The region all cameras look at: a cube around the point nearest to the
+/// cameras' optical axes (traced through their walls), whose half-size is
+/// the smallest half-width of the cameras' fields of view at that distance.
+pub fn default_volume(cameras: &[Camera]) -> Option<Volume> {
+    let axes: Vec<Ray> = cameras
+        .iter()
+        .filter_map(|camera| {
+            let sensor = camera.sensor();
+            let centre = Point2::new(
+                f64::from(sensor.width) / 2.0,
+                f64::from(sensor.height) / 2.0,
+            );
+            camera.ray(centre).ok()
+        })
+        .collect();
+    if axes.len() < 2 {
+        return None;
+    }
+    let centre = ray_midpoint(axes.iter().copied())?;
+    let half = cameras
+        .iter()
+        .map(|camera| {
+            let sensor = camera.sensor();
+            let half_sensor = f64::min(
+                f64::from(sensor.width) * sensor.pixel_size_x,
+                f64::from(sensor.height) * sensor.pixel_size_y,
+            ) / 2.0;
+            (centre - camera.position()).norm() * half_sensor / camera.parameters().interior.c
+        })
+        .fold(f64::INFINITY, f64::min);
+    let extent = Vector3::repeat(half);
+    Some(Volume {
+        min: centre - extent,
+        max: centre + extent,
+    })
+}
+
+/// How far around a pair's predicted image a third camera is searched, in
+/// tolerances.
+const COMPLETION_RADIUS: f64 = 3.0;
+
+/// The fewest candidate groups from which the frame's image noise is
+/// estimated.
+const NOISE_SAMPLE: usize = 50;
+
+/// Grid cells per target. Finer cells make a band's boxes hug it more
+/// closely but cost more cell visits; one per target was fastest in the
+/// matching benchmark.
+const CELLS_PER_TARGET: f64 = 1.0;
+
+/// A marker for "no target" in the flat group arrays.
+const NONE: u32 = u32::MAX;
+
+/// Matches frames of targets against one calibration: the cameras are
+/// prepared (refraction tables over the volume) once, for many frames.
+#[derive(Clone, Debug)]
+pub struct Matcher {
+    cameras: Vec<Camera>,
+    tolerance: f64,
+    volume: Volume,
+    min_cameras: usize,
+    similarity: Option<Similarity>,
+    /// Seed camera pairs, in the order that decides which seed keeps a group.
+    seeds: Vec<(usize, usize)>,
+    /// Per camera: principal distance over pixel size, for pixel-scale
+    /// estimates of distances in object space.
+    pixels_per_unit_angle: Vec<f64>,
+}
+
+/// Camera pairs such that every set of three cameras contains one: all
+/// pairs within the first half of the cameras and within the second half
+/// (the complement graph is bipartite, hence free of triangles). Two
+/// cameras have the one pair.
+fn seed_pairs(cameras: usize) -> Vec<(usize, usize)> {
+    if cameras == 2 {
+        return vec![(0, 1)];
+    }
+    let half = cameras.div_ceil(2);
+    let mut seeds = Vec::new();
+    for (from, to) in [(0, half), (half, cameras)] {
+        for i in from..to {
+            for j in i + 1..to {
+                seeds.push((i, j));
+            }
+        }
+    }
+    seeds
+}
+
+impl Matcher {
+    /// Validates the parameters and prepares the cameras.
+    pub fn new(cameras: &[Camera], parameters: &MatchingParameters) -> Result<Matcher, MatchError> {
+        let count = cameras.len();
+        if count < 2 {
+            return Err(MatchError::TooFewCameras(count));
+        }
+        if !(parameters.tolerance.is_finite() && parameters.tolerance > 0.0) {
+            return Err(MatchError::Tolerance(parameters.tolerance));
+        }
+        if !(2..=count).contains(&parameters.min_cameras) {
+            return Err(MatchError::MinCameras {
+                min: parameters.min_cameras,
+                cameras: count,
+            });
+        }
+        if let Some(s) = parameters.similarity {
+            if !(s.max_size_ratio >= 1.0 && s.max_brightness_ratio >= 1.0) {
+                return Err(MatchError::Similarity(
+                    s.max_size_ratio,
+                    s.max_brightness_ratio,
+                ));
+            }
+        }
+        let volume = match parameters.volume {
+            Some(volume) => volume,
+            None => default_volume(cameras).ok_or(MatchError::TooFewCameras(0))?,
+        };
+        let valid = (0..3).all(|i| {
+            volume.min[i] < volume.max[i] && !volume.min[i].is_nan() && !volume.max[i].is_nan()
+        });
+        if !valid {
+            return Err(MatchError::EmptyVolume(volume));
+        }
+        // The refraction table needs a bounded region; an unbounded axis
+        // (allowed, as in OpenPTV, which bounds only the depth) is left to
+        // the exact solve.
+        let bounded = (0..3).all(|i| volume.min[i].is_finite() && volume.max[i].is_finite());
+        let cameras: Vec<Camera> = cameras
+            .iter()
+            .map(|camera| {
+                if bounded {
+                    camera.clone().with_refraction_table(&volume)
+                } else {
+                    camera.clone()
+                }
+            })
+            .collect();
+        let pixels_per_unit_angle = cameras
+            .iter()
+            .map(|camera| {
+                let sensor = camera.sensor();
+                camera.parameters().interior.c / sensor.pixel_size_x.min(sensor.pixel_size_y)
+            })
+            .collect();
+        Ok(Matcher {
+            seeds: seed_pairs(count),
+            cameras,
+            tolerance: parameters.tolerance,
+            volume,
+            min_cameras: parameters.min_cameras,
+            similarity: parameters.similarity,
+            pixels_per_unit_angle,
+        })
+    }
+
+    /// The cameras, with refraction tables.
+    pub fn cameras(&self) -> &[Camera] {
+        &self.cameras
+    }
+
+    /// The observation volume in use.
+    pub fn volume(&self) -> &Volume {
+        &self.volume
+    }
+
+    /// Finds the particles of one frame: `targets[c]` are camera c's targets.
+    pub fn match_frame(&self, targets: &[Vec<Target>]) -> Result<Vec<Particle>, MatchError> {
+        let count = self.cameras.len();
+        if targets.len() != count {
+            return Err(MatchError::CameraCount {
+                targets: targets.len(),
+                cameras: count,
+            });
+        }
+        for (camera, list) in targets.iter().enumerate() {
+            if let Some(index) = list
+                .iter()
+                .position(|t| !(t.x.is_finite() && t.y.is_finite()))
+            {
+                return Err(MatchError::InvalidTarget { camera, index });
+            }
+        }
+        let frames: Vec<CameraFrame> = self
+            .cameras
+            .iter()
+            .zip(targets)
+            .map(|(camera, list)| CameraFrame::new(camera, list, self.tolerance))
+            .collect();
+        let mut search = Search::new(self, &frames);
+        if count >= 3 {
+            for (stage, &seed) in self.seeds.iter().enumerate() {
+                let groups = search.candidate_groups(seed);
+                if stage == 0 {
+                    search.estimate_noise(&groups);
+                }
+                search.select(groups);
+            }
+        }
+        if self.min_cameras == 2 {
+            search.pairs();
+        }
+        Ok(search.particles)
+    }
+
+    /// Whether `a` and `b` pass the similarity criteria.
+    fn similar(&self, a: &Target, b: &Target) -> bool {
+        let Some(s) = self.similarity else {
+            return true;
+        };
+        let within =
+            |x: f64, y: f64, limit: f64| x <= 0.0 || y <= 0.0 || (x / y).max(y / x) <= limit;
+        within(f64::from(a.n), f64::from(b.n), s.max_size_ratio)
+            && within(a.sumg as f64, b.sumg as f64, s.max_brightness_ratio)
+    }
+}
+
+/// A uniform grid over target positions (pixels).
+#[derive(Debug)]
+struct TargetGrid {
+    min: Point2<f64>,
+    cell: f64,
+    inv_cell: f64,
+    cols: usize,
+    rows: usize,
+    /// Cell `c` holds the targets `starts[c]..starts[c + 1]`: targets are
+    /// stored in cell order, so that a band's targets lie close in memory.
+    starts: Vec<u32>,
+}
+
+impl TargetGrid {
+    /// [`CELLS_PER_TARGET`] cells per target (never smaller than the
+    /// tolerance): memory linear in the targets, and cells small enough that
+    /// a band query touches few targets outside the band. Returns the grid and the cell order of the targets
+    /// (the indices of `positions`, cell by cell).
+    fn new(positions: &[Point2<f64>], tolerance: f64) -> (TargetGrid, Vec<u32>) {
+        let (mut min, mut max) = (
+            Point2::new(f64::INFINITY, f64::INFINITY),
+            Point2::new(f64::NEG_INFINITY, f64::NEG_INFINITY),
+        );
+        for p in positions {
+            min = min.inf(p);
+            max = max.sup(p);
+        }
+        if positions.is_empty() {
+            min = Point2::origin();
+            max = Point2::origin();
+        }
+        let n = positions.len().max(1) as f64;
+        let extent = (max - min).map(|v| v.max(1e-9));
+        let cell = (extent.x * extent.y / (CELLS_PER_TARGET * n))
+            .sqrt()
+            .max(tolerance)
+            .max(1e-6);
+        let cols = ((extent.x / cell) as usize + 1).max(1);
+        let rows = ((extent.y / cell) as usize + 1).max(1);
+        let inv_cell = 1.0 / cell;
+        let cell_of = |p: &Point2<f64>| {
+            let c = (((p.x - min.x) * inv_cell) as usize).min(cols - 1);
+            let r = (((p.y - min.y) * inv_cell) as usize).min(rows - 1);
+            r * cols + c
+        };
+        let mut starts = vec![0u32; cols * rows + 1];
+        for p in positions {
+            starts[cell_of(p) + 1] += 1;
+        }
+        for c in 0..cols * rows {
+            starts[c + 1] += starts[c];
+        }
+        let mut fill = starts.clone();
+        let mut entries = vec![0u32; positions.len()];
+        for (i, p) in positions.iter().enumerate() {
+            let c = cell_of(p);
+            entries[fill[c] as usize] = i as u32;
+            fill[c] += 1;
+        }
+        let grid = TargetGrid {
+            min,
+            cell,
+            inv_cell,
+            cols,
+            rows,
+            starts,
+        };
+        (grid, entries)
+    }
+
+    /// Targets per pixel squared over the grid's extent.
+    fn density(&self) -> f64 {
+        let area = (self.cols * self.rows) as f64 * self.cell * self.cell;
+        f64::from(self.starts[self.cols * self.rows]) / area
+    }
+
+    /// The cell columns and rows that overlap a box, if any.
+    #[inline]
+    fn cell_range(&self, lo: Point2<f64>, hi: Point2<f64>) -> Option<(usize, usize, usize, usize)> {
+        let index = |v: f64, origin: f64| (v - origin) * self.inv_cell;
+        let (c0, r0) = (index(lo.x, self.min.x), index(lo.y, self.min.y));
+        let (c1, r1) = (index(hi.x, self.min.x), index(hi.y, self.min.y));
+        if c1 < 0.0
+            || r1 < 0.0
+            || c0 >= self.cols as f64
+            || r0 >= self.rows as f64
+            || c0.is_nan()
+            || r0.is_nan()
+        {
+            return None;
+        }
+        let clamp = |v: f64, count: usize| (v.max(0.0) as usize).min(count - 1);
+        Some((
+            clamp(c0, self.cols),
+            clamp(c1, self.cols),
+            clamp(r0, self.rows),
+            clamp(r1, self.rows),
+        ))
+    }
+
+    /// The targets of one cell.
+    #[inline]
+    fn cell(&self, cell: usize) -> std::ops::Range<usize> {
+        self.starts[cell] as usize..self.starts[cell + 1] as usize
+    }
+
+    /// Calls `visit` for every target in the cells that overlap the box.
+    #[inline]
+    fn visit(&self, lo: Point2<f64>, hi: Point2<f64>, mut visit: impl FnMut(usize)) {
+        let Some((c0, c1, r0, r1)) = self.cell_range(lo, hi) else {
+            return;
+        };
+        for r in r0..=r1 {
+            let row = r * self.cols;
+            (self.starts[row + c0] as usize..self.starts[row + c1 + 1] as usize)
+                .for_each(&mut visit);
+        }
+    }
+}
+
+/// One camera's targets prepared for the search, in the grid's cell order.
+struct CameraFrame {
+    targets: Vec<Target>,
+    /// Per target, its index in the caller's list.
+    original: Vec<u32>,
+    positions: Vec<Point2<f64>>,
+    rays: Vec<Option<Ray>>,
+    grid: TargetGrid,
+}
+
+impl CameraFrame {
+    fn new(camera: &Camera, targets: &[Target], tolerance: f64) -> CameraFrame {
+        let positions: Vec<Point2<f64>> = targets.iter().map(|t| Point2::new(t.x, t.y)).collect();
+        let (grid, original) = TargetGrid::new(&positions, tolerance);
+        let positions: Vec<Point2<f64>> = original.iter().map(|&o| positions[o as usize]).collect();
+        CameraFrame {
+            targets: original.iter().map(|&o| targets[o as usize]).collect(),
+            rays: positions.iter().map(|p| camera.ray(*p).ok()).collect(),
+            original,
+            positions,
+            grid,
+        }
+    }
+}
+
+/// The part of a ray inside a box, as ray parameters (the ray starts at
+/// its origin: t >= 0).
+fn clip(ray: &Ray, volume: &Volume) -> Option<(f64, f64)> {
+    let (mut near, mut far) = (0.0f64, f64::INFINITY);
+    for i in 0..3 {
+        let (o, d) = (ray.origin[i], ray.direction[i]);
+        if d.abs() < 1e-15 {
+            if o < volume.min[i] || o > volume.max[i] {
+                return None;
+            }
+            continue;
+        }
+        let (a, b) = ((volume.min[i] - o) / d, (volume.max[i] - o) / d);
+        near = near.max(a.min(b));
+        far = far.min(a.max(b));
+    }
+    (near < far && far.is_finite()).then_some((near, far))
+}
+
+/// Where two rays pass closest: the parameter along `a` of its point
+/// nearest to `b`, and the point midway between the two rays.
+#[inline]
+fn closest_approach(a: &Ray, b: &Ray) -> Option<(f64, Point3<f64>)> {
+    let w = a.origin - b.origin;
+    let cos = a.direction.dot(&b.direction);
+    let denominator = 1.0 - cos * cos;
+    if denominator < 1e-12 {
+        return None;
+    }
+    let (d, e) = (a.direction.dot(&w), b.direction.dot(&w));
+    let ta = (cos * e - d) / denominator;
+    let tb = (e - cos * d) / denominator;
+    Some((ta, nalgebra::center(&a.at(ta), &b.at(tb))))
+}
+
+/// The image in one camera of a ray's segment inside the volume: a
+/// polyline whose vertices are evenly spaced in the ray parameter and whose
+/// chords stay within a tenth of the tolerance of the true (bent) curve.
+#[derive(Default)]
+struct EpipolarCurve {
+    near: f64,
+    far: f64,
+    vertices: Vec<Point2<f64>>,
+}
+
+impl EpipolarCurve {
+    /// Traces `ray` between `near` and `far` into `camera`, with vertices
+    /// about `spacing` pixels apart; false if the segment does not image.
+    ///
+    /// The curve is first taken as the parabola through its ends and middle
+    /// (three projections), checked at a quarter; where that is off by more
+    /// than a tenth of the tolerance, it is projected point by point, with
+    /// enough points that each chord's deviation (about bend / m^2 for m
+    /// chords) stays below that.
+    fn trace(
+        &mut self,
+        camera: &Camera,
+        ray: &Ray,
+        (near, far): (f64, f64),
+        tolerance: f64,
+        spacing: f64,
+    ) -> bool {
+        self.near = near;
+        self.far = far;
+        self.vertices.clear();
+        let project = |u: f64| camera.project(&ray.at(near + (far - near) * u)).ok();
+        let (Some(p0), Some(pm), Some(p1), Some(quarter)) =
+            (project(0.0), project(0.5), project(1.0), project(0.25))
+        else {
+            return false;
+        };
+        let parabola = |u: f64| {
+            Point2::from(
+                p0.coords * (2.0 * (u - 0.5) * (u - 1.0))
+                    + pm.coords * (-4.0 * u * (u - 1.0))
+                    + p1.coords * (2.0 * u * (u - 0.5)),
+            )
+        };
+        if (quarter - parabola(0.25)).norm() <= tolerance / 10.0 {
+            let length = (pm - p0).norm() + (p1 - pm).norm();
+            let pieces = (length / spacing).ceil().clamp(1.0, 4096.0) as usize;
+            self.vertices
+                .extend((0..=pieces).map(|s| parabola(s as f64 / pieces as f64)));
+            true
+        } else {
+            let bend = (pm - nalgebra::center(&p0, &p1)).norm();
+            let pieces = ((10.0 * bend / tolerance).sqrt().ceil() as usize).clamp(2, 1024);
+            for s in 0..=pieces {
+                match project(s as f64 / pieces as f64) {
+                    Some(p) => self.vertices.push(p),
+                    None => return false,
+                }
+            }
+            true
+        }
+    }
+
+    /// The image of the ray's point at parameter `t`; `None` outside the
+    /// traced segment.
+    #[inline]
+    fn at(&self, t: f64) -> Option<Point2<f64>> {
+        let u = (t - self.near) / (self.far - self.near);
+        if !(0.0..=1.0).contains(&u) || self.vertices.len() < 2 {
+            return None;
+        }
+        let position = u * (self.vertices.len() - 1) as f64;
+        let index = (position as usize).min(self.vertices.len() - 2);
+        let fraction = position - index as f64;
+        Some(self.vertices[index] + (self.vertices[index + 1] - self.vertices[index]) * fraction)
+    }
+}
+
+/// How the rays of a group meet (pixels).
+#[derive(Clone, Copy, Debug)]
+struct GroupFit {
+    /// RMS miss of the rays from their nearest point.
+    spread: f64,
+    /// The largest miss.
+    largest: f64,
+    /// The camera whose ray misses most, among those that may be dropped.
+    worst: Option<usize>,
+}
+
+/// Candidate groups: per group, one target (or NONE) per camera, in a flat
+/// array with a stride of the camera count.
+#[derive(Default)]
+struct CandidateGroups {
+    members: Vec<u32>,
+    sizes: Vec<u8>,
+    spreads: Vec<f64>,
+}
+
+/// The state of one frame's search.
+struct Search<'m, 'f> {
+    matcher: &'m Matcher,
+    frames: &'f [CameraFrame],
+    used: Vec<Vec<bool>>,
+    /// Per camera and grid cell, the number of the last band that visited it.
+    cell_stamps: Vec<Vec<u32>>,
+    stamp: u32,
+    /// Per camera: the current target's epipolar curve in it.
+    curves: Vec<EpipolarCurve>,
+    /// Scratch: the current band's pieces (unit direction, length).
+    pieces: Vec<(nalgebra::Vector2<f64>, f64)>,
+    /// The largest miss (px) a member may have in a group of more than
+    /// three: the tolerance, or less once the frame's image noise is known
+    /// (see [`Search::estimate_noise`]).
+    acceptance: f64,
+    /// The same for the three members a group needs at least, and for the
+    /// intersection's residuals: losing one of those loses the particle, so
+    /// it is more lenient.
+    core_acceptance: f64,
+    particles: Vec<Particle>,
+}
+
+impl<'m, 'f> Search<'m, 'f> {
+    fn new(matcher: &'m Matcher, frames: &'f [CameraFrame]) -> Self {
+        Search {
+            matcher,
+            frames,
+            used: frames
+                .iter()
+                .map(|f| vec![false; f.targets.len()])
+                .collect(),
+            cell_stamps: frames
+                .iter()
+                .map(|f| vec![0; f.grid.cols * f.grid.rows])
+                .collect(),
+            stamp: 0,
+            curves: frames.iter().map(|_| EpipolarCurve::default()).collect(),
+            pieces: Vec::new(),
+            acceptance: matcher.tolerance,
+            core_acceptance: matcher.tolerance,
+            particles: Vec::new(),
+        }
+    }
+
+    /// Traces target `a` of camera `i` into camera `j` (`self.curves[j]`);
+    /// false if its ray misses the volume or does not image there.
+    fn trace(&mut self, i: usize, a: usize, j: usize) -> bool {
+        let Some(ray) = self.frames[i].rays[a] else {
+            return false;
+        };
+        let Some(span) = clip(&ray, &self.matcher.volume) else {
+            return false;
+        };
+        let spacing = self.frames[j].grid.cell;
+        self.curves[j].trace(
+            &self.matcher.cameras[j],
+            &ray,
+            span,
+            self.matcher.tolerance,
+            spacing,
+        )
+    }
+
+    /// The epipolar band of target `a` of camera `i` in camera `j`: calls
+    /// `found` once for each target of camera j within the tolerance of the
+    /// curve (only unused ones if `unused_only`).
+    fn band(
+        &mut self,
+        i: usize,
+        a: usize,
+        j: usize,
+        unused_only: bool,
+        mut found: impl FnMut(usize),
+    ) {
+        if !self.trace(i, a, j) {
+            return;
+        }
+        self.stamp = self.stamp.wrapping_add(1);
+        if self.stamp == 0 {
+            // The stamps wrapped around: start afresh.
+            self.cell_stamps.iter_mut().for_each(|s| s.fill(0));
+            self.stamp = 1;
+        }
+        let stamp = self.stamp;
+        let tolerance = self.matcher.tolerance;
+        let frame = &self.frames[j];
+        let cell_stamps = &mut self.cell_stamps[j];
+        let used = &self.used[j];
+        let vertices = &self.curves[j].vertices;
+        let reference = &self.frames[i].targets[a];
+        let tolerance_sq = tolerance * tolerance;
+        // Per piece: unit direction and length.
+        let pieces = &mut self.pieces;
+        pieces.clear();
+        pieces.extend(vertices.windows(2).map(|w| {
+            let length = (w[1] - w[0]).norm();
+            let direction = if length > 0.0 {
+                (w[1] - w[0]) / length
+            } else {
+                nalgebra::Vector2::x()
+            };
+            (direction, length)
+        }));
+        let last = pieces.len();
+        // Squared distance from p to the polyline, looking from piece s on:
+        // walk forward while p lies beyond the current piece's end.
+        let distance_sq = |p: &Point2<f64>, s: usize| -> f64 {
+            let mut best = f64::INFINITY;
+            for piece in s..(s + 6).min(last) {
+                let (direction, length) = pieces[piece];
+                let rel = p - vertices[piece];
+                let along = rel.dot(&direction);
+                if along < 0.0 {
+                    return best.min(rel.norm_squared());
+                }
+                if along <= length {
+                    return best.min(rel.norm_squared() - along * along);
+                }
+                best = best.min((p - vertices[piece + 1]).norm_squared());
+            }
+            best
+        };
+        // Each cell is visited once, by the first piece whose box reaches
+        // it; pieces are at most a cell long and the tolerance at most a
+        // cell, so any later piece that reaches the cell is within five.
+        let margin = nalgebra::Vector2::repeat(tolerance);
+        for s in 0..last {
+            let (from, to) = (vertices[s], vertices[s + 1]);
+            let Some((c0, c1, r0, r1)) = frame
+                .grid
+                .cell_range(from.inf(&to) - margin, from.sup(&to) + margin)
+            else {
+                continue;
+            };
+            for r in r0..=r1 {
+                for c in c0..=c1 {
+                    let cell = r * frame.grid.cols + c;
+                    if cell_stamps[cell] == stamp {
+                        continue;
+                    }
+                    cell_stamps[cell] = stamp;
+                    for b in frame.grid.cell(cell) {
+                        if unused_only && used[b] {
+                            continue;
+                        }
+                        if distance_sq(&frame.positions[b], s) <= tolerance_sq
+                            && self.matcher.similar(reference, &frame.targets[b])
+                        {
+                            found(b);
+                        }
+                    }
+                }
+            }
+        }
+    }
+
+    /// The targets of camera `k` within `radius` of `pixel`.
+    fn near(
+        &self,
+        k: usize,
+        pixel: Point2<f64>,
+        radius: f64,
+        reference: &Target,
+        out: &mut Vec<u32>,
+    ) {
+        out.clear();
+        let margin = nalgebra::Vector2::repeat(radius);
+        let frame = &self.frames[k];
+        let used = &self.used[k];
+        frame.grid.visit(pixel - margin, pixel + margin, |c| {
+            if !used[c]
+                && (frame.positions[c] - pixel).norm() <= radius
+                && self.matcher.similar(reference, &frame.targets[c])
+            {
+                out.push(c as u32);
+            }
+        });
+    }
+
+    /// How far a ray of camera `k` passes from `point`, in that camera's
+    /// pixels (distance times the camera's scale at the point's range).
+    #[inline]
+    fn miss_px(&self, k: usize, ray: &Ray, point: &Point3<f64>) -> f64 {
+        let rel = point - ray.origin;
+        let miss = (rel - ray.direction * rel.dot(&ray.direction)).norm();
+        let range = (point - self.matcher.cameras[k].position()).norm();
+        miss * self.matcher.pixels_per_unit_angle[k] / range
+    }
+
+    /// How a group's rays meet, with the worst camera among those for which
+    /// `droppable` holds.
+    fn fit(&self, members: &[u32], droppable: impl Fn(usize) -> bool) -> Option<GroupFit> {
+        let rays = members
+            .iter()
+            .enumerate()
+            .filter(|(_, &m)| m != NONE)
+            .filter_map(|(k, &m)| self.frames[k].rays[m as usize].map(|r| (k, r)));
+        let point = ray_midpoint(rays.clone().map(|(_, r)| r))?;
+        let (mut sum, mut count, mut largest) = (0.0, 0, 0f64);
+        let mut worst = (None, f64::NEG_INFINITY);
+        for (k, ray) in rays {
+            let px = self.miss_px(k, &ray, &point);
+            sum += px * px;
+            count += 1;
+            largest = largest.max(px);
+            if droppable(k) && px > worst.1 {
+                worst = (Some(k), px);
+            }
+        }
+        Some(GroupFit {
+            spread: (sum / f64::from(count)).sqrt(),
+            largest,
+            worst: worst.0,
+        })
+    }
+
+    /// Drops the worst member of a group until every ray meets the others
+    /// within the limit (`extra` while more than three remain, `core` for
+    /// three); the group's spread, or `None` if that leaves fewer than three
+    /// cameras (or only `keep` ones).
+    fn trim(
+        &self,
+        group: &mut [u32],
+        (extra, core): (f64, f64),
+        keep: impl Fn(usize) -> bool,
+    ) -> Option<f64> {
+        loop {
+            let size = group.iter().filter(|&&m| m != NONE).count();
+            if size < 3 {
+                return None;
+            }
+            let fit = self.fit(group, |k| !keep(k))?;
+            if fit.largest <= if size > 3 { extra } else { core } {
+                return Some(fit.spread);
+            }
+            if size == 3 {
+                return None;
+            }
+            group[fit.worst?] = NONE;
+        }
+    }
+
+    /// Steps 2 and 3: candidate groups of three or more cameras.
+    ///
+    /// The point where a pair's rays meet is uncertain along their epipolar
+    /// lines, most where those lines run nearly parallel in a third camera,
+    /// so the third camera is searched within [`COMPLETION_RADIUS`]
+    /// tolerances of its image, and a target there is kept only if its ray
+    /// meets the pair's within the tolerance.
+    fn candidate_groups(&mut self, (i, j): (usize, usize)) -> CandidateGroups {
+        let count = self.frames.len();
+        let tolerance = self.matcher.tolerance;
+        let mut groups = CandidateGroups::default();
+        let mut partners = Vec::new();
+        let mut near: Vec<Vec<u32>> = vec![Vec::new(); count];
+        let mut members = vec![NONE; count];
+        let mut group = vec![NONE; count];
+        let mut seen = Vec::with_capacity(count);
+        let mut choice = Vec::with_capacity(count);
+        let mut traced = vec![false; count];
+        {
+            for a in 0..self.frames[i].targets.len() {
+                if self.used[i][a] {
+                    continue;
+                }
+                let Some(ray_a) = self.frames[i].rays[a] else {
+                    continue;
+                };
+                partners.clear();
+                self.band(i, a, j, true, |b| partners.push(b));
+                if partners.is_empty() {
+                    continue;
+                }
+                // The ray's images in the other cameras, traced on demand.
+                traced.fill(false);
+                for &b in &partners {
+                    let Some((t, point)) =
+                        self.frames[j].rays[b].and_then(|ray_b| closest_approach(&ray_a, &ray_b))
+                    else {
+                        continue;
+                    };
+                    seen.clear();
+                    members.fill(NONE);
+                    members[i] = a as u32;
+                    members[j] = b as u32;
+                    for k in 0..count {
+                        near[k].clear();
+                        if k == i || k == j {
+                            continue;
+                        }
+                        if !traced[k] {
+                            traced[k] = true;
+                            if !self.trace(i, a, k) {
+                                self.curves[k].vertices.clear();
+                            }
+                        }
+                        // Where the pair's point images, to within half the
+                        // rays' gap (the curve follows ray a).
+                        let Some(pixel) = self.curves[k].at(t) else {
+                            continue;
+                        };
+                        let reference = &self.frames[i].targets[a];
+                        let mut list = std::mem::take(&mut near[k]);
+                        self.near(
+                            k,
+                            pixel,
+                            COMPLETION_RADIUS * tolerance,
+                            reference,
+                            &mut list,
+                        );
+                        list.retain(|&c| {
+                            members[k] = c;
+                            let fits = self
+                                .fit(&members, |_| false)
+                                .is_some_and(|f| f.largest <= tolerance);
+                            members[k] = NONE;
+                            fits
+                        });
+                        if !list.is_empty() {
+                            seen.push(k);
+                        }
+                        near[k] = list;
+                    }
+                    let _ = point;
+                    if seen.is_empty() {
+                        continue;
+                    }
+                    // Every combination of one target per camera that has
+                    // any; targets that each fit the pair may not fit
+                    // together (one imaging another particle), so the worst
+                    // is dropped until they do.
+                    choice.clear();
+                    choice.resize(seen.len(), 0usize);
+                    loop {
+                        group.copy_from_slice(&members);
+                        for (slot, &k) in seen.iter().enumerate() {
+                            group[k] = near[k][choice[slot]];
+                        }
+                        if let Some(spread) =
+                            self.trim(&mut group, (tolerance, tolerance), |k| k == i || k == j)
+                        {
+                            groups.members.extend_from_slice(&group);
+                            groups
+                                .sizes
+                                .push(group.iter().filter(|&&m| m != NONE).count() as u8);
+                            groups.spreads.push(spread);
+                        }
+                        // Next combination (odometer).
+                        let mut slot = 0;
+                        while slot < seen.len() {
+                            choice[slot] += 1;
+                            if choice[slot] < near[seen[slot]].len() {
+                                break;
+                            }
+                            choice[slot] = 0;
+                            slot += 1;
+                        }
+                        if slot == seen.len() {
+                            break;
+                        }
+                    }
+                }
+            }
+        }
+        groups
+    }
+
+    /// Sets the acceptance threshold from the frame itself.
+    ///
+    /// The largest groups are nearly all true; their spreads give the image
+    /// noise sigma (a member's miss is a 2D residual, so for m rays the mean
+    /// squared miss is about 2 sigma^2 (1 - 3/(2m))). A member is then
+    /// accepted where it is likelier to be the particle's image than a
+    /// stranger's: its miss r has to satisfy
+    /// `exp(-r^2 / 2 sigma^2) / (2 pi sigma^2) > density`, i.e.
+    /// `r^2 < 2 sigma^2 ln(1 / (2 pi sigma^2 density))`, and at least
+    /// 2 sigma and at most 3 sigma (1% of true members lost, their particles
+    /// still found from the other cameras), and between a tenth of the
+    /// tolerance (noise-free data) and the tolerance. The three members a
+    /// group cannot do without may miss by 4 sigma (0.03% lost). With fewer
+    /// than [`NOISE_SAMPLE`] groups the tolerance stands.
+    fn estimate_noise(&mut self, groups: &CandidateGroups) {
+        let Some(&largest) = groups.sizes.iter().max() else {
+            return;
+        };
+        let mut spreads: Vec<f64> = groups
+            .sizes
+            .iter()
+            .zip(&groups.spreads)
+            .filter(|(&size, _)| size == largest)
+            .map(|(_, &spread)| spread * spread)
+            .collect();
+        if spreads.len() < NOISE_SAMPLE {
+            return;
+        }
+        let middle = spreads.len() / 2;
+        let (_, median, _) = spreads.select_nth_unstable_by(middle, f64::total_cmp);
+        let m = f64::from(largest);
+        let sigma_sq = *median / (2.0 * (1.0 - 1.5 / m));
+        let density = self
+            .frames
+            .iter()
+            .map(|f| f.grid.density())
+            .fold(0.0, f64::max);
+        let odds = 1.0 / (2.0 * std::f64::consts::PI * sigma_sq * density);
+        let limit_sq = sigma_sq * (2.0 * odds.max(1.0).ln()).clamp(2.0 * 2.0, 3.0 * 3.0);
+        let tolerance = self.matcher.tolerance;
+        self.acceptance = limit_sq.sqrt().clamp(tolerance / 10.0, tolerance);
+        self.core_acceptance = (4.0 * sigma_sq.sqrt()).clamp(self.acceptance, tolerance);
+    }
+
+    /// Least-squares intersection of a group; `None` unless every residual
+    /// is within the acceptance threshold.
+    fn intersect(&self, members: &[u32]) -> Option<Particle> {
+        let observations: Vec<Observation> = members
+            .iter()
+            .enumerate()
+            .filter(|(_, &m)| m != NONE)
+            .map(|(k, &m)| Observation {
+                camera: k,
+                pixel: self.frames[k].positions[m as usize],
+            })
+            .collect();
+        if observations.len() < self.matcher.min_cameras {
+            return None;
+        }
+        let rays = observations
+            .iter()
+            .filter_map(|o| self.frames[o.camera].rays[members[o.camera] as usize]);
+        let start = ray_midpoint(rays)?;
+        let result = intersect_from(&self.matcher.cameras, &observations, start).ok()?;
+        let worst = result
+            .residuals_px
+            .iter()
+            .map(|r| r.norm())
+            .fold(0.0, f64::max);
+        (worst <= self.core_acceptance).then(|| Particle {
+            position: result.point,
+            sigma: result.sigma,
+            rms_px: result.rms_px,
+            targets: members
+                .iter()
+                .map(|&m| (m != NONE).then_some(m as usize))
+                .collect(),
+        })
+    }
+
+    /// Marks a particle's targets used and keeps it, with its targets
+    /// numbered as in the caller's lists.
+    fn keep(&mut self, mut particle: Particle) {
+        for (k, target) in particle.targets.iter_mut().enumerate() {
+            if let Some(t) = target {
+                self.used[k][*t] = true;
+                *t = self.frames[k].original[*t] as usize;
+            }
+        }
+        self.particles.push(particle);
+    }
+
+    /// Step 4: best-first selection of groups of three or more.
+    fn select(&mut self, groups: CandidateGroups) {
+        let count = self.frames.len();
+        // Re-trim every candidate to the acceptance threshold, then order.
+        let mut ranked: Vec<(u8, f64, usize)> = Vec::with_capacity(groups.sizes.len());
+        let mut members = groups.members;
+        for g in 0..groups.sizes.len() {
+            let group = &mut members[g * count..(g + 1) * count];
+            let mut trimmed = group.to_vec();
+            if let Some(spread) = self.trim(
+                &mut trimmed,
+                (self.acceptance, self.core_acceptance),
+                |_| false,
+            ) {
+                group.copy_from_slice(&trimmed);
+                let size = trimmed.iter().filter(|&&m| m != NONE).count() as u8;
+                ranked.push((size, spread, g));
+            }
+        }
+        ranked.sort_unstable_by(|x, y| y.0.cmp(&x.0).then(x.1.total_cmp(&y.1)));
+        for (_, _, g) in ranked {
+            let group = &members[g * count..(g + 1) * count];
+            let free = group
+                .iter()
+                .enumerate()
+                .all(|(k, &m)| m == NONE || !self.used[k][m as usize]);
+            if !free {
+                continue;
+            }
+            if let Some(particle) = self.intersect(group) {
+                self.keep(particle);
+            }
+        }
+    }
+
+    /// Step 5: unambiguous pairs among the unused targets.
+    fn pairs(&mut self) {
+        let count = self.frames.len();
+        let mut candidates: Vec<(f64, [(usize, u32); 2])> = Vec::new();
+        let mut found = Vec::with_capacity(4);
+        let mut members = vec![NONE; count];
+        for i in 0..count {
+            for j in i + 1..count {
+                for a in 0..self.frames[i].targets.len() {
+                    if self.used[i][a] {
+                        continue;
+                    }
+                    found.clear();
+                    self.band(i, a, j, true, |b| found.push(b));
+                    let [b] = found[..] else {
+                        continue;
+                    };
+                    found.clear();
+                    self.band(j, b, i, true, |c| found.push(c));
+                    if found[..] != [a] {
+                        continue;
+                    }
+                    members.fill(NONE);
+                    members[i] = a as u32;
+                    members[j] = b as u32;
+                    if let Some(fit) = self.fit(&members, |_| false) {
+                        if fit.largest <= self.acceptance {
+                            candidates.push((fit.spread, [(i, a as u32), (j, b as u32)]));
+                        }
+                    }
+                }
+            }
+        }
+        candidates.sort_unstable_by(|x, y| x.0.total_cmp(&y.0));
+        for (_, pair) in candidates {
+            if pair.iter().any(|&(k, t)| self.used[k][t as usize]) {
+                continue;
+            }
+            members.fill(NONE);
+            for (k, t) in pair {
+                members[k] = t;
+            }
+            if let Some(particle) = self.intersect(&members) {
+                self.keep(particle);
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::photogrammetry::simulate::{self, MatchScore, RigSpec, TargetFrame};
+
+    struct Scene {
+        cameras: Vec<Camera>,
+        points: Vec<Point3<f64>>,
+        frame: TargetFrame,
+        volume: Volume,
+    }
+
+    fn scene(cameras: usize, particles: usize, noise: f64, drop: f64, seed: u64) -> Scene {
+        let spec = RigSpec::convergent(cameras);
+        let rig = spec.build().unwrap();
+        let mut rng = simulate::rng(seed);
+        let points = simulate::particles(&spec.volume, particles, &mut rng);
+        let frame = simulate::target_frame(&rig, &points, noise, drop, &mut rng);
+        Scene {
+            cameras: rig,
+            points,
+            frame,
+            volume: spec.volume,
+        }
+    }
+
+    fn run(scene: &Scene, tolerance: f64, min_cameras: usize) -> (Vec<Particle>, MatchScore) {
+        let parameters = MatchingParameters {
+            tolerance,
+            volume: Some(scene.volume),
+            min_cameras,
+            similarity: None,
+        };
+        let particles = Matcher::new(&scene.cameras, &parameters)
+            .unwrap()
+            .match_frame(&scene.frame.targets)
+            .unwrap();
+        let score = MatchScore::of(&particles, &scene.frame, &scene.points);
+        (particles, score)
+    }
+
+    #[test]
+    fn noise_free_particles_are_exact() {
+        // Every correct particle within 1 um of the truth; the tolerance is
+        // what any real frame would need (0.5 px), not tuned to noise-free data.
+        let scene = scene(4, 2000, 0.0, 0.1, 11);
+        let (_, score) = run(&scene, 0.5, 2);
+        assert!(score.max_error < 1e-3, "{score:?}");
+        // At least as complete as the 10% losses allow: a particle needs two
+        // of its four images (99.6% of them have that).
+        assert!(score.correct as f64 > 0.98 * 2000.0, "{score:?}");
+    }
+
+    #[test]
+    fn reported_sigmas_match_the_errors() {
+        // The RMS error per axis over the mean reported sigma: the adjustment's
+        // a posteriori sigmas must describe the actual scatter.
+        let scene = scene(4, 3000, 0.1, 0.1, 12);
+        let (_, score) = run(&scene, 0.5, 2);
+        let ratio = score.rms_error / score.mean_sigma;
+        assert!((0.8..=1.25).contains(&ratio), "ratio {ratio}: {score:?}");
+    }
+
+    #[test]
+    fn three_cameras_find_nearly_all_particles_as_triplets() {
+        let scene = scene(3, 2000, 0.1, 0.0, 13);
+        let (_, score) = run(&scene, 0.5, 2);
+        assert!(score.by_cameras[3] as f64 >= 0.99 * 2000.0, "{score:?}");
+        assert!(score.ghosts <= 10, "{score:?}");
+    }
+
+    #[test]
+    fn two_four_and_six_cameras_work() {
+        for (cameras, particles) in [(2, 300), (4, 2000), (6, 2000)] {
+            let scene = scene(cameras, particles, 0.1, 0.0, 14);
+            let (found, score) = run(&scene, 0.5, 2);
+            // Two cameras can only pair unambiguously; more see (nearly) all.
+            let expected = if cameras == 2 { 0.5 } else { 0.99 };
+            assert!(
+                score.correct as f64 >= expected * particles as f64,
+                "{cameras} cameras: {score:?}"
+            );
+            assert!(
+                score.ghosts * 100 <= particles,
+                "{cameras} cameras: {score:?}"
+            );
+            if cameras > 2 {
+                let full = found.iter().filter(|p| p.camera_count() == cameras).count();
+                assert!(
+                    full as f64 >= 0.95 * particles as f64,
+                    "{cameras} cameras: {full} seen by all"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn a_particle_hidden_in_one_of_four_images_is_found_from_three() {
+        let scene = scene(4, 1000, 0.1, 0.0, 15);
+        let mut frame = scene.frame.clone();
+        // Hide particle 0 and every tenth particle in camera (j % 4).
+        for j in (0..scene.points.len()).step_by(10) {
+            let camera = (j / 10) % 4;
+            let index = frame.truth[camera].iter().position(|&p| p == j).unwrap();
+            frame.truth[camera].remove(index);
+            frame.targets[camera].remove(index);
+        }
+        let hidden = Scene { frame, ..scene };
+        let (found, _) = run(&hidden, 0.5, 3);
+        for j in (0..hidden.points.len()).step_by(10) {
+            let particle = found.iter().find(|p| {
+                p.targets
+                    .iter()
+                    .enumerate()
+                    .all(|(c, t)| t.is_none_or(|t| hidden.frame.truth[c][t] == j))
+                    && p.camera_count() == 3
+            });
+            assert!(
+                particle.is_some(),
+                "particle {j} not found from its three images"
+            );
+        }
+    }
+
+    #[test]
+    fn empty_frames_give_no_particles() {
+        let scene = scene(4, 10, 0.1, 0.0, 16);
+        let matcher = Matcher::new(&scene.cameras, &MatchingParameters::default()).unwrap();
+        assert!(matcher
+            .match_frame(&vec![Vec::new(); 4])
+            .unwrap()
+            .is_empty());
+        let mut one_empty = scene.frame.targets.clone();
+        one_empty[2].clear();
+        assert!(matcher.match_frame(&one_empty).is_ok());
+    }
+
+    #[test]
+    fn bad_parameters_and_input_are_errors() {
+        let scene = scene(4, 10, 0.1, 0.0, 17);
+        let with = |f: &dyn Fn(&mut MatchingParameters)| {
+            let mut parameters = MatchingParameters {
+                volume: Some(scene.volume),
+                ..MatchingParameters::default()
+            };
+            f(&mut parameters);
+            Matcher::new(&scene.cameras, &parameters).map(|_| ())
+        };
+        assert_eq!(
+            with(&|p| p.tolerance = -1.0),
+            Err(MatchError::Tolerance(-1.0))
+        );
+        assert!(matches!(
+            with(&|p| p.tolerance = f64::NAN),
+            Err(MatchError::Tolerance(_))
+        ));
+        assert!(matches!(
+            with(&|p| p.min_cameras = 5),
+            Err(MatchError::MinCameras { min: 5, cameras: 4 })
+        ));
+        let flat = Volume {
+            min: Point3::new(0.0, 0.0, 0.0),
+            max: Point3::new(10.0, 10.0, 0.0),
+        };
+        assert!(matches!(
+            with(&|p| p.volume = Some(flat)),
+            Err(MatchError::EmptyVolume(_))
+        ));
+        let matcher = Matcher::new(&scene.cameras, &MatchingParameters::default()).unwrap();
+        assert_eq!(
+            matcher.match_frame(&scene.frame.targets[..3]),
+            Err(MatchError::CameraCount {
+                targets: 3,
+                cameras: 4
+            })
+        );
+        let mut nan = scene.frame.targets.clone();
+        nan[1][0].x = f64::NAN;
+        assert_eq!(
+            matcher.match_frame(&nan),
+            Err(MatchError::InvalidTarget {
+                camera: 1,
+                index: 0
+            })
+        );
+    }
+
+    #[test]
+    fn default_volume_covers_the_simulated_volume() {
+        // The simulator aims its cameras in air; refraction at the walls
+        // moves where their axes meet, so the default volume is not centred
+        // on the simulated one, but must hold nearly all of it.
+        let spec = RigSpec::convergent(4);
+        let volume = default_volume(&spec.build().unwrap()).unwrap();
+        let points = simulate::particles(&spec.volume, 1000, &mut simulate::rng(18));
+        let inside = points.iter().filter(|p| volume.contains(p)).count();
+        assert!(inside >= 900, "{inside} of 1000 in {volume:?}");
+    }
+}
