@@ -55,7 +55,12 @@ fn fails(output: &Output, needles: &[&str]) {
 fn frame(spec: &RenderSpec) -> GreyImage {
     let mut rng = simulate::rng(9);
     let positions: Vec<Point2<f64>> = (0..150)
-        .map(|_| Point2::new(rng_coordinate(&mut rng, 320.0), rng_coordinate(&mut rng, 240.0)))
+        .map(|_| {
+            Point2::new(
+                rng_coordinate(&mut rng, 320.0),
+                rng_coordinate(&mut rng, 240.0),
+            )
+        })
         .collect();
     simulate::render(320, 240, &positions, spec, &mut rng)
 }
@@ -192,7 +197,10 @@ fn images_are_checked_against_the_sensor() {
     assert!(image.check_sensor(&sensor).is_ok());
     sensor.height = 256;
     let message = image.check_sensor(&sensor).unwrap_err().to_string();
-    assert!(message.contains("320x240") && message.contains("320x256"), "{message}");
+    assert!(
+        message.contains("320x240") && message.contains("320x256"),
+        "{message}"
+    );
 }
 
 #[test]
@@ -216,7 +224,11 @@ fn detect_writes_the_library_targets_from_every_file_kind() {
         ],
     ] {
         let out = succeeds(&ptv(&args, dir.path()));
-        assert_eq!(csv::parse_targets(&out, "stdout").unwrap(), expected, "{args:?}");
+        assert_eq!(
+            csv::parse_targets(&out, "stdout").unwrap(),
+            expected,
+            "{args:?}"
+        );
     }
     let out = succeeds(&ptv(
         &["detect", "--image", "f.png", "--format", "openptv"],
@@ -266,7 +278,12 @@ fn detect_writes_the_library_targets_from_every_file_kind() {
         detect(&sixteen, &parameters)
     );
     // Without a threshold a 16-bit image gets a warning, not an error.
-    let output = ptv(&["detect", "--image", "g.raw", "--width", "320", "--height", "240", "--bits", "16"], dir.path());
+    let output = ptv(
+        &[
+            "detect", "--image", "g.raw", "--width", "320", "--height", "240", "--bits", "16",
+        ],
+        dir.path(),
+    );
     assert!(output.status.success());
     assert!(text(&output.stderr).starts_with("warning: g.raw is a 16-bit image"));
 }
@@ -280,10 +297,17 @@ fn detect_failures_print_one_error_line() {
     std::fs::write(d.join("f.pgm"), b"P5\n320 240\n255\n").unwrap();
     let bytes = png(&image);
     std::fs::write(d.join("cut.png"), &bytes[..bytes.len() - 100]).unwrap();
-    fails(&ptv(&["detect", "--image", "missing.png"], d), &["missing.png"]);
+    fails(
+        &ptv(&["detect", "--image", "missing.png"], d),
+        &["missing.png"],
+    );
     fails(
         &ptv(&["detect", "--image", "f.pgm"], d),
-        &["f.pgm", "neither a PNG nor a TIFF", "width, height and bit depth"],
+        &[
+            "f.pgm",
+            "neither a PNG nor a TIFF",
+            "width, height and bit depth",
+        ],
     );
     fails(
         &ptv(&["detect", "--image", "cut.png"], d),
@@ -291,23 +315,43 @@ fn detect_failures_print_one_error_line() {
     );
     fails(
         &ptv(
-            &["detect", "--image", "f.raw", "--width", "321", "--height", "240", "--bits", "8"],
+            &[
+                "detect", "--image", "f.raw", "--width", "321", "--height", "240", "--bits", "8",
+            ],
             d,
         ),
         &["f.raw", "needs 77040 bytes", "76800"],
     );
     fails(
-        &ptv(&["detect", "--image", "f.raw", "--width", "0", "--height", "240", "--bits", "8"], d),
+        &ptv(
+            &[
+                "detect", "--image", "f.raw", "--width", "0", "--height", "240", "--bits", "8",
+            ],
+            d,
+        ),
         &["f.raw", "empty"],
     );
     fails(
-        &ptv(&["detect", "--image", "f.png", "--min-pixels", "9", "--max-pixels", "4"], d),
+        &ptv(
+            &[
+                "detect",
+                "--image",
+                "f.png",
+                "--min-pixels",
+                "9",
+                "--max-pixels",
+                "4",
+            ],
+            d,
+        ),
         &["min_pixels", "max_pixels"],
     );
     // Usage errors keep clap's exit code 2.
     for args in [
         vec!["detect", "--image", "f.raw", "--width", "320"],
-        vec!["detect", "--image", "f.raw", "--width", "320", "--height", "240", "--bits", "12"],
+        vec![
+            "detect", "--image", "f.raw", "--width", "320", "--height", "240", "--bits", "12",
+        ],
         vec!["detect", "--image", "f.png", "--format", "xml"],
     ] {
         assert_eq!(ptv(&args, d).status.code(), Some(2), "{args:?}");

@@ -202,10 +202,7 @@ mod tests {
                 && message.contains("truncated"),
             "{message}"
         );
-        let empty = RawLayout {
-            width: 0,
-            ..layout
-        };
+        let empty = RawLayout { width: 0, ..layout };
         assert!(decode_raw(&[], &empty, "x").is_err());
     }
 

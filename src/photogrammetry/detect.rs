@@ -176,7 +176,10 @@ pub struct TargetPixels {
 
 /// [`detect`], keeping each target's pixels: for overlays, and for
 /// measuring how a segmentation divides the particles.
-pub fn detect_with_pixels(image: &GreyImage, parameters: &DetectionParameters) -> Vec<TargetPixels> {
+pub fn detect_with_pixels(
+    image: &GreyImage,
+    parameters: &DetectionParameters,
+) -> Vec<TargetPixels> {
     detect_with_pixels_if::<true>(image, parameters)
         .into_iter()
         .map(|(target, pixels)| TargetPixels { target, pixels })
@@ -211,39 +214,118 @@ fn detect_with_pixels_if<const PIXELS: bool>(
 }
 
 /// A sample type the detector works on directly.
-trait Grey: Copy + Default + Eq + Send + Sync {
+trait Grey: Copy + Send + Sync {
+    /// Fractional bits of the filtered values ("levels") kept in 16 bits:
+    /// 8 for 8-bit images, whose filtered values then carry 1/256 of a grey
+    /// level (the mean subtracted is a fraction), so centroid weights are
+    /// not rounded to whole grey levels; none for 16-bit images, whose grey
+    /// levels are already that fine.
+    const FRACTION_BITS: u32;
     /// The grey value.
     fn value(self) -> u32;
-    /// A grey value known to fit.
-    fn from_level(level: u32) -> Self;
 }
 
 impl Grey for u8 {
+    const FRACTION_BITS: u32 = 8;
     #[inline(always)]
     fn value(self) -> u32 {
         u32::from(self)
-    }
-    #[inline(always)]
-    fn from_level(level: u32) -> Self {
-        level.min(u32::from(u8::MAX)) as u8
     }
 }
 
 impl Grey for u16 {
+    const FRACTION_BITS: u32 = 0;
     #[inline(always)]
     fn value(self) -> u32 {
         u32::from(self)
     }
-    #[inline(always)]
-    fn from_level(level: u32) -> Self {
-        level.min(u32::from(u16::MAX)) as u16
+}
+
+/// One row of [`Detector::highpass_threshold`]: the window sum of column
+/// `x` is the sum of `column_sums` over columns `x-r ..= x+r` (clipped), of
+/// `rows * columns` pixels. Writes the level of every pixel above the
+/// threshold into `out` and its index (`first` + column) into `seeds`.
+#[allow(clippy::too_many_arguments)]
+fn filter_row<G: Grey>(
+    row: &[G],
+    column_sums: &[u32],
+    r: usize,
+    rows: u64,
+    threshold: u64,
+    out: &mut [u16],
+    first: usize,
+    seeds: &mut Vec<usize>,
+) {
+    let width = row.len();
+    // round(2^F (g c - s) / c), above 2^F t: only called when g c > s + t c,
+    // i.e. when the filtered value exceeds the threshold. It is at most
+    // 2^F g, which fits in 16 bits.
+    let fraction = G::FRACTION_BITS;
+    let mut keep = |x: usize, d: u64, c: u64| {
+        let level = (((2 * d) << fraction) + c) / (2 * c);
+        out[x] = level
+            .max((threshold << fraction) + 1)
+            .min(u64::from(u16::MAX)) as u16;
+        seeds.push(first + x);
+    };
+    let columns = |x: usize| ((x + r).min(width - 1) - x.saturating_sub(r) + 1) as u64;
+    // Columns 0 .. r-1; the loop adds column x + r before it looks at x.
+    let mut s: u64 = column_sums[..r.min(width)]
+        .iter()
+        .map(|&v| u64::from(v))
+        .sum();
+    // Left edge: columns enter the window, none leave.
+    let left_end = (r + 1).min(width);
+    for x in 0..left_end {
+        if x + r < width {
+            s += u64::from(column_sums[x + r]);
+        }
+        let c = rows * columns(x);
+        let gc = u64::from(row[x].value()) * c;
+        if gc > s + threshold * c {
+            keep(x, gc - s, c);
+        }
+    }
+    // Interior: column x + r enters and x - r - 1 leaves; the window is
+    // always rows x (2r + 1). The hot loop of the detector: no bounds
+    // checks, the running sum stays in a register.
+    let interior_end = width.saturating_sub(r).max(left_end);
+    if interior_end > left_end {
+        let c = rows * (2 * r + 1) as u64;
+        let tc = threshold * c;
+        let entering = &column_sums[left_end + r..interior_end + r];
+        let leaving = &column_sums[left_end - r - 1..interior_end - r - 1];
+        let pixels = &row[left_end..interior_end];
+        for (k, ((&enter, &leave), &g)) in entering.iter().zip(leaving).zip(pixels).enumerate() {
+            // One add on the running sum's dependency chain, not two.
+            s = s.wrapping_add_signed(i64::from(enter) - i64::from(leave));
+            let gc = u64::from(g.value()) * c;
+            if gc > s + tc {
+                keep(left_end + k, gc - s, c);
+            }
+        }
+    }
+    // Right edge: columns leave, none enter.
+    for x in interior_end..width {
+        if x + r < width {
+            s += u64::from(column_sums[x + r]);
+        }
+        if x > r {
+            s -= u64::from(column_sums[x - r - 1]);
+        }
+        let c = rows * columns(x);
+        let gc = u64::from(row[x].value()) * c;
+        if gc > s + threshold * c {
+            keep(x, gc - s, c);
+        }
     }
 }
 
 /// "No region / not yet visited" in the splitting step.
 const NONE: u32 = u32::MAX;
 
-/// A pixel of a blob: position and filtered grey value.
+/// A pixel of a blob: position and level (filtered grey value in units of
+/// 2^-`FRACTION_BITS` grey levels).
 #[derive(Clone, Copy, Debug)]
 struct BlobPixel {
     x: usize,
@@ -263,6 +345,7 @@ struct Region {
 #[derive(Clone, Copy, Debug)]
 struct Moments {
     n: u64,
+    /// Sum of levels.
     sumg: u64,
     /// Sum of weights `level - threshold`.
     weight: u64,
@@ -312,9 +395,10 @@ struct Detector<'a, G: Grey> {
     width: usize,
     height: usize,
     parameters: &'a DetectionParameters,
-    /// High-pass filtered grey values of the pixels above the threshold, 0
-    /// elsewhere and once a pixel has been taken into a blob.
-    levels: Vec<G>,
+    /// Levels (high-pass filtered grey values, with `G::FRACTION_BITS`
+    /// fractional bits) of the pixels above the threshold; 0 elsewhere and
+    /// once a pixel has been taken into a blob.
+    levels: Vec<u16>,
     /// The pixels above the threshold, in raster order.
     seeds: Vec<usize>,
     /// The blob being measured.
@@ -361,7 +445,7 @@ impl<'a, G: Grey> Detector<'a, G> {
         let mut found = Vec::new();
         let seeds = std::mem::take(&mut self.seeds);
         for &seed in &seeds {
-            if self.levels[seed] == G::default() {
+            if self.levels[seed] == 0 {
                 continue; // already part of an earlier blob
             }
             self.flood(seed);
@@ -376,12 +460,12 @@ impl<'a, G: Grey> Detector<'a, G> {
     /// For pixel value `g`, window sum `s` and window size `c` the filtered
     /// value is `g - s / c`; the test `g - s/c > t` is done exactly as
     /// `g c > s + t c` in integers, and only pixels that pass are divided.
-    /// The filtered value is rounded to the nearest integer and kept above
-    /// the threshold, so every blob pixel has a weight of at least 1.
+    /// The level is the filtered value rounded to 2^-`FRACTION_BITS`, kept
+    /// above the threshold, so every blob pixel has a weight of at least 1.
     fn highpass_threshold(&mut self) {
         let (width, height) = (self.width, self.height);
         let threshold = u64::from(self.parameters.threshold);
-        self.levels = vec![G::default(); width * height];
+        self.levels = vec![0; width * height];
         let levels = &mut self.levels;
         let seeds = &mut self.seeds;
         let pixels = self.pixels;
@@ -389,7 +473,7 @@ impl<'a, G: Grey> Detector<'a, G> {
         if r == 0 {
             for (i, &g) in pixels.iter().enumerate() {
                 if u64::from(g.value()) > threshold {
-                    levels[i] = g;
+                    levels[i] = (g.value() << G::FRACTION_BITS) as u16;
                     seeds.push(i);
                 }
             }
@@ -405,8 +489,6 @@ impl<'a, G: Grey> Detector<'a, G> {
         for row in 0..r.min(height) {
             add_row(&mut column_sums, row);
         }
-        // Number of columns in the window of column x.
-        let columns = |x: usize| (x + r).min(width - 1) - x.saturating_sub(r) + 1;
         for y in 0..height {
             if y + r < height {
                 add_row(&mut column_sums, y + r);
@@ -423,52 +505,7 @@ impl<'a, G: Grey> Detector<'a, G> {
             let rows = ((y + r).min(height - 1) - y.saturating_sub(r) + 1) as u64;
             let row = &pixels[y * width..(y + 1) * width];
             let out = &mut levels[y * width..(y + 1) * width];
-            let mut visit = |x: usize, s: u64, c: u64| {
-                let gc = u64::from(row[x].value()) * c;
-                let tc = threshold * c;
-                if gc > s + tc {
-                    let d = gc - s;
-                    // round(d / c), at least threshold + 1 (d > t c).
-                    let level = ((2 * d + c) / (2 * c)).max(threshold + 1);
-                    out[x] = G::from_level(level as u32);
-                    seeds.push(y * width + x);
-                }
-            };
-            // The window of column x spans columns x-r ..= x+r, clipped.
-            let mut s: u64 = column_sums[..r.min(width)]
-                .iter()
-                .map(|&v| u64::from(v))
-                .sum();
-            // Left edge: columns enter, none leave.
-            let left_end = (r + 1).min(width);
-            for x in 0..left_end {
-                if x + r < width {
-                    s += u64::from(column_sums[x + r]);
-                }
-                visit(x, s, rows * columns(x) as u64);
-            }
-            // Interior: one column enters and one leaves; constant window.
-            let interior_end = width.saturating_sub(r).max(left_end);
-            let c = rows * (2 * r + 1) as u64;
-            let tc = threshold * c;
-            for x in left_end..interior_end {
-                s += u64::from(column_sums[x + r]);
-                s -= u64::from(column_sums[x - r - 1]);
-                let gc = u64::from(row[x].value()) * c;
-                if gc > s + tc {
-                    visit(x, s, c);
-                }
-            }
-            // Right edge: columns leave, none enter.
-            for x in interior_end..width {
-                if x + r < width {
-                    s += u64::from(column_sums[x + r]);
-                }
-                if x > r {
-                    s -= u64::from(column_sums[x - r - 1]);
-                }
-                visit(x, s, rows * columns(x) as u64);
-            }
+            filter_row(row, &column_sums, r, rows, threshold, out, y * width, seeds);
         }
     }
 
@@ -482,33 +519,56 @@ impl<'a, G: Grey> Detector<'a, G> {
         self.blob.push(BlobPixel {
             x,
             y,
-            level: self.levels[seed].value(),
+            level: u32::from(self.levels[seed]),
         });
-        self.levels[seed] = G::default();
+        self.levels[seed] = 0;
         self.stack.push((x, y));
         while let Some((x, y)) = self.stack.pop() {
+            if x > 0 && y > 0 && x + 1 < width && y + 1 < height {
+                // Away from the border: the eight neighbours by offset.
+                let p = y * width + x;
+                for q in [
+                    p - width - 1,
+                    p - width,
+                    p - width + 1,
+                    p - 1,
+                    p + 1,
+                    p + width - 1,
+                    p + width,
+                    p + width + 1,
+                ] {
+                    self.take(q, q % width, q / width);
+                }
+                continue;
+            }
             for ny in y.saturating_sub(1)..=(y + 1).min(height - 1) {
                 for nx in x.saturating_sub(1)..=(x + 1).min(width - 1) {
-                    let q = ny * width + nx;
-                    let level = self.levels[q];
-                    if level != G::default() {
-                        self.levels[q] = G::default();
-                        self.blob.push(BlobPixel {
-                            x: nx,
-                            y: ny,
-                            level: level.value(),
-                        });
-                        self.stack.push((nx, ny));
-                    }
+                    self.take(ny * width + nx, nx, ny);
                 }
             }
+        }
+    }
+
+    /// Moves pixel `q` = (`x`, `y`) into the blob if it is above the
+    /// threshold and not taken yet.
+    #[inline(always)]
+    fn take(&mut self, q: usize, x: usize, y: usize) {
+        let level = self.levels[q];
+        if level != 0 {
+            self.levels[q] = 0;
+            self.blob.push(BlobPixel {
+                x,
+                y,
+                level: u32::from(level),
+            });
+            self.stack.push((x, y));
         }
     }
 
     /// Steps 3 and 4 for the blob in `blob`: splits it, measures each
     /// particle and keeps those that pass the filters.
     fn measure_blob<const PIXELS: bool>(&mut self, found: &mut Vec<(Target, Vec<(u32, u32)>)>) {
-        let threshold = u32::from(self.parameters.threshold);
+        let threshold = u32::from(self.parameters.threshold) << G::FRACTION_BITS;
         let mut xmin = usize::MAX;
         let mut ymin = usize::MAX;
         for p in &self.blob {
@@ -517,7 +577,7 @@ impl<'a, G: Grey> Detector<'a, G> {
         }
         let corner = (xmin, ymin);
         self.moments.clear();
-        if !self.parameters.split || self.blob.len() < 3 {
+        if !self.parameters.split || self.blob.len() < 3 || self.one_maximum(corner) {
             let mut m = Moments::new();
             for p in &self.blob {
                 m.add(p, corner, threshold);
@@ -545,11 +605,9 @@ impl<'a, G: Grey> Detector<'a, G> {
             let p = self.blob[rank];
             self.moments[self.slot[root] as usize].add(&p, corner, threshold);
         }
-        let mut pixels: Vec<Vec<(u32, u32)>> = if PIXELS {
-            vec![Vec::new(); self.moments.len()]
-        } else {
-            Vec::new()
-        };
+        // Each particle's pixels, when asked for; else empty vectors, which
+        // do not allocate.
+        let mut pixels: Vec<Vec<(u32, u32)>> = vec![Vec::new(); self.moments.len()];
         if PIXELS {
             for rank in 0..self.blob.len() {
                 let root = self.find(self.region_of[rank]) as usize;
@@ -557,23 +615,65 @@ impl<'a, G: Grey> Detector<'a, G> {
                 pixels[self.slot[root] as usize].push((p.x as u32, p.y as u32));
             }
         }
-        for k in 0..self.moments.len() {
-            if let Some(target) = self.target(&self.moments[k], corner) {
-                let own = if PIXELS {
-                    std::mem::take(&mut pixels[k])
-                } else {
-                    Vec::new()
-                };
+        for (m, own) in self.moments.iter().zip(pixels) {
+            if let Some(target) = self.target(m, corner) {
                 found.push((target, own));
             }
         }
+    }
+
+    /// Whether flooding the blob would start only one particle: whether
+    /// exactly one pixel has no neighbour that comes before it in flooding
+    /// order (brighter, or as bright and earlier in raster order). Most
+    /// blobs are single particles, and this spares them the sort.
+    fn one_maximum(&mut self, corner: (usize, usize)) -> bool {
+        let (box_width, box_height) = self.bounding_box(corner);
+        self.grid.clear();
+        self.grid.resize(box_width * box_height, 0);
+        for p in &self.blob {
+            self.grid[(p.y - corner.1) * box_width + (p.x - corner.0)] = p.level;
+        }
+        let mut maxima = 0;
+        for p in &self.blob {
+            let (bx, by) = (p.x - corner.0, p.y - corner.1);
+            let mut first = true;
+            'neighbours: for ny in by.saturating_sub(1)..=(by + 1).min(box_height - 1) {
+                for nx in bx.saturating_sub(1)..=(bx + 1).min(box_width - 1) {
+                    let level = self.grid[ny * box_width + nx];
+                    // Raster order: rows above, or this row to the left.
+                    let earlier = (ny, nx) < (by, bx);
+                    if level > p.level || (level == p.level && earlier) {
+                        first = false;
+                        break 'neighbours;
+                    }
+                }
+            }
+            if first {
+                maxima += 1;
+                if maxima > 1 {
+                    return false;
+                }
+            }
+        }
+        true
+    }
+
+    /// Width and height of the blob's bounding box, whose top-left corner is
+    /// `corner`.
+    fn bounding_box(&self, corner: (usize, usize)) -> (usize, usize) {
+        let (mut xmax, mut ymax) = (0, 0);
+        for p in &self.blob {
+            xmax = xmax.max(p.x);
+            ymax = ymax.max(p.y);
+        }
+        (xmax - corner.0 + 1, ymax - corner.1 + 1)
     }
 
     /// Step 3: floods the blob from its brightest pixel down, leaving each
     /// pixel's region in `region_of` (indexed by rank in `blob`, which is
     /// sorted bright to dark).
     fn split(&mut self, corner: (usize, usize)) {
-        let depth = u32::from(self.parameters.split_depth);
+        let depth = u32::from(self.parameters.split_depth) << G::FRACTION_BITS;
         // Bright to dark; equal values in raster order, so that the result
         // does not depend on where the blob lies in the image.
         self.blob.sort_unstable_by(|a, b| {
@@ -582,13 +682,7 @@ impl<'a, G: Grey> Detector<'a, G> {
                 .then(a.y.cmp(&b.y))
                 .then(a.x.cmp(&b.x))
         });
-        let (mut xmax, mut ymax) = (0, 0);
-        for p in &self.blob {
-            xmax = xmax.max(p.x);
-            ymax = ymax.max(p.y);
-        }
-        let box_width = xmax - corner.0 + 1;
-        let box_height = ymax - corner.1 + 1;
+        let (box_width, box_height) = self.bounding_box(corner);
         self.grid.clear();
         self.grid.resize(box_width * box_height, NONE);
         self.region_of.clear();
@@ -685,10 +779,15 @@ impl<'a, G: Grey> Detector<'a, G> {
         let n = u32::try_from(m.n).unwrap_or(u32::MAX);
         let nx = u32::try_from(m.xmax - m.xmin + 1).unwrap_or(u32::MAX);
         let ny = u32::try_from(m.ymax - m.ymin + 1).unwrap_or(u32::MAX);
+        // Levels carry FRACTION_BITS fractional bits; sumg is in grey levels.
+        let sumg = match G::FRACTION_BITS {
+            0 => m.sumg,
+            bits => (m.sumg + (1 << (bits - 1))) >> bits,
+        };
         let passes = (p.min_pixels..=p.max_pixels).contains(&n)
             && (p.min_nx..=p.max_nx).contains(&nx)
             && (p.min_ny..=p.max_ny).contains(&ny)
-            && m.sumg >= p.min_sumg;
+            && sumg >= p.min_sumg;
         if !passes {
             return None;
         }
@@ -699,7 +798,7 @@ impl<'a, G: Grey> Detector<'a, G> {
             n,
             nx,
             ny,
-            sumg: m.sumg,
+            sumg,
         })
     }
 }
@@ -718,6 +817,7 @@ mod tests {
         height: usize,
         r: usize,
         t: u64,
+        fraction: u32,
     ) -> Vec<u16> {
         let mut out = vec![0; width * height];
         for y in 0..height {
@@ -737,10 +837,12 @@ mod tests {
                     }
                     (s, c)
                 };
-                // filtered = g - s/c > t, rounded, at least t + 1.
+                // filtered = g - s/c > t, in units of 2^-fraction, rounded,
+                // above t.
                 if g * c > s + t * c {
-                    let d = g * c - s;
-                    out[y * width + x] = ((2 * d + c) / (2 * c)).max(t + 1) as u16;
+                    let scale = 1 << fraction;
+                    let d = (g * c - s) * scale;
+                    out[y * width + x] = ((2 * d + c) / (2 * c)).max(t * scale + 1) as u16;
                 }
             }
         }
@@ -771,12 +873,13 @@ mod tests {
                     highpass_radius: r as u32,
                     ..DetectionParameters::default()
                 };
-                let expected = reference_levels(&pixels, width, height, r, t);
+                let fraction = if max == 255 { 8 } else { 0 };
+                let expected = reference_levels(&pixels, width, height, r, t, fraction);
                 let got: Vec<u16> = if max == 255 {
                     let eight: Vec<u8> = pixels.iter().map(|&v| v as u8).collect();
                     let mut d = Detector::new(&eight, width, height, &parameters);
                     d.highpass_threshold();
-                    d.levels.iter().map(|&v| u16::from(v)).collect()
+                    d.levels
                 } else {
                     let mut d = Detector::new(&pixels, width, height, &parameters);
                     d.highpass_threshold();
@@ -931,7 +1034,10 @@ mod tests {
             ..p
         };
         let message = bad.validate().unwrap_err().to_string();
-        assert!(message.starts_with("min_pixels: 9 is larger than max_pixels (4)"), "{message}");
+        assert!(
+            message.starts_with("min_pixels: 9 is larger than max_pixels (4)"),
+            "{message}"
+        );
         assert!(DetectionParameters::default().validate().is_ok());
     }
 

@@ -245,6 +245,9 @@ mod tests {
         assert!(image.check_sensor(&sensor).is_ok());
         let other = GreyImage::from_u8(3, 4, vec![0; 12]).unwrap();
         let message = other.check_sensor(&sensor).unwrap_err().to_string();
-        assert!(message.contains("3x4") && message.contains("4x3"), "{message}");
+        assert!(
+            message.contains("3x4") && message.contains("4x3"),
+            "{message}"
+        );
     }
 }

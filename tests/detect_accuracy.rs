@@ -1,0 +1,293 @@
+//! Detection against the renderer's ground truth (design paper, section 6.1).
+//!
+//! **Ground truth match.** A rendered particle is *found* when a target lies
+//! within 1 px of its exact image position. Matching is one to one: all
+//! (particle, target) pairs closer than 1 px are taken in order of
+//! increasing distance, each particle and each target at most once. Recall
+//! is the share of particles found; a *false target* is one matched to no
+//! particle (noise, a merged blob whose centroid lies between its particles,
+//! or a second target on one particle); the centroid error is the 2D
+//! distance |detected - true| of matched pairs, and "RMS" its root mean
+//! square (so per coordinate it is smaller by about sqrt 2).
+//!
+//! Particles closer than 5 px to the image border are left out of recall
+//! (the detector drops targets touching the border by design); targets that
+//! close to the border are left out of the false-target count. Run with
+//! `cargo test --release --test detect_accuracy -- --nocapture` to see the
+//! tables.
+
+use std::collections::HashMap;
+
+use nalgebra::Point2;
+use ptv::photogrammetry::detect::{detect_with_pixels, TargetPixels};
+use ptv::photogrammetry::simulate::{self, RenderSpec};
+use ptv::photogrammetry::{detect, DetectionParameters, GreyImage, Target};
+use rand::Rng;
+
+const WIDTH: u32 = 1280;
+const HEIGHT: u32 = 1024;
+/// Particles and targets this close to the border are not scored.
+const MARGIN: f64 = 5.0;
+/// A target within this distance of a particle finds it.
+const MATCH_RADIUS: f64 = 1.0;
+
+fn interior(p: Point2<f64>) -> bool {
+    p.x >= MARGIN
+        && p.y >= MARGIN
+        && p.x <= f64::from(WIDTH) - MARGIN
+        && p.y <= f64::from(HEIGHT) - MARGIN
+}
+
+/// Per particle, the index of the target that finds it: the one-to-one
+/// nearest-first matching described in the module documentation.
+fn match_targets(truth: &[Point2<f64>], targets: &[Target]) -> Vec<Option<usize>> {
+    let cell = |x: f64, y: f64| {
+        (
+            (x / MATCH_RADIUS).floor() as i64,
+            (y / MATCH_RADIUS).floor() as i64,
+        )
+    };
+    let mut grid: HashMap<(i64, i64), Vec<usize>> = HashMap::new();
+    for (k, t) in targets.iter().enumerate() {
+        grid.entry(cell(t.x, t.y)).or_default().push(k);
+    }
+    let mut pairs = Vec::new();
+    for (i, p) in truth.iter().enumerate() {
+        let (cx, cy) = cell(p.x, p.y);
+        for dx in -1..=1 {
+            for dy in -1..=1 {
+                for &k in grid.get(&(cx + dx, cy + dy)).into_iter().flatten() {
+                    let d = (targets[k].x - p.x).hypot(targets[k].y - p.y);
+                    if d <= MATCH_RADIUS {
+                        pairs.push((d, i, k));
+                    }
+                }
+            }
+        }
+    }
+    pairs.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let mut of_truth = vec![None; truth.len()];
+    let mut taken = vec![false; targets.len()];
+    for (_, i, k) in pairs {
+        if of_truth[i].is_none() && !taken[k] {
+            of_truth[i] = Some(k);
+            taken[k] = true;
+        }
+    }
+    of_truth
+}
+
+/// How well a set of targets reproduces the particles.
+#[derive(Clone, Copy, Debug)]
+struct Score {
+    particles: usize,
+    found: usize,
+    false_targets: usize,
+    rms: f64,
+    max_error: f64,
+}
+
+impl Score {
+    fn recall(&self) -> f64 {
+        self.found as f64 / self.particles as f64
+    }
+}
+
+fn score(truth: &[Point2<f64>], targets: &[Target]) -> (Score, Vec<Option<usize>>) {
+    let matched = match_targets(truth, targets);
+    let mut taken = vec![false; targets.len()];
+    let (mut particles, mut found, mut sum2, mut max_error) = (0, 0, 0.0, 0.0f64);
+    for (p, m) in truth.iter().zip(&matched) {
+        if let Some(k) = m {
+            taken[*k] = true;
+        }
+        if !interior(*p) {
+            continue;
+        }
+        particles += 1;
+        if let Some(k) = m {
+            found += 1;
+            let e = (targets[*k].x - p.x).hypot(targets[*k].y - p.y);
+            sum2 += e * e;
+            max_error = max_error.max(e);
+        }
+    }
+    let false_targets = targets
+        .iter()
+        .zip(&taken)
+        .filter(|(t, taken)| !**taken && interior(Point2::new(t.x, t.y)))
+        .count();
+    let score = Score {
+        particles,
+        found,
+        false_targets,
+        rms: (sum2 / found.max(1) as f64).sqrt(),
+        max_error,
+    };
+    (score, matched)
+}
+
+/// Particles on a 16 px grid, each shifted by a random sub-pixel amount:
+/// isolated, with every sub-pixel phase sampled.
+fn isolated_particles(rng: &mut impl Rng) -> Vec<Point2<f64>> {
+    let mut positions = Vec::new();
+    for j in 1..HEIGHT / 16 {
+        for i in 1..WIDTH / 16 {
+            positions.push(Point2::new(
+                f64::from(i * 16) + rng.random::<f64>(),
+                f64::from(j * 16) + rng.random::<f64>(),
+            ));
+        }
+    }
+    positions
+}
+
+fn uniform_particles(count: usize, rng: &mut impl Rng) -> Vec<Point2<f64>> {
+    (0..count)
+        .map(|_| {
+            Point2::new(
+                rng.random_range(0.0..f64::from(WIDTH)),
+                rng.random_range(0.0..f64::from(HEIGHT)),
+            )
+        })
+        .collect()
+}
+
+fn render(positions: &[Point2<f64>], spec: &RenderSpec, seed: u64) -> GreyImage {
+    simulate::render(WIDTH, HEIGHT, positions, spec, &mut simulate::rng(seed))
+}
+
+#[test]
+fn isolated_particles_are_found_to_a_twentieth_of_a_pixel() {
+    println!(
+        "isolated particles, 8-bit, read noise 1 grey level + photon noise, default parameters"
+    );
+    println!("diameter_px  particles  recall    false  rms_px  max_px");
+    for (k, diameter) in [2.0, 2.5, 3.0].into_iter().enumerate() {
+        let mut rng = simulate::rng(100 + k as u64);
+        let truth = isolated_particles(&mut rng);
+        let image = render(&truth, &RenderSpec::eight_bit(diameter), 200 + k as u64);
+        let targets = detect(&image, &DetectionParameters::default());
+        let (s, _) = score(&truth, &targets);
+        println!(
+            "{diameter:11.1}  {:9}  {:7.4}  {:5}  {:6.4}  {:6.3}",
+            s.particles,
+            s.recall(),
+            s.false_targets,
+            s.rms,
+            s.max_error
+        );
+        assert!(s.recall() >= 0.995, "diameter {diameter}: {s:?}");
+        assert!(s.rms <= 0.05, "diameter {diameter}: {s:?}");
+        assert_eq!(s.false_targets, 0, "diameter {diameter}: {s:?}");
+    }
+}
+
+#[test]
+fn pure_noise_gives_no_targets_at_the_default_threshold() {
+    for seed in 0..3 {
+        let image = render(&[], &RenderSpec::eight_bit(2.5), seed);
+        let targets = detect(&image, &DetectionParameters::default());
+        assert!(targets.is_empty(), "seed {seed}: {} targets", targets.len());
+    }
+}
+
+/// Merges made by plain connected components, and how many the splitting
+/// detector undoes.
+#[derive(Clone, Copy, Debug, Default)]
+struct Merges {
+    /// Blobs holding exactly two particles' centre pixels.
+    pairs: usize,
+    /// Of those, pairs whose two particles the splitting detector both finds.
+    pairs_recovered: usize,
+    /// Blobs holding three or more.
+    groups: usize,
+    /// Particles in merged blobs that plain components do not find...
+    lost: usize,
+    /// ...and of those, how many splitting finds.
+    lost_recovered: usize,
+}
+
+fn merges(
+    truth: &[Point2<f64>],
+    plain: &[TargetPixels],
+    plain_matched: &[Option<usize>],
+    split_matched: &[Option<usize>],
+) -> Merges {
+    let mut blob_of = HashMap::new();
+    for (k, t) in plain.iter().enumerate() {
+        for &pixel in &t.pixels {
+            blob_of.insert(pixel, k);
+        }
+    }
+    let mut members: HashMap<usize, Vec<usize>> = HashMap::new();
+    for (i, p) in truth.iter().enumerate() {
+        if !interior(*p) {
+            continue;
+        }
+        if let Some(&k) = blob_of.get(&(p.x as u32, p.y as u32)) {
+            members.entry(k).or_default().push(i);
+        }
+    }
+    let mut m = Merges::default();
+    for particles in members.values().filter(|v| v.len() >= 2) {
+        if particles.len() == 2 {
+            m.pairs += 1;
+            if particles.iter().all(|&i| split_matched[i].is_some()) {
+                m.pairs_recovered += 1;
+            }
+        } else {
+            m.groups += 1;
+        }
+        for &i in particles {
+            if plain_matched[i].is_none() {
+                m.lost += 1;
+                if split_matched[i].is_some() {
+                    m.lost_recovered += 1;
+                }
+            }
+        }
+    }
+    m
+}
+
+#[test]
+fn splitting_recovers_overlapping_particles() {
+    println!("uniform particles, 2.5 px, 8-bit, 1280x1024, default parameters");
+    println!(
+        "density_ppp  particles  method  recall    false  rms_px  | merged_pairs  recovered  groups>=3  lost  lost_recovered"
+    );
+    for (k, density) in [0.005, 0.01, 0.02].into_iter().enumerate() {
+        let count = (density * f64::from(WIDTH * HEIGHT)).round() as usize;
+        let mut rng = simulate::rng(300 + k as u64);
+        let truth = uniform_particles(count, &mut rng);
+        let image = render(&truth, &RenderSpec::eight_bit(2.5), 400 + k as u64);
+        let parameters = DetectionParameters::default();
+        let split = detect(&image, &parameters);
+        let plain = detect_with_pixels(
+            &image,
+            &DetectionParameters {
+                split: false,
+                ..parameters.clone()
+            },
+        );
+        let plain_targets: Vec<Target> = plain.iter().map(|t| t.target).collect();
+        let (s_split, split_matched) = score(&truth, &split);
+        let (s_plain, plain_matched) = score(&truth, &plain_targets);
+        let m = merges(&truth, &plain, &plain_matched, &split_matched);
+        for (name, s) in [("plain", s_plain), ("split", s_split)] {
+            println!(
+                "{density:11.3}  {:9}  {name:6}  {:7.4}  {:5}  {:6.4}  |",
+                s.particles,
+                s.recall(),
+                s.false_targets,
+                s.rms
+            );
+        }
+        println!(
+            "{:>57} {:12}  {:9}  {:9}  {:4}  {:14}",
+            "", m.pairs, m.pairs_recovered, m.groups, m.lost, m.lost_recovered
+        );
+        assert!(2 * m.pairs_recovered >= m.pairs, "density {density}: {m:?}");
+    }
+}
