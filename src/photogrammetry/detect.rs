@@ -215,18 +215,19 @@ fn detect_with_pixels_if<const PIXELS: bool>(
 
 /// A sample type the detector works on directly.
 trait Grey: Copy + Send + Sync {
-    /// Fractional bits of the filtered values ("levels") kept in 16 bits:
-    /// 8 for 8-bit images, whose filtered values then carry 1/256 of a grey
-    /// level (the mean subtracted is a fraction), so centroid weights are
-    /// not rounded to whole grey levels; none for 16-bit images, whose grey
-    /// levels are already that fine.
-    const FRACTION_BITS: u32;
+    /// Levels (filtered grey values) are kept in 16-bit grey levels: 8-bit
+    /// values times 257 (255 becomes 65535), 16-bit ones as they are. The
+    /// mean subtracted is a fraction, so 8-bit levels keep 1/257 of a grey
+    /// level and centroid weights are not rounded to whole grey levels; and
+    /// an 8-bit image and its 16-bit copy (times 257) have the same levels,
+    /// so they give the same targets.
+    const LEVEL_SCALE: u64;
     /// The grey value.
     fn value(self) -> u32;
 }
 
 impl Grey for u8 {
-    const FRACTION_BITS: u32 = 8;
+    const LEVEL_SCALE: u64 = 257;
     #[inline(always)]
     fn value(self) -> u32 {
         u32::from(self)
@@ -234,7 +235,7 @@ impl Grey for u8 {
 }
 
 impl Grey for u16 {
-    const FRACTION_BITS: u32 = 0;
+    const LEVEL_SCALE: u64 = 1;
     #[inline(always)]
     fn value(self) -> u32 {
         u32::from(self)
@@ -257,15 +258,13 @@ fn filter_row<G: Grey>(
     seeds: &mut Vec<usize>,
 ) {
     let width = row.len();
-    // round(2^F (g c - s) / c), above 2^F t: only called when g c > s + t c,
-    // i.e. when the filtered value exceeds the threshold. It is at most
-    // 2^F g, which fits in 16 bits.
-    let fraction = G::FRACTION_BITS;
+    // round(k (g c - s) / c) with k = LEVEL_SCALE, above k t: only called
+    // when g c > s + t c, i.e. when the filtered value exceeds the
+    // threshold. It is at most k g, which fits in 16 bits.
+    let scale = G::LEVEL_SCALE;
     let mut keep = |x: usize, d: u64, c: u64| {
-        let level = (((2 * d) << fraction) + c) / (2 * c);
-        out[x] = level
-            .max((threshold << fraction) + 1)
-            .min(u64::from(u16::MAX)) as u16;
+        let level = (2 * d * scale + c) / (2 * c);
+        out[x] = level.max(threshold * scale + 1).min(u64::from(u16::MAX)) as u16;
         seeds.push(first + x);
     };
     let columns = |x: usize| ((x + r).min(width - 1) - x.saturating_sub(r) + 1) as u64;
@@ -324,8 +323,8 @@ fn filter_row<G: Grey>(
 /// "No region / not yet visited" in the splitting step.
 const NONE: u32 = u32::MAX;
 
-/// A pixel of a blob: position and level (filtered grey value in units of
-/// 2^-`FRACTION_BITS` grey levels).
+/// A pixel of a blob: position and level (filtered grey value in 16-bit
+/// grey levels, see [`Grey::LEVEL_SCALE`]).
 #[derive(Clone, Copy, Debug)]
 struct BlobPixel {
     x: usize,
@@ -395,9 +394,9 @@ struct Detector<'a, G: Grey> {
     width: usize,
     height: usize,
     parameters: &'a DetectionParameters,
-    /// Levels (high-pass filtered grey values, with `G::FRACTION_BITS`
-    /// fractional bits) of the pixels above the threshold; 0 elsewhere and
-    /// once a pixel has been taken into a blob.
+    /// Levels (high-pass filtered grey values in 16-bit grey levels) of the
+    /// pixels above the threshold; 0 elsewhere and once a pixel has been
+    /// taken into a blob.
     levels: Vec<u16>,
     /// The pixels above the threshold, in raster order.
     seeds: Vec<usize>,
@@ -460,8 +459,9 @@ impl<'a, G: Grey> Detector<'a, G> {
     /// For pixel value `g`, window sum `s` and window size `c` the filtered
     /// value is `g - s / c`; the test `g - s/c > t` is done exactly as
     /// `g c > s + t c` in integers, and only pixels that pass are divided.
-    /// The level is the filtered value rounded to 2^-`FRACTION_BITS`, kept
-    /// above the threshold, so every blob pixel has a weight of at least 1.
+    /// The level is the filtered value in 16-bit grey levels, rounded and
+    /// kept above the threshold, so every blob pixel has a weight of at
+    /// least 1.
     fn highpass_threshold(&mut self) {
         let (width, height) = (self.width, self.height);
         let threshold = u64::from(self.parameters.threshold);
@@ -473,7 +473,7 @@ impl<'a, G: Grey> Detector<'a, G> {
         if r == 0 {
             for (i, &g) in pixels.iter().enumerate() {
                 if u64::from(g.value()) > threshold {
-                    levels[i] = (g.value() << G::FRACTION_BITS) as u16;
+                    levels[i] = (u64::from(g.value()) * G::LEVEL_SCALE) as u16;
                     seeds.push(i);
                 }
             }
@@ -568,7 +568,8 @@ impl<'a, G: Grey> Detector<'a, G> {
     /// Steps 3 and 4 for the blob in `blob`: splits it, measures each
     /// particle and keeps those that pass the filters.
     fn measure_blob<const PIXELS: bool>(&mut self, found: &mut Vec<(Target, Vec<(u32, u32)>)>) {
-        let threshold = u32::from(self.parameters.threshold) << G::FRACTION_BITS;
+        let threshold =
+            (u64::from(self.parameters.threshold) * G::LEVEL_SCALE).min(u64::from(u32::MAX)) as u32;
         let mut xmin = usize::MAX;
         let mut ymin = usize::MAX;
         for p in &self.blob {
@@ -673,7 +674,8 @@ impl<'a, G: Grey> Detector<'a, G> {
     /// pixel's region in `region_of` (indexed by rank in `blob`, which is
     /// sorted bright to dark).
     fn split(&mut self, corner: (usize, usize)) {
-        let depth = u32::from(self.parameters.split_depth) << G::FRACTION_BITS;
+        let depth = (u64::from(self.parameters.split_depth) * G::LEVEL_SCALE)
+            .min(u64::from(u32::MAX)) as u32;
         // Bright to dark; equal values in raster order, so that the result
         // does not depend on where the blob lies in the image.
         self.blob.sort_unstable_by(|a, b| {
@@ -779,11 +781,8 @@ impl<'a, G: Grey> Detector<'a, G> {
         let n = u32::try_from(m.n).unwrap_or(u32::MAX);
         let nx = u32::try_from(m.xmax - m.xmin + 1).unwrap_or(u32::MAX);
         let ny = u32::try_from(m.ymax - m.ymin + 1).unwrap_or(u32::MAX);
-        // Levels carry FRACTION_BITS fractional bits; sumg is in grey levels.
-        let sumg = match G::FRACTION_BITS {
-            0 => m.sumg,
-            bits => (m.sumg + (1 << (bits - 1))) >> bits,
-        };
+        // Levels are in 16-bit grey levels; sumg is in the image's.
+        let sumg = (m.sumg + G::LEVEL_SCALE / 2) / G::LEVEL_SCALE;
         let passes = (p.min_pixels..=p.max_pixels).contains(&n)
             && (p.min_nx..=p.max_nx).contains(&nx)
             && (p.min_ny..=p.max_ny).contains(&ny)
@@ -817,7 +816,7 @@ mod tests {
         height: usize,
         r: usize,
         t: u64,
-        fraction: u32,
+        scale: u64,
     ) -> Vec<u16> {
         let mut out = vec![0; width * height];
         for y in 0..height {
@@ -837,10 +836,8 @@ mod tests {
                     }
                     (s, c)
                 };
-                // filtered = g - s/c > t, in units of 2^-fraction, rounded,
-                // above t.
+                // filtered = g - s/c > t, times scale, rounded, above t.
                 if g * c > s + t * c {
-                    let scale = 1 << fraction;
                     let d = (g * c - s) * scale;
                     out[y * width + x] = ((2 * d + c) / (2 * c)).max(t * scale + 1) as u16;
                 }
@@ -873,8 +870,8 @@ mod tests {
                     highpass_radius: r as u32,
                     ..DetectionParameters::default()
                 };
-                let fraction = if max == 255 { 8 } else { 0 };
-                let expected = reference_levels(&pixels, width, height, r, t, fraction);
+                let scale = if max == 255 { 257 } else { 1 };
+                let expected = reference_levels(&pixels, width, height, r, t, scale);
                 let got: Vec<u16> = if max == 255 {
                     let eight: Vec<u8> = pixels.iter().map(|&v| v as u8).collect();
                     let mut d = Detector::new(&eight, width, height, &parameters);
