@@ -212,6 +212,10 @@ pub struct Matcher {
     /// Per camera: principal distance over pixel size, for pixel-scale
     /// estimates of distances in object space.
     pixels_per_unit_angle: Vec<f64>,
+    /// Per ordered camera pair `(i, k)` at `i * count + k`: whether
+    /// epipolar curves from i into k are parabolas to a twentieth of the
+    /// tolerance (see [`EpipolarCurve`]).
+    parabola_fits: Vec<bool>,
 }
 
 /// Camera pairs such that every set of three cameras contains one: all
@@ -289,7 +293,14 @@ impl Matcher {
                 camera.parameters().interior.c / sensor.pixel_size_x.min(sensor.pixel_size_y)
             })
             .collect();
+        let parabola_fits = (0..count * count)
+            .map(|index| {
+                let (i, k) = (index / count, index % count);
+                i != k && parabola_fits(&cameras, &volume, i, k, parameters.tolerance / 20.0)
+            })
+            .collect();
         Ok(Matcher {
+            parabola_fits,
             seeds: seed_pairs(count),
             cameras,
             tolerance: parameters.tolerance,
@@ -343,10 +354,11 @@ impl Matcher {
                 search.select(groups);
             }
         }
+        search.improve();
         if self.min_cameras == 2 {
             search.pairs();
         }
-        Ok(search.particles)
+        Ok(search.finish())
     }
 
     /// Whether `a` and `b` pass the similarity criteria.
@@ -541,66 +553,82 @@ fn closest_approach(a: &Ray, b: &Ray) -> Option<(f64, Point3<f64>)> {
     Some((ta, nalgebra::center(&a.at(ta), &b.at(tb))))
 }
 
-/// The image in one camera of a ray's segment inside the volume: a
-/// polyline whose vertices are evenly spaced in the ray parameter and whose
-/// chords stay within a tenth of the tolerance of the true (bent) curve.
+/// The image in one camera of a ray's segment inside the volume.
+///
+/// Taken as the parabola through the images of the segment's ends and
+/// middle (three projections) where that is within a twentieth of the
+/// tolerance of the true (bent) curve, which [`Matcher::new`] checks for
+/// each pair of cameras over rays sampled across the volume; otherwise, or
+/// where a sampled ray failed, as a polyline of projected points whose
+/// chords deviate less than that (a chord over 1/m of the curve deviates by
+/// about bend / m^2).
 #[derive(Default)]
 struct EpipolarCurve {
     near: f64,
     far: f64,
+    /// The parabola's points at u = 0, 1/2, 1, if it is used.
+    parabola: Option<[Point2<f64>; 3]>,
+    /// The polyline, evenly spaced in the ray parameter: projected points,
+    /// or the parabola's where a band walk needs them ([`Self::walkable`]).
     vertices: Vec<Point2<f64>>,
 }
 
 impl EpipolarCurve {
-    /// Traces `ray` between `near` and `far` into `camera`, with vertices
-    /// about `spacing` pixels apart; false if the segment does not image.
-    ///
-    /// The curve is first taken as the parabola through its ends and middle
-    /// (three projections), checked at a quarter; where that is off by more
-    /// than a tenth of the tolerance, it is projected point by point, with
-    /// enough points that each chord's deviation (about bend / m^2 for m
-    /// chords) stays below that.
+    /// Traces `ray` between `near` and `far` into `camera`; false if the
+    /// segment does not image there.
     fn trace(
         &mut self,
         camera: &Camera,
         ray: &Ray,
         (near, far): (f64, f64),
         tolerance: f64,
-        spacing: f64,
+        parabola_fits: bool,
     ) -> bool {
         self.near = near;
         self.far = far;
         self.vertices.clear();
+        self.parabola = None;
         let project = |u: f64| camera.project(&ray.at(near + (far - near) * u)).ok();
-        let (Some(p0), Some(pm), Some(p1), Some(quarter)) =
-            (project(0.0), project(0.5), project(1.0), project(0.25))
-        else {
+        let (Some(p0), Some(pm), Some(p1)) = (project(0.0), project(0.5), project(1.0)) else {
             return false;
         };
-        let parabola = |u: f64| {
-            Point2::from(
-                p0.coords * (2.0 * (u - 0.5) * (u - 1.0))
-                    + pm.coords * (-4.0 * u * (u - 1.0))
-                    + p1.coords * (2.0 * u * (u - 0.5)),
-            )
-        };
-        if (quarter - parabola(0.25)).norm() <= tolerance / 10.0 {
+        if parabola_fits {
+            self.parabola = Some([p0, pm, p1]);
+            return true;
+        }
+        let bend = (pm - nalgebra::center(&p0, &p1)).norm();
+        let pieces = ((20.0 * bend / tolerance).sqrt().ceil() as usize).clamp(2, 1024);
+        for s in 0..=pieces {
+            match project(s as f64 / pieces as f64) {
+                Some(p) => self.vertices.push(p),
+                None => return false,
+            }
+        }
+        true
+    }
+
+    /// The parabola at `u` in [0, 1].
+    #[inline]
+    fn parabola_at([p0, pm, p1]: &[Point2<f64>; 3], u: f64) -> Point2<f64> {
+        Point2::from(
+            p0.coords * (2.0 * (u - 0.5) * (u - 1.0))
+                + pm.coords * (-4.0 * u * (u - 1.0))
+                + p1.coords * (2.0 * u * (u - 0.5)),
+        )
+    }
+
+    /// Makes sure the polyline exists, with vertices at most `spacing`
+    /// pixels apart where it comes from the parabola.
+    fn walkable(&mut self, spacing: f64) -> &[Point2<f64>] {
+        if let (Some(parabola), true) = (&self.parabola, self.vertices.is_empty()) {
+            let [p0, pm, p1] = parabola;
             let length = (pm - p0).norm() + (p1 - pm).norm();
             let pieces = (length / spacing).ceil().clamp(1.0, 4096.0) as usize;
-            self.vertices
-                .extend((0..=pieces).map(|s| parabola(s as f64 / pieces as f64)));
-            true
-        } else {
-            let bend = (pm - nalgebra::center(&p0, &p1)).norm();
-            let pieces = ((10.0 * bend / tolerance).sqrt().ceil() as usize).clamp(2, 1024);
-            for s in 0..=pieces {
-                match project(s as f64 / pieces as f64) {
-                    Some(p) => self.vertices.push(p),
-                    None => return false,
-                }
-            }
-            true
+            self.vertices.extend(
+                (0..=pieces).map(|s| Self::parabola_at(parabola, s as f64 / pieces as f64)),
+            );
         }
+        &self.vertices
     }
 
     /// The image of the ray's point at parameter `t`; `None` outside the
@@ -608,7 +636,13 @@ impl EpipolarCurve {
     #[inline]
     fn at(&self, t: f64) -> Option<Point2<f64>> {
         let u = (t - self.near) / (self.far - self.near);
-        if !(0.0..=1.0).contains(&u) || self.vertices.len() < 2 {
+        if !(0.0..=1.0).contains(&u) {
+            return None;
+        }
+        if let Some(parabola) = &self.parabola {
+            return Some(Self::parabola_at(parabola, u));
+        }
+        if self.vertices.len() < 2 {
             return None;
         }
         let position = u * (self.vertices.len() - 1) as f64;
@@ -616,6 +650,44 @@ impl EpipolarCurve {
         let fraction = position - index as f64;
         Some(self.vertices[index] + (self.vertices[index + 1] - self.vertices[index]) * fraction)
     }
+}
+
+/// Whether, for rays of camera `i` through a grid of its pixels, the
+/// parabola through three points of their image in camera `k` stays within
+/// `limit` of the true curve (checked at 1/4 and 3/4, where a parabola's
+/// error peaks). Rays that miss the volume or do not image are skipped.
+fn parabola_fits(cameras: &[Camera], volume: &Volume, i: usize, k: usize, limit: f64) -> bool {
+    const SAMPLES: u32 = 12;
+    let sensor = cameras[i].sensor();
+    for row in 0..=SAMPLES {
+        for column in 0..=SAMPLES {
+            let pixel = Point2::new(
+                f64::from(sensor.width) * f64::from(column) / f64::from(SAMPLES),
+                f64::from(sensor.height) * f64::from(row) / f64::from(SAMPLES),
+            );
+            let Ok(ray) = cameras[i].ray(pixel) else {
+                continue;
+            };
+            let Some((near, far)) = clip(&ray, volume) else {
+                continue;
+            };
+            let project = |u: f64| cameras[k].project(&ray.at(near + (far - near) * u)).ok();
+            let points: Option<Vec<Point2<f64>>> = [0.0, 0.25, 0.5, 0.75, 1.0]
+                .iter()
+                .map(|&u| project(u))
+                .collect();
+            let Some(p) = points else {
+                continue;
+            };
+            let parabola = [p[0], p[2], p[4]];
+            if (EpipolarCurve::parabola_at(&parabola, 0.25) - p[1]).norm() > limit
+                || (EpipolarCurve::parabola_at(&parabola, 0.75) - p[3]).norm() > limit
+            {
+                return false;
+            }
+        }
+    }
+    true
 }
 
 /// How the rays of a group meet (pixels).
@@ -658,7 +730,10 @@ struct Search<'m, 'f> {
     /// intersection's residuals: losing one of those loses the particle, so
     /// it is more lenient.
     core_acceptance: f64,
-    particles: Vec<Particle>,
+    /// The groups accepted so far (members per camera, NONE for none).
+    accepted: Vec<Vec<u32>>,
+    /// Per camera and target, the accepted group that holds it, or NONE.
+    owner: Vec<Vec<u32>>,
 }
 
 impl<'m, 'f> Search<'m, 'f> {
@@ -679,7 +754,8 @@ impl<'m, 'f> Search<'m, 'f> {
             pieces: Vec::new(),
             acceptance: matcher.tolerance,
             core_acceptance: matcher.tolerance,
-            particles: Vec::new(),
+            accepted: Vec::new(),
+            owner: frames.iter().map(|f| vec![NONE; f.targets.len()]).collect(),
         }
     }
 
@@ -692,13 +768,13 @@ impl<'m, 'f> Search<'m, 'f> {
         let Some(span) = clip(&ray, &self.matcher.volume) else {
             return false;
         };
-        let spacing = self.frames[j].grid.cell;
+        let fits = self.matcher.parabola_fits[i * self.frames.len() + j];
         self.curves[j].trace(
             &self.matcher.cameras[j],
             &ray,
             span,
             self.matcher.tolerance,
-            spacing,
+            fits,
         )
     }
 
@@ -727,7 +803,8 @@ impl<'m, 'f> Search<'m, 'f> {
         let frame = &self.frames[j];
         let cell_stamps = &mut self.cell_stamps[j];
         let used = &self.used[j];
-        let vertices = &self.curves[j].vertices;
+        let spacing = self.frames[j].grid.cell;
+        let vertices = self.curves[j].walkable(spacing);
         let reference = &self.frames[i].targets[a];
         let tolerance_sq = tolerance * tolerance;
         // Per piece: unit direction and length.
@@ -1050,8 +1127,9 @@ impl<'m, 'f> Search<'m, 'f> {
         self.core_acceptance = (4.0 * sigma_sq.sqrt()).clamp(self.acceptance, tolerance);
     }
 
-    /// Least-squares intersection of a group; `None` unless every residual
-    /// is within the acceptance threshold.
+    /// Least-squares intersection of a group, with its targets numbered as
+    /// in the caller's lists; `None` unless every residual is within the
+    /// acceptance threshold.
     fn intersect(&self, members: &[u32]) -> Option<Particle> {
         let observations: Vec<Observation> = members
             .iter()
@@ -1081,21 +1159,22 @@ impl<'m, 'f> Search<'m, 'f> {
             rms_px: result.rms_px,
             targets: members
                 .iter()
-                .map(|&m| (m != NONE).then_some(m as usize))
+                .enumerate()
+                .map(|(k, &m)| (m != NONE).then(|| self.frames[k].original[m as usize] as usize))
                 .collect(),
         })
     }
 
-    /// Marks a particle's targets used and keeps it, with its targets
-    /// numbered as in the caller's lists.
-    fn keep(&mut self, mut particle: Particle) {
-        for (k, target) in particle.targets.iter_mut().enumerate() {
-            if let Some(t) = target {
-                self.used[k][*t] = true;
-                *t = self.frames[k].original[*t] as usize;
+    /// Accepts a group: its targets are used from now on.
+    fn keep(&mut self, members: &[u32]) {
+        let index = self.accepted.len() as u32;
+        for (k, &m) in members.iter().enumerate() {
+            if m != NONE {
+                self.used[k][m as usize] = true;
+                self.owner[k][m as usize] = index;
             }
         }
-        self.particles.push(particle);
+        self.accepted.push(members.to_vec());
     }
 
     /// Step 4: best-first selection of groups of three or more.
@@ -1104,16 +1183,11 @@ impl<'m, 'f> Search<'m, 'f> {
         // Re-trim every candidate to the acceptance threshold, then order.
         let mut ranked: Vec<(u8, f64, usize)> = Vec::with_capacity(groups.sizes.len());
         let mut members = groups.members;
+        let limits = (self.acceptance, self.core_acceptance);
         for g in 0..groups.sizes.len() {
             let group = &mut members[g * count..(g + 1) * count];
-            let mut trimmed = group.to_vec();
-            if let Some(spread) = self.trim(
-                &mut trimmed,
-                (self.acceptance, self.core_acceptance),
-                |_| false,
-            ) {
-                group.copy_from_slice(&trimmed);
-                let size = trimmed.iter().filter(|&&m| m != NONE).count() as u8;
+            if let Some(spread) = self.trim(group, limits, |_| false) {
+                let size = group.iter().filter(|&&m| m != NONE).count() as u8;
                 ranked.push((size, spread, g));
             }
         }
@@ -1124,13 +1198,90 @@ impl<'m, 'f> Search<'m, 'f> {
                 .iter()
                 .enumerate()
                 .all(|(k, &m)| m == NONE || !self.used[k][m as usize]);
-            if !free {
-                continue;
-            }
-            if let Some(particle) = self.intersect(group) {
-                self.keep(particle);
+            if free {
+                self.keep(group);
             }
         }
+    }
+
+    /// The sum of squared misses of a group's rays (px^2).
+    fn cost(&self, members: &[u32]) -> f64 {
+        let size = members.iter().filter(|&&m| m != NONE).count() as f64;
+        self.fit(members, |_| false)
+            .map_or(f64::INFINITY, |f| f.spread * f.spread * size)
+    }
+
+    /// Exchanges of targets between accepted groups (and with unused
+    /// targets) where that lowers their summed squared misses.
+    ///
+    /// Best-first selection decides two groups that compete for two nearly
+    /// coincident targets by the first group alone; where two particles'
+    /// images nearly coincide in one camera, that gives each the other's
+    /// target about as often as not. Comparing both assignments at once
+    /// settles it by all the evidence.
+    fn improve(&mut self) {
+        let radius = 2.0 * self.acceptance;
+        let mut nearby = Vec::new();
+        for p in 0..self.accepted.len() {
+            for k in 0..self.frames.len() {
+                let t = self.accepted[p][k];
+                if t == NONE {
+                    continue;
+                }
+                nearby.clear();
+                let position = self.frames[k].positions[t as usize];
+                self.frames[k].grid.visit(
+                    position - nalgebra::Vector2::repeat(radius),
+                    position + nalgebra::Vector2::repeat(radius),
+                    |c| {
+                        if c as u32 != t
+                            && (self.frames[k].positions[c] - position).norm() <= radius
+                        {
+                            nearby.push(c as u32);
+                        }
+                    },
+                );
+                for &other in &nearby {
+                    let q = self.owner[k][other as usize];
+                    if q as usize == p {
+                        continue;
+                    }
+                    let mut p_alternative = self.accepted[p].clone();
+                    p_alternative[k] = other;
+                    let p_cost = self.cost(&self.accepted[p]);
+                    if q == NONE {
+                        if self.cost(&p_alternative) < p_cost {
+                            self.used[k][t as usize] = false;
+                            self.owner[k][t as usize] = NONE;
+                            self.used[k][other as usize] = true;
+                            self.owner[k][other as usize] = p as u32;
+                            self.accepted[p] = p_alternative;
+                            break;
+                        }
+                        continue;
+                    }
+                    let q = q as usize;
+                    let mut q_alternative = self.accepted[q].clone();
+                    q_alternative[k] = t;
+                    let before = p_cost + self.cost(&self.accepted[q]);
+                    if self.cost(&p_alternative) + self.cost(&q_alternative) < before {
+                        self.owner[k][t as usize] = q as u32;
+                        self.owner[k][other as usize] = p as u32;
+                        self.accepted[p] = p_alternative;
+                        self.accepted[q] = q_alternative;
+                        break;
+                    }
+                }
+            }
+        }
+    }
+
+    /// The particles: every accepted group's least-squares intersection.
+    fn finish(&self) -> Vec<Particle> {
+        self.accepted
+            .iter()
+            .filter_map(|members| self.intersect(members))
+            .collect()
     }
 
     /// Step 5: unambiguous pairs among the unused targets.
@@ -1175,9 +1326,7 @@ impl<'m, 'f> Search<'m, 'f> {
             for (k, t) in pair {
                 members[k] = t;
             }
-            if let Some(particle) = self.intersect(&members) {
-                self.keep(particle);
-            }
+            self.keep(&members);
         }
     }
 }
