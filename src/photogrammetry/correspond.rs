@@ -6,31 +6,35 @@
 //! The search, for a frame of targets per camera:
 //!
 //! 1. Every target's ray into the object medium is traced once (Eq. 13-17).
-//!    Targets of each camera go into a uniform grid (a spatial index), so
-//!    that no search ever scans all targets.
-//! 2. **Seed pairs.** For camera pairs `(i, j)` chosen so that every set of
-//!    three cameras contains one of them (the cameras split into two halves,
-//!    all pairs within each half: 2 pairs for 4 cameras instead of 6), each
-//!    target of camera i has its ray cut by the observation volume; the
-//!    segment between the near and far points is projected into camera j as
-//!    a bent polyline (vertices enough for the bend error to stay below a
-//!    tenth of the tolerance) and widened by the tolerance: the epipolar
-//!    band. Its candidates come from the grid.
+//!    Targets of each camera go into a uniform grid (a spatial index, with
+//!    the targets stored in cell order), so that no search scans all targets.
+//! 2. **Seed pairs**, one stage each: camera pairs `(i, j)` chosen so that
+//!    every set of three cameras contains one of them (the cameras split
+//!    into two halves, all pairs within each half: 2 pairs for 4 cameras
+//!    instead of 6). Each still unused target of camera i has its ray cut by
+//!    the observation volume; the segment between the near and far points is
+//!    projected into camera j as a bent curve (a parabola or polyline within
+//!    a twentieth of the tolerance of the true curve) and widened by the
+//!    tolerance: the epipolar band. Its candidates come from the grid.
 //! 3. **Completion.** Each candidate pair's rays meet (nearly) in a 3D
-//!    point, which is projected into every other camera; targets within the
-//!    tolerance there join the group. A camera with several such targets
-//!    gives several candidate groups. A group is kept by the first seed
-//!    pair it contains, so each is considered once.
+//!    point; its image in every other camera (on the first target's
+//!    epipolar curve there) is searched within `COMPLETION_RADIUS` (3)
+//!    tolerances, and a target joins if its ray meets the pair's within the
+//!    tolerance. A camera with several such targets gives several candidate
+//!    groups; members that do not fit together are dropped worst first.
 //! 4. **Selection**, best first: larger groups before smaller (a fourth
 //!    camera cuts the ambiguities the design paper's Table 2 counts by at
-//!    least an order of magnitude), then by the rays' spread in pixels.
-//!    Each target is used at most once. A group is accepted when the
-//!    least-squares intersection's largest residual is within the
-//!    tolerance; a group of four or more with one bad member loses its worst
-//!    camera and is tried again.
+//!    least an order of magnitude), then by the rays' spread in pixels; each
+//!    target is used at most once. The first stage's groups give the frame's
+//!    image noise, from which the acceptance thresholds follow
+//!    (`Search::estimate_noise`). Then targets are exchanged between
+//!    accepted groups where that fits both better (near-coincident images).
 //! 5. **Pairs**, when two cameras suffice (`min_cameras = 2`): among the
 //!    targets still unused, a pair is accepted only when each target is the
 //!    other's single candidate in its band.
+//! 6. Every accepted group's point by least-squares intersection
+//!    ([`intersect_from`]), with standard deviations and residuals; a group
+//!    whose largest residual exceeds the acceptance is dropped.
 //!
 //! There is no fixed limit on cameras or targets: memory grows linearly
 //! with the targets, and the work with the targets times the (small) number
@@ -962,7 +966,7 @@ impl<'m, 'f> Search<'m, 'f> {
     ///
     /// The point where a pair's rays meet is uncertain along their epipolar
     /// lines, most where those lines run nearly parallel in a third camera,
-    /// so the third camera is searched within [`COMPLETION_RADIUS`]
+    /// so the third camera is searched within `COMPLETION_RADIUS` (3)
     /// tolerances of its image, and a target there is kept only if its ray
     /// meets the pair's within the tolerance.
     fn candidate_groups(&mut self, (i, j): (usize, usize)) -> CandidateGroups {

@@ -351,7 +351,7 @@ impl MediaGeometry {
     }
 
     /// Tabulates the refraction solve over `volume` for a camera at
-    /// `camera` (see [`RefractionTable`]); points elsewhere are solved
+    /// `camera` (a lookup table of starting values, see the module doc); points elsewhere are solved
     /// without it. Results stay exact to rounding either way.
     pub fn with_table(mut self, camera: &Point3<f64>, volume: &Volume) -> MediaGeometry {
         self.table = None;
