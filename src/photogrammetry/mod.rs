@@ -6,7 +6,9 @@
 //! ([`media`]), least-squares spatial intersection ([`mod@intersect`]), the
 //! particle images of a frame ([`target`]), and the simulator that provides
 //! ground truth ([`simulate`]); and section 6.1's particle detection in grey
-//! images ([`image`], [`mod@detect`]).
+//! images ([`image`], [`mod@detect`]); correspondences ([`correspond`]); and
+//! the frame pipeline that runs detection and correspondences on the images
+//! of one time step ([`pipeline`]).
 //!
 //! This module never imports the service's shell (no tokio, axum, sqlx or
 //! utoipa): inputs and outputs are plain structs and nalgebra types.
@@ -17,6 +19,7 @@ pub mod detect;
 pub mod image;
 pub mod intersect;
 pub mod media;
+pub mod pipeline;
 pub mod simulate;
 pub mod target;
 pub mod volume;
@@ -28,5 +31,6 @@ pub use detect::{detect, detect_cameras, DetectionParameters, InvalidDetectionPa
 pub use image::{BitDepth, GreyImage, GreyPixels, ImageError, SensorMismatch};
 pub use intersect::{intersect, Intersection, IntersectionError, Observation};
 pub use media::{Media, MediaGeometry, Wall};
+pub use pipeline::{FrameDetection, FramePipeline, FrameResult, PipelineError};
 pub use target::Target;
 pub use volume::Volume;

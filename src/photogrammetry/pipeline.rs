@@ -1,0 +1,329 @@
+//! The frame pipeline: the images of all cameras at one time step to 3D
+//! particles (design paper, section 6: detection, correspondences,
+//! spatial intersection).
+//!
+//! 1. Every image is checked against its camera's sensor, so that targets
+//!    are never measured in the wrong pixel grid.
+//! 2. **Detection** (section 6.1, [`detect_cameras`]): the targets of each
+//!    image, cameras in parallel, each with its own parameters (cameras see
+//!    the light sheet at different brightness, so their thresholds differ).
+//! 3. **Correspondences and intersection** (sections 6.2 and 4.3,
+//!    [`Matcher`]): which targets of different cameras image one particle,
+//!    and where that particle is.
+//!
+//! A [`FramePipeline`] is prepared once per calibration and parameters (the
+//! matcher builds its refraction tables then) and processes any number of
+//! frames; it holds no state between frames, so one pipeline can serve
+//! several threads.
+
+use super::camera::Camera;
+use super::correspond::{MatchError, Matcher, MatchingParameters, Particle};
+use super::detect::{detect_cameras, DetectionParameters, InvalidDetectionParameters};
+use super::image::{GreyImage, SensorMismatch};
+use super::target::Target;
+use super::volume::Volume;
+
+/// The detection parameters of a frame's cameras.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum FrameDetection {
+    /// The same parameters for every camera.
+    AllCameras(DetectionParameters),
+    /// One set per camera, in camera order.
+    PerCamera(Vec<DetectionParameters>),
+}
+
+impl From<DetectionParameters> for FrameDetection {
+    fn from(parameters: DetectionParameters) -> Self {
+        FrameDetection::AllCameras(parameters)
+    }
+}
+
+/// Why a pipeline cannot be prepared, or a frame not processed.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum PipelineError {
+    /// Per-camera detection parameters whose count is not the cameras'.
+    #[error(
+        "got detection parameters for {given} cameras, but the calibration has {cameras}; \
+         give one set per camera, in camera order, or one set for all"
+    )]
+    DetectionCount {
+        /// Parameter sets given.
+        given: usize,
+        /// Cameras in the calibration.
+        cameras: usize,
+    },
+    /// Detection parameters that contradict each other.
+    #[error("invalid detection parameters for camera {camera}")]
+    Detection {
+        /// The camera (0-based) whose parameters are invalid.
+        camera: usize,
+        /// What is wrong.
+        #[source]
+        source: InvalidDetectionParameters,
+    },
+    /// A frame whose image count is not the cameras'.
+    #[error(
+        "got {images} images, but the calibration has {cameras} cameras; \
+         give one image per camera, in camera order"
+    )]
+    ImageCount {
+        /// Images given.
+        images: usize,
+        /// Cameras in the calibration.
+        cameras: usize,
+    },
+    /// An image that does not fit its camera's sensor.
+    #[error("the image of camera {camera} does not fit its sensor")]
+    Sensor {
+        /// The camera (0-based).
+        camera: usize,
+        /// The sizes that differ.
+        #[source]
+        source: SensorMismatch,
+    },
+    /// The matching parameters are invalid, or matching failed.
+    #[error(transparent)]
+    Matching(#[from] MatchError),
+}
+
+/// What one frame gives.
+#[derive(Clone, Debug, PartialEq)]
+pub struct FrameResult {
+    /// Per camera, its targets, in the order [`super::detect()`] returns
+    /// them; the particles' target indices refer to these lists.
+    pub targets: Vec<Vec<Target>>,
+    /// The particles found.
+    pub particles: Vec<Particle>,
+}
+
+/// Detection and matching prepared for one calibration and one set of
+/// parameters.
+#[derive(Clone, Debug)]
+pub struct FramePipeline {
+    /// Per camera, its detection parameters.
+    detection: Vec<DetectionParameters>,
+    /// The prepared correspondence search, which holds the cameras.
+    matcher: Matcher,
+}
+
+impl FramePipeline {
+    /// Validates the parameters and prepares the cameras for matching.
+    pub fn new(
+        cameras: &[Camera],
+        detection: &FrameDetection,
+        matching: &MatchingParameters,
+    ) -> Result<FramePipeline, PipelineError> {
+        let detection = match detection {
+            FrameDetection::AllCameras(parameters) => vec![parameters.clone(); cameras.len()],
+            FrameDetection::PerCamera(list) if list.len() == cameras.len() => list.clone(),
+            FrameDetection::PerCamera(list) => {
+                return Err(PipelineError::DetectionCount {
+                    given: list.len(),
+                    cameras: cameras.len(),
+                })
+            }
+        };
+        for (camera, parameters) in detection.iter().enumerate() {
+            parameters
+                .validate()
+                .map_err(|source| PipelineError::Detection { camera, source })?;
+        }
+        let matcher = Matcher::new(cameras, matching)?;
+        Ok(FramePipeline { detection, matcher })
+    }
+
+    /// The cameras (with the matcher's refraction tables).
+    pub fn cameras(&self) -> &[Camera] {
+        self.matcher.cameras()
+    }
+
+    /// The observation volume in use.
+    pub fn volume(&self) -> &Volume {
+        self.matcher.volume()
+    }
+
+    /// Per camera, its detection parameters.
+    pub fn detection(&self) -> &[DetectionParameters] {
+        &self.detection
+    }
+
+    /// Processes one frame: `images[c]` is camera c's image.
+    pub fn process(&self, images: &[GreyImage]) -> Result<FrameResult, PipelineError> {
+        let cameras = self.cameras();
+        if images.len() != cameras.len() {
+            return Err(PipelineError::ImageCount {
+                images: images.len(),
+                cameras: cameras.len(),
+            });
+        }
+        for (camera, (image, model)) in images.iter().zip(cameras).enumerate() {
+            image
+                .check_sensor(model.sensor())
+                .map_err(|source| PipelineError::Sensor { camera, source })?;
+        }
+        let frames: Vec<(&GreyImage, &DetectionParameters)> =
+            images.iter().zip(&self.detection).collect();
+        let targets = detect_cameras(&frames);
+        let particles = self.matcher.match_frame(&targets)?;
+        Ok(FrameResult { targets, particles })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use nalgebra::Point3;
+
+    use super::*;
+    use crate::photogrammetry::simulate::{self, RenderSpec, RigSpec};
+
+    /// A 4-camera rig and its matching parameters for the whole simulated
+    /// volume.
+    fn rig() -> (Vec<Camera>, MatchingParameters) {
+        let spec = RigSpec::convergent(4);
+        let cameras = spec.build().unwrap();
+        let matching = MatchingParameters {
+            volume: Some(spec.volume),
+            ..MatchingParameters::default()
+        };
+        (cameras, matching)
+    }
+
+    fn images(cameras: &[Camera], points: &[Point3<f64>], seed: u64) -> Vec<GreyImage> {
+        simulate::render_frame(
+            cameras,
+            points,
+            &RenderSpec::eight_bit(2.5),
+            &mut simulate::rng(seed),
+        )
+        .into_iter()
+        .map(|rendered| rendered.image)
+        .collect()
+    }
+
+    #[test]
+    fn rendered_frame_gives_its_particles() {
+        let (cameras, matching) = rig();
+        let volume = matching.volume.unwrap();
+        let points = simulate::particles(&volume, 300, &mut simulate::rng(11));
+        let pipeline =
+            FramePipeline::new(&cameras, &DetectionParameters::default().into(), &matching)
+                .unwrap();
+        let result = pipeline.process(&images(&cameras, &points, 12)).unwrap();
+        assert_eq!(result.targets.len(), 4);
+        // A pixel spans about 0.15 mm in object space here (600 mm away,
+        // 12 um pixels, c near 49 mm); isolated particles are detected to a
+        // few hundredths of a pixel, so a third of a pixel, 0.05 mm, leaves
+        // out only particles whose image overlaps another's in some camera.
+        let error = |particle: &Particle| {
+            points
+                .iter()
+                .map(|p| (p - particle.position).norm())
+                .fold(f64::INFINITY, f64::min)
+        };
+        let close = result.particles.iter().filter(|p| error(p) < 0.05).count();
+        assert!(
+            close >= 294 && result.particles.len() - close <= 3,
+            "{close} of {} particles within 0.05 mm of one of 300",
+            result.particles.len()
+        );
+        for particle in &result.particles {
+            for (camera, target) in particle.targets.iter().enumerate() {
+                assert!(target.map_or(true, |t| t < result.targets[camera].len()));
+            }
+        }
+    }
+
+    #[test]
+    fn per_camera_parameters_are_used_per_camera() {
+        let (cameras, matching) = rig();
+        let points = simulate::particles(&matching.volume.unwrap(), 50, &mut simulate::rng(5));
+        let blind = DetectionParameters {
+            threshold: u16::MAX,
+            ..DetectionParameters::default()
+        };
+        let mut detection = vec![DetectionParameters::default(); 4];
+        detection[2] = blind;
+        let pipeline =
+            FramePipeline::new(&cameras, &FrameDetection::PerCamera(detection), &matching).unwrap();
+        let result = pipeline.process(&images(&cameras, &points, 6)).unwrap();
+        assert!(result.targets[2].is_empty());
+        assert!(result.targets[0].len() >= 45);
+        assert!(result
+            .particles
+            .iter()
+            .all(|p| p.targets[2].is_none() && p.camera_count() >= 2));
+        assert!(result.particles.len() >= 40, "{}", result.particles.len());
+    }
+
+    #[test]
+    fn empty_images_give_no_particles() {
+        let (cameras, matching) = rig();
+        let pipeline =
+            FramePipeline::new(&cameras, &DetectionParameters::default().into(), &matching)
+                .unwrap();
+        let result = pipeline.process(&images(&cameras, &[], 1)).unwrap();
+        assert!(result.particles.is_empty());
+        assert_eq!(result.targets, vec![Vec::<Target>::new(); 4]);
+    }
+
+    #[test]
+    fn frames_that_do_not_fit_are_refused() {
+        let (cameras, matching) = rig();
+        let pipeline =
+            FramePipeline::new(&cameras, &DetectionParameters::default().into(), &matching)
+                .unwrap();
+        let mut frame = images(&cameras, &[], 1);
+        frame.pop();
+        assert_eq!(
+            pipeline.process(&frame).unwrap_err(),
+            PipelineError::ImageCount {
+                images: 3,
+                cameras: 4
+            }
+        );
+        frame.push(GreyImage::from_u8(1280, 1000, vec![0; 1_280_000]).unwrap());
+        let error = pipeline.process(&frame).unwrap_err();
+        assert!(
+            matches!(error, PipelineError::Sensor { camera: 3, .. }),
+            "{error:?}"
+        );
+    }
+
+    #[test]
+    fn invalid_parameters_are_refused() {
+        let (cameras, matching) = rig();
+        let crossed = DetectionParameters {
+            min_pixels: 10,
+            max_pixels: 5,
+            ..DetectionParameters::default()
+        };
+        let mut per_camera = vec![DetectionParameters::default(); 4];
+        per_camera[1] = crossed.clone();
+        let error = FramePipeline::new(&cameras, &FrameDetection::PerCamera(per_camera), &matching)
+            .unwrap_err();
+        assert!(
+            matches!(&error, PipelineError::Detection { camera: 1, source } if source.field == "min_pixels"),
+            "{error:?}"
+        );
+        let error = FramePipeline::new(
+            &cameras,
+            &FrameDetection::PerCamera(vec![DetectionParameters::default(); 3]),
+            &matching,
+        )
+        .unwrap_err();
+        assert_eq!(
+            error,
+            PipelineError::DetectionCount {
+                given: 3,
+                cameras: 4
+            }
+        );
+        let negative = MatchingParameters {
+            tolerance: -1.0,
+            ..matching
+        };
+        let error = FramePipeline::new(&cameras, &DetectionParameters::default().into(), &negative)
+            .unwrap_err();
+        assert_eq!(error, PipelineError::Matching(MatchError::Tolerance(-1.0)));
+    }
+}
