@@ -343,7 +343,8 @@ fn pixel_profile(first: i64, count: usize, centre: f64, sigma: f64, out: &mut Ve
 
 /// Renders particles at exact pixel positions (the camera model's pixel
 /// convention) into a `width` x `height` image. Particles off the image or
-/// with non-finite positions leave no trace; a zero size gives a 1x1 image.
+/// with non-finite positions leave no trace; a zero size gives a 1x1 image;
+/// a non-finite or empty peak range gives every particle `peak_min`.
 pub fn render(
     width: u32,
     height: u32,
@@ -368,7 +369,7 @@ pub fn render(
             spec.peak_min.min(spec.peak_max),
             spec.peak_min.max(spec.peak_max),
         );
-        let peak = if high > low {
+        let peak = if high > low && low.is_finite() && high.is_finite() {
             rng.random_range(low..=high)
         } else {
             low
