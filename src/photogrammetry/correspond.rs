@@ -1524,11 +1524,14 @@ mod tests {
 
     #[test]
     fn default_volume_covers_the_simulated_volume() {
-        // The simulator aims its cameras in air; refraction at the walls
-        // moves where their axes meet, so the default volume is not centred
-        // on the simulated one, but must hold nearly all of it.
+        // The simulator aims its cameras at the volume's centre, so their
+        // axes meet there and the default volume must hold nearly all of it.
         let spec = RigSpec::convergent(4);
         let volume = default_volume(&spec.build().unwrap()).unwrap();
+        assert!(
+            (volume.centre() - spec.volume.centre()).norm() < 1e-6,
+            "{volume:?}"
+        );
         let points = simulate::particles(&spec.volume, 1000, &mut simulate::rng(18));
         let inside = points.iter().filter(|p| volume.contains(p)).count();
         assert!(inside >= 900, "{inside} of 1000 in {volume:?}");

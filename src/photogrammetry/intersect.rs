@@ -110,7 +110,7 @@ pub fn ray_midpoint(rays: impl IntoIterator<Item = Ray>) -> Option<Point3<f64>> 
     let determinant = xx * c00 + xy * c01 + xz * c02;
     // Parallel rays leave the matrix singular; compare with its scale.
     let scale = xx + yy + zz;
-    if !(determinant > 1e-12 * scale * scale * scale) {
+    if determinant.is_nan() || determinant <= 1e-12 * scale * scale * scale {
         return None;
     }
     let (c11, c12, c22) = (xx * zz - xz * xz, xy * xz - xx * yz, xx * yy - xy * xy);
