@@ -1,6 +1,6 @@
 //! Point and observation tables of the command line (CSV with a header).
 //!
-//! Three tables, comma-separated, each starting with a header line that
+//! Tables, comma-separated, each starting with a header line that
 //! names its columns:
 //!
 //! - points, read by `ptv project`: columns `x,y,z` (mm) in any order among
@@ -14,6 +14,12 @@
 //! - intersections, written by `ptv intersect`:
 //!   `point,x,y,z,sx,sy,sz,rms_px`, the point (mm), its standard deviations
 //!   (mm) and the root mean square of its residuals (px).
+//! - particles, written by `ptv match` and `ptv process`:
+//!   `x,y,z,sx,sy,sz,rms_px,cameras,t0,t1,...`, as intersections, then the
+//!   number of cameras that see the particle and, per camera `C`, the index
+//!   of its target in that camera's list (`-1` where it has none).
+//! - targets, written by `ptv detect` and read by `ptv match`:
+//!   `x,y,n,nx,ny,sumg`.
 //!
 //! Readers match header names exactly after trimming surrounding
 //! whitespace, trim every field, skip a UTF-8 byte order mark and blank
@@ -31,6 +37,7 @@ use std::fmt::Write as _;
 use nalgebra::{Point2, Point3};
 
 use super::FormatError;
+use crate::photogrammetry::correspond::Particle;
 use crate::photogrammetry::Target;
 use crate::photogrammetry::{Intersection, Observation};
 
@@ -204,6 +211,45 @@ pub fn format_intersections(points: &[(u64, Intersection)]) -> String {
             "{id},{:?},{:?},{:?},{:?},{:?},{:?},{:?}",
             i.point.x, i.point.y, i.point.z, i.sigma.x, i.sigma.y, i.sigma.z, i.rms_px
         );
+    }
+    text
+}
+
+/// The columns of a particles table before the per-camera target columns
+/// `t0,t1,...`.
+pub const PARTICLE_COLUMNS: [&str; 8] = ["x", "y", "z", "sx", "sy", "sz", "rms_px", "cameras"];
+
+/// Writes a particles table for `cameras` cameras,
+/// `x,y,z,sx,sy,sz,rms_px,cameras,t0,...`, in the order given; `tC` is the
+/// index of the particle's target in camera C's list, -1 where it has none.
+pub fn format_particles(particles: &[Particle], cameras: usize) -> String {
+    let mut text = PARTICLE_COLUMNS.join(",");
+    for camera in 0..cameras {
+        let _ = write!(text, ",t{camera}");
+    }
+    text.push('\n');
+    for p in particles {
+        let _ = write!(
+            text,
+            "{:?},{:?},{:?},{:?},{:?},{:?},{:?},{}",
+            p.position.x,
+            p.position.y,
+            p.position.z,
+            p.sigma.x,
+            p.sigma.y,
+            p.sigma.z,
+            p.rms_px,
+            p.camera_count()
+        );
+        for camera in 0..cameras {
+            match p.targets.get(camera).copied().flatten() {
+                Some(target) => {
+                    let _ = write!(text, ",{target}");
+                }
+                None => text.push_str(",-1"),
+            }
+        }
+        text.push('\n');
     }
     text
 }
@@ -606,6 +652,25 @@ mod tests {
         assert_eq!(
             format_intersections(&[(4, intersection)]),
             "point,x,y,z,sx,sy,sz,rms_px\n4,1.0,-2.5,0.1,0.001,0.002,0.003,0.05\n"
+        );
+    }
+
+    #[test]
+    fn particles_table() {
+        let particle = Particle {
+            position: Point3::new(1.0, -2.5, 0.1),
+            sigma: Vector3::new(0.001, 0.002, 0.003),
+            rms_px: 0.05,
+            targets: vec![Some(7), None, Some(0)],
+        };
+        assert_eq!(
+            format_particles(&[particle], 3),
+            "x,y,z,sx,sy,sz,rms_px,cameras,t0,t1,t2\n\
+             1.0,-2.5,0.1,0.001,0.002,0.003,0.05,2,7,-1,0\n"
+        );
+        assert_eq!(
+            format_particles(&[], 2),
+            "x,y,z,sx,sy,sz,rms_px,cameras,t0,t1\n"
         );
     }
 
