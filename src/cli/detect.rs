@@ -9,14 +9,14 @@
 //! file, in pixels with the top-left pixel's centre at (0.5, 0.5).
 
 use std::io::Write;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use clap::builder::TypedValueParser as _;
 use clap::{Args, ValueEnum};
 
 use super::{write_stderr_line, write_stdout, CliError};
 use crate::formats::{self, image::RawLayout};
-use crate::photogrammetry::{detect, BitDepth, DetectionParameters};
+use crate::photogrammetry::{detect, BitDepth, DetectionParameters, GreyImage};
 
 /// How `ptv detect` writes its targets.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
@@ -34,6 +34,21 @@ pub struct DetectArgs {
     /// LZW-compressed), or raw samples with --width, --height and --bits.
     #[arg(long, value_name = "FILE")]
     pub image: PathBuf,
+    /// How to find the targets.
+    #[command(flatten)]
+    pub detection: DetectionFlags,
+    /// Output format.
+    #[arg(long, value_enum, default_value_t = TargetFormat::Csv)]
+    pub format: TargetFormat,
+    /// The layout of raw images.
+    #[command(flatten)]
+    pub raw: RawImageFlags,
+}
+
+/// The detection flags, shared by `ptv detect` and `ptv process`; they
+/// mirror [`DetectionParameters`]' fields.
+#[derive(Debug, Args)]
+pub struct DetectionFlags {
     /// Grey threshold, in the image's own grey levels: a pixel belongs to a
     /// particle if its high-pass filtered value is larger [default: 10, meant
     /// for 8-bit images]
@@ -59,9 +74,12 @@ pub struct DetectArgs {
     /// Do not split blobs of overlapping particles: one target per blob.
     #[arg(long)]
     pub no_split: bool,
-    /// Output format.
-    #[arg(long, value_enum, default_value_t = TargetFormat::Csv)]
-    pub format: TargetFormat,
+}
+
+/// The layout of raw images, which have no header to say it; shared by
+/// `ptv detect` and `ptv process`.
+#[derive(Debug, Args)]
+pub struct RawImageFlags {
     /// Width (px) of a raw image.
     #[arg(long, value_name = "W", requires_all = ["height", "bits"])]
     pub width: Option<u32>,
@@ -79,8 +97,9 @@ pub struct DetectArgs {
     pub bits: Option<BitDepth>,
 }
 
-impl DetectArgs {
-    fn parameters(&self) -> DetectionParameters {
+impl DetectionFlags {
+    /// The parameters the flags give (not yet validated).
+    pub(super) fn parameters(&self) -> DetectionParameters {
         let defaults = DetectionParameters::default();
         DetectionParameters {
             threshold: self.threshold.unwrap_or(defaults.threshold),
@@ -94,7 +113,32 @@ impl DetectArgs {
         }
     }
 
-    fn raw_layout(&self) -> Option<RawLayout> {
+    /// Warns when a 16-bit image is searched with the default threshold,
+    /// which is meant for 8-bit images.
+    pub(super) fn warn_if_threshold_unsuited(
+        &self,
+        image: &GreyImage,
+        path: &Path,
+        stderr: &mut dyn Write,
+    ) -> Result<(), CliError> {
+        if image.bit_depth() == BitDepth::Sixteen && self.threshold.is_none() {
+            write_stderr_line(
+                stderr,
+                &format!(
+                    "warning: {} is a 16-bit image but no --threshold was given; the default ({}) \
+                     is meant for 8-bit images, give one in this image's grey levels",
+                    path.display(),
+                    DetectionParameters::default().threshold
+                ),
+            )?;
+        }
+        Ok(())
+    }
+}
+
+impl RawImageFlags {
+    /// The raw layout, if the flags give one.
+    pub(super) fn layout(&self) -> Option<RawLayout> {
         Some(RawLayout {
             width: self.width?,
             height: self.height?,
@@ -109,20 +153,11 @@ pub(super) fn run(
     stdout: &mut dyn Write,
     stderr: &mut dyn Write,
 ) -> Result<(), CliError> {
-    let parameters = args.parameters();
+    let parameters = args.detection.parameters();
     parameters.validate()?;
-    let image = formats::image::read_image(&args.image, args.raw_layout().as_ref())?;
-    if image.bit_depth() == BitDepth::Sixteen && args.threshold.is_none() {
-        write_stderr_line(
-            stderr,
-            &format!(
-                "warning: {} is a 16-bit image but no --threshold was given; the default ({}) is \
-                 meant for 8-bit images, give one in this image's grey levels",
-                args.image.display(),
-                parameters.threshold
-            ),
-        )?;
-    }
+    let image = formats::image::read_image(&args.image, args.raw.layout().as_ref())?;
+    args.detection
+        .warn_if_threshold_unsuited(&image, &args.image, stderr)?;
     let targets = detect(&image, &parameters);
     let text = match args.format {
         TargetFormat::Csv => formats::csv::format_targets(&targets),
