@@ -9,6 +9,12 @@
 //!   least-squares spatial intersection (section 4.3).
 //! - `ptv detect` (`cli/detect.rs`): the targets of one camera image
 //!   (section 6.1).
+//! - `ptv match` (`cli/match_targets.rs`): the particles of one frame from
+//!   every camera's targets (correspondences, section 6.2, and intersection).
+//! - `ptv process` (`cli/process.rs`): the particles of one frame from every
+//!   camera's image, through the frame pipeline (detection, then `match`).
+//! - `ptv simulate` (`cli/simulate.rs`): a synthetic experiment for the
+//!   commands above: calibration, targets, images and the truth.
 //!
 //! Results go to standard output or a file; warnings about points left out
 //! go to standard error, one line each. Reading and parsing files is
@@ -19,16 +25,24 @@
 mod calibration;
 mod detect;
 mod intersect;
+mod match_targets;
+mod process;
 mod project;
+mod simulate;
 
 use std::io::{self, Write};
 use std::path::{Path, PathBuf};
 
 use clap::{Args, Parser, Subcommand};
 
-pub use self::detect::{DetectArgs, TargetFormat};
+pub use self::detect::{DetectArgs, DetectionFlags, RawImageFlags, TargetFormat};
+pub use self::match_targets::{MatchArgs, MatchingFlags};
+pub use self::process::ProcessArgs;
+pub use self::simulate::SimulateArgs;
 use crate::formats::{self, FormatError};
-use crate::photogrammetry::{Camera, InvalidDetectionParameters};
+use crate::photogrammetry::camera::InvalidCamera;
+use crate::photogrammetry::correspond::MatchError;
+use crate::photogrammetry::{Camera, InvalidDetectionParameters, PipelineError, SensorMismatch};
 
 /// 3D particle tracking velocimetry photogrammetry.
 #[derive(Debug, Parser)]
@@ -54,6 +68,17 @@ pub enum Command {
     /// Find the particle images (targets) in one camera image; writes CSV
     /// x,y,n,nx,ny,sumg (pixels) or an OpenPTV _targets file to standard output.
     Detect(DetectArgs),
+    /// Find the particles of one frame from the targets of every camera
+    /// (correspondences by epipolar geometry, then intersection); writes the
+    /// CSV x,y,z,sx,sy,sz,rms_px,cameras,t0,t1,... (mm, px, target indices)
+    /// to standard output.
+    Match(MatchArgs),
+    /// Find the particles of one frame from the image of every camera
+    /// (detection, then as `ptv match`); writes the same CSV as `ptv match`.
+    Process(ProcessArgs),
+    /// Write a synthetic experiment into a directory: calibration.json,
+    /// per camera camN_targets.csv and camN.png, and truth.csv.
+    Simulate(SimulateArgs),
 }
 
 /// The `calibration` subcommands.
@@ -137,6 +162,55 @@ pub enum CliError {
     /// The detection parameters contradict each other.
     #[error("invalid detection parameters")]
     Detection(#[from] InvalidDetectionParameters),
+    /// The files given are not one per camera.
+    #[error(
+        "{} has {cameras} cameras but {given} {what}{} given; give {flag} once per camera, \
+         in camera order",
+        calibration.display(),
+        if *given == 1 { " was" } else { "s were" }
+    )]
+    CameraCount {
+        /// The calibration JSON given.
+        calibration: PathBuf,
+        /// Its cameras.
+        cameras: usize,
+        /// Files given.
+        given: usize,
+        /// What the files are: `target file`, `image`.
+        what: &'static str,
+        /// The flag that names one: `--targets`, `--image`.
+        flag: &'static str,
+    },
+    /// A flag's value is malformed or out of range.
+    #[error("{flag}: {reason}")]
+    Flag {
+        /// The flag, `--volume`.
+        flag: &'static str,
+        /// What is wrong and what is expected.
+        reason: String,
+    },
+    /// The matching parameters are invalid, or matching failed.
+    #[error("cannot match the targets")]
+    Matching(#[from] MatchError),
+    /// An image does not fit its camera's sensor.
+    #[error("{} is not an image of camera {camera} of {}", image.display(), calibration.display())]
+    ImageSize {
+        /// The image file.
+        image: PathBuf,
+        /// The camera (0-based) it was given for.
+        camera: usize,
+        /// The calibration JSON given.
+        calibration: PathBuf,
+        /// The sizes that differ.
+        #[source]
+        source: SensorMismatch,
+    },
+    /// The frame pipeline refused the frame.
+    #[error("cannot process the frame")]
+    Pipeline(#[source] PipelineError),
+    /// The simulator built a camera that the camera model refuses.
+    #[error("the simulated rig is invalid")]
+    Simulation(#[from] InvalidCamera),
     /// Standard output or standard error could not be written.
     #[error("cannot write to {stream}")]
     Output {
@@ -165,12 +239,36 @@ pub fn run(
         Command::Project(args) => project::run(&args, stdout, stderr),
         Command::Intersect(args) => intersect::run(&args, stdout, stderr),
         Command::Detect(args) => detect::run(&args, stdout, stderr),
+        Command::Match(args) => match_targets::run(&args, stdout),
+        Command::Process(args) => process::run(&args, stdout, stderr),
+        Command::Simulate(args) => simulate::run(&args, stderr),
     }
 }
 
 /// Reads and validates a calibration JSON file.
 fn read_calibration(path: &Path) -> Result<Vec<Camera>, FormatError> {
     formats::calibration::from_json(&formats::read_text(path)?, &path.display().to_string())
+}
+
+/// Checks that one file per camera of the calibration was given with
+/// `flag`: `given` files (`what`).
+fn check_camera_count(
+    calibration: &Path,
+    cameras: usize,
+    given: usize,
+    (flag, what): (&'static str, &'static str),
+) -> Result<(), CliError> {
+    if given == cameras {
+        Ok(())
+    } else {
+        Err(CliError::CameraCount {
+            calibration: calibration.to_owned(),
+            cameras,
+            given,
+            what,
+            flag,
+        })
+    }
 }
 
 /// Writes text to standard output.

@@ -1,0 +1,96 @@
+//! `ptv process`: the particles of one frame from the image of every camera,
+//! through [`FramePipeline`]: detection (design paper, section 6.1), then
+//! correspondences and intersection as in `ptv match` (sections 6.2, 4.3).
+//!
+//! The detection flags are `ptv detect`'s and apply to every camera; the
+//! matching flags are `ptv match`'s, and so is the output.
+
+use std::io::Write;
+use std::path::PathBuf;
+
+use clap::Args;
+
+use super::detect::{DetectionFlags, RawImageFlags};
+use super::match_targets::MatchingFlags;
+use super::{check_camera_count, read_calibration, write_stdout, CliError};
+use crate::formats;
+use crate::photogrammetry::{FrameDetection, FramePipeline, GreyImage, PipelineError};
+
+/// Arguments of `ptv process`.
+#[derive(Debug, Args)]
+pub struct ProcessArgs {
+    /// The calibration JSON.
+    #[arg(long, value_name = "CALIBRATION_JSON")]
+    pub calibration: PathBuf,
+    /// The image of one camera: greyscale PNG or TIFF (8 or 16 bits), or
+    /// raw samples with --width, --height and --bits. Give the flag once per
+    /// camera, in camera order.
+    #[arg(long = "image", value_name = "FILE", required = true)]
+    pub images: Vec<PathBuf>,
+    /// How to find the targets.
+    #[command(flatten)]
+    pub detection: DetectionFlags,
+    /// How to match.
+    #[command(flatten)]
+    pub matching: MatchingFlags,
+    /// The layout of raw images.
+    #[command(flatten)]
+    pub raw: RawImageFlags,
+}
+
+/// Processes the frame and writes the particles to standard output; a
+/// warning for each 16-bit image searched with the 8-bit default threshold.
+pub(super) fn run(
+    args: &ProcessArgs,
+    stdout: &mut dyn Write,
+    stderr: &mut dyn Write,
+) -> Result<(), CliError> {
+    let cameras = read_calibration(&args.calibration)?;
+    check_camera_count(
+        &args.calibration,
+        cameras.len(),
+        args.images.len(),
+        ("--image", "image"),
+    )?;
+    let detection = FrameDetection::AllCameras(args.detection.parameters());
+    let pipeline = FramePipeline::new(&cameras, &detection, &args.matching.parameters()?)
+        .map_err(|error| cli_error(args, error))?;
+    let layout = args.raw.layout();
+    let images = args
+        .images
+        .iter()
+        .map(|path| {
+            let image = formats::image::read_image(path, layout.as_ref())?;
+            args.detection
+                .warn_if_threshold_unsuited(&image, path, stderr)?;
+            Ok(image)
+        })
+        .collect::<Result<Vec<GreyImage>, CliError>>()?;
+    let frame = pipeline
+        .process(&images)
+        .map_err(|error| cli_error(args, error))?;
+    write_stdout(
+        stdout,
+        &formats::csv::format_particles(&frame.particles, cameras.len()),
+    )
+}
+
+/// The pipeline's errors in the terms of the command line: detection and
+/// matching errors as `ptv detect` and `ptv match` report them, a misfit
+/// image by its file name.
+fn cli_error(args: &ProcessArgs, error: PipelineError) -> CliError {
+    match error {
+        PipelineError::Detection { source, .. } => CliError::Detection(source),
+        PipelineError::Matching(source) => CliError::Matching(source),
+        PipelineError::Sensor { camera, source } => match args.images.get(camera) {
+            Some(image) => CliError::ImageSize {
+                image: image.clone(),
+                camera,
+                calibration: args.calibration.clone(),
+                source,
+            },
+            None => CliError::Pipeline(PipelineError::Sensor { camera, source }),
+        },
+        other => CliError::Pipeline(other),
+    }
+}
