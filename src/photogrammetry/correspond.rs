@@ -106,7 +106,11 @@ pub enum MatchError {
     #[error("the tolerance must be a positive number of pixels, got {0}")]
     Tolerance(f64),
     /// The volume is empty or not finite.
-    #[error("the observation volume is empty: every minimum must be below its maximum, got {0:?}")]
+    #[error(
+        "the observation volume is empty: every minimum must be below its maximum, got \
+         x {}..{}, y {}..{}, z {}..{} mm",
+        .0.min.x, .0.max.x, .0.min.y, .0.max.y, .0.min.z, .0.max.z
+    )]
     EmptyVolume(Volume),
     /// `min_cameras` out of range.
     #[error("min_cameras must be between 2 and the number of cameras ({cameras}), got {min}")]
@@ -189,6 +193,18 @@ pub fn default_volume(cameras: &[Camera]) -> Option<Volume> {
 /// How far around a pair's predicted image a third camera is searched, in
 /// tolerances.
 const COMPLETION_RADIUS: f64 = 3.0;
+
+/// Per pair and other camera, the most targets (the best fitting) that may
+/// complete the pair's group. More arise only where the tolerance is large
+/// for the target density; the candidates beyond the best few are then
+/// practically never the particle's image, and their combinations would
+/// multiply the work and memory.
+const MAX_CANDIDATES_PER_CAMERA: usize = 3;
+
+/// Per target of a seed camera, the most candidate groups kept (the largest
+/// with the smallest spread): a target ends in at most one particle, and
+/// this bounds the candidates' memory by the target count.
+const MAX_GROUPS_PER_TARGET: usize = 8;
 
 /// The fewest candidate groups from which the frame's image noise is
 /// estimated.
@@ -980,6 +996,10 @@ impl<'m, 'f> Search<'m, 'f> {
         let mut seen = Vec::with_capacity(count);
         let mut choice = Vec::with_capacity(count);
         let mut traced = vec![false; count];
+        let mut fits: Vec<(f64, u32)> = Vec::new();
+        // This target's candidate groups: (size, spread, offset in own_members).
+        let mut own: Vec<(u8, f64, usize)> = Vec::new();
+        let mut own_members: Vec<u32> = Vec::new();
         {
             for a in 0..self.frames[i].targets.len() {
                 if self.used[i][a] {
@@ -993,6 +1013,8 @@ impl<'m, 'f> Search<'m, 'f> {
                 if partners.is_empty() {
                     continue;
                 }
+                own.clear();
+                own_members.clear();
                 // The ray's images in the other cameras, traced on demand.
                 traced.fill(false);
                 for &b in &partners {
@@ -1030,14 +1052,22 @@ impl<'m, 'f> Search<'m, 'f> {
                             reference,
                             &mut list,
                         );
-                        list.retain(|&c| {
+                        // Only targets whose rays meet the pair's, the best
+                        // few (see MAX_CANDIDATES_PER_CAMERA).
+                        let mut fitting = std::mem::take(&mut fits);
+                        fitting.clear();
+                        fitting.extend(list.iter().filter_map(|&c| {
                             members[k] = c;
-                            let fits = self
-                                .fit(&members, |_| false)
-                                .is_some_and(|f| f.largest <= tolerance);
+                            let fit = self.fit(&members, |_| false);
                             members[k] = NONE;
-                            fits
-                        });
+                            fit.filter(|f| f.largest <= tolerance)
+                                .map(|f| (f.largest, c))
+                        }));
+                        fitting.sort_unstable_by(|x, y| x.0.total_cmp(&y.0));
+                        fitting.truncate(MAX_CANDIDATES_PER_CAMERA);
+                        list.clear();
+                        list.extend(fitting.iter().map(|&(_, c)| c));
+                        fits = fitting;
                         if !list.is_empty() {
                             seen.push(k);
                         }
@@ -1061,11 +1091,9 @@ impl<'m, 'f> Search<'m, 'f> {
                         if let Some(spread) =
                             self.trim(&mut group, (tolerance, tolerance), |k| k == i || k == j)
                         {
-                            groups.members.extend_from_slice(&group);
-                            groups
-                                .sizes
-                                .push(group.iter().filter(|&&m| m != NONE).count() as u8);
-                            groups.spreads.push(spread);
+                            let size = group.iter().filter(|&&m| m != NONE).count() as u8;
+                            own.push((size, spread, own_members.len()));
+                            own_members.extend_from_slice(&group);
                         }
                         // Next combination (odometer).
                         let mut slot = 0;
@@ -1081,6 +1109,16 @@ impl<'m, 'f> Search<'m, 'f> {
                             break;
                         }
                     }
+                }
+                // The target's best candidates only (see
+                // MAX_GROUPS_PER_TARGET): memory stays linear in the targets.
+                own.sort_unstable_by(|x, y| y.0.cmp(&x.0).then(x.1.total_cmp(&y.1)));
+                for &(size, spread, at) in own.iter().take(MAX_GROUPS_PER_TARGET) {
+                    groups
+                        .members
+                        .extend_from_slice(&own_members[at..at + count]);
+                    groups.sizes.push(size);
+                    groups.spreads.push(spread);
                 }
             }
         }
