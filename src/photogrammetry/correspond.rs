@@ -742,14 +742,10 @@ struct Search<'m, 'f> {
     curves: Vec<EpipolarCurve>,
     /// Scratch: the current band's pieces (unit direction, length).
     pieces: Vec<(nalgebra::Vector2<f64>, f64)>,
-    /// The largest miss (px) a member may have in a group of more than
-    /// three: the tolerance, or less once the frame's image noise is known
-    /// (see [`Search::estimate_noise`]).
+    /// The largest miss (px) a group member may have, and the largest
+    /// residual of a particle's intersection: the tolerance, or less once
+    /// the frame's image noise is known (see [`Search::estimate_noise`]).
     acceptance: f64,
-    /// The same for the three members a group needs at least, and for the
-    /// intersection's residuals: losing one of those loses the particle, so
-    /// it is more lenient.
-    core_acceptance: f64,
     /// The groups accepted so far (members per camera, NONE for none).
     accepted: Vec<Vec<u32>>,
     /// Per camera and target, the accepted group that holds it, or NONE.
@@ -773,7 +769,6 @@ impl<'m, 'f> Search<'m, 'f> {
             curves: frames.iter().map(|_| EpipolarCurve::default()).collect(),
             pieces: Vec::new(),
             acceptance: matcher.tolerance,
-            core_acceptance: matcher.tolerance,
             accepted: Vec::new(),
             owner: frames.iter().map(|f| vec![NONE; f.targets.len()]).collect(),
         }
@@ -953,22 +948,16 @@ impl<'m, 'f> Search<'m, 'f> {
     }
 
     /// Drops the worst member of a group until every ray meets the others
-    /// within the limit (`extra` while more than three remain, `core` for
-    /// three); the group's spread, or `None` if that leaves fewer than three
-    /// cameras (or only `keep` ones).
-    fn trim(
-        &self,
-        group: &mut [u32],
-        (extra, core): (f64, f64),
-        keep: impl Fn(usize) -> bool,
-    ) -> Option<f64> {
+    /// within `limit`; the group's spread, or `None` if that leaves fewer
+    /// than three cameras (or only `keep` ones).
+    fn trim(&self, group: &mut [u32], limit: f64, keep: impl Fn(usize) -> bool) -> Option<f64> {
         loop {
             let size = group.iter().filter(|&&m| m != NONE).count();
             if size < 3 {
                 return None;
             }
             let fit = self.fit(group, |k| !keep(k))?;
-            if fit.largest <= if size > 3 { extra } else { core } {
+            if fit.largest <= limit {
                 return Some(fit.spread);
             }
             if size == 3 {
@@ -1088,8 +1077,7 @@ impl<'m, 'f> Search<'m, 'f> {
                         for (slot, &k) in seen.iter().enumerate() {
                             group[k] = near[k][choice[slot]];
                         }
-                        if let Some(spread) =
-                            self.trim(&mut group, (tolerance, tolerance), |k| k == i || k == j)
+                        if let Some(spread) = self.trim(&mut group, tolerance, |k| k == i || k == j)
                         {
                             let size = group.iter().filter(|&&m| m != NONE).count() as u8;
                             own.push((size, spread, own_members.len()));
@@ -1134,11 +1122,13 @@ impl<'m, 'f> Search<'m, 'f> {
     /// stranger's: its miss r has to satisfy
     /// `exp(-r^2 / 2 sigma^2) / (2 pi sigma^2) > density`, i.e.
     /// `r^2 < 2 sigma^2 ln(1 / (2 pi sigma^2 density))`, and at least
-    /// 2 sigma and at most 3 sigma (1% of true members lost, their particles
-    /// still found from the other cameras), and between a tenth of the
-    /// tolerance (noise-free data) and the tolerance. The three members a
-    /// group cannot do without may miss by 4 sigma (0.03% lost). With fewer
-    /// than [`NOISE_SAMPLE`] groups the tolerance stands.
+    /// 2 sigma and at most 3 sigma (1.1% of true members lost: a group of
+    /// four then stays a triplet, a triplet is lost, about 3% of them), and
+    /// between a tenth of the tolerance (noise-free data) and the tolerance.
+    /// On the benchmark scenes a more lenient limit for a group's last three
+    /// members (3.5 or 4 sigma) found fewer particles, not more: the random
+    /// groups it lets in take targets from true ones. With fewer than
+    /// [`NOISE_SAMPLE`] groups the tolerance stands.
     fn estimate_noise(&mut self, groups: &CandidateGroups) {
         let Some(&largest) = groups.sizes.iter().max() else {
             return;
@@ -1166,7 +1156,6 @@ impl<'m, 'f> Search<'m, 'f> {
         let limit_sq = sigma_sq * (2.0 * odds.max(1.0).ln()).clamp(2.0 * 2.0, 3.0 * 3.0);
         let tolerance = self.matcher.tolerance;
         self.acceptance = limit_sq.sqrt().clamp(tolerance / 10.0, tolerance);
-        self.core_acceptance = (4.0 * sigma_sq.sqrt()).clamp(self.acceptance, tolerance);
     }
 
     /// Least-squares intersection of a group, with its targets numbered as
@@ -1195,7 +1184,7 @@ impl<'m, 'f> Search<'m, 'f> {
             .iter()
             .map(|r| r.norm())
             .fold(0.0, f64::max);
-        (worst <= self.core_acceptance).then(|| Particle {
+        (worst <= self.acceptance).then(|| Particle {
             position: result.point,
             sigma: result.sigma,
             rms_px: result.rms_px,
@@ -1225,10 +1214,10 @@ impl<'m, 'f> Search<'m, 'f> {
         // Re-trim every candidate to the acceptance threshold, then order.
         let mut ranked: Vec<(u8, f64, usize)> = Vec::with_capacity(groups.sizes.len());
         let mut members = groups.members;
-        let limits = (self.acceptance, self.core_acceptance);
+        let limit = self.acceptance;
         for g in 0..groups.sizes.len() {
             let group = &mut members[g * count..(g + 1) * count];
-            if let Some(spread) = self.trim(group, limits, |_| false) {
+            if let Some(spread) = self.trim(group, limit, |_| false) {
                 let size = group.iter().filter(|&&m| m != NONE).count() as u8;
                 ranked.push((size, spread, g));
             }
@@ -1469,11 +1458,11 @@ mod tests {
         }
     }
 
-    #[test]
-    fn a_particle_hidden_in_one_of_four_images_is_found_from_three() {
-        let scene = scene(4, 1000, 0.1, 0.0, 15);
+    /// Hides every tenth particle in one of the four cameras (in turn) and
+    /// counts how many of those are found from their three other images.
+    fn hidden_found_from_three(noise: f64) -> usize {
+        let scene = scene(4, 1000, noise, 0.0, 15);
         let mut frame = scene.frame.clone();
-        // Hide particle 0 and every tenth particle in camera (j % 4).
         for j in (0..scene.points.len()).step_by(10) {
             let camera = (j / 10) % 4;
             let index = frame.truth[camera].iter().position(|&p| p == j).unwrap();
@@ -1482,19 +1471,30 @@ mod tests {
         }
         let hidden = Scene { frame, ..scene };
         let (found, _) = run(&hidden, 0.5, 3);
-        for j in (0..hidden.points.len()).step_by(10) {
-            let particle = found.iter().find(|p| {
-                p.targets
-                    .iter()
-                    .enumerate()
-                    .all(|(c, t)| t.is_none_or(|t| hidden.frame.truth[c][t] == j))
-                    && p.camera_count() == 3
-            });
-            assert!(
-                particle.is_some(),
-                "particle {j} not found from its three images"
-            );
-        }
+        (0..hidden.points.len())
+            .step_by(10)
+            .filter(|&j| {
+                found.iter().any(|p| {
+                    p.camera_count() == 3
+                        && p.targets
+                            .iter()
+                            .enumerate()
+                            .all(|(c, t)| t.is_none_or(|t| hidden.frame.truth[c][t] == j))
+                })
+            })
+            .count()
+    }
+
+    #[test]
+    fn a_particle_hidden_in_one_of_four_images_is_found_from_three() {
+        // Without noise, every one.
+        assert_eq!(hidden_found_from_three(0.0), 100);
+        // With noise, each of the three members must miss by at most the
+        // 3-sigma acceptance (see estimate_noise): a triplet survives with
+        // probability (1 - exp(-4.5))^3 = 0.967; of 100, at least 89 (four
+        // binomial standard deviations, 1.8 each, below the expected 96.7).
+        let found = hidden_found_from_three(0.1);
+        assert!(found >= 89, "{found} of 100");
     }
 
     #[test]
