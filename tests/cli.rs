@@ -12,12 +12,14 @@
 //! 1e-8 mm, so it returns the point to far better than the 1e-6 mm checked.
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
 
 use nalgebra::Point3;
 use ptv::formats::{calibration, csv};
 use ptv::photogrammetry::Camera;
 use serde_json::Value;
+
+mod common;
+use common::{fails, ptv, succeeds, text};
 
 const OPENPTV: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../shared/data/openptv");
 const PIXEL_TOLERANCE: f64 = 0.002;
@@ -25,43 +27,6 @@ const POINT_TOLERANCE_MM: f64 = 1e-6;
 
 fn data(path: &str) -> PathBuf {
     Path::new(OPENPTV).join(path)
-}
-
-fn ptv(args: &[&str], dir: &Path) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_ptv"))
-        .args(args)
-        .current_dir(dir)
-        .output()
-        .expect("the ptv binary runs")
-}
-
-fn text(bytes: &[u8]) -> &str {
-    std::str::from_utf8(bytes).expect("UTF-8 output")
-}
-
-/// Asserts success without warnings and returns standard output.
-fn succeeds(output: &Output) -> String {
-    let stderr = text(&output.stderr);
-    assert!(output.status.success(), "{:?}: {stderr}", output.status);
-    assert!(!stderr.contains("warning"), "{stderr}");
-    text(&output.stdout).to_owned()
-}
-
-/// Asserts the failure contract: exit code 1, nothing on standard output and
-/// one line `error: ...` on standard error that contains every `needle`.
-fn fails(output: &Output, needles: &[&str]) {
-    let stderr = text(&output.stderr);
-    assert_eq!(output.status.code(), Some(1), "{stderr}");
-    assert!(output.stdout.is_empty(), "stdout: {}", text(&output.stdout));
-    assert!(!stderr.contains("panicked"), "{stderr}");
-    assert!(
-        stderr.starts_with("error: ") && stderr.ends_with('\n'),
-        "{stderr}"
-    );
-    assert_eq!(stderr.lines().count(), 1, "{stderr}");
-    for needle in needles {
-        assert!(stderr.contains(needle), "`{needle}` not in: {stderr}");
-    }
 }
 
 fn golden(path: &str) -> Value {

@@ -18,51 +18,16 @@
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
 
 use nalgebra::Point3;
+
+mod common;
+use common::{fails, ptv, succeeds, text};
 
 const TEST_CAVITY: &str = concat!(
     env!("CARGO_MANIFEST_DIR"),
     "/../shared/data/openptv/test_cavity"
 );
-
-fn ptv(args: &[&str], dir: &Path) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_ptv"))
-        .args(args)
-        .current_dir(dir)
-        .output()
-        .expect("the ptv binary runs")
-}
-
-fn text(bytes: &[u8]) -> &str {
-    std::str::from_utf8(bytes).expect("UTF-8 output")
-}
-
-/// Asserts success without warnings and returns standard output.
-fn succeeds(output: &Output) -> String {
-    let stderr = text(&output.stderr);
-    assert!(output.status.success(), "{:?}: {stderr}", output.status);
-    assert!(!stderr.contains("warning"), "{stderr}");
-    text(&output.stdout).to_owned()
-}
-
-/// Asserts the failure contract: exit code 1, nothing on standard output and
-/// one line `error: ...` on standard error that contains every `needle`.
-fn fails(output: &Output, needles: &[&str]) {
-    let stderr = text(&output.stderr);
-    assert_eq!(output.status.code(), Some(1), "{stderr}");
-    assert!(output.stdout.is_empty(), "stdout: {}", text(&output.stdout));
-    assert!(!stderr.contains("panicked"), "{stderr}");
-    assert!(
-        stderr.starts_with("error: ") && stderr.ends_with('\n'),
-        "{stderr}"
-    );
-    assert_eq!(stderr.lines().count(), 1, "{stderr}");
-    for needle in needles {
-        assert!(stderr.contains(needle), "`{needle}` not in: {stderr}");
-    }
-}
 
 /// Runs `ptv simulate` into `dir/name` and returns the volume it reports.
 fn simulate(dir: &Path, name: &str, extra: &[&str]) -> String {

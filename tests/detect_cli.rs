@@ -8,8 +8,6 @@
 //! and the problem.
 
 use std::io::Cursor;
-use std::path::Path;
-use std::process::{Command, Output};
 
 use image::ImageEncoder;
 use nalgebra::Point2;
@@ -18,38 +16,8 @@ use ptv::formats::{csv, openptv};
 use ptv::photogrammetry::simulate::{self, RenderSpec};
 use ptv::photogrammetry::{detect, DetectionParameters, GreyImage, GreyPixels, Sensor};
 
-fn ptv(args: &[&str], dir: &Path) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_ptv"))
-        .args(args)
-        .current_dir(dir)
-        .output()
-        .expect("the ptv binary runs")
-}
-
-fn text(bytes: &[u8]) -> &str {
-    std::str::from_utf8(bytes).expect("UTF-8 output")
-}
-
-fn succeeds(output: &Output) -> String {
-    let stderr = text(&output.stderr);
-    assert!(output.status.success(), "{:?}: {stderr}", output.status);
-    assert!(stderr.is_empty(), "{stderr}");
-    text(&output.stdout).to_owned()
-}
-
-/// Exit code 1, nothing on standard output, one `error:` line with every needle.
-fn fails(output: &Output, needles: &[&str]) {
-    let stderr = text(&output.stderr);
-    assert_eq!(output.status.code(), Some(1), "{stderr}");
-    assert!(output.stdout.is_empty(), "stdout: {}", text(&output.stdout));
-    assert!(
-        stderr.starts_with("error: ") && stderr.ends_with('\n') && stderr.lines().count() == 1,
-        "{stderr}"
-    );
-    for needle in needles {
-        assert!(stderr.contains(needle), "{needle:?} not in {stderr}");
-    }
-}
+mod common;
+use common::{fails, ptv, succeeds_silently, text};
 
 /// A 320x240 frame with 150 particles.
 fn frame(spec: &RenderSpec) -> GreyImage {
@@ -223,14 +191,14 @@ fn detect_writes_the_library_targets_from_every_file_kind() {
             "detect", "--image", "f.raw", "--width", "320", "--height", "240", "--bits", "8",
         ],
     ] {
-        let out = succeeds(&ptv(&args, dir.path()));
+        let out = succeeds_silently(&ptv(&args, dir.path()));
         assert_eq!(
             csv::parse_targets(&out, "stdout").unwrap(),
             expected,
             "{args:?}"
         );
     }
-    let out = succeeds(&ptv(
+    let out = succeeds_silently(&ptv(
         &["detect", "--image", "f.png", "--format", "openptv"],
         dir.path(),
     ));
@@ -248,7 +216,7 @@ fn detect_writes_the_library_targets_from_every_file_kind() {
         split: false,
         ..DetectionParameters::default()
     };
-    let out = succeeds(&ptv(
+    let out = succeeds_silently(&ptv(
         &[
             "detect",
             "--image",

@@ -1,0 +1,53 @@
+//! Helpers shared by the tests that run the `ptv` binary.
+
+// Each test binary compiles this module and uses only some of it.
+#![allow(dead_code)]
+
+use std::path::Path;
+use std::process::{Command, Output};
+
+/// Runs `ptv` with `args` in `dir`.
+pub fn ptv(args: &[&str], dir: &Path) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_ptv"))
+        .args(args)
+        .current_dir(dir)
+        .output()
+        .expect("the ptv binary runs")
+}
+
+/// Output bytes as text.
+pub fn text(bytes: &[u8]) -> &str {
+    std::str::from_utf8(bytes).expect("UTF-8 output")
+}
+
+/// Asserts success without warnings and returns standard output.
+pub fn succeeds(output: &Output) -> String {
+    let stderr = text(&output.stderr);
+    assert!(output.status.success(), "{:?}: {stderr}", output.status);
+    assert!(!stderr.contains("warning"), "{stderr}");
+    text(&output.stdout).to_owned()
+}
+
+/// Asserts the failure contract: exit code 1, nothing on standard output and
+/// one line `error: ...` on standard error that contains every `needle`.
+pub fn fails(output: &Output, needles: &[&str]) {
+    let stderr = text(&output.stderr);
+    assert_eq!(output.status.code(), Some(1), "{stderr}");
+    assert!(output.stdout.is_empty(), "stdout: {}", text(&output.stdout));
+    assert!(!stderr.contains("panicked"), "{stderr}");
+    assert!(
+        stderr.starts_with("error: ") && stderr.ends_with('\n'),
+        "{stderr}"
+    );
+    assert_eq!(stderr.lines().count(), 1, "{stderr}");
+    for needle in needles {
+        assert!(stderr.contains(needle), "`{needle}` not in: {stderr}");
+    }
+}
+
+/// Asserts success with nothing at all on standard error and returns
+/// standard output.
+pub fn succeeds_silently(output: &Output) -> String {
+    assert!(output.stderr.is_empty(), "{}", text(&output.stderr));
+    succeeds(output)
+}
