@@ -47,6 +47,22 @@ pub struct PtvPar {
     pub thickness: f64,
 }
 
+/// A token as a finite number, or an error naming the source, the line and
+/// what was expected.
+fn finite_number(token: &str, source: &str, line: usize, what: &str) -> Result<f64, FormatError> {
+    token
+        .parse::<f64>()
+        .ok()
+        .filter(|v| v.is_finite())
+        .ok_or_else(|| {
+            FormatError::invalid(
+                source,
+                format!("line {line}"),
+                format!("{what} must be a finite number, got `{token}`"),
+            )
+        })
+}
+
 /// A whitespace-separated token with its 1-based line number.
 struct Tokens<'a> {
     source: &'a str,
@@ -79,14 +95,7 @@ impl<'a> Tokens<'a> {
             ));
         };
         self.next += 1;
-        match token.parse::<f64>() {
-            Ok(value) if value.is_finite() => Ok(value),
-            _ => Err(FormatError::invalid(
-                self.source,
-                format!("line {line}"),
-                format!("{what} must be a finite number, got `{token}`"),
-            )),
-        }
+        finite_number(token, self.source, line, what)
     }
 
     fn finish(&self) -> Result<(), FormatError> {
@@ -199,19 +208,7 @@ pub fn parse_targets(text: &str, source: &str) -> Result<Vec<Target>, FormatErro
                 FormatError::invalid(source, at.clone(), format!("{what} is too large"))
             })
         };
-        let coordinate = |k: usize, what: &str| -> Result<f64, FormatError> {
-            fields[k]
-                .parse::<f64>()
-                .ok()
-                .filter(|v| v.is_finite())
-                .ok_or_else(|| {
-                    FormatError::invalid(
-                        source,
-                        at.clone(),
-                        format!("{what} must be a finite number, got `{}`", fields[k]),
-                    )
-                })
-        };
+        let coordinate = |k: usize, what: &str| finite_number(fields[k], source, i + 1, what);
         let pnr = integer(0, "pnr")?;
         if pnr != targets.len() as u64 {
             return Err(FormatError::invalid(
@@ -283,18 +280,7 @@ pub fn parse_ptv_par(text: &str, source: &str) -> Result<PtvPar, FormatError> {
         }
     };
     let parse = |index: usize, what: &str| -> Result<f64, FormatError> {
-        let token = line(index, what)?;
-        token
-            .parse::<f64>()
-            .ok()
-            .filter(|v| v.is_finite())
-            .ok_or_else(|| {
-                FormatError::invalid(
-                    source,
-                    format!("line {}", index + 1),
-                    format!("{what} must be a number, got `{token}`"),
-                )
-            })
+        finite_number(line(index, what)?, source, index + 1, what)
     };
     let count = parse(0, "the number of cameras")?;
     if count < 1.0 || count.fract() != 0.0 || count > 1000.0 {
