@@ -19,7 +19,7 @@ use ptv::photogrammetry::Camera;
 use serde_json::Value;
 
 mod common;
-use common::{fails, ptv, succeeds, text};
+use common::{fails, json_points, ptv, succeeds, text};
 
 const OPENPTV: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../shared/data/openptv");
 const PIXEL_TOLERANCE: f64 = 0.002;
@@ -40,18 +40,7 @@ fn golden_cameras(golden: &Value) -> Vec<Camera> {
 }
 
 fn golden_points(golden: &Value) -> Vec<Point3<f64>> {
-    golden["points"]
-        .as_array()
-        .expect("points")
-        .iter()
-        .map(|p| {
-            Point3::new(
-                p[0].as_f64().unwrap(),
-                p[1].as_f64().unwrap(),
-                p[2].as_f64().unwrap(),
-            )
-        })
-        .collect()
+    json_points(&golden["points"])
 }
 
 /// The numeric rows of a CSV written by `ptv`, after checking its header.

@@ -16,6 +16,9 @@ use ptv::photogrammetry::correspond::{Matcher, MatchingParameters, Particle};
 use ptv::photogrammetry::{intersect, Camera, Observation, Volume};
 use serde_json::Value;
 
+mod common;
+use common::json_points;
+
 const DATA: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../shared/data/openptv");
 const FRAMES: [&str; 4] = ["10001", "10002", "10003", "10004"];
 
@@ -79,18 +82,7 @@ fn test_cavity_frames_agree_with_openptv() {
             .iter()
             .map(|g| std::array::from_fn(|k| g[k].as_i64().unwrap()))
             .collect();
-        let their_points: Vec<Point3<f64>> = expected["xyz_mm"]
-            .as_array()
-            .unwrap()
-            .iter()
-            .map(|p| {
-                Point3::new(
-                    p[0].as_f64().unwrap(),
-                    p[1].as_f64().unwrap(),
-                    p[2].as_f64().unwrap(),
-                )
-            })
-            .collect();
+        let their_points = json_points(&expected["xyz_mm"]);
         let ours: HashMap<[i64; 4], &Particle> = particles
             .iter()
             .map(|p| {

@@ -19,6 +19,9 @@ use ptv::formats::openptv;
 use ptv::photogrammetry::{intersect, Camera, Observation};
 use serde_json::Value;
 
+mod common;
+use common::{json_point3, json_points};
+
 const DATA: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../shared/data/openptv");
 const IMAGE_TOLERANCE_MM: f64 = 2e-5;
 const PIXEL_TOLERANCE: f64 = 0.002;
@@ -76,21 +79,8 @@ fn vec2(v: &Value) -> Vector2<f64> {
     Vector2::new(v[0].as_f64().unwrap(), v[1].as_f64().unwrap())
 }
 
-fn point3(v: &Value) -> Point3<f64> {
-    Point3::new(
-        v[0].as_f64().unwrap(),
-        v[1].as_f64().unwrap(),
-        v[2].as_f64().unwrap(),
-    )
-}
-
 fn points(json: &Value) -> Vec<Point3<f64>> {
-    json["points"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .map(point3)
-        .collect()
+    json_points(&json["points"])
 }
 
 #[test]
@@ -380,7 +370,7 @@ fn intersecting_noise_free_flat_coordinates_returns_the_points() {
             let result = intersect(&golden.cameras, &observations).unwrap();
             worst = worst.max((result.point - point).norm());
             worst_openptv = worst_openptv
-                .max((point3(&golden.json["reconstructed_from_flat"][j]) - point).norm());
+                .max((json_point3(&golden.json["reconstructed_from_flat"][j]) - point).norm());
         }
         println!(
             "{}: worst intersection error {worst:.2e} mm (OpenPTV's own: {worst_openptv:.2e} mm)",

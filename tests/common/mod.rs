@@ -51,3 +51,18 @@ pub fn succeeds_silently(output: &Output) -> String {
     assert!(output.stderr.is_empty(), "{}", text(&output.stderr));
     succeeds(output)
 }
+
+/// A JSON array `[x, y, z]` as a point (golden files).
+pub fn json_point3(v: &serde_json::Value) -> nalgebra::Point3<f64> {
+    let coordinate = |i: usize| v[i].as_f64().expect("a number");
+    nalgebra::Point3::new(coordinate(0), coordinate(1), coordinate(2))
+}
+
+/// A JSON array of `[x, y, z]` arrays as points.
+pub fn json_points(v: &serde_json::Value) -> Vec<nalgebra::Point3<f64>> {
+    v.as_array()
+        .expect("an array of points")
+        .iter()
+        .map(json_point3)
+        .collect()
+}
