@@ -7,15 +7,18 @@
 //!
 //! 1. Every target's ray into the object medium is traced once (Eq. 13-17).
 //!    Targets of each camera go into a uniform grid (a spatial index, with
-//!    the targets stored in cell order), so that no search scans all targets.
+//!    the targets stored in cell order) for searches around a point, and,
+//!    per camera pair, into a grid of thin sectors along the epipolar
+//!    curves for the bands (`pencil`): no search scans all targets.
 //! 2. **Seed pairs**, one stage each: camera pairs `(i, j)` chosen so that
 //!    every set of three cameras contains one of them (the cameras split
 //!    into two halves, all pairs within each half: 2 pairs for 4 cameras
 //!    instead of 6). Each still unused target of camera i has its ray cut by
 //!    the observation volume; the segment between the near and far points is
 //!    projected into camera j as a bent curve (a parabola or polyline within
-//!    a twentieth of the tolerance of the true curve) and widened by the
-//!    tolerance: the epipolar band. Its candidates come from the grid.
+//!    a tenth of the tolerance of the true curve) and widened by the
+//!    tolerance: the epipolar band. Its candidates come from an index of
+//!    camera j's targets in thin sectors along the curves (`pencil`).
 //! 3. **Completion.** Each candidate pair's rays meet (nearly) in a 3D
 //!    point; its image in every other camera (on the first target's
 //!    epipolar curve there) is searched within `COMPLETION_RADIUS` (3)
@@ -47,6 +50,10 @@ use super::camera::{Camera, Ray};
 use super::intersect::{intersect_from, ray_midpoint, Observation};
 use super::target::Target;
 use super::volume::Volume;
+
+mod pencil;
+
+use pencil::{segment_distance, Pencil, PencilGrid};
 
 /// Default epipolar band half-width (px).
 pub const DEFAULT_TOLERANCE_PX: f64 = 1.0;
@@ -210,10 +217,19 @@ const MAX_GROUPS_PER_TARGET: usize = 8;
 /// estimated.
 const NOISE_SAMPLE: usize = 50;
 
-/// Grid cells per target. Finer cells make a band's boxes hug it more
-/// closely but cost more cell visits; one per target was fastest in the
-/// matching benchmark.
+/// Cells per target of the square grid that serves searches around a point
+/// (completion, exchanges); bands use the pencil grids.
 const CELLS_PER_TARGET: f64 = 1.0;
+
+/// How far (in tolerances) a parabola may stray from the true epipolar
+/// curve; with [`CHORD_SHARE`], the band's curve stays within a tenth of
+/// the tolerance of the truth. 0.08 admits a parabola for every camera pair
+/// of the simulator's rigs (0.05, the former limit, needed polylines of
+/// five projections for the pairs at right angles).
+const PARABOLA_SHARE: f64 = 0.08;
+
+/// How far (in tolerances) a band's chords may stray from its curve.
+const CHORD_SHARE: f64 = 0.02;
 
 /// A marker for "no target" in the flat group arrays.
 const NONE: u32 = u32::MAX;
@@ -233,9 +249,12 @@ pub struct Matcher {
     /// estimates of distances in object space.
     pixels_per_unit_angle: Vec<f64>,
     /// Per ordered camera pair `(i, k)` at `i * count + k`: whether
-    /// epipolar curves from i into k are parabolas to a twentieth of the
-    /// tolerance (see [`EpipolarCurve`]).
+    /// epipolar curves from i into k are parabolas to [`PARABOLA_SHARE`] of
+    /// the tolerance (see [`EpipolarCurve`]).
     parabola_fits: Vec<bool>,
+    /// Per ordered camera pair `(i, k)` at `i * count + k`: where the
+    /// epipolar curves from i meet in k (see [`pencil`]).
+    pencils: Vec<Pencil>,
 }
 
 /// Camera pairs such that every set of three cameras contains one: all
@@ -316,10 +335,24 @@ impl Matcher {
         let parabola_fits = (0..count * count)
             .map(|index| {
                 let (i, k) = (index / count, index % count);
-                i != k && parabola_fits(&cameras, &volume, i, k, parameters.tolerance / 20.0)
+                i != k
+                    && parabola_fits(
+                        &cameras,
+                        &volume,
+                        i,
+                        k,
+                        PARABOLA_SHARE * parameters.tolerance,
+                    )
+            })
+            .collect();
+        let pencils = (0..count * count)
+            .map(|index| {
+                let (i, k) = (index / count, index % count);
+                epipolar_pencil(&cameras, &volume, i, k).unwrap_or_else(Pencil::strips)
             })
             .collect();
         Ok(Matcher {
+            pencils,
             parabola_fits,
             seeds: seed_pairs(count),
             cameras,
@@ -409,8 +442,8 @@ struct TargetGrid {
 impl TargetGrid {
     /// [`CELLS_PER_TARGET`] cells per target (never smaller than the
     /// tolerance): memory linear in the targets, and cells small enough that
-    /// a band query touches few targets outside the band. Returns the grid and the cell order of the targets
-    /// (the indices of `positions`, cell by cell).
+    /// a search around a point touches few targets. Returns the grid and the
+    /// cell order of the targets (the indices of `positions`, cell by cell).
     fn new(positions: &[Point2<f64>], tolerance: f64) -> (TargetGrid, Vec<u32>) {
         let (mut min, mut max) = (
             Point2::new(f64::INFINITY, f64::INFINITY),
@@ -493,12 +526,6 @@ impl TargetGrid {
         ))
     }
 
-    /// The targets of one cell.
-    #[inline]
-    fn cell(&self, cell: usize) -> std::ops::Range<usize> {
-        self.starts[cell] as usize..self.starts[cell + 1] as usize
-    }
-
     /// Calls `visit` for every target in the cells that overlap the box.
     #[inline]
     fn visit(&self, lo: Point2<f64>, hi: Point2<f64>, mut visit: impl FnMut(usize)) {
@@ -575,13 +602,15 @@ fn closest_approach(a: &Ray, b: &Ray) -> Option<(f64, Point3<f64>)> {
 
 /// The image in one camera of a ray's segment inside the volume.
 ///
-/// Taken as the parabola through the images of the segment's ends and
-/// middle (three projections) where that is within a twentieth of the
-/// tolerance of the true (bent) curve, which [`Matcher::new`] checks for
-/// each pair of cameras over rays sampled across the volume; otherwise, or
-/// where a sampled ray failed, as a polyline of projected points whose
-/// chords deviate less than that (a chord over 1/m of the curve deviates by
-/// about bend / m^2).
+/// Within a tenth of the tolerance of the true (bent) curve, as the issue
+/// of bands demands: the parabola through the images of the segment's ends
+/// and middle (three projections) where that is within [`PARABOLA_SHARE`]
+/// of the tolerance, which [`Matcher::new`] checks for each pair of cameras
+/// over rays sampled across the volume, walked as chords within
+/// [`CHORD_SHARE`] of it; otherwise, or where a sampled ray failed, a
+/// polyline of projected points whose chords deviate less than
+/// [`CHORD_SHARE`] (a chord over 1/m of the curve deviates by about
+/// bend / m^2).
 #[derive(Default)]
 struct EpipolarCurve {
     near: f64,
@@ -617,7 +646,7 @@ impl EpipolarCurve {
             return true;
         }
         let bend = (pm - nalgebra::center(&p0, &p1)).norm();
-        let pieces = ((20.0 * bend / tolerance).sqrt().ceil() as usize).clamp(2, 1024);
+        let pieces = ((bend / (CHORD_SHARE * tolerance)).sqrt().ceil() as usize).clamp(2, 1024);
         for s in 0..=pieces {
             match project(s as f64 / pieces as f64) {
                 Some(p) => self.vertices.push(p),
@@ -637,13 +666,17 @@ impl EpipolarCurve {
         )
     }
 
-    /// Makes sure the polyline exists, with vertices at most `spacing`
-    /// pixels apart where it comes from the parabola.
-    fn walkable(&mut self, spacing: f64) -> &[Point2<f64>] {
+    /// Makes sure the polyline exists where the curve is a parabola, with
+    /// chords within [`CHORD_SHARE`] of `tolerance` of the parabola (a
+    /// chord over 1/m of it deviates by bend / m^2).
+    fn walkable(&mut self, tolerance: f64) -> &[Point2<f64>] {
         if let (Some(parabola), true) = (&self.parabola, self.vertices.is_empty()) {
             let [p0, pm, p1] = parabola;
-            let length = (pm - p0).norm() + (p1 - pm).norm();
-            let pieces = (length / spacing).ceil().clamp(1.0, 4096.0) as usize;
+            let bend = (pm - nalgebra::center(p0, p1)).norm();
+            let pieces = (bend / (CHORD_SHARE * tolerance))
+                .sqrt()
+                .ceil()
+                .clamp(1.0, 4096.0) as usize;
             self.vertices.extend(
                 (0..=pieces).map(|s| Self::parabola_at(parabola, s as f64 / pieces as f64)),
             );
@@ -710,6 +743,38 @@ fn parabola_fits(cameras: &[Camera], volume: &Volume, i: usize, k: usize, limit:
     true
 }
 
+/// The pencil of the epipolar curves from camera `i` into camera `k`: from
+/// the chords of the curves of rays through a grid of camera i's pixels.
+fn epipolar_pencil(cameras: &[Camera], volume: &Volume, i: usize, k: usize) -> Option<Pencil> {
+    const SAMPLES: u32 = 12;
+    if i == k {
+        return None;
+    }
+    let sensor = cameras[i].sensor();
+    let mut chords = Vec::new();
+    for row in 0..=SAMPLES {
+        for column in 0..=SAMPLES {
+            let pixel = Point2::new(
+                f64::from(sensor.width) * f64::from(column) / f64::from(SAMPLES),
+                f64::from(sensor.height) * f64::from(row) / f64::from(SAMPLES),
+            );
+            let Ok(ray) = cameras[i].ray(pixel) else {
+                continue;
+            };
+            let Some((near, far)) = clip(&ray, volume) else {
+                continue;
+            };
+            if let (Ok(p), Ok(q)) = (
+                cameras[k].project(&ray.at(near)),
+                cameras[k].project(&ray.at(far)),
+            ) {
+                chords.push((p, q));
+            }
+        }
+    }
+    Pencil::fit(&chords)
+}
+
 /// How the rays of a group meet (pixels).
 #[derive(Clone, Copy, Debug)]
 struct GroupFit {
@@ -735,13 +800,20 @@ struct Search<'m, 'f> {
     matcher: &'m Matcher,
     frames: &'f [CameraFrame],
     used: Vec<Vec<bool>>,
-    /// Per camera and grid cell, the number of the last band that visited it.
-    cell_stamps: Vec<Vec<u32>>,
-    stamp: u32,
+    /// Per ordered camera pair `(i, j)` at `i * count + j`: camera j's
+    /// targets filed along the epipolar curves from camera i, built when a
+    /// band first needs it, of the targets unused then (bands look for
+    /// unused targets only; a target freed again, in [`Self::improve`],
+    /// drops every grid).
+    pencil_grids: Vec<Option<PencilGrid>>,
     /// Per camera: the current target's epipolar curve in it.
     curves: Vec<EpipolarCurve>,
-    /// Scratch: the current band's pieces (unit direction, length).
+    /// Scratch: the current band's pieces (unit direction, length) and its
+    /// vertices' pencil coordinates.
     pieces: Vec<(nalgebra::Vector2<f64>, f64)>,
+    /// Scratch: the current band's spans of pieces that visit cells
+    /// (first and last vertex, largest distance of a vertex from the chord).
+    spans: Vec<(usize, usize, f64)>,
     /// The largest miss (px) a group member may have, and the largest
     /// residual of a particle's intersection: the tolerance, or less once
     /// the frame's image noise is known (see [`Search::estimate_noise`]).
@@ -761,13 +833,13 @@ impl<'m, 'f> Search<'m, 'f> {
                 .iter()
                 .map(|f| vec![false; f.targets.len()])
                 .collect(),
-            cell_stamps: frames
+            pencil_grids: frames
                 .iter()
-                .map(|f| vec![0; f.grid.cols * f.grid.rows])
+                .flat_map(|_| frames.iter().map(|_| None))
                 .collect(),
-            stamp: 0,
             curves: frames.iter().map(|_| EpipolarCurve::default()).collect(),
             pieces: Vec::new(),
+            spans: Vec::new(),
             acceptance: matcher.tolerance,
             accepted: Vec::new(),
             owner: frames.iter().map(|f| vec![NONE; f.targets.len()]).collect(),
@@ -807,19 +879,20 @@ impl<'m, 'f> Search<'m, 'f> {
         if !self.trace(i, a, j) {
             return;
         }
-        self.stamp = self.stamp.wrapping_add(1);
-        if self.stamp == 0 {
-            // The stamps wrapped around: start afresh.
-            self.cell_stamps.iter_mut().for_each(|s| s.fill(0));
-            self.stamp = 1;
-        }
-        let stamp = self.stamp;
         let tolerance = self.matcher.tolerance;
         let frame = &self.frames[j];
-        let cell_stamps = &mut self.cell_stamps[j];
+        let pair = i * self.frames.len() + j;
         let used = &self.used[j];
-        let spacing = self.frames[j].grid.cell;
-        let vertices = self.curves[j].walkable(spacing);
+        let grid = self.pencil_grids[pair].get_or_insert_with(|| {
+            PencilGrid::new(
+                self.matcher.pencils[pair],
+                &frame.positions,
+                |b| !used[b],
+                tolerance,
+            )
+        });
+        grid.begin_band();
+        let vertices = self.curves[j].walkable(tolerance);
         let reference = &self.frames[i].targets[a];
         let tolerance_sq = tolerance * tolerance;
         // Per piece: unit direction and length.
@@ -835,11 +908,50 @@ impl<'m, 'f> Search<'m, 'f> {
             (direction, length)
         }));
         let last = pieces.len();
+        if last == 0 {
+            return;
+        }
+        // Cells are visited along spans of several pieces, about a cell
+        // long, each widened by how far its pieces stray from its chord.
+        let total: f64 = pieces.iter().map(|&(_, length)| length).sum();
+        let step = ((grid.cell_diameter() * last as f64 / total) as usize).clamp(1, last);
+        let spans = &mut self.spans;
+        spans.clear();
+        let mut start = 0;
+        while start < last {
+            let end = (start + step).min(last);
+            let deviation = (start + 1..end)
+                .map(|m| segment_distance(&vertices[m], &vertices[start], &vertices[end]))
+                .fold(0.0, f64::max);
+            spans.push((start, end, deviation));
+            start = end;
+        }
+        // A target within the tolerance of piece s' lies in a cell that the
+        // span holding s' visits, so the first span to visit its cell starts
+        // at or before s', and no further back than the cell's diameter plus
+        // the span's length and margins.
+        let shortest = pieces
+            .iter()
+            .map(|&(_, length)| length)
+            .filter(|&length| length > 0.0)
+            .fold(f64::INFINITY, f64::min);
+        let widest = spans.iter().map(|&(.., d)| d).fold(0.0, f64::max);
+        let longest = spans
+            .iter()
+            .map(|&(s, e, _)| (vertices[e] - vertices[s]).norm())
+            .fold(0.0, f64::max);
+        let reach =
+            ((grid.cell_diameter() + longest + 2.0 * (tolerance + widest)) / shortest).ceil();
+        let lookahead = if reach.is_finite() {
+            (reach as usize).saturating_add(2).min(last)
+        } else {
+            last
+        };
         // Squared distance from p to the polyline, looking from piece s on:
         // walk forward while p lies beyond the current piece's end.
         let distance_sq = |p: &Point2<f64>, s: usize| -> f64 {
             let mut best = f64::INFINITY;
-            for piece in s..(s + 6).min(last) {
+            for piece in s..(s + lookahead).min(last) {
                 let (direction, length) = pieces[piece];
                 let rel = p - vertices[piece];
                 let along = rel.dot(&direction);
@@ -853,37 +965,28 @@ impl<'m, 'f> Search<'m, 'f> {
             }
             best
         };
-        // Each cell is visited once, by the first piece whose box reaches
-        // it; pieces are at most a cell long and the tolerance at most a
-        // cell, so any later piece that reaches the cell is within five.
-        let margin = nalgebra::Vector2::repeat(tolerance);
-        for s in 0..last {
-            let (from, to) = (vertices[s], vertices[s + 1]);
-            let Some((c0, c1, r0, r1)) = frame
-                .grid
-                .cell_range(from.inf(&to) - margin, from.sup(&to) + margin)
-            else {
-                continue;
-            };
-            for r in r0..=r1 {
-                for c in c0..=c1 {
-                    let cell = r * frame.grid.cols + c;
-                    if cell_stamps[cell] == stamp {
-                        continue;
-                    }
-                    cell_stamps[cell] = stamp;
-                    for b in frame.grid.cell(cell) {
+        for &(start, end, deviation) in spans.iter() {
+            grid.visit_piece(
+                (&vertices[start], &vertices[end]),
+                (
+                    grid.coordinates(&vertices[start]),
+                    grid.coordinates(&vertices[end]),
+                ),
+                tolerance + deviation,
+                |grid, cell| {
+                    for &b in grid.cell(cell) {
+                        let b = b as usize;
                         if unused_only && used[b] {
                             continue;
                         }
-                        if distance_sq(&frame.positions[b], s) <= tolerance_sq
+                        if distance_sq(&frame.positions[b], start) <= tolerance_sq
                             && self.matcher.similar(reference, &frame.targets[b])
                         {
                             found(b);
                         }
                     }
-                }
-            }
+                },
+            );
         }
     }
 
@@ -1251,6 +1354,7 @@ impl<'m, 'f> Search<'m, 'f> {
     /// target about as often as not. Comparing both assignments at once
     /// settles it by all the evidence.
     fn improve(&mut self) {
+        self.pencil_grids.fill_with(|| None);
         let radius = 2.0 * self.acceptance;
         let mut nearby = Vec::new();
         for p in 0..self.accepted.len() {
