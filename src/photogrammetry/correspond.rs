@@ -43,7 +43,7 @@
 //! with the targets, and the work with the targets times the (small) number
 //! of band candidates.
 
-use nalgebra::{Point2, Point3, Vector3};
+use nalgebra::{Point2, Point3, Vector2, Vector3};
 use serde::{Deserialize, Serialize};
 
 use super::camera::{Camera, Ray};
@@ -53,7 +53,7 @@ use super::volume::Volume;
 
 mod pencil;
 
-use pencil::{segment_distance, Pencil, PencilGrid};
+use pencil::{Pencil, PencilGrid};
 
 /// Default epipolar band half-width (px).
 pub const DEFAULT_TOLERANCE_PX: f64 = 1.0;
@@ -221,15 +221,11 @@ const NOISE_SAMPLE: usize = 50;
 /// (completion, exchanges); bands use the pencil grids.
 const CELLS_PER_TARGET: f64 = 1.0;
 
-/// How far (in tolerances) a parabola may stray from the true epipolar
-/// curve; with [`CHORD_SHARE`], the band's curve stays within a tenth of
-/// the tolerance of the truth. 0.08 admits a parabola for every camera pair
-/// of the simulator's rigs (0.05, the former limit, needed polylines of
-/// five projections for the pairs at right angles).
+/// How far (in tolerances) an epipolar curve's parabolas may stray from
+/// the true curve at the sampled rays: a tenth, less a fifth for what the
+/// samples miss. It admits one parabola for every camera pair of the
+/// simulator's rigs (0.05 needed more for the pairs at right angles).
 const PARABOLA_SHARE: f64 = 0.08;
-
-/// How far (in tolerances) a band's chords may stray from its curve.
-const CHORD_SHARE: f64 = 0.02;
 
 /// A marker for "no target" in the flat group arrays.
 const NONE: u32 = u32::MAX;
@@ -248,13 +244,9 @@ pub struct Matcher {
     /// Per camera: principal distance over pixel size, for pixel-scale
     /// estimates of distances in object space.
     pixels_per_unit_angle: Vec<f64>,
-    /// Per ordered camera pair `(i, k)` at `i * count + k`: whether
-    /// epipolar curves from i into k are parabolas to [`PARABOLA_SHARE`] of
-    /// the tolerance (see [`EpipolarCurve`]).
-    parabola_fits: Vec<bool>,
-    /// Per ordered camera pair `(i, k)` at `i * count + k`: where the
-    /// epipolar curves from i meet in k (see [`pencil`]).
-    pencils: Vec<Pencil>,
+    /// Per ordered camera pair `(i, k)` at `i * count + k`: the shape of
+    /// the epipolar curves from i in k.
+    epipolar: Vec<EpipolarGeometry>,
 }
 
 /// Camera pairs such that every set of three cameras contains one: all
@@ -332,28 +324,19 @@ impl Matcher {
                 camera.parameters().interior.c / sensor.pixel_size_x.min(sensor.pixel_size_y)
             })
             .collect();
-        let parabola_fits = (0..count * count)
+        let epipolar = (0..count * count)
             .map(|index| {
                 let (i, k) = (index / count, index % count);
-                i != k
-                    && parabola_fits(
-                        &cameras,
-                        &volume,
-                        i,
-                        k,
-                        PARABOLA_SHARE * parameters.tolerance,
-                    )
-            })
-            .collect();
-        let pencils = (0..count * count)
-            .map(|index| {
-                let (i, k) = (index / count, index % count);
-                epipolar_pencil(&cameras, &volume, i, k).unwrap_or_else(Pencil::strips)
+                EpipolarGeometry::sample(
+                    &cameras,
+                    &volume,
+                    (i, k),
+                    PARABOLA_SHARE * parameters.tolerance,
+                )
             })
             .collect();
         Ok(Matcher {
-            pencils,
-            parabola_fits,
+            epipolar,
             seeds: seed_pairs(count),
             cameras,
             tolerance: parameters.tolerance,
@@ -600,88 +583,107 @@ fn closest_approach(a: &Ray, b: &Ray) -> Option<(f64, Point3<f64>)> {
     Some((ta, nalgebra::center(&a.at(ta), &b.at(tb))))
 }
 
+/// A parabola `P(u) = a + b u + c u^2`, u in [0, 1] (pixels).
+#[derive(Clone, Copy, Debug)]
+struct Parabola {
+    a: Vector2<f64>,
+    b: Vector2<f64>,
+    c: Vector2<f64>,
+}
+
+impl Parabola {
+    /// The parabola through `p0`, `pm`, `p1` at u = 0, 1/2, 1.
+    fn through(p0: Point2<f64>, pm: Point2<f64>, p1: Point2<f64>) -> Parabola {
+        let c = (p0.coords + p1.coords - pm.coords * 2.0) * 2.0;
+        Parabola {
+            a: p0.coords,
+            b: p1 - p0 - c,
+            c,
+        }
+    }
+
+    #[inline]
+    fn at(&self, u: f64) -> Point2<f64> {
+        Point2::from(self.a + (self.b + self.c * u) * u)
+    }
+
+    /// How far the parabola strays from the chord of a span `du` long in
+    /// u: `|c| du^2 / 4`.
+    #[inline]
+    fn deviation(&self, du: f64) -> f64 {
+        self.c.norm() * du * du / 4.0
+    }
+
+    /// The squared distance from `p` to the parabola: Newton's method on
+    /// `(P(u) - p) . P'(u) = 0` from the projection on the chord, u kept in
+    /// [0, 1]. Epipolar parabolas bend by pixels over hundreds of pixels,
+    /// so one or two steps converge.
+    #[inline]
+    fn distance_sq(&self, p: &Point2<f64>) -> f64 {
+        const MAX_STEPS: usize = 8;
+        let d = p.coords - self.a;
+        let chord = self.b + self.c;
+        let mut u = (d.dot(&chord) / chord.norm_squared()).clamp(0.0, 1.0);
+        if !u.is_finite() {
+            return d.norm_squared();
+        }
+        for _ in 0..MAX_STEPS {
+            let q = (self.b + self.c * u) * u - d;
+            let tangent = self.b + self.c * (2.0 * u);
+            let slope = tangent.norm_squared() + 2.0 * q.dot(&self.c);
+            if slope <= 0.0 {
+                break;
+            }
+            let next = (u - q.dot(&tangent) / slope).clamp(0.0, 1.0);
+            let moved = (next - u).abs();
+            u = next;
+            if moved * tangent.norm() < 1e-9 {
+                break;
+            }
+        }
+        ((self.b + self.c * u) * u - d).norm_squared()
+    }
+}
+
 /// The image in one camera of a ray's segment inside the volume.
 ///
-/// Within a tenth of the tolerance of the true (bent) curve, as the issue
-/// of bands demands: the parabola through the images of the segment's ends
-/// and middle (three projections) where that is within [`PARABOLA_SHARE`]
-/// of the tolerance, which [`Matcher::new`] checks for each pair of cameras
-/// over rays sampled across the volume, walked as chords within
-/// [`CHORD_SHARE`] of it; otherwise, or where a sampled ray failed, a
-/// polyline of projected points whose chords deviate less than
-/// [`CHORD_SHARE`] (a chord over 1/m of the curve deviates by about
-/// bend / m^2).
+/// A chain of parabolas, each through the images of the ends and middle of
+/// its part of the segment (2m + 1 projections for m parts): within a tenth
+/// of the tolerance of the true (bent) curve, as bands need, where the
+/// pair's [`EpipolarGeometry`] says how many parts that takes (one, for
+/// every pair of the simulator's rigs). Bands measure distances to the
+/// parabolas themselves, so no further approximation enters.
 #[derive(Default)]
 struct EpipolarCurve {
     near: f64,
     far: f64,
-    /// The parabola's points at u = 0, 1/2, 1, if it is used.
-    parabola: Option<[Point2<f64>; 3]>,
-    /// The polyline, evenly spaced in the ray parameter: projected points,
-    /// or the parabola's where a band walk needs them ([`Self::walkable`]).
-    vertices: Vec<Point2<f64>>,
+    /// The parts, in order along the ray; empty if the ray was not traced.
+    parts: Vec<Parabola>,
 }
 
 impl EpipolarCurve {
-    /// Traces `ray` between `near` and `far` into `camera`; false if the
-    /// segment does not image there.
-    fn trace(
-        &mut self,
-        camera: &Camera,
-        ray: &Ray,
-        (near, far): (f64, f64),
-        tolerance: f64,
-        parabola_fits: bool,
-    ) -> bool {
+    /// Traces `ray` between `near` and `far` into `camera` in `parts`
+    /// parabolas; false (and no parts) if the segment does not image there.
+    fn trace(&mut self, camera: &Camera, ray: &Ray, (near, far): (f64, f64), parts: usize) -> bool {
         self.near = near;
         self.far = far;
-        self.vertices.clear();
-        self.parabola = None;
-        let project = |u: f64| camera.project(&ray.at(near + (far - near) * u)).ok();
-        let (Some(p0), Some(pm), Some(p1)) = (project(0.0), project(0.5), project(1.0)) else {
+        self.parts.clear();
+        let project = |s: usize| {
+            let u = s as f64 / (2 * parts) as f64;
+            camera.project(&ray.at(near + (far - near) * u)).ok()
+        };
+        let Some(mut start) = project(0) else {
             return false;
         };
-        if parabola_fits {
-            self.parabola = Some([p0, pm, p1]);
-            return true;
-        }
-        let bend = (pm - nalgebra::center(&p0, &p1)).norm();
-        let pieces = ((bend / (CHORD_SHARE * tolerance)).sqrt().ceil() as usize).clamp(2, 1024);
-        for s in 0..=pieces {
-            match project(s as f64 / pieces as f64) {
-                Some(p) => self.vertices.push(p),
-                None => return false,
-            }
+        for part in 0..parts {
+            let (Some(middle), Some(end)) = (project(2 * part + 1), project(2 * part + 2)) else {
+                self.parts.clear();
+                return false;
+            };
+            self.parts.push(Parabola::through(start, middle, end));
+            start = end;
         }
         true
-    }
-
-    /// The parabola at `u` in [0, 1].
-    #[inline]
-    fn parabola_at([p0, pm, p1]: &[Point2<f64>; 3], u: f64) -> Point2<f64> {
-        Point2::from(
-            p0.coords * (2.0 * (u - 0.5) * (u - 1.0))
-                + pm.coords * (-4.0 * u * (u - 1.0))
-                + p1.coords * (2.0 * u * (u - 0.5)),
-        )
-    }
-
-    /// Makes sure the polyline exists where the curve is a parabola, with
-    /// chords within [`CHORD_SHARE`] of `tolerance` of the parabola (a
-    /// chord over 1/m of it deviates by bend / m^2).
-    fn walkable(&mut self, tolerance: f64) -> &[Point2<f64>] {
-        if let (Some(parabola), true) = (&self.parabola, self.vertices.is_empty()) {
-            let [p0, pm, p1] = parabola;
-            let bend = (pm - nalgebra::center(p0, p1)).norm();
-            let pieces = (bend / (CHORD_SHARE * tolerance))
-                .sqrt()
-                .ceil()
-                .clamp(1.0, 4096.0) as usize;
-            self.vertices.extend(
-                (0..=pieces).map(|s| Self::parabola_at(parabola, s as f64 / pieces as f64)),
-            );
-        }
-        &self.vertices
     }
 
     /// The image of the ray's point at parameter `t`; `None` outside the
@@ -689,90 +691,91 @@ impl EpipolarCurve {
     #[inline]
     fn at(&self, t: f64) -> Option<Point2<f64>> {
         let u = (t - self.near) / (self.far - self.near);
-        if !(0.0..=1.0).contains(&u) {
+        if !(0.0..=1.0).contains(&u) || self.parts.is_empty() {
             return None;
         }
-        if let Some(parabola) = &self.parabola {
-            return Some(Self::parabola_at(parabola, u));
-        }
-        if self.vertices.len() < 2 {
-            return None;
-        }
-        let position = u * (self.vertices.len() - 1) as f64;
-        let index = (position as usize).min(self.vertices.len() - 2);
-        let fraction = position - index as f64;
-        Some(self.vertices[index] + (self.vertices[index + 1] - self.vertices[index]) * fraction)
+        let scaled = u * self.parts.len() as f64;
+        let part = (scaled as usize).min(self.parts.len() - 1);
+        Some(self.parts[part].at(scaled - part as f64))
+    }
+
+    /// The squared distance from `p` to the curve.
+    #[inline]
+    fn distance_sq(&self, p: &Point2<f64>) -> f64 {
+        self.parts
+            .iter()
+            .map(|part| part.distance_sq(p))
+            .fold(f64::INFINITY, f64::min)
     }
 }
 
-/// Whether, for rays of camera `i` through a grid of its pixels, the
-/// parabola through three points of their image in camera `k` stays within
-/// `limit` of the true curve (checked at 1/4 and 3/4, where a parabola's
-/// error peaks). Rays that miss the volume or do not image are skipped.
-fn parabola_fits(cameras: &[Camera], volume: &Volume, i: usize, k: usize, limit: f64) -> bool {
-    const SAMPLES: u32 = 12;
-    let sensor = cameras[i].sensor();
-    for row in 0..=SAMPLES {
-        for column in 0..=SAMPLES {
-            let pixel = Point2::new(
-                f64::from(sensor.width) * f64::from(column) / f64::from(SAMPLES),
-                f64::from(sensor.height) * f64::from(row) / f64::from(SAMPLES),
-            );
-            let Ok(ray) = cameras[i].ray(pixel) else {
-                continue;
-            };
-            let Some((near, far)) = clip(&ray, volume) else {
-                continue;
-            };
-            let project = |u: f64| cameras[k].project(&ray.at(near + (far - near) * u)).ok();
-            let points: Option<Vec<Point2<f64>>> = [0.0, 0.25, 0.5, 0.75, 1.0]
-                .iter()
-                .map(|&u| project(u))
-                .collect();
-            let Some(p) = points else {
-                continue;
-            };
-            let parabola = [p[0], p[2], p[4]];
-            if (EpipolarCurve::parabola_at(&parabola, 0.25) - p[1]).norm() > limit
-                || (EpipolarCurve::parabola_at(&parabola, 0.75) - p[3]).norm() > limit
-            {
-                return false;
-            }
-        }
-    }
-    true
+/// The most parabolas an epipolar curve is traced in.
+const MAX_PARTS: usize = 32;
+
+/// What the matcher knows in advance of the epipolar curves from camera `i`
+/// in camera `k`, from the rays through a 13 x 13 grid of camera i's pixels
+/// cut by the volume: how many parabolas trace them within the limit, and
+/// the pencil their chords form.
+#[derive(Clone, Debug)]
+struct EpipolarGeometry {
+    parts: usize,
+    pencil: Pencil,
 }
 
-/// The pencil of the epipolar curves from camera `i` into camera `k`: from
-/// the chords of the curves of rays through a grid of camera i's pixels.
-fn epipolar_pencil(cameras: &[Camera], volume: &Volume, i: usize, k: usize) -> Option<Pencil> {
-    const SAMPLES: u32 = 12;
-    if i == k {
-        return None;
-    }
-    let sensor = cameras[i].sensor();
-    let mut chords = Vec::new();
-    for row in 0..=SAMPLES {
-        for column in 0..=SAMPLES {
-            let pixel = Point2::new(
-                f64::from(sensor.width) * f64::from(column) / f64::from(SAMPLES),
-                f64::from(sensor.height) * f64::from(row) / f64::from(SAMPLES),
-            );
-            let Ok(ray) = cameras[i].ray(pixel) else {
-                continue;
-            };
-            let Some((near, far)) = clip(&ray, volume) else {
-                continue;
-            };
-            if let (Ok(p), Ok(q)) = (
-                cameras[k].project(&ray.at(near)),
-                cameras[k].project(&ray.at(far)),
-            ) {
-                chords.push((p, q));
+impl EpipolarGeometry {
+    /// Samples the pair. Parabolas are checked at a quarter and three
+    /// quarters of each part, where their error peaks; rays that miss the
+    /// volume or do not image are skipped.
+    fn sample(cameras: &[Camera], volume: &Volume, (i, k): (usize, usize), limit: f64) -> Self {
+        const SAMPLES: u32 = 12;
+        let mut segments = Vec::new();
+        let sensor = cameras[i].sensor();
+        for row in 0..=SAMPLES {
+            for column in 0..=SAMPLES {
+                let pixel = Point2::new(
+                    f64::from(sensor.width) * f64::from(column) / f64::from(SAMPLES),
+                    f64::from(sensor.height) * f64::from(row) / f64::from(SAMPLES),
+                );
+                let Ok(ray) = cameras[i].ray(pixel) else {
+                    continue;
+                };
+                if let Some(span) = clip(&ray, volume) {
+                    segments.push((ray, span));
+                }
             }
         }
+        let project = |ray: &Ray, (near, far): (f64, f64), u: f64| {
+            cameras[k].project(&ray.at(near + (far - near) * u)).ok()
+        };
+        let chords: Vec<(Point2<f64>, Point2<f64>)> = segments
+            .iter()
+            .filter_map(|(ray, span)| Some((project(ray, *span, 0.0)?, project(ray, *span, 1.0)?)))
+            .collect();
+        let pencil = Pencil::fit(&chords).unwrap_or_else(Pencil::strips);
+        let fits = |parts: usize| {
+            segments.iter().all(|(ray, span)| {
+                let points: Option<Vec<Point2<f64>>> = (0..=4 * parts)
+                    .map(|s| project(ray, *span, s as f64 / (4 * parts) as f64))
+                    .collect();
+                let Some(points) = points else {
+                    return true;
+                };
+                points.chunks_exact(4).enumerate().all(|(part, quarter)| {
+                    let parabola = Parabola::through(quarter[0], quarter[2], points[4 * part + 4]);
+                    (parabola.at(0.25) - quarter[1]).norm() <= limit
+                        && (parabola.at(0.75) - quarter[3]).norm() <= limit
+                })
+            })
+        };
+        let parts = if i == k {
+            1
+        } else {
+            (1..=MAX_PARTS)
+                .find(|&parts| fits(parts))
+                .unwrap_or(MAX_PARTS)
+        };
+        EpipolarGeometry { parts, pencil }
     }
-    Pencil::fit(&chords)
 }
 
 /// How the rays of a group meet (pixels).
@@ -808,12 +811,6 @@ struct Search<'m, 'f> {
     pencil_grids: Vec<Option<PencilGrid>>,
     /// Per camera: the current target's epipolar curve in it.
     curves: Vec<EpipolarCurve>,
-    /// Scratch: the current band's pieces (unit direction, length) and its
-    /// vertices' pencil coordinates.
-    pieces: Vec<(nalgebra::Vector2<f64>, f64)>,
-    /// Scratch: the current band's spans of pieces that visit cells
-    /// (first and last vertex, largest distance of a vertex from the chord).
-    spans: Vec<(usize, usize, f64)>,
     /// The largest miss (px) a group member may have, and the largest
     /// residual of a particle's intersection: the tolerance, or less once
     /// the frame's image noise is known (see [`Search::estimate_noise`]).
@@ -838,8 +835,6 @@ impl<'m, 'f> Search<'m, 'f> {
                 .flat_map(|_| frames.iter().map(|_| None))
                 .collect(),
             curves: frames.iter().map(|_| EpipolarCurve::default()).collect(),
-            pieces: Vec::new(),
-            spans: Vec::new(),
             acceptance: matcher.tolerance,
             accepted: Vec::new(),
             owner: frames.iter().map(|f| vec![NONE; f.targets.len()]).collect(),
@@ -855,27 +850,14 @@ impl<'m, 'f> Search<'m, 'f> {
         let Some(span) = clip(&ray, &self.matcher.volume) else {
             return false;
         };
-        let fits = self.matcher.parabola_fits[i * self.frames.len() + j];
-        self.curves[j].trace(
-            &self.matcher.cameras[j],
-            &ray,
-            span,
-            self.matcher.tolerance,
-            fits,
-        )
+        let parts = self.matcher.epipolar[i * self.frames.len() + j].parts;
+        self.curves[j].trace(&self.matcher.cameras[j], &ray, span, parts)
     }
 
     /// The epipolar band of target `a` of camera `i` in camera `j`: calls
-    /// `found` once for each target of camera j within the tolerance of the
-    /// curve (only unused ones if `unused_only`).
-    fn band(
-        &mut self,
-        i: usize,
-        a: usize,
-        j: usize,
-        unused_only: bool,
-        mut found: impl FnMut(usize),
-    ) {
+    /// `found` once for each unused target of camera j within the
+    /// tolerance of the curve.
+    fn band(&mut self, i: usize, a: usize, j: usize, mut found: impl FnMut(usize)) {
         if !self.trace(i, a, j) {
             return;
         }
@@ -885,108 +867,47 @@ impl<'m, 'f> Search<'m, 'f> {
         let used = &self.used[j];
         let grid = self.pencil_grids[pair].get_or_insert_with(|| {
             PencilGrid::new(
-                self.matcher.pencils[pair],
+                self.matcher.epipolar[pair].pencil,
                 &frame.positions,
                 |b| !used[b],
                 tolerance,
             )
         });
         grid.begin_band();
-        let vertices = self.curves[j].walkable(tolerance);
+        let curve = &self.curves[j];
         let reference = &self.frames[i].targets[a];
         let tolerance_sq = tolerance * tolerance;
-        // Per piece: unit direction and length.
-        let pieces = &mut self.pieces;
-        pieces.clear();
-        pieces.extend(vertices.windows(2).map(|w| {
-            let length = (w[1] - w[0]).norm();
-            let direction = if length > 0.0 {
-                (w[1] - w[0]) / length
-            } else {
-                nalgebra::Vector2::x()
-            };
-            (direction, length)
-        }));
-        let last = pieces.len();
-        if last == 0 {
-            return;
-        }
-        // Cells are visited along spans of several pieces, about a cell
-        // long, each widened by how far its pieces stray from its chord.
-        let total: f64 = pieces.iter().map(|&(_, length)| length).sum();
-        let step = ((grid.cell_diameter() * last as f64 / total) as usize).clamp(1, last);
-        let spans = &mut self.spans;
-        spans.clear();
-        let mut start = 0;
-        while start < last {
-            let end = (start + step).min(last);
-            let deviation = (start + 1..end)
-                .map(|m| segment_distance(&vertices[m], &vertices[start], &vertices[end]))
-                .fold(0.0, f64::max);
-            spans.push((start, end, deviation));
-            start = end;
-        }
-        // A target within the tolerance of piece s' lies in a cell that the
-        // span holding s' visits, so the first span to visit its cell starts
-        // at or before s', and no further back than the cell's diameter plus
-        // the span's length and margins.
-        let shortest = pieces
-            .iter()
-            .map(|&(_, length)| length)
-            .filter(|&length| length > 0.0)
-            .fold(f64::INFINITY, f64::min);
-        let widest = spans.iter().map(|&(.., d)| d).fold(0.0, f64::max);
-        let longest = spans
-            .iter()
-            .map(|&(s, e, _)| (vertices[e] - vertices[s]).norm())
-            .fold(0.0, f64::max);
-        let reach =
-            ((grid.cell_diameter() + longest + 2.0 * (tolerance + widest)) / shortest).ceil();
-        let lookahead = if reach.is_finite() {
-            (reach as usize).saturating_add(2).min(last)
-        } else {
-            last
-        };
-        // Squared distance from p to the polyline, looking from piece s on:
-        // walk forward while p lies beyond the current piece's end.
-        let distance_sq = |p: &Point2<f64>, s: usize| -> f64 {
-            let mut best = f64::INFINITY;
-            for piece in s..(s + lookahead).min(last) {
-                let (direction, length) = pieces[piece];
-                let rel = p - vertices[piece];
-                let along = rel.dot(&direction);
-                if along < 0.0 {
-                    return best.min(rel.norm_squared());
-                }
-                if along <= length {
-                    return best.min(rel.norm_squared() - along * along);
-                }
-                best = best.min((p - vertices[piece + 1]).norm_squared());
+        // Each part is walked in spans about a cell long, each widened by
+        // how far the parabola strays from the span's chord.
+        for part in &curve.parts {
+            let spans = ((part.b + part.c).norm() / grid.cell_diameter())
+                .ceil()
+                .clamp(1.0, 256.0) as usize;
+            let du = 1.0 / spans as f64;
+            let margin = tolerance + part.deviation(du);
+            let mut start = part.at(0.0);
+            let mut start_coordinates = grid.coordinates(&start);
+            for span in 1..=spans {
+                let end = part.at(span as f64 * du);
+                let end_coordinates = grid.coordinates(&end);
+                grid.visit_piece(
+                    (&start, &end),
+                    (start_coordinates, end_coordinates),
+                    margin,
+                    |grid, cell| {
+                        for &b in grid.cell(cell) {
+                            let b = b as usize;
+                            if !used[b]
+                                && curve.distance_sq(&frame.positions[b]) <= tolerance_sq
+                                && self.matcher.similar(reference, &frame.targets[b])
+                            {
+                                found(b);
+                            }
+                        }
+                    },
+                );
+                (start, start_coordinates) = (end, end_coordinates);
             }
-            best
-        };
-        for &(start, end, deviation) in spans.iter() {
-            grid.visit_piece(
-                (&vertices[start], &vertices[end]),
-                (
-                    grid.coordinates(&vertices[start]),
-                    grid.coordinates(&vertices[end]),
-                ),
-                tolerance + deviation,
-                |grid, cell| {
-                    for &b in grid.cell(cell) {
-                        let b = b as usize;
-                        if unused_only && used[b] {
-                            continue;
-                        }
-                        if distance_sq(&frame.positions[b], start) <= tolerance_sq
-                            && self.matcher.similar(reference, &frame.targets[b])
-                        {
-                            found(b);
-                        }
-                    }
-                },
-            );
         }
     }
 
@@ -1101,7 +1022,7 @@ impl<'m, 'f> Search<'m, 'f> {
                     continue;
                 };
                 partners.clear();
-                self.band(i, a, j, true, |b| partners.push(b));
+                self.band(i, a, j, |b| partners.push(b));
                 if partners.is_empty() {
                     continue;
                 }
@@ -1126,9 +1047,7 @@ impl<'m, 'f> Search<'m, 'f> {
                         }
                         if !traced[k] {
                             traced[k] = true;
-                            if !self.trace(i, a, k) {
-                                self.curves[k].vertices.clear();
-                            }
+                            self.trace(i, a, k);
                         }
                         // Where the pair's point images, to within half the
                         // rays' gap (the curve follows ray a).
@@ -1432,12 +1351,12 @@ impl<'m, 'f> Search<'m, 'f> {
                         continue;
                     }
                     found.clear();
-                    self.band(i, a, j, true, |b| found.push(b));
+                    self.band(i, a, j, |b| found.push(b));
                     let [b] = found[..] else {
                         continue;
                     };
                     found.clear();
-                    self.band(j, b, i, true, |c| found.push(c));
+                    self.band(j, b, i, |c| found.push(c));
                     if found[..] != [a] {
                         continue;
                     }
@@ -1593,8 +1512,8 @@ mod tests {
         for j in 0..scene.points.len() {
             let (a, b) = (sorted(0, j), sorted(1, j));
             let (mut forward, mut back) = (Vec::new(), Vec::new());
-            search.band(0, a, 1, false, |t| forward.push(t));
-            search.band(1, b, 0, false, |t| back.push(t));
+            search.band(0, a, 1, |t| forward.push(t));
+            search.band(1, b, 0, |t| back.push(t));
             if forward == [b] && back == [a] {
                 unambiguous.push(j);
             }

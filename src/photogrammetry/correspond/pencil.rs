@@ -417,7 +417,7 @@ fn index_range(lo: f64, hi: f64, count: usize) -> Option<(usize, usize)> {
 
 /// The distance from `e` to the segment `p0`-`p1`.
 #[inline]
-pub(super) fn segment_distance(e: &Point2<f64>, p0: &Point2<f64>, p1: &Point2<f64>) -> f64 {
+fn segment_distance(e: &Point2<f64>, p0: &Point2<f64>, p1: &Point2<f64>) -> f64 {
     let along = p1 - p0;
     let length_sq = along.norm_squared();
     let rel = e - p0;
