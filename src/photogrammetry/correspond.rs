@@ -1657,4 +1657,50 @@ mod tests {
         let inside = points.iter().filter(|p| volume.contains(p)).count();
         assert!(inside >= 900, "{inside} of 1000 in {volume:?}");
     }
+
+    /// The traced curves stay within a tenth of the tolerance of the exact
+    /// projections, for rays between the sampled ones and for tolerances
+    /// tight enough that one parabola per curve no longer does.
+    #[test]
+    fn epipolar_curves_stay_within_a_tenth_of_the_tolerance() {
+        let spec = RigSpec::convergent(4);
+        let cameras: Vec<Camera> = spec.build().unwrap();
+        let volume = spec.volume;
+        let mut most_parts = 0;
+        for tolerance in [0.5, 0.01] {
+            for (i, k) in (0..4).flat_map(|i| (0..4).map(move |k| (i, k))) {
+                if i == k {
+                    continue;
+                }
+                let geometry =
+                    EpipolarGeometry::sample(&cameras, &volume, (i, k), PARABOLA_SHARE * tolerance);
+                most_parts = most_parts.max(geometry.parts);
+                let sensor = cameras[i].sensor();
+                let mut curve = EpipolarCurve::default();
+                // Pixels halfway between the sampled ones (12 x 12 grid).
+                for (row, column) in (0..12).flat_map(|r| (0..12).map(move |c| (r, c))) {
+                    let pixel = Point2::new(
+                        f64::from(sensor.width) * (column as f64 + 0.5) / 12.0,
+                        f64::from(sensor.height) * (row as f64 + 0.5) / 12.0,
+                    );
+                    let ray = cameras[i].ray(pixel).unwrap();
+                    let Some((near, far)) = clip(&ray, &volume) else {
+                        continue;
+                    };
+                    assert!(curve.trace(&cameras[k], &ray, (near, far), geometry.parts));
+                    for step in 0..=100 {
+                        let t = (near + (far - near) * f64::from(step) / 100.0).min(far);
+                        let exact = cameras[k].project(&ray.at(t)).unwrap();
+                        let error = (curve.at(t).unwrap() - exact).norm();
+                        assert!(
+                            error <= tolerance / 10.0,
+                            "pair ({i}, {k}), tolerance {tolerance}: {error} px off"
+                        );
+                        assert!(curve.distance_sq(&exact) <= error * error + 1e-18);
+                    }
+                }
+            }
+        }
+        assert!(most_parts > 1, "no pair needed more than one parabola");
+    }
 }
