@@ -796,6 +796,8 @@ struct CandidateGroups {
     members: Vec<u32>,
     sizes: Vec<u8>,
     spreads: Vec<f64>,
+    /// The largest miss of a member (px).
+    largest: Vec<f64>,
 }
 
 /// The state of one frame's search.
@@ -972,9 +974,14 @@ impl<'m, 'f> Search<'m, 'f> {
     }
 
     /// Drops the worst member of a group until every ray meets the others
-    /// within `limit`; the group's spread, or `None` if that leaves fewer
+    /// within `limit`; how they then meet, or `None` if that leaves fewer
     /// than three cameras (or only `keep` ones).
-    fn trim(&self, group: &mut [u32], limit: f64, keep: impl Fn(usize) -> bool) -> Option<f64> {
+    fn trim(
+        &self,
+        group: &mut [u32],
+        limit: f64,
+        keep: impl Fn(usize) -> bool,
+    ) -> Option<GroupFit> {
         loop {
             let size = group.iter().filter(|&&m| m != NONE).count();
             if size < 3 {
@@ -982,7 +989,7 @@ impl<'m, 'f> Search<'m, 'f> {
             }
             let fit = self.fit(group, |k| !keep(k))?;
             if fit.largest <= limit {
-                return Some(fit.spread);
+                return Some(fit);
             }
             if size == 3 {
                 return None;
@@ -1011,7 +1018,7 @@ impl<'m, 'f> Search<'m, 'f> {
         let mut traced = vec![false; count];
         let mut fits: Vec<(f64, u32)> = Vec::new();
         // This target's candidate groups: (size, spread, offset in own_members).
-        let mut own: Vec<(u8, f64, usize)> = Vec::new();
+        let mut own: Vec<(u8, GroupFit, usize)> = Vec::new();
         let mut own_members: Vec<u32> = Vec::new();
         {
             for a in 0..self.frames[i].targets.len() {
@@ -1099,10 +1106,9 @@ impl<'m, 'f> Search<'m, 'f> {
                         for (slot, &k) in seen.iter().enumerate() {
                             group[k] = near[k][choice[slot]];
                         }
-                        if let Some(spread) = self.trim(&mut group, tolerance, |k| k == i || k == j)
-                        {
+                        if let Some(fit) = self.trim(&mut group, tolerance, |k| k == i || k == j) {
                             let size = group.iter().filter(|&&m| m != NONE).count() as u8;
-                            own.push((size, spread, own_members.len()));
+                            own.push((size, fit, own_members.len()));
                             own_members.extend_from_slice(&group);
                         }
                         // Next combination (odometer).
@@ -1122,13 +1128,14 @@ impl<'m, 'f> Search<'m, 'f> {
                 }
                 // The target's best candidates only (see
                 // MAX_GROUPS_PER_TARGET): memory stays linear in the targets.
-                own.sort_unstable_by(|x, y| y.0.cmp(&x.0).then(x.1.total_cmp(&y.1)));
-                for &(size, spread, at) in own.iter().take(MAX_GROUPS_PER_TARGET) {
+                own.sort_unstable_by(|x, y| y.0.cmp(&x.0).then(x.1.spread.total_cmp(&y.1.spread)));
+                for &(size, fit, at) in own.iter().take(MAX_GROUPS_PER_TARGET) {
                     groups
                         .members
                         .extend_from_slice(&own_members[at..at + count]);
                     groups.sizes.push(size);
-                    groups.spreads.push(spread);
+                    groups.spreads.push(fit.spread);
+                    groups.largest.push(fit.largest);
                 }
             }
         }
@@ -1233,15 +1240,20 @@ impl<'m, 'f> Search<'m, 'f> {
     /// Step 4: best-first selection of groups of three or more.
     fn select(&mut self, groups: CandidateGroups) {
         let count = self.frames.len();
-        // Re-trim every candidate to the acceptance threshold, then order.
+        // Re-trim every candidate to the acceptance threshold (those within
+        // it already stand as they are), then order.
         let mut ranked: Vec<(u8, f64, usize)> = Vec::with_capacity(groups.sizes.len());
         let mut members = groups.members;
         let limit = self.acceptance;
         for g in 0..groups.sizes.len() {
+            if groups.largest[g] <= limit {
+                ranked.push((groups.sizes[g], groups.spreads[g], g));
+                continue;
+            }
             let group = &mut members[g * count..(g + 1) * count];
-            if let Some(spread) = self.trim(group, limit, |_| false) {
+            if let Some(fit) = self.trim(group, limit, |_| false) {
                 let size = group.iter().filter(|&&m| m != NONE).count() as u8;
-                ranked.push((size, spread, g));
+                ranked.push((size, fit.spread, g));
             }
         }
         ranked.sort_unstable_by(|x, y| y.0.cmp(&x.0).then(x.1.total_cmp(&y.1)));
