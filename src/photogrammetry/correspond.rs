@@ -936,39 +936,44 @@ impl<'m, 'f> Search<'m, 'f> {
         });
     }
 
-    /// How far a ray of camera `k` passes from `point`, in that camera's
-    /// pixels (distance times the camera's scale at the point's range).
+    /// The square of how far a ray of camera `k` passes from `point`, in
+    /// that camera's pixels (distance times the camera's scale at the
+    /// point's range).
     #[inline]
-    fn miss_px(&self, k: usize, ray: &Ray, point: &Point3<f64>) -> f64 {
+    fn miss_px_sq(&self, k: usize, ray: &Ray, point: &Point3<f64>) -> f64 {
         let rel = point - ray.origin;
-        let miss = (rel - ray.direction * rel.dot(&ray.direction)).norm();
-        let range = (point - self.matcher.cameras[k].position()).norm();
-        miss * self.matcher.pixels_per_unit_angle[k] / range
+        let along = rel.dot(&ray.direction);
+        let miss_sq = (rel.norm_squared() - along * along).max(0.0);
+        let range_sq = (point - self.matcher.cameras[k].position()).norm_squared();
+        let scale = self.matcher.pixels_per_unit_angle[k];
+        miss_sq * scale * scale / range_sq
     }
 
     /// How a group's rays meet, with the worst camera among those for which
     /// `droppable` holds.
     fn fit(&self, members: &[u32], droppable: impl Fn(usize) -> bool) -> Option<GroupFit> {
-        let rays = members
-            .iter()
-            .enumerate()
-            .filter(|(_, &m)| m != NONE)
-            .filter_map(|(k, &m)| self.frames[k].rays[m as usize].map(|r| (k, r)));
-        let point = ray_midpoint(rays.clone().map(|(_, r)| r))?;
-        let (mut sum, mut count, mut largest) = (0.0, 0, 0f64);
+        let ray = |k: usize| match members[k] {
+            NONE => None,
+            m => self.frames[k].rays[m as usize].as_ref(),
+        };
+        let point = ray_midpoint((0..members.len()).filter_map(|k| ray(k).copied()))?;
+        let (mut sum, mut count, mut largest) = (0.0, 0u32, 0f64);
         let mut worst = (None, f64::NEG_INFINITY);
-        for (k, ray) in rays {
-            let px = self.miss_px(k, &ray, &point);
-            sum += px * px;
+        for k in 0..members.len() {
+            let Some(ray) = ray(k) else {
+                continue;
+            };
+            let px_sq = self.miss_px_sq(k, ray, &point);
+            sum += px_sq;
             count += 1;
-            largest = largest.max(px);
-            if droppable(k) && px > worst.1 {
-                worst = (Some(k), px);
+            largest = largest.max(px_sq);
+            if droppable(k) && px_sq > worst.1 {
+                worst = (Some(k), px_sq);
             }
         }
         Some(GroupFit {
             spread: (sum / f64::from(count)).sqrt(),
-            largest,
+            largest: largest.sqrt(),
             worst: worst.0,
         })
     }
