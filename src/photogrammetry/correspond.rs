@@ -53,7 +53,7 @@ use super::volume::Volume;
 
 mod pencil;
 
-use pencil::{Pencil, PencilGrid};
+use pencil::{index_range, Pencil, PencilGrid};
 
 /// Default epipolar band half-width (px).
 pub const DEFAULT_TOLERANCE_PX: f64 = 1.0;
@@ -489,24 +489,9 @@ impl TargetGrid {
     #[inline]
     fn cell_range(&self, lo: Point2<f64>, hi: Point2<f64>) -> Option<(usize, usize, usize, usize)> {
         let index = |v: f64, origin: f64| (v - origin) * self.inv_cell;
-        let (c0, r0) = (index(lo.x, self.min.x), index(lo.y, self.min.y));
-        let (c1, r1) = (index(hi.x, self.min.x), index(hi.y, self.min.y));
-        if c1 < 0.0
-            || r1 < 0.0
-            || c0 >= self.cols as f64
-            || r0 >= self.rows as f64
-            || c0.is_nan()
-            || r0.is_nan()
-        {
-            return None;
-        }
-        let clamp = |v: f64, count: usize| (v.max(0.0) as usize).min(count - 1);
-        Some((
-            clamp(c0, self.cols),
-            clamp(c1, self.cols),
-            clamp(r0, self.rows),
-            clamp(r1, self.rows),
-        ))
+        let (c0, c1) = index_range(index(lo.x, self.min.x), index(hi.x, self.min.x), self.cols)?;
+        let (r0, r1) = index_range(index(lo.y, self.min.y), index(hi.y, self.min.y), self.rows)?;
+        Some((c0, c1, r0, r1))
     }
 
     /// Calls `visit` for every target in the cells that overlap the box.

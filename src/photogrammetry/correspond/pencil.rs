@@ -403,9 +403,9 @@ impl PencilGrid {
 }
 
 /// The bins `[floor(lo), floor(hi)]` clamped to `0..count`, if they
-/// overlap it.
+/// overlap it (`None` for NaN).
 #[inline]
-fn index_range(lo: f64, hi: f64, count: usize) -> Option<(usize, usize)> {
+pub(super) fn index_range(lo: f64, hi: f64, count: usize) -> Option<(usize, usize)> {
     let last = count as f64;
     if !(hi >= 0.0 && lo < last) {
         return None;
