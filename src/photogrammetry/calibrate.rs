@@ -216,7 +216,7 @@ impl Default for CalibrationOptions {
             check_points: CheckPoints::None,
             max_correlation: 0.99,
             snooping_alpha: 0.001,
-            max_iterations: 50,
+            max_iterations: 500,
         }
     }
 }

@@ -283,10 +283,10 @@ pub(crate) fn adjust(
             let candidate = from_vector(&current, &v);
             match cost(&candidate, equations) {
                 Some(c) if c <= current_cost => {
-                    // The step in the scaled parameters, measured against
-                    // the image: below 1e-8 of the residual's norm scale.
-                    small_step = step.norm() < 1e-9 * (1.0 + current_cost.sqrt())
-                        || current_cost - c <= 1e-12 * current_cost;
+                    // A Gauss-Newton step (little damping) that moves the
+                    // image by less than 1e-9 px: converged. Damped steps
+                    // may be small without being at the minimum.
+                    small_step = lambda <= 1e-3 && step.norm() < 1e-9;
                     current = candidate;
                     current_cost = c;
                     lambda = (lambda / 10.0).max(1e-12);
