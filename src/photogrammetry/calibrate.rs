@@ -1049,3 +1049,101 @@ fn check_point_report(
         not_intersected,
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::photogrammetry::simulate::{self, RigSpec, TargetShape};
+
+    /// A pinhole rig in air, points in a box: the DLT start is exact to
+    /// rounding on noise-free images, and the plane start (with the true
+    /// interior) is exact on a plane.
+    #[test]
+    fn closed_form_starts_are_exact_without_noise() {
+        let mut spec = RigSpec::convergent(3);
+        spec.tank = None;
+        spec.principal_point = nalgebra::Vector2::new(0.05, -0.08);
+        let mut rng = simulate::rng(1);
+        let target = simulate::calibration_target(TargetShape::Volume, &spec.volume, 30, &mut rng);
+        for camera in spec.build().unwrap() {
+            let pairs: Vec<_> = target
+                .iter()
+                .map(|p| {
+                    let pixel = camera.project(&p.position).unwrap();
+                    (
+                        p.position,
+                        dlt::ideal_metric(camera.parameters(), pixel).unwrap(),
+                    )
+                })
+                .collect();
+            let start = dlt::start_from_dlt(camera.parameters(), &pairs).unwrap();
+            let truth = camera.parameters();
+            assert!((start.exterior.position - truth.exterior.position).norm() < 1e-6);
+            assert!((start.interior.c - truth.interior.c).abs() < 1e-7);
+            assert!((start.interior.xh - truth.interior.xh).abs() < 1e-7);
+            let r = super::super::camera::rotation_matrix(
+                start.exterior.omega,
+                start.exterior.phi,
+                start.exterior.kappa,
+            );
+            assert!((r - camera.rotation()).abs().max() < 1e-9);
+            let plane: Vec<_> = pairs
+                .iter()
+                .map(|(p, _)| Point3::new(p.x, p.y, 0.0))
+                .map(|p| {
+                    let pixel = camera.project(&p).unwrap();
+                    (p, dlt::ideal_metric(truth, pixel).unwrap())
+                })
+                .collect();
+            assert!(dlt::flatness(&plane.iter().map(|p| p.0).collect::<Vec<_>>()) < 1e-12);
+            let start = dlt::start_from_plane(truth, &plane).unwrap();
+            assert!((start.exterior.position - truth.exterior.position).norm() < 1e-6);
+        }
+    }
+
+    /// Marks are assigned to the right points from a rough orientation, and
+    /// stray marks are left alone.
+    #[test]
+    fn identifies_marks_from_a_rough_orientation() {
+        let spec = RigSpec::convergent(1);
+        let camera = spec.build().unwrap().remove(0);
+        let mut rng = simulate::rng(2);
+        let target =
+            simulate::calibration_target(TargetShape::TwoPlanes, &spec.volume, 50, &mut rng);
+        let mut marks: Vec<Point2<f64>> = target
+            .iter()
+            .map(|p| camera.project(&p.position).unwrap())
+            .collect();
+        marks.push(Point2::new(3.0, 4.0));
+        let mut rough = camera.parameters().clone();
+        rough.exterior.position.x += 2.0;
+        rough.exterior.kappa += 0.002;
+        let found = identify_marks(&rough, &target, &marks);
+        assert!(found.len() >= 45, "{}", found.len());
+        for o in &found {
+            let truth = target.iter().position(|p| p.id == o.id).unwrap();
+            assert_eq!(o.pixel, marks[truth]);
+        }
+    }
+
+    #[test]
+    fn parameter_names_round_trip() {
+        for p in Parameter::ALL {
+            assert_eq!(Parameter::from_name(p.name()), Some(p));
+            assert_eq!(Parameter::ALL[p.index()], p);
+            assert_eq!(
+                serde_json::to_string(&p).unwrap(),
+                format!("\"{}\"", p.name())
+            );
+        }
+        assert_eq!(Parameter::from_name(" K1 "), Some(Parameter::K1));
+        assert_eq!(Parameter::from_name("k4"), None);
+    }
+
+    #[test]
+    fn snooping_critical_value_is_the_bonferroni_chi_square_quantile() {
+        // P(chi2_2 > t) = exp(-t / 2).
+        let t = snooping_critical(0.001, 200);
+        assert!(((-t / 2.0).exp() - 0.001 / 200.0).abs() < 1e-15);
+    }
+}
