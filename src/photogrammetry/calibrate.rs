@@ -15,6 +15,19 @@
 //! 3. Parameters the data cannot determine are held and reported; gross
 //!    errors are found by data snooping and excluded.
 //!
+//! Two consequences of the model to know about:
+//!
+//! * OpenPTV's affine form scales *both* image axes by `scx` (see
+//!   [`super::camera::Distortion::apply`]), so with c, xh, yh and the
+//!   distortion free, `scx` is exactly interchangeable with them (the same
+//!   camera has scx = 1, c' = scx c, xh' = scx xh, k1' = k1 / scx², p' =
+//!   p / scx, ...). The normal matrix is then singular and scx is held at the
+//!   setup's value; fix it (`--fix scx`) to say so up front.
+//! * A held parameter makes the standard deviations of the others
+//!   conditional on its value: for the partner of a pair correlated at rho
+//!   they shrink by sqrt(1 - rho²). Raise
+//!   [`CalibrationOptions::max_correlation`] to see the unconditional ones.
+//!
 //! Then the check points, left out of every resection, are intersected
 //! (section 4.3, [`super::intersect()`]) from all cameras: their RMSE
 //! against the known coordinates is the honest accuracy figure, as in the
