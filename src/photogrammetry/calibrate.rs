@@ -3,9 +3,9 @@
 //! through the multimedia geometry, with no hand-made approximate
 //! orientation; then check points intersected with the calibrated rig.
 //!
-//! Per camera ([`resection`]):
+//! Per camera (`calibrate/resection.rs`):
 //!
-//! 1. A closed-form start ([`dlt`]): the DLT on the observed points, or for
+//! 1. A closed-form start (`calibrate/dlt.rs`): the DLT on the observed points, or for
 //!    control points in one plane the plane homography with the setup's
 //!    interior orientation.
 //! 2. The strict model (Eq. 1-5 with the multimedia module Eq. 6-12 inside
