@@ -247,6 +247,9 @@ pub(crate) fn adjust(
     let mut current = start.clone();
     let mut current_cost = cost(&current, equations)?;
     let mut lambda = 1e-3;
+    // Nielsen's (1999) damping update: grow by nu (doubling) on failure,
+    // shrink by the agreement of the actual and the predicted reduction.
+    let mut nu = 2.0;
     let mut iterations = 0;
     while iterations < max_iterations {
         iterations += 1;
@@ -266,13 +269,14 @@ pub(crate) fn adjust(
         }
         let mut accepted = false;
         let mut small_step = false;
-        for _ in 0..30 {
+        for _ in 0..40 {
             let mut damped = n.clone();
             for k in 0..damped.nrows() {
                 damped[(k, k)] += lambda * n[(k, k)].max(1e-12);
             }
             let Some(step) = solve(damped, &g) else {
-                lambda *= 10.0;
+                lambda *= nu;
+                nu *= 2.0;
                 continue;
             };
             let delta = step.component_mul(&lin.scale);
@@ -281,19 +285,27 @@ pub(crate) fn adjust(
                 v[j] += delta[k];
             }
             let candidate = from_vector(&current, &v);
+            // The linear model's reduction of vᵀv: Δᵀ(2g - NΔ).
+            let predicted = step.dot(&(&g * 2.0 - &n * &step));
             match cost(&candidate, equations) {
-                Some(c) if c <= current_cost => {
+                Some(c) if c <= current_cost && predicted > 0.0 => {
+                    let rho = (current_cost - c) / predicted;
                     // A Gauss-Newton step (little damping) that moves the
                     // image by less than 1e-9 px: converged. Damped steps
                     // may be small without being at the minimum.
                     small_step = lambda <= 1e-3 && step.norm() < 1e-9;
                     current = candidate;
                     current_cost = c;
-                    lambda = (lambda / 10.0).max(1e-12);
+                    lambda =
+                        (lambda * f64::max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0).powi(3))).max(1e-12);
+                    nu = 2.0;
                     accepted = true;
                     break;
                 }
-                _ => lambda *= 10.0,
+                _ => {
+                    lambda *= nu;
+                    nu *= 2.0;
+                }
             }
         }
         if !accepted || small_step {
