@@ -670,6 +670,13 @@ fn bad_input_is_refused_clearly() {
         })
         .collect();
     let _ = run(&e.setup, &e.target, &garbage);
+    // Coordinates whose squares overflow: an error or a result, never a
+    // panic or a hang in a decomposition.
+    let mut huge = e.target.clone();
+    for p in huge.iter_mut().take(10) {
+        p.position.x = 1e300;
+    }
+    let _ = run(&e.setup, &huge, &e.observations);
 }
 
 /// The entry point's parameter Jacobian agrees with differences of the

@@ -22,6 +22,21 @@ use crate::photogrammetry::camera::{rotation_angles, CameraParameters};
 /// A projective matrix from world to homogeneous metric image coordinates.
 type Projective = SMatrix<f64, 3, 4>;
 
+/// The eigendecomposition of a symmetric matrix, `None` for non-finite
+/// entries or no convergence (nalgebra's `new` would iterate forever).
+pub(crate) fn symmetric_eigen<D>(m: nalgebra::OMatrix<f64, D, D>) -> Option<SymmetricEigen<f64, D>>
+where
+    D: nalgebra::Dim + nalgebra::DimSub<nalgebra::U1>,
+    nalgebra::DefaultAllocator: nalgebra::allocator::Allocator<D, D>
+        + nalgebra::allocator::Allocator<D>
+        + nalgebra::allocator::Allocator<nalgebra::DimDiff<D, nalgebra::U1>>,
+{
+    if !m.iter().all(|v| v.is_finite()) {
+        return None;
+    }
+    SymmetricEigen::try_new(m, f64::EPSILON, 10_000)
+}
+
 /// How far from a plane the control points are: the smallest singular value
 /// of their centred coordinates relative to the largest.
 pub(crate) fn flatness(points: &[Point3<f64>]) -> f64 {
@@ -35,7 +50,9 @@ pub(crate) fn flatness(points: &[Point3<f64>]) -> f64 {
         let d = p.coords - centre;
         scatter += d * d.transpose();
     }
-    let eigen = SymmetricEigen::new(scatter);
+    let Some(eigen) = symmetric_eigen(scatter) else {
+        return 0.0;
+    };
     let mut values: Vec<f64> = eigen
         .eigenvalues
         .iter()
@@ -71,7 +88,7 @@ fn normalisation<const D: usize>(
 /// The null vector of `AᵀA`: the eigenvector of its smallest eigenvalue.
 fn null_vector(a: &DMatrix<f64>) -> Option<nalgebra::DVector<f64>> {
     let ata = a.transpose() * a;
-    let eigen = SymmetricEigen::new(ata);
+    let eigen = symmetric_eigen(ata)?;
     let (index, _) = eigen
         .eigenvalues
         .iter()
@@ -221,7 +238,7 @@ pub(crate) fn start_from_plane(
         let d = p.coords - origin;
         scatter += d * d.transpose();
     }
-    let eigen = SymmetricEigen::new(scatter);
+    let eigen = symmetric_eigen(scatter)?;
     let mut order = [0usize, 1, 2];
     order.sort_by(|&a, &b| eigen.eigenvalues[b].total_cmp(&eigen.eigenvalues[a]));
     let e1: Vector3<f64> = eigen.eigenvectors.column(order[0]).into_owned();
@@ -275,7 +292,10 @@ pub(crate) fn start_from_plane(
     let r2: Vector3<f64> = g.column(1).into_owned();
     let t: Vector3<f64> = g.column(2).into_owned();
     let approx = Matrix3::from_columns(&[r1, r2, r1.cross(&r2)]);
-    let svd = approx.svd(true, true);
+    if !approx.iter().all(|v| v.is_finite()) {
+        return None;
+    }
+    let svd = nalgebra::SVD::try_new(approx, true, true, f64::EPSILON, 10_000)?;
     let mut rt = svd.u? * svd.v_t?;
     if rt.determinant() < 0.0 {
         return None;

@@ -332,7 +332,12 @@ fn solve(n: DMatrix<f64>, g: &DVector<f64>) -> Option<DVector<f64>> {
             return Some(x);
         }
     }
-    let x = n.svd(true, true).solve(g, 1e-12).ok()?;
+    if !n.iter().all(|v| v.is_finite()) {
+        return None;
+    }
+    let x = nalgebra::SVD::try_new(n, true, true, f64::EPSILON, 10_000)?
+        .solve(g, 1e-12)
+        .ok()?;
     x.iter().all(|v| v.is_finite()).then_some(x)
 }
 
@@ -422,7 +427,7 @@ pub(crate) fn undeterminable(
     let priority = |j: usize| Parameter::ALL[j].hold_priority();
     // A singular normal matrix: hold the parameter that dominates the
     // direction the data do not see.
-    let eigen = nalgebra::SymmetricEigen::new(stats.scaled_normal.clone());
+    let eigen = super::dlt::symmetric_eigen(stats.scaled_normal.clone())?;
     let (smallest, value) = eigen
         .eigenvalues
         .iter()
