@@ -23,10 +23,12 @@
 //!   camera has scx = 1, c' = scx c, xh' = scx xh, k1' = k1 / scx², p' =
 //!   p / scx, ...). The normal matrix is then singular and scx is held at the
 //!   setup's value; fix it (`--fix scx`) to say so up front.
-//! * A held parameter makes the standard deviations of the others
-//!   conditional on its value: for the partner of a pair correlated at rho
-//!   they shrink by sqrt(1 - rho²). Raise
-//!   [`CalibrationOptions::max_correlation`] to see the unconditional ones.
+//! * A parameter correlated above the limit is held at its least-squares
+//!   estimate (distortion terms at the setup's value), judged after an
+//!   adjustment with it free, so holding it does not move the others. Their
+//!   standard deviations still include its uncertainty: computed as if it
+//!   were free, since conditioning on an uncertain value would shrink the
+//!   partner's by sqrt(1 - rho²) and overstate the accuracy.
 //!
 //! Then the check points, left out of every resection, are intersected
 //! (section 4.3, [`super::intersect()`]) from all cameras: their RMSE
@@ -454,9 +456,11 @@ pub struct CameraReport {
     pub snooping_critical: f64,
     /// All 16 parameters.
     pub parameters: Vec<ParameterReport>,
-    /// Covariance of the 16 parameters in [`Parameter::ALL`]'s order (zero
-    /// rows and columns for parameters not estimated), `sigma0² (AᵀA)⁻¹`:
-    /// what propagating the calibration's uncertainty needs.
+    /// Covariance of the 16 parameters in [`Parameter::ALL`]'s order,
+    /// `sigma0² (AᵀA)⁻¹` with the free parameters and those held at their
+    /// estimate for a correlation (zero rows and columns for the others):
+    /// what propagating the calibration's uncertainty needs. The standard
+    /// deviations of the free parameters come from it.
     pub covariance: Vec<Vec<f64>>,
     /// The largest correlations among the estimated parameters (up to 10,
     /// largest magnitude first).
@@ -805,26 +809,39 @@ fn resect_camera(
         *f = !prepared.fixed[j];
     }
     let mut held: Vec<(Parameter, String)> = Vec::new();
+    // Parameters held at their least-squares estimate for a correlation:
+    // their uncertainty stays in the others' standard deviations.
+    let mut held_at_estimate = [false; 16];
     let mut excluded: Vec<PointResidual> = Vec::new();
+    let mut hold = |j: usize,
+                    reason: String,
+                    current: &mut CameraParameters,
+                    free: &mut [bool; 16],
+                    at_estimate: bool| {
+        free[j] = false;
+        let p = Parameter::ALL[j];
+        if p.held_at_setup() {
+            let mut v = resection::to_vector(current);
+            v[j] = setup_vector[j];
+            *current = resection::from_vector(current, &v);
+        } else if at_estimate {
+            held_at_estimate[j] = true;
+        }
+        held.push((p, reason));
+    };
     let stats = loop {
-        // Hold undeterminable parameters, judged at the current solution.
+        // Hold what the data cannot determine at all (a singular normal
+        // matrix), judged at the current solution.
         loop {
             let stats =
                 resection::statistics(&current, &free, &eqs(&active)).ok_or_else(no_convergence)?;
             let order: Vec<usize> = (0..16).filter(|&j| free[j]).collect();
             let Some((j, reason)) =
-                resection::undeterminable(&stats, &order, options.max_correlation)
+                resection::undeterminable(&stats, &order, options.max_correlation, false)
             else {
                 break;
             };
-            free[j] = false;
-            let p = Parameter::ALL[j];
-            if p.held_at_setup() {
-                let mut v = resection::to_vector(&current);
-                v[j] = setup_vector[j];
-                current = resection::from_vector(&current, &v);
-            }
-            held.push((p, reason));
+            hold(j, reason, &mut current, &mut free, false);
         }
         let adjusted = resection::adjust(&current, &free, &eqs(&active), options.max_iterations)
             .ok_or_else(no_convergence)?;
@@ -835,8 +852,14 @@ fn resect_camera(
         current = adjusted.parameters;
         let stats =
             resection::statistics(&current, &free, &eqs(&active)).ok_or_else(no_convergence)?;
+        // Then correlations, judged at the least-squares solution, so that a
+        // parameter held at its estimate leaves the others' estimates as
+        // they are.
         let order: Vec<usize> = (0..16).filter(|&j| free[j]).collect();
-        if resection::undeterminable(&stats, &order, options.max_correlation).is_some() {
+        if let Some((j, reason)) =
+            resection::undeterminable(&stats, &order, options.max_correlation, true)
+        {
+            hold(j, reason, &mut current, &mut free, true);
             continue;
         }
         // Snooping: the worst point, if significant and one can be spared.
@@ -862,8 +885,33 @@ fn resect_camera(
             _ => return Err(no_convergence()),
         }
     };
+    // Standard deviations and covariance with the parameters held at their
+    // estimates still free: conditioning on a value that is itself uncertain
+    // would make the others' look better than they are.
+    let mut uncertain = free;
+    for (u, h) in uncertain.iter_mut().zip(held_at_estimate) {
+        *u |= h;
+    }
+    let marginal = if uncertain == free {
+        None
+    } else {
+        resection::statistics(&current, &uncertain, &eqs(&active))
+    };
+    let covariance_source = match &marginal {
+        Some(m) if m.cofactor.is_some() => (m, uncertain),
+        _ => (&stats, free),
+    };
     let report = camera_report(
-        &current, &free, prepared, &held, &active, &stats, excluded, iterations, options,
+        &current,
+        &free,
+        prepared,
+        &held,
+        &active,
+        &stats,
+        covariance_source,
+        excluded,
+        iterations,
+        options,
     );
     Ok((current, report))
 }
@@ -906,17 +954,20 @@ fn camera_report(
     held: &[(Parameter, String)],
     active: &[(u64, Equation)],
     stats: &resection::Statistics,
+    (uncertainty, estimated): (&resection::Statistics, [bool; 16]),
     excluded: Vec<PointResidual>,
     iterations: usize,
     options: &CalibrationOptions,
 ) -> CameraReport {
     let v: ParameterVector = resection::to_vector(camera);
-    let order: Vec<usize> = (0..16).filter(|&j| free[j]).collect();
+    // The cofactor matrix's parameters: the free ones and those held at
+    // their estimates.
+    let order: Vec<usize> = (0..16).filter(|&j| estimated[j]).collect();
     let sigma = |k: usize| {
-        stats
+        uncertainty
             .cofactor
             .as_ref()
-            .map(|q| stats.sigma0 * q[(k, k)].max(0.0).sqrt())
+            .map(|q| uncertainty.sigma0 * q[(k, k)].max(0.0).sqrt())
     };
     let parameters = Parameter::ALL
         .iter()
@@ -945,7 +996,7 @@ fn camera_report(
         })
         .collect();
     let mut correlations = Vec::new();
-    if let Some(q) = &stats.cofactor {
+    if let Some(q) = &uncertainty.cofactor {
         for a in 0..order.len() {
             for b in a + 1..order.len() {
                 let r = q[(a, b)] / (q[(a, a)] * q[(b, b)]).sqrt();
@@ -958,8 +1009,8 @@ fn camera_report(
         }
     }
     let mut covariance = vec![vec![0.0; 16]; 16];
-    if let Some(q) = &stats.cofactor {
-        let s2 = stats.sigma0 * stats.sigma0;
+    if let Some(q) = &uncertainty.cofactor {
+        let s2 = uncertainty.sigma0 * uncertainty.sigma0;
         for (a, &ja) in order.iter().enumerate() {
             for (b, &jb) in order.iter().enumerate() {
                 covariance[ja][jb] = s2 * q[(a, b)];
@@ -981,9 +1032,11 @@ fn camera_report(
         .collect();
     CameraReport {
         name: camera.name.clone(),
-        sigma0_px: stats.sigma0,
+        // A parameter held at its estimate was estimated: it counts
+        // against the redundancy.
+        sigma0_px: uncertainty.sigma0,
         points_used: active.len(),
-        redundancy: stats.redundancy,
+        redundancy: uncertainty.redundancy,
         iterations,
         snooping_critical: snooping_critical(options.snooping_alpha, active.len()),
         parameters,

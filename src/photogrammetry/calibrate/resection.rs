@@ -416,12 +416,15 @@ pub(crate) fn statistics(
 }
 
 /// Which free parameter to hold next, and why, or `None` if all are
-/// determinable. `order` lists the free parameters' indices (as in the
-/// statistics); `holdable(j)` says whether parameter `j` may be held.
+/// determinable: one in the direction of a singular normal matrix, or (with
+/// `correlations`) the one to hold of the pair correlated most above
+/// `max_correlation`. `order` lists the free parameters' indices (as in the
+/// statistics); exterior parameters are never held.
 pub(crate) fn undeterminable(
     stats: &Statistics,
     order: &[usize],
     max_correlation: f64,
+    correlations: bool,
 ) -> Option<(usize, String)> {
     let holdable = |j: usize| Parameter::ALL[j].holdable();
     let priority = |j: usize| Parameter::ALL[j].hold_priority();
@@ -454,6 +457,9 @@ pub(crate) fn undeterminable(
                 Parameter::ALL[order[worst]].name()
             ),
         ));
+    }
+    if !correlations {
+        return None;
     }
     let q = stats.cofactor.as_ref()?;
     let mut worst: Option<(f64, usize, usize)> = None;
