@@ -904,3 +904,31 @@ fn identifies_marks_from_starting_values() {
         assert!((x0.value - truth.exterior.position.x).abs() < 4.0 * x0.sigma.unwrap());
     }
 }
+
+/// Fewer than 6 reference points not in one plane: an error that says what
+/// to give.
+#[test]
+fn too_few_reference_points_are_refused() {
+    let mut rng = simulate::rng(41);
+    let e = experiment(3, false, TargetShape::Volume, 60, 0.05, &mut rng);
+    let marks: Vec<Vec<Point2<f64>>> = e
+        .observations
+        .iter()
+        .map(|o| o.iter().map(|m| m.pixel).collect())
+        .collect();
+    let references: Vec<Vec<MarkObservation>> =
+        e.observations.iter().map(|o| o[..5].to_vec()).collect();
+    let error = ptv::photogrammetry::calibrate::calibrate_from_marks(
+        &e.setup,
+        &e.target,
+        &marks,
+        &references,
+        &CalibrationOptions::default(),
+    )
+    .unwrap_err();
+    assert!(
+        matches!(error, CalibrationError::TooFewReferences { given: 5, .. }),
+        "{error}"
+    );
+    assert!(error.to_string().contains("at least 6"));
+}

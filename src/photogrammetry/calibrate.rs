@@ -361,6 +361,16 @@ pub enum CalibrationError {
         /// Marks identified.
         found: usize,
     },
+    /// Too few reference points to start identifying marks.
+    #[error("camera {camera} ({name}): {given} reference points do not determine a starting orientation; give at least 6 not in one plane, or at least 4 in one plane with c, xh and yh right in the setup")]
+    TooFewReferences {
+        /// The camera (0-based).
+        camera: usize,
+        /// Its name.
+        name: String,
+        /// Reference points given.
+        given: usize,
+    },
     /// An option is out of range.
     #[error("invalid option: {0}")]
     InvalidOption(String),

@@ -170,16 +170,22 @@ fn start_from_references(
         camera: k,
         name: camera.name.clone(),
     };
-    let start = if pairs.len() >= super::MIN_POINTS && dlt::flatness(&points) >= 1e-3 {
+    let flat = dlt::flatness(&points) < 1e-3;
+    if pairs.len() < 4 || (!flat && pairs.len() < super::MIN_POINTS) {
+        return Err(CalibrationError::TooFewReferences {
+            camera: k,
+            name: camera.name.clone(),
+            given: references.len(),
+        });
+    }
+    let start = if !flat {
         dlt::start_from_dlt(camera, &pairs).map(|mut s| {
             // Keep the setup's distortion; the DLT's interior is only a start.
             s.distortion = camera.distortion.clone();
             s
         })
-    } else if pairs.len() >= 4 {
-        dlt::start_from_plane(camera, &pairs)
     } else {
-        None
+        dlt::start_from_plane(camera, &pairs)
     }
     .and_then(super::valid_start)
     .ok_or_else(no_start)?;
