@@ -365,7 +365,8 @@ fn paper_air_setting_reaches_one_in_fifteen_thousand() {
 
 /// Planted gross errors, 5% of the points of every camera: 3..20 px
 /// displacements and one swapped pair of ids, among the resection points
-/// (every second point is a check point). All must be flagged, with at most
+/// (every second point is a check point), and up to two 5..20 px errors in
+/// check-point observations per camera. All must be flagged, with at most
 /// one false alarm per camera (the snooping's family-wise level is 0.1%), and
 /// the result must be as good as without them: the check-point RMSE, whose
 /// calibration share is a few percent of it (see the propagation test),
@@ -404,6 +405,21 @@ fn planted_gross_errors_are_all_flagged() {
         }
         planted.push(ids);
     }
+    // And two bad observations of check points per camera, at most one per
+    // point (one error among 4 rays can be located; two among 4 cannot),
+    // which the intersection of the check points must leave out.
+    let mut planted_checks = std::collections::BTreeSet::new();
+    for (camera, observed) in dirty.iter_mut().enumerate() {
+        let mut count = 0;
+        for o in observed.iter_mut().filter(|o| o.id % 2 == 0) {
+            let taken = planted_checks.iter().any(|(id, _)| *id == o.id);
+            if !taken && rng.random_bool(0.05) && count < 2 {
+                o.pixel.x += rng.random_range(5.0..20.0);
+                planted_checks.insert((o.id, camera));
+                count += 1;
+            }
+        }
+    }
     let options = CalibrationOptions {
         check_points: CheckPoints::Every(2),
         ..CalibrationOptions::default()
@@ -429,6 +445,16 @@ fn planted_gross_errors_are_all_flagged() {
     }
     let with = result.report.check_points.unwrap();
     let without = reference.report.check_points.unwrap();
+    let flagged: std::collections::BTreeSet<(u64, usize)> = with
+        .excluded_observations
+        .iter()
+        .map(|e| (e.id, e.camera))
+        .collect();
+    println!("check observations planted {planted_checks:?}, flagged {flagged:?}");
+    assert!(!planted_checks.is_empty());
+    assert!(planted_checks.is_subset(&flagged));
+    assert!(flagged.len() <= planted_checks.len() + 1);
+    assert!(without.excluded_observations.len() <= 1);
     println!(
         "check-point RMSE with planted errors {:.4} mm, clean {:.4} mm",
         with.rmse_mm, without.rmse_mm

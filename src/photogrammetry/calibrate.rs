@@ -497,6 +497,18 @@ pub struct CheckPointDeviation {
     pub cameras: usize,
 }
 
+/// An observation of a check point excluded from its intersection.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct ExcludedObservation {
+    /// The check point.
+    pub id: u64,
+    /// The camera (0-based).
+    pub camera: usize,
+    /// Its test statistic `vᵀ Qvv⁻¹ v / sigma0²` in the intersection
+    /// (chi-square, 2 dof), with the camera's sigma0.
+    pub test: f64,
+}
+
 /// The check points: the accuracy of the calibrated rig.
 #[derive(Clone, Debug, PartialEq, Serialize)]
 pub struct CheckPointReport {
@@ -519,6 +531,10 @@ pub struct CheckPointReport {
     pub points: Vec<CheckPointDeviation>,
     /// Check points seen by fewer than two cameras, or not intersectable.
     pub not_intersected: Vec<u64>,
+    /// Observations of check points left out of their intersection as gross
+    /// errors (a wrong id or a bad measurement would otherwise spoil the
+    /// accuracy figure).
+    pub excluded_observations: Vec<ExcludedObservation>,
 }
 
 /// Calibrates every camera of `setup` by resection on `control` with the
@@ -550,7 +566,7 @@ pub fn calibrate(
         reports.push(report);
     }
     let check_points = (!prepared.check.is_empty())
-        .then(|| check_point_report(&cameras, control, observations, &prepared));
+        .then(|| check_point_report(&cameras, &reports, control, observations, &prepared));
     Ok(RigCalibration {
         cameras,
         report: CalibrationReport {
@@ -1057,9 +1073,47 @@ fn camera_report(
     }
 }
 
+/// The test statistic `vᵢᵀ Qvvᵢ⁻¹ vᵢ / sigma0ᵢ²` of each observation of an
+/// intersected point (section 4.3's adjustment, equal weights), `None`
+/// where an observation has no redundancy to test.
+fn intersection_tests(
+    rig: &[Camera],
+    seen: &[Observation],
+    intersection: &super::intersect::Intersection,
+    sigma0: &[f64],
+) -> Vec<Option<f64>> {
+    let m = seen.len();
+    let mut a = nalgebra::DMatrix::zeros(2 * m, 3);
+    for (i, o) in seen.iter().enumerate() {
+        let Some(Ok((_, j))) = rig
+            .get(o.camera)
+            .map(|c| c.project_with_jacobian(&intersection.point))
+        else {
+            return vec![None; m];
+        };
+        a.view_mut((2 * i, 0), (2, 3)).copy_from(&j);
+    }
+    let Some(q) = (a.transpose() * &a).try_inverse() else {
+        return vec![None; m];
+    };
+    (0..m)
+        .map(|i| {
+            let ai = a.rows(2 * i, 2);
+            let h = ai * &q * ai.transpose();
+            let qvv =
+                nalgebra::Matrix2::new(1.0 - h[(0, 0)], -h[(0, 1)], -h[(1, 0)], 1.0 - h[(1, 1)]);
+            let s = sigma0.get(seen[i].camera).copied().unwrap_or(0.0);
+            let v = intersection.residuals_px.get(i)?;
+            let t = v.dot(&(qvv.try_inverse()? * v)) / (s * s);
+            (qvv.trace() > 0.02 && t.is_finite()).then_some(t)
+        })
+        .collect()
+}
+
 /// Intersects the check points from every camera that observed them.
 fn check_point_report(
     cameras: &[CameraParameters],
+    reports: &[CameraReport],
     control: &[ControlPoint],
     observations: &[Vec<MarkObservation>],
     prepared: &Prepared,
@@ -1068,10 +1122,21 @@ fn check_point_report(
         .iter()
         .filter_map(|c| Camera::new(c.clone()).ok())
         .collect();
+    let sigma0: Vec<f64> = reports.iter().map(|r| r.sigma0_px).collect();
+    let tests = observations
+        .iter()
+        .map(|list| {
+            list.iter()
+                .filter(|o| prepared.check.contains(&o.id))
+                .count()
+        })
+        .sum();
+    let critical = snooping_critical(0.001, tests);
     let mut points = Vec::new();
     let mut not_intersected = Vec::new();
+    let mut excluded_observations = Vec::new();
     for point in control.iter().filter(|p| prepared.check.contains(&p.id)) {
-        let seen: Vec<Observation> = observations
+        let mut seen: Vec<Observation> = observations
             .iter()
             .enumerate()
             .filter_map(|(camera, list)| {
@@ -1081,10 +1146,31 @@ fn check_point_report(
                 })
             })
             .collect();
-        match (rig.len() == cameras.len())
+        let mut found = (rig.len() == cameras.len())
             .then(|| intersect(&rig, &seen).ok())
-            .flatten()
-        {
+            .flatten();
+        // Snooping within the point: with three or more observations the
+        // worst one goes while it is significant.
+        while let Some(intersection) = found.as_ref().filter(|_| seen.len() >= 3) {
+            let worst = intersection_tests(&rig, &seen, intersection, &sigma0)
+                .into_iter()
+                .enumerate()
+                .filter_map(|(i, t)| t.map(|t| (i, t)))
+                .max_by(|a, b| a.1.total_cmp(&b.1));
+            match worst {
+                Some((i, t)) if t > critical => {
+                    let gone = seen.remove(i);
+                    excluded_observations.push(ExcludedObservation {
+                        id: point.id,
+                        camera: gone.camera,
+                        test: t,
+                    });
+                    found = intersect(&rig, &seen).ok();
+                }
+                _ => break,
+            }
+        }
+        match found {
             Some(found) => {
                 let d = found.point - point.position;
                 points.push(CheckPointDeviation {
@@ -1123,6 +1209,7 @@ fn check_point_report(
         relative_accuracy: diagonal_mm / rmse_mm,
         points,
         not_intersected,
+        excluded_observations,
     }
 }
 
