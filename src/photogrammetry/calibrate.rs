@@ -504,8 +504,9 @@ pub struct ExcludedObservation {
     pub id: u64,
     /// The camera (0-based).
     pub camera: usize,
-    /// Its test statistic `vᵀ Qvv⁻¹ v / sigma0²` in the intersection
-    /// (chi-square, 2 dof), with the camera's sigma0.
+    /// Its test statistic `vᵀ Cov(v)⁻¹ v` in the intersection (chi-square,
+    /// 2 dof), the covariance from the image noise and the calibration's
+    /// own uncertainty.
     pub test: f64,
 }
 
@@ -1073,39 +1074,66 @@ fn camera_report(
     }
 }
 
-/// The test statistic `vᵢᵀ Qvvᵢ⁻¹ vᵢ / sigma0ᵢ²` of each observation of an
-/// intersected point (section 4.3's adjustment, equal weights), `None`
-/// where an observation has no redundancy to test.
+/// The test statistic `vᵢᵀ Cov(vᵢ)⁻¹ vᵢ` (chi-square, 2 dof) of each
+/// observation of an intersected check point, `None` where an observation
+/// has no redundancy to test. The intersection (section 4.3, equal weights)
+/// gives `v = (I - H) e` with `H = A (AᵀA)⁻¹ Aᵀ`, and a check point's image
+/// errors `e` hold the calibration's errors besides the noise:
+/// `Cov(eₖ) = sigma0ₖ² I + Bₖ Cₖ Bₖᵀ` with camera k's parameter Jacobian
+/// `Bₖ` and parameter covariance `Cₖ` from its report.
 fn intersection_tests(
     rig: &[Camera],
+    reports: &[CameraReport],
     seen: &[Observation],
     intersection: &super::intersect::Intersection,
-    sigma0: &[f64],
 ) -> Vec<Option<f64>> {
     let m = seen.len();
     let mut a = nalgebra::DMatrix::zeros(2 * m, 3);
+    let mut cov_e = nalgebra::DMatrix::zeros(2 * m, 2 * m);
     for (i, o) in seen.iter().enumerate() {
-        let Some(Ok((_, j))) = rig
-            .get(o.camera)
-            .map(|c| c.project_with_jacobian(&intersection.point))
-        else {
+        let (Some(camera), Some(report)) = (rig.get(o.camera), reports.get(o.camera)) else {
+            return vec![None; m];
+        };
+        let Ok((_, j)) = camera.project_with_jacobian(&intersection.point) else {
             return vec![None; m];
         };
         a.view_mut((2 * i, 0), (2, 3)).copy_from(&j);
+        let Some((_, b)) =
+            resection::projection_with_parameter_jacobian(camera.parameters(), &intersection.point)
+        else {
+            return vec![None; m];
+        };
+        let c = nalgebra::SMatrix::<f64, 16, 16>::from_fn(|r, k| {
+            report
+                .covariance
+                .get(r)
+                .and_then(|row| row.get(k))
+                .copied()
+                .unwrap_or(0.0)
+        });
+        let block = b * c * b.transpose()
+            + nalgebra::Matrix2::identity() * report.sigma0_px * report.sigma0_px;
+        cov_e.view_mut((2 * i, 2 * i), (2, 2)).copy_from(&block);
     }
     let Some(q) = (a.transpose() * &a).try_inverse() else {
         return vec![None; m];
     };
+    let projector = nalgebra::DMatrix::identity(2 * m, 2 * m) - &a * q * a.transpose();
+    let cov_v = &projector * &cov_e * projector.transpose();
     (0..m)
         .map(|i| {
-            let ai = a.rows(2 * i, 2);
-            let h = ai * &q * ai.transpose();
-            let qvv =
-                nalgebra::Matrix2::new(1.0 - h[(0, 0)], -h[(0, 1)], -h[(1, 0)], 1.0 - h[(1, 1)]);
-            let s = sigma0.get(seen[i].camera).copied().unwrap_or(0.0);
+            let block = cov_v.view((2 * i, 2 * i), (2, 2)).into_owned();
             let v = intersection.residuals_px.get(i)?;
-            let t = v.dot(&(qvv.try_inverse()? * v)) / (s * s);
-            (qvv.trace() > 0.02 && t.is_finite()).then_some(t)
+            let scale = cov_e[(2 * i, 2 * i)] + cov_e[(2 * i + 1, 2 * i + 1)];
+            // No redundancy to test: the residual is forced to (almost) zero.
+            if block.trace() < 0.01 * scale {
+                return None;
+            }
+            let inverse =
+                nalgebra::Matrix2::new(block[(0, 0)], block[(0, 1)], block[(1, 0)], block[(1, 1)])
+                    .try_inverse()?;
+            let t = v.dot(&(inverse * v));
+            t.is_finite().then_some(t)
         })
         .collect()
 }
@@ -1122,7 +1150,6 @@ fn check_point_report(
         .iter()
         .filter_map(|c| Camera::new(c.clone()).ok())
         .collect();
-    let sigma0: Vec<f64> = reports.iter().map(|r| r.sigma0_px).collect();
     let tests = observations
         .iter()
         .map(|list| {
@@ -1132,27 +1159,29 @@ fn check_point_report(
         })
         .sum();
     let critical = snooping_critical(0.001, tests);
-    let mut points = Vec::new();
-    let mut not_intersected = Vec::new();
-    let mut excluded_observations = Vec::new();
-    for point in control.iter().filter(|p| prepared.check.contains(&p.id)) {
-        let mut seen: Vec<Observation> = observations
+    let observed = |id: u64| -> Vec<Observation> {
+        observations
             .iter()
             .enumerate()
             .filter_map(|(camera, list)| {
-                list.iter().find(|o| o.id == point.id).map(|o| Observation {
+                list.iter().find(|o| o.id == id).map(|o| Observation {
                     camera,
                     pixel: o.pixel,
                 })
             })
-            .collect();
-        let mut found = (rig.len() == cameras.len())
-            .then(|| intersect(&rig, &seen).ok())
-            .flatten();
+            .collect()
+    };
+    let complete = rig.len() == cameras.len();
+    let mut points = Vec::new();
+    let mut not_intersected = Vec::new();
+    let mut excluded_observations = Vec::new();
+    for point in control.iter().filter(|p| prepared.check.contains(&p.id)) {
+        let mut seen = observed(point.id);
+        let mut found = complete.then(|| intersect(&rig, &seen).ok()).flatten();
         // Snooping within the point: with three or more observations the
         // worst one goes while it is significant.
         while let Some(intersection) = found.as_ref().filter(|_| seen.len() >= 3) {
-            let worst = intersection_tests(&rig, &seen, intersection, &sigma0)
+            let worst = intersection_tests(&rig, reports, &seen, intersection)
                 .into_iter()
                 .enumerate()
                 .filter_map(|(i, t)| t.map(|t| (i, t)))
