@@ -1,9 +1,10 @@
 //! Calibration of a 4-camera rig in water with lens errors, 200 control
 //! points per camera (3D target), 0.05 px noise, from no starting values:
 //! `cargo bench --bench calibrate`. Measured on the shared 2-core
-//! development machine (load average 3.5..7 from other builds): 37.8 ms
-//! and 40.9 ms per rig in two runs, the cameras resected in parallel, and
-//! 33.5 ms with `RAYON_NUM_THREADS=1` (about 8 ms per camera on one core).
+//! development machine, with other builds running (load average 3.4..7):
+//! 30.2 ms per rig [29.3, 31.2] on the final code, 37.8 and 40.9 ms in
+//! earlier runs under more load; 33.5 ms with `RAYON_NUM_THREADS=1` (about
+//! 8 ms per camera on one core).
 
 use criterion::{criterion_group, criterion_main, Criterion};
 use nalgebra::{Point3, Vector3};
