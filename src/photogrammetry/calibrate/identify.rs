@@ -89,11 +89,13 @@ pub fn calibrate_from_marks(
     references: &[Vec<MarkObservation>],
     options: &CalibrationOptions,
 ) -> Result<RigCalibration, CalibrationError> {
-    if marks.len() != setup.len() || references.len() != setup.len() {
-        return Err(CalibrationError::CameraCount {
-            cameras: setup.len(),
-            given: marks.len().min(references.len()),
-        });
+    for given in [marks.len(), references.len()] {
+        if given != setup.len() {
+            return Err(CalibrationError::CameraCount {
+                cameras: setup.len(),
+                given,
+            });
+        }
     }
     let mut identified = Vec::with_capacity(setup.len());
     for (k, camera) in setup.iter().enumerate() {
