@@ -3,6 +3,9 @@
 //! - `ptv calibration import-openptv` and `export-openptv`
 //!   (`cli/calibration.rs`): between OpenPTV's `ptv.par`/`.ori`/`.addpar` and the
 //!   calibration JSON.
+//! - `ptv calibrate` (`cli/calibrate.rs`): the rig's calibration by
+//!   resection on control points (section 5), from image coordinates or
+//!   calibration images; the report as JSON.
 //! - `ptv project` (`cli/project.rs`): 3D points to their images in every camera,
 //!   the collinearity equations with the multimedia module (Eq. 1-12).
 //! - `ptv intersect` (`cli/intersect.rs`): images back to 3D points by
@@ -22,6 +25,7 @@
 //! this module only wires the two together. `main.rs` parses the arguments
 //! and prints a [`CliError`].
 
+mod calibrate;
 mod calibration;
 mod detect;
 mod intersect;
@@ -35,6 +39,7 @@ use std::path::{Path, PathBuf};
 
 use clap::{Args, Parser, Subcommand};
 
+pub use self::calibrate::CalibrateArgs;
 pub use self::detect::{DetectArgs, DetectionFlags, RawImageFlags, TargetFormat};
 pub use self::match_targets::{MatchArgs, MatchingFlags};
 pub use self::process::ProcessArgs;
@@ -59,6 +64,10 @@ pub enum Command {
     /// Convert calibrations between OpenPTV's files and the calibration JSON.
     #[command(subcommand)]
     Calibration(CalibrationCommand),
+    /// Calibrate every camera by resection on control points (all 16
+    /// parameters through the media, no starting values needed); writes the
+    /// calibration JSON to --output and the report (JSON) to standard output.
+    Calibrate(CalibrateArgs),
     /// Project 3D points (CSV x,y,z in mm) into every camera; writes the
     /// observations CSV point,camera,x,y (pixels) to standard output.
     Project(ProjectArgs),
@@ -208,6 +217,9 @@ pub enum CliError {
     /// The frame pipeline refused the frame.
     #[error("cannot process the frame")]
     Pipeline(#[source] PipelineError),
+    /// The calibration could not be done.
+    #[error("cannot calibrate")]
+    Calibrate(#[from] crate::photogrammetry::calibrate::CalibrationError),
     /// The simulator built a camera that the camera model refuses.
     #[error("the simulated rig is invalid")]
     Simulation(#[from] InvalidCamera),
@@ -236,6 +248,7 @@ pub fn run(
         Command::Calibration(CalibrationCommand::ExportOpenptv(args)) => {
             calibration::export_openptv(&args, stderr)
         }
+        Command::Calibrate(args) => calibrate::run(&args, stdout, stderr),
         Command::Project(args) => project::run(&args, stdout, stderr),
         Command::Intersect(args) => intersect::run(&args, stdout, stderr),
         Command::Detect(args) => detect::run(&args, stdout, stderr),

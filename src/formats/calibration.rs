@@ -161,6 +161,16 @@ impl CameraJson {
 
 /// Parses and validates a calibration JSON document.
 pub fn from_json(text: &str, source: &str) -> Result<Vec<Camera>, FormatError> {
+    from_parameters(parameters_from_json(text, source)?, source)
+}
+
+/// Parses a calibration JSON document into plain parameters without
+/// validating them as cameras: for a calibration setup, whose orientation
+/// values are only optional starting values.
+pub fn parameters_from_json(
+    text: &str,
+    source: &str,
+) -> Result<Vec<CameraParameters>, FormatError> {
     let deserializer = &mut serde_json::Deserializer::from_str(text);
     let file: CalibrationFile = serde_path_to_error::deserialize(deserializer).map_err(|err| {
         let path = err.path().to_string();
@@ -171,14 +181,12 @@ pub fn from_json(text: &str, source: &str) -> Result<Vec<Camera>, FormatError> {
         };
         FormatError::invalid(source, location, err.into_inner().to_string())
     })?;
-    from_parameters(
-        file.cameras
-            .into_iter()
-            .enumerate()
-            .map(|(i, camera)| camera.into_parameters(i))
-            .collect(),
-        source,
-    )
+    Ok(file
+        .cameras
+        .into_iter()
+        .enumerate()
+        .map(|(i, camera)| camera.into_parameters(i))
+        .collect())
 }
 
 /// Validates a list of camera parameters as a calibration: at least

@@ -1,6 +1,8 @@
 //! Files people already have, parsed into validated core values.
 //!
 //! - [`calibration`]: the project's calibration JSON.
+//! - [`control`]: calibration inputs (control points `id X Y Z`, image
+//!   coordinates `id x y`) and the calibration report.
 //! - [`openptv`]: OpenPTV's `.ori`, `.addpar` and `ptv.par`.
 //! - [`csv`]: point, observation and target tables of the command line.
 //! - [`image`]: camera images (greyscale PNG, TIFF, raw buffers).
@@ -12,6 +14,7 @@
 //! line or field, and what was expected.
 
 pub mod calibration;
+pub mod control;
 pub mod csv;
 pub mod image;
 pub mod openptv;

@@ -49,7 +49,12 @@ pub struct PtvPar {
 
 /// A token as a finite number, or an error naming the source, the line and
 /// what was expected.
-fn finite_number(token: &str, source: &str, line: usize, what: &str) -> Result<f64, FormatError> {
+pub(crate) fn finite_number(
+    token: &str,
+    source: &str,
+    line: usize,
+    what: &str,
+) -> Result<f64, FormatError> {
     token
         .parse::<f64>()
         .ok()

@@ -464,11 +464,31 @@ impl Camera {
     /// Flat image coordinates (ideal, relative to the principal point, mm) of
     /// a point in object space: Eq. (2) with the multimedia module.
     pub fn project_flat(&self, point: &Point3<f64>) -> Result<Vector2<f64>, ProjectionError> {
-        let direction = match &self.geometry {
-            Some(geometry) => geometry.air_direction(&self.position(), point)?,
-            None => point - self.position(),
-        };
-        self.collinearity(&direction)
+        self.collinearity(&self.air_direction(point)?)
+    }
+
+    /// The direction in air from the projective centre of the ray that
+    /// reaches `point` (not normalised without refraction): the part of the
+    /// projection that depends only on the position of the camera, not on
+    /// its angles or interior parameters.
+    pub(crate) fn air_direction(
+        &self,
+        point: &Point3<f64>,
+    ) -> Result<Vector3<f64>, ProjectionError> {
+        match &self.geometry {
+            Some(geometry) => geometry.air_direction(&self.position(), point),
+            None => Ok(point - self.position()),
+        }
+    }
+
+    /// Pixel coordinates of the ray leaving the projective centre along
+    /// `direction` in air: the rest of the projection after
+    /// [`Camera::air_direction`].
+    pub(crate) fn pixel_of_air_direction(
+        &self,
+        direction: &Vector3<f64>,
+    ) -> Result<Point2<f64>, ProjectionError> {
+        Ok(self.flat_to_pixel(self.collinearity(direction)?))
     }
 
     /// Pixel coordinates of a point in object space.

@@ -8,11 +8,13 @@
 //! ground truth ([`simulate`]); and section 6.1's particle detection in grey
 //! images ([`image`], [`mod@detect`]); correspondences ([`correspond`]); and
 //! the frame pipeline that runs detection and correspondences on the images
-//! of one time step ([`pipeline`]).
+//! of one time step ([`pipeline`]); section 5's system calibration by
+//! resection on control points ([`mod@calibrate`]).
 //!
 //! This module never imports the service's shell (no tokio, axum, sqlx or
 //! utoipa): inputs and outputs are plain structs and nalgebra types.
 
+pub mod calibrate;
 pub mod camera;
 pub mod correspond;
 pub mod detect;

@@ -19,6 +19,7 @@ use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use rand_distr::{Distribution, Normal, Poisson};
 
+use super::calibrate::{ControlPoint, MarkObservation};
 use super::camera::{
     rotation_angles, Camera, CameraParameters, Distortion, Exterior, Interior, Sensor,
 };
@@ -571,6 +572,91 @@ impl MatchScore {
         }
         score
     }
+}
+
+/// The shape of a simulated calibration target.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum TargetShape {
+    /// Two parallel grids, in the volume's planes Z = min and Z = max, like
+    /// the two-plane frame of the design paper's Fig. 5.
+    TwoPlanes,
+    /// Points drawn uniformly in the volume.
+    Volume,
+}
+
+/// A calibration target of `count` control points (ids from 1) spanning
+/// `volume`.
+pub fn calibration_target(
+    shape: TargetShape,
+    volume: &Volume,
+    count: usize,
+    rng: &mut impl Rng,
+) -> Vec<ControlPoint> {
+    let positions: Vec<Point3<f64>> = match shape {
+        TargetShape::Volume => particles(volume, count, rng),
+        TargetShape::TwoPlanes => {
+            let per_plane = count.div_ceil(2);
+            let side = (per_plane as f64).sqrt().ceil().max(2.0) as usize;
+            let step = |k: usize, i: usize| {
+                volume.min[k] + (volume.max[k] - volume.min[k]) * i as f64 / (side - 1) as f64
+            };
+            [volume.min.z, volume.max.z]
+                .iter()
+                .flat_map(|&z| {
+                    (0..side * side)
+                        .take(per_plane)
+                        .map(move |i| Point3::new(step(0, i % side), step(1, i / side), z))
+                })
+                .take(count)
+                .collect()
+        }
+    };
+    positions
+        .into_iter()
+        .enumerate()
+        .map(|(i, position)| ControlPoint {
+            id: i as u64 + 1,
+            position,
+        })
+        .collect()
+}
+
+/// Random lens and sensor errors of a typical machine-vision lens on a
+/// sensor of about 15 mm: radial k1 of 1..3e-4 mm⁻² either sign (5..15 px at
+/// the corners), decentering p1, p2 up to 3e-5 mm⁻¹, x scale within 1e-3 of
+/// one and shear within 1e-3 rad. Higher radial terms are zero.
+pub fn lens_errors(rng: &mut impl Rng) -> Distortion {
+    let sign = if rng.random_bool(0.5) { 1.0 } else { -1.0 };
+    Distortion {
+        k1: sign * rng.random_range(1e-4..3e-4),
+        k2: 0.0,
+        k3: 0.0,
+        p1: rng.random_range(-3e-5..3e-5),
+        p2: rng.random_range(-3e-5..3e-5),
+        scx: 1.0 + rng.random_range(-1e-3..1e-3),
+        shear: rng.random_range(-1e-3..1e-3),
+    }
+}
+
+/// The measured image positions of every control point each camera sees,
+/// with Gaussian noise of `noise_px` (as [`observe`]).
+pub fn observe_target(
+    cameras: &[Camera],
+    target: &[ControlPoint],
+    noise_px: f64,
+    rng: &mut impl Rng,
+) -> Vec<Vec<MarkObservation>> {
+    let points: Vec<Point3<f64>> = target.iter().map(|p| p.position).collect();
+    observe(cameras, &points, noise_px, rng)
+        .into_iter()
+        .map(|pixels| {
+            pixels
+                .into_iter()
+                .zip(target)
+                .filter_map(|(pixel, p)| pixel.map(|pixel| MarkObservation { id: p.id, pixel }))
+                .collect()
+        })
+        .collect()
 }
 
 #[cfg(test)]

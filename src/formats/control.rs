@@ -1,0 +1,196 @@
+//! The inputs of a calibration: OpenPTV's calibration block (control
+//! points, one `id X Y Z` per line, mm) and measured image coordinates of
+//! control points (one `id x y` per line, pixels in the camera model's
+//! convention), plus the report as JSON.
+//!
+//! Fields are separated by whitespace; blank lines and lines starting with
+//! `#` are skipped. Ids are non-negative integers.
+
+use super::openptv::finite_number;
+use super::FormatError;
+use crate::photogrammetry::calibrate::{CalibrationReport, ControlPoint, MarkObservation};
+use nalgebra::{Point2, Point3};
+
+/// The data lines of a file: 1-based line number and fields.
+fn records<'a>(
+    text: &'a str,
+    source: &'a str,
+    fields: usize,
+    layout: &'a str,
+) -> impl Iterator<Item = Result<(usize, u64, Vec<&'a str>), FormatError>> + 'a {
+    text.lines()
+        .enumerate()
+        .map(|(i, line)| (i + 1, line.trim()))
+        .filter(|(_, line)| !line.is_empty() && !line.starts_with('#'))
+        .map(move |(line, text)| {
+            let tokens: Vec<&str> = text.split_whitespace().collect();
+            if tokens.len() != fields {
+                return Err(FormatError::invalid(
+                    source,
+                    format!("line {line}"),
+                    format!(
+                        "expected {fields} fields `{layout}`, got {}: `{text}`",
+                        tokens.len()
+                    ),
+                ));
+            }
+            let id = tokens[0].parse::<u64>().map_err(|_| {
+                FormatError::invalid(
+                    source,
+                    format!("line {line}"),
+                    format!("the id must be a non-negative integer, got `{}`", tokens[0]),
+                )
+            })?;
+            Ok((line, id, tokens[1..].to_vec()))
+        })
+}
+
+/// Reads a calibration block file: `id X Y Z` per line (mm). Ids must be
+/// unique.
+pub fn parse_control_points(text: &str, source: &str) -> Result<Vec<ControlPoint>, FormatError> {
+    let mut points: Vec<ControlPoint> = Vec::new();
+    let mut seen = std::collections::HashMap::new();
+    for record in records(text, source, 4, "id X Y Z") {
+        let (line, id, values) = record?;
+        let x = finite_number(values[0], source, line, "X")?;
+        let y = finite_number(values[1], source, line, "Y")?;
+        let z = finite_number(values[2], source, line, "Z")?;
+        if let Some(first) = seen.insert(id, line) {
+            return Err(FormatError::invalid(
+                source,
+                format!("line {line}"),
+                format!("control point {id} was already given on line {first}"),
+            ));
+        }
+        points.push(ControlPoint {
+            id,
+            position: Point3::new(x, y, z),
+        });
+    }
+    if points.is_empty() {
+        return Err(FormatError::invalid(
+            source,
+            "line 1",
+            "no control points: expected lines `id X Y Z`",
+        ));
+    }
+    Ok(points)
+}
+
+/// Reads measured image coordinates of control points: `id x y` per line
+/// (pixels). Ids must be unique; an empty file is an empty list (a camera
+/// that sees nothing, which the calibration reports by name).
+pub fn parse_mark_observations(
+    text: &str,
+    source: &str,
+) -> Result<Vec<MarkObservation>, FormatError> {
+    let mut marks = Vec::new();
+    let mut seen = std::collections::HashMap::new();
+    for record in records(text, source, 3, "id x y") {
+        let (line, id, values) = record?;
+        let x = finite_number(values[0], source, line, "x")?;
+        let y = finite_number(values[1], source, line, "y")?;
+        if let Some(first) = seen.insert(id, line) {
+            return Err(FormatError::invalid(
+                source,
+                format!("line {line}"),
+                format!("point {id} was already given on line {first}"),
+            ));
+        }
+        marks.push(MarkObservation {
+            id,
+            pixel: Point2::new(x, y),
+        });
+    }
+    Ok(marks)
+}
+
+/// Writes image coordinates as `id x y` lines, numbers in their shortest
+/// exact form.
+pub fn format_mark_observations(marks: &[MarkObservation]) -> String {
+    marks
+        .iter()
+        .map(|m| format!("{} {} {}\n", m.id, m.pixel.x, m.pixel.y))
+        .collect()
+}
+
+/// Writes a calibration block file.
+pub fn format_control_points(points: &[ControlPoint]) -> String {
+    points
+        .iter()
+        .map(|p| {
+            format!(
+                "{} {} {} {}\n",
+                p.id, p.position.x, p.position.y, p.position.z
+            )
+        })
+        .collect()
+}
+
+/// The calibration report as pretty JSON (non-finite numbers, e.g. the RMSE
+/// of zero check points, become `null`).
+pub fn report_to_json(report: &CalibrationReport) -> String {
+    let mut text = serde_json::to_string_pretty(report).unwrap_or_else(|e| {
+        // Serialising plain numbers and strings cannot fail; keep the
+        // signature total anyway.
+        format!("{{\"error\": \"{e}\"}}")
+    });
+    text.push('\n');
+    text
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn parses_test_cavity_calibration_block() {
+        let path = concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/../shared/data/openptv/test_cavity/cal/target_on_a_side.txt"
+        );
+        let Ok(text) = std::fs::read_to_string(path) else {
+            eprintln!("skipping: {path} not found");
+            return;
+        };
+        let points = parse_control_points(&text, path).unwrap();
+        assert_eq!(
+            points.len(),
+            text.lines().filter(|l| !l.trim().is_empty()).count()
+        );
+        assert_eq!(points[0].id, 1);
+        assert_eq!(points[0].position, Point3::new(-40.0, -25.0, 8.0));
+        let round = parse_control_points(&format_control_points(&points), "x").unwrap();
+        assert_eq!(round, points);
+    }
+
+    #[test]
+    fn errors_name_the_line_and_field() {
+        let error = parse_control_points("1 0 0 0\n\n2 0 nan 0\n", "block.txt").unwrap_err();
+        assert_eq!(
+            error.to_string(),
+            "block.txt: line 3: Y must be a finite number, got `nan`"
+        );
+        let error = parse_control_points("1 0 0\n", "block.txt").unwrap_err();
+        assert!(
+            error.to_string().contains("line 1: expected 4 fields"),
+            "{error}"
+        );
+        let error = parse_control_points("1 0 0 0\n1 1 1 1\n", "b").unwrap_err();
+        assert!(error
+            .to_string()
+            .contains("line 2: control point 1 was already given on line 1"));
+        let error = parse_mark_observations("# id x y\n-3 1 2\n", "cam1.txt").unwrap_err();
+        assert!(
+            error.to_string().starts_with("cam1.txt: line 2: the id"),
+            "{error}"
+        );
+        assert!(parse_control_points("", "empty").is_err());
+        assert_eq!(parse_mark_observations("\n", "none").unwrap(), vec![]);
+        let marks = parse_mark_observations("7 10.5 20.25\n", "m").unwrap();
+        assert_eq!(
+            parse_mark_observations(&format_mark_observations(&marks), "m").unwrap(),
+            marks
+        );
+    }
+}

@@ -1,0 +1,201 @@
+//! Which detected mark is which control point.
+//!
+//! The control points are projected with the current orientation of the
+//! camera; each projection takes the nearest mark if that mark has no nearer
+//! projection (mutual nearest neighbours) and lies within 0.4 of the
+//! distance to the projection's own nearest neighbour, so that a mark can
+//! only be taken by the point it is clearly closest to. Starting from the
+//! setup's orientation, or from a resection on a few reference points the
+//! user identified (`id x y`), resection and assignment alternate until the
+//! assignment no longer changes.
+
+use nalgebra::Point2;
+
+use super::{
+    calibrate, dlt, resection, CalibrationError, CalibrationOptions, ControlPoint, MarkObservation,
+    RigCalibration,
+};
+use crate::photogrammetry::camera::{Camera, CameraParameters};
+
+/// Assigns `marks` (detected image positions, px) to control points by
+/// projecting them with `camera`. Returns the identified observations,
+/// ordered by control point.
+pub fn identify_marks(
+    camera: &CameraParameters,
+    control: &[ControlPoint],
+    marks: &[Point2<f64>],
+) -> Vec<MarkObservation> {
+    let Ok(model) = Camera::new(camera.clone()) else {
+        return Vec::new();
+    };
+    let projected: Vec<(u64, Point2<f64>)> = control
+        .iter()
+        .filter_map(|p| {
+            let pixel = model.project(&p.position).ok()?;
+            (pixel.x.is_finite() && pixel.y.is_finite()).then_some((p.id, pixel))
+        })
+        .collect();
+    let finite: Vec<Point2<f64>> = marks
+        .iter()
+        .copied()
+        .filter(|m| m.x.is_finite() && m.y.is_finite())
+        .collect();
+    let nearest = |from: &Point2<f64>, among: &mut dyn Iterator<Item = (usize, Point2<f64>)>| {
+        among
+            .map(|(i, q)| (i, (q - from).norm()))
+            .min_by(|a, b| a.1.total_cmp(&b.1))
+    };
+    let mut found = Vec::new();
+    for (k, (id, pixel)) in projected.iter().enumerate() {
+        let Some((m, distance)) = nearest(pixel, &mut finite.iter().copied().enumerate()) else {
+            break;
+        };
+        let spacing = nearest(
+            pixel,
+            &mut projected
+                .iter()
+                .enumerate()
+                .filter(|(j, _)| *j != k)
+                .map(|(j, (_, q))| (j, *q)),
+        )
+        .map_or(f64::INFINITY, |(_, d)| d);
+        let back = nearest(
+            &finite[m],
+            &mut projected.iter().map(|(_, q)| *q).enumerate(),
+        );
+        if back.is_some_and(|(j, _)| j == k) && distance < 0.4 * spacing {
+            found.push(MarkObservation {
+                id: *id,
+                pixel: finite[m],
+            });
+        }
+    }
+    found
+}
+
+/// The largest number of resection-and-assignment rounds per camera.
+const MAX_ROUNDS: usize = 10;
+
+/// Calibrates from detected marks: per camera the marks (px) and either
+/// reference points (`references[camera]`: at least 6 identified marks, or
+/// 4 in one plane with the setup's interior orientation), or, where that
+/// list is empty, the setup's orientation as the starting value. Marks are
+/// identified by [`identify_marks`], alternating with resections, then the
+/// whole rig is calibrated by [`calibrate`] with check points and report.
+pub fn calibrate_from_marks(
+    setup: &[CameraParameters],
+    control: &[ControlPoint],
+    marks: &[Vec<Point2<f64>>],
+    references: &[Vec<MarkObservation>],
+    options: &CalibrationOptions,
+) -> Result<RigCalibration, CalibrationError> {
+    for given in [marks.len(), references.len()] {
+        if given != setup.len() {
+            return Err(CalibrationError::CameraCount {
+                cameras: setup.len(),
+                given,
+            });
+        }
+    }
+    let mut identified = Vec::with_capacity(setup.len());
+    for (k, camera) in setup.iter().enumerate() {
+        let too_few = |found: usize| CalibrationError::TooFewIdentified {
+            camera: k,
+            name: camera.name.clone(),
+            found,
+        };
+        let mut current = if references[k].is_empty() {
+            camera.clone()
+        } else {
+            start_from_references(k, camera, control, &references[k])?
+        };
+        let mut assigned = identify_marks(&current, control, &marks[k]);
+        for _ in 0..MAX_ROUNDS {
+            if assigned.len() < super::MIN_POINTS {
+                return Err(too_few(assigned.len()));
+            }
+            let single = calibrate(
+                std::slice::from_ref(camera),
+                control,
+                std::slice::from_ref(&assigned),
+                &CalibrationOptions {
+                    check_points: super::CheckPoints::None,
+                    ..options.clone()
+                },
+            )?;
+            current = single.cameras.into_iter().next().unwrap_or(current);
+            let again = identify_marks(&current, control, &marks[k]);
+            if again == assigned {
+                break;
+            }
+            assigned = again;
+        }
+        identified.push(assigned);
+    }
+    calibrate(setup, control, &identified, options)
+}
+
+/// The orientation from the user's reference points alone: the closed-form
+/// start, then the exterior orientation (with the setup's interior) through
+/// the strict model.
+fn start_from_references(
+    k: usize,
+    camera: &CameraParameters,
+    control: &[ControlPoint],
+    references: &[MarkObservation],
+) -> Result<CameraParameters, CalibrationError> {
+    let mut pairs = Vec::new();
+    let mut equations = Vec::new();
+    for r in references {
+        let Some(point) = control.iter().find(|p| p.id == r.id) else {
+            return Err(CalibrationError::UnknownId {
+                camera: k,
+                id: r.id,
+            });
+        };
+        if !(r.pixel.x.is_finite() && r.pixel.y.is_finite()) {
+            return Err(CalibrationError::NonFiniteObservation {
+                camera: k,
+                id: r.id,
+            });
+        }
+        if let Some(m) = dlt::ideal_metric(camera, r.pixel) {
+            pairs.push((point.position, m));
+        }
+        equations.push(resection::Equation {
+            point: point.position,
+            pixel: r.pixel,
+        });
+    }
+    let points: Vec<_> = pairs.iter().map(|(p, _)| *p).collect();
+    let no_start = || CalibrationError::NoStart {
+        camera: k,
+        name: camera.name.clone(),
+    };
+    let flat = dlt::flatness(&points) < 1e-3;
+    if pairs.len() < 4 || (!flat && pairs.len() < super::MIN_POINTS) {
+        return Err(CalibrationError::TooFewReferences {
+            camera: k,
+            name: camera.name.clone(),
+            given: references.len(),
+        });
+    }
+    let start = if !flat {
+        dlt::start_from_dlt(camera, &pairs).map(|mut s| {
+            // Keep the setup's distortion; the DLT's interior is only a start.
+            s.distortion = camera.distortion.clone();
+            s
+        })
+    } else {
+        dlt::start_from_plane(camera, &pairs)
+    }
+    .and_then(super::valid_start)
+    .ok_or_else(no_start)?;
+    let mut free = [false; 16];
+    for f in free.iter_mut().take(6) {
+        *f = true;
+    }
+    resection::adjust(&start, &free, &equations, 50)
+        .map(|a| a.parameters)
+        .ok_or_else(no_start)
+}
