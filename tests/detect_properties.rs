@@ -80,7 +80,9 @@ proptest! {
         let before = detect(&placed(&patch, MARGIN, MARGIN), &parameters);
         let moved = placed(&patch, (i64::from(MARGIN) + dx) as u32, (i64::from(MARGIN) + dy) as u32);
         let after = detect(&moved, &parameters);
-        prop_assert!(!before.is_empty());
+        // Particle brightness is random: a lone faint particle may stay
+        // below the threshold, which leaves nothing to compare.
+        prop_assume!(!before.is_empty());
         prop_assert_eq!(before.len(), after.len());
         for (a, b) in before.iter().zip(&after) {
             prop_assert!((b.x - a.x - dx as f64).abs() < 1e-9, "{:?} -> {:?}", a, b);
@@ -112,7 +114,8 @@ proptest! {
         };
         let a: Vec<Target> = detect(&eight, &p8);
         let b: Vec<Target> = detect(&sixteen, &p16);
-        prop_assert!(!a.is_empty());
+        // As above: a frame of only faint particles has nothing to compare.
+        prop_assume!(!a.is_empty());
         prop_assert_eq!(a.len(), b.len());
         for (a, b) in a.iter().zip(&b) {
             prop_assert!((a.x - b.x).abs() < 1e-9 && (a.y - b.y).abs() < 1e-9, "{:?} vs {:?}", a, b);
