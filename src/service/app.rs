@@ -68,6 +68,25 @@ impl Application {
             );
         }
         let images = ImageStore::open(data_dir).map_err(|e| ServiceError::io(data_dir, e))?;
+        // A process killed between committing a frame's results and
+        // deleting its images leaves files no row refers to.
+        let mut swept = 0;
+        for hash in images.stored().map_err(|e| ServiceError::io(data_dir, e))? {
+            if !store
+                .image_in_use(&hash)
+                .await
+                .map_err(ServiceError::Database)?
+            {
+                images
+                    .remove(&hash)
+                    .await
+                    .map_err(|e| ServiceError::io(data_dir, e))?;
+                swept += 1;
+            }
+        }
+        if swept > 0 {
+            tracing::warn!(files = swept, "removed image files no frame refers to");
+        }
         let cpu = CpuPool::new(workers).map_err(|e| ServiceError::Start(e.to_string()))?;
         let listener = TcpListener::bind(config.bind)
             .await

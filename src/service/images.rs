@@ -118,6 +118,20 @@ impl ImageStore {
         Ok(())
     }
 
+    /// The hashes of every stored image file.
+    pub fn stored(&self) -> io::Result<Vec<String>> {
+        let mut hashes = Vec::new();
+        for prefix in std::fs::read_dir(&self.root)? {
+            let prefix = prefix?;
+            if prefix.file_type()?.is_dir() {
+                for file in std::fs::read_dir(prefix.path())? {
+                    hashes.push(file?.file_name().to_string_lossy().into_owned());
+                }
+            }
+        }
+        Ok(hashes)
+    }
+
     /// Reads an image's bytes.
     pub async fn read(&self, sha256: &str) -> io::Result<Vec<u8>> {
         tokio::fs::read(self.path(sha256)).await
