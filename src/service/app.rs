@@ -117,6 +117,11 @@ impl Application {
         self.listener.local_addr()
     }
 
+    /// What handlers and workers share (the store, to enqueue jobs).
+    pub fn state(&self) -> Arc<AppState> {
+        self.state.clone()
+    }
+
     /// The job kinds the workers run; register new kinds here before
     /// [`Application::run_until`].
     pub fn kinds_mut(&mut self) -> &mut JobKinds {

@@ -710,6 +710,20 @@ async fn insert_targets(
 }
 
 impl Store {
+    /// Completes a held job whose results are stored elsewhere (or that
+    /// has none) with a link to its result.
+    pub async fn succeed(
+        &self,
+        job: &ClaimedJob,
+        result: &str,
+        duration_s: f64,
+    ) -> Result<(), CompleteError> {
+        let mut tx = self.writer.begin().await?;
+        finish(&mut tx, job, result, duration_s).await?;
+        tx.commit().await?;
+        Ok(())
+    }
+
     /// Enqueues a job on its own (e.g. solve_calibration, whose inputs are
     /// files already in the image store, named in the payload).
     pub async fn enqueue(&self, kind: &str, payload: &str) -> Result<i64, sqlx::Error> {
