@@ -35,6 +35,8 @@ use crate::service::parameters;
         sequences::frame_targets,
         sequences::all_particles,
         jobs::read,
+        super::healthz,
+        super::metrics,
     ),
     components(schemas(
         problem::Problem,

@@ -113,13 +113,18 @@ fn constant_time_eq(a: &[u8], b: &[u8]) -> bool {
     a.len() == b.len() && a.iter().zip(b).fold(0u8, |acc, (x, y)| acc | (x ^ y)) == 0
 }
 
-/// Liveness: the process answers.
-async fn healthz() -> &'static str {
+/// Liveness: the process answers `ok`.
+#[utoipa::path(get, path = "/healthz", tag = "operations", security(()),
+    responses((status = 200, content_type = "text/plain", body = String)))]
+pub async fn healthz() -> &'static str {
     "ok\n"
 }
 
-/// Prometheus' text format.
-async fn metrics(State(state): Shared) -> Result<Response, ApiError> {
+/// Counters in Prometheus' text format: requests by route and status,
+/// queue depth, jobs by kind and state, job durations, particles per frame.
+#[utoipa::path(get, path = "/metrics", tag = "operations", security(()),
+    responses((status = 200, content_type = "text/plain", body = String)))]
+pub async fn metrics(State(state): Shared) -> Result<Response, ApiError> {
     let jobs = state.store.job_counts().await?;
     Ok((
         [(header::CONTENT_TYPE, "text/plain; version=0.0.4")],
