@@ -68,7 +68,9 @@ async fn observe(State(state): Shared, request: Request, next: Next) -> Response
         .and_then(|v| v.to_str().ok())
         .and_then(|v| v.parse::<u64>().ok());
     let limit = state.config.max_upload_bytes() as u64;
-    let response = match declared {
+    let has_body = declared.is_some_and(|n| n > 0)
+        || request.headers().contains_key(header::TRANSFER_ENCODING);
+    let mut response = match declared {
         Some(length) if length > limit => ApiError::too_large(format!(
             "the body is {length} bytes, more than the service's limit of {limit} bytes \
              (--max-upload-mb); send fewer or smaller images per request"
@@ -76,6 +78,14 @@ async fn observe(State(state): Shared, request: Request, next: Next) -> Response
         .into_response(),
         _ => next.run(request).await,
     };
+    // A refused request's body may be partly unread: the connection cannot
+    // carry another request, so say so rather than let the client reuse it.
+    if has_body && (response.status().is_client_error() || response.status().is_server_error()) {
+        response.headers_mut().insert(
+            header::CONNECTION,
+            header::HeaderValue::from_static("close"),
+        );
+    }
     state
         .metrics
         .request(&method, &route, response.status().as_u16());

@@ -7,6 +7,7 @@ use std::sync::Arc;
 
 use axum::body::Body;
 use axum::extract::multipart::Field;
+use axum::extract::Multipart;
 use axum::extract::State;
 use axum::http::{header, StatusCode};
 use axum::response::{IntoResponse, Response};
@@ -335,6 +336,90 @@ fn check_image(
     Ok(())
 }
 
+/// The parts of a frame upload, as read.
+struct UploadParts {
+    frame: Option<i64>,
+    images: Vec<Option<UploadedFile>>,
+    targets: Vec<Option<Vec<Target>>>,
+    width: Option<u32>,
+    height: Option<u32>,
+    bits: Option<u32>,
+}
+
+/// Reads a frame upload's parts for a calibration of `n` cameras: images
+/// streamed to temporary files, targets parsed, numbers checked.
+async fn read_parts(
+    state: &AppState,
+    id: i64,
+    n: usize,
+    multipart: &mut Multipart,
+) -> Result<UploadParts, ApiError> {
+    let mut parts = UploadParts {
+        frame: None,
+        images: (0..n).map(|_| None).collect(),
+        targets: vec![None; n],
+        width: None,
+        height: None,
+        bits: None,
+    };
+    while let Some(mut field) = multipart.next_field().await.map_err(multipart_error)? {
+        let name = field.name().unwrap_or("").to_owned();
+        let repeated = || ApiError::bad_request(format!("part `{name}` is given twice"));
+        if name == "frame" {
+            if parts.frame.is_some() {
+                return Err(repeated());
+            }
+            let number: u32 = number_part(&mut field, &name).await?;
+            if state.store.frame_exists(id, number.into()).await? {
+                return Err(ApiError::conflict(format!(
+                    "frame {number} of sequence {id} exists; frames are uploaded once"
+                )));
+            }
+            parts.frame = Some(number.into());
+        } else if name == "width" {
+            parts.width = Some(number_part::<u32>(&mut field, &name).await?);
+        } else if name == "height" {
+            parts.height = Some(number_part::<u32>(&mut field, &name).await?);
+        } else if name == "bits" {
+            parts.bits = Some(number_part::<u32>(&mut field, &name).await?);
+        } else if let Some(camera) = camera_of(&name, "cam", n) {
+            let camera = camera?;
+            if parts.images[camera].is_some() {
+                return Err(repeated());
+            }
+            let mut upload = state.images.create_upload().await?;
+            while let Some(chunk) = field.chunk().await.map_err(multipart_error)? {
+                upload.write(&chunk).await?;
+            }
+            parts.images[camera] = Some(upload.finish().await?);
+        } else if let Some(camera) = camera_of(&name, "targets", n) {
+            let camera = camera?;
+            if parts.targets[camera].is_some() {
+                return Err(repeated());
+            }
+            let text = text_part(&mut field, &name, MAX_TARGETS_PART).await?;
+            let parsed = formats::parse_targets(&text, &name)
+                .map_err(|e| ApiError::unprocessable(e.to_string()))?;
+            parts.targets[camera] = Some(parsed);
+        } else {
+            return Err(ApiError::bad_request(format!(
+                "unknown part `{}`; expected `frame`, `cam0`..`cam{m}` or `targets0`..`targets{m}`, \
+                 and `width`, `height`, `bits` for raw images",
+                name.escape_debug(),
+                m = n - 1
+            )));
+        }
+    }
+    Ok(parts)
+}
+
+/// Reads and drops what is left of a multipart body.
+async fn drain(multipart: &mut Multipart) {
+    while let Ok(Some(mut field)) = multipart.next_field().await {
+        while let Ok(Some(_)) = field.chunk().await {}
+    }
+}
+
 /// Uploads one frame: multipart with a `frame` number and, per camera,
 /// `cam0`, `cam1`, ... images (PNG or TIFF, or raw with `width`, `height`,
 /// `bits` parts) or `targets0`, `targets1`, ... (CSV or OpenPTV
@@ -368,58 +453,23 @@ pub async fn upload_frame(
         .map_err(ApiError::internal)?;
     let n = cameras.len();
 
-    let mut frame: Option<i64> = None;
-    let mut images: Vec<Option<UploadedFile>> = (0..n).map(|_| None).collect();
-    let mut targets: Vec<Option<Vec<Target>>> = vec![None; n];
-    let (mut width, mut height, mut bits) = (None, None, None);
-    while let Some(mut field) = multipart.next_field().await.map_err(multipart_error)? {
-        let name = field.name().unwrap_or("").to_owned();
-        let repeated = || ApiError::bad_request(format!("part `{name}` is given twice"));
-        if name == "frame" {
-            if frame.is_some() {
-                return Err(repeated());
-            }
-            let number: u32 = number_part(&mut field, &name).await?;
-            if state.store.frame_exists(id, number.into()).await? {
-                return Err(ApiError::conflict(format!(
-                    "frame {number} of sequence {id} exists; frames are uploaded once"
-                )));
-            }
-            frame = Some(number.into());
-        } else if name == "width" {
-            width = Some(number_part::<u32>(&mut field, &name).await?);
-        } else if name == "height" {
-            height = Some(number_part::<u32>(&mut field, &name).await?);
-        } else if name == "bits" {
-            bits = Some(number_part::<u32>(&mut field, &name).await?);
-        } else if let Some(camera) = camera_of(&name, "cam", n) {
-            let camera = camera?;
-            if images[camera].is_some() {
-                return Err(repeated());
-            }
-            let mut upload = state.images.create_upload().await?;
-            while let Some(chunk) = field.chunk().await.map_err(multipart_error)? {
-                upload.write(&chunk).await?;
-            }
-            images[camera] = Some(upload.finish().await?);
-        } else if let Some(camera) = camera_of(&name, "targets", n) {
-            let camera = camera?;
-            if targets[camera].is_some() {
-                return Err(repeated());
-            }
-            let text = text_part(&mut field, &name, MAX_TARGETS_PART).await?;
-            let parsed = formats::parse_targets(&text, &name)
-                .map_err(|e| ApiError::unprocessable(e.to_string()))?;
-            targets[camera] = Some(parsed);
-        } else {
-            return Err(ApiError::bad_request(format!(
-                "unknown part `{}`; expected `frame`, `cam0`..`cam{m}` or `targets0`..`targets{m}`, \
-                 and `width`, `height`, `bits` for raw images",
-                name.escape_debug(),
-                m = n - 1
-            )));
+    let parts = match read_parts(&state, id, n, &mut multipart).await {
+        Ok(parts) => parts,
+        Err(error) => {
+            // Read the rest (bounded by the body limit) so that the client,
+            // still sending, gets the answer rather than a broken pipe.
+            drain(&mut multipart).await;
+            return Err(error);
         }
-    }
+    };
+    let UploadParts {
+        frame,
+        images,
+        targets,
+        width,
+        height,
+        bits,
+    } = parts;
     let frame = frame.ok_or_else(|| ApiError::bad_request("the `frame` part is missing"))?;
     let image_count = images.iter().flatten().count();
     let target_count = targets.iter().flatten().count();
