@@ -47,8 +47,7 @@ async fn killed_service_processes_every_accepted_frame_exactly_once() {
             upload(&client, &first_address, sequence, image_form(frame, &files)).await;
         assert_eq!(status, 202, "{body}");
     }
-    // Kill as soon as the first frame is done: the worker is then busy with
-    // the next one.
+    // Kill as soon as a frame is done and the worker is busy with the next.
     let done_at_kill = loop {
         let (_, body) = status_and_json(
             client
@@ -59,7 +58,7 @@ async fn killed_service_processes_every_accepted_frame_exactly_once() {
         )
         .await;
         let done = body["frames"]["done"].as_i64().unwrap();
-        if done >= 1 {
+        if done >= 1 && body["frames"]["running"] == 1 {
             first.kill();
             break done;
         }
