@@ -417,3 +417,61 @@ async fn job_kinds_plug_in_with_one_call() {
     let _ = stop.send(());
     server.await.unwrap().unwrap();
 }
+
+/// A frame whose image header is fine but whose data is not is accepted,
+/// and its job fails with the reason; its particles are a 409, not a 500.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_frame_that_cannot_be_processed_fails_its_job_with_the_reason() {
+    let app = spawn_app().await;
+    let rig = rig();
+    let calibration = app.create_calibration(&rig.cameras).await;
+    let sequence = app.create_sequence(calibration, &rig.volume, true).await;
+    let mut files: Vec<Vec<u8>> = rig.render(20, 5).images.iter().map(png).collect();
+    let half = files[2].len() / 2;
+    files[2].truncate(half);
+    let (status, body) = app.upload(sequence, image_form(0, &files)).await;
+    assert_eq!(status, 202, "{body}");
+    let view = app.wait_for_sequence(sequence).await;
+    assert_eq!(view["frames"]["failed"], 1, "{view}");
+    let (status, job) = app.get_json(&format!("/jobs/{}", body["job_id"])).await;
+    assert_eq!(status, 200);
+    assert_eq!(job["state"], "failed");
+    assert_eq!(job["attempts"], 1);
+    let error = job["error"].as_str().unwrap();
+    assert!(
+        error.contains("cam2") && error.contains("truncated or corrupt"),
+        "{error}"
+    );
+    let (status, body) = app
+        .get_json(&format!("/sequences/{sequence}/frames/0/particles"))
+        .await;
+    assert_eq!(status, 409, "{body}");
+    app.stop().await;
+}
+
+/// A graceful stop lets running jobs finish: none is left running, and
+/// every frame is either processed or still queued for the next start.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_graceful_stop_leaves_no_job_running() {
+    let app = spawn_app().await;
+    let rig = rig();
+    let calibration = app.create_calibration(&rig.cameras).await;
+    let sequence = app.create_sequence(calibration, &rig.volume, true).await;
+    let files: Vec<Vec<u8>> = rig.render(200, 8).images.iter().map(png).collect();
+    for frame in 0..6 {
+        let (status, body) = app.upload(sequence, image_form(frame, &files)).await;
+        assert_eq!(status, 202, "{body}");
+    }
+    // Stop while jobs are queued and running.
+    let data_dir = app.stop_keeping_data().await;
+    let db_path = data_dir.path().to_owned();
+    let db = open_database(&db_path).await;
+    assert_eq!(
+        count(&db, "SELECT count(*) FROM jobs WHERE state = 'running'").await,
+        0
+    );
+    let done = count(&db, "SELECT count(*) FROM jobs WHERE state = 'succeeded'").await;
+    let queued = count(&db, "SELECT count(*) FROM jobs WHERE state = 'queued'").await;
+    assert_eq!(done + queued, 6);
+    assert_eq!(count(&db, "SELECT count(*) FROM particles").await, done);
+}

@@ -92,6 +92,18 @@ impl TestApp {
         }
     }
 
+    /// Stops the service gracefully and hands over its data directory.
+    pub async fn stop_keeping_data(mut self) -> TempDir {
+        if let Some(stop) = self.stop.take() {
+            let _ = stop.send(());
+        }
+        if let Some(server) = self.server.take() {
+            server.await.unwrap();
+        }
+        let TestApp { data_dir, .. } = self;
+        data_dir
+    }
+
     /// POSTs JSON; status and body.
     pub async fn post_json(&self, path: &str, body: &Value) -> (u16, Value) {
         let response = self
