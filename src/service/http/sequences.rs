@@ -398,7 +398,12 @@ async fn read_parts(
                 return Err(repeated());
             }
             let text = text_part(&mut field, &name, MAX_TARGETS_PART).await?;
-            let parsed = formats::parse_targets(&text, &name)
+            // Tens of megabytes of text are CPU work: off the runtime.
+            let parsed = state
+                .cpu
+                .run(move || formats::parse_targets(&text, &name))
+                .await
+                .map_err(ApiError::internal)?
                 .map_err(|e| ApiError::unprocessable(e.to_string()))?;
             parts.targets[camera] = Some(parsed);
         } else {
