@@ -7,17 +7,23 @@
 //! pool. Every multi-statement write is one transaction: an upload and its
 //! job, a job's results and its completion. Queries are checked at run
 //! time (no database at build time); their results map onto `FromRow`
-//! structs.
+//! structs (`FromRow` written out, no derive macros).
 
 use std::path::Path;
 use std::str::FromStr;
 use std::time::Duration;
 
+use std::future::Future;
+use std::pin::Pin;
+
 use serde::{Deserialize, Serialize};
+use sqlx::error::BoxDynError;
+use sqlx::migrate::{Migration, MigrationSource, MigrationType, Migrator};
 use sqlx::sqlite::{
-    SqliteConnectOptions, SqliteJournalMode, SqlitePool, SqlitePoolOptions, SqliteSynchronous,
+    SqliteConnectOptions, SqliteJournalMode, SqlitePool, SqlitePoolOptions, SqliteRow,
+    SqliteSynchronous,
 };
-use sqlx::{FromRow, Sqlite, Transaction};
+use sqlx::{FromRow, Row, Sqlite, Transaction};
 
 /// How often a job may be claimed before a crash-looping one is failed.
 pub const MAX_ATTEMPTS: i64 = 3;
@@ -32,7 +38,7 @@ pub struct Store {
 }
 
 /// A stored calibration.
-#[derive(Clone, Debug, FromRow)]
+#[derive(Clone, Debug)]
 pub struct CalibrationRow {
     /// Its id.
     pub id: i64,
@@ -47,7 +53,7 @@ pub struct CalibrationRow {
 }
 
 /// A stored sequence.
-#[derive(Clone, Debug, FromRow)]
+#[derive(Clone, Debug)]
 pub struct SequenceRow {
     /// Its id.
     pub id: i64,
@@ -108,7 +114,7 @@ impl FromStr for JobState {
 }
 
 /// A stored job.
-#[derive(Clone, Debug, FromRow)]
+#[derive(Clone, Debug)]
 pub struct JobRow {
     /// Its id.
     pub id: i64,
@@ -133,7 +139,7 @@ pub struct JobRow {
 }
 
 /// A job a worker has claimed.
-#[derive(Clone, Debug, FromRow)]
+#[derive(Clone, Debug)]
 pub struct ClaimedJob {
     /// Its id.
     pub id: i64,
@@ -165,7 +171,7 @@ pub struct NewFrame {
 }
 
 /// What a process_frame job needs.
-#[derive(Clone, Debug, FromRow)]
+#[derive(Clone, Debug)]
 pub struct FrameInput {
     /// The sequence.
     pub sequence_id: i64,
@@ -190,6 +196,106 @@ pub struct FrameCounts {
     pub done: i64,
     /// Failed.
     pub failed: i64,
+}
+
+/// The schema's migrations, `migrations/*.sql`, compiled into the binary
+/// (what `sqlx::migrate!` does, without its proc-macro, which would build
+/// SQLite a second time for the compiler).
+#[derive(Debug)]
+struct Migrations;
+
+/// Version, description and SQL of each migration, in order.
+const MIGRATIONS: &[(i64, &str, &str)] = &[(
+    1,
+    "service",
+    include_str!("../../migrations/0001_service.sql"),
+)];
+
+impl<'s> MigrationSource<'s> for Migrations {
+    fn resolve(
+        self,
+    ) -> Pin<Box<dyn Future<Output = Result<Vec<Migration>, BoxDynError>> + Send + 's>> {
+        Box::pin(async {
+            Ok(MIGRATIONS
+                .iter()
+                .map(|(version, description, sql)| {
+                    Migration::new(
+                        *version,
+                        (*description).into(),
+                        MigrationType::Simple,
+                        (*sql).into(),
+                        false,
+                    )
+                })
+                .collect())
+        })
+    }
+}
+
+impl FromRow<'_, SqliteRow> for CalibrationRow {
+    fn from_row(row: &SqliteRow) -> Result<Self, sqlx::Error> {
+        Ok(CalibrationRow {
+            id: row.try_get("id")?,
+            model: row.try_get("model")?,
+            cameras: row.try_get("cameras")?,
+            report: row.try_get("report")?,
+            created_at: row.try_get("created_at")?,
+        })
+    }
+}
+
+impl FromRow<'_, SqliteRow> for SequenceRow {
+    fn from_row(row: &SqliteRow) -> Result<Self, sqlx::Error> {
+        Ok(SequenceRow {
+            id: row.try_get("id")?,
+            calibration_id: row.try_get("calibration_id")?,
+            name: row.try_get("name")?,
+            parameters: row.try_get("parameters")?,
+            keep_images: row.try_get("keep_images")?,
+            created_at: row.try_get("created_at")?,
+        })
+    }
+}
+
+impl FromRow<'_, SqliteRow> for JobRow {
+    fn from_row(row: &SqliteRow) -> Result<Self, sqlx::Error> {
+        Ok(JobRow {
+            id: row.try_get("id")?,
+            kind: row.try_get("kind")?,
+            payload: row.try_get("payload")?,
+            state: row.try_get("state")?,
+            attempts: row.try_get("attempts")?,
+            error: row.try_get("error")?,
+            result: row.try_get("result")?,
+            created_at: row.try_get("created_at")?,
+            started_at: row.try_get("started_at")?,
+            finished_at: row.try_get("finished_at")?,
+        })
+    }
+}
+
+impl FromRow<'_, SqliteRow> for ClaimedJob {
+    fn from_row(row: &SqliteRow) -> Result<Self, sqlx::Error> {
+        Ok(ClaimedJob {
+            id: row.try_get("id")?,
+            kind: row.try_get("kind")?,
+            payload: row.try_get("payload")?,
+            attempts: row.try_get("attempts")?,
+            locked_by: row.try_get("locked_by")?,
+        })
+    }
+}
+
+impl FromRow<'_, SqliteRow> for FrameInput {
+    fn from_row(row: &SqliteRow) -> Result<Self, sqlx::Error> {
+        Ok(FrameInput {
+            sequence_id: row.try_get("sequence_id")?,
+            frame: row.try_get("frame")?,
+            input: row.try_get("input")?,
+            raw_layout: row.try_get("raw_layout")?,
+            calibration_id: row.try_get("calibration_id")?,
+        })
+    }
 }
 
 /// Why a frame could not be stored.
@@ -236,7 +342,11 @@ impl Store {
             .max_connections(1)
             .connect_with(options.clone())
             .await?;
-        sqlx::migrate!("./migrations").run(&writer).await?;
+        Migrator::new(Migrations)
+            .await
+            .map_err(sqlx::Error::from)?
+            .run(&writer)
+            .await?;
         let reader = SqlitePoolOptions::new()
             .max_connections(readers.max(1))
             .connect_with(options.read_only(true))
