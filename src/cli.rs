@@ -53,7 +53,7 @@ use crate::photogrammetry::{Camera, InvalidDetectionParameters, PipelineError, S
 #[derive(Debug, Parser)]
 #[command(name = "ptv", version)]
 pub struct Cli {
-    /// What to do; without one, `ptv` prints this help.
+    /// What to do; without one, `ptv` runs `ptv serve` with its defaults.
     #[command(subcommand)]
     pub command: Option<Command>,
 }
@@ -88,6 +88,9 @@ pub enum Command {
     /// Write a synthetic experiment into a directory: calibration.json,
     /// per camera camN_targets.csv and camN.png, and truth.csv.
     Simulate(SimulateArgs),
+    /// Run the HTTP service (the default without a subcommand); prints the
+    /// address it listens on and where its API docs are.
+    Serve(crate::service::ServeArgs),
 }
 
 /// The `calibration` subcommands.
@@ -223,6 +226,9 @@ pub enum CliError {
     /// The simulator built a camera that the camera model refuses.
     #[error("the simulated rig is invalid")]
     Simulation(#[from] InvalidCamera),
+    /// The service could not start, or stopped with an error.
+    #[error("the service")]
+    Service(#[from] crate::service::ServiceError),
     /// Standard output or standard error could not be written.
     #[error("cannot write to {stream}")]
     Output {
@@ -255,6 +261,7 @@ pub fn run(
         Command::Match(args) => match_targets::run(&args, stdout),
         Command::Process(args) => process::run(&args, stdout, stderr),
         Command::Simulate(args) => simulate::run(&args, stderr),
+        Command::Serve(args) => Ok(crate::service::run(args, stdout)?),
     }
 }
 

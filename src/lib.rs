@@ -7,7 +7,10 @@
 //!   `.ori`/`.addpar`/`ptv.par`, CSV. Parsers name the file, line and field
 //!   of every error.
 //! - [`cli`]: the `ptv` command line.
+//! - [`service`]: the HTTP service (`ptv serve`): API, job queue, workers,
+//!   SQLite.
 
 pub mod cli;
 pub mod formats;
 pub mod photogrammetry;
+pub mod service;

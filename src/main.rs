@@ -6,20 +6,24 @@
 use std::io::{self, Write};
 use std::process::ExitCode;
 
-use clap::{CommandFactory, Parser};
-use ptv::cli::Cli;
+use clap::Parser;
+use ptv::cli::{Cli, Command};
 
 fn main() -> ExitCode {
-    let cli = Cli::parse();
-    let Some(command) = cli.command else {
-        // No subcommand: print the help. This is where the HTTP service will
-        // start once it exists.
-        let _ = Cli::command()
-            .print_help()
-            .and_then(|()| writeln!(io::stdout()));
-        return ExitCode::SUCCESS;
+    // No subcommand: the service, as `ptv serve` (its flags from the
+    // environment, if set there).
+    let command = match Cli::parse().command {
+        Some(command) => command,
+        None => match Cli::parse_from(["ptv", "serve"]).command {
+            Some(command) => command,
+            None => return ExitCode::FAILURE,
+        },
     };
-    let result = ptv::cli::run(command, &mut io::stdout().lock(), &mut io::stderr().lock());
+    let result = match command {
+        // The service's threads log to standard error: no locks held here.
+        serve @ Command::Serve(_) => ptv::cli::run(serve, &mut io::stdout(), &mut io::stderr()),
+        other => ptv::cli::run(other, &mut io::stdout().lock(), &mut io::stderr().lock()),
+    };
     match result {
         Ok(()) => ExitCode::SUCCESS,
         Err(error) => {

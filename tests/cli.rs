@@ -469,15 +469,34 @@ fn export_of_a_calibration_openptv_cannot_hold_is_refused() {
 }
 
 #[test]
-fn without_a_subcommand_prints_help() {
+fn help_lists_the_commands_and_no_subcommand_serves() {
     let dir = tempfile::tempdir().unwrap();
-    let output = ptv(&[], dir.path());
+    let output = ptv(&["--help"], dir.path());
     assert!(output.status.success());
     let stdout = text(&output.stdout);
-    for command in ["calibration", "project", "intersect"] {
+    for command in ["calibration", "project", "intersect", "serve"] {
         assert!(stdout.contains(command), "{stdout}");
     }
     assert!(output.stderr.is_empty());
+
+    // Without a subcommand: the service, its flags from the environment.
+    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_ptv"))
+        .env("PTV_BIND", "127.0.0.1:0")
+        .env("PTV_DATA_DIR", dir.path().join("data"))
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    let mut line = String::new();
+    std::io::BufRead::read_line(
+        &mut std::io::BufReader::new(child.stdout.take().unwrap()),
+        &mut line,
+    )
+    .unwrap();
+    child.kill().unwrap();
+    child.wait().unwrap();
+    assert!(line.starts_with("listening on http://127.0.0.1:"), "{line}");
+    assert!(dir.path().join("data/ptv.sqlite").exists());
 }
 
 #[test]

@@ -379,27 +379,13 @@ fn camera_name(ori: &Path, index: usize) -> String {
 /// Builds cameras from `ptv.par` and one `.ori` per camera, in camera
 /// order, each with its optional `.addpar` beside it.
 pub fn import(ptv_par: &Path, oris: &[PathBuf]) -> Result<Vec<Camera>, FormatError> {
-    let par_source = ptv_par.display().to_string();
-    let par = parse_ptv_par(&read_text(ptv_par)?, &par_source)?;
-    if par.image_names.len() != oris.len() {
-        return Err(FormatError::invalid(
-            &par_source,
-            "line 1",
-            format!(
-                "describes {} cameras but {} .ori files were given; give one .ori per camera, in camera order",
-                par.image_names.len(),
-                oris.len()
-            ),
-        ));
-    }
-    let mut parameters = Vec::with_capacity(oris.len());
+    let par_text = read_text(ptv_par)?;
+    let mut texts = Vec::with_capacity(oris.len());
     for (index, ori) in oris.iter().enumerate() {
-        let source = ori.display().to_string();
-        let (exterior, interior, glass_vector) = parse_ori(&read_text(ori)?, &source)?;
         let addpar = addpar_path(ori);
-        let distortion = match std::fs::read_to_string(&addpar) {
-            Ok(text) => parse_addpar(&text, &addpar.display().to_string())?,
-            Err(e) if e.kind() == std::io::ErrorKind::NotFound => Distortion::default(),
+        let addpar = match std::fs::read_to_string(&addpar) {
+            Ok(text) => Some((text, addpar.display().to_string())),
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => None,
             Err(reason) => {
                 return Err(FormatError::Io {
                     path: addpar,
@@ -407,8 +393,55 @@ pub fn import(ptv_par: &Path, oris: &[PathBuf]) -> Result<Vec<Camera>, FormatErr
                 })
             }
         };
-        parameters.push(CameraParameters {
+        texts.push(OriTexts {
             name: camera_name(ori, index),
+            ori: (read_text(ori)?, ori.display().to_string()),
+            addpar,
+        });
+    }
+    import_texts(&par_text, &ptv_par.display().to_string(), &texts)
+}
+
+/// One camera's OpenPTV files as text, each with the source to name in
+/// errors, for callers that have them in memory (uploads).
+#[derive(Clone, Debug)]
+pub struct OriTexts {
+    /// The camera's name.
+    pub name: String,
+    /// The `.ori` file's text and source.
+    pub ori: (String, String),
+    /// The `.addpar` file's text and source, if any (else no distortion).
+    pub addpar: Option<(String, String)>,
+}
+
+/// Builds cameras from `ptv.par`'s text and, in camera order, each camera's
+/// `.ori` and optional `.addpar` texts.
+pub fn import_texts(
+    ptv_par: &str,
+    par_source: &str,
+    cameras: &[OriTexts],
+) -> Result<Vec<Camera>, FormatError> {
+    let par = parse_ptv_par(ptv_par, par_source)?;
+    if par.image_names.len() != cameras.len() {
+        return Err(FormatError::invalid(
+            par_source,
+            "line 1",
+            format!(
+                "describes {} cameras but {} .ori files were given; give one .ori per camera, in camera order",
+                par.image_names.len(),
+                cameras.len()
+            ),
+        ));
+    }
+    let mut parameters = Vec::with_capacity(cameras.len());
+    for camera in cameras {
+        let (exterior, interior, glass_vector) = parse_ori(&camera.ori.0, &camera.ori.1)?;
+        let distortion = match &camera.addpar {
+            Some((text, source)) => parse_addpar(text, source)?,
+            None => Distortion::default(),
+        };
+        parameters.push(CameraParameters {
+            name: camera.name.clone(),
             sensor: par.sensor.clone(),
             exterior,
             interior,
@@ -570,6 +603,33 @@ pub fn export(cameras: &[Camera], dir: &Path) -> Result<Vec<PathBuf>, FormatErro
         )?;
     }
     Ok(written)
+}
+
+/// Writes particles as OpenPTV's `rt_is` file: the count, then per particle
+/// `pnr x y z t0 t1 ...` (pnr from 1, mm with 3 decimals as OpenPTV writes
+/// them, each camera's target index or -1), one column per camera.
+pub fn format_rt_is(
+    particles: &[crate::photogrammetry::correspond::Particle],
+    cameras: usize,
+) -> String {
+    use std::fmt::Write as _;
+    let mut text = format!("{}\n", particles.len());
+    for (index, p) in particles.iter().enumerate() {
+        let _ = write!(
+            text,
+            "{:4} {:9.3} {:9.3} {:9.3}",
+            index + 1,
+            p.position.x,
+            p.position.y,
+            p.position.z
+        );
+        for camera in 0..cameras {
+            let target = p.targets.get(camera).copied().flatten();
+            let _ = write!(text, " {:4}", target.map_or(-1, |t| t as i64));
+        }
+        text.push('\n');
+    }
+    text
 }
 
 #[cfg(test)]

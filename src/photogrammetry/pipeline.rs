@@ -147,6 +147,12 @@ impl FramePipeline {
         &self.detection
     }
 
+    /// The prepared correspondence search, for frames whose targets were
+    /// detected elsewhere.
+    pub fn matcher(&self) -> &Matcher {
+        &self.matcher
+    }
+
     /// Processes one frame: `images[c]` is camera c's image.
     pub fn process(&self, images: &[GreyImage]) -> Result<FrameResult, PipelineError> {
         let cameras = self.cameras();

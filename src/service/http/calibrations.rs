@@ -1,0 +1,396 @@
+//! `/calibrations`: create one from the calibration JSON or OpenPTV's
+//! files, read it, export it as OpenPTV files, and two small synchronous
+//! helpers to check a set-up: project 3D points, intersect image points.
+
+use std::sync::Arc;
+
+use axum::extract::State;
+use axum::http::{header, StatusCode};
+use axum::response::{IntoResponse, Response};
+use axum::routing::{get, post};
+use axum::{Json, Router};
+use nalgebra::Point2;
+use serde::{Deserialize, Serialize};
+use utoipa::ToSchema;
+
+use super::problem::{multipart_error, ApiError, ApiJson, ApiMultipart, ApiPath, JsonText};
+use super::Shared;
+use crate::formats::{self, openptv::OriTexts};
+use crate::photogrammetry::{intersect, Camera, Observation};
+use crate::service::app::AppState;
+use crate::service::jobs::error_chain;
+use crate::service::store::CalibrationRow;
+
+/// Largest OpenPTV text file accepted (bytes).
+const MAX_TEXT_PART: usize = 1 << 20;
+/// Most points in one projection request.
+const MAX_POINTS: usize = 100_000;
+
+pub(super) fn router() -> Router<Arc<AppState>> {
+    Router::new()
+        .route("/calibrations", post(create))
+        .route("/calibrations/openptv", post(create_openptv))
+        .route("/calibrations/{id}", get(read))
+        .route("/calibrations/{id}/openptv/{file}", get(openptv_file))
+        .route("/calibrations/{id}/project", post(project))
+        .route("/calibrations/{id}/intersect", post(intersect_points))
+}
+
+/// A stored calibration.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct CalibrationView {
+    /// Its id.
+    pub id: i64,
+    /// How many cameras.
+    pub cameras: i64,
+    /// The calibration JSON (see `src/formats/calibration.rs`).
+    #[schema(value_type = Object)]
+    pub model: serde_json::Value,
+    /// The resection report, if the calibration was solved.
+    #[schema(value_type = Option<Object>)]
+    pub report: Option<serde_json::Value>,
+    /// When it was stored (UTC).
+    pub created_at: String,
+}
+
+impl CalibrationView {
+    fn of(row: CalibrationRow) -> Result<CalibrationView, ApiError> {
+        Ok(CalibrationView {
+            id: row.id,
+            cameras: row.cameras,
+            model: serde_json::from_str(&row.model).map_err(ApiError::internal)?,
+            report: row
+                .report
+                .as_deref()
+                .map(serde_json::from_str)
+                .transpose()
+                .map_err(ApiError::internal)?,
+            created_at: row.created_at,
+        })
+    }
+}
+
+/// Stores validated cameras and answers 201 with the calibration.
+async fn store_cameras(state: &AppState, cameras: &[Camera]) -> Result<Response, ApiError> {
+    let model = formats::calibration::to_json(cameras);
+    let row = state
+        .store
+        .insert_calibration(&model, cameras.len() as i64, None)
+        .await?;
+    let location = format!("/api/v1/calibrations/{}", row.id);
+    Ok((
+        StatusCode::CREATED,
+        [(header::LOCATION, location)],
+        Json(CalibrationView::of(row)?),
+    )
+        .into_response())
+}
+
+/// Creates a calibration from the calibration JSON.
+#[utoipa::path(
+    post, path = "/api/v1/calibrations", tag = "calibrations",
+    request_body(content = Object, description = "The calibration JSON: {\"cameras\": [...]}, as `ptv calibration import-openptv` writes it", content_type = "application/json"),
+    responses(
+        (status = 201, description = "Stored", body = CalibrationView),
+        (status = 400, description = "Not JSON", body = super::problem::Problem, content_type = "application/problem+json"),
+        (status = 422, description = "Not a valid calibration", body = super::problem::Problem, content_type = "application/problem+json"),
+    )
+)]
+pub async fn create(State(state): Shared, JsonText(text): JsonText) -> Result<Response, ApiError> {
+    let cameras = formats::calibration::from_json(&text, "the body")
+        .map_err(|e| ApiError::unprocessable(e.to_string()))?;
+    store_cameras(&state, &cameras).await
+}
+
+/// Reads a small text part whole.
+async fn text_part(
+    field: &mut axum::extract::multipart::Field<'_>,
+    name: &str,
+) -> Result<String, ApiError> {
+    let mut bytes = Vec::new();
+    while let Some(chunk) = field.chunk().await.map_err(multipart_error)? {
+        if bytes.len() + chunk.len() > MAX_TEXT_PART {
+            return Err(ApiError::too_large(format!(
+                "part `{name}` is larger than {MAX_TEXT_PART} bytes"
+            )));
+        }
+        bytes.extend_from_slice(&chunk);
+    }
+    String::from_utf8(bytes)
+        .map_err(|_| ApiError::unprocessable(format!("part `{name}` is not UTF-8 text")))
+}
+
+/// Creates a calibration from OpenPTV's files: multipart with `ptv_par`,
+/// then per camera in camera order an `ori` part, each optionally followed
+/// by its `addpar` part.
+#[utoipa::path(
+    post, path = "/api/v1/calibrations/openptv", tag = "calibrations",
+    request_body(content_type = "multipart/form-data", description = "Parts: `ptv_par`; per camera, in order, `ori` and optionally `addpar` right after it."),
+    responses(
+        (status = 201, description = "Stored", body = CalibrationView),
+        (status = 400, description = "Malformed multipart or unknown part", body = super::problem::Problem, content_type = "application/problem+json"),
+        (status = 422, description = "The files do not describe valid cameras", body = super::problem::Problem, content_type = "application/problem+json"),
+    )
+)]
+pub async fn create_openptv(
+    State(state): Shared,
+    ApiMultipart(mut multipart): ApiMultipart,
+) -> Result<Response, ApiError> {
+    let mut ptv_par = None;
+    let mut cameras: Vec<OriTexts> = Vec::new();
+    while let Some(mut field) = multipart.next_field().await.map_err(multipart_error)? {
+        let name = field.name().unwrap_or("").to_owned();
+        match name.as_str() {
+            "ptv_par" => ptv_par = Some(text_part(&mut field, &name).await?),
+            "ori" => {
+                let index = cameras.len();
+                cameras.push(OriTexts {
+                    name: format!("cam{}", index + 1),
+                    ori: (
+                        text_part(&mut field, &name).await?,
+                        format!("ori part {}", index + 1),
+                    ),
+                    addpar: None,
+                });
+            }
+            "addpar" => {
+                let text = text_part(&mut field, &name).await?;
+                let index = cameras.len();
+                match cameras.last_mut() {
+                    Some(camera) if camera.addpar.is_none() => {
+                        camera.addpar = Some((text, format!("addpar part {index}")));
+                    }
+                    _ => {
+                        return Err(ApiError::bad_request(
+                            "an `addpar` part must follow its camera's `ori` part, at most one per camera",
+                        ))
+                    }
+                }
+            }
+            other => {
+                return Err(ApiError::bad_request(format!(
+                    "unknown part `{other}`; expected `ptv_par`, then `ori` (and optional `addpar`) per camera"
+                )))
+            }
+        }
+    }
+    let ptv_par = ptv_par.ok_or_else(|| ApiError::bad_request("the `ptv_par` part is missing"))?;
+    let cameras = formats::openptv::import_texts(&ptv_par, "ptv_par part", &cameras)
+        .map_err(|e| ApiError::unprocessable(e.to_string()))?;
+    store_cameras(&state, &cameras).await
+}
+
+/// The calibration's cameras, from the store.
+pub(super) async fn cameras_of(state: &AppState, id: i64) -> Result<Vec<Camera>, ApiError> {
+    let row = state
+        .store
+        .calibration(id)
+        .await?
+        .ok_or_else(|| ApiError::not_found(format!("calibration {id} does not exist")))?;
+    formats::calibration::from_json(&row.model, "the stored calibration")
+        .map_err(ApiError::internal)
+}
+
+/// A calibration: its model and, if solved, its report.
+#[utoipa::path(
+    get, path = "/api/v1/calibrations/{id}", tag = "calibrations",
+    params(("id" = i64, Path, description = "Calibration id")),
+    responses(
+        (status = 200, body = CalibrationView),
+        (status = 404, body = super::problem::Problem, content_type = "application/problem+json"),
+    )
+)]
+pub async fn read(
+    State(state): Shared,
+    ApiPath(id): ApiPath<i64>,
+) -> Result<Json<CalibrationView>, ApiError> {
+    let row = state
+        .store
+        .calibration(id)
+        .await?
+        .ok_or_else(|| ApiError::not_found(format!("calibration {id} does not exist")))?;
+    Ok(Json(CalibrationView::of(row)?))
+}
+
+/// One camera's OpenPTV file: `{camera}.ori` or `{camera}.addpar`, camera
+/// from 0.
+#[utoipa::path(
+    get, path = "/api/v1/calibrations/{id}/openptv/{file}", tag = "calibrations",
+    params(
+        ("id" = i64, Path, description = "Calibration id"),
+        ("file" = String, Path, description = "`{camera}.ori` or `{camera}.addpar`, camera from 0"),
+    ),
+    responses(
+        (status = 200, content_type = "text/plain", body = String),
+        (status = 404, body = super::problem::Problem, content_type = "application/problem+json"),
+    )
+)]
+pub async fn openptv_file(
+    State(state): Shared,
+    ApiPath((id, file)): ApiPath<(i64, String)>,
+) -> Result<Response, ApiError> {
+    let cameras = cameras_of(&state, id).await?;
+    let unknown = || {
+        ApiError::not_found(format!(
+            "no file `{file}`; ask for `C.ori` or `C.addpar` with C a camera from 0 to {}",
+            cameras.len() - 1
+        ))
+    };
+    let (stem, extension) = file.rsplit_once('.').ok_or_else(unknown)?;
+    let camera = stem
+        .parse::<usize>()
+        .ok()
+        .and_then(|c| cameras.get(c))
+        .ok_or_else(unknown)?;
+    let text = match extension {
+        "ori" => formats::openptv::format_ori(camera),
+        "addpar" => formats::openptv::format_addpar(&camera.parameters().distortion),
+        _ => return Err(unknown()),
+    };
+    Ok(([(header::CONTENT_TYPE, "text/plain; charset=utf-8")], text).into_response())
+}
+
+/// Points to project.
+#[derive(Debug, Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct ProjectRequest {
+    /// 3D points (mm).
+    pub points: Vec<[f64; 3]>,
+}
+
+/// Their images.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct ProjectResponse {
+    /// Per point, per camera: the image position (px), or null where the
+    /// camera cannot see it.
+    pub pixels: Vec<Vec<Option<[f64; 2]>>>,
+}
+
+/// Projects 3D points into every camera (the collinearity equations
+/// through the walls).
+#[utoipa::path(
+    post, path = "/api/v1/calibrations/{id}/project", tag = "calibrations",
+    params(("id" = i64, Path, description = "Calibration id")),
+    request_body = ProjectRequest,
+    responses(
+        (status = 200, body = ProjectResponse),
+        (status = 404, body = super::problem::Problem, content_type = "application/problem+json"),
+        (status = 422, body = super::problem::Problem, content_type = "application/problem+json"),
+    )
+)]
+pub async fn project(
+    State(state): Shared,
+    ApiPath(id): ApiPath<i64>,
+    ApiJson(request): ApiJson<ProjectRequest>,
+) -> Result<Json<ProjectResponse>, ApiError> {
+    if request.points.len() > MAX_POINTS {
+        return Err(ApiError::unprocessable(format!(
+            "{} points; at most {MAX_POINTS} per request",
+            request.points.len()
+        )));
+    }
+    if let Some(i) = request
+        .points
+        .iter()
+        .position(|p| p.iter().any(|v| !v.is_finite()))
+    {
+        return Err(ApiError::unprocessable(format!(
+            "points[{i}] is not finite"
+        )));
+    }
+    let cameras = cameras_of(&state, id).await?;
+    let pixels = state
+        .cpu
+        .run(move || {
+            request
+                .points
+                .iter()
+                .map(|p| {
+                    let point = nalgebra::Point3::new(p[0], p[1], p[2]);
+                    cameras
+                        .iter()
+                        .map(|camera| camera.project(&point).ok().map(|px| [px.x, px.y]))
+                        .collect()
+                })
+                .collect()
+        })
+        .await
+        .map_err(ApiError::internal)?;
+    Ok(Json(ProjectResponse { pixels }))
+}
+
+/// One point's images.
+#[derive(Debug, Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct IntersectRequest {
+    /// Per camera, in camera order, the point's image (px) or null.
+    pub pixels: Vec<Option<[f64; 2]>>,
+}
+
+/// The intersected point.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct IntersectResponse {
+    /// X, Y, Z (mm).
+    pub point: [f64; 3],
+    /// Standard deviations of X, Y, Z (mm).
+    pub sigma: [f64; 3],
+    /// Root mean square residual (px).
+    pub rms_px: f64,
+    /// Per observation given, its residual (px).
+    pub residuals_px: Vec<[f64; 2]>,
+}
+
+/// Intersects one point's images into its 3D position with standard
+/// deviations (least-squares spatial intersection).
+#[utoipa::path(
+    post, path = "/api/v1/calibrations/{id}/intersect", tag = "calibrations",
+    params(("id" = i64, Path, description = "Calibration id")),
+    request_body = IntersectRequest,
+    responses(
+        (status = 200, body = IntersectResponse),
+        (status = 404, body = super::problem::Problem, content_type = "application/problem+json"),
+        (status = 422, body = super::problem::Problem, content_type = "application/problem+json"),
+    )
+)]
+pub async fn intersect_points(
+    State(state): Shared,
+    ApiPath(id): ApiPath<i64>,
+    ApiJson(request): ApiJson<IntersectRequest>,
+) -> Result<Json<IntersectResponse>, ApiError> {
+    let cameras = cameras_of(&state, id).await?;
+    if request.pixels.len() != cameras.len() {
+        return Err(ApiError::unprocessable(format!(
+            "`pixels` has {} entries but the calibration has {} cameras; give one per camera \
+             (null where a camera does not see the point)",
+            request.pixels.len(),
+            cameras.len()
+        )));
+    }
+    let observations: Vec<Observation> = request
+        .pixels
+        .iter()
+        .enumerate()
+        .filter_map(|(camera, p)| {
+            p.map(|p| Observation {
+                camera,
+                pixel: Point2::new(p[0], p[1]),
+            })
+        })
+        .collect();
+    if observations
+        .iter()
+        .any(|o| !(o.pixel.x.is_finite() && o.pixel.y.is_finite()))
+    {
+        return Err(ApiError::unprocessable(
+            "every pixel coordinate must be finite",
+        ));
+    }
+    let result =
+        intersect(&cameras, &observations).map_err(|e| ApiError::unprocessable(error_chain(&e)))?;
+    Ok(Json(IntersectResponse {
+        point: [result.point.x, result.point.y, result.point.z],
+        sigma: [result.sigma.x, result.sigma.y, result.sigma.z],
+        rms_px: result.rms_px,
+        residuals_px: result.residuals_px.iter().map(|r| [r.x, r.y]).collect(),
+    }))
+}

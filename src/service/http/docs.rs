@@ -1,0 +1,77 @@
+//! The OpenAPI document, generated from the handlers' annotations (and
+//! committed as `openapi/openapi.json`), and the interactive docs page at
+//! `/docs`: Swagger UI, vendored into the binary, so it works offline.
+
+use std::sync::Arc;
+
+use axum::Router;
+use utoipa::openapi::security::{HttpAuthScheme, HttpBuilder, SecurityScheme};
+use utoipa::{Modify, OpenApi};
+use utoipa_swagger_ui::SwaggerUi;
+
+use super::{calibrations, jobs, problem, sequences};
+use crate::service::app::AppState;
+use crate::service::parameters;
+
+/// The API's description.
+#[derive(OpenApi)]
+#[openapi(
+    info(
+        title = "ptv",
+        description = "3D particle tracking velocimetry: calibrations, frame uploads processed by a durable job queue, particles.",
+        license(name = "MIT OR Apache-2.0"),
+    ),
+    paths(
+        calibrations::create,
+        calibrations::create_openptv,
+        calibrations::read,
+        calibrations::openptv_file,
+        calibrations::project,
+        calibrations::intersect_points,
+        sequences::create,
+        sequences::read,
+        sequences::upload_frame,
+        sequences::frame_particles,
+        sequences::frame_targets,
+        sequences::all_particles,
+        jobs::read,
+        super::healthz,
+        super::metrics,
+    ),
+    components(schemas(
+        problem::Problem,
+        parameters::DetectionSettings,
+        parameters::MatchingSettings,
+        parameters::SequenceParameters,
+    )),
+    modifiers(&BearerToken),
+    security(("bearer" = [])),
+)]
+pub struct ApiDoc;
+
+/// Declares the bearer token (`--api-token`).
+struct BearerToken;
+
+impl Modify for BearerToken {
+    fn modify(&self, openapi: &mut utoipa::openapi::OpenApi) {
+        let components = openapi.components.get_or_insert_with(Default::default);
+        components.add_security_scheme(
+            "bearer",
+            SecurityScheme::Http(HttpBuilder::new().scheme(HttpAuthScheme::Bearer).build()),
+        );
+    }
+}
+
+/// The document as pretty JSON with a final newline.
+pub fn openapi_json() -> String {
+    let mut text = ApiDoc::openapi()
+        .to_pretty_json()
+        .expect("the OpenAPI document serialises");
+    text.push('\n');
+    text
+}
+
+/// `/openapi.json` and `/docs`.
+pub(super) fn router() -> Router<Arc<AppState>> {
+    Router::new().merge(SwaggerUi::new("/docs").url("/openapi.json", ApiDoc::openapi()))
+}

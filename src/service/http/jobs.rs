@@ -1,0 +1,76 @@
+//! `/jobs/{id}`: a job's state, for polling after an upload.
+
+use std::sync::Arc;
+
+use axum::extract::State;
+use axum::routing::get;
+use axum::{Json, Router};
+use serde::Serialize;
+use utoipa::ToSchema;
+
+use super::problem::{ApiError, ApiPath};
+use super::Shared;
+use crate::service::app::AppState;
+use crate::service::store::JobState;
+
+pub(super) fn router() -> Router<Arc<AppState>> {
+    Router::new().route("/jobs/{id}", get(read))
+}
+
+/// A job.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct JobView {
+    /// Its id.
+    pub id: i64,
+    /// What it does: `process_frame`, ...
+    pub kind: String,
+    /// Its state.
+    pub state: JobState,
+    /// How often a worker took it up.
+    pub attempts: i64,
+    /// Why it failed (or why its last attempt did).
+    pub error: Option<String>,
+    /// Where its result is, once it succeeded.
+    pub result: Option<String>,
+    /// What it works on.
+    #[schema(value_type = Object)]
+    pub payload: serde_json::Value,
+    /// Enqueued at (UTC).
+    pub created_at: String,
+    /// Last taken up at.
+    pub started_at: Option<String>,
+    /// Finished at.
+    pub finished_at: Option<String>,
+}
+
+/// A job's state, timestamps, attempts, error and result.
+#[utoipa::path(
+    get, path = "/api/v1/jobs/{id}", tag = "jobs",
+    params(("id" = i64, Path, description = "Job id")),
+    responses(
+        (status = 200, body = JobView),
+        (status = 404, body = super::problem::Problem, content_type = "application/problem+json"),
+    )
+)]
+pub async fn read(
+    State(state): Shared,
+    ApiPath(id): ApiPath<i64>,
+) -> Result<Json<JobView>, ApiError> {
+    let row = state
+        .store
+        .job(id)
+        .await?
+        .ok_or_else(|| ApiError::not_found(format!("job {id} does not exist")))?;
+    Ok(Json(JobView {
+        id: row.id,
+        kind: row.kind,
+        state: row.state.parse().map_err(ApiError::internal)?,
+        attempts: row.attempts,
+        error: row.error,
+        result: row.result,
+        payload: serde_json::from_str(&row.payload).map_err(ApiError::internal)?,
+        created_at: row.created_at,
+        started_at: row.started_at,
+        finished_at: row.finished_at,
+    }))
+}

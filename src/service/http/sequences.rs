@@ -1,0 +1,939 @@
+//! `/sequences`: a recording processed with one calibration and one set of
+//! parameters. Create one, upload its frames (images, or targets detected
+//! on the camera side), and fetch each frame's particles and targets, or
+//! all particles as one streamed CSV.
+
+use std::sync::Arc;
+
+use axum::body::Body;
+use axum::extract::multipart::Field;
+use axum::extract::Multipart;
+use axum::extract::State;
+use axum::http::{header, StatusCode};
+use axum::response::{IntoResponse, Response};
+use axum::routing::{get, post};
+use axum::{Json, Router};
+use serde::{Deserialize, Serialize};
+use utoipa::{IntoParams, ToSchema};
+
+use super::problem::{multipart_error, ApiError, ApiJson, ApiMultipart, ApiPath, ApiQuery};
+use super::Shared;
+use crate::formats;
+use crate::photogrammetry::correspond::Particle;
+use crate::photogrammetry::{Camera, Target};
+use crate::service::app::AppState;
+use crate::service::codec;
+use crate::service::images::UploadedFile;
+use crate::service::jobs::{prepare_pipeline, StoredRawLayout};
+use crate::service::parameters::{DetectionSettings, MatchingSettings, SequenceParameters};
+use crate::service::store::{InsertFrameError, NewFrame, SequenceRow};
+
+/// Longest sequence name.
+const MAX_NAME: usize = 200;
+/// Largest targets part (bytes).
+const MAX_TARGETS_PART: usize = 64 << 20;
+
+pub(super) fn router() -> Router<Arc<AppState>> {
+    Router::new()
+        .route("/sequences", post(create))
+        .route("/sequences/{id}", get(read))
+        .route("/sequences/{id}/frames", post(upload_frame))
+        .route(
+            "/sequences/{id}/frames/{frame}/particles",
+            get(frame_particles),
+        )
+        .route("/sequences/{id}/frames/{frame}/targets", get(frame_targets))
+        .route("/sequences/{id}/particles", get(all_particles))
+}
+
+/// A new sequence.
+#[derive(Debug, Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct CreateSequence {
+    /// The calibration its frames are processed with.
+    pub calibration_id: i64,
+    /// A label (no path separators or control characters).
+    #[serde(default)]
+    pub name: Option<String>,
+    /// Detection parameters.
+    #[serde(default)]
+    pub detection: DetectionSettings,
+    /// Matching parameters.
+    #[serde(default)]
+    pub matching: MatchingSettings,
+    /// Whether to keep the images after processing [default: true].
+    #[serde(default)]
+    pub keep_images: Option<bool>,
+}
+
+/// Frames of a sequence by state.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct FrameCountsView {
+    /// Waiting for a worker.
+    pub queued: i64,
+    /// Being processed.
+    pub running: i64,
+    /// Processed.
+    pub done: i64,
+    /// Failed (see their jobs).
+    pub failed: i64,
+}
+
+/// A sequence.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct SequenceView {
+    /// Its id.
+    pub id: i64,
+    /// Its calibration.
+    pub calibration_id: i64,
+    /// Its name.
+    pub name: String,
+    /// The parameters, defaults filled in.
+    pub parameters: SequenceParameters,
+    /// Whether images are kept after processing.
+    pub keep_images: bool,
+    /// When it was created (UTC).
+    pub created_at: String,
+    /// Its frames by state.
+    pub frames: FrameCountsView,
+}
+
+async fn view(state: &AppState, row: SequenceRow) -> Result<SequenceView, ApiError> {
+    let counts = state.store.frame_counts(row.id).await?;
+    Ok(SequenceView {
+        id: row.id,
+        calibration_id: row.calibration_id,
+        name: row.name,
+        parameters: serde_json::from_str(&row.parameters).map_err(ApiError::internal)?,
+        keep_images: row.keep_images,
+        created_at: row.created_at,
+        frames: FrameCountsView {
+            queued: counts.queued,
+            running: counts.running,
+            done: counts.done,
+            failed: counts.failed,
+        },
+    })
+}
+
+/// Checks a sequence name: a label, never a path.
+fn check_name(name: &str) -> Result<(), ApiError> {
+    if name.len() > MAX_NAME {
+        return Err(ApiError::unprocessable(format!(
+            "name: at most {MAX_NAME} bytes, got {}",
+            name.len()
+        )));
+    }
+    if name.contains(['/', '\\']) || name.contains("..") || name.chars().any(char::is_control) {
+        return Err(ApiError::unprocessable(format!(
+            "name: `{}` looks like a path; use a label without `/`, `\\`, `..` or control \
+             characters",
+            name.escape_debug()
+        )));
+    }
+    Ok(())
+}
+
+/// Creates a sequence: validates the parameters against the calibration
+/// (preparing the frame pipeline) and stores it.
+#[utoipa::path(
+    post, path = "/api/v1/sequences", tag = "sequences",
+    request_body = CreateSequence,
+    responses(
+        (status = 201, body = SequenceView),
+        (status = 400, description = "Not JSON", body = super::problem::Problem, content_type = "application/problem+json"),
+        (status = 422, description = "Unknown calibration or invalid parameters", body = super::problem::Problem, content_type = "application/problem+json"),
+    )
+)]
+pub async fn create(
+    State(state): Shared,
+    ApiJson(request): ApiJson<CreateSequence>,
+) -> Result<Response, ApiError> {
+    let name = request.name.unwrap_or_default();
+    check_name(&name)?;
+    let calibration = state
+        .store
+        .calibration(request.calibration_id)
+        .await?
+        .ok_or_else(|| {
+            ApiError::unprocessable(format!(
+                "calibration_id: calibration {} does not exist",
+                request.calibration_id
+            ))
+        })?;
+    let parameters = SequenceParameters::with_defaults(request.detection, request.matching);
+    let pipeline = prepare_pipeline(&state, &calibration.model, &parameters)
+        .await
+        .map_err(ApiError::unprocessable)?;
+    let stored = serde_json::to_string(&parameters).map_err(ApiError::internal)?;
+    let row = state
+        .store
+        .insert_sequence(
+            calibration.id,
+            &name,
+            &stored,
+            request.keep_images.unwrap_or(true),
+        )
+        .await?
+        .ok_or_else(|| ApiError::unprocessable("calibration_id: the calibration does not exist"))?;
+    state.pipelines.insert(row.id, Arc::new(pipeline));
+    let location = format!("/api/v1/sequences/{}", row.id);
+    Ok((
+        StatusCode::CREATED,
+        [(header::LOCATION, location)],
+        Json(view(&state, row).await?),
+    )
+        .into_response())
+}
+
+async fn sequence(state: &AppState, id: i64) -> Result<SequenceRow, ApiError> {
+    state
+        .store
+        .sequence(id)
+        .await?
+        .ok_or_else(|| ApiError::not_found(format!("sequence {id} does not exist")))
+}
+
+/// A sequence, with its frames counted by state.
+#[utoipa::path(
+    get, path = "/api/v1/sequences/{id}", tag = "sequences",
+    params(("id" = i64, Path, description = "Sequence id")),
+    responses(
+        (status = 200, body = SequenceView),
+        (status = 404, body = super::problem::Problem, content_type = "application/problem+json"),
+    )
+)]
+pub async fn read(
+    State(state): Shared,
+    ApiPath(id): ApiPath<i64>,
+) -> Result<Json<SequenceView>, ApiError> {
+    let row = sequence(&state, id).await?;
+    Ok(Json(view(&state, row).await?))
+}
+
+/// An accepted frame.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct FrameAccepted {
+    /// The frame number.
+    pub frame: i64,
+    /// The job that processes it.
+    pub job_id: i64,
+    /// Where to poll the job.
+    pub job: String,
+    /// Where the particles will be.
+    pub particles: String,
+}
+
+/// Reads a small text part whole, up to `limit` bytes.
+async fn text_part(field: &mut Field<'_>, name: &str, limit: usize) -> Result<String, ApiError> {
+    let mut bytes = Vec::new();
+    while let Some(chunk) = field.chunk().await.map_err(multipart_error)? {
+        if bytes.len() + chunk.len() > limit {
+            return Err(ApiError::too_large(format!(
+                "part `{name}` is larger than {limit} bytes"
+            )));
+        }
+        bytes.extend_from_slice(&chunk);
+    }
+    String::from_utf8(bytes)
+        .map_err(|_| ApiError::unprocessable(format!("part `{name}` is not UTF-8 text")))
+}
+
+/// A numeric part: `frame`, `width`, `height`, `bits`.
+async fn number_part<T: std::str::FromStr>(
+    field: &mut Field<'_>,
+    name: &str,
+) -> Result<T, ApiError> {
+    let text = text_part(field, name, 64).await?;
+    text.trim().parse().map_err(|_| {
+        ApiError::unprocessable(format!(
+            "part `{name}` is `{}`, not a non-negative integer",
+            text.escape_debug()
+        ))
+    })
+}
+
+/// The camera index of a part named `{prefix}{index}`, below `cameras`.
+fn camera_of(name: &str, prefix: &str, cameras: usize) -> Option<Result<usize, ApiError>> {
+    let digits = name.strip_prefix(prefix)?;
+    if digits.is_empty() || !digits.bytes().all(|b| b.is_ascii_digit()) {
+        return None;
+    }
+    Some(
+        digits
+            .parse::<usize>()
+            .ok()
+            .filter(|&c| c < cameras)
+            .ok_or_else(|| {
+                ApiError::unprocessable(format!(
+                    "part `{name}`: the calibration has {cameras} cameras, {prefix}0 to {prefix}{}",
+                    cameras - 1
+                ))
+            }),
+    )
+}
+
+/// Checks an image file's header (PNG/TIFF: greyscale of the sensor's
+/// size) or its size (raw), without decoding the pixels.
+fn check_image(
+    path: &std::path::Path,
+    size: u64,
+    camera: usize,
+    model: &Camera,
+    raw: Option<&StoredRawLayout>,
+) -> Result<(), ApiError> {
+    let sensor = model.sensor();
+    let (width, height) = match raw {
+        Some(layout) => {
+            let expected =
+                u64::from(layout.width) * u64::from(layout.height) * (u64::from(layout.bits) / 8);
+            if size != expected {
+                return Err(ApiError::unprocessable(format!(
+                    "cam{camera}: {size} bytes, but a raw {}x{} {}-bit image has {expected}",
+                    layout.width, layout.height, layout.bits
+                )));
+            }
+            (layout.width, layout.height)
+        }
+        None => {
+            use image::ImageDecoder;
+            let unsupported = |reason: String| {
+                ApiError::unsupported(format!(
+                    "cam{camera}: {reason}; send a greyscale PNG or TIFF, or raw samples with \
+                     `width`, `height` and `bits` parts"
+                ))
+            };
+            let reader = image::ImageReader::open(path)
+                .and_then(|r| r.with_guessed_format())
+                .map_err(ApiError::internal)?;
+            if !matches!(
+                reader.format(),
+                Some(image::ImageFormat::Png | image::ImageFormat::Tiff)
+            ) {
+                return Err(unsupported("not a PNG or TIFF image".to_owned()));
+            }
+            let decoder = reader
+                .into_decoder()
+                .map_err(|e| unsupported(format!("cannot be read ({e})")))?;
+            if !matches!(
+                decoder.color_type(),
+                image::ColorType::L8 | image::ColorType::L16
+            ) {
+                return Err(ApiError::unprocessable(format!(
+                    "cam{camera}: the image is {:?}; the detector needs 8- or 16-bit greyscale",
+                    decoder.color_type()
+                )));
+            }
+            decoder.dimensions()
+        }
+    };
+    if (width, height) != (sensor.width, sensor.height) {
+        return Err(ApiError::unprocessable(format!(
+            "cam{camera}: the image is {width}x{height} px, but camera {camera}'s sensor is {}x{}",
+            sensor.width, sensor.height
+        )));
+    }
+    Ok(())
+}
+
+/// The parts of a frame upload, as read.
+struct UploadParts {
+    frame: Option<i64>,
+    images: Vec<Option<UploadedFile>>,
+    targets: Vec<Option<Vec<Target>>>,
+    width: Option<u32>,
+    height: Option<u32>,
+    bits: Option<u32>,
+}
+
+/// Reads a frame upload's parts for a calibration of `n` cameras: images
+/// streamed to temporary files, targets parsed, numbers checked.
+async fn read_parts(
+    state: &AppState,
+    id: i64,
+    n: usize,
+    multipart: &mut Multipart,
+) -> Result<UploadParts, ApiError> {
+    let mut parts = UploadParts {
+        frame: None,
+        images: (0..n).map(|_| None).collect(),
+        targets: vec![None; n],
+        width: None,
+        height: None,
+        bits: None,
+    };
+    while let Some(mut field) = multipart.next_field().await.map_err(multipart_error)? {
+        let name = field.name().unwrap_or("").to_owned();
+        let repeated = || ApiError::bad_request(format!("part `{name}` is given twice"));
+        if name == "frame" {
+            if parts.frame.is_some() {
+                return Err(repeated());
+            }
+            let number: u32 = number_part(&mut field, &name).await?;
+            if state.store.frame_exists(id, number.into()).await? {
+                return Err(ApiError::conflict(format!(
+                    "frame {number} of sequence {id} exists; frames are uploaded once"
+                )));
+            }
+            parts.frame = Some(number.into());
+        } else if name == "width" {
+            parts.width = Some(number_part::<u32>(&mut field, &name).await?);
+        } else if name == "height" {
+            parts.height = Some(number_part::<u32>(&mut field, &name).await?);
+        } else if name == "bits" {
+            parts.bits = Some(number_part::<u32>(&mut field, &name).await?);
+        } else if let Some(camera) = camera_of(&name, "cam", n) {
+            let camera = camera?;
+            if parts.images[camera].is_some() {
+                return Err(repeated());
+            }
+            let mut upload = state.images.create_upload().await?;
+            while let Some(chunk) = field.chunk().await.map_err(multipart_error)? {
+                upload.write(&chunk).await?;
+            }
+            parts.images[camera] = Some(upload.finish().await?);
+        } else if let Some(camera) = camera_of(&name, "targets", n) {
+            let camera = camera?;
+            if parts.targets[camera].is_some() {
+                return Err(repeated());
+            }
+            let text = text_part(&mut field, &name, MAX_TARGETS_PART).await?;
+            // Tens of megabytes of text are CPU work: off the runtime.
+            let parsed = state
+                .cpu
+                .run(move || formats::parse_targets(&text, &name))
+                .await
+                .map_err(ApiError::internal)?
+                .map_err(|e| ApiError::unprocessable(e.to_string()))?;
+            parts.targets[camera] = Some(parsed);
+        } else {
+            return Err(ApiError::bad_request(format!(
+                "unknown part `{}`; expected `frame`, `cam0`..`cam{m}` or `targets0`..`targets{m}`, \
+                 and `width`, `height`, `bits` for raw images",
+                name.escape_debug(),
+                m = n - 1
+            )));
+        }
+    }
+    Ok(parts)
+}
+
+/// Reads and drops what is left of a multipart body.
+async fn drain(multipart: &mut Multipart) {
+    while let Ok(Some(mut field)) = multipart.next_field().await {
+        while let Ok(Some(_)) = field.chunk().await {}
+    }
+}
+
+/// Uploads one frame: multipart with a `frame` number and, per camera,
+/// `cam0`, `cam1`, ... images (PNG or TIFF, or raw with `width`, `height`,
+/// `bits` parts) or `targets0`, `targets1`, ... (CSV or OpenPTV
+/// `_targets`). Answers 202 with the job that processes it.
+#[utoipa::path(
+    post, path = "/api/v1/sequences/{id}/frames", tag = "sequences",
+    params(("id" = i64, Path, description = "Sequence id")),
+    request_body(content_type = "multipart/form-data", description = "Parts: `frame` (integer); `cam0`..`camN-1` (images) or `targets0`..`targetsN-1` (CSV x,y,... or OpenPTV _targets); for raw images `width`, `height`, `bits` (8 or 16)."),
+    responses(
+        (status = 202, body = FrameAccepted),
+        (status = 400, description = "Malformed or truncated multipart, unknown or repeated part", body = super::problem::Problem, content_type = "application/problem+json"),
+        (status = 404, description = "No such sequence", body = super::problem::Problem, content_type = "application/problem+json"),
+        (status = 409, description = "The frame exists", body = super::problem::Problem, content_type = "application/problem+json"),
+        (status = 413, description = "Larger than --max-upload-mb", body = super::problem::Problem, content_type = "application/problem+json"),
+        (status = 415, description = "Not multipart, or an image that is not PNG/TIFF", body = super::problem::Problem, content_type = "application/problem+json"),
+        (status = 422, description = "Wrong camera count, image size, or targets", body = super::problem::Problem, content_type = "application/problem+json"),
+    )
+)]
+pub async fn upload_frame(
+    State(state): Shared,
+    ApiPath(id): ApiPath<i64>,
+    ApiMultipart(mut multipart): ApiMultipart,
+) -> Result<Response, ApiError> {
+    let row = sequence(&state, id).await?;
+    let calibration = state
+        .store
+        .calibration(row.calibration_id)
+        .await?
+        .ok_or_else(|| ApiError::internal("a sequence's calibration is missing"))?;
+    let cameras = formats::calibration::from_json(&calibration.model, "the stored calibration")
+        .map_err(ApiError::internal)?;
+    let n = cameras.len();
+
+    let parts = match read_parts(&state, id, n, &mut multipart).await {
+        Ok(parts) => parts,
+        Err(error) => {
+            // Read the rest (bounded by the body limit) so that the client,
+            // still sending, gets the answer rather than a broken pipe.
+            drain(&mut multipart).await;
+            return Err(error);
+        }
+    };
+    let UploadParts {
+        frame,
+        images,
+        targets,
+        width,
+        height,
+        bits,
+    } = parts;
+    let frame = frame.ok_or_else(|| ApiError::bad_request("the `frame` part is missing"))?;
+    let image_count = images.iter().flatten().count();
+    let target_count = targets.iter().flatten().count();
+    if image_count > 0 && target_count > 0 {
+        return Err(ApiError::bad_request(
+            "give either images (`camC`) or targets (`targetsC`) for a frame, not both",
+        ));
+    }
+    let given = image_count.max(target_count);
+    if given != n {
+        let missing: Vec<String> = (0..n)
+            .filter(|&c| images[c].is_none() && targets[c].is_none())
+            .map(|c| format!("cam{c}"))
+            .collect();
+        return Err(ApiError::unprocessable(format!(
+            "the calibration has {n} cameras but {given} were given (missing: {}); give one \
+             image or targets part per camera",
+            missing.join(", ")
+        )));
+    }
+
+    let raw = match (width, height, bits) {
+        (None, None, None) => None,
+        (Some(width), Some(height), Some(bits)) if bits == 8 || bits == 16 => {
+            Some(StoredRawLayout {
+                width,
+                height,
+                bits,
+            })
+        }
+        (Some(_), Some(_), Some(bits)) => {
+            return Err(ApiError::unprocessable(format!(
+                "part `bits` is {bits}; raw images have 8 or 16 bits"
+            )))
+        }
+        _ => {
+            return Err(ApiError::bad_request(
+                "raw images need all of `width`, `height` and `bits`",
+            ))
+        }
+    };
+
+    let mut new_frame = NewFrame {
+        sequence_id: id,
+        frame,
+        input: if image_count > 0 { "images" } else { "targets" },
+        raw_layout: raw
+            .as_ref()
+            .map(serde_json::to_string)
+            .transpose()
+            .map_err(ApiError::internal)?,
+        images: Vec::new(),
+        targets: Vec::new(),
+    };
+    let images: Vec<UploadedFile> = images.into_iter().flatten().collect();
+    if !images.is_empty() {
+        // Header checks read the files: blocking I/O, off the runtime.
+        let checks: Vec<(std::path::PathBuf, u64)> = images
+            .iter()
+            .map(|f| {
+                (
+                    f.temp_path().map(|p| p.to_owned()).unwrap_or_default(),
+                    f.size,
+                )
+            })
+            .collect();
+        let checked_cameras = cameras.clone();
+        tokio::task::spawn_blocking(move || {
+            for (camera, ((path, size), model)) in checks.iter().zip(&checked_cameras).enumerate() {
+                check_image(path, *size, camera, model, raw.as_ref())?;
+            }
+            Ok::<(), ApiError>(())
+        })
+        .await
+        .map_err(ApiError::internal)??;
+        new_frame.images = images
+            .iter()
+            .enumerate()
+            .map(|(camera, f)| (camera as i64, f.sha256.clone(), f.size as i64))
+            .collect();
+    } else {
+        new_frame.targets = targets
+            .iter()
+            .flatten()
+            .enumerate()
+            .map(|(camera, list)| {
+                (
+                    camera as i64,
+                    list.len() as i64,
+                    codec::encode_targets(list),
+                )
+            })
+            .collect();
+    }
+
+    let job_id = {
+        let _guard = state.images.lock().await;
+        let hashes: Vec<String> = images.iter().map(|f| f.sha256.clone()).collect();
+        for file in images {
+            state.images.persist(file).await?;
+        }
+        match state.store.insert_frame(&new_frame).await {
+            Ok(job_id) => job_id,
+            Err(error) => {
+                // Files this request persisted that no row refers to go.
+                for hash in &hashes {
+                    if !state.store.image_in_use(hash).await? {
+                        state.images.remove(hash).await?;
+                    }
+                }
+                return Err(match error {
+                    InsertFrameError::Exists(frame) => ApiError::conflict(format!(
+                        "frame {frame} of sequence {id} exists; frames are uploaded once"
+                    )),
+                    InsertFrameError::Database(e) => ApiError::internal(e),
+                });
+            }
+        }
+    };
+    state.wake.notify_one();
+    let accepted = FrameAccepted {
+        frame,
+        job_id,
+        job: format!("/api/v1/jobs/{job_id}"),
+        particles: format!("/api/v1/sequences/{id}/frames/{frame}/particles"),
+    };
+    Ok((
+        StatusCode::ACCEPTED,
+        [(header::LOCATION, accepted.job.clone())],
+        Json(accepted),
+    )
+        .into_response())
+}
+
+/// How to write particles.
+#[derive(Clone, Copy, Debug, Default, Deserialize, ToSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum ParticleFormat {
+    /// JSON.
+    #[default]
+    Json,
+    /// CSV `x,y,z,sx,sy,sz,rms_px,cameras,t0,...` as `ptv match` writes.
+    Csv,
+    /// OpenPTV's `rt_is`.
+    RtIs,
+}
+
+/// Query of the particle routes.
+#[derive(Debug, Deserialize, IntoParams)]
+#[serde(deny_unknown_fields)]
+pub struct ParticleQuery {
+    /// json (default), csv or rt_is.
+    #[serde(default)]
+    pub format: ParticleFormat,
+}
+
+/// One particle.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct ParticleView {
+    /// X (mm).
+    pub x: f64,
+    /// Y (mm).
+    pub y: f64,
+    /// Z (mm).
+    pub z: f64,
+    /// Standard deviations of X, Y, Z (mm).
+    pub sigma: [f64; 3],
+    /// Root mean square reprojection residual (px).
+    pub rms_px: f64,
+    /// Per camera, the index of its target in the frame's targets of that
+    /// camera, or null.
+    pub targets: Vec<Option<usize>>,
+}
+
+/// A frame's particles.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct FrameParticles {
+    /// The sequence.
+    pub sequence_id: i64,
+    /// The frame.
+    pub frame: i64,
+    /// The particles.
+    pub particles: Vec<ParticleView>,
+}
+
+/// The frame's stored particles, or why there are none.
+async fn load_particles(
+    state: &AppState,
+    id: i64,
+    frame: i64,
+) -> Result<(usize, Vec<Particle>), ApiError> {
+    let row = sequence(state, id).await?;
+    let cameras = state
+        .store
+        .calibration(row.calibration_id)
+        .await?
+        .map_or(0, |c| c.cameras as usize);
+    match state.store.frame_particles(id, frame).await? {
+        Some((_, blob)) => Ok((
+            cameras,
+            codec::decode_particles(&blob, cameras).map_err(ApiError::internal)?,
+        )),
+        None if state.store.frame_exists(id, frame).await? => Err(ApiError::conflict(format!(
+            "frame {frame} is not processed (yet); see its job"
+        ))),
+        None => Err(ApiError::not_found(format!(
+            "sequence {id} has no frame {frame}"
+        ))),
+    }
+}
+
+/// A processed frame's 3D particles.
+#[utoipa::path(
+    get, path = "/api/v1/sequences/{id}/frames/{frame}/particles", tag = "sequences",
+    params(
+        ("id" = i64, Path, description = "Sequence id"),
+        ("frame" = i64, Path, description = "Frame number"),
+        ParticleQuery,
+    ),
+    responses(
+        (status = 200, body = FrameParticles, description = "JSON; text/csv or text/plain (rt_is) by `format`"),
+        (status = 404, body = super::problem::Problem, content_type = "application/problem+json"),
+        (status = 409, description = "Not processed yet", body = super::problem::Problem, content_type = "application/problem+json"),
+    )
+)]
+pub async fn frame_particles(
+    State(state): Shared,
+    ApiPath((id, frame)): ApiPath<(i64, i64)>,
+    ApiQuery(query): ApiQuery<ParticleQuery>,
+) -> Result<Response, ApiError> {
+    let (cameras, particles) = load_particles(&state, id, frame).await?;
+    Ok(match query.format {
+        ParticleFormat::Json => Json(FrameParticles {
+            sequence_id: id,
+            frame,
+            particles: particles
+                .iter()
+                .map(|p| ParticleView {
+                    x: p.position.x,
+                    y: p.position.y,
+                    z: p.position.z,
+                    sigma: [p.sigma.x, p.sigma.y, p.sigma.z],
+                    rms_px: p.rms_px,
+                    targets: p.targets.clone(),
+                })
+                .collect(),
+        })
+        .into_response(),
+        ParticleFormat::Csv => (
+            [(header::CONTENT_TYPE, "text/csv")],
+            formats::csv::format_particles(&particles, cameras),
+        )
+            .into_response(),
+        ParticleFormat::RtIs => (
+            [(header::CONTENT_TYPE, "text/plain; charset=utf-8")],
+            formats::openptv::format_rt_is(&particles, cameras),
+        )
+            .into_response(),
+    })
+}
+
+/// How to write targets.
+#[derive(Clone, Copy, Debug, Default, Deserialize, ToSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum TargetFormat {
+    /// JSON.
+    #[default]
+    Json,
+    /// CSV `x,y,n,nx,ny,sumg` as `ptv detect` writes.
+    Csv,
+    /// OpenPTV's `_targets`.
+    Openptv,
+}
+
+/// Query of the targets route.
+#[derive(Debug, Deserialize, IntoParams)]
+#[serde(deny_unknown_fields)]
+pub struct TargetQuery {
+    /// The camera, from 0.
+    pub camera: usize,
+    /// json (default), csv or openptv.
+    #[serde(default)]
+    pub format: TargetFormat,
+}
+
+/// One target.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct TargetView {
+    /// Centroid x (px).
+    pub x: f64,
+    /// Centroid y (px).
+    pub y: f64,
+    /// Pixels.
+    pub n: u32,
+    /// Extent in x (px).
+    pub nx: u32,
+    /// Extent in y (px).
+    pub ny: u32,
+    /// Sum of grey values.
+    pub sumg: u64,
+}
+
+/// A frame's targets in one camera.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct FrameTargets {
+    /// The frame.
+    pub frame: i64,
+    /// The camera.
+    pub camera: usize,
+    /// The targets, indexed as the particles' `targets` refer to them.
+    pub targets: Vec<TargetView>,
+}
+
+/// A frame's targets in one camera (detected, or as uploaded).
+#[utoipa::path(
+    get, path = "/api/v1/sequences/{id}/frames/{frame}/targets", tag = "sequences",
+    params(
+        ("id" = i64, Path, description = "Sequence id"),
+        ("frame" = i64, Path, description = "Frame number"),
+        TargetQuery,
+    ),
+    responses(
+        (status = 200, body = FrameTargets, description = "JSON; text/csv or text/plain (openptv) by `format`"),
+        (status = 400, description = "No or bad camera", body = super::problem::Problem, content_type = "application/problem+json"),
+        (status = 404, body = super::problem::Problem, content_type = "application/problem+json"),
+        (status = 409, description = "Not processed yet", body = super::problem::Problem, content_type = "application/problem+json"),
+    )
+)]
+pub async fn frame_targets(
+    State(state): Shared,
+    ApiPath((id, frame)): ApiPath<(i64, i64)>,
+    ApiQuery(query): ApiQuery<TargetQuery>,
+) -> Result<Response, ApiError> {
+    sequence(&state, id).await?;
+    let stored = state.store.frame_targets(id, frame).await?;
+    if stored.is_empty() {
+        return Err(if state.store.frame_exists(id, frame).await? {
+            ApiError::conflict(format!("frame {frame} is not processed (yet); see its job"))
+        } else {
+            ApiError::not_found(format!("sequence {id} has no frame {frame}"))
+        });
+    }
+    let (_, _, blob) = stored
+        .iter()
+        .find(|(camera, _, _)| *camera == query.camera as i64)
+        .ok_or_else(|| {
+            ApiError::not_found(format!(
+                "camera {} does not exist; cameras are 0 to {}",
+                query.camera,
+                stored.len() - 1
+            ))
+        })?;
+    let targets = codec::decode_targets(blob).map_err(ApiError::internal)?;
+    Ok(match query.format {
+        TargetFormat::Json => Json(FrameTargets {
+            frame,
+            camera: query.camera,
+            targets: targets
+                .iter()
+                .map(|t| TargetView {
+                    x: t.x,
+                    y: t.y,
+                    n: t.n,
+                    nx: t.nx,
+                    ny: t.ny,
+                    sumg: t.sumg,
+                })
+                .collect(),
+        })
+        .into_response(),
+        TargetFormat::Csv => (
+            [(header::CONTENT_TYPE, "text/csv")],
+            formats::csv::format_targets(&targets),
+        )
+            .into_response(),
+        TargetFormat::Openptv => (
+            [(header::CONTENT_TYPE, "text/plain; charset=utf-8")],
+            formats::openptv::format_targets(&targets),
+        )
+            .into_response(),
+    })
+}
+
+/// Query of the all-particles route.
+#[derive(Debug, Deserialize, IntoParams)]
+#[serde(deny_unknown_fields)]
+pub struct AllParticlesQuery {
+    /// Only csv.
+    #[serde(default)]
+    pub format: Option<String>,
+}
+
+/// All processed frames' particles as one CSV with a `frame` column,
+/// streamed frame by frame.
+#[utoipa::path(
+    get, path = "/api/v1/sequences/{id}/particles", tag = "sequences",
+    params(("id" = i64, Path, description = "Sequence id"), AllParticlesQuery),
+    responses(
+        (status = 200, content_type = "text/csv", body = String, description = "frame,x,y,z,sx,sy,sz,rms_px,cameras,t0,..."),
+        (status = 400, body = super::problem::Problem, content_type = "application/problem+json"),
+        (status = 404, body = super::problem::Problem, content_type = "application/problem+json"),
+    )
+)]
+pub async fn all_particles(
+    State(state): Shared,
+    ApiPath(id): ApiPath<i64>,
+    ApiQuery(query): ApiQuery<AllParticlesQuery>,
+) -> Result<Response, ApiError> {
+    if let Some(format) = query.format.as_deref().filter(|f| *f != "csv") {
+        return Err(ApiError::bad_request(format!(
+            "format `{format}`: all frames come only as csv"
+        )));
+    }
+    let row = sequence(&state, id).await?;
+    let cameras = state
+        .store
+        .calibration(row.calibration_id)
+        .await?
+        .map_or(0, |c| c.cameras as usize);
+    let frames = state.store.processed_frames(id).await?;
+    let header_line = {
+        let mut line = String::from("frame,");
+        line.push_str(formats::csv::format_particles(&[], cameras).trim_end());
+        line.push('\n');
+        line
+    };
+    let first = futures_util::stream::once(async move { Ok::<_, std::io::Error>(header_line) });
+    let rest = futures_util::stream::unfold(
+        (state, frames.into_iter()),
+        move |(state, mut frames)| async move {
+            let frame = frames.next()?;
+            let chunk = match state.store.frame_particles(id, frame).await {
+                Ok(Some((_, blob))) => match codec::decode_particles(&blob, cameras) {
+                    Ok(particles) => Ok(frame_rows(frame, &particles, cameras)),
+                    Err(e) => Err(std::io::Error::other(e)),
+                },
+                Ok(None) => Ok(String::new()),
+                Err(e) => Err(std::io::Error::other(e)),
+            };
+            Some((chunk, (state, frames)))
+        },
+    );
+    use futures_util::StreamExt as _;
+    Ok((
+        [(header::CONTENT_TYPE, "text/csv")],
+        Body::from_stream(first.chain(rest)),
+    )
+        .into_response())
+}
+
+/// A frame's particle rows with the frame number in front.
+fn frame_rows(frame: i64, particles: &[Particle], cameras: usize) -> String {
+    let table = formats::csv::format_particles(particles, cameras);
+    let mut out = String::with_capacity(table.len() + particles.len() * 8);
+    for line in table.lines().skip(1) {
+        out.push_str(&frame.to_string());
+        out.push(',');
+        out.push_str(line);
+        out.push('\n');
+    }
+    out
+}

@@ -1,0 +1,515 @@
+//! The durable job queue's workers.
+//!
+//! Jobs are rows of the `jobs` table ([`Store`]): enqueued in the same
+//! transaction as what they work on, claimed by one `UPDATE ... RETURNING`
+//! statement, and completed in the same transaction that stores their
+//! results, fenced by the claim (`locked_by`), so a job's results exist
+//! exactly once. Each kind of job is a [`JobHandler`] registered in
+//! [`JobKinds`] under its name; the workers do not know the kinds.
+//!
+//! Workers are async tasks, one per `--workers`, that claim a job, read its
+//! inputs, and hand the CPU work to [`CpuPool`] (a rayon pool of the same
+//! size), never computing on the async runtime's threads. A stopped or
+//! killed process leaves its running jobs `running`; the reaper
+//! ([`Store::reap`]) queues them again at the next start, and fails a job
+//! that was claimed [`MAX_ATTEMPTS`] times.
+//!
+//! Kinds today: [`PROCESS_FRAME`] ([`process_frame`]). Calibration by
+//! resection (`solve_calibration`) registers the same way once the core
+//! has it.
+
+use std::collections::HashMap;
+use std::future::Future;
+use std::panic::AssertUnwindSafe;
+use std::pin::Pin;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use serde::Deserialize;
+use tokio::sync::{oneshot, watch};
+
+use super::app::AppState;
+use super::codec;
+use super::parameters::SequenceParameters;
+use super::store::{ClaimedJob, CompleteError, Store, MAX_ATTEMPTS};
+use crate::formats;
+use crate::formats::image::RawLayout;
+use crate::photogrammetry::{BitDepth, FramePipeline, GreyImage, PipelineError};
+
+/// The kind of the job that processes one uploaded frame.
+pub const PROCESS_FRAME: &str = "process_frame";
+
+/// Why a job attempt did not succeed.
+#[derive(Debug, thiserror::Error)]
+pub enum JobError {
+    /// The job cannot succeed (bad input): it fails, with this message.
+    #[error("{0}")]
+    Failed(String),
+    /// A passing failure (I/O, database): the job is queued again, up to
+    /// [`MAX_ATTEMPTS`] claims.
+    #[error("{0}")]
+    Retry(String),
+    /// The worker no longer holds the job; nothing to do.
+    #[error("lost the job's claim")]
+    LostLease,
+}
+
+impl From<sqlx::Error> for JobError {
+    fn from(error: sqlx::Error) -> Self {
+        JobError::Retry(format!("database: {error}"))
+    }
+}
+
+impl From<CompleteError> for JobError {
+    fn from(error: CompleteError) -> Self {
+        match error {
+            CompleteError::LostLease(_) => JobError::LostLease,
+            CompleteError::Database(e) => e.into(),
+        }
+    }
+}
+
+/// A claimed job and when its attempt started.
+#[derive(Clone, Debug)]
+pub struct JobRun {
+    /// The claim.
+    pub job: ClaimedJob,
+    /// When the attempt started.
+    pub started: Instant,
+}
+
+impl JobRun {
+    /// Seconds since the attempt started.
+    pub fn elapsed_s(&self) -> f64 {
+        self.started.elapsed().as_secs_f64()
+    }
+}
+
+/// The future a handler returns.
+pub type JobFuture = Pin<Box<dyn Future<Output = Result<(), JobError>> + Send>>;
+
+/// Runs one kind of job: reads the payload, does the work, and completes
+/// the job with its results in one transaction ([`super::store::finish`]).
+pub type JobHandler = Arc<dyn Fn(Arc<AppState>, JobRun) -> JobFuture + Send + Sync>;
+
+/// The job kinds the workers run, by name.
+#[derive(Clone, Default)]
+pub struct JobKinds {
+    handlers: HashMap<&'static str, JobHandler>,
+}
+
+impl JobKinds {
+    /// The kinds the service has today.
+    pub fn standard() -> JobKinds {
+        let mut kinds = JobKinds::default();
+        kinds.register(PROCESS_FRAME, process_frame);
+        kinds
+    }
+
+    /// Registers a kind: `handler(state, run)`.
+    pub fn register<F, Fut>(&mut self, kind: &'static str, handler: F)
+    where
+        F: Fn(Arc<AppState>, JobRun) -> Fut + Send + Sync + 'static,
+        Fut: Future<Output = Result<(), JobError>> + Send + 'static,
+    {
+        self.handlers.insert(
+            kind,
+            Arc::new(move |state, run| Box::pin(handler(state, run))),
+        );
+    }
+
+    fn get(&self, kind: &str) -> Option<&JobHandler> {
+        self.handlers.get(kind)
+    }
+}
+
+/// A bounded pool of CPU threads for detection and matching.
+#[derive(Debug)]
+pub struct CpuPool {
+    pool: rayon::ThreadPool,
+}
+
+impl CpuPool {
+    /// A pool of `threads` threads.
+    pub fn new(threads: usize) -> Result<CpuPool, rayon::ThreadPoolBuildError> {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads.max(1))
+            .thread_name(|i| format!("ptv-cpu-{i}"))
+            .build()?;
+        Ok(CpuPool { pool })
+    }
+
+    /// Runs `work` on the pool and waits for it without blocking the async
+    /// runtime; a panic in `work` comes back as an error message.
+    pub async fn run<T, F>(&self, work: F) -> Result<T, String>
+    where
+        T: Send + 'static,
+        F: FnOnce() -> T + Send + 'static,
+    {
+        let (sender, receiver) = oneshot::channel();
+        self.pool.spawn(move || {
+            let result = std::panic::catch_unwind(AssertUnwindSafe(work));
+            let _ = sender.send(result);
+        });
+        match receiver.await {
+            Ok(Ok(value)) => Ok(value),
+            Ok(Err(panic)) => Err(panic
+                .downcast_ref::<&str>()
+                .map(|s| s.to_string())
+                .or_else(|| panic.downcast_ref::<String>().cloned())
+                .unwrap_or_else(|| "a panic".to_owned())),
+            Err(_) => Err("the CPU pool dropped the work".to_owned()),
+        }
+    }
+}
+
+/// Prepared frame pipelines by sequence (preparing one builds the
+/// matcher's refraction tables, far more work than a frame).
+#[derive(Debug, Default)]
+pub struct PipelineCache {
+    pipelines: Mutex<HashMap<i64, Arc<FramePipeline>>>,
+}
+
+/// Pipelines kept at most; beyond, the cache starts afresh.
+const CACHED_PIPELINES: usize = 32;
+
+impl PipelineCache {
+    /// The sequence's pipeline, if prepared.
+    pub fn get(&self, sequence_id: i64) -> Option<Arc<FramePipeline>> {
+        let map = self.pipelines.lock().unwrap_or_else(|e| e.into_inner());
+        map.get(&sequence_id).cloned()
+    }
+
+    /// Keeps a prepared pipeline.
+    pub fn insert(&self, sequence_id: i64, pipeline: Arc<FramePipeline>) {
+        let mut map = self.pipelines.lock().unwrap_or_else(|e| e.into_inner());
+        if map.len() >= CACHED_PIPELINES {
+            map.clear();
+        }
+        map.insert(sequence_id, pipeline);
+    }
+}
+
+/// Prepares the frame pipeline of a calibration and parameters, on the CPU
+/// pool.
+pub async fn prepare_pipeline(
+    state: &AppState,
+    calibration_model: &str,
+    parameters: &SequenceParameters,
+) -> Result<FramePipeline, String> {
+    let cameras = formats::calibration::from_json(calibration_model, "the stored calibration")
+        .map_err(|e| e.to_string())?;
+    let detection = parameters.detection();
+    let matching = parameters.matching();
+    state
+        .cpu
+        .run(move || FramePipeline::new(&cameras, &detection, &matching))
+        .await?
+        .map_err(|e| error_chain(&e))
+}
+
+/// An error and its sources as one line, `: `-separated, a cause the text
+/// already ends with written once.
+pub fn error_chain(error: &(dyn std::error::Error + 'static)) -> String {
+    let mut text = error.to_string();
+    let mut source = error.source();
+    while let Some(cause) = source {
+        let cause_text = cause.to_string();
+        if !text.ends_with(&cause_text) {
+            text.push_str(": ");
+            text.push_str(&cause_text);
+        }
+        source = cause.source();
+    }
+    text
+}
+
+/// Runs `workers` workers until `shutdown` turns true; each finishes its
+/// running job first.
+pub fn spawn_workers(
+    state: Arc<AppState>,
+    kinds: JobKinds,
+    workers: usize,
+    shutdown: watch::Receiver<bool>,
+) -> tokio::task::JoinSet<()> {
+    let mut set = tokio::task::JoinSet::new();
+    for index in 0..workers {
+        let worker = format!("{}/{index}", state.instance);
+        set.spawn(worker_loop(
+            state.clone(),
+            kinds.clone(),
+            worker,
+            shutdown.clone(),
+        ));
+    }
+    set
+}
+
+async fn worker_loop(
+    state: Arc<AppState>,
+    kinds: JobKinds,
+    worker: String,
+    mut shutdown: watch::Receiver<bool>,
+) {
+    loop {
+        if *shutdown.borrow() {
+            return;
+        }
+        match state.store.claim(&worker).await {
+            Ok(Some(job)) => execute(&state, &kinds, job).await,
+            Ok(None) => {
+                tokio::select! {
+                    _ = state.wake.notified() => {}
+                    _ = tokio::time::sleep(Duration::from_secs(1)) => {}
+                    _ = shutdown.changed() => {}
+                }
+            }
+            Err(error) => {
+                tracing::error!(%error, "cannot claim a job");
+                tokio::time::sleep(Duration::from_secs(1)).await;
+            }
+        }
+    }
+}
+
+/// Runs one claimed job and records its outcome.
+async fn execute(state: &Arc<AppState>, kinds: &JobKinds, job: ClaimedJob) {
+    let run = JobRun {
+        job: job.clone(),
+        started: Instant::now(),
+    };
+    let kind = job.kind.clone();
+    let outcome = match kinds.get(&kind) {
+        Some(handler) => handler(state.clone(), run.clone()).await,
+        None => Err(JobError::Failed(format!(
+            "this service does not know jobs of kind `{kind}`"
+        ))),
+    };
+    let seconds = run.elapsed_s();
+    let label = match outcome {
+        Ok(()) => "succeeded",
+        Err(JobError::LostLease) => {
+            tracing::warn!(job = job.id, "job completed elsewhere; result dropped");
+            "lost"
+        }
+        Err(JobError::Failed(message)) => {
+            if let Err(error) = state.store.fail(&job, &message, seconds).await {
+                tracing::error!(job = job.id, %error, "cannot record a failure");
+            }
+            "failed"
+        }
+        Err(JobError::Retry(message)) if job.attempts < MAX_ATTEMPTS => {
+            tracing::warn!(job = job.id, %message, "job attempt failed; queued again");
+            if let Err(error) = state.store.release(&job, Some(&message)).await {
+                tracing::error!(job = job.id, %error, "cannot queue a job again");
+            }
+            state.wake.notify_one();
+            "retried"
+        }
+        Err(JobError::Retry(message)) => {
+            let message = format!("gave up after {} attempts: {message}", job.attempts);
+            if let Err(error) = state.store.fail(&job, &message, seconds).await {
+                tracing::error!(job = job.id, %error, "cannot record a failure");
+            }
+            "failed"
+        }
+    };
+    state.metrics.job(&kind, label, seconds);
+}
+
+/// A process_frame job's payload.
+#[derive(Debug, Deserialize)]
+struct FramePayload {
+    sequence_id: i64,
+    frame: i64,
+}
+
+/// The raw layout as stored with a frame.
+#[derive(Debug, Deserialize, serde::Serialize)]
+pub struct StoredRawLayout {
+    /// Width (px).
+    pub width: u32,
+    /// Height (px).
+    pub height: u32,
+    /// 8 or 16.
+    pub bits: u32,
+}
+
+impl StoredRawLayout {
+    /// The layout for the decoder.
+    pub fn layout(&self) -> Option<RawLayout> {
+        Some(RawLayout {
+            width: self.width,
+            height: self.height,
+            bit_depth: BitDepth::from_bits(self.bits)?,
+        })
+    }
+}
+
+/// The sequence's pipeline, from the cache or prepared now.
+async fn pipeline_of(
+    state: &AppState,
+    sequence_id: i64,
+    calibration_id: i64,
+) -> Result<Arc<FramePipeline>, JobError> {
+    if let Some(pipeline) = state.pipelines.get(sequence_id) {
+        return Ok(pipeline);
+    }
+    let sequence = state
+        .store
+        .sequence(sequence_id)
+        .await?
+        .ok_or_else(|| JobError::Failed(format!("sequence {sequence_id} does not exist")))?;
+    let calibration = state
+        .store
+        .calibration(calibration_id)
+        .await?
+        .ok_or_else(|| JobError::Failed(format!("calibration {calibration_id} does not exist")))?;
+    let parameters: SequenceParameters = serde_json::from_str(&sequence.parameters)
+        .map_err(|e| JobError::Failed(format!("the sequence's stored parameters: {e}")))?;
+    let pipeline = Arc::new(
+        prepare_pipeline(state, &calibration.model, &parameters)
+            .await
+            .map_err(JobError::Failed)?,
+    );
+    state.pipelines.insert(sequence_id, pipeline.clone());
+    Ok(pipeline)
+}
+
+/// The process_frame job: the frame's images (or uploaded targets) to
+/// particles, stored with the detected targets.
+pub async fn process_frame(state: Arc<AppState>, run: JobRun) -> Result<(), JobError> {
+    let payload: FramePayload = serde_json::from_str(&run.job.payload)
+        .map_err(|e| JobError::Failed(format!("malformed payload: {e}")))?;
+    let input = state
+        .store
+        .frame_input(payload.sequence_id, payload.frame)
+        .await?
+        .ok_or_else(|| JobError::Failed("the frame does not exist".to_owned()))?;
+    let pipeline = pipeline_of(&state, input.sequence_id, input.calibration_id).await?;
+    let cameras = pipeline.cameras().len();
+
+    let (targets, particles) = if input.input == "images" {
+        let layout = match &input.raw_layout {
+            None => None,
+            Some(text) => serde_json::from_str::<StoredRawLayout>(text)
+                .ok()
+                .and_then(|l| l.layout())
+                .map(Some)
+                .ok_or_else(|| JobError::Failed(format!("malformed raw layout {text}")))?,
+        };
+        let mut files = Vec::new();
+        for (camera, sha256) in state
+            .store
+            .frame_images(input.sequence_id, input.frame)
+            .await?
+        {
+            let bytes = state.images.read(&sha256).await.map_err(|e| {
+                JobError::Failed(format!("the image of camera {camera} is missing: {e}"))
+            })?;
+            files.push((camera, bytes));
+        }
+        let pipeline = pipeline.clone();
+        let result = state
+            .cpu
+            .run(move || {
+                let images = files
+                    .iter()
+                    .map(|(camera, bytes)| {
+                        let source = format!("cam{camera}");
+                        match &layout {
+                            Some(layout) => formats::image::decode_raw(bytes, layout, &source),
+                            None => formats::image::decode_image(bytes, &source),
+                        }
+                    })
+                    .collect::<Result<Vec<GreyImage>, _>>()
+                    .map_err(|e| e.to_string())?;
+                let frame = pipeline
+                    .process(&images)
+                    .map_err(|e: PipelineError| error_chain(&e))?;
+                let targets: Vec<(i64, i64, Vec<u8>)> = frame
+                    .targets
+                    .iter()
+                    .enumerate()
+                    .map(|(camera, list)| {
+                        (
+                            camera as i64,
+                            list.len() as i64,
+                            codec::encode_targets(list),
+                        )
+                    })
+                    .collect();
+                Ok::<_, String>((targets, frame.particles))
+            })
+            .await
+            .map_err(|panic| JobError::Failed(format!("processing panicked: {panic}")))?;
+        result.map_err(JobError::Failed)?
+    } else {
+        let stored = state
+            .store
+            .frame_targets(input.sequence_id, input.frame)
+            .await?;
+        let pipeline = pipeline.clone();
+        let particles = state
+            .cpu
+            .run(move || {
+                let targets = stored
+                    .iter()
+                    .map(|(_, _, blob)| codec::decode_targets(blob))
+                    .collect::<Result<Vec<_>, _>>()
+                    .map_err(|e| e.to_string())?;
+                pipeline
+                    .matcher()
+                    .match_frame(&targets)
+                    .map_err(|e| error_chain(&e))
+            })
+            .await
+            .map_err(|panic| JobError::Failed(format!("matching panicked: {panic}")))?
+            .map_err(JobError::Failed)?;
+        (Vec::new(), particles)
+    };
+
+    let blob = codec::encode_particles(&particles, cameras);
+    let keep_images = state
+        .store
+        .sequence(input.sequence_id)
+        .await?
+        .map_or(true, |s| s.keep_images);
+    let orphans = state
+        .store
+        .complete_frame(
+            &run.job,
+            &input,
+            &targets,
+            (particles.len() as i64, &blob),
+            !keep_images,
+            run.elapsed_s(),
+        )
+        .await?;
+    state.metrics.particles(particles.len());
+    remove_unused_images(&state.store, &state.images, &orphans).await;
+    Ok(())
+}
+
+/// Deletes the files of images no frame refers to any more.
+async fn remove_unused_images(
+    store: &Store,
+    images: &super::images::ImageStore,
+    hashes: &[String],
+) {
+    if hashes.is_empty() {
+        return;
+    }
+    let _guard = images.lock().await;
+    for hash in hashes {
+        match store.image_in_use(hash).await {
+            Ok(false) => {
+                if let Err(error) = images.remove(hash).await {
+                    tracing::warn!(%error, hash, "cannot delete an image file");
+                }
+            }
+            Ok(true) => {}
+            Err(error) => tracing::warn!(%error, "cannot check an image's use"),
+        }
+    }
+}

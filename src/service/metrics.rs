@@ -1,0 +1,167 @@
+//! Counters for `/metrics`, rendered in Prometheus' text format by hand:
+//! HTTP requests by route and status, job durations and particles per
+//! frame as histograms. Queue depth and jobs by state are read from the
+//! database at scrape time, so they are right across restarts.
+
+use std::collections::BTreeMap;
+use std::fmt::Write;
+use std::sync::Mutex;
+
+/// A cumulative histogram.
+#[derive(Clone, Debug)]
+struct Histogram {
+    bounds: &'static [f64],
+    counts: Vec<u64>,
+    sum: f64,
+    count: u64,
+}
+
+impl Histogram {
+    fn new(bounds: &'static [f64]) -> Histogram {
+        Histogram {
+            bounds,
+            counts: vec![0; bounds.len()],
+            sum: 0.0,
+            count: 0,
+        }
+    }
+
+    fn observe(&mut self, value: f64) {
+        for (bound, count) in self.bounds.iter().zip(&mut self.counts) {
+            if value <= *bound {
+                *count += 1;
+            }
+        }
+        self.sum += value;
+        self.count += 1;
+    }
+
+    fn render(&self, out: &mut String, name: &str, labels: &str) {
+        let sep = if labels.is_empty() { "" } else { "," };
+        for (bound, count) in self.bounds.iter().zip(&self.counts) {
+            let _ = writeln!(out, "{name}_bucket{{{labels}{sep}le=\"{bound}\"}} {count}");
+        }
+        let _ = writeln!(
+            out,
+            "{name}_bucket{{{labels}{sep}le=\"+Inf\"}} {}",
+            self.count
+        );
+        let braces = if labels.is_empty() {
+            String::new()
+        } else {
+            format!("{{{labels}}}")
+        };
+        let _ = writeln!(out, "{name}_sum{braces} {}", self.sum);
+        let _ = writeln!(out, "{name}_count{braces} {}", self.count);
+    }
+}
+
+const DURATION_BOUNDS: &[f64] = &[0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0];
+const PARTICLE_BOUNDS: &[f64] = &[0.0, 10.0, 100.0, 500.0, 1000.0, 2000.0, 5000.0, 10000.0];
+
+#[derive(Debug, Default)]
+struct Inner {
+    /// (method, route, status) -> count.
+    requests: BTreeMap<(String, String, u16), u64>,
+    /// (kind, outcome) -> durations.
+    job_seconds: BTreeMap<(String, &'static str), Histogram>,
+    particles: Option<Histogram>,
+}
+
+/// The service's counters.
+#[derive(Debug, Default)]
+pub struct Metrics {
+    inner: Mutex<Inner>,
+}
+
+impl Metrics {
+    fn with<T>(&self, f: impl FnOnce(&mut Inner) -> T) -> T {
+        let mut inner = self.inner.lock().unwrap_or_else(|e| e.into_inner());
+        f(&mut inner)
+    }
+
+    /// Counts a request to `route` (the matched path pattern).
+    pub fn request(&self, method: &str, route: &str, status: u16) {
+        self.with(|i| {
+            *i.requests
+                .entry((method.to_owned(), route.to_owned(), status))
+                .or_default() += 1;
+        });
+    }
+
+    /// Records a finished job attempt.
+    pub fn job(&self, kind: &str, outcome: &'static str, seconds: f64) {
+        self.with(|i| {
+            i.job_seconds
+                .entry((kind.to_owned(), outcome))
+                .or_insert_with(|| Histogram::new(DURATION_BOUNDS))
+                .observe(seconds);
+        });
+    }
+
+    /// Records a processed frame's particle count.
+    pub fn particles(&self, count: usize) {
+        self.with(|i| {
+            i.particles
+                .get_or_insert_with(|| Histogram::new(PARTICLE_BOUNDS))
+                .observe(count as f64);
+        });
+    }
+
+    /// The text exposition; `jobs` are (kind, state, count) from the store.
+    pub fn render(&self, jobs: &[(String, String, i64)]) -> String {
+        let mut out = String::new();
+        out.push_str("# HELP ptv_http_requests_total HTTP requests by route and status.\n");
+        out.push_str("# TYPE ptv_http_requests_total counter\n");
+        self.with(|i| {
+            for ((method, route, status), count) in &i.requests {
+                let _ = writeln!(
+                    out,
+                    "ptv_http_requests_total{{method=\"{method}\",route=\"{}\",status=\"{status}\"}} {count}",
+                    escape(route)
+                );
+            }
+        });
+        out.push_str("# HELP ptv_queue_depth Jobs waiting for a worker.\n");
+        out.push_str("# TYPE ptv_queue_depth gauge\n");
+        let queued: i64 = jobs
+            .iter()
+            .filter(|(_, state, _)| state == "queued")
+            .map(|(_, _, n)| n)
+            .sum();
+        let _ = writeln!(out, "ptv_queue_depth {queued}");
+        out.push_str("# HELP ptv_jobs Jobs by kind and state.\n");
+        out.push_str("# TYPE ptv_jobs gauge\n");
+        for (kind, state, count) in jobs {
+            let _ = writeln!(
+                out,
+                "ptv_jobs{{kind=\"{}\",state=\"{}\"}} {count}",
+                escape(kind),
+                escape(state)
+            );
+        }
+        out.push_str("# HELP ptv_job_duration_seconds Job attempts by kind and outcome.\n");
+        out.push_str("# TYPE ptv_job_duration_seconds histogram\n");
+        self.with(|i| {
+            for ((kind, outcome), histogram) in &i.job_seconds {
+                let labels = format!("kind=\"{}\",outcome=\"{outcome}\"", escape(kind));
+                histogram.render(&mut out, "ptv_job_duration_seconds", &labels);
+            }
+            out.push_str("# HELP ptv_frame_particles Particles found per processed frame.\n");
+            out.push_str("# TYPE ptv_frame_particles histogram\n");
+            i.particles
+                .clone()
+                .unwrap_or_else(|| Histogram::new(PARTICLE_BOUNDS))
+                .render(&mut out, "ptv_frame_particles", "");
+        });
+        out
+    }
+}
+
+/// Escapes a label value.
+fn escape(value: &str) -> String {
+    value
+        .replace('\\', "\\\\")
+        .replace('"', "\\\"")
+        .replace('\n', "\\n")
+}

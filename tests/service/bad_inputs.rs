@@ -1,0 +1,320 @@
+//! Bad requests: each gets its 4xx as problem+json (checked by
+//! `status_and_json`), nothing panics, and the database holds only what
+//! good requests stored.
+
+use std::io::{Read, Write};
+
+use reqwest::multipart::{Form, Part};
+use serde_json::json;
+
+use crate::helpers::*;
+
+/// Sends raw bytes over TCP and returns the status of the answer.
+fn raw_request(address: &str, request: &[u8]) -> (u16, String) {
+    let host = address.strip_prefix("http://").unwrap();
+    let mut stream = std::net::TcpStream::connect(host).unwrap();
+    stream.write_all(request).unwrap();
+    let _ = stream.shutdown(std::net::Shutdown::Write);
+    let mut answer = String::new();
+    let _ = stream.read_to_string(&mut answer);
+    let status = answer
+        .split(' ')
+        .nth(1)
+        .and_then(|s| s.parse().ok())
+        .unwrap_or_else(|| panic!("no status in `{answer}`"));
+    (status, answer)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn bad_inputs_get_their_4xx_and_store_nothing() {
+    let app = spawn_app().await;
+    let rig = rig();
+    let calibration = app.create_calibration(&rig.cameras).await;
+    let sequence = app.create_sequence(calibration, &rig.volume, true).await;
+    let rendered = rig.render(50, 3);
+    let files: Vec<Vec<u8>> = rendered.images.iter().map(png).collect();
+    let frames = format!("/sequences/{sequence}/frames");
+
+    // Invalid JSON, JSON of the wrong shape, not JSON at all.
+    let send = |path: &str, content_type: &'static str, body: &'static str| {
+        app.client
+            .post(app.api(path))
+            .header("content-type", content_type)
+            .body(body)
+            .send()
+    };
+    for (path, content_type, body, expected) in [
+        ("/calibrations", "application/json", "{\"cameras\": [", 400),
+        ("/calibrations", "application/json", "{\"cameras\": 3}", 422),
+        ("/calibrations", "text/plain", "{}", 415),
+        ("/sequences", "application/json", "not json", 400),
+        (
+            "/sequences",
+            "application/json",
+            "{\"calibration_id\": \"one\"}",
+            422,
+        ),
+        (
+            "/sequences",
+            "application/json",
+            "{\"calibration_id\": 1, \"colour\": 1}",
+            422,
+        ),
+        (
+            "/sequences",
+            "application/json",
+            "{\"calibration_id\": 1, \"detection\": {\"min_pixels\": 9, \"max_pixels\": 3}}",
+            422,
+        ),
+        (
+            "/sequences",
+            "application/json",
+            "{\"calibration_id\": 1, \"matching\": {\"volume\": [1, 0, 0, 1, 0, 1]}}",
+            422,
+        ),
+        (
+            "/sequences",
+            "application/json",
+            "{\"calibration_id\": 1, \"matching\": {\"tolerance\": -1}}",
+            422,
+        ),
+        (
+            "/calibrations/1/project",
+            "application/json",
+            "{\"points\": [[1, 2]]}",
+            422,
+        ),
+        (
+            "/calibrations/1/intersect",
+            "application/json",
+            "{\"pixels\": [[1, 2]]}",
+            422,
+        ),
+    ] {
+        let (status, body) = status_and_json(send(path, content_type, body).await.unwrap()).await;
+        assert_eq!(status, expected, "{path} {body}");
+        assert!(
+            body["detail"].as_str().is_some_and(|d| !d.is_empty()),
+            "{body}"
+        );
+    }
+
+    // Unknown ids and malformed ones.
+    for (path, expected) in [
+        ("/calibrations/999".to_owned(), 404),
+        ("/calibrations/abc".to_owned(), 400),
+        ("/sequences/999".to_owned(), 404),
+        ("/jobs/999".to_owned(), 404),
+        (format!("/sequences/{sequence}/frames/5/particles"), 404),
+        (
+            format!("/sequences/{sequence}/frames/5/targets?camera=0"),
+            404,
+        ),
+        (format!("/sequences/{sequence}/frames/0/targets"), 400),
+        (
+            format!("/sequences/{sequence}/frames/0/particles?format=xml"),
+            400,
+        ),
+        ("/no/such/route".to_owned(), 404),
+    ] {
+        let (status, body) = app.get_json(&path).await;
+        assert_eq!(status, expected, "{path} {body}");
+    }
+    let (status, body) = app
+        .post_json("/sequences", &json!({"calibration_id": 999}))
+        .await;
+    assert_eq!(status, 422, "{body}");
+    let (status, body) = app.upload(999, image_form(0, &files)).await;
+    assert_eq!(status, 404, "{body}");
+
+    // A path-like sequence name.
+    let (status, body) = app
+        .post_json(
+            "/sequences",
+            &json!({"calibration_id": calibration, "name": "../../etc/passwd"}),
+        )
+        .await;
+    assert_eq!(status, 422, "{body}");
+
+    // Uploads: wrong camera count, corrupt image, wrong size, unknown and
+    // path-like part names, images and targets mixed, raw of the wrong
+    // length, no frame number, repeated parts, not multipart.
+    let garbage = b"this is not an image at all".to_vec();
+    let small = png(&ptv::photogrammetry::GreyImage::from_u8(64, 64, vec![0; 64 * 64]).unwrap());
+    let cases: Vec<(Form, u16, &str)> = vec![
+        (image_form(0, &files[..3]), 422, "3 were given"),
+        (
+            image_form(
+                0,
+                &[
+                    files[0].clone(),
+                    garbage.clone(),
+                    files[2].clone(),
+                    files[3].clone(),
+                ],
+            ),
+            415,
+            "cam1",
+        ),
+        (
+            image_form(
+                0,
+                &[files[0].clone(), files[1].clone(), small, files[3].clone()],
+            ),
+            422,
+            "64x64",
+        ),
+        (
+            image_form(0, &files).text("../cam0", "x"),
+            400,
+            "unknown part",
+        ),
+        (image_form(0, &files).text("cam4", "x"), 422, "cam0 to cam3"),
+        (
+            image_form(0, &files).text("targets0", "x,y\n1,2\n"),
+            400,
+            "not both",
+        ),
+        (
+            image_form(0, &files)
+                .text("width", "1280")
+                .text("height", "1024")
+                .text("bits", "8"),
+            422,
+            "raw",
+        ),
+        (
+            Form::new().part("cam0", Part::bytes(files[0].clone())),
+            400,
+            "`frame` part is missing",
+        ),
+        (image_form(0, &files).text("frame", "1"), 400, "twice"),
+        (Form::new().text("frame", "-3"), 422, "non-negative"),
+        (
+            Form::new()
+                .text("frame", "0")
+                .text("targets0", "x,y\n1,nan\n"),
+            422,
+            "targets0",
+        ),
+    ];
+    for (index, (form, expected, needle)) in cases.into_iter().enumerate() {
+        let (status, body) = app.upload(sequence, form).await;
+        assert_eq!(status, expected, "case {index}: {body}");
+        assert!(
+            body["detail"].as_str().unwrap().contains(needle),
+            "case {index}: {body}"
+        );
+    }
+    let response = app
+        .client
+        .post(app.api(&frames))
+        .json(&json!({"frame": 0}))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(status_and_json(response).await.0, 415);
+
+    // A truncated multipart body (the closing boundary never comes).
+    let body = "--XYZ\r\nContent-Disposition: form-data; name=\"frame\"\r\n\r\n0\r\n--XYZ\r\n\
+                Content-Disposition: form-data; name=\"cam0\"; filename=\"a.png\"\r\n\r\n\x07\x07";
+    let response = app
+        .client
+        .post(app.api(&frames))
+        .header("content-type", "multipart/form-data; boundary=XYZ")
+        .body(body)
+        .send()
+        .await
+        .unwrap();
+    let (status, problem) = status_and_json(response).await;
+    assert_eq!(status, 400, "{problem}");
+
+    // A 2 GB body is refused from its declared length, before it is read.
+    let host = app.address.strip_prefix("http://").unwrap().to_owned();
+    let address = app.address.clone();
+    let path = app.api(&frames).replacen(&address, "", 1);
+    let (status, answer) = tokio::task::spawn_blocking(move || {
+        raw_request(
+            &address,
+            format!(
+                "POST {path} HTTP/1.1\r\nHost: {host}\r\nContent-Type: multipart/form-data; \
+                 boundary=XYZ\r\nContent-Length: 2147483648\r\n\r\n--XYZ\r\n"
+            )
+            .as_bytes(),
+        )
+    })
+    .await
+    .unwrap();
+    assert_eq!(status, 413, "{answer}");
+    assert!(answer.contains("application/problem+json"), "{answer}");
+
+    // A streamed body (no declared length) is cut off at the limit (64 MiB
+    // here) without being held whole: send 65 MiB of one image part.
+    let address = app.address.clone();
+    let url = app.api(&frames);
+    let (status, detail) = {
+        let chunk = vec![0u8; 1 << 20];
+        let head = "--XYZ\r\nContent-Disposition: form-data; name=\"frame\"\r\n\r\n7\r\n--XYZ\r\n\
+                    Content-Disposition: form-data; name=\"cam0\"; filename=\"big\"\r\n\r\n";
+        let parts = std::iter::once(Ok::<_, std::io::Error>(head.as_bytes().to_vec()))
+            .chain((0..65).map(move |_| Ok(chunk.clone())));
+        let body = reqwest::Body::wrap_stream(futures_util::stream::iter(parts));
+        let result = app
+            .client
+            .post(url)
+            .header("content-type", "multipart/form-data; boundary=XYZ")
+            .body(body)
+            .send()
+            .await;
+        match result {
+            Ok(response) => {
+                let (status, body) = status_and_json(response).await;
+                (status, body.to_string())
+            }
+            // The server may close the connection while the client still
+            // sends; then it must have answered 413 first, which the
+            // metrics record.
+            Err(error) => (0, error.to_string()),
+        }
+    };
+    let _ = address;
+    if status != 0 {
+        assert_eq!(status, 413, "{detail}");
+    }
+
+    // One good upload, then the same frame again: 409.
+    let (status, body) = app.upload(sequence, image_form(0, &files)).await;
+    assert_eq!(status, 202, "{body}");
+    let (status, body) = app.upload(sequence, image_form(0, &files)).await;
+    assert_eq!(status, 409, "{body}");
+    app.wait_for_sequence(sequence).await;
+
+    let metrics = app
+        .client
+        .get(format!("{}/metrics", app.address))
+        .send()
+        .await
+        .unwrap()
+        .text()
+        .await
+        .unwrap();
+    assert!(!metrics.contains("status=\"5"), "{metrics}");
+    assert!(
+        metrics.contains("route=\"/api/v1/sequences/{id}/frames\",status=\"413\"} 2"),
+        "{metrics}"
+    );
+
+    // The database holds the good frame only, its 4 images, and the
+    // image store its 4 files; no upload is left half-written.
+    let db = app.database().await;
+    assert_eq!(count(&db, "SELECT count(*) FROM frames").await, 1);
+    assert_eq!(count(&db, "SELECT count(*) FROM jobs").await, 1);
+    assert_eq!(count(&db, "SELECT count(*) FROM images").await, 4);
+    assert_eq!(count(&db, "SELECT count(*) FROM sequences").await, 1);
+    assert_eq!(count(&db, "SELECT count(*) FROM calibrations").await, 1);
+    let stored = crate::api::walk(&app.data_dir.path().join("images"));
+    assert_eq!(stored.len(), 4, "{stored:?}");
+    let temporary = crate::api::walk(&app.data_dir.path().join("tmp"));
+    assert!(temporary.is_empty(), "{temporary:?}");
+    app.stop().await;
+}

@@ -1,0 +1,412 @@
+//! Helpers: the real service on port 0 with a fresh data directory (in
+//! this process, or the `ptv` binary as a child process), a synthetic
+//! experiment from the simulator, and multipart uploads.
+
+use std::io::{BufRead, BufReader};
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use image::{ExtendedColorType, ImageEncoder};
+use nalgebra::Point3;
+use ptv::formats;
+use ptv::photogrammetry::simulate::{self, RenderSpec, RigSpec, TargetFrame};
+use ptv::photogrammetry::{Camera, GreyImage, GreyPixels, Volume};
+use ptv::service::{Application, ServeArgs};
+use reqwest::multipart::{Form, Part};
+use serde_json::{json, Value};
+use tempfile::TempDir;
+use tokio::sync::oneshot;
+use tokio::task::JoinHandle;
+
+/// Longest wait for jobs to finish before a test gives up (a hang guard,
+/// not a speed requirement).
+pub const PATIENCE: Duration = Duration::from_secs(600);
+
+/// A running service in this process.
+pub struct TestApp {
+    /// `http://127.0.0.1:PORT`.
+    pub address: String,
+    /// A client.
+    pub client: reqwest::Client,
+    /// The data directory (removed on drop).
+    pub data_dir: TempDir,
+    stop: Option<oneshot::Sender<()>>,
+    server: Option<JoinHandle<()>>,
+}
+
+/// Settings for a test service: port 0, 2 workers, 64 MiB uploads.
+pub fn test_args(data_dir: &Path, api_token: Option<&str>) -> ServeArgs {
+    ServeArgs {
+        bind: "127.0.0.1:0".parse().unwrap(),
+        data_dir: data_dir.to_owned(),
+        workers: Some(2),
+        max_upload_mb: 64,
+        api_token: api_token.map(str::to_owned),
+    }
+}
+
+/// Starts the service with a fresh data directory.
+pub async fn spawn_app() -> TestApp {
+    spawn_app_with(None).await
+}
+
+/// Starts the service with a fresh data directory and an API token.
+pub async fn spawn_app_with(api_token: Option<&str>) -> TestApp {
+    let data_dir = tempfile::tempdir().unwrap();
+    let app = Application::build(test_args(data_dir.path(), api_token))
+        .await
+        .expect("the service starts");
+    let address = format!("http://{}", app.local_addr().unwrap());
+    let (stop, stopped) = oneshot::channel::<()>();
+    let server = tokio::spawn(async move {
+        app.run_until(async {
+            let _ = stopped.await;
+        })
+        .await
+        .expect("the service stops cleanly");
+    });
+    TestApp {
+        address,
+        client: reqwest::Client::new(),
+        data_dir,
+        stop: Some(stop),
+        server: Some(server),
+    }
+}
+
+impl TestApp {
+    /// `address` + `/api/v1` + `path`.
+    pub fn api(&self, path: &str) -> String {
+        format!("{}/api/v1{path}", self.address)
+    }
+
+    /// Stops the service gracefully and waits for it.
+    pub async fn stop(mut self) {
+        if let Some(stop) = self.stop.take() {
+            let _ = stop.send(());
+        }
+        if let Some(server) = self.server.take() {
+            server.await.unwrap();
+        }
+    }
+
+    /// Stops the service gracefully and hands over its data directory.
+    pub async fn stop_keeping_data(mut self) -> TempDir {
+        if let Some(stop) = self.stop.take() {
+            let _ = stop.send(());
+        }
+        if let Some(server) = self.server.take() {
+            server.await.unwrap();
+        }
+        let TestApp { data_dir, .. } = self;
+        data_dir
+    }
+
+    /// POSTs JSON; status and body.
+    pub async fn post_json(&self, path: &str, body: &Value) -> (u16, Value) {
+        let response = self
+            .client
+            .post(self.api(path))
+            .json(body)
+            .send()
+            .await
+            .unwrap();
+        status_and_json(response).await
+    }
+
+    /// GETs JSON; status and body.
+    pub async fn get_json(&self, path: &str) -> (u16, Value) {
+        let response = self.client.get(self.api(path)).send().await.unwrap();
+        status_and_json(response).await
+    }
+
+    /// Creates a calibration from cameras; its id.
+    pub async fn create_calibration(&self, cameras: &[Camera]) -> i64 {
+        let response = self
+            .client
+            .post(self.api("/calibrations"))
+            .header("content-type", "application/json")
+            .body(formats::calibration::to_json(cameras))
+            .send()
+            .await
+            .unwrap();
+        let (status, body) = status_and_json(response).await;
+        assert_eq!(status, 201, "{body}");
+        body["id"].as_i64().unwrap()
+    }
+
+    /// Creates a sequence; its id.
+    pub async fn create_sequence(&self, calibration_id: i64, volume: &Volume, keep: bool) -> i64 {
+        let (status, body) = self
+            .post_json("/sequences", &sequence_body(calibration_id, volume, keep))
+            .await;
+        assert_eq!(status, 201, "{body}");
+        body["id"].as_i64().unwrap()
+    }
+
+    /// Uploads a frame; status and body.
+    pub async fn upload(&self, sequence: i64, form: Form) -> (u16, Value) {
+        upload(&self.client, &self.address, sequence, form).await
+    }
+
+    /// Waits until no frame of the sequence is queued or running; the
+    /// sequence's view.
+    pub async fn wait_for_sequence(&self, sequence: i64) -> Value {
+        wait_for_sequence(&self.client, &self.address, sequence).await
+    }
+
+    /// Opens the service's database (read-only) for consistency checks.
+    pub async fn database(&self) -> sqlx::SqlitePool {
+        open_database(self.data_dir.path()).await
+    }
+}
+
+/// The body of `POST /sequences` for the synthetic rig.
+pub fn sequence_body(calibration_id: i64, volume: &Volume, keep: bool) -> Value {
+    json!({
+        "calibration_id": calibration_id,
+        "name": "synthetic",
+        "matching": {"volume": [volume.min.x, volume.max.x, volume.min.y, volume.max.y,
+                                volume.min.z, volume.max.z]},
+        "keep_images": keep,
+    })
+}
+
+/// Uploads a frame to the service at `address`.
+pub async fn upload(
+    client: &reqwest::Client,
+    address: &str,
+    sequence: i64,
+    form: Form,
+) -> (u16, Value) {
+    let response = client
+        .post(format!("{address}/api/v1/sequences/{sequence}/frames"))
+        .multipart(form)
+        .send()
+        .await
+        .unwrap();
+    status_and_json(response).await
+}
+
+/// Waits until no frame of the sequence is queued or running.
+pub async fn wait_for_sequence(client: &reqwest::Client, address: &str, sequence: i64) -> Value {
+    let start = Instant::now();
+    loop {
+        let response = client
+            .get(format!("{address}/api/v1/sequences/{sequence}"))
+            .send()
+            .await
+            .unwrap();
+        let (status, body) = status_and_json(response).await;
+        assert_eq!(status, 200, "{body}");
+        let frames = &body["frames"];
+        if frames["queued"] == 0 && frames["running"] == 0 {
+            return body;
+        }
+        assert!(start.elapsed() < PATIENCE, "frames still pending: {body}");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+}
+
+/// Opens a data directory's database read-only.
+pub async fn open_database(data_dir: &Path) -> sqlx::SqlitePool {
+    let options = sqlx::sqlite::SqliteConnectOptions::new()
+        .filename(data_dir.join("ptv.sqlite"))
+        .read_only(true);
+    sqlx::sqlite::SqlitePoolOptions::new()
+        .max_connections(1)
+        .connect_with(options)
+        .await
+        .unwrap()
+}
+
+/// A count from the database.
+pub async fn count(db: &sqlx::SqlitePool, sql: &str) -> i64 {
+    let (n,): (i64,) = sqlx::query_as(sql).fetch_one(db).await.unwrap();
+    n
+}
+
+/// The status and the JSON body (or the text as a JSON string).
+pub async fn status_and_json(response: reqwest::Response) -> (u16, Value) {
+    let status = response.status().as_u16();
+    let content_type = response
+        .headers()
+        .get("content-type")
+        .and_then(|v| v.to_str().ok())
+        .unwrap_or("")
+        .to_owned();
+    let text = response.text().await.unwrap();
+    if status >= 400 {
+        assert_eq!(content_type, "application/problem+json", "{status}: {text}");
+    }
+    let body = serde_json::from_str(&text).unwrap_or(Value::String(text));
+    (status, body)
+}
+
+/// The synthetic 4-camera rig of the simulator.
+pub struct Rig {
+    /// The cameras.
+    pub cameras: Vec<Camera>,
+    /// The observation volume.
+    pub volume: Volume,
+}
+
+/// The simulator's convergent 4-camera rig.
+pub fn rig() -> Rig {
+    let spec = RigSpec::convergent(4);
+    Rig {
+        cameras: spec.build().unwrap(),
+        volume: spec.volume,
+    }
+}
+
+/// A rendered frame: the particles and the PNG of every camera.
+pub struct RenderedFrame {
+    /// The true particles.
+    pub points: Vec<Point3<f64>>,
+    /// Per camera, its image.
+    pub images: Vec<GreyImage>,
+}
+
+impl Rig {
+    /// Renders `count` particles into every camera (8-bit, 2.5 px spots).
+    pub fn render(&self, count: usize, seed: u64) -> RenderedFrame {
+        let mut rng = simulate::rng(seed);
+        let points = simulate::particles(&self.volume, count, &mut rng);
+        let images = simulate::render_frame(
+            &self.cameras,
+            &points,
+            &RenderSpec::eight_bit(2.5),
+            &mut rng,
+        )
+        .into_iter()
+        .map(|r| r.image)
+        .collect();
+        RenderedFrame { points, images }
+    }
+
+    /// Targets of `count` particles with 0.05 px noise, as a camera-side
+    /// detector would send them.
+    pub fn targets(&self, count: usize, seed: u64) -> TargetFrame {
+        let mut rng = simulate::rng(seed);
+        let points = simulate::particles(&self.volume, count, &mut rng);
+        simulate::target_frame(&self.cameras, &points, 0.05, 0.0, &mut rng)
+    }
+}
+
+/// An 8- or 16-bit greyscale PNG.
+pub fn png(image: &GreyImage) -> Vec<u8> {
+    let mut bytes = Vec::new();
+    let encoder = image::codecs::png::PngEncoder::new(&mut bytes);
+    match image.pixels() {
+        GreyPixels::Eight(samples) => encoder
+            .write_image(
+                samples,
+                image.width(),
+                image.height(),
+                ExtendedColorType::L8,
+            )
+            .unwrap(),
+        GreyPixels::Sixteen(samples) => {
+            let native: Vec<u8> = samples.iter().flat_map(|v| v.to_ne_bytes()).collect();
+            encoder
+                .write_image(
+                    &native,
+                    image.width(),
+                    image.height(),
+                    ExtendedColorType::L16,
+                )
+                .unwrap()
+        }
+    }
+    bytes
+}
+
+/// The raw 8-bit samples of an image.
+pub fn raw8(image: &GreyImage) -> Vec<u8> {
+    match image.pixels() {
+        GreyPixels::Eight(samples) => samples.clone(),
+        GreyPixels::Sixteen(_) => panic!("an 8-bit image was expected"),
+    }
+}
+
+/// A frame upload of image files (`cam0`, ...).
+pub fn image_form(frame: i64, files: &[Vec<u8>]) -> Form {
+    let mut form = Form::new().text("frame", frame.to_string());
+    for (camera, bytes) in files.iter().enumerate() {
+        form = form.part(
+            format!("cam{camera}"),
+            Part::bytes(bytes.clone()).file_name(format!("cam{camera}.png")),
+        );
+    }
+    form
+}
+
+/// A frame upload of targets (`targets0`, ...) as CSV.
+pub fn targets_form(frame: i64, frame_targets: &TargetFrame) -> Form {
+    let mut form = Form::new().text("frame", frame.to_string());
+    for (camera, targets) in frame_targets.targets.iter().enumerate() {
+        form = form.part(
+            format!("targets{camera}"),
+            Part::text(formats::csv::format_targets(targets)).file_name("t.csv"),
+        );
+    }
+    form
+}
+
+/// The `ptv` binary running as a child process.
+pub struct ServiceProcess {
+    /// The child.
+    pub child: Child,
+    /// `http://127.0.0.1:PORT`.
+    pub address: String,
+}
+
+impl ServiceProcess {
+    /// Starts `ptv serve` on port 0 with `data_dir` and reads the address it
+    /// prints.
+    pub fn start(data_dir: &Path, workers: usize) -> ServiceProcess {
+        let mut child = Command::new(env!("CARGO_BIN_EXE_ptv"))
+            .args(["serve", "--bind", "127.0.0.1:0", "--workers"])
+            .arg(workers.to_string())
+            .arg("--data-dir")
+            .arg(data_dir)
+            .stdout(Stdio::piped())
+            .stderr(Stdio::null())
+            .spawn()
+            .expect("the ptv binary starts");
+        let stdout = child.stdout.take().unwrap();
+        let mut line = String::new();
+        BufReader::new(stdout).read_line(&mut line).unwrap();
+        let address: SocketAddr = line
+            .trim()
+            .strip_prefix("listening on http://")
+            .unwrap_or_else(|| panic!("unexpected first line `{line}`"))
+            .parse()
+            .unwrap();
+        ServiceProcess {
+            child,
+            address: format!("http://{address}"),
+        }
+    }
+
+    /// Kills the process (SIGKILL: no chance to clean up) and reaps it.
+    pub fn kill(mut self) {
+        self.child.kill().unwrap();
+        self.child.wait().unwrap();
+    }
+}
+
+impl Drop for ServiceProcess {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// The repository's root.
+pub fn repository() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+}

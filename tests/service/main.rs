@@ -1,0 +1,14 @@
+//! The service, driven over HTTP: the real server on port 0 with a fresh
+//! data directory (in process, or the `ptv` binary for the crash test).
+//!
+//! - `api`: the synthetic 4-camera experiment end to end, OpenPTV import
+//!   and the project/intersect helpers, the API token, the committed
+//!   OpenAPI document.
+//! - `reliability`: a kill -9 while jobs run, and 32 concurrent uploaders.
+//! - `bad_inputs`: every kind of bad request gets its 4xx and leaves the
+//!   database consistent.
+
+mod api;
+mod bad_inputs;
+mod helpers;
+mod reliability;
