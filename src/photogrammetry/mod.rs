@@ -11,8 +11,9 @@
 //! of one time step ([`pipeline`]); section 5's system calibration by
 //! resection on control points ([`mod@calibrate`]).
 //!
-//! This module never imports the service's shell (no tokio, axum, sqlx or
-//! utoipa): inputs and outputs are plain structs and nalgebra types.
+//! This module never imports the service's shell (no async runtime, web
+//! framework, SQL or OpenAPI crates; ARCHITECTURE.md's invariant greps for
+//! their names): inputs and outputs are plain structs and nalgebra types.
 
 pub mod calibrate;
 pub mod camera;
