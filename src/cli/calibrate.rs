@@ -10,10 +10,7 @@ use nalgebra::Point2;
 
 use super::{write_stderr_line, write_stdout, CliError, DetectionFlags};
 use crate::formats::{self, control};
-use crate::photogrammetry::calibrate::{
-    self, CalibrationError, CalibrationOptions, CheckPoints, MarkObservation, Parameter,
-};
-use crate::photogrammetry::{detect, Camera};
+use crate::photogrammetry::calibrate::{self, CalibrationOptions, MarkObservation};
 
 /// Arguments of `ptv calibrate`.
 #[derive(Debug, Args)]
@@ -70,53 +67,25 @@ fn flag(flag: &'static str, reason: impl Into<String>) -> CliError {
 }
 
 fn options(args: &CalibrateArgs) -> Result<CalibrationOptions, CliError> {
-    let fixed = args
-        .fix
-        .iter()
-        .filter(|name| !name.trim().is_empty())
-        .map(|name| {
-            Parameter::from_name(name).ok_or_else(|| {
-                flag(
-                    "--fix",
-                    format!(
-                        "unknown parameter `{name}`; the names are {}",
-                        Parameter::ALL.map(Parameter::name).join(",")
-                    ),
-                )
-            })
-        })
-        .collect::<Result<Vec<_>, _>>()?;
-    let check_points = match (&args.check_every, &args.check_ids) {
-        (Some(k), _) if *k < 2 => {
-            return Err(flag(
-                "--check-every",
-                format!("K must be at least 2, got {k}"),
-            ))
-        }
-        (Some(k), _) => CheckPoints::Every(*k),
-        (None, Some(path)) => {
-            let text = formats::read_text(path)?;
-            let ids = text
-                .split_whitespace()
-                .map(|t| {
-                    t.parse::<u64>().map_err(|_| {
-                        flag(
-                            "--check-ids",
-                            format!("{}: `{t}` is not a point id", path.display()),
-                        )
-                    })
-                })
-                .collect::<Result<Vec<_>, _>>()?;
-            CheckPoints::Ids(ids)
-        }
-        (None, None) => CheckPoints::None,
+    let check_ids = match &args.check_ids {
+        Some(path) => Some(control::parse_check_ids(
+            &formats::read_text(path)?,
+            &path.display().to_string(),
+        )?),
+        None => None,
     };
-    Ok(CalibrationOptions {
-        fixed,
-        check_points,
-        max_correlation: args.max_correlation,
-        ..CalibrationOptions::default()
-    })
+    control::calibration_options(&args.fix, args.check_every, check_ids, args.max_correlation)
+        .map_err(|e| {
+            flag(
+                match e.option {
+                    "fix" => "--fix",
+                    "check_every" => "--check-every",
+                    "check_ids" => "--check-ids",
+                    _ => "--max-correlation",
+                },
+                e.reason,
+            )
+        })
 }
 
 fn read_marks(path: &Path) -> Result<Vec<MarkObservation>, CliError> {
@@ -171,21 +140,13 @@ pub(super) fn run(
                 ("--reference", "reference file"),
             )?;
         }
-        let mut parameters = args.detection.parameters();
-        // Marks are larger than particles: their extent is bounded only by
-        // the pixel count.
-        parameters.max_nx = parameters.max_nx.max(parameters.max_pixels);
-        parameters.max_ny = parameters.max_ny.max(parameters.max_pixels);
-        parameters.validate()?;
+        let parameters = calibrate::mark_detection_parameters(&args.detection.parameters())?;
         let mut marks = Vec::with_capacity(args.image.len());
         for (k, path) in args.image.iter().enumerate() {
             let image = formats::image::read_image(path, None)?;
             args.detection
                 .warn_if_threshold_unsuited(&image, path, stderr)?;
-            let found: Vec<Point2<f64>> = detect(&image, &parameters)
-                .iter()
-                .map(|t| Point2::new(t.x, t.y))
-                .collect();
+            let found: Vec<Point2<f64>> = calibrate::detect_marks(&image, &parameters);
             write_stderr_line(
                 stderr,
                 &format!(
@@ -206,16 +167,7 @@ pub(super) fn run(
         };
         calibrate::calibrate_from_marks(&setup, &control_points, &marks, &references, &options)?
     };
-    let cameras = result
-        .cameras
-        .iter()
-        .enumerate()
-        .map(|(camera, p)| {
-            Camera::new(p.clone()).map_err(|source| {
-                CliError::Calibrate(CalibrationError::InvalidSetup { camera, source })
-            })
-        })
-        .collect::<Result<Vec<_>, _>>()?;
+    let cameras = result.camera_models()?;
     formats::write_text(&args.output, &formats::calibration::to_json(&cameras))?;
     write_stdout(stdout, &control::report_to_json(&result.report))
 }

@@ -8,7 +8,9 @@
 
 use super::openptv::finite_number;
 use super::FormatError;
-use crate::photogrammetry::calibrate::{CalibrationReport, ControlPoint, MarkObservation};
+use crate::photogrammetry::calibrate::{
+    CalibrationOptions, CalibrationReport, CheckPoints, ControlPoint, MarkObservation, Parameter,
+};
 use nalgebra::{Point2, Point3};
 
 /// The data lines of a file: 1-based line number and fields.
@@ -103,6 +105,91 @@ pub fn parse_mark_observations(
         });
     }
     Ok(marks)
+}
+
+/// A calibration option that is not valid: its name as the service's
+/// `options` JSON spells it (`check_every`; the command line's flag is the
+/// same with `--` and dashes) and what is wrong.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("{option}: {reason}")]
+pub struct OptionError {
+    /// `fix`, `check_every` or `check_ids`.
+    pub option: &'static str,
+    /// What is wrong and what is expected.
+    pub reason: String,
+}
+
+/// The options of a calibration from what `ptv calibrate` and the service
+/// take: parameters to hold by OpenPTV's names (blank names are ignored),
+/// check points (every K-th, K >= 2, or ids; not both) and the largest
+/// correlation of free parameters.
+pub fn calibration_options(
+    fix: &[String],
+    check_every: Option<usize>,
+    check_ids: Option<Vec<u64>>,
+    max_correlation: f64,
+) -> Result<CalibrationOptions, OptionError> {
+    let invalid = |option, reason: String| OptionError { option, reason };
+    let fixed = fix
+        .iter()
+        .filter(|name| !name.trim().is_empty())
+        .map(|name| {
+            Parameter::from_name(name.trim()).ok_or_else(|| {
+                invalid(
+                    "fix",
+                    format!(
+                        "unknown parameter `{name}`; the names are {}",
+                        Parameter::ALL.map(Parameter::name).join(",")
+                    ),
+                )
+            })
+        })
+        .collect::<Result<Vec<_>, _>>()?;
+    let check_points = match (check_every, check_ids) {
+        (Some(_), Some(_)) => {
+            return Err(invalid(
+                "check_every",
+                "give either check_every or check_ids, not both".to_owned(),
+            ))
+        }
+        (Some(k), None) if k < 2 => {
+            return Err(invalid(
+                "check_every",
+                format!("K must be at least 2, got {k}"),
+            ))
+        }
+        (Some(k), None) => CheckPoints::Every(k),
+        (None, Some(ids)) => CheckPoints::Ids(ids),
+        (None, None) => CheckPoints::None,
+    };
+    if !(max_correlation > 0.0 && max_correlation <= 1.0) {
+        return Err(invalid(
+            "max_correlation",
+            format!("must be in (0, 1], got {max_correlation}"),
+        ));
+    }
+    Ok(CalibrationOptions {
+        fixed,
+        check_points,
+        max_correlation,
+        ..CalibrationOptions::default()
+    })
+}
+
+/// Reads check point ids: non-negative integers separated by whitespace.
+pub fn parse_check_ids(text: &str, source: &str) -> Result<Vec<u64>, FormatError> {
+    text.split_whitespace()
+        .enumerate()
+        .map(|(i, t)| {
+            t.parse::<u64>().map_err(|_| {
+                FormatError::invalid(
+                    source,
+                    format!("id {}", i + 1),
+                    format!("`{t}` is not a point id (a non-negative integer)"),
+                )
+            })
+        })
+        .collect()
 }
 
 /// Writes image coordinates as `id x y` lines, numbers in their shortest

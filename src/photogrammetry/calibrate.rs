@@ -54,7 +54,7 @@ use serde::{Deserialize, Serialize};
 
 use super::camera::{Camera, CameraParameters, InvalidCamera};
 use super::intersect::{intersect, Observation};
-pub use identify::{calibrate_from_marks, identify_marks};
+pub use identify::{calibrate_from_marks, detect_marks, identify_marks, mark_detection_parameters};
 pub use resection::projection_with_parameter_jacobian;
 use resection::{Equation, ParameterVector};
 
@@ -383,6 +383,20 @@ pub struct RigCalibration {
     pub cameras: Vec<CameraParameters>,
     /// How well they are determined.
     pub report: CalibrationReport,
+}
+
+impl RigCalibration {
+    /// The calibrated cameras as validated camera models.
+    pub fn camera_models(&self) -> Result<Vec<Camera>, CalibrationError> {
+        self.cameras
+            .iter()
+            .enumerate()
+            .map(|(camera, p)| {
+                Camera::new(p.clone())
+                    .map_err(|source| CalibrationError::InvalidSetup { camera, source })
+            })
+            .collect()
+    }
 }
 
 /// The calibration report (serialised as the JSON that `ptv calibrate`

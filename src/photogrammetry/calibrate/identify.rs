@@ -16,6 +16,30 @@ use super::{
     RigCalibration,
 };
 use crate::photogrammetry::camera::{Camera, CameraParameters};
+use crate::photogrammetry::detect::{detect, DetectionParameters, InvalidDetectionParameters};
+use crate::photogrammetry::image::GreyImage;
+
+/// The detection parameters for calibration marks: as given, but a mark's
+/// extent is bounded only by its pixel count (marks are larger than
+/// particles). Validated.
+pub fn mark_detection_parameters(
+    parameters: &DetectionParameters,
+) -> Result<DetectionParameters, InvalidDetectionParameters> {
+    let mut parameters = parameters.clone();
+    parameters.max_nx = parameters.max_nx.max(parameters.max_pixels);
+    parameters.max_ny = parameters.max_ny.max(parameters.max_pixels);
+    parameters.validate()?;
+    Ok(parameters)
+}
+
+/// The centres (px) of the marks in a calibration image, detected with
+/// parameters from [`mark_detection_parameters`].
+pub fn detect_marks(image: &GreyImage, parameters: &DetectionParameters) -> Vec<Point2<f64>> {
+    detect(image, parameters)
+        .iter()
+        .map(|t| Point2::new(t.x, t.y))
+        .collect()
+}
 
 /// Assigns `marks` (detected image positions, px) to control points by
 /// projecting them with `camera`. Returns the identified observations,
