@@ -14,9 +14,10 @@
 //! ([`Store::reap`]) queues them again at the next start, and fails a job
 //! that was claimed [`MAX_ATTEMPTS`] times.
 //!
-//! Kinds today: [`PROCESS_FRAME`] ([`process_frame`]). Calibration by
-//! resection (`solve_calibration`) registers the same way once the core
-//! has it.
+//! Kinds today: [`PROCESS_FRAME`] ([`process_frame`]) and
+//! [`SOLVE_CALIBRATION`] ([`solve_calibration`]: calibration by resection
+//! from the files of a `/calibrations/solve` request, kept in the image
+//! store and listed in `job_files`).
 
 use std::collections::HashMap;
 use std::future::Future;
@@ -31,13 +32,19 @@ use tokio::sync::{oneshot, watch};
 use super::app::AppState;
 use super::codec;
 use super::parameters::SequenceParameters;
-use super::store::{ClaimedJob, CompleteError, Store, MAX_ATTEMPTS};
+use super::parameters::SolveOptions;
+use super::store::{ClaimedJob, CompleteError, JobFile, Store, MAX_ATTEMPTS};
 use crate::formats;
+use crate::formats::control;
+use crate::photogrammetry::calibrate;
 use crate::formats::image::RawLayout;
 use crate::photogrammetry::{BitDepth, FramePipeline, GreyImage, PipelineError};
 
 /// The kind of the job that processes one uploaded frame.
 pub const PROCESS_FRAME: &str = "process_frame";
+
+/// The kind of the job that solves a calibration by resection.
+pub const SOLVE_CALIBRATION: &str = "solve_calibration";
 
 /// Why a job attempt did not succeed.
 #[derive(Debug, thiserror::Error)]
@@ -103,6 +110,7 @@ impl JobKinds {
     pub fn standard() -> JobKinds {
         let mut kinds = JobKinds::default();
         kinds.register(PROCESS_FRAME, process_frame);
+        kinds.register(SOLVE_CALIBRATION, solve_calibration);
         kinds
     }
 
@@ -487,6 +495,142 @@ pub async fn process_frame(state: Arc<AppState>, run: JobRun) -> Result<(), JobE
         )
         .await?;
     state.metrics.particles(particles.len());
+    remove_unused_images(&state.store, &state.images, &orphans).await;
+    Ok(())
+}
+
+/// A solve_calibration job's payload: its options, checked when the
+/// request was taken; its inputs are its `job_files`.
+#[derive(Debug, Deserialize, serde::Serialize)]
+pub struct SolvePayload {
+    /// `options`, as given.
+    pub options: SolveOptions,
+}
+
+/// How a part of a `/calibrations/solve` request is named in messages.
+pub fn part_source(part: &str, camera: Option<usize>) -> String {
+    match camera {
+        Some(camera) => format!("part `{part}` of camera {camera}"),
+        None => format!("part `{part}`"),
+    }
+}
+
+/// Text of a part, or what is wrong with it.
+pub fn part_text(bytes: Vec<u8>, source: &str) -> Result<String, String> {
+    String::from_utf8(bytes).map_err(|_| format!("{source} is not UTF-8 text"))
+}
+
+/// Calibrates from a solve request's files (part, camera, bytes; per-camera
+/// parts in camera order): the calibration JSON, its camera count and the
+/// report JSON. CPU work: run it on the pool.
+pub fn solve(
+    files: Vec<(JobFile, Vec<u8>)>,
+    options: &SolveOptions,
+) -> Result<(String, i64, String), String> {
+    let (mut setup, mut control_points) = (None, None);
+    let (mut observations, mut references, mut images) = (Vec::new(), Vec::new(), Vec::new());
+    for (file, bytes) in files {
+        let source = part_source(&file.part, file.camera.map(|c| c as usize));
+        let fail = |e: formats::FormatError| e.to_string();
+        match file.part.as_str() {
+            "setup" => {
+                let text = part_text(bytes, &source)?;
+                setup = Some(
+                    formats::calibration::parameters_from_json(&text, &source).map_err(fail)?,
+                );
+            }
+            "control" => {
+                let text = part_text(bytes, &source)?;
+                control_points =
+                    Some(control::parse_control_points(&text, &source).map_err(fail)?);
+            }
+            "observations" | "reference" => {
+                let text = part_text(bytes, &source)?;
+                let marks = control::parse_mark_observations(&text, &source).map_err(fail)?;
+                if file.part == "observations" {
+                    observations.push(marks);
+                } else {
+                    references.push(marks);
+                }
+            }
+            "image" => images.push(formats::image::decode_image(&bytes, &source).map_err(fail)?),
+            other => return Err(format!("unknown input part `{other}`")),
+        }
+    }
+    let setup = setup.ok_or("the `setup` part is missing")?;
+    let control_points = control_points.ok_or("the `control` part is missing")?;
+    let calibration_options = options
+        .calibration_options()
+        .map_err(|e| format!("options.{e}"))?;
+    let result = if images.is_empty() {
+        calibrate::calibrate(
+            &setup,
+            &control_points,
+            &observations,
+            &calibration_options,
+        )
+    } else {
+        let parameters = options
+            .mark_detection()
+            .map_err(|e| format!("options.detection: {}", error_chain(&e)))?;
+        let marks: Vec<_> = images
+            .iter()
+            .map(|image| calibrate::detect_marks(image, &parameters))
+            .collect();
+        if references.is_empty() {
+            references = vec![Vec::new(); setup.len()];
+        }
+        calibrate::calibrate_from_marks(
+            &setup,
+            &control_points,
+            &marks,
+            &references,
+            &calibration_options,
+        )
+    }
+    .map_err(|e| error_chain(&e))?;
+    let cameras = result.camera_models().map_err(|e| error_chain(&e))?;
+    Ok((
+        formats::calibration::to_json(&cameras),
+        cameras.len() as i64,
+        control::report_to_json(&result.report),
+    ))
+}
+
+/// The solve_calibration job: calibrates from the request's files and
+/// stores the calibration with its report, completing the job in the same
+/// transaction; with `keep_images: false` its files go afterwards.
+pub async fn solve_calibration(state: Arc<AppState>, run: JobRun) -> Result<(), JobError> {
+    let payload: SolvePayload = serde_json::from_str(&run.job.payload)
+        .map_err(|e| JobError::Failed(format!("malformed payload: {e}")))?;
+    let mut files = Vec::new();
+    for file in state.store.job_files(run.job.id).await? {
+        let bytes = state.images.read(&file.sha256).await.map_err(|e| {
+            JobError::Failed(format!(
+                "the file of {} is missing: {e}",
+                part_source(&file.part, file.camera.map(|c| c as usize))
+            ))
+        })?;
+        files.push((file, bytes));
+    }
+    let options = payload.options.clone();
+    let (model, cameras, report) = state
+        .cpu
+        .run(move || solve(files, &options))
+        .await
+        .map_err(|panic| JobError::Failed(format!("the calibration panicked: {panic}")))?
+        .map_err(JobError::Failed)?;
+    let (_, orphans) = state
+        .store
+        .complete_calibration(
+            &run.job,
+            &model,
+            cameras,
+            &report,
+            payload.options.keep_images.unwrap_or(true),
+            run.elapsed_s(),
+        )
+        .await?;
     remove_unused_images(&state.store, &state.images, &orphans).await;
     Ok(())
 }

@@ -7,8 +7,12 @@ use nalgebra::Point3;
 use serde::{Deserialize, Serialize};
 use utoipa::ToSchema;
 
+use crate::formats::control::{calibration_options, OptionError};
+use crate::photogrammetry::calibrate::{mark_detection_parameters, CalibrationOptions};
 use crate::photogrammetry::correspond::{MatchingParameters, DEFAULT_TOLERANCE_PX};
-use crate::photogrammetry::{DetectionParameters, FrameDetection, Volume};
+use crate::photogrammetry::{
+    DetectionParameters, FrameDetection, InvalidDetectionParameters, Volume,
+};
 
 /// How to find the targets in each camera's image (all optional; the
 /// defaults are `ptv detect`'s).
@@ -27,6 +31,71 @@ pub struct DetectionSettings {
     pub max_pixels: Option<u32>,
     /// Smallest sum of grey values of a target [default: as `ptv detect`].
     pub min_sumg: Option<u64>,
+}
+
+impl DetectionSettings {
+    /// The core's detection parameters, defaults where unset (not yet
+    /// validated).
+    pub fn parameters(&self) -> DetectionParameters {
+        let d = DetectionParameters::default();
+        DetectionParameters {
+            threshold: self.threshold.unwrap_or(d.threshold),
+            highpass_radius: self.highpass_radius.unwrap_or(d.highpass_radius),
+            min_pixels: self.min_pixels.unwrap_or(d.min_pixels),
+            max_pixels: self.max_pixels.unwrap_or(d.max_pixels),
+            min_sumg: self.min_sumg.unwrap_or(d.min_sumg),
+            ..d
+        }
+    }
+}
+
+/// How to solve a calibration (the `options` part of
+/// `/calibrations/solve`): `ptv calibrate`'s flags, every one optional.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct SolveOptions {
+    /// Parameters held at the setup's values, OpenPTV's names:
+    /// x0,y0,z0,omega,phi,kappa,xh,yh,c,k1,k2,k3,p1,p2,scx,she [default:
+    /// none].
+    #[serde(default)]
+    pub fix: Vec<String>,
+    /// Every K-th control point (file order) is a check point, left out of
+    /// the resections and intersected from all cameras (K >= 2).
+    #[serde(default)]
+    pub check_every: Option<usize>,
+    /// Check point ids (instead of `check_every`).
+    #[serde(default)]
+    pub check_ids: Option<Vec<u64>>,
+    /// Parameters correlated above this are held, one of each pair
+    /// [default: 0.99].
+    #[serde(default)]
+    pub max_correlation: Option<f64>,
+    /// Detection of the marks, with `image` parts (a mark's extent is
+    /// bounded by `max_pixels` only).
+    #[serde(default)]
+    pub detection: DetectionSettings,
+    /// Whether to keep the uploaded files after the calibration is solved
+    /// [default: true]; a failed solve keeps them.
+    #[serde(default)]
+    pub keep_images: Option<bool>,
+}
+
+impl SolveOptions {
+    /// The core's options, checked.
+    pub fn calibration_options(&self) -> Result<CalibrationOptions, OptionError> {
+        calibration_options(
+            &self.fix,
+            self.check_every,
+            self.check_ids.clone(),
+            self.max_correlation
+                .unwrap_or(CalibrationOptions::default().max_correlation),
+        )
+    }
+
+    /// The detection parameters for calibration marks, checked.
+    pub fn mark_detection(&self) -> Result<DetectionParameters, InvalidDetectionParameters> {
+        mark_detection_parameters(&self.detection.parameters())
+    }
 }
 
 /// How to match targets across cameras (all optional; the defaults are
@@ -75,16 +144,7 @@ impl SequenceParameters {
 
     /// The core's detection parameters (not yet validated).
     pub fn detection(&self) -> FrameDetection {
-        let d = DetectionParameters::default();
-        let s = &self.detection;
-        FrameDetection::AllCameras(DetectionParameters {
-            threshold: s.threshold.unwrap_or(d.threshold),
-            highpass_radius: s.highpass_radius.unwrap_or(d.highpass_radius),
-            min_pixels: s.min_pixels.unwrap_or(d.min_pixels),
-            max_pixels: s.max_pixels.unwrap_or(d.max_pixels),
-            min_sumg: s.min_sumg.unwrap_or(d.min_sumg),
-            ..d
-        })
+        FrameDetection::AllCameras(self.detection.parameters())
     }
 
     /// The core's matching parameters (not yet validated).

@@ -205,11 +205,18 @@ pub struct FrameCounts {
 struct Migrations;
 
 /// Version, description and SQL of each migration, in order.
-const MIGRATIONS: &[(i64, &str, &str)] = &[(
-    1,
-    "service",
-    include_str!("../../migrations/0001_service.sql"),
-)];
+const MIGRATIONS: &[(i64, &str, &str)] = &[
+    (
+        1,
+        "service",
+        include_str!("../../migrations/0001_service.sql"),
+    ),
+    (
+        2,
+        "job_files",
+        include_str!("../../migrations/0002_job_files.sql"),
+    ),
+];
 
 impl<'s> MigrationSource<'s> for Migrations {
     fn resolve(
@@ -527,13 +534,10 @@ impl Store {
         .await
     }
 
-    /// Whether any frame refers to the image with this hash.
+    /// Whether any frame or job refers to the file with this hash.
     pub async fn image_in_use(&self, sha256: &str) -> Result<bool, sqlx::Error> {
-        let (n,): (i64,) = sqlx::query_as("SELECT count(*) FROM images WHERE sha256 = ?")
-            .bind(sha256)
-            .fetch_one(&self.writer)
-            .await?;
-        Ok(n > 0)
+        let mut conn = self.writer.acquire().await?;
+        file_in_use(&mut conn, sha256).await
     }
 
     /// A frame's targets per camera (count and blob), in camera order.
@@ -624,11 +628,7 @@ impl Store {
             .fetch_all(&mut *tx)
             .await?;
             for (hash,) in hashes {
-                let (n,): (i64,) = sqlx::query_as("SELECT count(*) FROM images WHERE sha256 = ?")
-                    .bind(&hash)
-                    .fetch_one(&mut *tx)
-                    .await?;
-                if n == 0 {
+                if !file_in_use(&mut tx, &hash).await? {
                     orphans.push(hash);
                 }
             }
@@ -734,6 +734,112 @@ impl Store {
         sqlx::query_as("SELECT kind, state, count(*) FROM jobs GROUP BY kind, state")
             .fetch_all(&self.reader)
             .await
+    }
+}
+
+/// Whether any frame's image or job's file is the file with this hash.
+async fn file_in_use(conn: &mut sqlx::SqliteConnection, sha256: &str) -> Result<bool, sqlx::Error> {
+    let (n,): (i64,) = sqlx::query_as(
+        "SELECT (SELECT count(*) FROM images WHERE sha256 = ?1) + \
+                (SELECT count(*) FROM job_files WHERE sha256 = ?1)",
+    )
+    .bind(sha256)
+    .fetch_one(&mut *conn)
+    .await?;
+    Ok(n > 0)
+}
+
+/// A stored input file of a job: its part, camera, hash and size.
+#[derive(Clone, Debug, PartialEq)]
+pub struct JobFile {
+    /// The request's part name.
+    pub part: String,
+    /// The camera of a per-camera part.
+    pub camera: Option<i64>,
+    /// The file's hash in the image store.
+    pub sha256: String,
+    /// Bytes.
+    pub size: i64,
+}
+
+impl Store {
+    /// Enqueues a job and records its input files in one transaction;
+    /// returns the job's id.
+    pub async fn enqueue_with_files(
+        &self,
+        kind: &str,
+        payload: &str,
+        files: &[JobFile],
+    ) -> Result<i64, sqlx::Error> {
+        let mut tx = self.writer.begin().await?;
+        let id = enqueue(&mut tx, kind, payload).await?;
+        for file in files {
+            sqlx::query(
+                "INSERT INTO job_files (job_id, part, camera, sha256, size) VALUES (?, ?, ?, ?, ?)",
+            )
+            .bind(id)
+            .bind(&file.part)
+            .bind(file.camera)
+            .bind(&file.sha256)
+            .bind(file.size)
+            .execute(&mut *tx)
+            .await?;
+        }
+        tx.commit().await?;
+        Ok(id)
+    }
+
+    /// A job's input files, in the order they were recorded.
+    pub async fn job_files(&self, job_id: i64) -> Result<Vec<JobFile>, sqlx::Error> {
+        let rows: Vec<(String, Option<i64>, String, i64)> = sqlx::query_as(
+            "SELECT part, camera, sha256, size FROM job_files WHERE job_id = ? ORDER BY rowid",
+        )
+        .bind(job_id)
+        .fetch_all(&self.reader)
+        .await?;
+        Ok(rows
+            .into_iter()
+            .map(|(part, camera, sha256, size)| JobFile {
+                part,
+                camera,
+                sha256,
+                size,
+            })
+            .collect())
+    }
+
+    /// Stores a solved calibration with its report and completes its job,
+    /// in one transaction; unless `keep_files`, the job's file rows go too.
+    /// Returns the calibration's id and the hashes of the files nothing
+    /// refers to any more, whose files may go.
+    pub async fn complete_calibration(
+        &self,
+        job: &ClaimedJob,
+        model: &str,
+        cameras: i64,
+        report: &str,
+        keep_files: bool,
+        duration_s: f64,
+    ) -> Result<(i64, Vec<String>), CompleteError> {
+        let mut tx = self.writer.begin().await?;
+        let row = insert_calibration(&mut tx, model, cameras, Some(report)).await?;
+        let result = format!("/api/v1/calibrations/{}", row.id);
+        finish(&mut tx, job, &result, duration_s).await?;
+        let mut orphans = Vec::new();
+        if !keep_files {
+            let hashes: Vec<(String,)> =
+                sqlx::query_as("DELETE FROM job_files WHERE job_id = ? RETURNING sha256")
+                    .bind(job.id)
+                    .fetch_all(&mut *tx)
+                    .await?;
+            for (hash,) in hashes {
+                if !orphans.contains(&hash) && !file_in_use(&mut tx, &hash).await? {
+                    orphans.push(hash);
+                }
+            }
+        }
+        tx.commit().await?;
+        Ok((row.id, orphans))
     }
 }
 

@@ -20,7 +20,7 @@ use super::problem::{multipart_error, ApiError, ApiJson, ApiMultipart, ApiPath, 
 use super::Shared;
 use crate::formats;
 use crate::photogrammetry::correspond::Particle;
-use crate::photogrammetry::{Camera, Target};
+use crate::photogrammetry::{Sensor, Target};
 use crate::service::app::AppState;
 use crate::service::codec;
 use crate::service::images::UploadedFile;
@@ -225,7 +225,7 @@ pub struct FrameAccepted {
 }
 
 /// Reads a small text part whole, up to `limit` bytes.
-async fn text_part(field: &mut Field<'_>, name: &str, limit: usize) -> Result<String, ApiError> {
+pub(super) async fn text_part(field: &mut Field<'_>, name: &str, limit: usize) -> Result<String, ApiError> {
     let mut bytes = Vec::new();
     while let Some(chunk) = field.chunk().await.map_err(multipart_error)? {
         if bytes.len() + chunk.len() > limit {
@@ -275,14 +275,13 @@ fn camera_of(name: &str, prefix: &str, cameras: usize) -> Option<Result<usize, A
 
 /// Checks an image file's header (PNG/TIFF: greyscale of the sensor's
 /// size) or its size (raw), without decoding the pixels.
-fn check_image(
+pub(super) fn check_image(
     path: &std::path::Path,
     size: u64,
     camera: usize,
-    model: &Camera,
+    sensor: &Sensor,
     raw: Option<&StoredRawLayout>,
 ) -> Result<(), ApiError> {
-    let sensor = model.sensor();
     let (width, height) = match raw {
         Some(layout) => {
             let expected =
@@ -419,7 +418,7 @@ async fn read_parts(
 }
 
 /// Reads and drops what is left of a multipart body.
-async fn drain(multipart: &mut Multipart) {
+pub(super) async fn drain(multipart: &mut Multipart) {
     while let Ok(Some(mut field)) = multipart.next_field().await {
         while let Ok(Some(_)) = field.chunk().await {}
     }
@@ -544,7 +543,7 @@ pub async fn upload_frame(
         let checked_cameras = cameras.clone();
         tokio::task::spawn_blocking(move || {
             for (camera, ((path, size), model)) in checks.iter().zip(&checked_cameras).enumerate() {
-                check_image(path, *size, camera, model, raw.as_ref())?;
+                check_image(path, *size, camera, model.sensor(), raw.as_ref())?;
             }
             Ok::<(), ApiError>(())
         })
