@@ -4,7 +4,7 @@
 
 use std::sync::Arc;
 
-use axum::extract::State;
+use axum::extract::{Multipart, State};
 use axum::http::{header, StatusCode};
 use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post};
@@ -15,11 +15,14 @@ use utoipa::ToSchema;
 
 use super::problem::{multipart_error, ApiError, ApiJson, ApiMultipart, ApiPath, JsonText};
 use super::Shared;
-use crate::formats::{self, openptv::OriTexts};
-use crate::photogrammetry::{intersect, Camera, Observation};
+use super::sequences::{check_image, drain, text_part};
+use crate::formats::{self, control, openptv::OriTexts};
+use crate::photogrammetry::{intersect, Camera, Observation, Sensor};
 use crate::service::app::AppState;
-use crate::service::jobs::error_chain;
-use crate::service::store::CalibrationRow;
+use crate::service::images::UploadedFile;
+use crate::service::jobs::{error_chain, part_source, SolvePayload, SOLVE_CALIBRATION};
+use crate::service::parameters::SolveOptions;
+use crate::service::store::{CalibrationRow, JobFile};
 
 /// Largest OpenPTV text file accepted (bytes).
 const MAX_TEXT_PART: usize = 1 << 20;
@@ -30,6 +33,7 @@ pub(super) fn router() -> Router<Arc<AppState>> {
     Router::new()
         .route("/calibrations", post(create))
         .route("/calibrations/openptv", post(create_openptv))
+        .route("/calibrations/solve", post(solve))
         .route("/calibrations/{id}", get(read))
         .route("/calibrations/{id}/openptv/{file}", get(openptv_file))
         .route("/calibrations/{id}/project", post(project))
@@ -102,23 +106,6 @@ pub async fn create(State(state): Shared, JsonText(text): JsonText) -> Result<Re
     store_cameras(&state, &cameras).await
 }
 
-/// Reads a small text part whole.
-async fn text_part(
-    field: &mut axum::extract::multipart::Field<'_>,
-    name: &str,
-) -> Result<String, ApiError> {
-    let mut bytes = Vec::new();
-    while let Some(chunk) = field.chunk().await.map_err(multipart_error)? {
-        if bytes.len() + chunk.len() > MAX_TEXT_PART {
-            return Err(ApiError::too_large(format!(
-                "part `{name}` is larger than {MAX_TEXT_PART} bytes"
-            )));
-        }
-        bytes.extend_from_slice(&chunk);
-    }
-    String::from_utf8(bytes)
-        .map_err(|_| ApiError::unprocessable(format!("part `{name}` is not UTF-8 text")))
-}
 
 /// Creates a calibration from OpenPTV's files: multipart with `ptv_par`,
 /// then per camera in camera order an `ori` part, each optionally followed
@@ -141,20 +128,20 @@ pub async fn create_openptv(
     while let Some(mut field) = multipart.next_field().await.map_err(multipart_error)? {
         let name = field.name().unwrap_or("").to_owned();
         match name.as_str() {
-            "ptv_par" => ptv_par = Some(text_part(&mut field, &name).await?),
+            "ptv_par" => ptv_par = Some(text_part(&mut field, &name, MAX_TEXT_PART).await?),
             "ori" => {
                 let index = cameras.len();
                 cameras.push(OriTexts {
                     name: format!("cam{}", index + 1),
                     ori: (
-                        text_part(&mut field, &name).await?,
+                        text_part(&mut field, &name, MAX_TEXT_PART).await?,
                         format!("ori part {}", index + 1),
                     ),
                     addpar: None,
                 });
             }
             "addpar" => {
-                let text = text_part(&mut field, &name).await?;
+                let text = text_part(&mut field, &name, MAX_TEXT_PART).await?;
                 let index = cameras.len();
                 match cameras.last_mut() {
                     Some(camera) if camera.addpar.is_none() => {
@@ -393,4 +380,292 @@ pub async fn intersect_points(
         rms_px: result.rms_px,
         residuals_px: result.residuals_px.iter().map(|r| [r.x, r.y]).collect(),
     }))
+}
+
+/// Largest `options` part (bytes).
+const MAX_OPTIONS_PART: usize = 64 << 10;
+
+/// An accepted calibration to solve.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct SolveAccepted {
+    /// The job that solves it.
+    pub job_id: i64,
+    /// Where to poll the job; once succeeded, its `result` is the
+    /// calibration.
+    pub job: String,
+}
+
+/// The parts of a solve request, as read: text parts whole (they are
+/// parsed before the request is accepted), images in temporary files.
+#[derive(Default)]
+struct SolveParts {
+    setup: Option<String>,
+    control: Option<String>,
+    options: Option<String>,
+    observations: Vec<String>,
+    references: Vec<String>,
+    images: Vec<UploadedFile>,
+}
+
+async fn read_solve_parts(
+    state: &AppState,
+    multipart: &mut Multipart,
+) -> Result<SolveParts, ApiError> {
+    let mut parts = SolveParts::default();
+    while let Some(mut field) = multipart.next_field().await.map_err(multipart_error)? {
+        let name = field.name().unwrap_or("").to_owned();
+        let once = |slot: &Option<String>| {
+            if slot.is_some() {
+                Err(ApiError::bad_request(format!(
+                    "part `{name}` is given twice; give it once"
+                )))
+            } else {
+                Ok(())
+            }
+        };
+        match name.as_str() {
+            "setup" => {
+                once(&parts.setup)?;
+                parts.setup = Some(text_part(&mut field, &name, MAX_TEXT_PART).await?);
+            }
+            "control" => {
+                once(&parts.control)?;
+                parts.control = Some(text_part(&mut field, &name, MAX_TEXT_PART).await?);
+            }
+            "options" => {
+                once(&parts.options)?;
+                parts.options = Some(text_part(&mut field, &name, MAX_OPTIONS_PART).await?);
+            }
+            "observations" => parts
+                .observations
+                .push(text_part(&mut field, &name, MAX_TEXT_PART).await?),
+            "reference" => parts
+                .references
+                .push(text_part(&mut field, &name, MAX_TEXT_PART).await?),
+            "image" => {
+                let mut upload = state.images.create_upload().await?;
+                while let Some(chunk) = field.chunk().await.map_err(multipart_error)? {
+                    upload.write(&chunk).await?;
+                }
+                parts.images.push(upload.finish().await?);
+            }
+            other => {
+                return Err(ApiError::bad_request(format!(
+                    "unknown part `{}`; expected `setup`, `control`, per camera `observations` \
+                     or `image` (with optional `reference`), and optional `options`",
+                    other.escape_debug()
+                )))
+            }
+        }
+    }
+    Ok(parts)
+}
+
+/// Checks that `given` per-camera parts match the setup's cameras.
+fn check_count(part: &str, given: usize, cameras: usize) -> Result<(), ApiError> {
+    if given == cameras {
+        return Ok(());
+    }
+    Err(ApiError::unprocessable(format!(
+        "the setup has {cameras} cameras but {given} `{part}` parts were given; give one per \
+         camera, in camera order"
+    )))
+}
+
+/// Checks a solve request's parts (everything but the resection itself),
+/// returning the text files to keep (part, camera, text) and the options.
+fn check_solve_parts(
+    parts: &SolveParts,
+) -> Result<(Vec<(&'static str, Option<usize>, String)>, SolveOptions), ApiError> {
+    let invalid = |e: formats::FormatError| ApiError::unprocessable(e.to_string());
+    let setup_text = parts.setup.clone().ok_or_else(|| {
+        ApiError::bad_request(
+            "the `setup` part is missing: give the calibration JSON with sensor and media of \
+             every camera",
+        )
+    })?;
+    let control_text = parts.control.clone().ok_or_else(|| {
+        ApiError::bad_request(
+            "the `control` part is missing: give the control points, `id X Y Z` per line (mm)",
+        )
+    })?;
+    let setup = formats::calibration::parameters_from_json(&setup_text, &part_source("setup", None))
+        .map_err(invalid)?;
+    let n = setup.len();
+    if n < formats::calibration::MIN_CAMERAS {
+        return Err(ApiError::unprocessable(format!(
+            "part `setup`: {n} cameras; a calibration needs at least {}",
+            formats::calibration::MIN_CAMERAS
+        )));
+    }
+    control::parse_control_points(&control_text, &part_source("control", None))
+        .map_err(invalid)?;
+    let options: SolveOptions = match &parts.options {
+        None => SolveOptions::default(),
+        Some(text) => serde_json::from_str(text)
+            .map_err(|e| ApiError::unprocessable(format!("part `options`: {e}")))?,
+    };
+    options
+        .calibration_options()
+        .map_err(|e| ApiError::unprocessable(format!("part `options`: {e}")))?;
+
+    let mut texts = vec![("setup", None, setup_text), ("control", None, control_text)];
+    match (parts.observations.len(), parts.images.len()) {
+        (0, 0) => {
+            return Err(ApiError::unprocessable(format!(
+                "give per camera, in camera order, an `observations` part (`id x y` per line, \
+                 px) or an `image` part; the setup has {n} cameras"
+            )))
+        }
+        (_, 0) => {
+            check_count("observations", parts.observations.len(), n)?;
+            if !parts.references.is_empty() {
+                return Err(ApiError::bad_request(
+                    "`reference` parts go with `image` parts, not with `observations`",
+                ));
+            }
+            for (camera, text) in parts.observations.iter().enumerate() {
+                control::parse_mark_observations(
+                    text,
+                    &part_source("observations", Some(camera)),
+                )
+                .map_err(invalid)?;
+                texts.push(("observations", Some(camera), text.clone()));
+            }
+        }
+        (0, _) => {
+            check_count("image", parts.images.len(), n)?;
+            if !parts.references.is_empty() {
+                check_count("reference", parts.references.len(), n)?;
+            }
+            options.mark_detection().map_err(|e| {
+                ApiError::unprocessable(format!("part `options`: detection: {}", error_chain(&e)))
+            })?;
+            for (camera, text) in parts.references.iter().enumerate() {
+                control::parse_mark_observations(text, &part_source("reference", Some(camera)))
+                    .map_err(invalid)?;
+                texts.push(("reference", Some(camera), text.clone()));
+            }
+        }
+        _ => {
+            return Err(ApiError::bad_request(
+                "give either `observations` or `image` parts, not both",
+            ))
+        }
+    }
+    Ok((texts, options))
+}
+
+/// Solves a calibration by resection on control points: multipart with
+/// `setup` (the calibration JSON: sensor and media of every camera;
+/// orientation values are optional starting values), `control` (OpenPTV
+/// calibration block, `id X Y Z` per line, mm), per camera in camera order
+/// an `observations` part (`id x y` per line, px) or an `image` part (with
+/// optional `reference` parts, `id x y` of 4..6 identified marks), and an
+/// optional `options` part (JSON: `ptv calibrate`'s flags). Answers 202
+/// with the job; once it succeeds, its `result` is the calibration, stored
+/// with its report.
+#[utoipa::path(
+    post, path = "/api/v1/calibrations/solve", tag = "calibrations",
+    request_body(content_type = "multipart/form-data", description = "Parts: `setup` (calibration JSON), `control` (`id X Y Z` per line, mm); per camera in camera order `observations` (`id x y` per line, px) or `image` (PNG/TIFF greyscale, with optional `reference` parts: `id x y` of identified marks); optional `options` (JSON, see SolveOptions)."),
+    responses(
+        (status = 202, body = SolveAccepted),
+        (status = 400, description = "Malformed multipart, a missing, unknown or repeated part", body = super::problem::Problem, content_type = "application/problem+json"),
+        (status = 413, description = "Larger than --max-upload-mb or a text part above 1 MiB", body = super::problem::Problem, content_type = "application/problem+json"),
+        (status = 415, description = "Not multipart, or an image that is not PNG/TIFF", body = super::problem::Problem, content_type = "application/problem+json"),
+        (status = 422, description = "A file that does not parse, part counts that do not match the setup's cameras, invalid options", body = super::problem::Problem, content_type = "application/problem+json"),
+    )
+)]
+pub async fn solve(
+    State(state): Shared,
+    ApiMultipart(mut multipart): ApiMultipart,
+) -> Result<Response, ApiError> {
+    let parts = match read_solve_parts(&state, &mut multipart).await {
+        Ok(parts) => parts,
+        Err(error) => {
+            drain(&mut multipart).await;
+            return Err(error);
+        }
+    };
+    let (texts, options) = check_solve_parts(&parts)?;
+    let SolveParts { setup, images, .. } = parts;
+    if !images.is_empty() {
+        let setup = formats::calibration::parameters_from_json(
+            setup.as_deref().unwrap_or_default(),
+            "part `setup`",
+        )
+        .map_err(|e| ApiError::unprocessable(e.to_string()))?;
+        let checks: Vec<(std::path::PathBuf, u64, Sensor)> = images
+            .iter()
+            .zip(&setup)
+            .map(|(f, camera)| {
+                (
+                    f.temp_path().map(|p| p.to_owned()).unwrap_or_default(),
+                    f.size,
+                    camera.sensor.clone(),
+                )
+            })
+            .collect();
+        tokio::task::spawn_blocking(move || {
+            for (camera, (path, size, sensor)) in checks.iter().enumerate() {
+                check_image(path, *size, camera, sensor, None)?;
+            }
+            Ok::<(), ApiError>(())
+        })
+        .await
+        .map_err(ApiError::internal)??;
+    }
+
+    // Every file goes to the store; text parts become files too.
+    let mut uploads: Vec<(&'static str, Option<usize>, UploadedFile)> = Vec::new();
+    for (part, camera, text) in texts {
+        let mut upload = state.images.create_upload().await?;
+        upload.write(text.as_bytes()).await?;
+        uploads.push((part, camera, upload.finish().await?));
+    }
+    for (camera, file) in images.into_iter().enumerate() {
+        uploads.push(("image", Some(camera), file));
+    }
+    let files: Vec<JobFile> = uploads
+        .iter()
+        .map(|(part, camera, file)| JobFile {
+            part: (*part).to_owned(),
+            camera: camera.map(|c| c as i64),
+            sha256: file.sha256.clone(),
+            size: file.size as i64,
+        })
+        .collect();
+    let payload = serde_json::to_string(&SolvePayload { options }).map_err(ApiError::internal)?;
+    let job_id = {
+        let _guard = state.images.lock().await;
+        for (_, _, file) in uploads {
+            state.images.persist(file).await?;
+        }
+        match state
+            .store
+            .enqueue_with_files(SOLVE_CALIBRATION, &payload, &files)
+            .await
+        {
+            Ok(id) => id,
+            Err(error) => {
+                for file in &files {
+                    if !state.store.image_in_use(&file.sha256).await? {
+                        state.images.remove(&file.sha256).await?;
+                    }
+                }
+                return Err(ApiError::internal(error));
+            }
+        }
+    };
+    state.wake.notify_one();
+    let accepted = SolveAccepted {
+        job_id,
+        job: format!("/api/v1/jobs/{job_id}"),
+    };
+    Ok((
+        StatusCode::ACCEPTED,
+        [(header::LOCATION, accepted.job.clone())],
+        Json(accepted),
+    )
+        .into_response())
 }

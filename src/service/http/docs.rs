@@ -24,6 +24,7 @@ use crate::service::parameters;
     paths(
         calibrations::create,
         calibrations::create_openptv,
+        calibrations::solve,
         calibrations::read,
         calibrations::openptv_file,
         calibrations::project,
@@ -43,6 +44,7 @@ use crate::service::parameters;
         parameters::DetectionSettings,
         parameters::MatchingSettings,
         parameters::SequenceParameters,
+        parameters::SolveOptions,
     )),
     modifiers(&BearerToken),
     security(("bearer" = [])),
