@@ -36,8 +36,8 @@ use super::parameters::SolveOptions;
 use super::store::{ClaimedJob, CompleteError, JobFile, Store, MAX_ATTEMPTS};
 use crate::formats;
 use crate::formats::control;
-use crate::photogrammetry::calibrate;
 use crate::formats::image::RawLayout;
+use crate::photogrammetry::calibrate;
 use crate::photogrammetry::{BitDepth, FramePipeline, GreyImage, PipelineError};
 
 /// The kind of the job that processes one uploaded frame.
@@ -535,14 +535,12 @@ pub fn solve(
         match file.part.as_str() {
             "setup" => {
                 let text = part_text(bytes, &source)?;
-                setup = Some(
-                    formats::calibration::parameters_from_json(&text, &source).map_err(fail)?,
-                );
+                setup =
+                    Some(formats::calibration::parameters_from_json(&text, &source).map_err(fail)?);
             }
             "control" => {
                 let text = part_text(bytes, &source)?;
-                control_points =
-                    Some(control::parse_control_points(&text, &source).map_err(fail)?);
+                control_points = Some(control::parse_control_points(&text, &source).map_err(fail)?);
             }
             "observations" | "reference" => {
                 let text = part_text(bytes, &source)?;
@@ -563,12 +561,7 @@ pub fn solve(
         .calibration_options()
         .map_err(|e| format!("options.{e}"))?;
     let result = if images.is_empty() {
-        calibrate::calibrate(
-            &setup,
-            &control_points,
-            &observations,
-            &calibration_options,
-        )
+        calibrate::calibrate(&setup, &control_points, &observations, &calibration_options)
     } else {
         let parameters = options
             .mark_detection()

@@ -11,14 +11,75 @@ const FRAMES: i64 = 20;
 /// Particles per frame.
 const PARTICLES: usize = 300;
 
-/// The synthetic experiment end to end: a calibration (as JSON: calibration
-/// by resection is not wired yet), a sequence, 20 frames uploaded as images
-/// (PNG and raw alternately), and particles that match the truth.
+/// Control points of the calibration target.
+const CONTROL_POINTS: usize = 150;
+/// Noise of their measured images (px).
+const CONTROL_NOISE_PX: f64 = 0.05;
+
+/// The synthetic experiment end to end: the rig calibrated through
+/// `/calibrations/solve` from a setup with no orientation, control points
+/// and their noisy images, then a sequence with that calibration, 20
+/// frames uploaded as images (PNG and raw alternately), and particles that
+/// match the truth.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn synthetic_experiment_gives_the_true_particles() {
     let app = spawn_app().await;
     let rig = rig();
-    let calibration = app.create_calibration(&rig.cameras).await;
+    let input = rig.solve_input(CONTROL_POINTS, CONTROL_NOISE_PX, 5);
+    let (status, body) = app
+        .solve(input.form(Some(&json!({"check_every": 5, "keep_images": false}))))
+        .await;
+    assert_eq!(status, 202, "{body}");
+    let job = app.wait_for_job(body["job_id"].as_i64().unwrap()).await;
+    assert_eq!(job["state"], "succeeded", "{job}");
+    assert_eq!(job["kind"], "solve_calibration");
+    let link = job["result"].as_str().unwrap();
+    let calibration: i64 = link
+        .strip_prefix("/api/v1/calibrations/")
+        .unwrap()
+        .parse()
+        .unwrap();
+    let (status, solved) = app.get_json(&format!("/calibrations/{calibration}")).await;
+    assert_eq!(status, 200, "{solved}");
+    assert_eq!(solved["cameras"], 4);
+    let report = &solved["report"];
+    for camera in report["cameras"].as_array().unwrap() {
+        let sigma0 = camera["sigma0_px"].as_f64().unwrap();
+        assert!(
+            (sigma0 / CONTROL_NOISE_PX - 1.0).abs() < 0.25,
+            "sigma0 {sigma0} px for {CONTROL_NOISE_PX} px of noise"
+        );
+    }
+    // The honest accuracy of the calibration: the RMSE of the check points
+    // (every 5th control point, left out and intersected).
+    let checks = &report["check_points"];
+    assert_eq!(checks["count"], CONTROL_POINTS / 5, "{checks}");
+    let check_rmse = checks["rmse_mm"].as_f64().unwrap();
+    eprintln!(
+        "solved calibration: check-point RMSE {check_rmse:.5} mm, relative accuracy 1:{:.0}",
+        checks["relative_accuracy"].as_f64().unwrap()
+    );
+    // The solved model is not the truth, but projects like it: a point of
+    // the volume lands where the true cameras put it, well within the
+    // matching's tolerance.
+    let probe = rig.volume.min + (rig.volume.max - rig.volume.min) * 0.3;
+    let (status, projected) = app
+        .post_json(
+            &format!("/calibrations/{calibration}/project"),
+            &json!({"points": [[probe.x, probe.y, probe.z]]}),
+        )
+        .await;
+    assert_eq!(status, 200, "{projected}");
+    for (camera, pixel) in rig
+        .cameras
+        .iter()
+        .zip(projected["pixels"][0].as_array().unwrap())
+    {
+        let truth = camera.project(&probe).unwrap();
+        let offset =
+            (truth.x - pixel[0].as_f64().unwrap()).hypot(truth.y - pixel[1].as_f64().unwrap());
+        assert!(offset < 0.1, "projection {offset} px off the truth");
+    }
     let sequence = app.create_sequence(calibration, &rig.volume, false).await;
 
     let mut truth = Vec::new();
@@ -45,7 +106,14 @@ async fn synthetic_experiment_gives_the_true_particles() {
     // detected to a few hundredths of a pixel, so a third of a pixel,
     // 0.05 mm, separates right particles from wrong ones (the pipeline's
     // tests derive the same bound); the nearest other particle of 300 in
-    // 80x80x40 mm is millimetres away.
+    // 80x80x40 mm is millimetres away. The solved calibration adds its own
+    // error, independent of the detection's: its check points are off by
+    // `check_rmse` (RMS), so the bound grows by 3 of those, in quadrature.
+    let right_within = 0.05f64.hypot(3.0 * check_rmse);
+    assert!(
+        check_rmse < 0.05 / 3.0,
+        "the calibration ({check_rmse} mm RMS) is too poor to tell right particles from wrong"
+    );
     let (mut found, mut right) = (0, 0);
     // Per right particle, its largest error along X, Y, Z in units of its
     // reported standard deviation there.
@@ -75,7 +143,7 @@ async fn synthetic_experiment_gives_the_true_particles() {
                 .unwrap();
             let error = nearest - position;
             found += 1;
-            if error.norm() < 0.05 {
+            if error.norm() < right_within {
                 right += 1;
                 in_sigmas.push(
                     (0..3)
@@ -156,8 +224,10 @@ async fn synthetic_experiment_gives_the_true_particles() {
     assert_eq!(all.lines().count(), found + 1);
 
     // The sequence keeps no images: their files are gone once processed.
+    // Nor does the solve (`keep_images: false`): its input files are gone.
     let db = app.database().await;
     assert_eq!(count(&db, "SELECT count(*) FROM images").await, 0);
+    assert_eq!(count(&db, "SELECT count(*) FROM job_files").await, 0);
     assert_eq!(count(&db, "SELECT count(*) FROM particles").await, FRAMES);
     let files = walk(&app.data_dir.path().join("images"));
     assert!(files.is_empty(), "{files:?}");

@@ -410,3 +410,93 @@ impl Drop for ServiceProcess {
 pub fn repository() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR"))
 }
+
+/// The parts of a `/calibrations/solve` request for the rig: a setup with
+/// sensor and media only (no orientation: zeros, c = 1, no distortion),
+/// a 3D target of control points, and their noisy images per camera.
+pub struct SolveInput {
+    /// The setup JSON.
+    pub setup: String,
+    /// The calibration block (`id X Y Z`).
+    pub control: String,
+    /// Per camera, `id x y` lines.
+    pub observations: Vec<String>,
+}
+
+impl Rig {
+    /// A calibration target of `points` control points filling the volume
+    /// widened in depth to ±70 mm (a calibration needs depth; the cameras
+    /// see all of it), observed with `noise_px` of noise.
+    pub fn solve_input(&self, points: usize, noise_px: f64, seed: u64) -> SolveInput {
+        let mut rng = simulate::rng(seed);
+        let mut volume = self.volume;
+        volume.min.z = volume.min.z.min(-70.0);
+        volume.max.z = volume.max.z.max(70.0);
+        let target =
+            simulate::calibration_target(simulate::TargetShape::Volume, &volume, points, &mut rng);
+        let observations = simulate::observe_target(&self.cameras, &target, noise_px, &mut rng);
+        let mut setup: Value =
+            serde_json::from_str(&formats::calibration::to_json(&self.cameras)).unwrap();
+        for camera in setup["cameras"].as_array_mut().unwrap() {
+            let camera = camera.as_object_mut().unwrap();
+            camera.insert("position".into(), json!([0.0, 0.0, 0.0]));
+            camera.insert("angles".into(), json!([0.0, 0.0, 0.0]));
+            camera.insert("principal_distance".into(), json!(1.0));
+            for field in ["principal_point", "radial", "decentering", "affine"] {
+                camera.remove(field);
+            }
+        }
+        SolveInput {
+            setup: setup.to_string(),
+            control: formats::control::format_control_points(&target),
+            observations: observations
+                .iter()
+                .map(|marks| formats::control::format_mark_observations(marks))
+                .collect(),
+        }
+    }
+}
+
+impl SolveInput {
+    /// The multipart form, with `options` if given.
+    pub fn form(&self, options: Option<&Value>) -> Form {
+        let mut form = Form::new()
+            .text("setup", self.setup.clone())
+            .text("control", self.control.clone());
+        for text in &self.observations {
+            form = form.text("observations", text.clone());
+        }
+        if let Some(options) = options {
+            form = form.text("options", options.to_string());
+        }
+        form
+    }
+}
+
+impl TestApp {
+    /// POSTs a solve request; status and body.
+    pub async fn solve(&self, form: Form) -> (u16, Value) {
+        let response = self
+            .client
+            .post(self.api("/calibrations/solve"))
+            .multipart(form)
+            .send()
+            .await
+            .unwrap();
+        status_and_json(response).await
+    }
+
+    /// Waits until the job is neither queued nor running; its view.
+    pub async fn wait_for_job(&self, job_id: i64) -> Value {
+        let start = Instant::now();
+        loop {
+            let (status, body) = self.get_json(&format!("/jobs/{job_id}")).await;
+            assert_eq!(status, 200, "{body}");
+            if body["state"] != "queued" && body["state"] != "running" {
+                return body;
+            }
+            assert!(start.elapsed() < PATIENCE, "job still pending: {body}");
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+    }
+}

@@ -14,8 +14,8 @@ use serde::{Deserialize, Serialize};
 use utoipa::ToSchema;
 
 use super::problem::{multipart_error, ApiError, ApiJson, ApiMultipart, ApiPath, JsonText};
-use super::Shared;
 use super::sequences::{check_image, drain, text_part};
+use super::Shared;
 use crate::formats::{self, control, openptv::OriTexts};
 use crate::photogrammetry::{intersect, Camera, Observation, Sensor};
 use crate::service::app::AppState;
@@ -105,7 +105,6 @@ pub async fn create(State(state): Shared, JsonText(text): JsonText) -> Result<Re
         .map_err(|e| ApiError::unprocessable(e.to_string()))?;
     store_cameras(&state, &cameras).await
 }
-
 
 /// Creates a calibration from OpenPTV's files: multipart with `ptv_par`,
 /// then per camera in camera order an `ori` part, each optionally followed
@@ -489,8 +488,9 @@ fn check_solve_parts(
             "the `control` part is missing: give the control points, `id X Y Z` per line (mm)",
         )
     })?;
-    let setup = formats::calibration::parameters_from_json(&setup_text, &part_source("setup", None))
-        .map_err(invalid)?;
+    let setup =
+        formats::calibration::parameters_from_json(&setup_text, &part_source("setup", None))
+            .map_err(invalid)?;
     let n = setup.len();
     if n < formats::calibration::MIN_CAMERAS {
         return Err(ApiError::unprocessable(format!(
@@ -498,8 +498,7 @@ fn check_solve_parts(
             formats::calibration::MIN_CAMERAS
         )));
     }
-    control::parse_control_points(&control_text, &part_source("control", None))
-        .map_err(invalid)?;
+    control::parse_control_points(&control_text, &part_source("control", None)).map_err(invalid)?;
     let options: SolveOptions = match &parts.options {
         None => SolveOptions::default(),
         Some(text) => serde_json::from_str(text)
@@ -525,11 +524,8 @@ fn check_solve_parts(
                 ));
             }
             for (camera, text) in parts.observations.iter().enumerate() {
-                control::parse_mark_observations(
-                    text,
-                    &part_source("observations", Some(camera)),
-                )
-                .map_err(invalid)?;
+                control::parse_mark_observations(text, &part_source("observations", Some(camera)))
+                    .map_err(invalid)?;
                 texts.push(("observations", Some(camera), text.clone()));
             }
         }

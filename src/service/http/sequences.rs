@@ -225,7 +225,11 @@ pub struct FrameAccepted {
 }
 
 /// Reads a small text part whole, up to `limit` bytes.
-pub(super) async fn text_part(field: &mut Field<'_>, name: &str, limit: usize) -> Result<String, ApiError> {
+pub(super) async fn text_part(
+    field: &mut Field<'_>,
+    name: &str,
+    limit: usize,
+) -> Result<String, ApiError> {
     let mut bytes = Vec::new();
     while let Some(chunk) = field.chunk().await.map_err(multipart_error)? {
         if bytes.len() + chunk.len() > limit {
