@@ -318,3 +318,191 @@ async fn bad_inputs_get_their_4xx_and_store_nothing() {
     assert!(temporary.is_empty(), "{temporary:?}");
     app.stop().await;
 }
+
+/// Bad solve requests: each gets its 4xx saying what to fix, and no job,
+/// file row or image file is left behind.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn bad_solve_requests_get_their_4xx_and_store_nothing() {
+    let app = spawn_app().await;
+    let rig = rig();
+    let input = rig.solve_input(60, 0.05, 9);
+    let with = |setup: &str, control: Option<&str>, observations: &[String]| {
+        let mut form = Form::new().text("setup", setup.to_owned());
+        if let Some(control) = control {
+            form = form.text("control", control.to_owned());
+        }
+        for text in observations {
+            form = form.text("observations", text.clone());
+        }
+        form
+    };
+    let cases: Vec<(&str, Form, u16, &str)> = vec![
+        (
+            "missing control",
+            with(&input.setup, None, &input.observations),
+            400,
+            "the `control` part is missing",
+        ),
+        (
+            "missing setup",
+            Form::new().text("control", input.control.clone()),
+            400,
+            "the `setup` part is missing",
+        ),
+        (
+            "three observation parts for four cameras",
+            with(&input.setup, Some(&input.control), &input.observations[..3]),
+            422,
+            "the setup has 4 cameras but 3 `observations` parts were given",
+        ),
+        (
+            "no observations or images",
+            with(&input.setup, Some(&input.control), &[]),
+            422,
+            "give per camera",
+        ),
+        (
+            "garbage control file",
+            with(
+                &input.setup,
+                Some("1 0 0 0\n2 0 zero 0\n"),
+                &input.observations,
+            ),
+            422,
+            "part `control`: line 2: Y must be a finite number, got `zero`",
+        ),
+        (
+            "garbage observations",
+            with(
+                &input.setup,
+                Some(&input.control),
+                &[
+                    input.observations[0].clone(),
+                    "1 2\n".to_owned(),
+                    input.observations[2].clone(),
+                    input.observations[3].clone(),
+                ],
+            ),
+            422,
+            "part `observations` of camera 1: line 1: expected 3 fields",
+        ),
+        (
+            "setup is not a calibration",
+            with(
+                "{\"cameras\": 3}",
+                Some(&input.control),
+                &input.observations,
+            ),
+            422,
+            "part `setup`",
+        ),
+        (
+            "unknown options field",
+            input.form(Some(&json!({"check_evry": 5}))),
+            422,
+            "unknown field `check_evry`",
+        ),
+        (
+            "unknown fixed parameter",
+            input.form(Some(&json!({"fix": ["k4"]}))),
+            422,
+            "fix: unknown parameter `k4`",
+        ),
+        (
+            "check_every of 1",
+            input.form(Some(&json!({"check_every": 1}))),
+            422,
+            "check_every: K must be at least 2",
+        ),
+        (
+            "unknown part",
+            input.form(None).text("colour", "red"),
+            400,
+            "unknown part `colour`",
+        ),
+        (
+            "setup twice",
+            input.form(None).text("setup", input.setup.clone()),
+            400,
+            "part `setup` is given twice",
+        ),
+        (
+            "image that is not an image",
+            Form::new()
+                .text("setup", input.setup.clone())
+                .text("control", input.control.clone())
+                .part("image", Part::bytes(b"not an image".to_vec()))
+                .part("image", Part::bytes(b"not an image".to_vec()))
+                .part("image", Part::bytes(b"not an image".to_vec()))
+                .part("image", Part::bytes(b"not an image".to_vec())),
+            415,
+            "not a PNG or TIFF image",
+        ),
+    ];
+    for (case, form, status, detail) in cases {
+        let (got, body) = app.solve(form).await;
+        assert_eq!(got, status, "{case}: {body}");
+        let text = body["detail"].as_str().unwrap_or_default();
+        assert!(text.contains(detail), "{case}: `{text}` lacks `{detail}`");
+    }
+    let (status, body) = app
+        .client
+        .post(app.api("/calibrations/solve"))
+        .header("content-type", "application/json")
+        .body("{}")
+        .send()
+        .await
+        .map(|r| (r.status().as_u16(), r))
+        .unwrap();
+    assert_eq!(status, 415, "{:?}", body.text().await);
+
+    let db = app.database().await;
+    assert_eq!(count(&db, "SELECT count(*) FROM jobs").await, 0);
+    assert_eq!(count(&db, "SELECT count(*) FROM job_files").await, 0);
+    assert_eq!(count(&db, "SELECT count(*) FROM calibrations").await, 0);
+    let files = crate::api::walk(&app.data_dir.path().join("images"));
+    assert!(files.is_empty(), "{files:?}");
+    app.stop().await;
+}
+
+/// Input that parses but cannot calibrate (5 control points) fails its job
+/// with the calibration's reason; nothing is stored, and its files are
+/// kept as a failed frame's are, surviving a restart's sweep.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_solve_that_cannot_calibrate_fails_its_job_with_the_reason() {
+    let app = spawn_app().await;
+    let input = rig().solve_input(60, 0.05, 11);
+    let first = |text: &str, n: usize| -> String {
+        text.lines()
+            .take(n)
+            .map(|l| format!("{l}\n"))
+            .collect::<String>()
+    };
+    let few = SolveInput {
+        setup: input.setup.clone(),
+        control: first(&input.control, 5),
+        observations: input.observations.iter().map(|o| first(o, 5)).collect(),
+    };
+    let (status, body) = app.solve(few.form(None)).await;
+    assert_eq!(status, 202, "{body}");
+    let job_id = body["job_id"].as_i64().unwrap();
+    assert_eq!(body["job"], format!("/api/v1/jobs/{job_id}"));
+    let job = app.wait_for_job(job_id).await;
+    assert_eq!(job["state"], "failed", "{job}");
+    let error = job["error"].as_str().unwrap();
+    assert!(error.contains("at least 6"), "{error}");
+    assert!(job["result"].is_null(), "{job}");
+    let db = app.database().await;
+    assert_eq!(count(&db, "SELECT count(*) FROM calibrations").await, 0);
+    assert_eq!(count(&db, "SELECT count(*) FROM job_files").await, 6);
+    db.close().await;
+
+    // A restart's sweep keeps the files the job's rows name.
+    let data_dir = app.stop_keeping_data().await;
+    let files = crate::api::walk(&data_dir.path().join("images"));
+    assert_eq!(files.len(), 6, "{files:?}");
+    let restarted = spawn_app_in(data_dir).await;
+    let files = crate::api::walk(&restarted.data_dir.path().join("images"));
+    assert_eq!(files.len(), 6, "{files:?}");
+    restarted.stop().await;
+}

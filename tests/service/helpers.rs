@@ -54,7 +54,15 @@ pub async fn spawn_app() -> TestApp {
 
 /// Starts the service with a fresh data directory and an API token.
 pub async fn spawn_app_with(api_token: Option<&str>) -> TestApp {
-    let data_dir = tempfile::tempdir().unwrap();
+    spawn(tempfile::tempdir().unwrap(), api_token).await
+}
+
+/// Starts the service again on a data directory a stopped one left.
+pub async fn spawn_app_in(data_dir: TempDir) -> TestApp {
+    spawn(data_dir, None).await
+}
+
+async fn spawn(data_dir: TempDir, api_token: Option<&str>) -> TestApp {
     let app = Application::build(test_args(data_dir.path(), api_token))
         .await
         .expect("the service starts");

@@ -471,11 +471,12 @@ fn check_count(part: &str, given: usize, cameras: usize) -> Result<(), ApiError>
     )))
 }
 
+/// A text part to keep: its name, camera (per-camera parts) and text.
+type TextFile = (&'static str, Option<usize>, String);
+
 /// Checks a solve request's parts (everything but the resection itself),
 /// returning the text files to keep (part, camera, text) and the options.
-fn check_solve_parts(
-    parts: &SolveParts,
-) -> Result<(Vec<(&'static str, Option<usize>, String)>, SolveOptions), ApiError> {
+fn check_solve_parts(parts: &SolveParts) -> Result<(Vec<TextFile>, SolveOptions), ApiError> {
     let invalid = |e: formats::FormatError| ApiError::unprocessable(e.to_string());
     let setup_text = parts.setup.clone().ok_or_else(|| {
         ApiError::bad_request(
