@@ -482,6 +482,7 @@ async fn a_solve_that_cannot_calibrate_fails_its_job_with_the_reason() {
         setup: input.setup.clone(),
         control: first(&input.control, 5),
         observations: input.observations.iter().map(|o| first(o, 5)).collect(),
+        target: input.target[..5].to_vec(),
     };
     let (status, body) = app.solve(few.form(None)).await;
     assert_eq!(status, 202, "{body}");

@@ -429,6 +429,8 @@ pub struct SolveInput {
     pub control: String,
     /// Per camera, `id x y` lines.
     pub observations: Vec<String>,
+    /// The control points.
+    pub target: Vec<ptv::photogrammetry::calibrate::ControlPoint>,
 }
 
 impl Rig {
@@ -461,6 +463,7 @@ impl Rig {
                 .iter()
                 .map(|marks| formats::control::format_mark_observations(marks))
                 .collect(),
+            target,
         }
     }
 }
