@@ -474,9 +474,17 @@ fn check_count(part: &str, given: usize, cameras: usize) -> Result<(), ApiError>
 /// A text part to keep: its name, camera (per-camera parts) and text.
 type TextFile = (&'static str, Option<usize>, String);
 
-/// Checks a solve request's parts (everything but the resection itself),
-/// returning the text files to keep (part, camera, text) and the options.
-fn check_solve_parts(parts: &SolveParts) -> Result<(Vec<TextFile>, SolveOptions), ApiError> {
+/// A solve request's parts, checked: the text files to keep, the options,
+/// and the cameras' sensors.
+struct CheckedSolve {
+    texts: Vec<TextFile>,
+    options: SolveOptions,
+    sensors: Vec<Sensor>,
+}
+
+/// Checks a solve request's parts (everything but the images' headers and
+/// the resection itself).
+fn check_solve_parts(parts: &SolveParts) -> Result<CheckedSolve, ApiError> {
     let invalid = |e: formats::FormatError| ApiError::unprocessable(e.to_string());
     let setup_text = parts.setup.clone().ok_or_else(|| {
         ApiError::bad_request(
@@ -550,7 +558,11 @@ fn check_solve_parts(parts: &SolveParts) -> Result<(Vec<TextFile>, SolveOptions)
             ))
         }
     }
-    Ok((texts, options))
+    Ok(CheckedSolve {
+        texts,
+        options,
+        sensors: setup.iter().map(|camera| camera.sensor.clone()).collect(),
+    })
 }
 
 /// Solves a calibration by resection on control points: multipart with
@@ -584,22 +596,22 @@ pub async fn solve(
             return Err(error);
         }
     };
-    let (texts, options) = check_solve_parts(&parts)?;
-    let SolveParts { setup, images, .. } = parts;
+    let CheckedSolve {
+        texts,
+        options,
+        sensors,
+    } = check_solve_parts(&parts)?;
+    let images = parts.images;
     if !images.is_empty() {
-        let setup = formats::calibration::parameters_from_json(
-            setup.as_deref().unwrap_or_default(),
-            "part `setup`",
-        )
-        .map_err(|e| ApiError::unprocessable(e.to_string()))?;
+        // Header checks read the files: blocking I/O, off the runtime.
         let checks: Vec<(std::path::PathBuf, u64, Sensor)> = images
             .iter()
-            .zip(&setup)
-            .map(|(f, camera)| {
+            .zip(sensors)
+            .map(|(f, sensor)| {
                 (
                     f.temp_path().map(|p| p.to_owned()).unwrap_or_default(),
                     f.size,
-                    camera.sensor.clone(),
+                    sensor,
                 )
             })
             .collect();
