@@ -591,6 +591,19 @@ pub fn calibrate(
     })
 }
 
+/// Checks what [`calibrate`] and [`calibrate_from_marks`] check before any
+/// adjustment (the setup's cameras, the control points, the options, and
+/// `given` per-camera inputs for the setup's cameras), cheaply and with the
+/// same errors, so that bad input can be refused before the work is queued.
+pub fn check_inputs(
+    setup: &[CameraParameters],
+    control: &[ControlPoint],
+    given: usize,
+    options: &CalibrationOptions,
+) -> Result<(), CalibrationError> {
+    prepare(setup, control, given, options).map(|_| ())
+}
+
 /// Validated inputs shared by the cameras.
 struct Prepared {
     /// Control points by id.

@@ -415,6 +415,16 @@ async fn bad_solve_requests_get_their_4xx_and_store_nothing() {
             "check_every: K must be at least 2",
         ),
         (
+            "5 control points",
+            with(
+                &input.setup,
+                Some("1 0 0 0\n2 0 1 0\n3 1 0 0\n4 1 1 0\n5 0 0 1\n"),
+                &input.observations,
+            ),
+            422,
+            "5 control points given; a calibration needs at least 6",
+        ),
+        (
             "unknown part",
             input.form(None).text("colour", "red"),
             400,
@@ -465,9 +475,10 @@ async fn bad_solve_requests_get_their_4xx_and_store_nothing() {
     app.stop().await;
 }
 
-/// Input that parses but cannot calibrate (5 control points) fails its job
-/// with the calibration's reason; nothing is stored, and its files are
-/// kept as a failed frame's are, surviving a restart's sweep.
+/// Input that parses but cannot calibrate (a camera that sees 5 control
+/// points) fails its job with the calibration's reason; nothing is stored,
+/// and its files are kept as a failed frame's are, surviving a restart's
+/// sweep.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_solve_that_cannot_calibrate_fails_its_job_with_the_reason() {
     let app = spawn_app().await;
@@ -480,9 +491,9 @@ async fn a_solve_that_cannot_calibrate_fails_its_job_with_the_reason() {
     };
     let few = SolveInput {
         setup: input.setup.clone(),
-        control: first(&input.control, 5),
+        control: input.control.clone(),
         observations: input.observations.iter().map(|o| first(o, 5)).collect(),
-        target: input.target[..5].to_vec(),
+        target: input.target.clone(),
     };
     let (status, body) = app.solve(few.form(None)).await;
     assert_eq!(status, 202, "{body}");
@@ -491,7 +502,11 @@ async fn a_solve_that_cannot_calibrate_fails_its_job_with_the_reason() {
     let job = app.wait_for_job(job_id).await;
     assert_eq!(job["state"], "failed", "{job}");
     let error = job["error"].as_str().unwrap();
-    assert!(error.contains("at least 6"), "{error}");
+    assert!(
+        error.contains("camera 0 (cam1) has 5 usable control points")
+            && error.contains("needs at least 9 for 16 free parameters"),
+        "{error}"
+    );
     assert!(job["result"].is_null(), "{job}");
     let db = app.database().await;
     assert_eq!(count(&db, "SELECT count(*) FROM calibrations").await, 0);

@@ -17,6 +17,7 @@ use super::problem::{multipart_error, ApiError, ApiJson, ApiMultipart, ApiPath, 
 use super::sequences::{check_image, drain, text_part};
 use super::Shared;
 use crate::formats::{self, control, openptv::OriTexts};
+use crate::photogrammetry::calibrate;
 use crate::photogrammetry::{intersect, Camera, Observation, Sensor};
 use crate::service::app::AppState;
 use crate::service::images::UploadedFile;
@@ -507,15 +508,20 @@ fn check_solve_parts(parts: &SolveParts) -> Result<CheckedSolve, ApiError> {
             formats::calibration::MIN_CAMERAS
         )));
     }
-    control::parse_control_points(&control_text, &part_source("control", None)).map_err(invalid)?;
+    let control_points =
+        control::parse_control_points(&control_text, &part_source("control", None))
+            .map_err(invalid)?;
     let options: SolveOptions = match &parts.options {
         None => SolveOptions::default(),
         Some(text) => serde_json::from_str(text)
             .map_err(|e| ApiError::unprocessable(format!("part `options`: {e}")))?,
     };
-    options
+    let calibration_options = options
         .calibration_options()
         .map_err(|e| ApiError::unprocessable(format!("part `options`: {e}")))?;
+    // What the core checks before any adjustment, with its messages.
+    calibrate::check_inputs(&setup, &control_points, n, &calibration_options)
+        .map_err(|e| ApiError::unprocessable(error_chain(&e)))?;
 
     let mut texts = vec![("setup", None, setup_text), ("control", None, control_text)];
     match (parts.observations.len(), parts.images.len()) {
