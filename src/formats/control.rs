@@ -252,6 +252,32 @@ mod tests {
     }
 
     #[test]
+    fn options_say_which_option_is_wrong() {
+        let names = |v: &[&str]| v.iter().map(|s| s.to_string()).collect::<Vec<_>>();
+        let options = calibration_options(&names(&["k3", " c", ""]), Some(5), None, 0.95).unwrap();
+        assert_eq!(options.fixed, vec![Parameter::K3, Parameter::C]);
+        assert_eq!(options.check_points, CheckPoints::Every(5));
+        assert_eq!(options.max_correlation, 0.95);
+        let error = calibration_options(&names(&["k4"]), None, None, 0.99).unwrap_err();
+        assert_eq!(error.option, "fix");
+        assert!(error.reason.contains("unknown parameter `k4`"), "{error}");
+        let error = calibration_options(&[], Some(1), None, 0.99).unwrap_err();
+        assert_eq!(
+            error.to_string(),
+            "check_every: K must be at least 2, got 1"
+        );
+        assert!(calibration_options(&[], Some(3), Some(vec![1]), 0.99).is_err());
+        let error = calibration_options(&[], None, None, 1.5).unwrap_err();
+        assert_eq!(error.option, "max_correlation");
+        assert_eq!(parse_check_ids("3 7\n12", "ids").unwrap(), vec![3, 7, 12]);
+        let error = parse_check_ids("3 x", "ids.txt").unwrap_err();
+        assert_eq!(
+            error.to_string(),
+            "ids.txt: id 2: `x` is not a point id (a non-negative integer)"
+        );
+    }
+
+    #[test]
     fn errors_name_the_line_and_field() {
         let error = parse_control_points("1 0 0 0\n\n2 0 nan 0\n", "block.txt").unwrap_err();
         assert_eq!(
