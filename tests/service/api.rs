@@ -183,6 +183,7 @@ async fn synthetic_experiment_gives_the_true_particles() {
     // 300 within 0.05 mm): at least 97% found right, at most 1% of what is
     // reported wrong.
     let total = FRAMES as usize * PARTICLES;
+    eprintln!("{right} of {total} particles within {right_within:.4} mm, {found} reported");
     assert!(
         right * 100 >= total * 97,
         "{right} of {total} particles found right"
@@ -198,6 +199,7 @@ async fn synthetic_experiment_gives_the_true_particles() {
     // factor of 1.5 either way would move it below 0.92 or above 2.07.
     in_sigmas.sort_by(f64::total_cmp);
     let median = in_sigmas[in_sigmas.len() / 2];
+    eprintln!("median error {median:.2} sigmas");
     assert!(
         (0.92..=2.07).contains(&median),
         "median error {median} sigmas, expected about 1.38"
