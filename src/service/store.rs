@@ -361,6 +361,17 @@ impl Store {
         Ok(Store { reader, writer })
     }
 
+    /// Starts a write transaction with `BEGIN IMMEDIATE`: it takes SQLite's
+    /// write lock at once, so a transaction that reads before it writes never
+    /// finds its snapshot stale when it comes to write (a deferred `BEGIN`
+    /// would then fail with SQLITE_BUSY whatever the busy timeout), also
+    /// with several processes on one database.
+    async fn write_transaction(
+        &self,
+    ) -> Result<sqlx::Transaction<'static, sqlx::Sqlite>, sqlx::Error> {
+        self.writer.begin_with("BEGIN IMMEDIATE").await
+    }
+
     /// Closes both pools.
     pub async fn close(&self) {
         self.writer.close().await;
@@ -376,7 +387,7 @@ impl Store {
         cameras: i64,
         report: Option<&str>,
     ) -> Result<CalibrationRow, sqlx::Error> {
-        let mut tx = self.writer.begin().await?;
+        let mut tx = self.write_transaction().await?;
         let row = insert_calibration(&mut tx, model, cameras, report).await?;
         tx.commit().await?;
         Ok(row)
@@ -454,7 +465,7 @@ impl Store {
     /// Stores an uploaded frame, its inputs and its process_frame job in
     /// one transaction; returns the job's id.
     pub async fn insert_frame(&self, frame: &NewFrame) -> Result<i64, InsertFrameError> {
-        let mut tx = self.writer.begin().await?;
+        let mut tx = self.write_transaction().await?;
         let payload =
             serde_json::json!({"sequence_id": frame.sequence_id, "frame": frame.frame}).to_string();
         let job_id = enqueue(&mut tx, super::jobs::PROCESS_FRAME, &payload).await?;
@@ -605,7 +616,7 @@ impl Store {
         duration_s: f64,
     ) -> Result<Vec<String>, CompleteError> {
         let (sequence_id, frame) = (input.sequence_id, input.frame);
-        let mut tx = self.writer.begin().await?;
+        let mut tx = self.write_transaction().await?;
         let result = format!("/api/v1/sequences/{sequence_id}/frames/{frame}/particles");
         finish(&mut tx, job, &result, duration_s).await?;
         for (camera, count, data) in targets {
@@ -696,7 +707,7 @@ impl Store {
     /// been claimed [`MAX_ATTEMPTS`] times (a job that kills its worker
     /// must not kill every restart). Returns (requeued, failed).
     pub async fn reap(&self) -> Result<(u64, u64), sqlx::Error> {
-        let mut tx = self.writer.begin().await?;
+        let mut tx = self.write_transaction().await?;
         let failed = sqlx::query(
             "UPDATE jobs SET state = 'failed', locked_by = NULL, \
              error = 'the service stopped while running this job ' || attempts || \
@@ -771,7 +782,7 @@ impl Store {
         payload: &str,
         files: &[JobFile],
     ) -> Result<i64, sqlx::Error> {
-        let mut tx = self.writer.begin().await?;
+        let mut tx = self.write_transaction().await?;
         let id = enqueue(&mut tx, kind, payload).await?;
         for file in files {
             sqlx::query(
@@ -821,7 +832,7 @@ impl Store {
         keep_files: bool,
         duration_s: f64,
     ) -> Result<(i64, Vec<String>), CompleteError> {
-        let mut tx = self.writer.begin().await?;
+        let mut tx = self.write_transaction().await?;
         let row = insert_calibration(&mut tx, model, cameras, Some(report)).await?;
         let result = format!("/api/v1/calibrations/{}", row.id);
         finish(&mut tx, job, &result, duration_s).await?;
@@ -934,7 +945,7 @@ impl Store {
         result: &str,
         duration_s: f64,
     ) -> Result<(), CompleteError> {
-        let mut tx = self.writer.begin().await?;
+        let mut tx = self.write_transaction().await?;
         finish(&mut tx, job, result, duration_s).await?;
         tx.commit().await?;
         Ok(())
@@ -943,7 +954,7 @@ impl Store {
     /// Enqueues a job on its own (e.g. solve_calibration, whose inputs are
     /// files already in the image store, named in the payload).
     pub async fn enqueue(&self, kind: &str, payload: &str) -> Result<i64, sqlx::Error> {
-        let mut tx = self.writer.begin().await?;
+        let mut tx = self.write_transaction().await?;
         let id = enqueue(&mut tx, kind, payload).await?;
         tx.commit().await?;
         Ok(id)
