@@ -154,28 +154,16 @@ async fn synthetic_experiment_gives_the_true_particles() {
         }
         // Every format gives the same particles.
         let csv = app
-            .client
-            .get(app.api(&format!(
+            .get_text(app.api(&format!(
                 "/sequences/{sequence}/frames/{frame}/particles?format=csv"
             )))
-            .send()
-            .await
-            .unwrap()
-            .text()
-            .await
-            .unwrap();
+            .await;
         assert_eq!(csv.lines().count(), particles.len() + 1);
         let rt_is = app
-            .client
-            .get(app.api(&format!(
+            .get_text(app.api(&format!(
                 "/sequences/{sequence}/frames/{frame}/particles?format=rt_is"
             )))
-            .send()
-            .await
-            .unwrap()
-            .text()
-            .await
-            .unwrap();
+            .await;
         assert_eq!(rt_is.lines().next().unwrap(), particles.len().to_string());
     }
     // Of 20 x 300 particles, those whose images overlap another's in some
@@ -214,14 +202,8 @@ async fn synthetic_experiment_gives_the_true_particles() {
 
     // All frames as one CSV with a frame column.
     let all = app
-        .client
-        .get(app.api(&format!("/sequences/{sequence}/particles?format=csv")))
-        .send()
-        .await
-        .unwrap()
-        .text()
-        .await
-        .unwrap();
+        .get_text(app.api(&format!("/sequences/{sequence}/particles?format=csv")))
+        .await;
     assert!(all.starts_with("frame,x,y,z,sx,sy,sz,rms_px,cameras,t0,t1,t2,t3\n"));
     assert_eq!(all.lines().count(), found + 1);
 
@@ -234,15 +216,7 @@ async fn synthetic_experiment_gives_the_true_particles() {
     let files = walk(&app.data_dir.path().join("images"));
     assert!(files.is_empty(), "{files:?}");
 
-    let metrics = app
-        .client
-        .get(format!("{}/metrics", app.address))
-        .send()
-        .await
-        .unwrap()
-        .text()
-        .await
-        .unwrap();
+    let metrics = app.get_text(format!("{}/metrics", app.address)).await;
     assert!(metrics.contains(&format!(
         "ptv_jobs{{kind=\"process_frame\",state=\"succeeded\"}} {FRAMES}"
     )));
@@ -302,14 +276,8 @@ async fn openptv_calibration_projects_and_intersects() {
     // The .ori comes back as the exporter writes it, and parses to the
     // same camera as the file uploaded.
     let ori = app
-        .client
-        .get(app.api(&format!("/calibrations/{id}/openptv/1.ori")))
-        .send()
-        .await
-        .unwrap()
-        .text()
-        .await
-        .unwrap();
+        .get_text(app.api(&format!("/calibrations/{id}/openptv/1.ori")))
+        .await;
     let ours = formats::openptv::parse_ori(&ori, "served").unwrap();
     let theirs = formats::openptv::parse_ori(&read("cal/cam2.tif.ori"), "file").unwrap();
     assert!((ours.0.position - theirs.0.position).norm() < 1e-6);

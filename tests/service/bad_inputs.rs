@@ -250,7 +250,6 @@ async fn bad_inputs_get_their_4xx_and_store_nothing() {
 
     // A streamed body (no declared length) is cut off at the limit (64 MiB
     // here) without being held whole: send 65 MiB of one image part.
-    let address = app.address.clone();
     let url = app.api(&frames);
     let (status, detail) = {
         let chunk = vec![0u8; 1 << 20];
@@ -277,7 +276,6 @@ async fn bad_inputs_get_their_4xx_and_store_nothing() {
             Err(error) => (0, error.to_string()),
         }
     };
-    let _ = address;
     if status != 0 {
         assert_eq!(status, 413, "{detail}");
     }
@@ -289,15 +287,7 @@ async fn bad_inputs_get_their_4xx_and_store_nothing() {
     assert_eq!(status, 409, "{body}");
     app.wait_for_sequence(sequence).await;
 
-    let metrics = app
-        .client
-        .get(format!("{}/metrics", app.address))
-        .send()
-        .await
-        .unwrap()
-        .text()
-        .await
-        .unwrap();
+    let metrics = app.get_text(format!("{}/metrics", app.address)).await;
     assert!(!metrics.contains("status=\"5"), "{metrics}");
     assert!(
         metrics.contains("route=\"/api/v1/sequences/{id}/frames\",status=\"413\"} 2"),

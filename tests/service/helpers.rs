@@ -130,6 +130,14 @@ impl TestApp {
         status_and_json(response).await
     }
 
+    /// GETs `url` (a whole URL: `/metrics` lies outside the API), which
+    /// must answer 200; its body as text.
+    pub async fn get_text(&self, url: String) -> String {
+        let response = self.client.get(url).send().await.unwrap();
+        assert_eq!(response.status().as_u16(), 200, "{}", response.url());
+        response.text().await.unwrap()
+    }
+
     /// Creates a calibration from cameras; its id.
     pub async fn create_calibration(&self, cameras: &[Camera]) -> i64 {
         let response = self
