@@ -7,20 +7,15 @@
 //! 8 ms per camera on one core).
 
 use criterion::{criterion_group, criterion_main, Criterion};
-use nalgebra::{Point3, Vector3};
+use nalgebra::Vector3;
 use ptv::photogrammetry::calibrate::{calibrate, CalibrationOptions};
 use ptv::photogrammetry::simulate::{self, RigSpec, TargetShape};
-use ptv::photogrammetry::{Camera, CameraParameters, Distortion, Volume};
+use ptv::photogrammetry::{Camera, CameraParameters, Distortion};
 use std::hint::black_box;
 
 fn calibration(c: &mut Criterion) {
     let mut rng = simulate::rng(1);
-    let mut spec = RigSpec::convergent(4);
-    spec.distance = 250.0;
-    spec.volume = Volume {
-        min: Point3::new(-80.0, -80.0, -70.0),
-        max: Point3::new(80.0, 80.0, 70.0),
-    };
+    let spec = RigSpec::calibration(4);
     let truth: Vec<Camera> = spec
         .build()
         .unwrap()

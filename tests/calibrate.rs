@@ -32,12 +32,7 @@ fn experiment(
     noise_px: f64,
     rng: &mut impl Rng,
 ) -> Experiment {
-    let mut spec = RigSpec::convergent(cameras);
-    spec.distance = 250.0;
-    spec.volume = Volume {
-        min: Point3::new(-80.0, -80.0, -70.0),
-        max: Point3::new(80.0, 80.0, 70.0),
-    };
+    let mut spec = RigSpec::calibration(cameras);
     if !water {
         spec.tank = None;
     }

@@ -10,7 +10,7 @@ use ptv::photogrammetry::calibrate::{
     calibrate, CalibrationOptions, CheckPoints, MarkObservation, Parameter,
 };
 use ptv::photogrammetry::simulate::{self, RenderSpec, RigSpec, TargetShape};
-use ptv::photogrammetry::{Camera, GreyPixels, Volume};
+use ptv::photogrammetry::{Camera, GreyPixels};
 
 struct Files {
     dir: tempfile::TempDir,
@@ -23,12 +23,7 @@ struct Files {
 /// `block.txt` and `camN.txt` (0.05 px noise).
 fn files() -> Files {
     let mut rng = simulate::rng(21);
-    let mut spec = RigSpec::convergent(3);
-    spec.distance = 250.0;
-    spec.volume = Volume {
-        min: Point3::new(-80.0, -80.0, -70.0),
-        max: Point3::new(80.0, 80.0, 70.0),
-    };
+    let spec = RigSpec::calibration(3);
     let truth: Vec<Camera> = spec
         .build()
         .unwrap()

@@ -135,6 +135,20 @@ impl RigSpec {
         }
     }
 
+    /// The convergent rig 250 mm from a 160 x 160 x 140 mm calibration
+    /// volume: a deep target seen at close range, so that a single camera's
+    /// resection can tell its principal distance from its distance.
+    pub fn calibration(cameras: usize) -> RigSpec {
+        RigSpec {
+            distance: 250.0,
+            volume: Volume {
+                min: Point3::new(-80.0, -80.0, -70.0),
+                max: Point3::new(80.0, 80.0, 70.0),
+            },
+            ..RigSpec::convergent(cameras)
+        }
+    }
+
     /// Builds the cameras: each looks at the volume's centre (through its
     /// wall: the refracted ray of the image centre passes it), x axis
     /// horizontal, with a principal distance that lets the volume fill about
