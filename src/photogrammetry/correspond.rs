@@ -602,10 +602,13 @@ impl Parabola {
     /// The squared distance from `p` to the parabola: Newton's method on
     /// `(P(u) - p) . P'(u) = 0` from the projection on the chord, u kept in
     /// [0, 1]. Epipolar parabolas bend by pixels over hundreds of pixels,
-    /// so one or two steps converge.
+    /// so one or two steps converge. The iteration stops once a step moves
+    /// the foot point by less than 1e-6 px: the squared distance is then
+    /// off by about the square of the next, far smaller, step.
     #[inline]
     fn distance_sq(&self, p: &Point2<f64>) -> f64 {
         const MAX_STEPS: usize = 8;
+        const SETTLED_SQ: f64 = 1e-12;
         let d = p.coords - self.a;
         let chord = self.b + self.c;
         let mut u = (d.dot(&chord) / chord.norm_squared()).clamp(0.0, 1.0);
@@ -615,14 +618,15 @@ impl Parabola {
         for _ in 0..MAX_STEPS {
             let q = (self.b + self.c * u) * u - d;
             let tangent = self.b + self.c * (2.0 * u);
-            let slope = tangent.norm_squared() + 2.0 * q.dot(&self.c);
+            let tangent_sq = tangent.norm_squared();
+            let slope = tangent_sq + 2.0 * q.dot(&self.c);
             if slope <= 0.0 {
                 break;
             }
             let next = (u - q.dot(&tangent) / slope).clamp(0.0, 1.0);
-            let moved = (next - u).abs();
+            let moved = next - u;
             u = next;
-            if moved * tangent.norm() < 1e-9 {
+            if moved * moved * tangent_sq < SETTLED_SQ {
                 break;
             }
         }

@@ -173,17 +173,14 @@ const MAX_REFRACTION_ITERATIONS: usize = 100;
 /// The solved ray through the layers for one object point.
 #[derive(Clone, Copy, Debug)]
 struct RefractedPath {
-    /// sin and cos of the angle of the ray in air to the wall normal.
-    sin_air: f64,
-    cos_air: f64,
-    /// d(beta_air)/dq, with q = tan(beta_ref).
-    d_beta_air_dq: f64,
+    /// tan of the angle of the ray in air to the wall normal.
+    tan_air: f64,
+    /// d(tan_air)/dq, with q = tan(beta_ref).
+    d_tan_air_dq: f64,
     /// d(sum h_i tan beta_i)/dq at the solution.
     d_radial_dq: f64,
     /// tan of the angle in the layer that contains the point.
     tan_last: f64,
-    /// n_ref / n_air.
-    ref_over_air: f64,
 }
 
 /// Eq. (6) generalised to the layers between the camera and one depth:
@@ -210,6 +207,20 @@ struct PathValue {
     tan_last: f64,
 }
 
+/// `tan(beta)` and its derivative with respect to `q = tan(beta_ref)` in a
+/// layer where `sin(beta) = k sin(beta_ref)`, `k = n_ref / n <= 1`:
+/// `tan(beta) = k q / sqrt(1 + (1 - k^2) q^2)`, `d tan(beta) / dq =
+/// k / (1 + (1 - k^2) q^2)^(3/2)`. One square root and one division, the
+/// layers independent of each other: the projection's critical path.
+#[inline]
+fn tan_in(k: f64, q: f64) -> (f64, f64) {
+    if k == 1.0 {
+        return (q, 1.0);
+    }
+    let inv = 1.0 / (1.0 + (1.0 - k * k) * q * q).sqrt();
+    (k * q * inv, k * inv * inv * inv)
+}
+
 impl PathEquation<'_> {
     /// Height of the path in layer `i`.
     fn height(&self, i: usize) -> f64 {
@@ -222,9 +233,6 @@ impl PathEquation<'_> {
 
     #[inline]
     fn at(&self, q: f64) -> PathValue {
-        let inv = 1.0 / (1.0 + q * q).sqrt();
-        let sin_ref = q * inv;
-        let cos3_ref = inv * inv * inv;
         let mut value = PathValue {
             radial: 0.0,
             slope: 0.0,
@@ -232,19 +240,10 @@ impl PathEquation<'_> {
         };
         for (i, layer) in self.layers.iter().enumerate() {
             let height = self.height(i);
-            if layer.n == self.n_ref {
-                // tan(beta_ref) = q, and its derivative is 1.
-                value.tan_last = q;
-                value.radial += height * q;
-                value.slope += height;
-            } else {
-                let k = self.n_ref / layer.n;
-                let s = k * sin_ref;
-                let inv_cos = 1.0 / (1.0 - s * s).sqrt();
-                value.tan_last = s * inv_cos;
-                value.radial += height * value.tan_last;
-                value.slope += height * k * cos3_ref * inv_cos * inv_cos * inv_cos;
-            }
+            let (tan, slope) = tan_in(self.n_ref / layer.n, q);
+            value.tan_last = tan;
+            value.radial += height * tan;
+            value.slope += height * slope;
         }
         value
     }
@@ -500,22 +499,18 @@ impl MediaGeometry {
             None
         });
         let (q, at) = tabulated.unwrap_or_else(|| self.solve_exact(radial, depth));
-        let ref_over_air = equation.n_ref / self.layers[0].n;
-        let inv = 1.0 / (1.0 + q * q).sqrt();
-        let sin_air = ref_over_air * q * inv;
-        let cos_air = (1.0 - sin_air * sin_air).sqrt();
+        let (tan_air, d_tan_air_dq) = tan_in(equation.n_ref / self.layers[0].n, q);
         RefractedPath {
-            sin_air,
-            cos_air,
-            d_beta_air_dq: ref_over_air * inv * inv * inv / cos_air,
+            tan_air,
+            d_tan_air_dq,
             d_radial_dq: at.slope,
             tan_last: at.tan_last,
-            ref_over_air,
         }
     }
 
-    /// The radial unit vector and distance of a point from the camera's
-    /// nadir line, and its depth along the inward normal.
+    /// The radial vector of a point (from the camera's nadir line to the
+    /// point, across the normal), its length, and the point's depth along
+    /// the inward normal.
     fn polar(
         &self,
         camera: &Point3<f64>,
@@ -530,8 +525,12 @@ impl MediaGeometry {
         Ok((radial, radial.norm(), depth))
     }
 
-    /// Unit direction, in air from the projective centre, of the ray that
-    /// reaches `point` through the layers.
+    /// The direction, in air from the projective centre, of the ray that
+    /// reaches `point` through the layers, scaled to a unit component
+    /// along the inward normal: `u tan(beta_air) - normal`, `u` the radial
+    /// unit vector. Collinearity (Eq. 2) needs only the direction; leaving
+    /// out the normalisation keeps a square root and a division off the
+    /// projection's critical path.
     pub fn air_direction(
         &self,
         camera: &Point3<f64>,
@@ -540,7 +539,7 @@ impl MediaGeometry {
         let (radial, r, depth) = self.polar(camera, point)?;
         let path = self.solve(r, depth);
         if r > 0.0 {
-            Ok(radial * (path.sin_air / r) - self.normal * path.cos_air)
+            Ok(radial * (path.tan_air / r) - self.normal)
         } else {
             Ok(-self.normal)
         }
@@ -557,18 +556,17 @@ impl MediaGeometry {
         let n = &self.normal;
         let tangential_projector = Matrix3::identity() - n * n.transpose();
         // Below this radial distance the direction of u is numerically
-        // meaningless; use the limit r -> 0 (sin_air / r -> k / f'(0)).
+        // meaningless; use the limit r -> 0 (tan_air / r -> tan_air'(q) / f'(q)).
         if r <= 1e-9 * depth {
-            let scale = path.ref_over_air / path.d_radial_dq;
-            let direction = radial * scale - n * path.cos_air;
-            return Ok(((direction).normalize(), tangential_projector * scale));
+            let scale = path.d_tan_air_dq / path.d_radial_dq;
+            return Ok((radial * scale - n, tangential_projector * scale));
         }
         let u = radial / r;
-        let direction = u * path.sin_air - n * path.cos_air;
-        // Moving the point across u turns the ray's plane (factor sin/r);
+        let direction = u * path.tan_air - n;
+        // Moving the point across u turns the ray's plane (factor tan/r);
         // along u or the normal changes q by (dr - tan_last d depth) / f'(q).
-        let turn = (tangential_projector - u * u.transpose()) * (path.sin_air / r);
-        let d_direction_dq = (u * path.cos_air + n * path.sin_air) * path.d_beta_air_dq;
+        let turn = (tangential_projector - u * u.transpose()) * (path.tan_air / r);
+        let d_direction_dq = u * path.d_tan_air_dq;
         let dq_dpoint = (u + n * path.tan_last).transpose() / path.d_radial_dq;
         Ok((direction, turn + d_direction_dq * dq_dpoint))
     }
@@ -634,7 +632,7 @@ mod tests {
     /// Independent check of the forward solution: trace the solved air ray
     /// forward with Snell's law and measure how far it passes from the point.
     fn miss_distance(geometry: &MediaGeometry, camera: &Point3<f64>, point: &Point3<f64>) -> f64 {
-        let direction = geometry.air_direction(camera, point).unwrap();
+        let direction = geometry.air_direction(camera, point).unwrap().normalize();
         let ray = geometry.trace(camera, &direction).unwrap();
         let rel = point - ray.origin;
         (rel - ray.direction * rel.dot(&ray.direction)).norm()
@@ -686,7 +684,10 @@ mod tests {
         let geometry = MediaGeometry::new(&media, &camera.coords).unwrap().unwrap();
         // In air: a straight line.
         let in_air = Point3::new(30.0, 40.0, 200.0);
-        let d = geometry.air_direction(&camera, &in_air).unwrap();
+        let d = geometry
+            .air_direction(&camera, &in_air)
+            .unwrap()
+            .normalize();
         assert!((d - (in_air - camera).normalize()).norm() < 1e-14);
         // Behind the camera: no ray.
         assert_eq!(
