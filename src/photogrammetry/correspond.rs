@@ -574,16 +574,26 @@ struct Parabola {
     a: Vector2<f64>,
     b: Vector2<f64>,
     c: Vector2<f64>,
+    /// The chord `P(1) - P(0) = b + c` over its squared length (zero for
+    /// a point): projections on the chord without a division.
+    chord_scaled: Vector2<f64>,
 }
 
 impl Parabola {
     /// The parabola through `p0`, `pm`, `p1` at u = 0, 1/2, 1.
     fn through(p0: Point2<f64>, pm: Point2<f64>, p1: Point2<f64>) -> Parabola {
         let c = (p0.coords + p1.coords - pm.coords * 2.0) * 2.0;
+        let chord = p1 - p0;
+        let length_sq = chord.norm_squared();
         Parabola {
             a: p0.coords,
-            b: p1 - p0 - c,
+            b: chord - c,
             c,
+            chord_scaled: if length_sq > 0.0 {
+                chord / length_sq
+            } else {
+                Vector2::zeros()
+            },
         }
     }
 
@@ -620,8 +630,7 @@ impl Parabola {
         const MAX_STEPS: usize = 8;
         const SETTLED_SQ: f64 = 1e-12;
         let d = p.coords - self.a;
-        let chord = self.b + self.c;
-        let mut u = (d.dot(&chord) / chord.norm_squared()).clamp(0.0, 1.0);
+        let mut u = d.dot(&self.chord_scaled).clamp(0.0, 1.0);
         if !u.is_finite() {
             return d.norm_squared() <= limit_sq;
         }
@@ -636,7 +645,8 @@ impl Parabola {
             let g = q.dot(&tangent);
             let slope = tangent_sq + 2.0 * q.dot(&self.c);
             let bound = slope - 2.0 * tangent.dot(&self.c).abs();
-            if bound > 0.0 && distance_sq - g * g / bound > limit_sq {
+            // distance_sq - g^2 / bound > limit_sq, without the division.
+            if bound > 0.0 && (distance_sq - limit_sq) * bound > g * g {
                 return false;
             }
             if slope <= 0.0 {
@@ -931,11 +941,12 @@ impl<'m, 'f> Search<'m, 'f> {
     ) {
         out.clear();
         let margin = nalgebra::Vector2::repeat(radius);
+        let radius_sq = radius * radius;
         let frame = &self.frames[k];
         let used = &self.used[k];
         frame.grid.visit(pixel - margin, pixel + margin, |c| {
             if !used[c]
-                && (frame.positions[c] - pixel).norm() <= radius
+                && (frame.positions[c] - pixel).norm_squared() <= radius_sq
                 && self.matcher.similar(reference, &frame.targets[c])
             {
                 out.push(c as u32);
@@ -1041,7 +1052,10 @@ impl<'m, 'f> Search<'m, 'f> {
                     continue;
                 };
                 partners.clear();
-                self.band(i, a, j, |b| partners.push(b));
+                // Each partner's ray is fetched as the band finds it, so
+                // that the fetch overlaps the rest of the band's walk.
+                let rays_j = &self.frames[j].rays;
+                self.band(i, a, j, |b| partners.push((b, rays_j[b])));
                 if partners.is_empty() {
                     continue;
                 }
@@ -1049,9 +1063,8 @@ impl<'m, 'f> Search<'m, 'f> {
                 own_members.clear();
                 // The ray's images in the other cameras, traced on demand.
                 traced.fill(false);
-                for &b in &partners {
-                    let Some((t, point)) =
-                        self.frames[j].rays[b].and_then(|ray_b| closest_approach(&ray_a, &ray_b))
+                for &(b, ray_b) in &partners {
+                    let Some((t, point)) = ray_b.and_then(|ray_b| closest_approach(&ray_a, &ray_b))
                     else {
                         continue;
                     };
