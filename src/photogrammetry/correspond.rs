@@ -508,13 +508,48 @@ impl TargetGrid {
     }
 }
 
+/// A target's position and its ray side by side, a cache line each: the
+/// search reads the position of a target near a band or a predicted image
+/// and then, if it is close, its ray, and with several megabytes of rays
+/// per frame a second line would be a second trip to memory.
+#[derive(Clone, Copy, Debug)]
+#[repr(C, align(64))]
+struct Sighting {
+    position: Point2<f64>,
+    /// The ray's origin; NaN where the pixel has no ray.
+    origin: Point3<f64>,
+    direction: Vector3<f64>,
+}
+
+impl Sighting {
+    fn new(position: Point2<f64>, ray: Option<Ray>) -> Sighting {
+        let ray = ray.unwrap_or(Ray {
+            origin: Point3::new(f64::NAN, f64::NAN, f64::NAN),
+            direction: Vector3::zeros(),
+        });
+        Sighting {
+            position,
+            origin: ray.origin,
+            direction: ray.direction,
+        }
+    }
+
+    /// The target's ray in the object medium, if it has one.
+    #[inline]
+    fn ray(&self) -> Option<Ray> {
+        (!self.origin.x.is_nan()).then_some(Ray {
+            origin: self.origin,
+            direction: self.direction,
+        })
+    }
+}
+
 /// One camera's targets prepared for the search, in the grid's cell order.
 struct CameraFrame {
     targets: Vec<Target>,
     /// Per target, its index in the caller's list.
     original: Vec<u32>,
-    positions: Vec<Point2<f64>>,
-    rays: Vec<Option<Ray>>,
+    sightings: Vec<Sighting>,
     grid: TargetGrid,
 }
 
@@ -522,14 +557,28 @@ impl CameraFrame {
     fn new(camera: &Camera, targets: &[Target], tolerance: f64) -> CameraFrame {
         let positions: Vec<Point2<f64>> = targets.iter().map(|t| Point2::new(t.x, t.y)).collect();
         let (grid, original) = TargetGrid::new(&positions, tolerance);
-        let positions: Vec<Point2<f64>> = original.iter().map(|&o| positions[o as usize]).collect();
         CameraFrame {
             targets: original.iter().map(|&o| targets[o as usize]).collect(),
-            rays: positions.iter().map(|p| camera.ray(*p).ok()).collect(),
+            sightings: original
+                .iter()
+                .map(|&o| {
+                    let position = positions[o as usize];
+                    Sighting::new(position, camera.ray(position).ok())
+                })
+                .collect(),
             original,
-            positions,
             grid,
         }
+    }
+
+    #[inline]
+    fn position(&self, target: usize) -> Point2<f64> {
+        self.sightings[target].position
+    }
+
+    #[inline]
+    fn ray(&self, target: usize) -> Option<Ray> {
+        self.sightings[target].ray()
     }
 }
 
@@ -861,7 +910,7 @@ impl<'m, 'f> Search<'m, 'f> {
     /// Traces target `a` of camera `i` into camera `j` (`self.curves[j]`);
     /// false if its ray misses the volume or does not image there.
     fn trace(&mut self, i: usize, a: usize, j: usize) -> bool {
-        let Some(ray) = self.frames[i].rays[a] else {
+        let Some(ray) = self.frames[i].ray(a) else {
             return false;
         };
         let Some(span) = clip(&ray, &self.matcher.volume) else {
@@ -885,8 +934,9 @@ impl<'m, 'f> Search<'m, 'f> {
         let grid = self.pencil_grids[pair].get_or_insert_with(|| {
             PencilGrid::new(
                 self.matcher.epipolar[pair].pencil,
-                &frame.positions,
-                |b| !used[b],
+                (0..frame.sightings.len())
+                    .filter(|&b| !used[b])
+                    .map(|b| (b, frame.position(b))),
                 tolerance,
             )
         });
@@ -917,7 +967,7 @@ impl<'m, 'f> Search<'m, 'f> {
                         for &b in grid.cell(cell) {
                             let b = b as usize;
                             if !used[b]
-                                && curve.within(&frame.positions[b], tolerance_sq)
+                                && curve.within(&frame.sightings[b].position, tolerance_sq)
                                 && self.matcher.similar(reference, &frame.targets[b])
                             {
                                 found(b);
@@ -946,7 +996,7 @@ impl<'m, 'f> Search<'m, 'f> {
         let used = &self.used[k];
         frame.grid.visit(pixel - margin, pixel + margin, |c| {
             if !used[c]
-                && (frame.positions[c] - pixel).norm_squared() <= radius_sq
+                && (frame.position(c) - pixel).norm_squared() <= radius_sq
                 && self.matcher.similar(reference, &frame.targets[c])
             {
                 out.push(c as u32);
@@ -972,16 +1022,16 @@ impl<'m, 'f> Search<'m, 'f> {
     fn fit(&self, members: &[u32], droppable: impl Fn(usize) -> bool) -> Option<GroupFit> {
         let ray = |k: usize| match members[k] {
             NONE => None,
-            m => self.frames[k].rays[m as usize].as_ref(),
+            m => self.frames[k].ray(m as usize),
         };
-        let point = ray_midpoint((0..members.len()).filter_map(|k| ray(k).copied()))?;
+        let point = ray_midpoint((0..members.len()).filter_map(ray))?;
         let (mut sum, mut count, mut largest) = (0.0, 0u32, 0f64);
         let mut worst = (None, f64::NEG_INFINITY);
         for k in 0..members.len() {
             let Some(ray) = ray(k) else {
                 continue;
             };
-            let px_sq = self.miss_px_sq(k, ray, &point);
+            let px_sq = self.miss_px_sq(k, &ray, &point);
             sum += px_sq;
             count += 1;
             largest = largest.max(px_sq);
@@ -1048,14 +1098,14 @@ impl<'m, 'f> Search<'m, 'f> {
                 if self.used[i][a] {
                     continue;
                 }
-                let Some(ray_a) = self.frames[i].rays[a] else {
+                let Some(ray_a) = self.frames[i].ray(a) else {
                     continue;
                 };
                 partners.clear();
                 // Each partner's ray is fetched as the band finds it, so
                 // that the fetch overlaps the rest of the band's walk.
-                let rays_j = &self.frames[j].rays;
-                self.band(i, a, j, |b| partners.push((b, rays_j[b])));
+                let frame_j = &self.frames[j];
+                self.band(i, a, j, |b| partners.push((b, frame_j.ray(b))));
                 if partners.is_empty() {
                     continue;
                 }
@@ -1222,7 +1272,7 @@ impl<'m, 'f> Search<'m, 'f> {
             .filter(|(_, &m)| m != NONE)
             .map(|(k, &m)| Observation {
                 camera: k,
-                pixel: self.frames[k].positions[m as usize],
+                pixel: self.frames[k].position(m as usize),
             })
             .collect();
         if observations.len() < self.matcher.min_cameras {
@@ -1230,7 +1280,7 @@ impl<'m, 'f> Search<'m, 'f> {
         }
         let rays = observations
             .iter()
-            .filter_map(|o| self.frames[o.camera].rays[members[o.camera] as usize]);
+            .filter_map(|o| self.frames[o.camera].ray(members[o.camera] as usize));
         let start = ray_midpoint(rays)?;
         let result = intersect_from(&self.matcher.cameras, &observations, start).ok()?;
         let worst = result
@@ -1320,13 +1370,12 @@ impl<'m, 'f> Search<'m, 'f> {
                     continue;
                 }
                 nearby.clear();
-                let position = self.frames[k].positions[t as usize];
+                let position = self.frames[k].position(t as usize);
                 self.frames[k].grid.visit(
                     position - nalgebra::Vector2::repeat(radius),
                     position + nalgebra::Vector2::repeat(radius),
                     |c| {
-                        if c as u32 != t
-                            && (self.frames[k].positions[c] - position).norm() <= radius
+                        if c as u32 != t && (self.frames[k].position(c) - position).norm() <= radius
                         {
                             nearby.push(c as u32);
                         }

@@ -174,20 +174,13 @@ pub(super) struct PencilGrid {
 }
 
 impl PencilGrid {
-    /// Files the `positions` (pixels) for which `include` holds, by their
-    /// index, for bands of half-width `tolerance`.
+    /// Files `positions` (pixels, each with its index), for bands of
+    /// half-width `tolerance`.
     pub(super) fn new(
         pencil: Pencil,
-        positions: &[Point2<f64>],
-        include: impl Fn(usize) -> bool,
+        positions: impl Iterator<Item = (usize, Point2<f64>)>,
         tolerance: f64,
     ) -> PencilGrid {
-        let (indices, coordinates): (Vec<u32>, Vec<(f64, f64)>) = positions
-            .iter()
-            .enumerate()
-            .filter(|&(index, _)| include(index))
-            .map(|(index, p)| (index as u32, pencil.coordinates(p)))
-            .unzip();
         let (mut across_min, mut across_max) = (f64::INFINITY, f64::NEG_INFINITY);
         let (mut along_min, mut along_max) = (f64::INFINITY, f64::NEG_INFINITY);
         let (mut lo, mut hi) = (
@@ -195,16 +188,19 @@ impl PencilGrid {
             Point2::new(f64::NEG_INFINITY, f64::NEG_INFINITY),
         );
         let mut along_sum = 0.0;
-        for (&(a, r), &index) in coordinates.iter().zip(&indices) {
-            let p = &positions[index as usize];
-            across_min = across_min.min(a);
-            across_max = across_max.max(a);
-            along_min = along_min.min(r);
-            along_max = along_max.max(r);
-            along_sum += r;
-            lo = lo.inf(p);
-            hi = hi.sup(p);
-        }
+        let (indices, coordinates): (Vec<u32>, Vec<(f64, f64)>) = positions
+            .map(|(index, p)| {
+                let (a, r) = pencil.coordinates(&p);
+                across_min = across_min.min(a);
+                across_max = across_max.max(a);
+                along_min = along_min.min(r);
+                along_max = along_max.max(r);
+                along_sum += r;
+                lo = lo.inf(&p);
+                hi = hi.sup(&p);
+                (index as u32, (a, r))
+            })
+            .unzip();
         let n = indices.len();
         if n == 0 {
             (across_min, across_max, along_min, along_max) = (0.0, 0.0, 0.0, 0.0);
@@ -480,7 +476,8 @@ mod tests {
             Point2::new(500.0, 1000.0),
         ] {
             let pencil = Pencil::fit(&chords_through(centre)).unwrap();
-            let mut grid = PencilGrid::new(pencil, &positions, |_| true, tolerance);
+            let mut grid =
+                PencilGrid::new(pencil, positions.iter().copied().enumerate(), tolerance);
             for _ in 0..300 {
                 let p0 = Point2::new(rng.random_range(0.0..1000.0), rng.random_range(0.0..800.0));
                 let p1 =
