@@ -1265,16 +1265,15 @@ impl<'m, 'f> Search<'m, 'f> {
     /// Least-squares intersection of a group, with its targets numbered as
     /// in the caller's lists; `None` unless every residual is within the
     /// acceptance threshold.
-    fn intersect(&self, members: &[u32]) -> Option<Particle> {
-        let observations: Vec<Observation> = members
-            .iter()
-            .enumerate()
-            .filter(|(_, &m)| m != NONE)
-            .map(|(k, &m)| Observation {
+    /// `observations` is scratch space.
+    fn intersect(&self, members: &[u32], observations: &mut Vec<Observation>) -> Option<Particle> {
+        observations.clear();
+        observations.extend(members.iter().enumerate().filter(|(_, &m)| m != NONE).map(
+            |(k, &m)| Observation {
                 camera: k,
                 pixel: self.frames[k].position(m as usize),
-            })
-            .collect();
+            },
+        ));
         if observations.len() < self.matcher.min_cameras {
             return None;
         }
@@ -1282,7 +1281,7 @@ impl<'m, 'f> Search<'m, 'f> {
             .iter()
             .filter_map(|o| self.frames[o.camera].ray(members[o.camera] as usize));
         let start = ray_midpoint(rays)?;
-        let result = intersect_from(&self.matcher.cameras, &observations, start).ok()?;
+        let result = intersect_from(&self.matcher.cameras, observations, start).ok()?;
         let worst = result
             .residuals_px
             .iter()
@@ -1418,9 +1417,10 @@ impl<'m, 'f> Search<'m, 'f> {
 
     /// The particles: every accepted group's least-squares intersection.
     fn finish(&self) -> Vec<Particle> {
+        let mut observations = Vec::with_capacity(self.frames.len());
         self.accepted
             .iter()
-            .filter_map(|members| self.intersect(members))
+            .filter_map(|members| self.intersect(members, &mut observations))
             .collect()
     }
 

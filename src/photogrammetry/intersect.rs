@@ -200,7 +200,17 @@ fn adjust(
     };
     let mut point = start;
     let mut residuals_px = vec![Vector2::zeros(); observations.len()];
-    let mut jacobians = vec![Matrix2x3::zeros(); observations.len()];
+    // The design matrix's rows: on the stack for up to 8 cameras (this
+    // runs once per particle of every frame).
+    const ON_STACK: usize = 8;
+    let mut stack = [Matrix2x3::zeros(); ON_STACK];
+    let mut heap = Vec::new();
+    let jacobians: &mut [Matrix2x3<f64>] = if observations.len() <= ON_STACK {
+        &mut stack[..observations.len()]
+    } else {
+        heap.resize(observations.len(), Matrix2x3::zeros());
+        &mut heap
+    };
     let mut normal = Matrix3::zeros();
     let mut cholesky = None;
     let mut last_step = f64::INFINITY;
@@ -210,7 +220,7 @@ fn adjust(
         for ((observation, residual), jacobian) in observations
             .iter()
             .zip(&mut residuals_px)
-            .zip(&mut jacobians)
+            .zip(jacobians.iter_mut())
         {
             let camera = &cameras[observation.camera];
             let computed = if refresh {
