@@ -537,9 +537,11 @@ impl MediaGeometry {
         point: &Point3<f64>,
     ) -> Result<Vector3<f64>, ProjectionError> {
         let (radial, r, depth) = self.polar(camera, point)?;
+        // Divided out while the solve runs, off the critical path.
+        let inv_r = 1.0 / r;
         let path = self.solve(r, depth);
         if r > 0.0 {
-            Ok(radial * (path.tan_air / r) - self.normal)
+            Ok(radial * (path.tan_air * inv_r) - self.normal)
         } else {
             Ok(-self.normal)
         }
