@@ -881,8 +881,9 @@ struct Search<'m, 'f> {
     /// residual of a particle's intersection: the tolerance, or less once
     /// the frame's image noise is known (see [`Search::estimate_noise`]).
     acceptance: f64,
-    /// The groups accepted so far (members per camera, NONE for none).
-    accepted: Vec<Vec<u32>>,
+    /// The groups accepted so far: members per camera (NONE for none),
+    /// group after group, a stride of the camera count.
+    accepted: Vec<u32>,
     /// Per camera and target, the accepted group that holds it, or NONE.
     owner: Vec<Vec<u32>>,
 }
@@ -1301,14 +1302,20 @@ impl<'m, 'f> Search<'m, 'f> {
 
     /// Accepts a group: its targets are used from now on.
     fn keep(&mut self, members: &[u32]) {
-        let index = self.accepted.len() as u32;
+        let index = (self.accepted.len() / self.frames.len()) as u32;
         for (k, &m) in members.iter().enumerate() {
             if m != NONE {
                 self.used[k][m as usize] = true;
                 self.owner[k][m as usize] = index;
             }
         }
-        self.accepted.push(members.to_vec());
+        self.accepted.extend_from_slice(members);
+    }
+
+    /// Accepted group `p`'s members.
+    fn group(&self, p: usize) -> &[u32] {
+        let count = self.frames.len();
+        &self.accepted[p * count..(p + 1) * count]
     }
 
     /// Step 4: best-first selection of groups of three or more.
@@ -1360,54 +1367,72 @@ impl<'m, 'f> Search<'m, 'f> {
     /// settles it by all the evidence.
     fn improve(&mut self) {
         self.pencil_grids.fill_with(|| None);
+        let count = self.frames.len();
         let radius = 2.0 * self.acceptance;
+        let radius_sq = radius * radius;
+        let neighbours = |k: usize, t: usize, out: &mut Vec<u32>| {
+            let frame = &self.frames[k];
+            let position = frame.position(t);
+            let margin = Vector2::repeat(radius);
+            frame.grid.visit(position - margin, position + margin, |c| {
+                if c != t && (frame.position(c) - position).norm_squared() <= radius_sq {
+                    out.push(c as u32);
+                }
+            });
+        };
+        // Most targets have no other within the radius. Found in one pass
+        // in memory order, they are skipped below without a search.
         let mut nearby = Vec::new();
-        for p in 0..self.accepted.len() {
-            for k in 0..self.frames.len() {
-                let t = self.accepted[p][k];
-                if t == NONE {
+        let crowded: Vec<Vec<bool>> = (0..count)
+            .map(|k| {
+                (0..self.frames[k].sightings.len())
+                    .map(|t| {
+                        nearby.clear();
+                        neighbours(k, t, &mut nearby);
+                        !nearby.is_empty()
+                    })
+                    .collect()
+            })
+            .collect();
+        let mut p_alternative = vec![NONE; count];
+        let mut q_alternative = vec![NONE; count];
+        for p in 0..self.accepted.len() / count {
+            for k in 0..count {
+                let t = self.group(p)[k];
+                if t == NONE || !crowded[k][t as usize] {
                     continue;
                 }
                 nearby.clear();
-                let position = self.frames[k].position(t as usize);
-                self.frames[k].grid.visit(
-                    position - nalgebra::Vector2::repeat(radius),
-                    position + nalgebra::Vector2::repeat(radius),
-                    |c| {
-                        if c as u32 != t && (self.frames[k].position(c) - position).norm() <= radius
-                        {
-                            nearby.push(c as u32);
-                        }
-                    },
-                );
+                neighbours(k, t as usize, &mut nearby);
                 for &other in &nearby {
                     let q = self.owner[k][other as usize];
                     if q as usize == p {
                         continue;
                     }
-                    let mut p_alternative = self.accepted[p].clone();
+                    p_alternative.copy_from_slice(self.group(p));
                     p_alternative[k] = other;
-                    let p_cost = self.cost(&self.accepted[p]);
+                    let p_cost = self.cost(self.group(p));
                     if q == NONE {
                         if self.cost(&p_alternative) < p_cost {
                             self.used[k][t as usize] = false;
                             self.owner[k][t as usize] = NONE;
                             self.used[k][other as usize] = true;
                             self.owner[k][other as usize] = p as u32;
-                            self.accepted[p] = p_alternative;
+                            self.accepted[p * count..(p + 1) * count]
+                                .copy_from_slice(&p_alternative);
                             break;
                         }
                         continue;
                     }
                     let q = q as usize;
-                    let mut q_alternative = self.accepted[q].clone();
+                    q_alternative.copy_from_slice(self.group(q));
                     q_alternative[k] = t;
-                    let before = p_cost + self.cost(&self.accepted[q]);
+                    let before = p_cost + self.cost(self.group(q));
                     if self.cost(&p_alternative) + self.cost(&q_alternative) < before {
                         self.owner[k][t as usize] = q as u32;
                         self.owner[k][other as usize] = p as u32;
-                        self.accepted[p] = p_alternative;
-                        self.accepted[q] = q_alternative;
+                        self.accepted[p * count..(p + 1) * count].copy_from_slice(&p_alternative);
+                        self.accepted[q * count..(q + 1) * count].copy_from_slice(&q_alternative);
                         break;
                     }
                 }
@@ -1419,7 +1444,7 @@ impl<'m, 'f> Search<'m, 'f> {
     fn finish(&self) -> Vec<Particle> {
         let mut observations = Vec::with_capacity(self.frames.len());
         self.accepted
-            .iter()
+            .chunks_exact(self.frames.len())
             .filter_map(|members| self.intersect(members, &mut observations))
             .collect()
     }
