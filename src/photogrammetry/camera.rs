@@ -596,12 +596,12 @@ impl Camera {
     /// The ray in the object medium through flat image coordinates.
     pub fn ray_from_flat(&self, flat: Vector2<f64>) -> Result<Ray, ProjectionError> {
         let c = self.parameters.interior.c;
-        let direction = (self.rotation * Vector3::new(flat.x, flat.y, -c)).normalize();
+        let direction = self.rotation * Vector3::new(flat.x, flat.y, -c);
         match &self.geometry {
             Some(geometry) => geometry.trace(&self.position(), &direction),
             None => Ok(Ray {
                 origin: self.position(),
-                direction,
+                direction: direction.normalize(),
             }),
         }
     }

@@ -574,46 +574,50 @@ impl MediaGeometry {
     }
 
     /// Snell's law through every layer (Eq. 13-17): the ray in the object
-    /// medium for a unit `direction` in air from the projective centre.
+    /// medium (unit direction) for a `direction` in air from the
+    /// projective centre (any length).
+    ///
+    /// In tangent form, as the forward solve: with `q = tan(beta_air)`,
+    /// each layer's `tan(beta_i) = k q / sqrt(1 + (1 - k^2) q^2)`,
+    /// `k = n_air / n_i`, and no refraction where the root's argument is
+    /// not positive (`n sin(beta) >= 1`: total internal reflection).
     pub fn trace(
         &self,
         camera: &Point3<f64>,
         direction: &Vector3<f64>,
     ) -> Result<Ray, ProjectionError> {
         let n = &self.normal;
-        let cos_air = -direction.dot(n);
-        if cos_air <= 1e-12 {
+        let cos_part = -direction.dot(n);
+        // Along the wall, away from it, or NaN: no ray.
+        let towards_wall = cos_part > 1e-12 * direction.norm();
+        if !towards_wall {
             return Err(ProjectionError::NoRefractedRay);
         }
-        let tangential = direction + n * cos_air;
-        let sin_air = tangential.norm();
-        let u = if sin_air > 0.0 {
-            tangential / sin_air
-        } else {
-            Vector3::zeros()
+        // The tangential part over the normal one: the radial unit vector
+        // times tan(beta_air).
+        let across = (direction + n * cos_part) / cos_part;
+        let q_sq = across.norm_squared();
+        let n_air = self.layers[0].n;
+        // Per layer, tan(beta_i) / q; the air layer's is 1.
+        let ratio = |layer: &Layer| -> Result<f64, ProjectionError> {
+            let k = n_air / layer.n;
+            let root = 1.0 + (1.0 - k * k) * q_sq;
+            if root <= 0.0 {
+                return Err(ProjectionError::NoRefractedRay);
+            }
+            Ok(k / root.sqrt())
         };
-        // Snell's invariant n sin(beta), Eq. (7).
-        let invariant = self.layers[0].n * sin_air;
         let mut origin = *camera;
         let (object, crossed) = self
             .layers
             .split_last()
             .expect("air and object layers exist");
         for layer in crossed {
-            let s = invariant / layer.n;
-            if s >= 1.0 {
-                return Err(ProjectionError::NoRefractedRay);
-            }
-            let tan = s / (1.0 - s * s).sqrt();
-            origin += (u * tan - n) * (layer.end - layer.start);
-        }
-        let s = invariant / object.n;
-        if s >= 1.0 {
-            return Err(ProjectionError::NoRefractedRay);
+            origin += (across * ratio(layer)? - n) * (layer.end - layer.start);
         }
         Ok(Ray {
             origin,
-            direction: u * s - n * (1.0 - s * s).sqrt(),
+            direction: (across * ratio(object)? - n).normalize(),
         })
     }
 }
@@ -634,7 +638,7 @@ mod tests {
     /// Independent check of the forward solution: trace the solved air ray
     /// forward with Snell's law and measure how far it passes from the point.
     fn miss_distance(geometry: &MediaGeometry, camera: &Point3<f64>, point: &Point3<f64>) -> f64 {
-        let direction = geometry.air_direction(camera, point).unwrap().normalize();
+        let direction = geometry.air_direction(camera, point).unwrap();
         let ray = geometry.trace(camera, &direction).unwrap();
         let rel = point - ray.origin;
         (rel - ray.direction * rel.dot(&ray.direction)).norm()
@@ -735,6 +739,43 @@ mod tests {
                     jac.column(k)
                 );
             }
+        }
+    }
+
+    /// From a denser medium into a thinner one, rays beyond the critical
+    /// angle are reflected: no ray in the object medium. Rays along the
+    /// wall or away from it have none either.
+    #[test]
+    fn total_internal_reflection_gives_no_ray() {
+        let media = Media {
+            n_air: 1.33,
+            walls: vec![Wall {
+                n: 1.5,
+                thickness: 5.0,
+            }],
+            n_object: 1.0,
+            glass_vector: Vector3::new(0.0, 0.0, 100.0),
+        };
+        let camera = Point3::new(0.0, 0.0, 300.0);
+        let geometry = MediaGeometry::new(&media, &camera.coords).unwrap().unwrap();
+        // sin(beta) in the object: 1.33 sin(beta_air); critical at 48.75 deg.
+        for (degrees, refracts) in [(30.0f64, true), (48.0, true), (49.5, false), (80.0, false)] {
+            let angle = degrees.to_radians();
+            // Any length: the direction's scale does not matter.
+            let direction = Vector3::new(angle.sin(), 0.0, -angle.cos()) * 3.0;
+            let ray = geometry.trace(&camera, &direction);
+            assert_eq!(ray.is_ok(), refracts, "{degrees} deg: {ray:?}");
+            if let Ok(ray) = ray {
+                let sin_object = ray.direction.x / ray.direction.norm();
+                assert!((sin_object - 1.33 * angle.sin()).abs() < 1e-12);
+                assert!((ray.direction.norm() - 1.0).abs() < 1e-15);
+            }
+        }
+        for direction in [Vector3::x(), Vector3::new(0.0, 1.0, 0.5)] {
+            assert_eq!(
+                geometry.trace(&camera, &direction),
+                Err(ProjectionError::NoRefractedRay)
+            );
         }
     }
 

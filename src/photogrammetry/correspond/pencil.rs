@@ -339,7 +339,10 @@ impl PencilGrid {
                     ranges[0] = (-PI, PI);
                     1
                 } else {
-                    let margin = (tolerance / distance).asin();
+                    // asin(x) <= x / sqrt(1 - x^2) = tan(asin(x)): a
+                    // margin as safe and cheaper to compute.
+                    let x = tolerance / distance;
+                    let margin = x / (1.0 - x * x).sqrt();
                     let turn = wrap(a1 - a0);
                     let (lo, hi) = (a0 + turn.min(0.0) - margin, a0 + turn.max(0.0) + margin);
                     if lo < -PI {
