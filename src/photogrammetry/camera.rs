@@ -300,6 +300,19 @@ pub enum ProjectionError {
     /// The lens distortion cannot be inverted at this image position.
     #[error("the lens distortion cannot be inverted at this image position")]
     Undistortable,
+    /// A coordinate of the point is NaN or infinite.
+    #[error("the point's coordinates are not all finite numbers")]
+    NotFinite,
+}
+
+/// Only finite points have an image (a NaN would otherwise pass every
+/// comparison of the refraction solve and come out as some pixel).
+fn finite(point: &Point3<f64>) -> Result<(), ProjectionError> {
+    if point.iter().all(|v| v.is_finite()) {
+        Ok(())
+    } else {
+        Err(ProjectionError::NotFinite)
+    }
 }
 
 /// A ray in the object medium: where it enters the medium and its direction.
@@ -475,6 +488,7 @@ impl Camera {
         &self,
         point: &Point3<f64>,
     ) -> Result<Vector3<f64>, ProjectionError> {
+        finite(point)?;
         match &self.geometry {
             Some(geometry) => geometry.air_direction(&self.position(), point),
             None => Ok(point - self.position()),
@@ -504,6 +518,7 @@ impl Camera {
         &self,
         point: &Point3<f64>,
     ) -> Result<(Point2<f64>, Matrix2x3<f64>), ProjectionError> {
+        finite(point)?;
         let (direction, d_direction) = match &self.geometry {
             Some(geometry) => geometry.air_direction_with_jacobian(&self.position(), point)?,
             None => (point - self.position(), Matrix3::identity()),
@@ -673,6 +688,34 @@ mod tests {
                 let back = d.remove(distorted).expect("invertible on the sensor");
                 assert!((back - ideal).norm() < 1e-9, "{ideal} -> {back}");
             }
+        }
+    }
+
+    /// A NaN or infinite point has no image, through walls or in air (it
+    /// used to come out of the refraction solve as some pixel).
+    #[test]
+    fn non_finite_points_have_no_image() {
+        use crate::photogrammetry::simulate::RigSpec;
+        let in_water = RigSpec::convergent(2).build().unwrap();
+        let in_air = RigSpec {
+            tank: None,
+            ..RigSpec::convergent(2)
+        }
+        .build()
+        .unwrap();
+        for camera in [&in_water[0], &in_air[0]] {
+            for point in [
+                Point3::new(f64::NAN, 0.0, 0.0),
+                Point3::new(0.0, f64::INFINITY, 0.0),
+                Point3::new(0.0, 0.0, f64::NEG_INFINITY),
+            ] {
+                assert_eq!(camera.project(&point), Err(ProjectionError::NotFinite));
+                assert_eq!(
+                    camera.project_with_jacobian(&point).map(|(pixel, _)| pixel),
+                    Err(ProjectionError::NotFinite)
+                );
+            }
+            assert!(camera.project(&Point3::new(1.0, 2.0, 3.0)).is_ok());
         }
     }
 

@@ -968,7 +968,7 @@ impl<'m, 'f> Search<'m, 'f> {
                         for &b in grid.cell(cell) {
                             let b = b as usize;
                             if !used[b]
-                                && curve.within(&frame.sightings[b].position, tolerance_sq)
+                                && curve.within(&frame.position(b), tolerance_sq)
                                 && self.matcher.similar(reference, &frame.targets[b])
                             {
                                 found(b);
@@ -1103,8 +1103,8 @@ impl<'m, 'f> Search<'m, 'f> {
                     continue;
                 };
                 partners.clear();
-                // Each partner's ray is fetched as the band finds it, so
-                // that the fetch overlaps the rest of the band's walk.
+                // Each partner's ray is read as the band finds it, from
+                // the cache line its position was just tested from.
                 let frame_j = &self.frames[j];
                 self.band(i, a, j, |b| partners.push((b, frame_j.ray(b))));
                 if partners.is_empty() {
@@ -1265,8 +1265,7 @@ impl<'m, 'f> Search<'m, 'f> {
 
     /// Least-squares intersection of a group, with its targets numbered as
     /// in the caller's lists; `None` unless every residual is within the
-    /// acceptance threshold.
-    /// `observations` is scratch space.
+    /// acceptance threshold. `observations` is scratch space.
     fn intersect(&self, members: &[u32], observations: &mut Vec<Observation>) -> Option<Particle> {
         observations.clear();
         observations.extend(members.iter().enumerate().filter(|(_, &m)| m != NONE).map(
