@@ -760,7 +760,7 @@ fn parameter_jacobian_matches_projection() {
 /// reported, not wander: the run still succeeds and lists them as held.
 #[test]
 fn test_cavity_block_from_golden_projections() {
-    let root = concat!(env!("CARGO_MANIFEST_DIR"), "/../shared/data/openptv");
+    let root = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/data/openptv");
     let (Ok(golden), Ok(block)) = (
         std::fs::read_to_string(format!("{root}/golden/test_cavity_camera_model.json")),
         std::fs::read_to_string(format!("{root}/test_cavity/cal/target_on_a_side.txt")),

@@ -21,7 +21,7 @@ use serde_json::Value;
 mod common;
 use common::{fails, json_points, ptv, succeeds, text};
 
-const OPENPTV: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../shared/data/openptv");
+const OPENPTV: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/data/openptv");
 const PIXEL_TOLERANCE: f64 = 0.002;
 const POINT_TOLERANCE_MM: f64 = 1e-6;
 

@@ -26,7 +26,7 @@ use common::{fails, ptv, succeeds, text};
 
 const TEST_CAVITY: &str = concat!(
     env!("CARGO_MANIFEST_DIR"),
-    "/../shared/data/openptv/test_cavity"
+    "/tests/data/openptv/test_cavity"
 );
 
 /// Runs `ptv simulate` into `dir/name` and returns the volume it reports.

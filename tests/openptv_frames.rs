@@ -19,7 +19,7 @@ use serde_json::Value;
 mod common;
 use common::json_points;
 
-const DATA: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../shared/data/openptv");
+const DATA: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/data/openptv");
 const FRAMES: [&str; 4] = ["10001", "10002", "10003", "10004"];
 
 fn cameras() -> Vec<Camera> {

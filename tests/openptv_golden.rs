@@ -1,6 +1,6 @@
 //! The camera model against OpenPTV 0.3.2's own numbers.
 //!
-//! `../shared/data/openptv/golden/` holds, for 200-300 points, the flat,
+//! `tests/data/openptv/golden/` holds, for 200-300 points, the flat,
 //! distorted and pixel coordinates OpenPTV computed in each camera, epipolar
 //! curves, and its intersection of the noise-free flat coordinates. The
 //! cameras are read from the OpenPTV files (which tests the import too).
@@ -22,7 +22,7 @@ use serde_json::Value;
 mod common;
 use common::{json_point3, json_points};
 
-const DATA: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../shared/data/openptv");
+const DATA: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/data/openptv");
 const IMAGE_TOLERANCE_MM: f64 = 2e-5;
 const PIXEL_TOLERANCE: f64 = 0.002;
 

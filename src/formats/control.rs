@@ -234,12 +234,9 @@ mod tests {
     fn parses_test_cavity_calibration_block() {
         let path = concat!(
             env!("CARGO_MANIFEST_DIR"),
-            "/../shared/data/openptv/test_cavity/cal/target_on_a_side.txt"
+            "/tests/data/openptv/test_cavity/cal/target_on_a_side.txt"
         );
-        let Ok(text) = std::fs::read_to_string(path) else {
-            eprintln!("skipping: {path} not found");
-            return;
-        };
+        let text = std::fs::read_to_string(path).expect("the test_cavity calibration block");
         let points = parse_control_points(&text, path).unwrap();
         assert_eq!(
             points.len(),

@@ -246,7 +246,7 @@ pub fn walk(dir: &std::path::Path) -> Vec<std::path::PathBuf> {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn openptv_calibration_projects_and_intersects() {
     let app = spawn_app().await;
-    let dir = repository().join("../shared/data/openptv/test_cavity");
+    let dir = repository().join("tests/data/openptv/test_cavity");
     let read = |name: &str| std::fs::read_to_string(dir.join(name)).unwrap();
     let mut form = Form::new().text("ptv_par", read("parameters/ptv.par"));
     for camera in 1..=4 {
