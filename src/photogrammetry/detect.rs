@@ -31,7 +31,7 @@
 //!    brighter particle is merged into that particle instead. The rules
 //!    cannot part two particles whose sum has one maximum: with Gaussian
 //!    images that happens below about one image diameter of separation
-//!    (for 2.5 px particles, `tests/detect_accuracy.rs` splits 98-100% of
+//!    (for 2.5 px particles, `tests/photogrammetry/detect_accuracy.rs` splits 98-100% of
 //!    pairs 2.5 px or more apart, about 70% at 2..2.5 px, none below
 //!    1.5 px).
 //! 4. **Centroids**: the grey value weighted centre of gravity of each

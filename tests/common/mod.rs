@@ -1,4 +1,5 @@
-//! Helpers shared by the tests that run the `ptv` binary.
+//! Helpers shared by the test binaries: running the `ptv` binary, reading
+//! golden JSON.
 
 // Each test binary compiles this module and uses only some of it.
 #![allow(dead_code)]

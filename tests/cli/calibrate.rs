@@ -1,8 +1,6 @@
 //! `ptv calibrate` end to end: files in, calibration JSON and report out.
 
-mod common;
-
-use common::{fails, ptv, succeeds};
+use crate::common::{fails, ptv, succeeds};
 use nalgebra::Point3;
 use ptv::formats::calibration;
 use ptv::formats::control::{format_control_points, format_mark_observations};

@@ -16,8 +16,7 @@ use ptv::formats::{csv, openptv};
 use ptv::photogrammetry::simulate::{self, RenderSpec};
 use ptv::photogrammetry::{detect, DetectionParameters, GreyImage, GreyPixels, Sensor};
 
-mod common;
-use common::{fails, ptv, succeeds_silently, text};
+use crate::common::{fails, ptv, succeeds_silently, text};
 
 /// A 320x240 frame with 150 particles.
 fn frame(spec: &RenderSpec) -> GreyImage {

@@ -18,8 +18,7 @@ use ptv::formats::{calibration, csv};
 use ptv::photogrammetry::Camera;
 use serde_json::Value;
 
-mod common;
-use common::{fails, json_points, ptv, succeeds, text};
+use crate::common::{fails, json_points, ptv, succeeds, text};
 
 const OPENPTV: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/data/openptv");
 const PIXEL_TOLERANCE: f64 = 0.002;

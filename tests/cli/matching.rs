@@ -21,8 +21,7 @@ use std::path::{Path, PathBuf};
 
 use nalgebra::Point3;
 
-mod common;
-use common::{fails, ptv, succeeds, text};
+use crate::common::{fails, ptv, succeeds, text};
 
 const TEST_CAVITY: &str = concat!(
     env!("CARGO_MANIFEST_DIR"),

@@ -19,8 +19,7 @@ use ptv::formats::openptv;
 use ptv::photogrammetry::{intersect, Camera, Observation};
 use serde_json::Value;
 
-mod common;
-use common::{json_point3, json_points};
+use crate::common::{json_point3, json_points};
 
 const DATA: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/data/openptv");
 const IMAGE_TOLERANCE_MM: f64 = 2e-5;

@@ -16,8 +16,7 @@ use ptv::photogrammetry::correspond::{Matcher, MatchingParameters, Particle};
 use ptv::photogrammetry::{intersect, Camera, Observation, Volume};
 use serde_json::Value;
 
-mod common;
-use common::json_points;
+use crate::common::json_points;
 
 const DATA: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/data/openptv");
 const FRAMES: [&str; 4] = ["10001", "10002", "10003", "10004"];

@@ -13,7 +13,7 @@
 //! Particles closer than 5 px to the image border are left out of recall
 //! (the detector drops targets touching the border by design); targets that
 //! close to the border are left out of the false-target count. Run with
-//! `cargo test --release --test detect_accuracy -- --nocapture` to see the
+//! `cargo test --release --test photogrammetry detect_accuracy -- --nocapture` to see the
 //! tables.
 
 use std::collections::HashMap;
