@@ -18,6 +18,8 @@ pub mod control;
 pub mod csv;
 pub mod image;
 pub mod openptv;
+#[cfg(test)]
+mod untrusted;
 
 use std::path::{Path, PathBuf};
 
