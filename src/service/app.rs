@@ -36,7 +36,7 @@ pub struct AppState {
     /// Prepared pipelines by sequence.
     pub pipelines: PipelineCache,
     /// Counters for /metrics.
-    pub metrics: Metrics,
+    pub metrics: Arc<Metrics>,
     /// Wakes a waiting worker when a job is enqueued.
     pub wake: Notify,
     /// This process's name in job claims.
@@ -101,7 +101,7 @@ impl Application {
             images,
             cpu,
             pipelines: PipelineCache::default(),
-            metrics: Metrics::default(),
+            metrics: Arc::default(),
             wake: Notify::new(),
             instance: format!("{}-{nanos}", std::process::id()),
         });

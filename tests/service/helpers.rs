@@ -13,7 +13,7 @@ use nalgebra::Point3;
 use ptv::formats;
 use ptv::photogrammetry::simulate::{self, RenderSpec, RigSpec, TargetFrame};
 use ptv::photogrammetry::{Camera, GreyImage, GreyPixels, Volume};
-use ptv::service::{Application, ServeArgs};
+use ptv::service::{Application, ServeArgs, Timeouts};
 use reqwest::multipart::{Form, Part};
 use serde_json::{json, Value};
 use tempfile::TempDir;
@@ -44,6 +44,8 @@ pub fn test_args(data_dir: &Path, api_token: Option<&str>) -> ServeArgs {
         workers: Some(2),
         max_upload_mb: 64,
         api_token: api_token.map(str::to_owned),
+        max_cpu_requests: None,
+        timeouts: Timeouts::default(),
     }
 }
 
