@@ -41,6 +41,12 @@ pub struct ServeArgs {
 /// How long the service waits for a client, in seconds (each at least 1).
 #[derive(Clone, Debug, Args)]
 pub struct Timeouts {
+    /// Seconds a client has to send a request's headers once it starts one,
+    /// and that a kept-alive connection may stay idle before its next
+    /// request; then the connection is closed.
+    #[arg(long = "header-timeout-secs", env = "PTV_HEADER_TIMEOUT_SECS",
+          default_value_t = Timeouts::HEADER_SECS, value_parser = clap::value_parser!(u64).range(1..))]
+    pub header_secs: u64,
     /// Seconds a request body may pause between two pieces of data; a
     /// client that stalls longer gets 408. Applies per piece, so a large
     /// upload that keeps moving is never cut off by it.
@@ -57,10 +63,17 @@ pub struct Timeouts {
 }
 
 impl Timeouts {
+    /// Default of `--header-timeout-secs` (hyper's own default).
+    pub const HEADER_SECS: u64 = 30;
     /// Default of `--body-timeout-secs`.
     pub const BODY_SECS: u64 = 30;
     /// Default of `--request-timeout-secs`.
     pub const REQUEST_SECS: u64 = 300;
+
+    /// `--header-timeout-secs`.
+    pub fn header(&self) -> Duration {
+        Duration::from_secs(self.header_secs)
+    }
 
     /// `--body-timeout-secs`.
     pub fn body(&self) -> Duration {
@@ -76,6 +89,7 @@ impl Timeouts {
 impl Default for Timeouts {
     fn default() -> Self {
         Timeouts {
+            header_secs: Timeouts::HEADER_SECS,
             body_secs: Timeouts::BODY_SECS,
             request_secs: Timeouts::REQUEST_SECS,
         }

@@ -36,7 +36,8 @@
 //!     own default limit of 2 MB is disabled).
 //!
 //! The bearer token check ([`bearer_token`]) is a `ValidateRequestHeaderLayer`
-//! on `/api` alone.
+//! on `/api` alone. Header read and idle connection timeouts are hyper's
+//! (see [`crate::service::app`]).
 
 use std::any::Any;
 use std::pin::Pin;
