@@ -11,12 +11,12 @@
 //!    and JSON shrink about fivefold), streamed answers included. It polls
 //!    a body once more after its end (tower-http issue 732), which a
 //!    streamed answer such as the particle CSV panics on, so the bodies
-//!    under it are fused ([`fuse_body`]).
-//! 5. [`count_request`]: requests by method, route and status for
+//!    under it are fused (`fuse_body`).
+//! 5. `count_request`: requests by method, route and status for
 //!    `/metrics` (what no layer does).
 //! 6. `RequestBodyTimeoutLayer`: a body that pauses longer than
 //!    `--body-timeout-secs` between two pieces ends in an error.
-//! 7. [`watch_body`]: records whether the body arrived whole or stalled;
+//! 7. `watch_body`: records whether the body arrived whole or stalled;
 //!    a stalled one is answered 408, and a refused request whose body is
 //!    partly unread gets `Connection: close` (what no layer does).
 //! 8. `CatchPanicLayer`: a panicking handler is logged and answered with a
@@ -26,7 +26,7 @@
 //! 10. `HandleErrorLayer` over tower's `TimeoutLayer`: a request not
 //!     answered within `--request-timeout-secs` gets 408 if its body was
 //!     still arriving, else 503.
-//! 11. [`shed_cpu_routes`]: on the routes that run CPU work inside the
+//! 11. `shed_cpu_routes`: on the routes that run CPU work inside the
 //!     request (creating a sequence builds its matcher, projecting points),
 //!     `load_shed` over a `GlobalConcurrencyLimitLayer` of
 //!     `--max-cpu-requests`: one more is answered 503 with `Retry-After`
