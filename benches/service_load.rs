@@ -23,7 +23,7 @@ use image::{ExtendedColorType, ImageEncoder};
 use ptv::formats;
 use ptv::photogrammetry::simulate::{self, RenderSpec, RigSpec};
 use ptv::photogrammetry::GreyPixels;
-use ptv::service::{Application, ServeArgs};
+use ptv::service::{Application, ServeArgs, Timeouts};
 use reqwest::multipart::{Form, Part};
 use serde_json::{json, Value};
 
@@ -118,6 +118,8 @@ async fn run(options: Options) {
         workers: options.workers,
         max_upload_mb: 256,
         api_token: None,
+        max_cpu_requests: None,
+        timeouts: Timeouts::default(),
     };
     let workers = args.worker_count();
     let app = Application::build(args).await.unwrap();

@@ -8,6 +8,11 @@ use std::net::SocketAddr;
 use std::sync::Arc;
 use std::time::Duration;
 
+use axum::Router;
+use hyper::server::conn::http1;
+use hyper_util::rt::{TokioIo, TokioTimer};
+use hyper_util::server::graceful::GracefulShutdown;
+use hyper_util::service::TowerToHyperService;
 use tokio::net::TcpListener;
 use tokio::sync::{watch, Notify};
 
@@ -36,7 +41,7 @@ pub struct AppState {
     /// Prepared pipelines by sequence.
     pub pipelines: PipelineCache,
     /// Counters for /metrics.
-    pub metrics: Metrics,
+    pub metrics: Arc<Metrics>,
     /// Wakes a waiting worker when a job is enqueued.
     pub wake: Notify,
     /// This process's name in job claims.
@@ -101,7 +106,7 @@ impl Application {
             images,
             cpu,
             pipelines: PipelineCache::default(),
-            metrics: Metrics::default(),
+            metrics: Arc::default(),
             wake: Notify::new(),
             instance: format!("{}-{nanos}", std::process::id()),
         });
@@ -144,9 +149,8 @@ impl Application {
         let (stop_workers, stopped) = watch::channel(false);
         let mut workers =
             jobs::spawn_workers(state.clone(), kinds, state.config.worker_count(), stopped);
-        let served = axum::serve(listener, http::router(state.clone()))
-            .with_graceful_shutdown(shutdown)
-            .await;
+        let router = http::router(state.clone());
+        serve(listener, router, state.config.timeouts.header(), shutdown).await;
         let _ = stop_workers.send(true);
         let drained = tokio::time::timeout(SHUTDOWN_GRACE, async {
             while workers.join_next().await.is_some() {}
@@ -160,6 +164,62 @@ impl Application {
             }
         }
         state.store.close().await;
-        served.map_err(ServiceError::Serve)
+        Ok(())
     }
+}
+
+/// Serves HTTP/1.1 connections with hyper until `shutdown` completes, then
+/// stops accepting and waits for the connections to finish their requests
+/// (idle ones close at once). A client gets `header_timeout` to send a
+/// request's headers; the same limit closes a kept-alive connection that
+/// stays idle (hyper times the wait for the next request's headers).
+/// axum::serve offers no header timeout, hence this loop (axum's
+/// serve-with-hyper example, with its graceful shutdown).
+async fn serve(
+    listener: TcpListener,
+    router: Router,
+    header_timeout: Duration,
+    shutdown: impl Future<Output = ()>,
+) {
+    let mut http = http1::Builder::new();
+    http.timer(TokioTimer::new())
+        .header_read_timeout(header_timeout);
+    let connections = GracefulShutdown::new();
+    let mut shutdown = std::pin::pin!(shutdown);
+    loop {
+        let stream = tokio::select! {
+            accepted = listener.accept() => match accepted {
+                Ok((stream, _)) => stream,
+                Err(error) => {
+                    accept_failed(error).await;
+                    continue;
+                }
+            },
+            () = &mut shutdown => break,
+        };
+        let service = TowerToHyperService::new(router.clone());
+        let connection = connections.watch(http.serve_connection(TokioIo::new(stream), service));
+        tokio::spawn(async move {
+            if let Err(error) = connection.await {
+                tracing::debug!(%error, "connection closed with an error");
+            }
+        });
+    }
+    drop(listener);
+    connections.shutdown().await;
+}
+
+/// A failed accept: a client that gave up is nothing; anything else (out
+/// of file descriptors, most likely) is logged and waited out for a second,
+/// as axum::serve does.
+async fn accept_failed(error: std::io::Error) {
+    use std::io::ErrorKind::{ConnectionAborted, ConnectionRefused, ConnectionReset};
+    if matches!(
+        error.kind(),
+        ConnectionAborted | ConnectionRefused | ConnectionReset
+    ) {
+        return;
+    }
+    tracing::error!(%error, "cannot accept a connection");
+    tokio::time::sleep(Duration::from_secs(1)).await;
 }

@@ -3,6 +3,7 @@
 
 use std::net::SocketAddr;
 use std::path::PathBuf;
+use std::time::Duration;
 
 use clap::Args;
 
@@ -27,6 +28,72 @@ pub struct ServeArgs {
     /// When set, every /api route needs `Authorization: Bearer <token>`.
     #[arg(long, env = "PTV_API_TOKEN", hide_env_values = true)]
     pub api_token: Option<String>,
+    /// Requests on the CPU-heavy routes (creating a sequence, projecting
+    /// points) run at once; more get 503 with Retry-After [default: the
+    /// workers]
+    #[arg(long, env = "PTV_MAX_CPU_REQUESTS", value_parser = clap::value_parser!(u32).range(1..))]
+    pub max_cpu_requests: Option<u32>,
+    /// Time limits on connections and requests.
+    #[command(flatten)]
+    pub timeouts: Timeouts,
+}
+
+/// How long the service waits for a client, in seconds (each at least 1).
+#[derive(Clone, Debug, Args)]
+pub struct Timeouts {
+    /// Seconds a client has to send a request's headers once it starts one,
+    /// and that a kept-alive connection may stay idle before its next
+    /// request; then the connection is closed.
+    #[arg(long = "header-timeout-secs", env = "PTV_HEADER_TIMEOUT_SECS",
+          default_value_t = Timeouts::HEADER_SECS, value_parser = clap::value_parser!(u64).range(1..))]
+    pub header_secs: u64,
+    /// Seconds a request body may pause between two pieces of data; a
+    /// client that stalls longer gets 408. Applies per piece, so a large
+    /// upload that keeps moving is never cut off by it.
+    #[arg(long = "body-timeout-secs", env = "PTV_BODY_TIMEOUT_SECS",
+          default_value_t = Timeouts::BODY_SECS, value_parser = clap::value_parser!(u64).range(1..))]
+    pub body_secs: u64,
+    /// Seconds from a request's headers to its answer's headers, upload
+    /// included (408 while the body still arrives, else 503). A streamed
+    /// download is not limited once it starts. The default lets an upload
+    /// of 256 MiB through at 7 Mbit/s.
+    #[arg(long = "request-timeout-secs", env = "PTV_REQUEST_TIMEOUT_SECS",
+          default_value_t = Timeouts::REQUEST_SECS, value_parser = clap::value_parser!(u64).range(1..))]
+    pub request_secs: u64,
+}
+
+impl Timeouts {
+    /// Default of `--header-timeout-secs` (hyper's own default).
+    pub const HEADER_SECS: u64 = 30;
+    /// Default of `--body-timeout-secs`.
+    pub const BODY_SECS: u64 = 30;
+    /// Default of `--request-timeout-secs`.
+    pub const REQUEST_SECS: u64 = 300;
+
+    /// `--header-timeout-secs`.
+    pub fn header(&self) -> Duration {
+        Duration::from_secs(self.header_secs)
+    }
+
+    /// `--body-timeout-secs`.
+    pub fn body(&self) -> Duration {
+        Duration::from_secs(self.body_secs)
+    }
+
+    /// `--request-timeout-secs`.
+    pub fn request(&self) -> Duration {
+        Duration::from_secs(self.request_secs)
+    }
+}
+
+impl Default for Timeouts {
+    fn default() -> Self {
+        Timeouts {
+            header_secs: Timeouts::HEADER_SECS,
+            body_secs: Timeouts::BODY_SECS,
+            request_secs: Timeouts::REQUEST_SECS,
+        }
+    }
 }
 
 impl ServeArgs {
@@ -44,5 +111,11 @@ impl ServeArgs {
     /// The body limit in bytes.
     pub fn max_upload_bytes(&self) -> usize {
         usize::try_from(self.max_upload_mb.saturating_mul(1024 * 1024)).unwrap_or(usize::MAX)
+    }
+
+    /// How many CPU-heavy requests may run at once: the flag, or the workers.
+    pub fn cpu_request_limit(&self) -> usize {
+        self.max_cpu_requests
+            .map_or_else(|| self.worker_count(), |n| n as usize)
     }
 }

@@ -5,7 +5,8 @@
 //! - [`app`]: builds the service from its settings, binds, serves until a
 //!   shutdown signal, drains the workers.
 //! - [`http`]: axum routers per resource under `/api/v1`, one error type
-//!   rendered as RFC 9457 problem+json, the OpenAPI document and docs page.
+//!   rendered as RFC 9457 problem+json, the OpenAPI document and docs page,
+//!   and the tower layers every request passes through.
 //! - [`jobs`]: the workers, the job kinds, the CPU pool.
 //! - [`store`]: all SQL (SQLite in WAL mode, migrations in `migrations/`).
 //! - [`images`]: uploaded images as content-addressed files.
@@ -30,7 +31,7 @@ use std::net::SocketAddr;
 use std::path::Path;
 
 pub use app::{AppState, Application};
-pub use config::ServeArgs;
+pub use config::{ServeArgs, Timeouts};
 
 /// Why the service could not start or stopped with an error.
 #[derive(Debug, thiserror::Error)]

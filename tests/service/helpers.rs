@@ -13,7 +13,7 @@ use nalgebra::Point3;
 use ptv::formats;
 use ptv::photogrammetry::simulate::{self, RenderSpec, RigSpec, TargetFrame};
 use ptv::photogrammetry::{Camera, GreyImage, GreyPixels, Volume};
-use ptv::service::{Application, ServeArgs};
+use ptv::service::{Application, ServeArgs, Timeouts};
 use reqwest::multipart::{Form, Part};
 use serde_json::{json, Value};
 use tempfile::TempDir;
@@ -44,6 +44,8 @@ pub fn test_args(data_dir: &Path, api_token: Option<&str>) -> ServeArgs {
         workers: Some(2),
         max_upload_mb: 64,
         api_token: api_token.map(str::to_owned),
+        max_cpu_requests: None,
+        timeouts: Timeouts::default(),
     }
 }
 
@@ -62,10 +64,22 @@ pub async fn spawn_app_in(data_dir: TempDir) -> TestApp {
     spawn(data_dir, None).await
 }
 
+/// Starts the service with a fresh data directory and the test settings
+/// changed by `configure`.
+pub async fn spawn_app_configured(configure: impl FnOnce(&mut ServeArgs)) -> TestApp {
+    let data_dir = tempfile::tempdir().unwrap();
+    let mut args = test_args(data_dir.path(), None);
+    configure(&mut args);
+    spawn_with_args(data_dir, args).await
+}
+
 async fn spawn(data_dir: TempDir, api_token: Option<&str>) -> TestApp {
-    let app = Application::build(test_args(data_dir.path(), api_token))
-        .await
-        .expect("the service starts");
+    let args = test_args(data_dir.path(), api_token);
+    spawn_with_args(data_dir, args).await
+}
+
+async fn spawn_with_args(data_dir: TempDir, args: ServeArgs) -> TestApp {
+    let app = Application::build(args).await.expect("the service starts");
     let address = format!("http://{}", app.local_addr().unwrap());
     let (stop, stopped) = oneshot::channel::<()>();
     let server = tokio::spawn(async move {
@@ -160,6 +174,15 @@ impl TestApp {
             .await;
         assert_eq!(status, 201, "{body}");
         body["id"].as_i64().unwrap()
+    }
+
+    /// The simulator's rig as a calibration, and a sequence on it that
+    /// keeps no images; the rig and the sequence's id.
+    pub async fn rig_sequence(&self) -> (Rig, i64) {
+        let rig = rig();
+        let calibration = self.create_calibration(&rig.cameras).await;
+        let sequence = self.create_sequence(calibration, &rig.volume, false).await;
+        (rig, sequence)
     }
 
     /// Uploads a frame; status and body.

@@ -1,0 +1,526 @@
+//! What every request passes through, built from tower and tower-http
+//! layers in one place ([`apply`]), outermost first:
+//!
+//! 1. `SetRequestIdLayer`: an `x-request-id` (a UUID) unless the client
+//!    sent one.
+//! 2. `PropagateRequestIdLayer`: the id on every answer, including the
+//!    ones the layers below make.
+//! 3. `TraceLayer`: a span per request with its id, method, route and
+//!    path; status and latency logged at info.
+//! 4. `CompressionLayer`: gzip for clients that accept it (particle CSVs
+//!    and JSON shrink about fivefold), streamed answers included. It polls
+//!    a body once more after its end (tower-http issue 732), which a
+//!    streamed answer such as the particle CSV panics on, so the bodies
+//!    under it are fused (`fuse_body`).
+//! 5. `count_request`: requests by method, route and status for
+//!    `/metrics` (what no layer does).
+//! 6. `RequestBodyTimeoutLayer`: a body that pauses longer than
+//!    `--body-timeout-secs` between two pieces ends in an error.
+//! 7. `watch_body`: records whether the body arrived whole or stalled;
+//!    a stalled one is answered 408, and a refused request whose body is
+//!    partly unread gets `Connection: close` (what no layer does).
+//! 8. `CatchPanicLayer`: a panicking handler is logged and answered with a
+//!    problem+json 500.
+//! 9. `ValidateRequestHeaderLayer`: a declared body over `--max-upload-mb`
+//!    is refused with 413 before any of it is read.
+//! 10. `HandleErrorLayer` over tower's `TimeoutLayer`: a request not
+//!     answered within `--request-timeout-secs` gets 408 if its body was
+//!     still arriving, else 503.
+//! 11. `shed_cpu_routes`: on the routes that run CPU work inside the
+//!     request (creating a sequence builds its matcher, projecting points),
+//!     `load_shed` over a `GlobalConcurrencyLimitLayer` of
+//!     `--max-cpu-requests`: one more is answered 503 with `Retry-After`
+//!     at once rather than queued on the rayon pool ahead of the frames.
+//! 12. `RequestBodyLimitLayer`: a body without a declared length fails
+//!     with 413 as soon as it passes the limit, whoever reads it (axum's
+//!     own default limit of 2 MB is disabled).
+//!
+//! The bearer token check ([`bearer_token`]) is a `ValidateRequestHeaderLayer`
+//! on `/api` alone. Header read and idle connection timeouts are hyper's
+//! (see [`crate::service::app`]).
+
+use std::any::Any;
+use std::pin::Pin;
+use std::sync::atomic::{AtomicU8, Ordering};
+use std::sync::Arc;
+use std::task::{Context, Poll};
+
+use axum::body::{Body, Bytes, HttpBody};
+use axum::error_handling::HandleErrorLayer;
+use axum::extract::{DefaultBodyLimit, MatchedPath, Request, State};
+use axum::http::{header, HeaderMap, HeaderValue, Method, StatusCode};
+use axum::middleware::{self, Next};
+use axum::response::{IntoResponse, Response};
+use axum::{Extension, Router};
+use http_body::{Frame, SizeHint};
+use http_body_util::BodyExt;
+use tokio::sync::Semaphore;
+use tower::limit::GlobalConcurrencyLimitLayer;
+use tower::{BoxError, ServiceBuilder, ServiceExt};
+use tower_http::catch_panic::CatchPanicLayer;
+use tower_http::compression::CompressionLayer;
+use tower_http::limit::RequestBodyLimitLayer;
+use tower_http::request_id::{MakeRequestUuid, PropagateRequestIdLayer, SetRequestIdLayer};
+use tower_http::timeout::{RequestBodyTimeoutLayer, TimeoutBody, TimeoutError};
+use tower_http::trace::{DefaultOnResponse, TraceLayer};
+use tower_http::validate_request::{ValidateRequest, ValidateRequestHeaderLayer};
+use tower_http::LatencyUnit;
+use tracing::{Level, Span};
+
+use super::problem::ApiError;
+use crate::service::config::ServeArgs;
+use crate::service::metrics::Metrics;
+
+/// The routes whose handlers do CPU work before answering.
+const CPU_ROUTES: [(Method, &str); 2] = [
+    (Method::POST, "/api/v1/sequences"),
+    (Method::POST, "/api/v1/calibrations/{id}/project"),
+];
+
+/// Wraps `router`'s routes and fallback in the service's layers (see the
+/// module's documentation for the order and why).
+pub fn apply<S: Clone + Send + Sync + 'static>(
+    router: Router<S>,
+    config: &ServeArgs,
+    metrics: Arc<Metrics>,
+) -> Router<S> {
+    let limit = config.max_upload_bytes();
+    let request_secs = config.timeouts.request_secs;
+    let cpu = Arc::new(Semaphore::new(config.cpu_request_limit()));
+    let stack = ServiceBuilder::new()
+        .layer(SetRequestIdLayer::x_request_id(MakeRequestUuid))
+        .layer(PropagateRequestIdLayer::x_request_id())
+        .layer(
+            TraceLayer::new_for_http()
+                .make_span_with(request_span)
+                .on_response(
+                    DefaultOnResponse::new()
+                        .level(Level::INFO)
+                        .latency_unit(LatencyUnit::Micros),
+                ),
+        )
+        .layer(CompressionLayer::new())
+        .map_response(fuse_body)
+        .layer(middleware::from_fn_with_state(metrics, count_request))
+        .layer(RequestBodyTimeoutLayer::new(config.timeouts.body()))
+        .map_request(|request: Request<TimeoutBody<Body>>| request.map(Body::new))
+        .layer(middleware::from_fn_with_state(
+            config.timeouts.body_secs,
+            watch_body,
+        ))
+        .layer(CatchPanicLayer::custom(answer_panic))
+        .layer(ValidateRequestHeaderLayer::custom(DeclaredLength { limit }))
+        .layer(HandleErrorLayer::new(
+            move |progress: Option<Extension<BodyProgress>>, error: BoxError| async move {
+                timed_out(error, progress.map(|p| p.0), request_secs)
+            },
+        ))
+        .layer(tower::timeout::TimeoutLayer::new(config.timeouts.request()))
+        .layer(middleware::from_fn_with_state(cpu, shed_cpu_routes))
+        .layer(RequestBodyLimitLayer::new(limit))
+        .layer(DefaultBodyLimit::disable());
+    router.layer(stack)
+}
+
+/// With a token, `/api` needs `Authorization: Bearer <token>` (the scheme
+/// in any case, RFC 9110 section 11.1); the token is compared in constant
+/// time, and a missing or wrong one is a 401 problem with
+/// `WWW-Authenticate: Bearer`.
+pub fn bearer_token(token: &str) -> ValidateRequestHeaderLayer<BearerToken> {
+    ValidateRequestHeaderLayer::custom(BearerToken {
+        token: token.as_bytes().into(),
+    })
+}
+
+/// The check behind [`bearer_token`].
+#[derive(Clone, Debug)]
+pub struct BearerToken {
+    token: Arc<[u8]>,
+}
+
+impl ValidateRequest<Body> for BearerToken {
+    type ResponseBody = Body;
+
+    fn validate(&mut self, request: &mut Request) -> Result<(), Response> {
+        let given = request
+            .headers()
+            .get(header::AUTHORIZATION)
+            .and_then(|v| v.to_str().ok())
+            .and_then(|v| v.split_once(' '))
+            .filter(|(scheme, _)| scheme.eq_ignore_ascii_case("bearer"))
+            .map(|(_, given)| given.trim());
+        if given.is_some_and(|given| constant_time_eq(given.as_bytes(), &self.token)) {
+            return Ok(());
+        }
+        let error = ApiError::new(
+            StatusCode::UNAUTHORIZED,
+            "this service needs `Authorization: Bearer <token>` with its API token",
+        );
+        Err(([(header::WWW_AUTHENTICATE, "Bearer")], error).into_response())
+    }
+}
+
+/// Compares without stopping at the first difference.
+fn constant_time_eq(a: &[u8], b: &[u8]) -> bool {
+    a.len() == b.len() && a.iter().zip(b).fold(0u8, |acc, (x, y)| acc | (x ^ y)) == 0
+}
+
+/// The request's span: its id, method, route pattern and path.
+fn request_span(request: &Request) -> Span {
+    let id = request
+        .headers()
+        .get("x-request-id")
+        .and_then(|v| v.to_str().ok())
+        .unwrap_or("");
+    let route = request
+        .extensions()
+        .get::<MatchedPath>()
+        .map_or("unmatched", MatchedPath::as_str);
+    tracing::info_span!(
+        "request",
+        id,
+        method = %request.method(),
+        route,
+        path = request.uri().path(),
+    )
+}
+
+/// A body that answers "ended" however often it is polled after its end.
+fn fuse_body(response: Response) -> Response {
+    response.map(|body| Body::new(body.fuse()))
+}
+
+/// Counts the request by method, route and status for `/metrics`.
+async fn count_request(
+    State(metrics): State<Arc<Metrics>>,
+    request: Request,
+    next: Next,
+) -> Response {
+    let method = request.method().to_string();
+    let route = request
+        .extensions()
+        .get::<MatchedPath>()
+        .map_or("unmatched", MatchedPath::as_str)
+        .to_owned();
+    let response = next.run(request).await;
+    metrics.request(&method, &route, response.status().as_u16());
+    response
+}
+
+/// How far a request's body got, shared by the body and the layers that
+/// answer for it: still arriving, complete, or stalled past the body
+/// timeout.
+#[derive(Clone, Debug)]
+struct BodyProgress(Arc<AtomicU8>);
+
+impl BodyProgress {
+    const ARRIVING: u8 = 0;
+    const COMPLETE: u8 = 1;
+    const STALLED: u8 = 2;
+
+    fn new() -> BodyProgress {
+        BodyProgress(Arc::new(AtomicU8::new(BodyProgress::ARRIVING)))
+    }
+
+    fn set(&self, state: u8) {
+        self.0.store(state, Ordering::Relaxed);
+    }
+
+    fn complete(&self) -> bool {
+        self.0.load(Ordering::Relaxed) == BodyProgress::COMPLETE
+    }
+
+    fn stalled(&self) -> bool {
+        self.0.load(Ordering::Relaxed) == BodyProgress::STALLED
+    }
+}
+
+/// A request body that records its [`BodyProgress`]. It sits under the
+/// body timeout, which hides where the body ends, so a body with a declared
+/// length is complete once that many bytes came, one without once it ends.
+struct Watched {
+    body: Body,
+    progress: BodyProgress,
+    /// Bytes still to come, when the length is declared.
+    remaining: Option<u64>,
+}
+
+impl HttpBody for Watched {
+    type Data = Bytes;
+    type Error = axum::Error;
+
+    fn poll_frame(
+        mut self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+    ) -> Poll<Option<Result<Frame<Bytes>, axum::Error>>> {
+        let polled = Pin::new(&mut self.body).poll_frame(cx);
+        match &polled {
+            Poll::Ready(None) => self.progress.set(BodyProgress::COMPLETE),
+            Poll::Ready(Some(Ok(frame))) => {
+                let length = frame.data_ref().map_or(0, |data| data.len() as u64);
+                if let Some(remaining) = &mut self.remaining {
+                    *remaining = remaining.saturating_sub(length);
+                    if *remaining == 0 {
+                        self.progress.set(BodyProgress::COMPLETE);
+                    }
+                }
+            }
+            Poll::Ready(Some(Err(error))) if is_body_timeout(error) => {
+                self.progress.set(BodyProgress::STALLED);
+            }
+            _ => {}
+        }
+        polled
+    }
+
+    fn is_end_stream(&self) -> bool {
+        self.body.is_end_stream()
+    }
+
+    fn size_hint(&self) -> SizeHint {
+        self.body.size_hint()
+    }
+}
+
+/// Whether `error` is the body timeout's.
+fn is_body_timeout(error: &axum::Error) -> bool {
+    std::iter::successors(std::error::Error::source(error), |e| e.source())
+        .any(|e| e.is::<TimeoutError>())
+}
+
+/// Watches the body: a body that stalled past `--body-timeout-secs` is
+/// answered 408 whatever the handler made of the error, and a refused
+/// request whose body was not read to its end gets `Connection: close`, so
+/// the client does not send another request on a connection that cannot
+/// carry it.
+async fn watch_body(State(body_secs): State<u64>, request: Request, next: Next) -> Response {
+    let progress = BodyProgress::new();
+    let (mut parts, body) = request.into_parts();
+    // HTTP/1.1: a request has a body if it declares a length or a transfer
+    // coding (RFC 9112 section 6.3).
+    let remaining = declared_length(&parts.headers);
+    if remaining == Some(0)
+        || (remaining.is_none() && !parts.headers.contains_key(header::TRANSFER_ENCODING))
+    {
+        progress.set(BodyProgress::COMPLETE);
+    }
+    parts.extensions.insert(progress.clone());
+    let body = Body::new(Watched {
+        body,
+        progress: progress.clone(),
+        remaining,
+    });
+    let mut response = next.run(Request::from_parts(parts, body)).await;
+    let refused = response.status().is_client_error() || response.status().is_server_error();
+    if refused && progress.stalled() {
+        response = ApiError::new(
+            StatusCode::REQUEST_TIMEOUT,
+            format!(
+                "the body stopped arriving for {body_secs} s (--body-timeout-secs); \
+                 nothing was stored, send the request again"
+            ),
+        )
+        .into_response();
+    }
+    if refused && !progress.complete() {
+        response
+            .headers_mut()
+            .insert(header::CONNECTION, HeaderValue::from_static("close"));
+    }
+    response
+}
+
+/// A panic in a handler: logged with its message, answered with a 500.
+fn answer_panic(panic: Box<dyn Any + Send + 'static>) -> Response {
+    let message = panic
+        .downcast_ref::<&str>()
+        .copied()
+        .or_else(|| panic.downcast_ref::<String>().map(String::as_str))
+        .unwrap_or("no message");
+    ApiError::internal(format_args!("a request handler panicked: {message}")).into_response()
+}
+
+/// The body's length, if the request declares it.
+fn declared_length(headers: &HeaderMap) -> Option<u64> {
+    headers
+        .get(header::CONTENT_LENGTH)
+        .and_then(|v| v.to_str().ok())
+        .and_then(|v| v.parse().ok())
+}
+
+/// Refuses a body declared larger than `limit` bytes before reading it.
+#[derive(Clone, Copy, Debug)]
+struct DeclaredLength {
+    limit: usize,
+}
+
+impl ValidateRequest<Body> for DeclaredLength {
+    type ResponseBody = Body;
+
+    fn validate(&mut self, request: &mut Request) -> Result<(), Response> {
+        let limit = self.limit;
+        match declared_length(request.headers()) {
+            Some(length) if length > limit as u64 => Err(ApiError::too_large(format!(
+                "the body is {length} bytes, more than the service's limit of {limit} bytes \
+                 (--max-upload-mb); send fewer or smaller images per request"
+            ))
+            .into_response()),
+            _ => Ok(()),
+        }
+    }
+}
+
+/// The answer to a request the timeout gave up on: 408 if its body was
+/// still arriving (the client's link is the slow part), else 503.
+fn timed_out(error: BoxError, progress: Option<BodyProgress>, request_secs: u64) -> Response {
+    if !error.is::<tower::timeout::error::Elapsed>() {
+        return ApiError::internal(error).into_response();
+    }
+    if progress.is_some_and(|p| !p.complete()) {
+        ApiError::new(
+            StatusCode::REQUEST_TIMEOUT,
+            format!(
+                "the body was still arriving after {request_secs} s (--request-timeout-secs); \
+                 nothing was stored: send fewer or smaller images per request, or ask for a \
+                 higher limit"
+            ),
+        )
+        .into_response()
+    } else {
+        ApiError::new(
+            StatusCode::SERVICE_UNAVAILABLE,
+            format!("the service did not answer within {request_secs} s (--request-timeout-secs)"),
+        )
+        .into_response()
+    }
+}
+
+/// On the [`CPU_ROUTES`], at most as many requests at once as the
+/// semaphore has permits; one more is answered 503 with `Retry-After: 1`.
+async fn shed_cpu_routes(
+    State(permits): State<Arc<Semaphore>>,
+    request: Request,
+    next: Next,
+) -> Response {
+    let route = request
+        .extensions()
+        .get::<MatchedPath>()
+        .map(MatchedPath::as_str);
+    let heavy = CPU_ROUTES
+        .iter()
+        .any(|(method, path)| request.method() == method && route == Some(*path));
+    if !heavy {
+        return next.run(request).await;
+    }
+    ServiceBuilder::new()
+        .load_shed()
+        .layer(GlobalConcurrencyLimitLayer::with_semaphore(permits))
+        .service(next)
+        .oneshot(request)
+        .await
+        .unwrap_or_else(|_overloaded| {
+            let error = ApiError::new(
+                StatusCode::SERVICE_UNAVAILABLE,
+                "the service is busy with as many of these requests as it runs at once \
+                 (--max-cpu-requests); try again in a moment",
+            );
+            ([(header::RETRY_AFTER, "1")], error).into_response()
+        })
+}
+
+#[cfg(test)]
+mod tests {
+    use std::time::Duration;
+
+    use axum::body::to_bytes;
+    use axum::routing::{get, post};
+    use tower::ServiceExt;
+
+    use super::*;
+    use crate::service::config::Timeouts;
+
+    fn config(request_secs: u64, max_cpu_requests: u32) -> ServeArgs {
+        ServeArgs {
+            bind: "127.0.0.1:0".parse().unwrap(),
+            data_dir: "unused".into(),
+            workers: Some(1),
+            max_upload_mb: 1,
+            api_token: None,
+            max_cpu_requests: Some(max_cpu_requests),
+            timeouts: Timeouts {
+                request_secs,
+                ..Timeouts::default()
+            },
+        }
+    }
+
+    async fn panics() -> &'static str {
+        panic!("on purpose")
+    }
+
+    /// The routes under test, in the service's stack.
+    fn app(config: &ServeArgs) -> Router {
+        let slow = || async {
+            tokio::time::sleep(Duration::from_millis(1500)).await;
+            "done"
+        };
+        let routes = Router::new()
+            .route("/panic", get(panics))
+            .route("/slow", get(slow))
+            .route("/api/v1/calibrations/{id}/project", post(slow));
+        apply(routes, config, Arc::new(Metrics::default()))
+    }
+
+    async fn call(app: &Router, method: Method, uri: &str) -> (StatusCode, HeaderMap, String) {
+        let request = Request::builder()
+            .method(method)
+            .uri(uri)
+            .body(Body::empty())
+            .unwrap();
+        let response = app.clone().oneshot(request).await.unwrap();
+        let (parts, body) = response.into_parts();
+        let body = to_bytes(Body::new(body), usize::MAX).await.unwrap();
+        (
+            parts.status,
+            parts.headers,
+            String::from_utf8(body.to_vec()).unwrap(),
+        )
+    }
+
+    #[tokio::test]
+    async fn a_panic_is_a_problem_500_with_the_request_id() {
+        let (status, headers, body) = call(&app(&config(5, 1)), Method::GET, "/panic").await;
+        assert_eq!(status, StatusCode::INTERNAL_SERVER_ERROR);
+        assert_eq!(headers[header::CONTENT_TYPE], "application/problem+json");
+        assert!(headers.contains_key("x-request-id"));
+        assert!(
+            body.contains("the service failed; the error is in its log"),
+            "{body}"
+        );
+    }
+
+    #[tokio::test]
+    async fn a_request_past_the_timeout_is_a_problem_503() {
+        let (status, headers, body) = call(&app(&config(1, 1)), Method::GET, "/slow").await;
+        assert_eq!(status, StatusCode::SERVICE_UNAVAILABLE);
+        assert_eq!(headers[header::CONTENT_TYPE], "application/problem+json");
+        assert!(body.contains("--request-timeout-secs"), "{body}");
+    }
+
+    #[tokio::test]
+    async fn cpu_routes_past_their_limit_are_shed_with_retry_after() {
+        let app = app(&config(5, 1));
+        let uri = "/api/v1/calibrations/1/project";
+        let (first, second) = tokio::join!(call(&app, Method::POST, uri), async {
+            tokio::time::sleep(Duration::from_millis(200)).await;
+            call(&app, Method::POST, uri).await
+        });
+        assert_eq!(first.0, StatusCode::OK);
+        assert_eq!(second.0, StatusCode::SERVICE_UNAVAILABLE, "{}", second.2);
+        assert_eq!(second.1[header::RETRY_AFTER], "1");
+        assert!(second.2.contains("--max-cpu-requests"), "{}", second.2);
+        // Other routes are not limited, and the permit comes back.
+        assert_eq!(call(&app, Method::GET, "/slow").await.0, StatusCode::OK);
+        assert_eq!(call(&app, Method::POST, uri).await.0, StatusCode::OK);
+    }
+}

@@ -1,0 +1,278 @@
+//! What every request passes through (`src/service/http/layers.rs` and
+//! hyper's settings in `app.rs`): request ids, gzip, the header, body and
+//! request timeouts, the early 413 and the bearer token. The panic guard,
+//! the 503 of a handler past the request timeout and the load shedding of
+//! the CPU routes are unit tests beside the layers.
+
+use std::io::Read;
+use std::time::{Duration, Instant};
+
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::net::TcpStream;
+
+use crate::helpers::*;
+
+/// What a raw connection got: the text the server sent, and after how long
+/// it closed the connection (`None`: still open after the patience).
+struct Exchange {
+    answer: String,
+    closed_after: Option<Duration>,
+}
+
+/// Connects to the service, sends `head`, then `trickle` (if any) a piece
+/// every 200 ms, never ends the request, and reads until the server closes
+/// the connection or `patience` passes.
+async fn exchange(address: &str, head: &[u8], trickle: &[&[u8]], patience: Duration) -> Exchange {
+    let stream = TcpStream::connect(address.strip_prefix("http://").unwrap())
+        .await
+        .unwrap();
+    let (mut reader, mut writer) = stream.into_split();
+    let start = Instant::now();
+    writer.write_all(head).await.unwrap();
+    let pieces: Vec<Vec<u8>> = trickle.iter().map(|p| p.to_vec()).collect();
+    let sender = tokio::spawn(async move {
+        for piece in pieces {
+            tokio::time::sleep(Duration::from_millis(200)).await;
+            if writer.write_all(&piece).await.is_err() {
+                break;
+            }
+        }
+        // Hold the write side open: a half-closed request is not a stall.
+        tokio::time::sleep(Duration::from_secs(3600)).await;
+        drop(writer);
+    });
+    let mut received = Vec::new();
+    let mut buffer = [0u8; 4096];
+    let closed_after = loop {
+        let left = patience.saturating_sub(start.elapsed());
+        match tokio::time::timeout(left, reader.read(&mut buffer)).await {
+            Ok(Ok(0)) | Ok(Err(_)) => break Some(start.elapsed()),
+            Ok(Ok(n)) => received.extend_from_slice(&buffer[..n]),
+            Err(_) => break None,
+        }
+    };
+    sender.abort();
+    Exchange {
+        answer: String::from_utf8_lossy(&received).into_owned(),
+        closed_after,
+    }
+}
+
+/// GETs `url`, with one header if given.
+async fn get(app: &TestApp, url: &str, header: Option<(&str, &str)>) -> reqwest::Response {
+    let mut request = app.client.get(url);
+    if let Some((name, value)) = header {
+        request = request.header(name, value);
+    }
+    request.send().await.unwrap()
+}
+
+/// Checks that `exchange` got a `status` problem+json that mentions
+/// `needle`, with `Connection: close`, and that the connection was closed
+/// within 5 s.
+fn assert_refused(exchange: &Exchange, status: u16, needle: &str, case: &str) {
+    let answer = &exchange.answer;
+    let status_line = format!("HTTP/1.1 {status} ");
+    assert!(answer.starts_with(&status_line), "{case}: {answer}");
+    let lower = answer.to_ascii_lowercase();
+    assert!(
+        lower.contains("content-type: application/problem+json"),
+        "{case}: {answer}"
+    );
+    assert!(lower.contains("connection: close"), "{case}: {answer}");
+    assert!(answer.contains(needle), "{case}: {answer}");
+    assert!(
+        exchange
+            .closed_after
+            .is_some_and(|t| t < Duration::from_secs(5)),
+        "{case}: closed after {:?}",
+        exchange.closed_after
+    );
+}
+
+/// Every answer carries an `x-request-id` (the client's, if it sent one);
+/// the token check answers 401 problem+json with `WWW-Authenticate` and
+/// takes the scheme in any case.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn every_answer_has_a_request_id_and_the_token_check_holds() {
+    let app = spawn_app_with(Some("s3cret")).await;
+    let id = |response: &reqwest::Response| {
+        response.headers()["x-request-id"]
+            .to_str()
+            .unwrap()
+            .to_owned()
+    };
+    let health = format!("{}/healthz", app.address);
+    let first = get(&app, &health, None).await;
+    let second = get(&app, &health, None).await;
+    assert_eq!(id(&first).len(), 36, "a UUID: {}", id(&first));
+    assert_ne!(id(&first), id(&second));
+    let mine = get(
+        &app,
+        &health,
+        Some(("x-request-id", "acquisition-7/frame-42")),
+    )
+    .await;
+    assert_eq!(id(&mine), "acquisition-7/frame-42");
+
+    let job = app.api("/jobs/1");
+    let refused = get(&app, &job, None).await;
+    assert_eq!(refused.headers()["www-authenticate"], "Bearer");
+    assert!(!id(&refused).is_empty());
+    let (status, body) = status_and_json(refused).await;
+    assert_eq!(status, 401, "{body}");
+    assert!(
+        body["detail"].as_str().unwrap().contains("Bearer"),
+        "{body}"
+    );
+    for scheme in ["Bearer", "bearer", "BEARER"] {
+        let token = format!("{scheme} s3cret");
+        let response = get(&app, &job, Some(("authorization", &token))).await;
+        assert_eq!(response.status().as_u16(), 404, "{scheme}");
+        assert!(!id(&response).is_empty());
+    }
+    let unknown = get(&app, &format!("{}/nowhere", app.address), None).await;
+    assert!(!id(&unknown).is_empty());
+    assert_eq!(status_and_json(unknown).await.0, 404);
+    app.stop().await;
+}
+
+/// With `Accept-Encoding: gzip` the streamed particle CSV and the JSON come
+/// compressed, and decode to the plain answer.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn answers_are_gzipped_when_the_client_accepts_it() {
+    let app = spawn_app().await;
+    let (rig, sequence) = app.rig_sequence().await;
+    for frame in 0..3 {
+        let targets = rig.targets(300, 100 + frame as u64);
+        let (status, body) = app.upload(sequence, targets_form(frame, &targets)).await;
+        assert_eq!(status, 202, "{body}");
+    }
+    app.wait_for_sequence(sequence).await;
+
+    let urls = [
+        app.api(&format!("/sequences/{sequence}/particles?format=csv")),
+        format!("{}/openapi.json", app.address),
+    ];
+    for url in urls {
+        let plain = get(&app, &url, None).await;
+        assert!(!plain.headers().contains_key("content-encoding"), "{url}");
+        let plain = plain.bytes().await.unwrap();
+        let zipped = get(&app, &url, Some(("accept-encoding", "gzip"))).await;
+        assert_eq!(zipped.status().as_u16(), 200, "{url}");
+        assert_eq!(zipped.headers()["content-encoding"], "gzip", "{url}");
+        let zipped = zipped.bytes().await.unwrap();
+        let mut decoded = Vec::new();
+        flate2::read::GzDecoder::new(&zipped[..])
+            .read_to_end(&mut decoded)
+            .unwrap();
+        assert_eq!(decoded, plain, "{url}");
+        assert!(
+            zipped.len() * 2 < plain.len(),
+            "{url}: {} bytes gzipped from {}",
+            zipped.len(),
+            plain.len()
+        );
+    }
+    app.stop().await;
+}
+
+/// A client that sends half a header line and stalls, one that sends
+/// nothing, and a kept-alive connection left idle are all disconnected
+/// once the header timeout (1 s here) passes; the service goes on.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn slow_headers_and_idle_connections_are_closed_after_the_header_timeout() {
+    let app = spawn_app_configured(|args| args.timeouts.header_secs = 1).await;
+    let patience = Duration::from_secs(10);
+    let cases: [(&str, &[u8]); 3] = [
+        (
+            "half a header",
+            b"GET /healthz HTTP/1.1\r\nHost: x\r\nX-Slow: 1",
+        ),
+        ("nothing", b""),
+        (
+            "idle after a request",
+            b"GET /healthz HTTP/1.1\r\nHost: x\r\n\r\n",
+        ),
+    ];
+    for (case, head) in cases {
+        let Exchange {
+            answer,
+            closed_after,
+        } = exchange(&app.address, head, &[], patience).await;
+        let closed_after = closed_after.unwrap_or_else(|| panic!("{case}: still open"));
+        assert!(
+            closed_after >= Duration::from_millis(900) && closed_after < Duration::from_secs(5),
+            "{case}: closed after {closed_after:?}"
+        );
+        if case == "idle after a request" {
+            assert!(answer.starts_with("HTTP/1.1 200"), "{case}: {answer}");
+        } else {
+            assert!(
+                answer.is_empty() || answer.starts_with("HTTP/1.1 408"),
+                "{case}: {answer}"
+            );
+        }
+    }
+    app.get_text(format!("{}/healthz", app.address)).await;
+    app.stop().await;
+}
+
+/// A body that stops arriving is cut off after the body timeout (1 s
+/// here) with a 408, multipart upload or JSON; one that keeps trickling
+/// is cut off by the request timeout (2 s here), also 408. Each closes the
+/// connection, nothing is stored, and none counts as a server error.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn stalled_and_endless_bodies_are_cut_off_with_408() {
+    let app = spawn_app_configured(|args| {
+        args.timeouts.body_secs = 1;
+        args.timeouts.request_secs = 2;
+    })
+    .await;
+    let (_, sequence) = app.rig_sequence().await;
+    let upload = format!(
+        "POST /api/v1/sequences/{sequence}/frames HTTP/1.1\r\nHost: x\r\n\
+         Content-Type: multipart/form-data; boundary=XYZ\r\nContent-Length: 100000\r\n\r\n\
+         --XYZ\r\nContent-Disposition: form-data; name=\"frame\"\r\n\r\n0\r\n--XYZ\r\n\
+         Content-Disposition: form-data; name=\"cam0\"; filename=\"a.png\"\r\n\r\n\x7fPNG"
+    );
+    let json = "POST /api/v1/calibrations HTTP/1.1\r\nHost: x\r\n\
+                Content-Type: application/json\r\nContent-Length: 10000\r\n\r\n{\"cameras\": [";
+    let piece: &[u8] = b" ";
+    let cases: [(&str, &str, &[&[u8]], &str); 3] = [
+        ("stalled upload", &upload, &[], "--body-timeout-secs"),
+        ("stalled JSON", json, &[], "--body-timeout-secs"),
+        ("endless JSON", json, &[piece; 20], "--request-timeout-secs"),
+    ];
+    for (case, head, trickle, flag) in cases {
+        let exchange = exchange(
+            &app.address,
+            head.as_bytes(),
+            trickle,
+            Duration::from_secs(10),
+        )
+        .await;
+        assert_refused(&exchange, 408, flag, case);
+    }
+    let metrics = app.get_text(format!("{}/metrics", app.address)).await;
+    assert!(!metrics.contains("status=\"5"), "{metrics}");
+    let db = app.database().await;
+    assert_eq!(count(&db, "SELECT count(*) FROM frames").await, 0);
+    assert_eq!(count(&db, "SELECT count(*) FROM calibrations").await, 1);
+    app.stop().await;
+}
+
+/// A body declared larger than the limit is refused with a 413 while the
+/// client has sent nothing of it, and the connection is closed.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_declared_body_over_the_limit_is_refused_before_it_is_sent() {
+    let app = spawn_app().await;
+    let head = "POST /api/v1/sequences/1/frames HTTP/1.1\r\nHost: x\r\n\
+                Content-Type: multipart/form-data; boundary=XYZ\r\n\
+                Content-Length: 2147483648\r\n\r\n";
+    let exchange = exchange(&app.address, head.as_bytes(), &[], Duration::from_secs(10)).await;
+    assert_refused(&exchange, 413, "--max-upload-mb", "2 GiB declared");
+    let lower = exchange.answer.to_ascii_lowercase();
+    assert!(lower.contains("x-request-id: "), "{}", exchange.answer);
+    app.stop().await;
+}
