@@ -44,6 +44,7 @@
 
 mod dlt;
 pub mod identify;
+mod parameter;
 mod resection;
 
 use std::collections::{HashMap, HashSet};
@@ -55,6 +56,7 @@ use serde::{Deserialize, Serialize};
 use super::camera::{Camera, CameraParameters, InvalidCamera};
 use super::intersect::{intersect, Observation};
 pub use identify::{calibrate_from_marks, detect_marks, identify_marks, mark_detection_parameters};
+pub use parameter::{Parameter, ParameterSet};
 pub use resection::projection_with_parameter_jacobian;
 use resection::{Equation, ParameterVector};
 
@@ -78,121 +80,6 @@ pub struct MarkObservation {
     pub id: u64,
     /// Its image position (pixels, the camera model's convention).
     pub pixel: Point2<f64>,
-}
-
-/// One of the 16 camera parameters, named as OpenPTV names them.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum Parameter {
-    /// Projective centre X0 (mm).
-    X0,
-    /// Projective centre Y0 (mm).
-    Y0,
-    /// Projective centre Z0 (mm).
-    Z0,
-    /// Rotation about x (rad).
-    Omega,
-    /// Rotation about y (rad).
-    Phi,
-    /// Rotation about z (rad).
-    Kappa,
-    /// Principal point x (mm).
-    Xh,
-    /// Principal point y (mm).
-    Yh,
-    /// Principal distance (mm).
-    C,
-    /// Radial distortion r² term.
-    K1,
-    /// Radial distortion r⁴ term.
-    K2,
-    /// Radial distortion r⁶ term.
-    K3,
-    /// Decentering distortion.
-    P1,
-    /// Decentering distortion.
-    P2,
-    /// Scale of x.
-    Scx,
-    /// Shear (rad).
-    She,
-}
-
-impl Parameter {
-    /// All 16, in the order of OpenPTV's files.
-    pub const ALL: [Parameter; 16] = [
-        Parameter::X0,
-        Parameter::Y0,
-        Parameter::Z0,
-        Parameter::Omega,
-        Parameter::Phi,
-        Parameter::Kappa,
-        Parameter::Xh,
-        Parameter::Yh,
-        Parameter::C,
-        Parameter::K1,
-        Parameter::K2,
-        Parameter::K3,
-        Parameter::P1,
-        Parameter::P2,
-        Parameter::Scx,
-        Parameter::She,
-    ];
-
-    /// OpenPTV's name: `x0`, `omega`, `xh`, `c`, `k1`, `scx`, `she`, ...
-    pub fn name(self) -> &'static str {
-        [
-            "x0", "y0", "z0", "omega", "phi", "kappa", "xh", "yh", "c", "k1", "k2", "k3", "p1",
-            "p2", "scx", "she",
-        ][self.index()]
-    }
-
-    /// The parameter of a name (case-insensitive).
-    pub fn from_name(name: &str) -> Option<Parameter> {
-        let name = name.trim().to_ascii_lowercase();
-        Parameter::ALL.into_iter().find(|p| p.name() == name)
-    }
-
-    /// Position in [`Parameter::ALL`].
-    pub fn index(self) -> usize {
-        self as usize
-    }
-
-    /// Exterior orientation is always determinable from enough points and is
-    /// never held; the others may be.
-    fn holdable(self) -> bool {
-        self.index() >= 6
-    }
-
-    /// Which of two correlated parameters to hold: the lower number goes
-    /// first (higher-order and smaller effects before lower-order ones).
-    fn hold_priority(self) -> u8 {
-        match self {
-            Parameter::K3 => 0,
-            Parameter::K2 => 1,
-            Parameter::She => 2,
-            Parameter::Scx => 3,
-            Parameter::P2 => 4,
-            Parameter::P1 => 5,
-            Parameter::K1 => 6,
-            Parameter::Yh => 7,
-            Parameter::Xh => 8,
-            Parameter::C => 9,
-            _ => 10,
-        }
-    }
-
-    /// Distortion and affine terms are held at the setup's value (normally
-    /// none); principal distance and point at their current estimate.
-    fn held_at_setup(self) -> bool {
-        self.index() >= 9
-    }
-}
-
-impl std::fmt::Display for Parameter {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(self.name())
-    }
 }
 
 /// Which control points are check points, left out of the resections.
@@ -611,7 +498,7 @@ struct Prepared {
     /// Ids of check points.
     check: HashSet<u64>,
     /// Which parameters the user fixed.
-    fixed: [bool; 16],
+    fixed: ParameterSet,
 }
 
 fn prepare(
@@ -641,12 +528,9 @@ fn prepare(
             options.snooping_alpha
         )));
     }
-    let mut fixed = [false; 16];
-    for p in &options.fixed {
-        fixed[p.index()] = true;
-    }
+    let fixed: ParameterSet = options.fixed.iter().copied().collect();
     for (camera, parameters) in setup.iter().enumerate() {
-        validate_setup(parameters, &fixed)
+        validate_setup(parameters, fixed)
             .map_err(|source| CalibrationError::InvalidSetup { camera, source })?;
     }
     if control.len() < MIN_POINTS {
@@ -696,7 +580,7 @@ fn prepare(
 /// distortion, and the values of fixed parameters. Free exterior and
 /// interior values are only unused starting values, so they are replaced by
 /// valid ones first (a position on the air side of the wall, c = 1).
-fn validate_setup(parameters: &CameraParameters, fixed: &[bool; 16]) -> Result<(), InvalidCamera> {
+fn validate_setup(parameters: &CameraParameters, fixed: ParameterSet) -> Result<(), InvalidCamera> {
     let mut probe = parameters.clone();
     let media = &probe.media;
     let outside = media.glass_vector.norm()
@@ -706,30 +590,27 @@ fn validate_setup(parameters: &CameraParameters, fixed: &[bool; 16]) -> Result<(
         .glass_vector
         .try_normalize(0.0)
         .unwrap_or_else(nalgebra::Vector3::z);
-    for k in 0..3 {
-        if !fixed[k] {
+    for (k, p) in ParameterSet::position().iter().enumerate() {
+        if !fixed.contains(p) {
             probe.exterior.position[k] = normal[k] * outside;
         }
     }
-    for (k, angle) in [
+    for (p, angle) in ParameterSet::rotation().iter().zip([
         &mut probe.exterior.omega,
         &mut probe.exterior.phi,
         &mut probe.exterior.kappa,
-    ]
-    .into_iter()
-    .enumerate()
-    {
-        if !fixed[3 + k] {
+    ]) {
+        if !fixed.contains(p) {
             *angle = 0.0;
         }
     }
-    if !fixed[Parameter::C.index()] {
+    if !fixed.contains(Parameter::C) {
         probe.interior.c = 1.0;
     }
-    if !fixed[Parameter::Xh.index()] {
+    if !fixed.contains(Parameter::Xh) {
         probe.interior.xh = 0.0;
     }
-    if !fixed[Parameter::Yh.index()] {
+    if !fixed.contains(Parameter::Yh) {
         probe.interior.yh = 0.0;
     }
     Camera::new(probe).map(|_| ())
@@ -790,7 +671,7 @@ fn resect_camera(
 ) -> Result<(CameraParameters, CameraReport), CalibrationError> {
     let name = setup.name.clone();
     let all = equations(k, &name, observed, prepared)?;
-    let free_count = prepared.fixed.iter().filter(|f| !**f).count();
+    let free_count = prepared.fixed.complement().len();
     let needed = points_needed(free_count);
     if all.len() < needed {
         return Err(CalibrationError::TooFewPoints {
@@ -807,11 +688,8 @@ fn resect_camera(
     };
     let points: Vec<Point3<f64>> = all.iter().map(|(_, e)| e.point).collect();
     let coplanar = dlt::flatness(&points) < 1e-3;
-    let interior = [Parameter::Xh, Parameter::Yh, Parameter::C];
-    let free_interior: Vec<Parameter> = interior
-        .into_iter()
-        .filter(|p| !prepared.fixed[p.index()])
-        .collect();
+    let free_interior: Vec<Parameter> =
+        (ParameterSet::interior() - prepared.fixed).iter().collect();
     if coplanar && !free_interior.is_empty() {
         return Err(CalibrationError::Coplanar {
             camera: k,
@@ -837,8 +715,9 @@ fn resect_camera(
     })?;
     let setup_vector = resection::to_vector(setup);
     let mut v = resection::to_vector(&start);
-    for j in (0..16).filter(|&j| prepared.fixed[j] || j >= 9) {
-        v[j] = setup_vector[j];
+    // Distortion is not in the closed-form start: it starts at the setup's.
+    for p in (prepared.fixed | ParameterSet::distortion()).iter() {
+        v[p.index()] = setup_vector[p.index()];
     }
     let start = resection::from_vector(setup, &v);
     let start = valid_start(start).ok_or_else(no_convergence)?;
@@ -847,39 +726,32 @@ fn resect_camera(
     let eqs = |active: &[(u64, Equation)]| active.iter().map(|(_, e)| *e).collect::<Vec<_>>();
 
     // 2. Exterior and interior orientation through the strict model.
-    let mut free = [false; 16];
-    for (j, f) in free.iter_mut().enumerate().take(9) {
-        *f = !prepared.fixed[j];
-    }
-    let first = resection::adjust(&start, &free, &eqs(&active), options.max_iterations)
+    let orientation = (ParameterSet::exterior() | ParameterSet::interior()) - prepared.fixed;
+    let first = resection::adjust(&start, orientation, &eqs(&active), options.max_iterations)
         .ok_or_else(no_convergence)?;
     let mut iterations = first.iterations;
     let mut current = first.parameters;
 
     // 3. All free parameters, holding what the data cannot determine, and
     //    data snooping.
-    let mut free = [false; 16];
-    for (j, f) in free.iter_mut().enumerate() {
-        *f = !prepared.fixed[j];
-    }
+    let mut free = prepared.fixed.complement();
     let mut held: Vec<(Parameter, String)> = Vec::new();
     // Parameters held at their least-squares estimate for a correlation:
     // their uncertainty stays in the others' standard deviations.
-    let mut held_at_estimate = [false; 16];
+    let mut held_at_estimate = ParameterSet::empty();
     let mut excluded: Vec<PointResidual> = Vec::new();
-    let mut hold = |j: usize,
+    let mut hold = |p: Parameter,
                     reason: String,
                     current: &mut CameraParameters,
-                    free: &mut [bool; 16],
+                    free: &mut ParameterSet,
                     at_estimate: bool| {
-        free[j] = false;
-        let p = Parameter::ALL[j];
+        free.remove(p);
         if p.held_at_setup() {
             let mut v = resection::to_vector(current);
-            v[j] = setup_vector[j];
+            v[p.index()] = setup_vector[p.index()];
             *current = resection::from_vector(current, &v);
         } else if at_estimate {
-            held_at_estimate[j] = true;
+            held_at_estimate.insert(p);
         }
         held.push((p, reason));
     };
@@ -888,16 +760,15 @@ fn resect_camera(
         // matrix), judged at the current solution.
         loop {
             let stats =
-                resection::statistics(&current, &free, &eqs(&active)).ok_or_else(no_convergence)?;
-            let order: Vec<usize> = (0..16).filter(|&j| free[j]).collect();
-            let Some((j, reason)) =
-                resection::undeterminable(&stats, &order, options.max_correlation, false)
+                resection::statistics(&current, free, &eqs(&active)).ok_or_else(no_convergence)?;
+            let Some((p, reason)) =
+                resection::undeterminable(&stats, free, options.max_correlation, false)
             else {
                 break;
             };
-            hold(j, reason, &mut current, &mut free, false);
+            hold(p, reason, &mut current, &mut free, false);
         }
-        let adjusted = resection::adjust(&current, &free, &eqs(&active), options.max_iterations)
+        let adjusted = resection::adjust(&current, free, &eqs(&active), options.max_iterations)
             .ok_or_else(no_convergence)?;
         iterations += adjusted.iterations;
         // Gross errors can slow the convergence down; only the final
@@ -905,15 +776,14 @@ fn resect_camera(
         let converged = adjusted.converged;
         current = adjusted.parameters;
         let stats =
-            resection::statistics(&current, &free, &eqs(&active)).ok_or_else(no_convergence)?;
+            resection::statistics(&current, free, &eqs(&active)).ok_or_else(no_convergence)?;
         // Then correlations, judged at the least-squares solution, so that a
         // parameter held at its estimate leaves the others' estimates as
         // they are.
-        let order: Vec<usize> = (0..16).filter(|&j| free[j]).collect();
-        if let Some((j, reason)) =
-            resection::undeterminable(&stats, &order, options.max_correlation, true)
+        if let Some((p, reason)) =
+            resection::undeterminable(&stats, free, options.max_correlation, true)
         {
-            hold(j, reason, &mut current, &mut free, true);
+            hold(p, reason, &mut current, &mut free, true);
             continue;
         }
         // Snooping: the worst point, if significant and one can be spared.
@@ -924,9 +794,8 @@ fn resect_camera(
             .enumerate()
             .filter_map(|(i, t)| t.map(|t| (i, t)))
             .max_by(|a, b| a.1.total_cmp(&b.1));
-        let free_now = free.iter().filter(|f| **f).count();
         match worst {
-            Some((i, t)) if t > critical && active.len() > points_needed(free_now) => {
+            Some((i, t)) if t > critical && active.len() > points_needed(free.len()) => {
                 let (id, _) = active.remove(i);
                 excluded.push(PointResidual {
                     id,
@@ -942,14 +811,11 @@ fn resect_camera(
     // Standard deviations and covariance with the parameters held at their
     // estimates still free: conditioning on a value that is itself uncertain
     // would make the others' look better than they are.
-    let mut uncertain = free;
-    for (u, h) in uncertain.iter_mut().zip(held_at_estimate) {
-        *u |= h;
-    }
+    let uncertain = free | held_at_estimate;
     let marginal = if uncertain == free {
         None
     } else {
-        resection::statistics(&current, &uncertain, &eqs(&active))
+        resection::statistics(&current, uncertain, &eqs(&active))
     };
     let covariance_source = match &marginal {
         Some(m) if m.cofactor.is_some() => (m, uncertain),
@@ -957,7 +823,7 @@ fn resect_camera(
     };
     let report = camera_report(
         &current,
-        &free,
+        free,
         prepared,
         &held,
         &active,
@@ -1003,12 +869,12 @@ pub fn snooping_critical(alpha: f64, n: usize) -> f64 {
 #[allow(clippy::too_many_arguments)]
 fn camera_report(
     camera: &CameraParameters,
-    free: &[bool; 16],
+    free: ParameterSet,
     prepared: &Prepared,
     held: &[(Parameter, String)],
     active: &[(u64, Equation)],
     stats: &resection::Statistics,
-    (uncertainty, estimated): (&resection::Statistics, [bool; 16]),
+    (uncertainty, estimated): (&resection::Statistics, ParameterSet),
     excluded: Vec<PointResidual>,
     iterations: usize,
     options: &CalibrationOptions,
@@ -1016,7 +882,7 @@ fn camera_report(
     let v: ParameterVector = resection::to_vector(camera);
     // The cofactor matrix's parameters: the free ones and those held at
     // their estimates.
-    let order: Vec<usize> = (0..16).filter(|&j| estimated[j]).collect();
+    let order: Vec<Parameter> = estimated.iter().collect();
     let sigma = |k: usize| {
         uncertainty
             .cofactor
@@ -1026,19 +892,18 @@ fn camera_report(
     let parameters = Parameter::ALL
         .iter()
         .map(|&p| {
-            let j = p.index();
             let held_reason = held.iter().find(|(h, _)| *h == p).map(|(_, r)| r.clone());
-            let (status, sigma) = if free[j] {
-                let k = order.iter().position(|&o| o == j).unwrap_or(0);
+            let (status, sigma) = if free.contains(p) {
+                let k = order.iter().position(|&o| o == p).unwrap_or(0);
                 (ParameterStatus::Free, sigma(k))
-            } else if prepared.fixed[j] {
+            } else if prepared.fixed.contains(p) {
                 (ParameterStatus::Fixed, None)
             } else {
                 (ParameterStatus::Held, None)
             };
             ParameterReport {
                 name: p,
-                value: v[j],
+                value: v[p.index()],
                 sigma,
                 status,
                 reason: if status == ParameterStatus::Held {
@@ -1055,8 +920,8 @@ fn camera_report(
             for b in a + 1..order.len() {
                 let r = q[(a, b)] / (q[(a, a)] * q[(b, b)]).sqrt();
                 correlations.push(Correlation {
-                    a: Parameter::ALL[order[a]],
-                    b: Parameter::ALL[order[b]],
+                    a: order[a],
+                    b: order[b],
                     value: r,
                 });
             }
@@ -1065,9 +930,9 @@ fn camera_report(
     let mut covariance = vec![vec![0.0; 16]; 16];
     if let Some(q) = &uncertainty.cofactor {
         let s2 = uncertainty.sigma0 * uncertainty.sigma0;
-        for (a, &ja) in order.iter().enumerate() {
-            for (b, &jb) in order.iter().enumerate() {
-                covariance[ja][jb] = s2 * q[(a, b)];
+        for (a, pa) in order.iter().enumerate() {
+            for (b, pb) in order.iter().enumerate() {
+                covariance[pa.index()][pb.index()] = s2 * q[(a, b)];
             }
         }
     }
@@ -1343,20 +1208,6 @@ mod tests {
             let truth = target.iter().position(|p| p.id == o.id).unwrap();
             assert_eq!(o.pixel, marks[truth]);
         }
-    }
-
-    #[test]
-    fn parameter_names_round_trip() {
-        for p in Parameter::ALL {
-            assert_eq!(Parameter::from_name(p.name()), Some(p));
-            assert_eq!(Parameter::ALL[p.index()], p);
-            assert_eq!(
-                serde_json::to_string(&p).unwrap(),
-                format!("\"{}\"", p.name())
-            );
-        }
-        assert_eq!(Parameter::from_name(" K1 "), Some(Parameter::K1));
-        assert_eq!(Parameter::from_name("k4"), None);
     }
 
     #[test]

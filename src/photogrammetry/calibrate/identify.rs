@@ -13,7 +13,7 @@ use nalgebra::Point2;
 
 use super::{
     calibrate, dlt, resection, CalibrationError, CalibrationOptions, ControlPoint, MarkObservation,
-    RigCalibration,
+    ParameterSet, RigCalibration,
 };
 use crate::photogrammetry::camera::{Camera, CameraParameters};
 use crate::photogrammetry::detect::{detect, DetectionParameters, InvalidDetectionParameters};
@@ -215,11 +215,7 @@ fn start_from_references(
     }
     .and_then(super::valid_start)
     .ok_or_else(no_start)?;
-    let mut free = [false; 16];
-    for f in free.iter_mut().take(6) {
-        *f = true;
-    }
-    resection::adjust(&start, &free, &equations, 50)
+    resection::adjust(&start, ParameterSet::exterior(), &equations, 50)
         .map(|a| a.parameters)
         .ok_or_else(no_start)
 }

@@ -21,7 +21,7 @@
 
 use nalgebra::{DMatrix, DVector, Matrix2, Point2, Point3, SVector, Vector2};
 
-use super::Parameter;
+use super::{Parameter, ParameterSet};
 use crate::photogrammetry::camera::{Camera, CameraParameters};
 
 /// The 16 parameters as a vector, in [`Parameter::ALL`]'s order.
@@ -109,11 +109,11 @@ pub fn projection_with_parameter_jacobian(
     camera: &CameraParameters,
     point: &Point3<f64>,
 ) -> Option<(Point2<f64>, nalgebra::SMatrix<f64, 2, 16>)> {
-    let model = ParameterModel::new(camera, &[true; 16])?;
+    let model = ParameterModel::new(camera, ParameterSet::all())?;
     model.project(point).map(|(pixel, row)| {
         let mut full = nalgebra::SMatrix::<f64, 2, 16>::zeros();
-        for (k, &j) in model.free.iter().enumerate() {
-            full.set_column(j, &row.column(k));
+        for (k, p) in model.free.iter().enumerate() {
+            full.set_column(p.index(), &row.column(k));
         }
         (pixel, full)
     })
@@ -123,20 +123,19 @@ pub fn projection_with_parameter_jacobian(
 /// per iteration.
 struct ParameterModel {
     camera: Camera,
-    /// Indices of the free parameters.
-    free: Vec<usize>,
+    /// The free parameters: the Jacobian's columns.
+    free: ParameterSet,
     /// `(step, camera with +step, camera with -step)` per free parameter.
     shifted: Vec<(f64, Camera, Camera)>,
 }
 
 impl ParameterModel {
-    fn new(parameters: &CameraParameters, free: &[bool; 16]) -> Option<ParameterModel> {
+    fn new(parameters: &CameraParameters, free: ParameterSet) -> Option<ParameterModel> {
         let camera = Camera::new(parameters.clone()).ok()?;
         let v = to_vector(parameters);
         let h = steps(parameters);
         let mut shifted = Vec::new();
-        let mut indices = Vec::new();
-        for j in (0..16).filter(|&j| free[j]) {
+        for j in free.iter().map(Parameter::index) {
             let mut plus = v;
             plus[j] += h[j];
             let mut minus = v;
@@ -144,11 +143,10 @@ impl ParameterModel {
             let plus = Camera::new(from_vector(parameters, &plus)).ok()?;
             let minus = Camera::new(from_vector(parameters, &minus)).ok()?;
             shifted.push((h[j], plus, minus));
-            indices.push(j);
         }
         Some(ParameterModel {
             camera,
-            free: indices,
+            free,
             shifted,
         })
     }
@@ -158,8 +156,8 @@ impl ParameterModel {
         let direction = self.camera.air_direction(point).ok()?;
         let pixel = self.camera.pixel_of_air_direction(&direction).ok()?;
         let mut jacobian = DMatrix::zeros(2, self.free.len());
-        for (k, (j, (h, plus, minus))) in self.free.iter().zip(&self.shifted).enumerate() {
-            let (p, m) = if *j < 3 {
+        for (k, (parameter, (h, plus, minus))) in self.free.iter().zip(&self.shifted).enumerate() {
+            let (p, m) = if ParameterSet::position().contains(parameter) {
                 (plus.project(point).ok()?, minus.project(point).ok()?)
             } else {
                 (
@@ -194,7 +192,7 @@ struct Linearised {
 
 fn linearise(
     parameters: &CameraParameters,
-    free: &[bool; 16],
+    free: ParameterSet,
     equations: &[Equation],
 ) -> Option<Linearised> {
     let model = ParameterModel::new(parameters, free)?;
@@ -240,7 +238,7 @@ pub(crate) struct Adjusted {
 /// Levenberg-Marquardt on the free parameters from `start`.
 pub(crate) fn adjust(
     start: &CameraParameters,
-    free: &[bool; 16],
+    free: ParameterSet,
     equations: &[Equation],
     max_iterations: usize,
 ) -> Option<Adjusted> {
@@ -281,8 +279,8 @@ pub(crate) fn adjust(
             };
             let delta = step.component_mul(&lin.scale);
             let mut v = to_vector(&current);
-            for (k, j) in (0..16).filter(|&j| free[j]).enumerate() {
-                v[j] += delta[k];
+            for (k, p) in free.iter().enumerate() {
+                v[p.index()] += delta[k];
             }
             let candidate = from_vector(&current, &v);
             // The linear model's reduction of vᵀv: Δᵀ(2g - NΔ).
@@ -361,7 +359,7 @@ pub(crate) struct Statistics {
 
 pub(crate) fn statistics(
     parameters: &CameraParameters,
-    free: &[bool; 16],
+    free: ParameterSet,
     equations: &[Equation],
 ) -> Option<Statistics> {
     let lin = linearise(parameters, free, equations)?;
@@ -418,16 +416,17 @@ pub(crate) fn statistics(
 /// Which free parameter to hold next, and why, or `None` if all are
 /// determinable: one in the direction of a singular normal matrix, or (with
 /// `correlations`) the one to hold of the pair correlated most above
-/// `max_correlation`. `order` lists the free parameters' indices (as in the
-/// statistics); exterior parameters are never held.
+/// `max_correlation`. `free` are the statistics' parameters; exterior
+/// parameters are never held.
 pub(crate) fn undeterminable(
     stats: &Statistics,
-    order: &[usize],
+    free: ParameterSet,
     max_correlation: f64,
     correlations: bool,
-) -> Option<(usize, String)> {
-    let holdable = |j: usize| Parameter::ALL[j].holdable();
-    let priority = |j: usize| Parameter::ALL[j].hold_priority();
+) -> Option<(Parameter, String)> {
+    let order: Vec<Parameter> = free.iter().collect();
+    let holdable = |p: Parameter| p.holdable();
+    let priority = |p: Parameter| p.hold_priority();
     // A singular normal matrix: hold the parameter that dominates the
     // direction the data do not see.
     let eigen = super::dlt::symmetric_eigen(stats.scaled_normal.clone())?;
@@ -454,7 +453,7 @@ pub(crate) fn undeterminable(
             format!(
                 "the observations do not determine it (the normal matrix is singular along a \
                  direction made mostly of {})",
-                Parameter::ALL[order[worst]].name()
+                order[worst].name()
             ),
         ));
     }
@@ -485,7 +484,7 @@ pub(crate) fn undeterminable(
         order[hold],
         format!(
             "correlated with {} at {:.4} (limit {})",
-            Parameter::ALL[order[other]].name(),
+            order[other].name(),
             r,
             max_correlation
         ),
