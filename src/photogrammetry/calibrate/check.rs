@@ -8,7 +8,7 @@ use nalgebra::Point3;
 
 use super::prepare::Prepared;
 use super::report::{CameraReport, CheckPointDeviation, CheckPointReport, ExcludedObservation};
-use super::{resection, snooping_critical, ControlPoint, MarkObservation};
+use super::{adjustment, snooping_critical, ControlPoint, MarkObservation};
 use crate::photogrammetry::camera::{Camera, CameraParameters};
 use crate::photogrammetry::intersect::{intersect, Intersection, Observation};
 
@@ -36,9 +36,10 @@ fn intersection_tests(
             return vec![None; m];
         };
         a.view_mut((2 * i, 0), (2, 3)).copy_from(&j);
-        let Some((_, b)) =
-            resection::projection_with_parameter_jacobian(camera.parameters(), &intersection.point)
-        else {
+        let Some((_, b)) = adjustment::projection_with_parameter_jacobian(
+            camera.parameters(),
+            &intersection.point,
+        ) else {
             return vec![None; m];
         };
         let c = nalgebra::SMatrix::<f64, 16, 16>::from_fn(|r, k| {

@@ -13,7 +13,7 @@
 //! Both ignore refraction and lens distortion (the image points are
 //! corrected only by the setup's distortion, usually none): they only have to
 //! land in the adjustment's region of convergence, which the strict model of
-//! [`super::resection`] then refines.
+//! [`super::adjustment`] then refines.
 
 use nalgebra::{DMatrix, Matrix3, Point2, Point3, SMatrix, SymmetricEigen, Vector2, Vector3};
 

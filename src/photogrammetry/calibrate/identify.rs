@@ -12,8 +12,8 @@
 use nalgebra::Point2;
 
 use super::{
-    calibrate, dlt, resection, CalibrationError, CalibrationOptions, ControlPoint, MarkObservation,
-    ParameterSet, RigCalibration,
+    adjustment, calibrate, dlt, resection, CalibrationError, CalibrationOptions, ControlPoint,
+    MarkObservation, ParameterSet, RigCalibration,
 };
 use crate::photogrammetry::camera::{Camera, CameraParameters};
 use crate::photogrammetry::detect::{detect, DetectionParameters, InvalidDetectionParameters};
@@ -186,7 +186,7 @@ fn start_from_references(
         if let Some(m) = dlt::ideal_metric(camera, r.pixel) {
             pairs.push((point.position, m));
         }
-        equations.push(resection::Equation {
+        equations.push(adjustment::Equation {
             point: point.position,
             pixel: r.pixel,
         });
@@ -213,9 +213,9 @@ fn start_from_references(
     } else {
         dlt::start_from_plane(camera, &pairs)
     }
-    .and_then(super::valid_start)
+    .and_then(resection::valid_start)
     .ok_or_else(no_start)?;
-    resection::adjust(&start, ParameterSet::exterior(), &equations, 50)
+    adjustment::adjust(&start, ParameterSet::exterior(), &equations, 50)
         .map(|a| a.parameters)
         .ok_or_else(no_start)
 }

@@ -3,15 +3,16 @@
 //! through the multimedia geometry, with no hand-made approximate
 //! orientation; then check points intersected with the calibrated rig.
 //!
-//! Per camera (`calibrate/resection.rs`):
+//! Per camera (`resection.rs`, step by step):
 //!
-//! 1. A closed-form start (`calibrate/dlt.rs`): the DLT on the observed points, or for
-//!    control points in one plane the plane homography with the setup's
+//! 1. A closed-form start (`dlt.rs`): the DLT on the observed points, or
+//!    for control points in one plane the plane homography with the setup's
 //!    interior orientation.
 //! 2. The strict model (Eq. 1-5 with the multimedia module Eq. 6-12 inside
 //!    it, section 4.3's observation equations with the camera parameters as
 //!    unknowns): first exterior and interior orientation, then all free
-//!    parameters, by Gauss-Markov with Levenberg-Marquardt damping.
+//!    parameters, by Gauss-Markov with Levenberg-Marquardt damping
+//!    (`adjustment.rs`).
 //! 3. Parameters the data cannot determine are held and reported; gross
 //!    errors are found by data snooping and excluded.
 //!
@@ -40,8 +41,13 @@
 //! orientation, iterating resection and assignment.
 //!
 //! Pure: no I/O. The entry points are [`calibrate`] (measured image
-//! coordinates) and [`calibrate_from_marks`] (detected marks).
+//! coordinates) and [`calibrate_from_marks`] (detected marks). The other
+//! files: `parameter.rs`, the 16 parameters and sets of them; `prepare.rs`,
+//! the inputs validated once for all cameras; `report.rs`, the report and
+//! how a camera's is drawn from its adjustment; `check.rs`, the check
+//! points; `error.rs`, what can go wrong.
 
+mod adjustment;
 mod check;
 mod dlt;
 mod error;
@@ -51,25 +57,22 @@ mod prepare;
 mod report;
 mod resection;
 
-use std::collections::HashSet;
-
 use nalgebra::{Point2, Point3};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::camera::{Camera, CameraParameters};
+pub use adjustment::projection_with_parameter_jacobian;
 use check::check_point_report;
 pub use error::CalibrationError;
 pub use identify::{calibrate_from_marks, detect_marks, identify_marks, mark_detection_parameters};
 pub use parameter::{Parameter, ParameterSet};
-use prepare::{prepare, Prepared};
-use report::camera_report;
+use prepare::prepare;
 pub use report::{
     CalibrationReport, CameraReport, CheckPointDeviation, CheckPointReport, Correlation,
     ExcludedObservation, ParameterReport, ParameterStatus, PointResidual,
 };
-pub use resection::projection_with_parameter_jacobian;
-use resection::Equation;
+use resection::resect_camera;
 
 /// The fewest control points a camera needs (the DLT's minimum).
 pub const MIN_POINTS: usize = 6;
@@ -207,250 +210,6 @@ pub fn check_inputs(
     options: &CalibrationOptions,
 ) -> Result<(), CalibrationError> {
     prepare(setup, control, given, options).map(|_| ())
-}
-
-/// Checks one camera's observations and turns the usable ones (control
-/// points that are not check points) into observation equations with ids.
-fn equations(
-    camera: usize,
-    name: &str,
-    observed: &[MarkObservation],
-    prepared: &Prepared,
-) -> Result<Vec<(u64, Equation)>, CalibrationError> {
-    if observed.is_empty() {
-        return Err(CalibrationError::NoObservations {
-            camera,
-            name: name.to_owned(),
-        });
-    }
-    let mut seen = HashSet::with_capacity(observed.len());
-    let mut usable = Vec::with_capacity(observed.len());
-    for o in observed {
-        if !(o.pixel.x.is_finite() && o.pixel.y.is_finite()) {
-            return Err(CalibrationError::NonFiniteObservation { camera, id: o.id });
-        }
-        let Some(point) = prepared.control.get(&o.id) else {
-            return Err(CalibrationError::UnknownId { camera, id: o.id });
-        };
-        if !seen.insert(o.id) {
-            return Err(CalibrationError::DuplicateObservation { camera, id: o.id });
-        }
-        if !prepared.check.contains(&o.id) {
-            usable.push((
-                o.id,
-                Equation {
-                    point: *point,
-                    pixel: o.pixel,
-                },
-            ));
-        }
-    }
-    Ok(usable)
-}
-
-/// Points needed for `free` parameters: the DLT's 6, and a redundancy of at
-/// least 2 so that sigma0 exists.
-fn points_needed(free: usize) -> usize {
-    MIN_POINTS.max((free + 2).div_ceil(2))
-}
-
-/// The resection of one camera, from the closed-form start to the report.
-fn resect_camera(
-    k: usize,
-    setup: &CameraParameters,
-    observed: &[MarkObservation],
-    prepared: &Prepared,
-    options: &CalibrationOptions,
-) -> Result<(CameraParameters, CameraReport), CalibrationError> {
-    let name = setup.name.clone();
-    let all = equations(k, &name, observed, prepared)?;
-    let free_count = prepared.fixed.complement().len();
-    let needed = points_needed(free_count);
-    if all.len() < needed {
-        return Err(CalibrationError::TooFewPoints {
-            camera: k,
-            name,
-            usable: all.len(),
-            needed,
-            free: free_count,
-        });
-    }
-    let no_convergence = || CalibrationError::NoConvergence {
-        camera: k,
-        name: setup.name.clone(),
-    };
-    let points: Vec<Point3<f64>> = all.iter().map(|(_, e)| e.point).collect();
-    let coplanar = dlt::flatness(&points) < 1e-3;
-    let free_interior: Vec<Parameter> =
-        (ParameterSet::interior() - prepared.fixed).iter().collect();
-    if coplanar && !free_interior.is_empty() {
-        return Err(CalibrationError::Coplanar {
-            camera: k,
-            name,
-            count: all.len(),
-            free: free_interior,
-        });
-    }
-
-    // 1. Closed-form start, ignoring refraction and (unknown) distortion.
-    let metric: Vec<(Point3<f64>, nalgebra::Vector2<f64>)> = all
-        .iter()
-        .filter_map(|(_, e)| Some((e.point, dlt::ideal_metric(setup, e.pixel)?)))
-        .collect();
-    let start = if coplanar {
-        dlt::start_from_plane(setup, &metric)
-    } else {
-        dlt::start_from_dlt(setup, &metric)
-    }
-    .ok_or_else(|| CalibrationError::NoStart {
-        camera: k,
-        name: setup.name.clone(),
-    })?;
-    let setup_vector = resection::to_vector(setup);
-    let mut v = resection::to_vector(&start);
-    // Distortion is not in the closed-form start: it starts at the setup's.
-    for p in (prepared.fixed | ParameterSet::distortion()).iter() {
-        v[p.index()] = setup_vector[p.index()];
-    }
-    let start = resection::from_vector(setup, &v);
-    let start = valid_start(start).ok_or_else(no_convergence)?;
-
-    let mut active: Vec<(u64, Equation)> = all;
-    let eqs = |active: &[(u64, Equation)]| active.iter().map(|(_, e)| *e).collect::<Vec<_>>();
-
-    // 2. Exterior and interior orientation through the strict model.
-    let orientation = (ParameterSet::exterior() | ParameterSet::interior()) - prepared.fixed;
-    let first = resection::adjust(&start, orientation, &eqs(&active), options.max_iterations)
-        .ok_or_else(no_convergence)?;
-    let mut iterations = first.iterations;
-    let mut current = first.parameters;
-
-    // 3. All free parameters, holding what the data cannot determine, and
-    //    data snooping.
-    let mut free = prepared.fixed.complement();
-    let mut held: Vec<(Parameter, String)> = Vec::new();
-    // Parameters held at their least-squares estimate for a correlation:
-    // their uncertainty stays in the others' standard deviations.
-    let mut held_at_estimate = ParameterSet::empty();
-    let mut excluded: Vec<PointResidual> = Vec::new();
-    let mut hold = |p: Parameter,
-                    reason: String,
-                    current: &mut CameraParameters,
-                    free: &mut ParameterSet,
-                    at_estimate: bool| {
-        free.remove(p);
-        if p.held_at_setup() {
-            let mut v = resection::to_vector(current);
-            v[p.index()] = setup_vector[p.index()];
-            *current = resection::from_vector(current, &v);
-        } else if at_estimate {
-            held_at_estimate.insert(p);
-        }
-        held.push((p, reason));
-    };
-    let stats = loop {
-        // Hold what the data cannot determine at all (a singular normal
-        // matrix), judged at the current solution.
-        loop {
-            let stats =
-                resection::statistics(&current, free, &eqs(&active)).ok_or_else(no_convergence)?;
-            let Some((p, reason)) =
-                resection::undeterminable(&stats, free, options.max_correlation, false)
-            else {
-                break;
-            };
-            hold(p, reason, &mut current, &mut free, false);
-        }
-        let adjusted = resection::adjust(&current, free, &eqs(&active), options.max_iterations)
-            .ok_or_else(no_convergence)?;
-        iterations += adjusted.iterations;
-        // Gross errors can slow the convergence down; only the final
-        // adjustment, after snooping, must have converged.
-        let converged = adjusted.converged;
-        current = adjusted.parameters;
-        let stats =
-            resection::statistics(&current, free, &eqs(&active)).ok_or_else(no_convergence)?;
-        // Then correlations, judged at the least-squares solution, so that a
-        // parameter held at its estimate leaves the others' estimates as
-        // they are.
-        if let Some((p, reason)) =
-            resection::undeterminable(&stats, free, options.max_correlation, true)
-        {
-            hold(p, reason, &mut current, &mut free, true);
-            continue;
-        }
-        // Snooping: the worst point, if significant and one can be spared.
-        let critical = snooping_critical(options.snooping_alpha, active.len());
-        let worst = stats
-            .test
-            .iter()
-            .enumerate()
-            .filter_map(|(i, t)| t.map(|t| (i, t)))
-            .max_by(|a, b| a.1.total_cmp(&b.1));
-        match worst {
-            Some((i, t)) if t > critical && active.len() > points_needed(free.len()) => {
-                let (id, _) = active.remove(i);
-                excluded.push(PointResidual {
-                    id,
-                    x_px: stats.residuals[i].x,
-                    y_px: stats.residuals[i].y,
-                    test: Some(t),
-                });
-            }
-            _ if converged => break stats,
-            _ => return Err(no_convergence()),
-        }
-    };
-    // Standard deviations and covariance with the parameters held at their
-    // estimates still free: conditioning on a value that is itself uncertain
-    // would make the others' look better than they are.
-    let uncertain = free | held_at_estimate;
-    let marginal = if uncertain == free {
-        None
-    } else {
-        resection::statistics(&current, uncertain, &eqs(&active))
-    };
-    let covariance_source = match &marginal {
-        Some(m) if m.cofactor.is_some() => (m, uncertain),
-        _ => (&stats, free),
-    };
-    let report = camera_report(
-        &current,
-        free,
-        prepared,
-        &held,
-        &active,
-        &stats,
-        covariance_source,
-        excluded,
-        iterations,
-        options,
-    );
-    Ok((current, report))
-}
-
-/// The start, if it is a valid camera; else the same orientation moved back
-/// along its axis until the media accept it (a pinhole fit through a
-/// refracting wall may put the centre too close to the wall).
-fn valid_start(start: CameraParameters) -> Option<CameraParameters> {
-    if Camera::new(start.clone()).is_ok() {
-        return Some(start);
-    }
-    let rotation = super::camera::rotation_matrix(
-        start.exterior.omega,
-        start.exterior.phi,
-        start.exterior.kappa,
-    );
-    // The camera looks along its -z axis: backwards is +z.
-    let back = rotation.column(2).into_owned();
-    let mut moved = start;
-    for _ in 0..20 {
-        moved.exterior.position += back * 50.0;
-        if Camera::new(moved.clone()).is_ok() {
-            return Some(moved);
-        }
-    }
-    None
 }
 
 /// The snooping critical value: the chi-square (2 dof) quantile `-2 ln(a)`

@@ -5,10 +5,9 @@
 
 use serde::Serialize;
 
-use super::prepare::Prepared;
-use super::resection::{self, Equation, ParameterVector};
-use super::{snooping_critical, CalibrationOptions, Parameter, ParameterSet};
-use crate::photogrammetry::camera::CameraParameters;
+use super::adjustment::{to_vector, Statistics};
+use super::resection::Resection;
+use super::{snooping_critical, Parameter, ParameterSet};
 
 /// The calibration report (serialised as the JSON that `ptv calibrate`
 /// prints).
@@ -163,23 +162,23 @@ pub struct CheckPointReport {
     pub excluded_observations: Vec<ExcludedObservation>,
 }
 
-/// One camera's report from its final adjustment (`stats`), with the
-/// standard deviations and covariance from `uncertainty`, the adjustment
-/// over the `estimated` parameters.
-#[allow(clippy::too_many_arguments)]
+/// One camera's report from its finished resection and final adjustment
+/// (`stats`), with the standard deviations and covariance from
+/// `uncertainty`, the adjustment over the `estimated` parameters.
 pub(super) fn camera_report(
-    camera: &CameraParameters,
-    free: ParameterSet,
-    prepared: &Prepared,
-    held: &[(Parameter, String)],
-    active: &[(u64, Equation)],
-    stats: &resection::Statistics,
-    (uncertainty, estimated): (&resection::Statistics, ParameterSet),
-    excluded: Vec<PointResidual>,
-    iterations: usize,
-    options: &CalibrationOptions,
+    resection: &Resection,
+    stats: &Statistics,
+    (uncertainty, estimated): (&Statistics, ParameterSet),
 ) -> CameraReport {
-    let v: ParameterVector = resection::to_vector(camera);
+    let Resection {
+        parameters: camera,
+        free,
+        fixed,
+        held,
+        active,
+        ..
+    } = resection;
+    let v = to_vector(camera);
     // The cofactor matrix's parameters: the free ones and those held at
     // their estimates.
     let order: Vec<Parameter> = estimated.iter().collect();
@@ -196,7 +195,7 @@ pub(super) fn camera_report(
             let (status, sigma) = if free.contains(p) {
                 let k = order.iter().position(|&o| o == p).unwrap_or(0);
                 (ParameterStatus::Free, sigma(k))
-            } else if prepared.fixed.contains(p) {
+            } else if fixed.contains(p) {
                 (ParameterStatus::Fixed, None)
             } else {
                 (ParameterStatus::Held, None)
@@ -256,12 +255,12 @@ pub(super) fn camera_report(
         sigma0_px: uncertainty.sigma0,
         points_used: active.len(),
         redundancy: uncertainty.redundancy,
-        iterations,
-        snooping_critical: snooping_critical(options.snooping_alpha, active.len()),
+        iterations: resection.iterations,
+        snooping_critical: snooping_critical(resection.options.snooping_alpha, active.len()),
         parameters,
         covariance,
         largest_correlations: correlations,
         residuals,
-        excluded,
+        excluded: resection.excluded.clone(),
     }
 }
