@@ -7,7 +7,7 @@
 //! knows in advance how many parabolas that takes and the pencil the
 //! curves' chords form ([`EpipolarGeometry`]).
 
-use nalgebra::{Point2, Point3, Vector2};
+use nalgebra::{Point2, Vector2};
 
 use super::pencil::Pencil;
 use crate::photogrammetry::camera::{Camera, Ray};
@@ -39,9 +39,9 @@ pub(super) fn clip(ray: &Ray, volume: &Volume) -> Option<(f64, f64)> {
 }
 
 /// Where two rays pass closest: the parameter along `a` of its point
-/// nearest to `b`, and the point midway between the two rays.
+/// nearest to `b`; `None` for (nearly) parallel rays.
 #[inline]
-pub(super) fn closest_approach(a: &Ray, b: &Ray) -> Option<(f64, Point3<f64>)> {
+pub(super) fn closest_approach(a: &Ray, b: &Ray) -> Option<f64> {
     let w = a.origin - b.origin;
     let cos = a.direction.dot(&b.direction);
     let denominator = 1.0 - cos * cos;
@@ -49,9 +49,7 @@ pub(super) fn closest_approach(a: &Ray, b: &Ray) -> Option<(f64, Point3<f64>)> {
         return None;
     }
     let (d, e) = (a.direction.dot(&w), b.direction.dot(&w));
-    let ta = (cos * e - d) / denominator;
-    let tb = (e - cos * d) / denominator;
-    Some((ta, nalgebra::center(&a.at(ta), &b.at(tb))))
+    Some((cos * e - d) / denominator)
 }
 
 /// A parabola `P(u) = a + b u + c u^2`, u in [0, 1] (pixels).
@@ -306,6 +304,22 @@ impl EpipolarGeometry {
 mod tests {
     use super::*;
     use crate::photogrammetry::simulate::RigSpec;
+
+    #[test]
+    fn closest_approach_is_the_foot_on_the_first_ray() {
+        let ray = |origin: [f64; 3], direction: [f64; 3]| Ray {
+            origin: nalgebra::Point3::from(origin),
+            direction: nalgebra::Vector3::from(direction).normalize(),
+        };
+        let a = ray([0.0, 0.0, 0.0], [1.0, 0.0, 0.0]);
+        let b = ray([5.0, 2.0, -3.0], [0.0, 0.0, 1.0]);
+        let t = closest_approach(&a, &b).unwrap();
+        assert!((t - 5.0).abs() < 1e-12, "{t}");
+        assert_eq!(
+            closest_approach(&a, &ray([0.0, 1.0, 0.0], [2.0, 0.0, 0.0])),
+            None
+        );
+    }
 
     /// The distance to a parabola by brute force: the best of 2001 samples,
     /// refined by ternary search between its neighbours.

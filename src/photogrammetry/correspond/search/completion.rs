@@ -75,8 +75,7 @@ impl Search<'_, '_> {
                 // The ray's images in the other cameras, traced on demand.
                 traced.fill(false);
                 for &(b, ray_b) in &partners {
-                    let Some((t, point)) = ray_b.and_then(|ray_b| closest_approach(&ray_a, &ray_b))
-                    else {
+                    let Some(t) = ray_b.and_then(|ray_b| closest_approach(&ray_a, &ray_b)) else {
                         continue;
                     };
                     seen.clear();
@@ -127,7 +126,6 @@ impl Search<'_, '_> {
                         }
                         near[k] = list;
                     }
-                    let _ = point;
                     if seen.is_empty() {
                         continue;
                     }
