@@ -77,7 +77,7 @@ impl Matcher {
         }
         let volume = match parameters.volume {
             Some(volume) => volume,
-            None => default_volume(cameras).ok_or(MatchError::TooFewCameras(0))?,
+            None => default_volume(cameras).ok_or(MatchError::NoDefaultVolume)?,
         };
         let valid = (0..3).all(|i| {
             volume.min[i] < volume.max[i] && !volume.min[i].is_nan() && !volume.max[i].is_nan()
@@ -372,6 +372,24 @@ mod tests {
         // binomial standard deviations, 1.8 each, below the expected 96.7).
         let found = hidden_found_from_three(0.1);
         assert!(found >= 89, "{found} of 100");
+    }
+
+    #[test]
+    fn parallel_cameras_without_a_volume_are_asked_for_one() {
+        // Two cameras looking the same way have no point their axes meet.
+        let spec = RigSpec::convergent(2);
+        let rig = spec.build().unwrap();
+        let mut twin = rig[0].parameters().clone();
+        twin.exterior.position.x += 50.0;
+        let cameras = vec![rig[0].clone(), Camera::new(twin).unwrap()];
+        let error = Matcher::new(&cameras, &MatchingParameters::default()).unwrap_err();
+        assert_eq!(error, MatchError::NoDefaultVolume);
+        assert!(error.to_string().contains("--volume"), "{error}");
+        let parameters = MatchingParameters {
+            volume: Some(spec.volume),
+            ..MatchingParameters::default()
+        };
+        assert!(Matcher::new(&cameras, &parameters).is_ok());
     }
 
     #[test]

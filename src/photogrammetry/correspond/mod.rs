@@ -121,6 +121,14 @@ pub enum MatchError {
     /// The tolerance must be positive and finite.
     #[error("the tolerance must be a positive number of pixels, got {0}")]
     Tolerance(f64),
+    /// No volume was given, and the cameras have no common view to take one
+    /// from (see [`default_volume`]).
+    #[error(
+        "no observation volume was given, and the cameras have no common field of view to take \
+         as one: their optical axes are parallel, or fewer than two of them reach the object \
+         space; give the volume (--volume xmin,xmax,ymin,ymax,zmin,zmax, mm)"
+    )]
+    NoDefaultVolume,
     /// The volume is empty or not finite.
     #[error(
         "the observation volume is empty: every minimum must be below its maximum, got \
@@ -172,6 +180,8 @@ impl Particle {
 /// The region all cameras look at: a cube around the point nearest to the
 /// cameras' optical axes (traced through their walls), whose half-size is
 /// the smallest half-width of the cameras' fields of view at that distance.
+/// `None` where there is no such point: fewer than two axes reach the
+/// object space, or they are parallel.
 pub fn default_volume(cameras: &[Camera]) -> Option<Volume> {
     let axes: Vec<Ray> = cameras
         .iter()
