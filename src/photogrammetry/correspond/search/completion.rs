@@ -1,7 +1,7 @@
 //! Steps 2 and 3: seed pairs from the epipolar bands, completed in the
 //! other cameras into candidate groups of three or more.
 
-use super::{GroupFit, Search, NONE};
+use super::{size, GroupFit, Search, NONE};
 use crate::photogrammetry::correspond::epipolar::closest_approach;
 
 /// How far around a pair's predicted image a third camera is searched, in
@@ -25,7 +25,7 @@ const MAX_GROUPS_PER_TARGET: usize = 8;
 #[derive(Default)]
 pub(super) struct CandidateGroups {
     pub(super) members: Vec<u32>,
-    pub(super) sizes: Vec<u8>,
+    pub(super) sizes: Vec<usize>,
     pub(super) spreads: Vec<f64>,
     /// The largest miss of a member (px).
     pub(super) largest: Vec<f64>,
@@ -52,7 +52,7 @@ impl Search<'_, '_> {
         let mut traced = vec![false; count];
         let mut fits: Vec<(f64, u32)> = Vec::new();
         // This target's candidate groups: (size, spread, offset in own_members).
-        let mut own: Vec<(u8, GroupFit, usize)> = Vec::new();
+        let mut own: Vec<(usize, GroupFit, usize)> = Vec::new();
         let mut own_members: Vec<u32> = Vec::new();
         {
             for a in 0..self.frames[i].targets.len() {
@@ -141,8 +141,7 @@ impl Search<'_, '_> {
                             group[k] = near[k][choice[slot]];
                         }
                         if let Some(fit) = self.trim(&mut group, tolerance, |k| k == i || k == j) {
-                            let size = group.iter().filter(|&&m| m != NONE).count() as u8;
-                            own.push((size, fit, own_members.len()));
+                            own.push((size(&group), fit, own_members.len()));
                             own_members.extend_from_slice(&group);
                         }
                         // Next combination (odometer).

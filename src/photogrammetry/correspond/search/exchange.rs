@@ -3,12 +3,12 @@
 
 use nalgebra::Vector2;
 
-use super::{Search, NONE};
+use super::{size, Search, NONE};
 
 impl Search<'_, '_> {
     /// The sum of squared misses of a group's rays (px^2).
     fn cost(&self, members: &[u32]) -> f64 {
-        let size = members.iter().filter(|&&m| m != NONE).count() as f64;
+        let size = size(members) as f64;
         self.fit(members, |_| false)
             .map_or(f64::INFINITY, |f| f.spread * f.spread * size)
     }

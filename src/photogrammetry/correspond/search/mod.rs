@@ -28,6 +28,12 @@ use crate::photogrammetry::target::Target;
 /// A marker for "no target" in the flat group arrays.
 const NONE: u32 = u32::MAX;
 
+/// How many cameras a group's members hold a target in. A count, not a
+/// byte: a rig may have 256 cameras or more.
+fn size(members: &[u32]) -> usize {
+    members.iter().filter(|&&m| m != NONE).count()
+}
+
 /// How the rays of a group meet (pixels).
 #[derive(Clone, Copy, Debug)]
 struct GroupFit {
@@ -232,7 +238,7 @@ impl<'m, 'f> Search<'m, 'f> {
         keep: impl Fn(usize) -> bool,
     ) -> Option<GroupFit> {
         loop {
-            let size = group.iter().filter(|&&m| m != NONE).count();
+            let size = size(group);
             if size < 3 {
                 return None;
             }
@@ -326,5 +332,19 @@ impl<'m, 'f> Search<'m, 'f> {
             .chunks_exact(self.frames.len())
             .filter_map(|members| self.intersect(members, &mut observations))
             .collect()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn group_sizes_count_past_255_cameras() {
+        // The candidate groups' sizes once were bytes: 256 cameras wrapped
+        // to 0 and ranked a full group last.
+        let mut members = vec![0; 300];
+        members[7] = NONE;
+        assert_eq!(size(&members), 299);
     }
 }

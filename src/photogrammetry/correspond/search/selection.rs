@@ -2,7 +2,7 @@
 //! thresholds from the frame's own image noise.
 
 use super::completion::CandidateGroups;
-use super::{Search, NONE};
+use super::{size, Search, NONE};
 
 /// The fewest candidate groups from which the frame's image noise is
 /// estimated.
@@ -41,7 +41,7 @@ impl Search<'_, '_> {
         }
         let middle = spreads.len() / 2;
         let (_, median, _) = spreads.select_nth_unstable_by(middle, f64::total_cmp);
-        let m = f64::from(largest);
+        let m = largest as f64;
         let sigma_sq = *median / (2.0 * (1.0 - 1.5 / m));
         let density = self
             .frames
@@ -59,7 +59,7 @@ impl Search<'_, '_> {
         let count = self.frames.len();
         // Re-trim every candidate to the acceptance threshold (those within
         // it already stand as they are), then order.
-        let mut ranked: Vec<(u8, f64, usize)> = Vec::with_capacity(groups.sizes.len());
+        let mut ranked: Vec<(usize, f64, usize)> = Vec::with_capacity(groups.sizes.len());
         let mut members = groups.members;
         let limit = self.acceptance;
         for g in 0..groups.sizes.len() {
@@ -69,8 +69,7 @@ impl Search<'_, '_> {
             }
             let group = &mut members[g * count..(g + 1) * count];
             if let Some(fit) = self.trim(group, limit, |_| false) {
-                let size = group.iter().filter(|&&m| m != NONE).count() as u8;
-                ranked.push((size, fit.spread, g));
+                ranked.push((size(group), fit.spread, g));
             }
         }
         ranked.sort_unstable_by(|x, y| y.0.cmp(&x.0).then(x.1.total_cmp(&y.1)));
