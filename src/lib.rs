@@ -1,14 +1,75 @@
-//! `ptv`: 3D particle tracking velocimetry photogrammetry.
+//! `ptv`: 3D particle tracking velocimetry, the photogrammetric part, after
+//! Maas, Gruen and Papantoniou (1993). Cameras (2 and up) film tracer
+//! particles in water through glass walls; `ptv` calibrates them, finds the
+//! particles' images in each frame, decides which images belong to one
+//! particle, and gives its 3D position with its accuracy.
 //!
-//! Layers, from the inside out:
-//! - [`photogrammetry`]: the pure core: camera model, multimedia refraction,
-//!   spatial intersection, simulator. No I/O, no async, no SQL.
-//! - [`formats`]: files people already have: the calibration JSON, OpenPTV's
-//!   `.ori`/`.addpar`/`ptv.par`, CSV. Parsers name the file, line and field
-//!   of every error.
-//! - [`cli`]: the `ptv` command line.
-//! - [`service`]: the HTTP service (`ptv serve`): API, job queue, workers,
-//!   SQLite.
+//! The same core runs behind two doors, the command line (`ptv ...`) and
+//! the HTTP service (`ptv serve`, the default), and the tests check it
+//! against the simulator's truth and OpenPTV 0.3.2's results.
+//!
+//! # Layout
+//!
+//! From the inside out; each layer uses only the ones before it.
+//!
+//! [`photogrammetry`]: the pure core. Synchronous and deterministic: no I/O,
+//! no async runtime, web framework or SQL; plain structs and nalgebra types
+//! in, results or typed errors out. Section and equation numbers refer to
+//! the paper.
+//!
+//! - [`camera`](photogrammetry::camera): the camera model, 16 parameters
+//!   (exterior and interior orientation, distortion and affine terms, Eq.
+//!   1-5); projection, its Jacobian, and the ray of a pixel.
+//! - [`media`](photogrammetry::media): refraction through any number of
+//!   plane walls, both directions (Eq. 6-17).
+//! - [`intersect`](mod@photogrammetry::intersect): least-squares spatial
+//!   intersection of a point's images (section 4.3, Eq. 21-23).
+//! - [`volume`](photogrammetry::volume): the observation volume, a box.
+//! - [`target`](photogrammetry::target): a particle image in one camera.
+//! - [`image`](photogrammetry::image): greyscale images, 8 or 16 bits, and
+//!   their check against a camera's sensor.
+//! - [`detect`](mod@photogrammetry::detect): the particle images (targets)
+//!   in one image (section 6.1).
+//! - [`correspond`](photogrammetry::correspond): which targets in 2..N
+//!   cameras belong to one particle, by epipolar geometry through the walls
+//!   (section 6.2), and the particles' 3D positions.
+//! - [`pipeline`](photogrammetry::pipeline): one frame's images to
+//!   particles, detection then correspondences, prepared once per
+//!   calibration.
+//! - [`calibrate`](mod@photogrammetry::calibrate): system calibration by
+//!   resection on control points (section 5), from image coordinates or
+//!   detected marks, with held parameters, gross-error detection, check
+//!   points and a report.
+//! - [`simulate`](photogrammetry::simulate): synthetic rigs, particles,
+//!   targets and images, the ground truth of tests and benchmarks.
+//!
+//! [`formats`]: files people already have, parsed into validated core
+//! values; every error names the file, line or field.
+//!
+//! - [`calibration`](formats::calibration): the project's calibration JSON.
+//! - [`control`](formats::control): calibration inputs (control points
+//!   `id X Y Z`, image coordinates `id x y`) and the report.
+//! - [`openptv`](formats::openptv): OpenPTV's `.ori`, `.addpar` and
+//!   `ptv.par`, imported and exported without loss.
+//! - [`csv`](formats::csv): the command line's point, observation, target
+//!   and particle tables.
+//! - [`image`](formats::image): greyscale PNG, TIFF and raw buffers.
+//!
+//! [`cli`]: the `ptv` command line, one subcommand per task (`calibration`
+//! import and export, `calibrate`, `project`, `intersect`, `detect`,
+//! `match`, `process`, `simulate`, `serve`). It wires [`formats`] to
+//! [`photogrammetry`] and has no numerics of its own.
+//!
+//! [`service`]: the HTTP service (`ptv serve`): the API under `/api/v1`
+//! ([`http`](service::http)), a durable job queue whose workers run the core
+//! on a CPU pool ([`jobs`](service::jobs)), all SQL in one place
+//! ([`store`](service::store), SQLite), content-addressed image files
+//! ([`images`](service::images)), the blobs targets and particles are stored
+//! in ([`codec`](service::codec)), a sequence's parameters
+//! ([`parameters`](service::parameters)), `/metrics`
+//! ([`metrics`](service::metrics)), the flags ([`config`](service::config))
+//! and start-up and shutdown ([`app`](service::app)). The core knows nothing
+//! of it.
 
 pub mod cli;
 pub mod formats;

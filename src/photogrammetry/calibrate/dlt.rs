@@ -13,7 +13,7 @@
 //! Both ignore refraction and lens distortion (the image points are
 //! corrected only by the setup's distortion, usually none): they only have to
 //! land in the adjustment's region of convergence, which the strict model of
-//! [`super::resection`] then refines.
+//! [`super::adjustment`] then refines.
 
 use nalgebra::{DMatrix, Matrix3, Point2, Point3, SMatrix, SymmetricEigen, Vector2, Vector3};
 
@@ -324,4 +324,57 @@ pub(crate) fn start_from_plane(
 /// (`None` where it cannot be inverted).
 pub(crate) fn ideal_metric(setup: &CameraParameters, pixel: Point2<f64>) -> Option<Vector2<f64>> {
     setup.distortion.remove(setup.sensor.pixel_to_metric(pixel))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::photogrammetry::camera::rotation_matrix;
+    use crate::photogrammetry::simulate::{self, RigSpec, TargetShape};
+
+    /// A pinhole rig in air, points in a box: the DLT start is exact to
+    /// rounding on noise-free images, and the plane start (with the true
+    /// interior) is exact on a plane.
+    #[test]
+    fn closed_form_starts_are_exact_without_noise() {
+        let mut spec = RigSpec::convergent(3);
+        spec.tank = None;
+        spec.principal_point = nalgebra::Vector2::new(0.05, -0.08);
+        let mut rng = simulate::rng(1);
+        let target = simulate::calibration_target(TargetShape::Volume, &spec.volume, 30, &mut rng);
+        for camera in spec.build().unwrap() {
+            let pairs: Vec<_> = target
+                .iter()
+                .map(|p| {
+                    let pixel = camera.project(&p.position).unwrap();
+                    (
+                        p.position,
+                        ideal_metric(camera.parameters(), pixel).unwrap(),
+                    )
+                })
+                .collect();
+            let start = start_from_dlt(camera.parameters(), &pairs).unwrap();
+            let truth = camera.parameters();
+            assert!((start.exterior.position - truth.exterior.position).norm() < 1e-6);
+            assert!((start.interior.c - truth.interior.c).abs() < 1e-7);
+            assert!((start.interior.xh - truth.interior.xh).abs() < 1e-7);
+            let r = rotation_matrix(
+                start.exterior.omega,
+                start.exterior.phi,
+                start.exterior.kappa,
+            );
+            assert!((r - camera.rotation()).abs().max() < 1e-9);
+            let plane: Vec<_> = pairs
+                .iter()
+                .map(|(p, _)| Point3::new(p.x, p.y, 0.0))
+                .map(|p| {
+                    let pixel = camera.project(&p).unwrap();
+                    (p, ideal_metric(truth, pixel).unwrap())
+                })
+                .collect();
+            assert!(flatness(&plane.iter().map(|p| p.0).collect::<Vec<_>>()) < 1e-12);
+            let start = start_from_plane(truth, &plane).unwrap();
+            assert!((start.exterior.position - truth.exterior.position).norm() < 1e-6);
+        }
+    }
 }

@@ -12,8 +12,8 @@
 use nalgebra::Point2;
 
 use super::{
-    calibrate, dlt, resection, CalibrationError, CalibrationOptions, ControlPoint, MarkObservation,
-    RigCalibration,
+    adjustment, calibrate, dlt, resection, CalibrationError, CalibrationOptions, ControlPoint,
+    MarkObservation, ParameterSet, RigCalibration,
 };
 use crate::photogrammetry::camera::{Camera, CameraParameters};
 use crate::photogrammetry::detect::{detect, DetectionParameters, InvalidDetectionParameters};
@@ -186,7 +186,7 @@ fn start_from_references(
         if let Some(m) = dlt::ideal_metric(camera, r.pixel) {
             pairs.push((point.position, m));
         }
-        equations.push(resection::Equation {
+        equations.push(adjustment::Equation {
             point: point.position,
             pixel: r.pixel,
         });
@@ -213,13 +213,40 @@ fn start_from_references(
     } else {
         dlt::start_from_plane(camera, &pairs)
     }
-    .and_then(super::valid_start)
+    .and_then(resection::valid_start)
     .ok_or_else(no_start)?;
-    let mut free = [false; 16];
-    for f in free.iter_mut().take(6) {
-        *f = true;
-    }
-    resection::adjust(&start, &free, &equations, 50)
+    adjustment::adjust(&start, ParameterSet::exterior(), &equations, 50)
         .map(|a| a.parameters)
         .ok_or_else(no_start)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::photogrammetry::simulate::{self, RigSpec, TargetShape};
+
+    /// Marks are assigned to the right points from a rough orientation, and
+    /// stray marks are left alone.
+    #[test]
+    fn identifies_marks_from_a_rough_orientation() {
+        let spec = RigSpec::convergent(1);
+        let camera = spec.build().unwrap().remove(0);
+        let mut rng = simulate::rng(2);
+        let target =
+            simulate::calibration_target(TargetShape::TwoPlanes, &spec.volume, 50, &mut rng);
+        let mut marks: Vec<Point2<f64>> = target
+            .iter()
+            .map(|p| camera.project(&p.position).unwrap())
+            .collect();
+        marks.push(Point2::new(3.0, 4.0));
+        let mut rough = camera.parameters().clone();
+        rough.exterior.position.x += 2.0;
+        rough.exterior.kappa += 0.002;
+        let found = identify_marks(&rough, &target, &marks);
+        assert!(found.len() >= 45, "{}", found.len());
+        for o in &found {
+            let truth = target.iter().position(|p| p.id == o.id).unwrap();
+            assert_eq!(o.pixel, marks[truth]);
+        }
+    }
 }

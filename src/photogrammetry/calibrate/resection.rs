@@ -1,436 +1,396 @@
-//! The spatial resection of one camera: the collinearity equations with the
-//! multimedia module (Eq. 1-12, section 4.3's observation equations with the
-//! 16 camera parameters as unknowns, as the paper's section 5 uses them),
-//! adjusted by Gauss-Markov with Levenberg-Marquardt damping.
+//! The resection of one camera (the design paper's section 5), step by
+//! step: its observation equations, a closed-form start ([`super::dlt`]),
+//! the exterior and interior orientation through the strict model, then
+//! all free parameters, holding what the data cannot determine and
+//! excluding gross errors, and the report.
 //!
-//! * Observations are the pixel coordinates of the control points, with
-//!   equal weights; `sigma0² = vᵀv / (2n - u)` a posteriori, and the
-//!   parameters' covariance `sigma0² (AᵀA)⁻¹`.
-//! * The Jacobian of a pixel with respect to the parameters is numerical
-//!   (central differences) but cheap: the refraction solve depends only on
-//!   the projective centre, so it is repeated only for the three position
-//!   derivatives; angles and interior parameters reuse the air direction.
 //! * Parameters the data cannot determine (a singular normal matrix, or a
-//!   correlation above the limit) are held at their starting value and
-//!   reported; exterior parameters are never held.
+//!   correlation above the limit) are held and reported; exterior
+//!   parameters are never held. Distortion and affine terms are held at
+//!   the setup's value, the others at their estimate.
 //! * Data snooping (Baarda 1968, with Pope's a posteriori variance): the
 //!   point with the largest test statistic `vᵢᵀ Qvvᵢ⁻¹ vᵢ / sigma0²`
 //!   (chi-square with 2 degrees of freedom under the null hypothesis) above
 //!   the Bonferroni-corrected critical value is excluded and the adjustment
 //!   repeated, one point at a time.
 
-use nalgebra::{DMatrix, DVector, Matrix2, Point2, Point3, SVector, Vector2};
+use std::collections::HashSet;
 
-use super::Parameter;
-use crate::photogrammetry::camera::{Camera, CameraParameters};
+use nalgebra::{Point3, Vector2};
 
-/// The 16 parameters as a vector, in [`Parameter::ALL`]'s order.
-pub(crate) type ParameterVector = SVector<f64, 16>;
+use super::adjustment::{self, from_vector, to_vector, Equation, Statistics};
+use super::prepare::Prepared;
+use super::report::{camera_report, CameraReport, PointResidual};
+use super::{
+    dlt, snooping_critical, CalibrationError, CalibrationOptions, MarkObservation, Parameter,
+    ParameterSet, MIN_POINTS,
+};
+use crate::photogrammetry::camera::{rotation_matrix, Camera, CameraParameters};
 
-/// The parameters of `camera` as a vector.
-pub(crate) fn to_vector(camera: &CameraParameters) -> ParameterVector {
-    let e = &camera.exterior;
-    let i = &camera.interior;
-    let d = &camera.distortion;
-    ParameterVector::from_column_slice(&[
-        e.position.x,
-        e.position.y,
-        e.position.z,
-        e.omega,
-        e.phi,
-        e.kappa,
-        i.xh,
-        i.yh,
-        i.c,
-        d.k1,
-        d.k2,
-        d.k3,
-        d.p1,
-        d.p2,
-        d.scx,
-        d.shear,
-    ])
-}
-
-/// `template` with its 16 parameters replaced by `v`.
-pub(crate) fn from_vector(template: &CameraParameters, v: &ParameterVector) -> CameraParameters {
-    let mut camera = template.clone();
-    camera.exterior.position = v.fixed_rows::<3>(0).into_owned();
-    camera.exterior.omega = v[3];
-    camera.exterior.phi = v[4];
-    camera.exterior.kappa = v[5];
-    camera.interior.xh = v[6];
-    camera.interior.yh = v[7];
-    camera.interior.c = v[8];
-    camera.distortion.k1 = v[9];
-    camera.distortion.k2 = v[10];
-    camera.distortion.k3 = v[11];
-    camera.distortion.p1 = v[12];
-    camera.distortion.p2 = v[13];
-    camera.distortion.scx = v[14];
-    camera.distortion.shear = v[15];
-    camera
-}
-
-/// Central-difference steps: a change of about 1e-4 mm in the image at the
-/// sensor's corner for the interior and distortion terms, 0.01 mm and 1e-6
-/// rad for the exterior.
-fn steps(camera: &CameraParameters) -> ParameterVector {
-    let s = &camera.sensor;
-    let r = 0.5 * (f64::from(s.width) * s.pixel_size_x).hypot(f64::from(s.height) * s.pixel_size_y);
-    let r = r.max(1e-3);
-    let image = 1e-4;
-    ParameterVector::from_column_slice(&[
-        1e-2,
-        1e-2,
-        1e-2,
-        1e-6,
-        1e-6,
-        1e-6,
-        image,
-        image,
-        image,
-        image / r.powi(3),
-        image / r.powi(5),
-        image / r.powi(7),
-        image / r.powi(2),
-        image / r.powi(2),
-        image / r,
-        image / r,
-    ])
-}
-
-/// The pixel of `point` and its 2x16 Jacobian with respect to the camera's
-/// parameters (pixels per parameter unit), in [`Parameter::ALL`]'s order.
-///
-/// Fails where the point does not image (behind the camera, no refracted
-/// ray, distortion not invertible) or the parameters are not a camera.
-pub fn projection_with_parameter_jacobian(
-    camera: &CameraParameters,
-    point: &Point3<f64>,
-) -> Option<(Point2<f64>, nalgebra::SMatrix<f64, 2, 16>)> {
-    let model = ParameterModel::new(camera, &[true; 16])?;
-    model.project(point).map(|(pixel, row)| {
-        let mut full = nalgebra::SMatrix::<f64, 2, 16>::zeros();
-        for (k, &j) in model.free.iter().enumerate() {
-            full.set_column(j, &row.column(k));
-        }
-        (pixel, full)
-    })
-}
-
-/// A camera and its neighbours for the numerical derivatives, rebuilt once
-/// per iteration.
-struct ParameterModel {
-    camera: Camera,
-    /// Indices of the free parameters.
-    free: Vec<usize>,
-    /// `(step, camera with +step, camera with -step)` per free parameter.
-    shifted: Vec<(f64, Camera, Camera)>,
-}
-
-impl ParameterModel {
-    fn new(parameters: &CameraParameters, free: &[bool; 16]) -> Option<ParameterModel> {
-        let camera = Camera::new(parameters.clone()).ok()?;
-        let v = to_vector(parameters);
-        let h = steps(parameters);
-        let mut shifted = Vec::new();
-        let mut indices = Vec::new();
-        for j in (0..16).filter(|&j| free[j]) {
-            let mut plus = v;
-            plus[j] += h[j];
-            let mut minus = v;
-            minus[j] -= h[j];
-            let plus = Camera::new(from_vector(parameters, &plus)).ok()?;
-            let minus = Camera::new(from_vector(parameters, &minus)).ok()?;
-            shifted.push((h[j], plus, minus));
-            indices.push(j);
-        }
-        Some(ParameterModel {
-            camera,
-            free: indices,
-            shifted,
-        })
-    }
-
-    /// The pixel and the Jacobian's columns of the free parameters.
-    fn project(&self, point: &Point3<f64>) -> Option<(Point2<f64>, DMatrix<f64>)> {
-        let direction = self.camera.air_direction(point).ok()?;
-        let pixel = self.camera.pixel_of_air_direction(&direction).ok()?;
-        let mut jacobian = DMatrix::zeros(2, self.free.len());
-        for (k, (j, (h, plus, minus))) in self.free.iter().zip(&self.shifted).enumerate() {
-            let (p, m) = if *j < 3 {
-                (plus.project(point).ok()?, minus.project(point).ok()?)
-            } else {
-                (
-                    plus.pixel_of_air_direction(&direction).ok()?,
-                    minus.pixel_of_air_direction(&direction).ok()?,
-                )
-            };
-            jacobian.set_column(k, &((p - m) / (2.0 * h)));
-        }
-        Some((pixel, jacobian))
-    }
-}
-
-/// One observation equation: a control point and its measured pixel.
-#[derive(Clone, Copy, Debug)]
-pub(crate) struct Equation {
-    /// The control point (mm).
-    pub point: Point3<f64>,
-    /// The measured pixel.
-    pub pixel: Point2<f64>,
-}
-
-/// The linearised system at one set of parameters.
-struct Linearised {
-    /// Jacobian with columns scaled to unit length.
-    a: DMatrix<f64>,
-    /// The column scales (multiply a scaled step to get the parameter step).
-    scale: DVector<f64>,
-    /// Observed minus computed (px).
-    residual: DVector<f64>,
-}
-
-fn linearise(
-    parameters: &CameraParameters,
-    free: &[bool; 16],
-    equations: &[Equation],
-) -> Option<Linearised> {
-    let model = ParameterModel::new(parameters, free)?;
-    let u = model.free.len();
-    let mut a = DMatrix::zeros(2 * equations.len(), u);
-    let mut residual = DVector::zeros(2 * equations.len());
-    for (i, e) in equations.iter().enumerate() {
-        let (pixel, j) = model.project(&e.point)?;
-        let v = e.pixel - pixel;
-        residual[2 * i] = v.x;
-        residual[2 * i + 1] = v.y;
-        a.view_mut((2 * i, 0), (2, u)).copy_from(&j);
-    }
-    let mut scale = DVector::zeros(u);
-    for k in 0..u {
-        let norm = a.column(k).norm();
-        let s = if norm > 0.0 { 1.0 / norm } else { 1.0 };
-        scale[k] = s;
-        a.column_mut(k).scale_mut(s);
-    }
-    Some(Linearised { a, scale, residual })
-}
-
-/// Sum of squared residuals (px²), or `None` where a point does not image.
-fn cost(parameters: &CameraParameters, equations: &[Equation]) -> Option<f64> {
-    let camera = Camera::new(parameters.clone()).ok()?;
-    equations.iter().try_fold(0.0, |sum, e| {
-        let pixel = camera.project(&e.point).ok()?;
-        Some(sum + (e.pixel - pixel).norm_squared())
-    })
-}
-
-/// The result of one converged adjustment.
-pub(crate) struct Adjusted {
-    /// The adjusted parameters.
-    pub parameters: CameraParameters,
-    /// Iterations used.
-    pub iterations: usize,
-    /// Whether the step criterion was met (else the iteration limit ended it).
-    pub converged: bool,
-}
-
-/// Levenberg-Marquardt on the free parameters from `start`.
-pub(crate) fn adjust(
-    start: &CameraParameters,
-    free: &[bool; 16],
-    equations: &[Equation],
-    max_iterations: usize,
-) -> Option<Adjusted> {
-    let mut current = start.clone();
-    let mut current_cost = cost(&current, equations)?;
-    let mut lambda = 1e-3;
-    // Nielsen's (1999) damping update: grow by nu (doubling) on failure,
-    // shrink by the agreement of the actual and the predicted reduction.
-    let mut nu = 2.0;
-    let mut iterations = 0;
-    while iterations < max_iterations {
-        iterations += 1;
-        let lin = linearise(&current, free, equations)?;
-        let n = lin.a.transpose() * &lin.a;
-        let g = lin.a.transpose() * &lin.residual;
-        // At the minimum (to rounding) the Gauss-Newton step promises no
-        // reduction worth taking: the cost falls by about gᵀΔ.
-        if let Some(step) = solve(n.clone(), &g) {
-            if g.dot(&step) <= 1e-10 * current_cost + 1e-30 {
-                return Some(Adjusted {
-                    parameters: current,
-                    iterations,
-                    converged: true,
-                });
-            }
-        }
-        let mut accepted = false;
-        let mut small_step = false;
-        for _ in 0..40 {
-            let mut damped = n.clone();
-            for k in 0..damped.nrows() {
-                damped[(k, k)] += lambda * n[(k, k)].max(1e-12);
-            }
-            let Some(step) = solve(damped, &g) else {
-                lambda *= nu;
-                nu *= 2.0;
-                continue;
-            };
-            let delta = step.component_mul(&lin.scale);
-            let mut v = to_vector(&current);
-            for (k, j) in (0..16).filter(|&j| free[j]).enumerate() {
-                v[j] += delta[k];
-            }
-            let candidate = from_vector(&current, &v);
-            // The linear model's reduction of vᵀv: Δᵀ(2g - NΔ).
-            let predicted = step.dot(&(&g * 2.0 - &n * &step));
-            match cost(&candidate, equations) {
-                Some(c) if c <= current_cost && predicted > 0.0 => {
-                    let rho = (current_cost - c) / predicted;
-                    // A Gauss-Newton step (little damping) that moves the
-                    // image by less than 1e-9 px: converged. Damped steps
-                    // may be small without being at the minimum.
-                    small_step = lambda <= 1e-3 && step.norm() < 1e-9;
-                    current = candidate;
-                    current_cost = c;
-                    lambda =
-                        (lambda * f64::max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0).powi(3))).max(1e-12);
-                    nu = 2.0;
-                    accepted = true;
-                    break;
-                }
-                _ => {
-                    lambda *= nu;
-                    nu *= 2.0;
-                }
-            }
-        }
-        if !accepted || small_step {
-            // No descent left: at a minimum (to rounding) or stuck.
-            return Some(Adjusted {
-                parameters: current,
-                iterations,
-                converged: accepted,
-            });
-        }
-    }
-    Some(Adjusted {
-        parameters: current,
-        iterations,
-        converged: false,
-    })
-}
-
-/// Solves a symmetric positive (semi)definite system: Cholesky, else SVD.
-fn solve(n: DMatrix<f64>, g: &DVector<f64>) -> Option<DVector<f64>> {
-    if let Some(chol) = n.clone().cholesky() {
-        let x = chol.solve(g);
-        if x.iter().all(|v| v.is_finite()) {
-            return Some(x);
-        }
-    }
-    if !n.iter().all(|v| v.is_finite()) {
-        return None;
-    }
-    let x = nalgebra::SVD::try_new(n, true, true, f64::EPSILON, 10_000)?
-        .solve(g, 1e-12)
-        .ok()?;
-    x.iter().all(|v| v.is_finite()).then_some(x)
-}
-
-/// Statistics of a converged adjustment.
-pub(crate) struct Statistics {
-    /// Residuals (observed minus computed) per equation (px).
-    pub residuals: Vec<Vector2<f64>>,
-    /// A posteriori sigma0 (px).
-    pub sigma0: f64,
-    /// Redundancy `2n - u`.
-    pub redundancy: usize,
-    /// Cofactor matrix of the free parameters (unscaled units), `None` when
-    /// the normal matrix is singular.
-    pub cofactor: Option<DMatrix<f64>>,
-    /// The normal matrix scaled to unit diagonal (for rank and correlations).
-    pub scaled_normal: DMatrix<f64>,
-    /// Per equation the test statistic `vᵀ Qvv⁻¹ v / sigma0²`, `None` where
-    /// the point has no redundancy to test.
-    pub test: Vec<Option<f64>>,
-}
-
-pub(crate) fn statistics(
-    parameters: &CameraParameters,
-    free: &[bool; 16],
-    equations: &[Equation],
-) -> Option<Statistics> {
-    let lin = linearise(parameters, free, equations)?;
-    let u = lin.scale.len();
-    let n_obs = lin.residual.len();
-    let redundancy = n_obs.saturating_sub(u);
-    let vtv = lin.residual.norm_squared();
-    let sigma0 = if redundancy > 0 {
-        (vtv / redundancy as f64).sqrt()
-    } else {
-        0.0
+/// The resection of one camera, from the closed-form start to the report.
+pub(super) fn resect_camera(
+    k: usize,
+    setup: &CameraParameters,
+    observed: &[MarkObservation],
+    prepared: &Prepared,
+    options: &CalibrationOptions,
+) -> Result<(CameraParameters, CameraReport), CalibrationError> {
+    let equations = observation_equations(k, &setup.name, observed, prepared)?;
+    check_point_count(k, setup, &equations, prepared.fixed)?;
+    let coplanar = in_one_plane(k, setup, &equations, prepared.fixed)?;
+    let start = closed_form_start(k, setup, &equations, coplanar, prepared.fixed)?;
+    let mut resection = Resection {
+        camera: k,
+        setup,
+        options,
+        fixed: prepared.fixed,
+        active: equations,
+        parameters: start,
+        free: prepared.fixed.complement(),
+        held: Vec::new(),
+        held_at_estimate: ParameterSet::empty(),
+        excluded: Vec::new(),
+        iterations: 0,
     };
-    let n = lin.a.transpose() * &lin.a;
-    let diag: DVector<f64> = n
-        .diagonal()
-        .map(|d| if d > 0.0 { 1.0 / d.sqrt() } else { 0.0 });
-    let scaled_normal = DMatrix::from_fn(u, u, |i, j| n[(i, j)] * diag[i] * diag[j]);
-    let inverse = n.clone().cholesky().map(|c| c.inverse());
-    let residuals = (0..equations.len())
-        .map(|i| Vector2::new(lin.residual[2 * i], lin.residual[2 * i + 1]))
-        .collect();
-    let mut test = vec![None; equations.len()];
-    if let Some(q) = &inverse {
-        if redundancy > 0 && sigma0 > 0.0 {
-            for (i, t) in test.iter_mut().enumerate() {
-                let ai = lin.a.rows(2 * i, 2);
-                let h = ai * q * ai.transpose();
-                let qvv =
-                    Matrix2::identity() - Matrix2::new(h[(0, 0)], h[(0, 1)], h[(1, 0)], h[(1, 1)]);
-                // Points whose residual is forced (almost) to zero cannot
-                // be tested: their redundancy number is below 1%.
-                if qvv.trace() < 0.02 {
-                    continue;
-                }
-                if let Some(inv) = qvv.try_inverse() {
-                    let v = Vector2::new(lin.residual[2 * i], lin.residual[2 * i + 1]);
-                    *t = Some(v.dot(&(inv * v)) / (sigma0 * sigma0));
-                }
-            }
+    // Step 2: the exterior and interior orientation through the strict
+    // model, from which all free parameters start.
+    resection.adjust((ParameterSet::exterior() | ParameterSet::interior()) - prepared.fixed)?;
+    let stats = resection.adjust_all()?;
+    Ok(resection.finish(&stats))
+}
+
+/// Checks one camera's observations and turns the usable ones (control
+/// points that are not check points) into observation equations with ids.
+fn observation_equations(
+    camera: usize,
+    name: &str,
+    observed: &[MarkObservation],
+    prepared: &Prepared,
+) -> Result<Vec<(u64, Equation)>, CalibrationError> {
+    if observed.is_empty() {
+        return Err(CalibrationError::NoObservations {
+            camera,
+            name: name.to_owned(),
+        });
+    }
+    let mut seen = HashSet::with_capacity(observed.len());
+    let mut usable = Vec::with_capacity(observed.len());
+    for o in observed {
+        if !(o.pixel.x.is_finite() && o.pixel.y.is_finite()) {
+            return Err(CalibrationError::NonFiniteObservation { camera, id: o.id });
+        }
+        let Some(point) = prepared.control.get(&o.id) else {
+            return Err(CalibrationError::UnknownId { camera, id: o.id });
+        };
+        if !seen.insert(o.id) {
+            return Err(CalibrationError::DuplicateObservation { camera, id: o.id });
+        }
+        if !prepared.check.contains(&o.id) {
+            usable.push((
+                o.id,
+                Equation {
+                    point: *point,
+                    pixel: o.pixel,
+                },
+            ));
         }
     }
-    let cofactor =
-        inverse.map(|q| DMatrix::from_fn(u, u, |i, j| q[(i, j)] * lin.scale[i] * lin.scale[j]));
-    Some(Statistics {
-        residuals,
-        sigma0,
-        redundancy,
-        cofactor,
-        scaled_normal,
-        test,
+    Ok(usable)
+}
+
+/// Points needed for `free` parameters: the DLT's 6, and a redundancy of at
+/// least 2 so that sigma0 exists.
+fn points_needed(free: usize) -> usize {
+    MIN_POINTS.max((free + 2).div_ceil(2))
+}
+
+/// Enough usable points for the free parameters.
+fn check_point_count(
+    k: usize,
+    setup: &CameraParameters,
+    equations: &[(u64, Equation)],
+    fixed: ParameterSet,
+) -> Result<(), CalibrationError> {
+    let free = fixed.complement().len();
+    let needed = points_needed(free);
+    if equations.len() < needed {
+        return Err(CalibrationError::TooFewPoints {
+            camera: k,
+            name: setup.name.clone(),
+            usable: equations.len(),
+            needed,
+            free,
+        });
+    }
+    Ok(())
+}
+
+/// Whether the control points lie in one plane; an error if they do and
+/// the interior orientation is free, which a plane cannot determine
+/// together with the position.
+fn in_one_plane(
+    k: usize,
+    setup: &CameraParameters,
+    equations: &[(u64, Equation)],
+    fixed: ParameterSet,
+) -> Result<bool, CalibrationError> {
+    let points: Vec<Point3<f64>> = equations.iter().map(|(_, e)| e.point).collect();
+    let coplanar = dlt::flatness(&points) < 1e-3;
+    let free_interior: Vec<Parameter> = (ParameterSet::interior() - fixed).iter().collect();
+    if coplanar && !free_interior.is_empty() {
+        return Err(CalibrationError::Coplanar {
+            camera: k,
+            name: setup.name.clone(),
+            count: equations.len(),
+            free: free_interior,
+        });
+    }
+    Ok(coplanar)
+}
+
+/// Step 1: the closed-form start (the DLT, or the plane homography for
+/// `coplanar` points), ignoring refraction and (unknown) distortion, which
+/// start at the setup's values as the fixed parameters do.
+fn closed_form_start(
+    k: usize,
+    setup: &CameraParameters,
+    equations: &[(u64, Equation)],
+    coplanar: bool,
+    fixed: ParameterSet,
+) -> Result<CameraParameters, CalibrationError> {
+    let metric: Vec<(Point3<f64>, Vector2<f64>)> = equations
+        .iter()
+        .filter_map(|(_, e)| Some((e.point, dlt::ideal_metric(setup, e.pixel)?)))
+        .collect();
+    let start = if coplanar {
+        dlt::start_from_plane(setup, &metric)
+    } else {
+        dlt::start_from_dlt(setup, &metric)
+    }
+    .ok_or_else(|| CalibrationError::NoStart {
+        camera: k,
+        name: setup.name.clone(),
+    })?;
+    let setup_vector = to_vector(setup);
+    let mut v = to_vector(&start);
+    for p in (fixed | ParameterSet::distortion()).iter() {
+        v[p.index()] = setup_vector[p.index()];
+    }
+    valid_start(from_vector(setup, &v)).ok_or_else(|| CalibrationError::NoConvergence {
+        camera: k,
+        name: setup.name.clone(),
     })
+}
+
+/// The start, if it is a valid camera; else the same orientation moved back
+/// along its axis until the media accept it (a pinhole fit through a
+/// refracting wall may put the centre too close to the wall).
+pub(super) fn valid_start(start: CameraParameters) -> Option<CameraParameters> {
+    if Camera::new(start.clone()).is_ok() {
+        return Some(start);
+    }
+    let rotation = rotation_matrix(
+        start.exterior.omega,
+        start.exterior.phi,
+        start.exterior.kappa,
+    );
+    // The camera looks along its -z axis: backwards is +z.
+    let back = rotation.column(2).into_owned();
+    let mut moved = start;
+    for _ in 0..20 {
+        moved.exterior.position += back * 50.0;
+        if Camera::new(moved.clone()).is_ok() {
+            return Some(moved);
+        }
+    }
+    None
+}
+
+/// One camera's resection as it goes: the current estimate, what is free,
+/// held and excluded.
+pub(super) struct Resection<'a> {
+    /// The camera's number (0-based), for errors.
+    camera: usize,
+    setup: &'a CameraParameters,
+    pub(super) options: &'a CalibrationOptions,
+    /// The parameters the user fixed.
+    pub(super) fixed: ParameterSet,
+    /// The observation equations in use, with their points' ids (gross
+    /// errors taken out).
+    pub(super) active: Vec<(u64, Equation)>,
+    /// The current estimate.
+    pub(super) parameters: CameraParameters,
+    /// The parameters being estimated.
+    pub(super) free: ParameterSet,
+    /// The parameters held, and why, in the order they were held.
+    pub(super) held: Vec<(Parameter, String)>,
+    /// Parameters held at their least-squares estimate for a correlation:
+    /// their uncertainty stays in the others' standard deviations.
+    held_at_estimate: ParameterSet,
+    /// Points excluded as gross errors, in the order they were found.
+    pub(super) excluded: Vec<PointResidual>,
+    /// Levenberg-Marquardt iterations, all adjustments together.
+    pub(super) iterations: usize,
+}
+
+impl Resection<'_> {
+    fn no_convergence(&self) -> CalibrationError {
+        CalibrationError::NoConvergence {
+            camera: self.camera,
+            name: self.setup.name.clone(),
+        }
+    }
+
+    fn equations(&self) -> Vec<Equation> {
+        self.active.iter().map(|(_, e)| *e).collect()
+    }
+
+    /// Adjusts `free` from the current estimate; whether it converged.
+    fn adjust(&mut self, free: ParameterSet) -> Result<bool, CalibrationError> {
+        let adjusted = adjustment::adjust(
+            &self.parameters,
+            free,
+            &self.equations(),
+            self.options.max_iterations,
+        )
+        .ok_or_else(|| self.no_convergence())?;
+        self.iterations += adjusted.iterations;
+        self.parameters = adjusted.parameters;
+        Ok(adjusted.converged)
+    }
+
+    /// The statistics of the current estimate with `free` estimated.
+    fn statistics(&self, free: ParameterSet) -> Result<Statistics, CalibrationError> {
+        adjustment::statistics(&self.parameters, free, &self.equations())
+            .ok_or_else(|| self.no_convergence())
+    }
+
+    /// Step 3: all free parameters, holding what the data cannot determine,
+    /// and data snooping, until no parameter is to be held and no point
+    /// excluded; the final adjustment's statistics.
+    fn adjust_all(&mut self) -> Result<Statistics, CalibrationError> {
+        loop {
+            self.hold_undeterminable()?;
+            // Gross errors can slow the convergence down; only the final
+            // adjustment, after snooping, must have converged.
+            let converged = self.adjust(self.free)?;
+            let stats = self.statistics(self.free)?;
+            if self.hold_correlated(&stats) || self.snoop(&stats) {
+                continue;
+            }
+            return if converged {
+                Ok(stats)
+            } else {
+                Err(self.no_convergence())
+            };
+        }
+    }
+
+    /// Holds what the data cannot determine at all (a singular normal
+    /// matrix), judged at the current estimate, one parameter at a time.
+    fn hold_undeterminable(&mut self) -> Result<(), CalibrationError> {
+        loop {
+            let stats = self.statistics(self.free)?;
+            let Some((p, reason)) =
+                undeterminable(&stats, self.free, self.options.max_correlation, false)
+            else {
+                return Ok(());
+            };
+            self.hold(p, reason, false);
+        }
+    }
+
+    /// Holds one of the pair correlated most above the limit (or one the
+    /// normal matrix no longer determines), judged at the least-squares
+    /// solution `stats`, so that a parameter held at its estimate leaves
+    /// the others' estimates as they are; whether one was held.
+    fn hold_correlated(&mut self, stats: &Statistics) -> bool {
+        let Some((p, reason)) =
+            undeterminable(stats, self.free, self.options.max_correlation, true)
+        else {
+            return false;
+        };
+        self.hold(p, reason, true);
+        true
+    }
+
+    /// Stops estimating `p`: distortion and affine terms go back to the
+    /// setup's value; the others stay at the current estimate, `at_estimate`
+    /// marking one whose uncertainty the others' sigmas keep.
+    fn hold(&mut self, p: Parameter, reason: String, at_estimate: bool) {
+        self.free.remove(p);
+        if p.held_at_setup() {
+            let mut v = to_vector(&self.parameters);
+            v[p.index()] = to_vector(self.setup)[p.index()];
+            self.parameters = from_vector(&self.parameters, &v);
+        } else if at_estimate {
+            self.held_at_estimate.insert(p);
+        }
+        self.held.push((p, reason));
+    }
+
+    /// Data snooping: excludes the point with the largest test statistic
+    /// if it is significant and one can be spared; whether one was.
+    fn snoop(&mut self, stats: &Statistics) -> bool {
+        let critical = snooping_critical(self.options.snooping_alpha, self.active.len());
+        let worst = stats
+            .test
+            .iter()
+            .enumerate()
+            .filter_map(|(i, t)| t.map(|t| (i, t)))
+            .max_by(|a, b| a.1.total_cmp(&b.1));
+        match worst {
+            Some((i, t)) if t > critical && self.active.len() > points_needed(self.free.len()) => {
+                let (id, _) = self.active.remove(i);
+                self.excluded.push(PointResidual {
+                    id,
+                    x_px: stats.residuals[i].x,
+                    y_px: stats.residuals[i].y,
+                    test: Some(t),
+                });
+                true
+            }
+            _ => false,
+        }
+    }
+
+    /// The calibrated camera and its report. Standard deviations and
+    /// covariance come with the parameters held at their estimates still
+    /// free: conditioning on a value that is itself uncertain would make the
+    /// others' look better than they are.
+    fn finish(self, stats: &Statistics) -> (CameraParameters, CameraReport) {
+        let uncertain = self.free | self.held_at_estimate;
+        let marginal = if uncertain == self.free {
+            None
+        } else {
+            adjustment::statistics(&self.parameters, uncertain, &self.equations())
+        };
+        let uncertainty = match &marginal {
+            Some(m) if m.cofactor.is_some() => (m, uncertain),
+            _ => (stats, self.free),
+        };
+        let report = camera_report(&self, stats, uncertainty);
+        (self.parameters, report)
+    }
 }
 
 /// Which free parameter to hold next, and why, or `None` if all are
 /// determinable: one in the direction of a singular normal matrix, or (with
 /// `correlations`) the one to hold of the pair correlated most above
-/// `max_correlation`. `order` lists the free parameters' indices (as in the
-/// statistics); exterior parameters are never held.
-pub(crate) fn undeterminable(
+/// `max_correlation`. `free` are the statistics' parameters; exterior
+/// parameters are never held.
+fn undeterminable(
     stats: &Statistics,
-    order: &[usize],
+    free: ParameterSet,
     max_correlation: f64,
     correlations: bool,
-) -> Option<(usize, String)> {
-    let holdable = |j: usize| Parameter::ALL[j].holdable();
-    let priority = |j: usize| Parameter::ALL[j].hold_priority();
+) -> Option<(Parameter, String)> {
+    let order: Vec<Parameter> = free.iter().collect();
+    let holdable = |p: Parameter| p.holdable();
+    let priority = |p: Parameter| p.hold_priority();
     // A singular normal matrix: hold the parameter that dominates the
     // direction the data do not see.
-    let eigen = super::dlt::symmetric_eigen(stats.scaled_normal.clone())?;
+    let eigen = dlt::symmetric_eigen(stats.scaled_normal.clone())?;
     let (smallest, value) = eigen
         .eigenvalues
         .iter()
@@ -454,7 +414,7 @@ pub(crate) fn undeterminable(
             format!(
                 "the observations do not determine it (the normal matrix is singular along a \
                  direction made mostly of {})",
-                Parameter::ALL[order[worst]].name()
+                order[worst].name()
             ),
         ));
     }
@@ -485,7 +445,7 @@ pub(crate) fn undeterminable(
         order[hold],
         format!(
             "correlated with {} at {:.4} (limit {})",
-            Parameter::ALL[order[other]].name(),
+            order[other].name(),
             r,
             max_correlation
         ),

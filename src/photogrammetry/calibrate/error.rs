@@ -1,0 +1,145 @@
+//! Why a calibration cannot be done: each error names the camera and what
+//! to change.
+
+use super::{Parameter, MIN_POINTS};
+use crate::photogrammetry::camera::InvalidCamera;
+
+/// Why a calibration cannot be done.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum CalibrationError {
+    /// No cameras in the setup.
+    #[error("the setup has no cameras")]
+    NoCameras,
+    /// The observations are not one list per camera.
+    #[error("the setup has {cameras} cameras but observations for {given} were given; give one list per camera, in camera order")]
+    CameraCount {
+        /// Cameras in the setup.
+        cameras: usize,
+        /// Observation lists given.
+        given: usize,
+    },
+    /// A camera of the setup is not a camera.
+    #[error("camera {camera} of the setup: {source}")]
+    InvalidSetup {
+        /// The camera (0-based).
+        camera: usize,
+        /// What is wrong.
+        #[source]
+        source: InvalidCamera,
+    },
+    /// Too few control points.
+    #[error("{count} control points given; a calibration needs at least {MIN_POINTS}")]
+    TooFewControlPoints {
+        /// How many were given.
+        count: usize,
+    },
+    /// A control point id appears twice.
+    #[error("control point {id} is given twice")]
+    DuplicateControlPoint {
+        /// The id.
+        id: u64,
+    },
+    /// A control point has a non-finite coordinate.
+    #[error("control point {id} has a coordinate that is not a finite number")]
+    NonFiniteControlPoint {
+        /// The id.
+        id: u64,
+    },
+    /// An observation has a non-finite coordinate.
+    #[error("camera {camera}: the observation of point {id} is not a finite number")]
+    NonFiniteObservation {
+        /// The camera (0-based).
+        camera: usize,
+        /// The point's id.
+        id: u64,
+    },
+    /// An observation names a point that is not a control point.
+    #[error("camera {camera}: point {id} is not a control point")]
+    UnknownId {
+        /// The camera (0-based).
+        camera: usize,
+        /// The id.
+        id: u64,
+    },
+    /// A point is observed twice in one camera.
+    #[error("camera {camera}: point {id} is observed twice")]
+    DuplicateObservation {
+        /// The camera (0-based).
+        camera: usize,
+        /// The id.
+        id: u64,
+    },
+    /// A camera has no observations.
+    #[error("camera {camera} ({name}) sees no control point: give its observations, or leave the camera out of the setup")]
+    NoObservations {
+        /// The camera (0-based).
+        camera: usize,
+        /// Its name.
+        name: String,
+    },
+    /// Too few points for the parameters to estimate.
+    #[error("camera {camera} ({name}) has {usable} usable control points (observed and not check points), but needs at least {needed} for {free} free parameters; observe more points, use fewer check points, or fix parameters (--fix)")]
+    TooFewPoints {
+        /// The camera (0-based).
+        camera: usize,
+        /// Its name.
+        name: String,
+        /// Observed control points that are not check points.
+        usable: usize,
+        /// How many are needed.
+        needed: usize,
+        /// Free parameters.
+        free: usize,
+    },
+    /// All points in one plane, with interior parameters free.
+    #[error("camera {camera} ({name}): all {count} control points it sees lie in one plane, which cannot determine the interior orientation ({}) together with the position; fix them (--fix c,xh,yh) at known values in the setup, or use a target with points in a second plane", free.iter().map(|p| p.name()).collect::<Vec<_>>().join(", "))]
+    Coplanar {
+        /// The camera (0-based).
+        camera: usize,
+        /// Its name.
+        name: String,
+        /// How many points.
+        count: usize,
+        /// The free interior parameters.
+        free: Vec<Parameter>,
+    },
+    /// The points do not give a closed-form start (e.g. all on a line).
+    #[error("camera {camera} ({name}): the control points it sees do not determine an orientation (are they all on one line, or mis-identified?)")]
+    NoStart {
+        /// The camera (0-based).
+        camera: usize,
+        /// Its name.
+        name: String,
+    },
+    /// The adjustment left the valid region or did not converge.
+    #[error("camera {camera} ({name}): the adjustment did not converge; check the identification of the points and the media in the setup")]
+    NoConvergence {
+        /// The camera (0-based).
+        camera: usize,
+        /// Its name.
+        name: String,
+    },
+    /// Too few marks could be identified in an image.
+    #[error("camera {camera} ({name}): only {found} marks could be identified with control points; give better starting values or reference points (id x y) for at least 6 points")]
+    TooFewIdentified {
+        /// The camera (0-based).
+        camera: usize,
+        /// Its name.
+        name: String,
+        /// Marks identified.
+        found: usize,
+    },
+    /// Too few reference points to start identifying marks.
+    #[error("camera {camera} ({name}): {given} reference points do not determine a starting orientation; give at least 6 not in one plane, or at least 4 in one plane with c, xh and yh right in the setup")]
+    TooFewReferences {
+        /// The camera (0-based).
+        camera: usize,
+        /// Its name.
+        name: String,
+        /// Reference points given.
+        given: usize,
+    },
+    /// An option is out of range.
+    #[error("invalid option: {0}")]
+    InvalidOption(String),
+}

@@ -1,0 +1,238 @@
+//! Stereo correspondences: which particle images in 2..N cameras belong to
+//! one particle, and where that particle is (design paper, section 6:
+//! establishment of correspondences by epipolar geometry with three and
+//! more cameras; 3D coordinates by spatial intersection, section 4.3).
+//!
+//! The search, for a frame of targets per camera:
+//!
+//! 1. Every target's ray into the object medium is traced once (Eq. 13-17).
+//!    Targets of each camera go into a uniform grid (a spatial index, with
+//!    the targets stored in cell order) for searches around a point, and,
+//!    per camera pair, into a grid of thin sectors along the epipolar
+//!    curves for the bands (`pencil`): no search scans all targets.
+//! 2. **Seed pairs**, one stage each: camera pairs `(i, j)` chosen so that
+//!    every set of three cameras contains one of them (the cameras split
+//!    into two halves, all pairs within each half: 2 pairs for 4 cameras
+//!    instead of 6). Each still unused target of camera i has its ray cut by
+//!    the observation volume; the segment between the near and far points is
+//!    projected into camera j as a bent curve (a parabola or polyline within
+//!    a tenth of the tolerance of the true curve) and widened by the
+//!    tolerance: the epipolar band. Its candidates come from an index of
+//!    camera j's targets in thin sectors along the curves (`pencil`).
+//! 3. **Completion.** Each candidate pair's rays meet (nearly) in a 3D
+//!    point; its image in every other camera (on the first target's
+//!    epipolar curve there) is searched within `COMPLETION_RADIUS` (3)
+//!    tolerances, and a target joins if its ray meets the pair's within the
+//!    tolerance. A camera with several such targets gives several candidate
+//!    groups; members that do not fit together are dropped worst first.
+//! 4. **Selection**, best first: larger groups before smaller (a fourth
+//!    camera cuts the ambiguities the design paper's Table 2 counts by at
+//!    least an order of magnitude), then by the rays' spread in pixels; each
+//!    target is used at most once. The first stage's groups give the frame's
+//!    image noise, from which the acceptance thresholds follow
+//!    (`Search::estimate_noise`). Then targets are exchanged between
+//!    accepted groups where that fits both better (near-coincident images).
+//! 5. **Pairs**, when two cameras suffice (`min_cameras = 2`): among the
+//!    targets still unused, a pair is accepted only when each target is the
+//!    other's single candidate in its band.
+//! 6. Every accepted group's point by least-squares intersection
+//!    ([`intersect_from`](super::intersect::intersect_from)), with standard deviations and residuals; a group
+//!    whose largest residual exceeds the acceptance is dropped.
+//!
+//! There is no fixed limit on cameras or targets: memory grows linearly
+//! with the targets, and the work with the targets times the (small) number
+//! of band candidates.
+//!
+//! The files follow the seams of the method: `matcher.rs`, the
+//! [`Matcher`] (preparation per calibration, seed pairs, the checks of a
+//! frame); `grid.rs`, one camera's targets with their rays (step 1);
+//! `epipolar.rs`, the epipolar curves through the walls and the
+//! distance to them; `pencil.rs`, the band index; `search/`, steps 2 to 6.
+
+mod epipolar;
+mod grid;
+mod matcher;
+mod pencil;
+mod search;
+
+use nalgebra::{Point2, Point3, Vector3};
+use serde::{Deserialize, Serialize};
+
+use super::camera::{Camera, Ray};
+use super::intersect::ray_midpoint;
+use super::volume::Volume;
+
+pub use matcher::Matcher;
+
+/// Default epipolar band half-width (px).
+pub const DEFAULT_TOLERANCE_PX: f64 = 1.0;
+
+/// Optional similarity criteria: a candidate's size and brightness must be
+/// within these factors of the target it is matched with (where both are
+/// known).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Similarity {
+    /// Largest ratio of pixel counts (>= 1).
+    pub max_size_ratio: f64,
+    /// Largest ratio of grey-value sums (>= 1).
+    pub max_brightness_ratio: f64,
+}
+
+/// How to match.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct MatchingParameters {
+    /// Half-width of the epipolar band, and the largest accepted residual
+    /// of a particle's intersection (px).
+    pub tolerance: f64,
+    /// The observation volume; `None` for the region all cameras look at
+    /// (see [`default_volume`]).
+    pub volume: Option<Volume>,
+    /// The fewest cameras that must see a particle (2..N).
+    pub min_cameras: usize,
+    /// Similarity criteria, if any.
+    pub similarity: Option<Similarity>,
+}
+
+impl Default for MatchingParameters {
+    fn default() -> Self {
+        MatchingParameters {
+            tolerance: DEFAULT_TOLERANCE_PX,
+            volume: None,
+            min_cameras: 2,
+            similarity: None,
+        }
+    }
+}
+
+/// Why matching cannot run.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum MatchError {
+    /// Fewer than two cameras.
+    #[error("matching needs at least 2 cameras, the calibration has {0}")]
+    TooFewCameras(usize),
+    /// A target list per camera is expected.
+    #[error("got targets for {targets} cameras, but the calibration has {cameras}; give one target list per camera, in camera order")]
+    CameraCount {
+        /// Target lists given.
+        targets: usize,
+        /// Cameras in the calibration.
+        cameras: usize,
+    },
+    /// The tolerance must be positive and finite.
+    #[error("the tolerance must be a positive number of pixels, got {0}")]
+    Tolerance(f64),
+    /// No volume was given, and the cameras have no common view to take one
+    /// from (see [`default_volume`]).
+    #[error(
+        "no observation volume was given, and the cameras have no common field of view to take \
+         as one: their optical axes are parallel, or fewer than two of them reach the object \
+         space; give the volume (--volume xmin,xmax,ymin,ymax,zmin,zmax, mm)"
+    )]
+    NoDefaultVolume,
+    /// The volume is empty or not finite.
+    #[error(
+        "the observation volume is empty: every minimum must be below its maximum, got \
+         x {}..{}, y {}..{}, z {}..{} mm",
+        .0.min.x, .0.max.x, .0.min.y, .0.max.y, .0.min.z, .0.max.z
+    )]
+    EmptyVolume(Volume),
+    /// `min_cameras` out of range.
+    #[error("min_cameras must be between 2 and the number of cameras ({cameras}), got {min}")]
+    MinCameras {
+        /// The value given.
+        min: usize,
+        /// Cameras in the calibration.
+        cameras: usize,
+    },
+    /// A similarity ratio below 1.
+    #[error("similarity ratios must be at least 1, got size {0} and brightness {1}")]
+    Similarity(f64, f64),
+    /// A target with a non-finite position.
+    #[error("camera {camera}, target {index}: its position is not a finite number")]
+    InvalidTarget {
+        /// The camera.
+        camera: usize,
+        /// The target's index in its list.
+        index: usize,
+    },
+}
+
+/// A particle found in the frame.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Particle {
+    /// Position (mm).
+    pub position: Point3<f64>,
+    /// Standard deviations of X, Y, Z from the intersection (mm).
+    pub sigma: Vector3<f64>,
+    /// Root mean square reprojection residual (px).
+    pub rms_px: f64,
+    /// Per camera, the index of its target, `None` where it has none.
+    pub targets: Vec<Option<usize>>,
+}
+
+impl Particle {
+    /// How many cameras see this particle.
+    pub fn camera_count(&self) -> usize {
+        self.targets.iter().filter(|t| t.is_some()).count()
+    }
+}
+
+/// The region all cameras look at: a cube around the point nearest to the
+/// cameras' optical axes (traced through their walls), whose half-size is
+/// the smallest half-width of the cameras' fields of view at that distance.
+/// `None` where there is no such point: fewer than two axes reach the
+/// object space, or they are parallel.
+pub fn default_volume(cameras: &[Camera]) -> Option<Volume> {
+    let axes: Vec<Ray> = cameras
+        .iter()
+        .filter_map(|camera| {
+            let sensor = camera.sensor();
+            let centre = Point2::new(
+                f64::from(sensor.width) / 2.0,
+                f64::from(sensor.height) / 2.0,
+            );
+            camera.ray(centre).ok()
+        })
+        .collect();
+    if axes.len() < 2 {
+        return None;
+    }
+    let centre = ray_midpoint(axes.iter().copied())?;
+    let half = cameras
+        .iter()
+        .map(|camera| {
+            let sensor = camera.sensor();
+            let half_sensor = f64::min(
+                f64::from(sensor.width) * sensor.pixel_size_x,
+                f64::from(sensor.height) * sensor.pixel_size_y,
+            ) / 2.0;
+            (centre - camera.position()).norm() * half_sensor / camera.parameters().interior.c
+        })
+        .fold(f64::INFINITY, f64::min);
+    let extent = Vector3::repeat(half);
+    Some(Volume {
+        min: centre - extent,
+        max: centre + extent,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::photogrammetry::simulate::{self, RigSpec};
+
+    #[test]
+    fn default_volume_covers_the_simulated_volume() {
+        // The simulator aims its cameras at the volume's centre, so their
+        // axes meet there and the default volume must hold nearly all of it.
+        let spec = RigSpec::convergent(4);
+        let volume = default_volume(&spec.build().unwrap()).unwrap();
+        assert!(
+            (volume.centre() - spec.volume.centre()).norm() < 1e-6,
+            "{volume:?}"
+        );
+        let points = simulate::particles(&spec.volume, 1000, &mut simulate::rng(18));
+        let inside = points.iter().filter(|p| volume.contains(p)).count();
+        assert!(inside >= 900, "{inside} of 1000 in {volume:?}");
+    }
+}

@@ -1,0 +1,177 @@
+//! Steps 2 and 3: seed pairs from the epipolar bands, completed in the
+//! other cameras into candidate groups of three or more.
+
+use super::{size, GroupFit, Search, NONE};
+use crate::photogrammetry::correspond::epipolar::closest_approach;
+
+/// How far around a pair's predicted image a third camera is searched, in
+/// tolerances.
+const COMPLETION_RADIUS: f64 = 3.0;
+
+/// Per pair and other camera, the most targets (the best fitting) that may
+/// complete the pair's group. More arise only where the tolerance is large
+/// for the target density; the candidates beyond the best few are then
+/// practically never the particle's image, and their combinations would
+/// multiply the work and memory.
+const MAX_CANDIDATES_PER_CAMERA: usize = 3;
+
+/// Per target of a seed camera, the most candidate groups kept (the largest
+/// with the smallest spread): a target ends in at most one particle, and
+/// this bounds the candidates' memory by the target count.
+const MAX_GROUPS_PER_TARGET: usize = 8;
+
+/// Candidate groups: per group, one target (or NONE) per camera, in a flat
+/// array with a stride of the camera count.
+#[derive(Default)]
+pub(super) struct CandidateGroups {
+    pub(super) members: Vec<u32>,
+    pub(super) sizes: Vec<usize>,
+    pub(super) spreads: Vec<f64>,
+    /// The largest miss of a member (px).
+    pub(super) largest: Vec<f64>,
+}
+
+impl Search<'_, '_> {
+    /// Steps 2 and 3: candidate groups of three or more cameras.
+    ///
+    /// The point where a pair's rays meet is uncertain along their epipolar
+    /// lines, most where those lines run nearly parallel in a third camera,
+    /// so the third camera is searched within `COMPLETION_RADIUS` (3)
+    /// tolerances of its image, and a target there is kept only if its ray
+    /// meets the pair's within the tolerance.
+    pub(super) fn candidate_groups(&mut self, (i, j): (usize, usize)) -> CandidateGroups {
+        let count = self.frames.len();
+        let tolerance = self.matcher.tolerance;
+        let mut groups = CandidateGroups::default();
+        let mut partners = Vec::new();
+        let mut near: Vec<Vec<u32>> = vec![Vec::new(); count];
+        let mut members = vec![NONE; count];
+        let mut group = vec![NONE; count];
+        let mut seen = Vec::with_capacity(count);
+        let mut choice = Vec::with_capacity(count);
+        let mut traced = vec![false; count];
+        let mut fits: Vec<(f64, u32)> = Vec::new();
+        // This target's candidate groups: (size, spread, offset in own_members).
+        let mut own: Vec<(usize, GroupFit, usize)> = Vec::new();
+        let mut own_members: Vec<u32> = Vec::new();
+        {
+            for a in 0..self.frames[i].targets.len() {
+                if self.used[i][a] {
+                    continue;
+                }
+                let Some(ray_a) = self.frames[i].ray(a) else {
+                    continue;
+                };
+                partners.clear();
+                // Each partner's ray is read as the band finds it, from
+                // the cache line its position was just tested from.
+                let frame_j = &self.frames[j];
+                self.band(i, a, j, |b| partners.push((b, frame_j.ray(b))));
+                if partners.is_empty() {
+                    continue;
+                }
+                own.clear();
+                own_members.clear();
+                // The ray's images in the other cameras, traced on demand.
+                traced.fill(false);
+                for &(b, ray_b) in &partners {
+                    let Some(t) = ray_b.and_then(|ray_b| closest_approach(&ray_a, &ray_b)) else {
+                        continue;
+                    };
+                    seen.clear();
+                    members.fill(NONE);
+                    members[i] = a as u32;
+                    members[j] = b as u32;
+                    for k in 0..count {
+                        near[k].clear();
+                        if k == i || k == j {
+                            continue;
+                        }
+                        if !traced[k] {
+                            traced[k] = true;
+                            self.trace(i, a, k);
+                        }
+                        // Where the pair's point images, to within half the
+                        // rays' gap (the curve follows ray a).
+                        let Some(pixel) = self.curves[k].at(t) else {
+                            continue;
+                        };
+                        let reference = &self.frames[i].targets[a];
+                        let mut list = std::mem::take(&mut near[k]);
+                        self.near(
+                            k,
+                            pixel,
+                            COMPLETION_RADIUS * tolerance,
+                            reference,
+                            &mut list,
+                        );
+                        // Only targets whose rays meet the pair's, the best
+                        // few (see MAX_CANDIDATES_PER_CAMERA).
+                        let mut fitting = std::mem::take(&mut fits);
+                        fitting.clear();
+                        fitting.extend(list.iter().filter_map(|&c| {
+                            members[k] = c;
+                            let fit = self.fit(&members, |_| false);
+                            members[k] = NONE;
+                            fit.filter(|f| f.largest <= tolerance)
+                                .map(|f| (f.largest, c))
+                        }));
+                        fitting.sort_unstable_by(|x, y| x.0.total_cmp(&y.0));
+                        fitting.truncate(MAX_CANDIDATES_PER_CAMERA);
+                        list.clear();
+                        list.extend(fitting.iter().map(|&(_, c)| c));
+                        fits = fitting;
+                        if !list.is_empty() {
+                            seen.push(k);
+                        }
+                        near[k] = list;
+                    }
+                    if seen.is_empty() {
+                        continue;
+                    }
+                    // Every combination of one target per camera that has
+                    // any; targets that each fit the pair may not fit
+                    // together (one imaging another particle), so the worst
+                    // is dropped until they do.
+                    choice.clear();
+                    choice.resize(seen.len(), 0usize);
+                    loop {
+                        group.copy_from_slice(&members);
+                        for (slot, &k) in seen.iter().enumerate() {
+                            group[k] = near[k][choice[slot]];
+                        }
+                        if let Some(fit) = self.trim(&mut group, tolerance, |k| k == i || k == j) {
+                            own.push((size(&group), fit, own_members.len()));
+                            own_members.extend_from_slice(&group);
+                        }
+                        // Next combination (odometer).
+                        let mut slot = 0;
+                        while slot < seen.len() {
+                            choice[slot] += 1;
+                            if choice[slot] < near[seen[slot]].len() {
+                                break;
+                            }
+                            choice[slot] = 0;
+                            slot += 1;
+                        }
+                        if slot == seen.len() {
+                            break;
+                        }
+                    }
+                }
+                // The target's best candidates only (see
+                // MAX_GROUPS_PER_TARGET): memory stays linear in the targets.
+                own.sort_unstable_by(|x, y| y.0.cmp(&x.0).then(x.1.spread.total_cmp(&y.1.spread)));
+                for &(size, fit, at) in own.iter().take(MAX_GROUPS_PER_TARGET) {
+                    groups
+                        .members
+                        .extend_from_slice(&own_members[at..at + count]);
+                    groups.sizes.push(size);
+                    groups.spreads.push(fit.spread);
+                    groups.largest.push(fit.largest);
+                }
+            }
+        }
+        groups
+    }
+}
