@@ -1,0 +1,358 @@
+//! The job queue: enqueue, claim, complete, fail, release, reap; and the
+//! input files of jobs that are not frames.
+
+use std::str::FromStr;
+
+use serde::{Deserialize, Serialize};
+use sqlx::sqlite::SqliteRow;
+use sqlx::{FromRow, Row, Sqlite, Transaction};
+
+use super::{CompleteError, Store};
+
+/// How often a job may be claimed before a crash-looping one is failed.
+pub const MAX_ATTEMPTS: i64 = 3;
+
+/// A job's state.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, utoipa::ToSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum JobState {
+    /// Waiting for a worker.
+    Queued,
+    /// A worker has it.
+    Running,
+    /// Done; its result is stored.
+    Succeeded,
+    /// Given up; `error` says why.
+    Failed,
+}
+
+impl JobState {
+    /// Every state, in the order of a job's life.
+    pub const ALL: [JobState; 4] = [
+        JobState::Queued,
+        JobState::Running,
+        JobState::Succeeded,
+        JobState::Failed,
+    ];
+
+    /// The name stored in the database.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            JobState::Queued => "queued",
+            JobState::Running => "running",
+            JobState::Succeeded => "succeeded",
+            JobState::Failed => "failed",
+        }
+    }
+}
+
+impl FromStr for JobState {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        JobState::ALL
+            .into_iter()
+            .find(|state| state.as_str() == s)
+            .ok_or_else(|| format!("unknown job state `{s}`"))
+    }
+}
+
+/// A stored job.
+#[derive(Clone, Debug)]
+pub struct JobRow {
+    /// Its id.
+    pub id: i64,
+    /// Its kind.
+    pub kind: String,
+    /// What it works on (JSON).
+    pub payload: String,
+    /// queued, running, succeeded or failed.
+    pub state: String,
+    /// How often a worker claimed it.
+    pub attempts: i64,
+    /// Why it failed (or why its last attempt did).
+    pub error: Option<String>,
+    /// Where its result is.
+    pub result: Option<String>,
+    /// Enqueued at.
+    pub created_at: String,
+    /// Last claimed at.
+    pub started_at: Option<String>,
+    /// Finished at.
+    pub finished_at: Option<String>,
+}
+
+/// A job a worker has claimed.
+#[derive(Clone, Debug)]
+pub struct ClaimedJob {
+    /// Its id.
+    pub id: i64,
+    /// Its kind.
+    pub kind: String,
+    /// What it works on (JSON).
+    pub payload: String,
+    /// This claim's number, from 1.
+    pub attempts: i64,
+    /// Who holds it; completion is refused to anyone else.
+    pub locked_by: String,
+}
+
+impl FromRow<'_, SqliteRow> for JobRow {
+    fn from_row(row: &SqliteRow) -> Result<Self, sqlx::Error> {
+        Ok(JobRow {
+            id: row.try_get("id")?,
+            kind: row.try_get("kind")?,
+            payload: row.try_get("payload")?,
+            state: row.try_get("state")?,
+            attempts: row.try_get("attempts")?,
+            error: row.try_get("error")?,
+            result: row.try_get("result")?,
+            created_at: row.try_get("created_at")?,
+            started_at: row.try_get("started_at")?,
+            finished_at: row.try_get("finished_at")?,
+        })
+    }
+}
+
+impl FromRow<'_, SqliteRow> for ClaimedJob {
+    fn from_row(row: &SqliteRow) -> Result<Self, sqlx::Error> {
+        Ok(ClaimedJob {
+            id: row.try_get("id")?,
+            kind: row.try_get("kind")?,
+            payload: row.try_get("payload")?,
+            attempts: row.try_get("attempts")?,
+            locked_by: row.try_get("locked_by")?,
+        })
+    }
+}
+
+/// A stored input file of a job: its part, camera, hash and size.
+#[derive(Clone, Debug, PartialEq)]
+pub struct JobFile {
+    /// The request's part name.
+    pub part: String,
+    /// The camera of a per-camera part.
+    pub camera: Option<i64>,
+    /// The file's hash in the image store.
+    pub sha256: String,
+    /// Bytes.
+    pub size: i64,
+}
+
+impl Store {
+    /// Claims the oldest queued job for `worker`, in one statement.
+    pub async fn claim(&self, worker: &str) -> Result<Option<ClaimedJob>, sqlx::Error> {
+        sqlx::query_as(
+            "UPDATE jobs SET state = 'running', attempts = attempts + 1, locked_by = ?1, \
+             started_at = strftime('%Y-%m-%dT%H:%M:%fZ', 'now') \
+             WHERE id = (SELECT id FROM jobs WHERE state = 'queued' ORDER BY id LIMIT 1) \
+             RETURNING id, kind, payload, attempts, locked_by",
+        )
+        .bind(worker)
+        .fetch_optional(&self.writer)
+        .await
+    }
+
+    /// Fails a job the worker holds.
+    pub async fn fail(
+        &self,
+        job: &ClaimedJob,
+        error: &str,
+        duration_s: f64,
+    ) -> Result<(), CompleteError> {
+        let done = sqlx::query(
+            "UPDATE jobs SET state = 'failed', error = ?, locked_by = NULL, duration_s = ?, \
+             finished_at = strftime('%Y-%m-%dT%H:%M:%fZ', 'now') \
+             WHERE id = ? AND state = 'running' AND locked_by = ?",
+        )
+        .bind(error)
+        .bind(duration_s)
+        .bind(job.id)
+        .bind(&job.locked_by)
+        .execute(&self.writer)
+        .await?;
+        if done.rows_affected() == 0 {
+            return Err(CompleteError::LostLease(job.id));
+        }
+        Ok(())
+    }
+
+    /// Returns a job the worker holds to the queue (its attempt failed for
+    /// a passing reason, or the service is stopping).
+    pub async fn release(&self, job: &ClaimedJob, error: Option<&str>) -> Result<(), sqlx::Error> {
+        sqlx::query(
+            "UPDATE jobs SET state = 'queued', error = coalesce(?, error), locked_by = NULL \
+             WHERE id = ? AND state = 'running' AND locked_by = ?",
+        )
+        .bind(error)
+        .bind(job.id)
+        .bind(&job.locked_by)
+        .execute(&self.writer)
+        .await?;
+        Ok(())
+    }
+
+    /// The reaper, run at start-up before any worker: a job left running
+    /// by a process that died goes back to the queue, or fails once it has
+    /// been claimed [`MAX_ATTEMPTS`] times (a job that kills its worker
+    /// must not kill every restart). Returns (requeued, failed).
+    pub async fn reap(&self) -> Result<(u64, u64), sqlx::Error> {
+        let mut tx = self.write_transaction().await?;
+        let failed = sqlx::query(
+            "UPDATE jobs SET state = 'failed', locked_by = NULL, \
+             error = 'the service stopped while running this job ' || attempts || \
+                     ' times; it is not retried again', \
+             finished_at = strftime('%Y-%m-%dT%H:%M:%fZ', 'now') \
+             WHERE state = 'running' AND attempts >= ?",
+        )
+        .bind(MAX_ATTEMPTS)
+        .execute(&mut *tx)
+        .await?
+        .rows_affected();
+        let requeued = sqlx::query(
+            "UPDATE jobs SET state = 'queued', locked_by = NULL WHERE state = 'running'",
+        )
+        .execute(&mut *tx)
+        .await?
+        .rows_affected();
+        tx.commit().await?;
+        Ok((requeued, failed))
+    }
+
+    /// A job by id.
+    pub async fn job(&self, id: i64) -> Result<Option<JobRow>, sqlx::Error> {
+        sqlx::query_as(
+            "SELECT id, kind, payload, state, attempts, error, result, created_at, started_at, \
+             finished_at FROM jobs WHERE id = ?",
+        )
+        .bind(id)
+        .fetch_optional(&self.reader)
+        .await
+    }
+
+    /// Jobs counted by kind and state.
+    pub async fn job_counts(&self) -> Result<Vec<(String, String, i64)>, sqlx::Error> {
+        sqlx::query_as("SELECT kind, state, count(*) FROM jobs GROUP BY kind, state")
+            .fetch_all(&self.reader)
+            .await
+    }
+    /// Enqueues a job and records its input files in one transaction;
+    /// returns the job's id.
+    pub async fn enqueue_with_files(
+        &self,
+        kind: &str,
+        payload: &str,
+        files: &[JobFile],
+    ) -> Result<i64, sqlx::Error> {
+        let mut tx = self.write_transaction().await?;
+        let id = enqueue(&mut tx, kind, payload).await?;
+        for file in files {
+            sqlx::query(
+                "INSERT INTO job_files (job_id, part, camera, sha256, size) VALUES (?, ?, ?, ?, ?)",
+            )
+            .bind(id)
+            .bind(&file.part)
+            .bind(file.camera)
+            .bind(&file.sha256)
+            .bind(file.size)
+            .execute(&mut *tx)
+            .await?;
+        }
+        tx.commit().await?;
+        Ok(id)
+    }
+
+    /// A job's input files, in the order they were recorded.
+    pub async fn job_files(&self, job_id: i64) -> Result<Vec<JobFile>, sqlx::Error> {
+        let rows: Vec<(String, Option<i64>, String, i64)> = sqlx::query_as(
+            "SELECT part, camera, sha256, size FROM job_files WHERE job_id = ? ORDER BY rowid",
+        )
+        .bind(job_id)
+        .fetch_all(&self.reader)
+        .await?;
+        Ok(rows
+            .into_iter()
+            .map(|(part, camera, sha256, size)| JobFile {
+                part,
+                camera,
+                sha256,
+                size,
+            })
+            .collect())
+    }
+    /// Completes a held job whose results are stored elsewhere (or that
+    /// has none) with a link to its result.
+    pub async fn succeed(
+        &self,
+        job: &ClaimedJob,
+        result: &str,
+        duration_s: f64,
+    ) -> Result<(), CompleteError> {
+        let mut tx = self.write_transaction().await?;
+        finish(&mut tx, job, result, duration_s).await?;
+        tx.commit().await?;
+        Ok(())
+    }
+
+    /// Enqueues a job on its own (e.g. solve_calibration, whose inputs are
+    /// files already in the image store, named in the payload).
+    pub async fn enqueue(&self, kind: &str, payload: &str) -> Result<i64, sqlx::Error> {
+        let mut tx = self.write_transaction().await?;
+        let id = enqueue(&mut tx, kind, payload).await?;
+        tx.commit().await?;
+        Ok(id)
+    }
+    /// Returns the jobs this process's workers hold to the queue (at a
+    /// shutdown whose grace period ran out).
+    pub async fn release_held(&self, instance: &str) -> Result<u64, sqlx::Error> {
+        Ok(sqlx::query(
+            "UPDATE jobs SET state = 'queued', locked_by = NULL \
+             WHERE state = 'running' AND substr(locked_by, 1, length(?1) + 1) = ?1 || '/'",
+        )
+        .bind(instance)
+        .execute(&self.writer)
+        .await?
+        .rows_affected())
+    }
+}
+
+/// Enqueues a job inside the caller's transaction, so that the job exists
+/// exactly when what it works on does.
+pub async fn enqueue(
+    tx: &mut Transaction<'_, Sqlite>,
+    kind: &str,
+    payload: &str,
+) -> Result<i64, sqlx::Error> {
+    let (id,): (i64,) =
+        sqlx::query_as("INSERT INTO jobs (kind, payload) VALUES (?, ?) RETURNING id")
+            .bind(kind)
+            .bind(payload)
+            .fetch_one(&mut **tx)
+            .await?;
+    Ok(id)
+}
+
+/// Marks the held job succeeded inside the transaction that stores its
+/// results; fails (and the caller rolls back) if the worker no longer holds
+/// it.
+pub async fn finish(
+    tx: &mut Transaction<'_, Sqlite>,
+    job: &ClaimedJob,
+    result: &str,
+    duration_s: f64,
+) -> Result<(), CompleteError> {
+    let done = sqlx::query(
+        "UPDATE jobs SET state = 'succeeded', result = ?, error = NULL, locked_by = NULL, \
+         duration_s = ?, finished_at = strftime('%Y-%m-%dT%H:%M:%fZ', 'now') \
+         WHERE id = ? AND state = 'running' AND locked_by = ?",
+    )
+    .bind(result)
+    .bind(duration_s)
+    .bind(job.id)
+    .bind(&job.locked_by)
+    .execute(&mut **tx)
+    .await?;
+    if done.rows_affected() == 0 {
+        return Err(CompleteError::LostLease(job.id));
+    }
+    Ok(())
+}

@@ -1,0 +1,178 @@
+//! All of the service's SQL: calibrations, sequences, frames and their
+//! inputs and results, and the job queue, in one SQLite database.
+//!
+//! SQLite runs in WAL mode (readers never wait for the writer) with a busy
+//! timeout. Writes go through a pool of one connection, so they queue in
+//! the process instead of failing on SQLite's lock; reads use their own
+//! pool. Every multi-statement write is one transaction: an upload and its
+//! job, a job's results and its completion. Queries are checked at run
+//! time (no database at build time); their results map onto `FromRow`
+//! structs (`FromRow` written out, no derive macros).
+//!
+//! One file per table group, each with its own `impl Store`:
+//! [`calibrations`](self::calibrations), [`sequences`](self::sequences)
+//! (sequences and their frames' inputs and results) and [`jobs`](self::jobs)
+//! (the queue and the jobs' input files); here the pools, the migrations
+//! and what they share.
+
+mod calibrations;
+mod jobs;
+mod sequences;
+
+use std::path::Path;
+use std::time::Duration;
+
+use std::future::Future;
+use std::pin::Pin;
+
+use sqlx::error::BoxDynError;
+use sqlx::migrate::{Migration, MigrationSource, MigrationType, Migrator};
+use sqlx::sqlite::{
+    SqliteConnectOptions, SqliteJournalMode, SqlitePool, SqlitePoolOptions, SqliteSynchronous,
+};
+
+pub use self::calibrations::{insert_calibration, CalibrationRow};
+pub use self::jobs::{enqueue, finish, ClaimedJob, JobFile, JobRow, JobState, MAX_ATTEMPTS};
+pub use self::sequences::{FrameCounts, FrameInput, NewFrame, SequenceRow};
+
+/// The database.
+#[derive(Clone, Debug)]
+pub struct Store {
+    /// Readers, several at once.
+    reader: SqlitePool,
+    /// The one writer.
+    writer: SqlitePool,
+}
+
+/// The schema's migrations, `migrations/*.sql`, compiled into the binary
+/// (what `sqlx::migrate!` does, without its proc-macro, which would build
+/// SQLite a second time for the compiler).
+#[derive(Debug)]
+struct Migrations;
+
+/// Version, description and SQL of each migration, in order.
+const MIGRATIONS: &[(i64, &str, &str)] = &[
+    (
+        1,
+        "service",
+        include_str!("../../../migrations/0001_service.sql"),
+    ),
+    (
+        2,
+        "job_files",
+        include_str!("../../../migrations/0002_job_files.sql"),
+    ),
+];
+
+impl<'s> MigrationSource<'s> for Migrations {
+    fn resolve(
+        self,
+    ) -> Pin<Box<dyn Future<Output = Result<Vec<Migration>, BoxDynError>> + Send + 's>> {
+        Box::pin(async {
+            Ok(MIGRATIONS
+                .iter()
+                .map(|(version, description, sql)| {
+                    Migration::new(
+                        *version,
+                        (*description).into(),
+                        MigrationType::Simple,
+                        (*sql).into(),
+                        false,
+                    )
+                })
+                .collect())
+        })
+    }
+}
+
+/// Why a frame could not be stored.
+#[derive(Debug, thiserror::Error)]
+pub enum InsertFrameError {
+    /// The frame number is taken.
+    #[error("frame {0} exists")]
+    Exists(i64),
+    /// The database failed.
+    #[error(transparent)]
+    Database(#[from] sqlx::Error),
+}
+
+/// A completion that the job's holder may no longer make.
+#[derive(Debug, thiserror::Error)]
+pub enum CompleteError {
+    /// The job is no longer running under this worker.
+    #[error("job {0} is no longer held by this worker")]
+    LostLease(i64),
+    /// The database failed.
+    #[error(transparent)]
+    Database(#[from] sqlx::Error),
+}
+
+/// Whether an error is SQLite's unique or primary-key violation.
+fn is_unique_violation(error: &sqlx::Error) -> bool {
+    matches!(error, sqlx::Error::Database(e) if e.is_unique_violation())
+}
+
+impl Store {
+    /// Opens (creating if missing) the database `ptv.sqlite` in
+    /// `data_dir` and brings its schema up to date.
+    pub async fn open(data_dir: &Path, readers: u32) -> Result<Store, sqlx::Error> {
+        let options = SqliteConnectOptions::new()
+            .filename(data_dir.join("ptv.sqlite"))
+            .create_if_missing(true)
+            .journal_mode(SqliteJournalMode::Wal)
+            // In WAL mode NORMAL survives a crash of the process (a kill);
+            // only a power loss may lose the last transactions.
+            .synchronous(SqliteSynchronous::Normal)
+            .busy_timeout(Duration::from_secs(10))
+            .foreign_keys(true);
+        let writer = SqlitePoolOptions::new()
+            .max_connections(1)
+            .connect_with(options.clone())
+            .await?;
+        Migrator::new(Migrations)
+            .await
+            .map_err(sqlx::Error::from)?
+            .run(&writer)
+            .await?;
+        let reader = SqlitePoolOptions::new()
+            .max_connections(readers.max(1))
+            .connect_with(options.read_only(true))
+            .await?;
+        Ok(Store { reader, writer })
+    }
+
+    /// Starts a write transaction with `BEGIN IMMEDIATE`: it takes SQLite's
+    /// write lock at once, so a transaction that reads before it writes never
+    /// finds its snapshot stale when it comes to write (a deferred `BEGIN`
+    /// would then fail with SQLITE_BUSY whatever the busy timeout), also
+    /// with several processes on one database.
+    async fn write_transaction(
+        &self,
+    ) -> Result<sqlx::Transaction<'static, sqlx::Sqlite>, sqlx::Error> {
+        self.writer.begin_with("BEGIN IMMEDIATE").await
+    }
+
+    /// Closes both pools.
+    pub async fn close(&self) {
+        self.writer.close().await;
+        self.reader.close().await;
+    }
+
+    /// Whether any frame or job refers to the file with this hash.
+    pub async fn image_in_use(&self, sha256: &str) -> Result<bool, sqlx::Error> {
+        let mut conn = self.writer.acquire().await?;
+        file_in_use(&mut conn, sha256).await
+    }
+}
+
+/// Whether any frame's image or job's file is the file with this hash.
+async fn file_in_use(conn: &mut sqlx::SqliteConnection, sha256: &str) -> Result<bool, sqlx::Error> {
+    let (n,): (i64,) = sqlx::query_as(
+        "SELECT (SELECT count(*) FROM images WHERE sha256 = ?1) + \
+                (SELECT count(*) FROM job_files WHERE sha256 = ?1)",
+    )
+    .bind(sha256)
+    .fetch_one(&mut *conn)
+    .await?;
+    Ok(n > 0)
+}
