@@ -33,7 +33,9 @@ use super::app::AppState;
 use super::codec;
 use super::parameters::SequenceParameters;
 use super::parameters::SolveOptions;
-use super::store::{ClaimedJob, CompleteError, JobFile, Store, MAX_ATTEMPTS};
+use super::store::{
+    CalibrationId, ClaimedJob, CompleteError, FrameNumber, JobFile, SequenceId, Store, MAX_ATTEMPTS,
+};
 use crate::formats;
 use crate::formats::control;
 use crate::formats::image::RawLayout;
@@ -175,7 +177,7 @@ impl CpuPool {
 /// matcher's refraction tables, far more work than a frame).
 #[derive(Debug, Default)]
 pub struct PipelineCache {
-    pipelines: Mutex<HashMap<i64, Arc<FramePipeline>>>,
+    pipelines: Mutex<HashMap<SequenceId, Arc<FramePipeline>>>,
 }
 
 /// Pipelines kept at most; beyond, the cache starts afresh.
@@ -183,13 +185,13 @@ const CACHED_PIPELINES: usize = 32;
 
 impl PipelineCache {
     /// The sequence's pipeline, if prepared.
-    pub fn get(&self, sequence_id: i64) -> Option<Arc<FramePipeline>> {
+    pub fn get(&self, sequence_id: SequenceId) -> Option<Arc<FramePipeline>> {
         let map = self.pipelines.lock().unwrap_or_else(|e| e.into_inner());
         map.get(&sequence_id).cloned()
     }
 
     /// Keeps a prepared pipeline.
-    pub fn insert(&self, sequence_id: i64, pipeline: Arc<FramePipeline>) {
+    pub fn insert(&self, sequence_id: SequenceId, pipeline: Arc<FramePipeline>) {
         let mut map = self.pipelines.lock().unwrap_or_else(|e| e.into_inner());
         if map.len() >= CACHED_PIPELINES {
             map.clear();
@@ -297,19 +299,19 @@ async fn execute(state: &Arc<AppState>, kinds: &JobKinds, job: ClaimedJob) {
     let label = match outcome {
         Ok(()) => "succeeded",
         Err(JobError::LostLease) => {
-            tracing::warn!(job = job.id, "job completed elsewhere; result dropped");
+            tracing::warn!(job = %job.id, "job completed elsewhere; result dropped");
             "lost"
         }
         Err(JobError::Failed(message)) => {
             if let Err(error) = state.store.fail(&job, &message, seconds).await {
-                tracing::error!(job = job.id, %error, "cannot record a failure");
+                tracing::error!(job = %job.id, %error, "cannot record a failure");
             }
             "failed"
         }
         Err(JobError::Retry(message)) if job.attempts < MAX_ATTEMPTS => {
-            tracing::warn!(job = job.id, %message, "job attempt failed; queued again");
+            tracing::warn!(job = %job.id, %message, "job attempt failed; queued again");
             if let Err(error) = state.store.release(&job, Some(&message)).await {
-                tracing::error!(job = job.id, %error, "cannot queue a job again");
+                tracing::error!(job = %job.id, %error, "cannot queue a job again");
             }
             state.wake.notify_one();
             "retried"
@@ -317,7 +319,7 @@ async fn execute(state: &Arc<AppState>, kinds: &JobKinds, job: ClaimedJob) {
         Err(JobError::Retry(message)) => {
             let message = format!("gave up after {} attempts: {message}", job.attempts);
             if let Err(error) = state.store.fail(&job, &message, seconds).await {
-                tracing::error!(job = job.id, %error, "cannot record a failure");
+                tracing::error!(job = %job.id, %error, "cannot record a failure");
             }
             "failed"
         }
@@ -328,8 +330,8 @@ async fn execute(state: &Arc<AppState>, kinds: &JobKinds, job: ClaimedJob) {
 /// A process_frame job's payload.
 #[derive(Debug, Deserialize)]
 struct FramePayload {
-    sequence_id: i64,
-    frame: i64,
+    sequence_id: SequenceId,
+    frame: FrameNumber,
 }
 
 /// The raw layout as stored with a frame.
@@ -357,8 +359,8 @@ impl StoredRawLayout {
 /// The sequence's pipeline, from the cache or prepared now.
 async fn pipeline_of(
     state: &AppState,
-    sequence_id: i64,
-    calibration_id: i64,
+    sequence_id: SequenceId,
+    calibration_id: CalibrationId,
 ) -> Result<Arc<FramePipeline>, JobError> {
     if let Some(pipeline) = state.pipelines.get(sequence_id) {
         return Ok(pipeline);

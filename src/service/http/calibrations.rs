@@ -23,7 +23,7 @@ use crate::service::app::AppState;
 use crate::service::images::UploadedFile;
 use crate::service::jobs::{error_chain, part_source, SolvePayload, SOLVE_CALIBRATION};
 use crate::service::parameters::SolveOptions;
-use crate::service::store::{CalibrationRow, JobFile};
+use crate::service::store::{CalibrationId, CalibrationRow, JobFile, JobId};
 
 /// Largest OpenPTV text file accepted (bytes).
 const MAX_TEXT_PART: usize = 1 << 20;
@@ -45,7 +45,8 @@ pub(super) fn router() -> Router<Arc<AppState>> {
 #[derive(Debug, Serialize, ToSchema)]
 pub struct CalibrationView {
     /// Its id.
-    pub id: i64,
+    #[schema(value_type = i64)]
+    pub id: CalibrationId,
     /// How many cameras.
     pub cameras: i64,
     /// The calibration JSON (see `src/formats/calibration.rs`).
@@ -168,7 +169,7 @@ pub async fn create_openptv(
 }
 
 /// The calibration's cameras, from the store.
-pub(super) async fn cameras_of(state: &AppState, id: i64) -> Result<Vec<Camera>, ApiError> {
+pub(super) async fn cameras_of(state: &AppState, id: CalibrationId) -> Result<Vec<Camera>, ApiError> {
     let row = state
         .store
         .calibration(id)
@@ -189,7 +190,7 @@ pub(super) async fn cameras_of(state: &AppState, id: i64) -> Result<Vec<Camera>,
 )]
 pub async fn read(
     State(state): Shared,
-    ApiPath(id): ApiPath<i64>,
+    ApiPath(id): ApiPath<CalibrationId>,
 ) -> Result<Json<CalibrationView>, ApiError> {
     let row = state
         .store
@@ -214,7 +215,7 @@ pub async fn read(
 )]
 pub async fn openptv_file(
     State(state): Shared,
-    ApiPath((id, file)): ApiPath<(i64, String)>,
+    ApiPath((id, file)): ApiPath<(CalibrationId, String)>,
 ) -> Result<Response, ApiError> {
     let cameras = cameras_of(&state, id).await?;
     let unknown = || {
@@ -267,7 +268,7 @@ pub struct ProjectResponse {
 )]
 pub async fn project(
     State(state): Shared,
-    ApiPath(id): ApiPath<i64>,
+    ApiPath(id): ApiPath<CalibrationId>,
     ApiJson(request): ApiJson<ProjectRequest>,
 ) -> Result<Json<ProjectResponse>, ApiError> {
     if request.points.len() > MAX_POINTS {
@@ -341,7 +342,7 @@ pub struct IntersectResponse {
 )]
 pub async fn intersect_points(
     State(state): Shared,
-    ApiPath(id): ApiPath<i64>,
+    ApiPath(id): ApiPath<CalibrationId>,
     ApiJson(request): ApiJson<IntersectRequest>,
 ) -> Result<Json<IntersectResponse>, ApiError> {
     let cameras = cameras_of(&state, id).await?;
@@ -389,7 +390,8 @@ const MAX_OPTIONS_PART: usize = 64 << 10;
 #[derive(Debug, Serialize, ToSchema)]
 pub struct SolveAccepted {
     /// The job that solves it.
-    pub job_id: i64,
+    #[schema(value_type = i64)]
+    pub job_id: JobId,
     /// Where to poll the job; once succeeded, its `result` is the
     /// calibration.
     pub job: String,

@@ -11,7 +11,7 @@ use utoipa::ToSchema;
 use super::problem::{ApiError, ApiPath};
 use super::Shared;
 use crate::service::app::AppState;
-use crate::service::store::JobState;
+use crate::service::store::{JobId, JobState};
 
 pub(super) fn router() -> Router<Arc<AppState>> {
     Router::new().route("/jobs/{id}", get(read))
@@ -21,7 +21,8 @@ pub(super) fn router() -> Router<Arc<AppState>> {
 #[derive(Debug, Serialize, ToSchema)]
 pub struct JobView {
     /// Its id.
-    pub id: i64,
+    #[schema(value_type = i64)]
+    pub id: JobId,
     /// What it does: `process_frame`, ...
     pub kind: String,
     /// Its state.
@@ -54,7 +55,7 @@ pub struct JobView {
 )]
 pub async fn read(
     State(state): Shared,
-    ApiPath(id): ApiPath<i64>,
+    ApiPath(id): ApiPath<JobId>,
 ) -> Result<Json<JobView>, ApiError> {
     let row = state
         .store

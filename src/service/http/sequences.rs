@@ -26,7 +26,9 @@ use crate::service::codec;
 use crate::service::images::UploadedFile;
 use crate::service::jobs::{prepare_pipeline, StoredRawLayout};
 use crate::service::parameters::{DetectionSettings, MatchingSettings, SequenceParameters};
-use crate::service::store::{InsertFrameError, NewFrame, SequenceRow};
+use crate::service::store::{
+    CalibrationId, FrameNumber, InsertFrameError, JobId, NewFrame, SequenceId, SequenceRow,
+};
 
 /// Longest sequence name.
 const MAX_NAME: usize = 200;
@@ -51,7 +53,8 @@ pub(super) fn router() -> Router<Arc<AppState>> {
 #[serde(deny_unknown_fields)]
 pub struct CreateSequence {
     /// The calibration its frames are processed with.
-    pub calibration_id: i64,
+    #[schema(value_type = i64)]
+    pub calibration_id: CalibrationId,
     /// A label (no path separators or control characters).
     #[serde(default)]
     pub name: Option<String>,
@@ -83,9 +86,11 @@ pub struct FrameCountsView {
 #[derive(Debug, Serialize, ToSchema)]
 pub struct SequenceView {
     /// Its id.
-    pub id: i64,
+    #[schema(value_type = i64)]
+    pub id: SequenceId,
     /// Its calibration.
-    pub calibration_id: i64,
+    #[schema(value_type = i64)]
+    pub calibration_id: CalibrationId,
     /// Its name.
     pub name: String,
     /// The parameters, defaults filled in.
@@ -186,7 +191,7 @@ pub async fn create(
         .into_response())
 }
 
-async fn sequence(state: &AppState, id: i64) -> Result<SequenceRow, ApiError> {
+async fn sequence(state: &AppState, id: SequenceId) -> Result<SequenceRow, ApiError> {
     state
         .store
         .sequence(id)
@@ -205,7 +210,7 @@ async fn sequence(state: &AppState, id: i64) -> Result<SequenceRow, ApiError> {
 )]
 pub async fn read(
     State(state): Shared,
-    ApiPath(id): ApiPath<i64>,
+    ApiPath(id): ApiPath<SequenceId>,
 ) -> Result<Json<SequenceView>, ApiError> {
     let row = sequence(&state, id).await?;
     Ok(Json(view(&state, row).await?))
@@ -215,9 +220,11 @@ pub async fn read(
 #[derive(Debug, Serialize, ToSchema)]
 pub struct FrameAccepted {
     /// The frame number.
-    pub frame: i64,
+    #[schema(value_type = i64)]
+    pub frame: FrameNumber,
     /// The job that processes it.
-    pub job_id: i64,
+    #[schema(value_type = i64)]
+    pub job_id: JobId,
     /// Where to poll the job.
     pub job: String,
     /// Where the particles will be.
@@ -341,7 +348,7 @@ pub(super) fn check_image(
 
 /// The parts of a frame upload, as read.
 struct UploadParts {
-    frame: Option<i64>,
+    frame: Option<FrameNumber>,
     images: Vec<Option<UploadedFile>>,
     targets: Vec<Option<Vec<Target>>>,
     width: Option<u32>,
@@ -353,7 +360,7 @@ struct UploadParts {
 /// streamed to temporary files, targets parsed, numbers checked.
 async fn read_parts(
     state: &AppState,
-    id: i64,
+    id: SequenceId,
     n: usize,
     multipart: &mut Multipart,
 ) -> Result<UploadParts, ApiError> {
@@ -372,13 +379,13 @@ async fn read_parts(
             if parts.frame.is_some() {
                 return Err(repeated());
             }
-            let number: u32 = number_part(&mut field, &name).await?;
-            if state.store.frame_exists(id, number.into()).await? {
+            let number = FrameNumber(number_part::<u32>(&mut field, &name).await?.into());
+            if state.store.frame_exists(id, number).await? {
                 return Err(ApiError::conflict(format!(
                     "frame {number} of sequence {id} exists; frames are uploaded once"
                 )));
             }
-            parts.frame = Some(number.into());
+            parts.frame = Some(number);
         } else if name == "width" {
             parts.width = Some(number_part::<u32>(&mut field, &name).await?);
         } else if name == "height" {
@@ -448,7 +455,7 @@ pub(super) async fn drain(multipart: &mut Multipart) {
 )]
 pub async fn upload_frame(
     State(state): Shared,
-    ApiPath(id): ApiPath<i64>,
+    ApiPath(id): ApiPath<SequenceId>,
     ApiMultipart(mut multipart): ApiMultipart,
 ) -> Result<Response, ApiError> {
     let row = sequence(&state, id).await?;
@@ -656,9 +663,11 @@ pub struct ParticleView {
 #[derive(Debug, Serialize, ToSchema)]
 pub struct FrameParticles {
     /// The sequence.
-    pub sequence_id: i64,
+    #[schema(value_type = i64)]
+    pub sequence_id: SequenceId,
     /// The frame.
-    pub frame: i64,
+    #[schema(value_type = i64)]
+    pub frame: FrameNumber,
     /// The particles.
     pub particles: Vec<ParticleView>,
 }
@@ -666,8 +675,8 @@ pub struct FrameParticles {
 /// The frame's stored particles, or why there are none.
 async fn load_particles(
     state: &AppState,
-    id: i64,
-    frame: i64,
+    id: SequenceId,
+    frame: FrameNumber,
 ) -> Result<(usize, Vec<Particle>), ApiError> {
     let row = sequence(state, id).await?;
     let cameras = state
@@ -705,7 +714,7 @@ async fn load_particles(
 )]
 pub async fn frame_particles(
     State(state): Shared,
-    ApiPath((id, frame)): ApiPath<(i64, i64)>,
+    ApiPath((id, frame)): ApiPath<(SequenceId, FrameNumber)>,
     ApiQuery(query): ApiQuery<ParticleQuery>,
 ) -> Result<Response, ApiError> {
     let (cameras, particles) = load_particles(&state, id, frame).await?;
@@ -784,7 +793,8 @@ pub struct TargetView {
 #[derive(Debug, Serialize, ToSchema)]
 pub struct FrameTargets {
     /// The frame.
-    pub frame: i64,
+    #[schema(value_type = i64)]
+    pub frame: FrameNumber,
     /// The camera.
     pub camera: usize,
     /// The targets, indexed as the particles' `targets` refer to them.
@@ -808,7 +818,7 @@ pub struct FrameTargets {
 )]
 pub async fn frame_targets(
     State(state): Shared,
-    ApiPath((id, frame)): ApiPath<(i64, i64)>,
+    ApiPath((id, frame)): ApiPath<(SequenceId, FrameNumber)>,
     ApiQuery(query): ApiQuery<TargetQuery>,
 ) -> Result<Response, ApiError> {
     sequence(&state, id).await?;
@@ -883,7 +893,7 @@ pub struct AllParticlesQuery {
 )]
 pub async fn all_particles(
     State(state): Shared,
-    ApiPath(id): ApiPath<i64>,
+    ApiPath(id): ApiPath<SequenceId>,
     ApiQuery(query): ApiQuery<AllParticlesQuery>,
 ) -> Result<Response, ApiError> {
     if let Some(format) = query.format.as_deref().filter(|f| *f != "csv") {
@@ -929,7 +939,7 @@ pub async fn all_particles(
 }
 
 /// A frame's particle rows with the frame number in front.
-fn frame_rows(frame: i64, particles: &[Particle], cameras: usize) -> String {
+fn frame_rows(frame: FrameNumber, particles: &[Particle], cameras: usize) -> String {
     let table = formats::csv::format_particles(particles, cameras);
     let mut out = String::with_capacity(table.len() + particles.len() * 8);
     for line in table.lines().skip(1) {

@@ -5,13 +5,13 @@ use sqlx::sqlite::SqliteRow;
 use sqlx::{FromRow, Row, Sqlite, Transaction};
 
 use super::jobs::{finish, ClaimedJob};
-use super::{file_in_use, CompleteError, Store};
+use super::{file_in_use, CalibrationId, CompleteError, Store};
 
 /// A stored calibration.
 #[derive(Clone, Debug)]
 pub struct CalibrationRow {
     /// Its id.
-    pub id: i64,
+    pub id: CalibrationId,
     /// The calibration JSON.
     pub model: String,
     /// How many cameras.
@@ -49,7 +49,7 @@ impl Store {
     }
 
     /// A calibration by id.
-    pub async fn calibration(&self, id: i64) -> Result<Option<CalibrationRow>, sqlx::Error> {
+    pub async fn calibration(&self, id: CalibrationId) -> Result<Option<CalibrationRow>, sqlx::Error> {
         sqlx::query_as(
             "SELECT id, model, cameras, report, created_at FROM calibrations WHERE id = ?",
         )
@@ -70,7 +70,7 @@ impl Store {
         report: &str,
         keep_files: bool,
         duration_s: f64,
-    ) -> Result<(i64, Vec<String>), CompleteError> {
+    ) -> Result<(CalibrationId, Vec<String>), CompleteError> {
         let mut tx = self.write_transaction().await?;
         let row = insert_calibration(&mut tx, model, cameras, Some(report)).await?;
         let result = format!("/api/v1/calibrations/{}", row.id);

@@ -7,7 +7,7 @@ use serde::{Deserialize, Serialize};
 use sqlx::sqlite::SqliteRow;
 use sqlx::{FromRow, Row, Sqlite, Transaction};
 
-use super::{CompleteError, Store};
+use super::{CompleteError, JobId, Store};
 
 /// How often a job may be claimed before a crash-looping one is failed.
 pub const MAX_ATTEMPTS: i64 = 3;
@@ -60,7 +60,7 @@ impl FromStr for JobState {
 #[derive(Clone, Debug)]
 pub struct JobRow {
     /// Its id.
-    pub id: i64,
+    pub id: JobId,
     /// Its kind.
     pub kind: String,
     /// What it works on (JSON).
@@ -85,7 +85,7 @@ pub struct JobRow {
 #[derive(Clone, Debug)]
 pub struct ClaimedJob {
     /// Its id.
-    pub id: i64,
+    pub id: JobId,
     /// Its kind.
     pub kind: String,
     /// What it works on (JSON).
@@ -219,7 +219,7 @@ impl Store {
     }
 
     /// A job by id.
-    pub async fn job(&self, id: i64) -> Result<Option<JobRow>, sqlx::Error> {
+    pub async fn job(&self, id: JobId) -> Result<Option<JobRow>, sqlx::Error> {
         sqlx::query_as(
             "SELECT id, kind, payload, state, attempts, error, result, created_at, started_at, \
              finished_at FROM jobs WHERE id = ?",
@@ -242,7 +242,7 @@ impl Store {
         kind: &str,
         payload: &str,
         files: &[JobFile],
-    ) -> Result<i64, sqlx::Error> {
+    ) -> Result<JobId, sqlx::Error> {
         let mut tx = self.write_transaction().await?;
         let id = enqueue(&mut tx, kind, payload).await?;
         for file in files {
@@ -262,7 +262,7 @@ impl Store {
     }
 
     /// A job's input files, in the order they were recorded.
-    pub async fn job_files(&self, job_id: i64) -> Result<Vec<JobFile>, sqlx::Error> {
+    pub async fn job_files(&self, job_id: JobId) -> Result<Vec<JobFile>, sqlx::Error> {
         let rows: Vec<(String, Option<i64>, String, i64)> = sqlx::query_as(
             "SELECT part, camera, sha256, size FROM job_files WHERE job_id = ? ORDER BY rowid",
         )
@@ -295,7 +295,7 @@ impl Store {
 
     /// Enqueues a job on its own (e.g. solve_calibration, whose inputs are
     /// files already in the image store, named in the payload).
-    pub async fn enqueue(&self, kind: &str, payload: &str) -> Result<i64, sqlx::Error> {
+    pub async fn enqueue(&self, kind: &str, payload: &str) -> Result<JobId, sqlx::Error> {
         let mut tx = self.write_transaction().await?;
         let id = enqueue(&mut tx, kind, payload).await?;
         tx.commit().await?;
@@ -321,8 +321,8 @@ pub async fn enqueue(
     tx: &mut Transaction<'_, Sqlite>,
     kind: &str,
     payload: &str,
-) -> Result<i64, sqlx::Error> {
-    let (id,): (i64,) =
+) -> Result<JobId, sqlx::Error> {
+    let (id,): (JobId,) =
         sqlx::query_as("INSERT INTO jobs (kind, payload) VALUES (?, ?) RETURNING id")
             .bind(kind)
             .bind(payload)

@@ -16,6 +16,7 @@
 //! and what they share.
 
 mod calibrations;
+mod ids;
 mod jobs;
 mod sequences;
 
@@ -32,6 +33,7 @@ use sqlx::sqlite::{
 };
 
 pub use self::calibrations::{insert_calibration, CalibrationRow};
+pub use self::ids::{CalibrationId, FrameNumber, JobId, SequenceId};
 pub use self::jobs::{enqueue, finish, ClaimedJob, JobFile, JobRow, JobState, MAX_ATTEMPTS};
 pub use self::sequences::{FrameCounts, FrameInput, NewFrame, SequenceRow};
 
@@ -90,7 +92,7 @@ impl<'s> MigrationSource<'s> for Migrations {
 pub enum InsertFrameError {
     /// The frame number is taken.
     #[error("frame {0} exists")]
-    Exists(i64),
+    Exists(FrameNumber),
     /// The database failed.
     #[error(transparent)]
     Database(#[from] sqlx::Error),
@@ -101,7 +103,7 @@ pub enum InsertFrameError {
 pub enum CompleteError {
     /// The job is no longer running under this worker.
     #[error("job {0} is no longer held by this worker")]
-    LostLease(i64),
+    LostLease(JobId),
     /// The database failed.
     #[error(transparent)]
     Database(#[from] sqlx::Error),

@@ -5,15 +5,18 @@ use sqlx::sqlite::SqliteRow;
 use sqlx::{FromRow, Row, Sqlite, Transaction};
 
 use super::jobs::{enqueue, finish, ClaimedJob, JobState};
-use super::{file_in_use, is_unique_violation, CompleteError, InsertFrameError, Store};
+use super::{
+    file_in_use, is_unique_violation, CalibrationId, CompleteError, FrameNumber, InsertFrameError,
+    JobId, SequenceId, Store,
+};
 
 /// A stored sequence.
 #[derive(Clone, Debug)]
 pub struct SequenceRow {
     /// Its id.
-    pub id: i64,
+    pub id: SequenceId,
     /// Its calibration.
-    pub calibration_id: i64,
+    pub calibration_id: CalibrationId,
     /// Its name.
     pub name: String,
     /// Detection and matching parameters (JSON).
@@ -28,9 +31,9 @@ pub struct SequenceRow {
 #[derive(Clone, Debug)]
 pub struct NewFrame {
     /// The sequence.
-    pub sequence_id: i64,
+    pub sequence_id: SequenceId,
     /// The frame number.
-    pub frame: i64,
+    pub frame: FrameNumber,
     /// `images` or `targets`.
     pub input: &'static str,
     /// The raw images' layout (JSON), if raw.
@@ -45,15 +48,15 @@ pub struct NewFrame {
 #[derive(Clone, Debug)]
 pub struct FrameInput {
     /// The sequence.
-    pub sequence_id: i64,
+    pub sequence_id: SequenceId,
     /// The frame.
-    pub frame: i64,
+    pub frame: FrameNumber,
     /// `images` or `targets`.
     pub input: String,
     /// The raw layout (JSON), if raw.
     pub raw_layout: Option<String>,
     /// The sequence's calibration.
-    pub calibration_id: i64,
+    pub calibration_id: CalibrationId,
 }
 
 /// Counts of a sequence's frames by their job's state.
@@ -98,7 +101,7 @@ impl Store {
     /// Stores a sequence; `None` if its calibration does not exist.
     pub async fn insert_sequence(
         &self,
-        calibration_id: i64,
+        calibration_id: CalibrationId,
         name: &str,
         parameters: &str,
         keep_images: bool,
@@ -118,7 +121,7 @@ impl Store {
     }
 
     /// A sequence by id.
-    pub async fn sequence(&self, id: i64) -> Result<Option<SequenceRow>, sqlx::Error> {
+    pub async fn sequence(&self, id: SequenceId) -> Result<Option<SequenceRow>, sqlx::Error> {
         sqlx::query_as(
             "SELECT id, calibration_id, name, parameters, keep_images, created_at \
              FROM sequences WHERE id = ?",
@@ -129,7 +132,7 @@ impl Store {
     }
 
     /// A sequence's frames counted by their job's state.
-    pub async fn frame_counts(&self, sequence_id: i64) -> Result<FrameCounts, sqlx::Error> {
+    pub async fn frame_counts(&self, sequence_id: SequenceId) -> Result<FrameCounts, sqlx::Error> {
         let rows: Vec<(String, i64)> = sqlx::query_as(
             "SELECT j.state, count(*) FROM frames f JOIN jobs j ON j.id = f.job_id \
              WHERE f.sequence_id = ? GROUP BY j.state",
@@ -152,7 +155,7 @@ impl Store {
 
     /// Stores an uploaded frame, its inputs and its process_frame job in
     /// one transaction; returns the job's id.
-    pub async fn insert_frame(&self, frame: &NewFrame) -> Result<i64, InsertFrameError> {
+    pub async fn insert_frame(&self, frame: &NewFrame) -> Result<JobId, InsertFrameError> {
         let mut tx = self.write_transaction().await?;
         let payload =
             serde_json::json!({"sequence_id": frame.sequence_id, "frame": frame.frame}).to_string();
@@ -203,8 +206,8 @@ impl Store {
     /// What a process_frame job needs to know about its frame.
     pub async fn frame_input(
         &self,
-        sequence_id: i64,
-        frame: i64,
+        sequence_id: SequenceId,
+        frame: FrameNumber,
     ) -> Result<Option<FrameInput>, sqlx::Error> {
         sqlx::query_as(
             "SELECT f.sequence_id, f.frame, f.input, f.raw_layout, s.calibration_id \
@@ -220,8 +223,8 @@ impl Store {
     /// A frame's images: camera and hash, in camera order.
     pub async fn frame_images(
         &self,
-        sequence_id: i64,
-        frame: i64,
+        sequence_id: SequenceId,
+        frame: FrameNumber,
     ) -> Result<Vec<(i64, String)>, sqlx::Error> {
         sqlx::query_as(
             "SELECT camera, sha256 FROM images WHERE sequence_id = ? AND frame = ? \
@@ -236,8 +239,8 @@ impl Store {
     /// A frame's targets per camera (count and blob), in camera order.
     pub async fn frame_targets(
         &self,
-        sequence_id: i64,
-        frame: i64,
+        sequence_id: SequenceId,
+        frame: FrameNumber,
     ) -> Result<Vec<(i64, i64, Vec<u8>)>, sqlx::Error> {
         sqlx::query_as(
             "SELECT camera, count, data FROM targets WHERE sequence_id = ? AND frame = ? \
@@ -250,7 +253,11 @@ impl Store {
     }
 
     /// Whether the frame exists.
-    pub async fn frame_exists(&self, sequence_id: i64, frame: i64) -> Result<bool, sqlx::Error> {
+    pub async fn frame_exists(
+        &self,
+        sequence_id: SequenceId,
+        frame: FrameNumber,
+    ) -> Result<bool, sqlx::Error> {
         let row: Option<(i64,)> =
             sqlx::query_as("SELECT job_id FROM frames WHERE sequence_id = ? AND frame = ?")
                 .bind(sequence_id)
@@ -263,8 +270,8 @@ impl Store {
     /// A frame's particles (count and blob), if processed.
     pub async fn frame_particles(
         &self,
-        sequence_id: i64,
-        frame: i64,
+        sequence_id: SequenceId,
+        frame: FrameNumber,
     ) -> Result<Option<(i64, Vec<u8>)>, sqlx::Error> {
         sqlx::query_as("SELECT count, data FROM particles WHERE sequence_id = ? AND frame = ?")
             .bind(sequence_id)
@@ -274,8 +281,11 @@ impl Store {
     }
 
     /// The processed frames of a sequence, in order.
-    pub async fn processed_frames(&self, sequence_id: i64) -> Result<Vec<i64>, sqlx::Error> {
-        let rows: Vec<(i64,)> =
+    pub async fn processed_frames(
+        &self,
+        sequence_id: SequenceId,
+    ) -> Result<Vec<FrameNumber>, sqlx::Error> {
+        let rows: Vec<(FrameNumber,)> =
             sqlx::query_as("SELECT frame FROM particles WHERE sequence_id = ? ORDER BY frame")
                 .bind(sequence_id)
                 .fetch_all(&self.reader)
@@ -333,8 +343,8 @@ impl Store {
 
 async fn insert_targets(
     tx: &mut Transaction<'_, Sqlite>,
-    sequence_id: i64,
-    frame: i64,
+    sequence_id: SequenceId,
+    frame: FrameNumber,
     camera: i64,
     count: i64,
     data: &[u8],
