@@ -34,7 +34,7 @@ use super::codec;
 use super::parameters::SequenceParameters;
 use super::parameters::SolveOptions;
 use super::store::{
-    CalibrationId, ClaimedJob, CompleteError, FrameNumber, JobFile, SequenceId, Store, MAX_ATTEMPTS,
+    CalibrationId, ClaimedJob, CompleteError, FrameInputKind, FrameNumber, JobFile, SequenceId, Store, MAX_ATTEMPTS,
 };
 use crate::formats;
 use crate::formats::control;
@@ -399,7 +399,7 @@ pub async fn process_frame(state: Arc<AppState>, run: JobRun) -> Result<(), JobE
     let pipeline = pipeline_of(&state, input.sequence_id, input.calibration_id).await?;
     let cameras = pipeline.cameras().len();
 
-    let (targets, particles) = if input.input == "images" {
+    let (targets, particles) = if input.input == FrameInputKind::Images {
         let layout = match &input.raw_layout {
             None => None,
             Some(text) => serde_json::from_str::<StoredRawLayout>(text)

@@ -396,7 +396,7 @@ async fn bad_solve_requests_get_their_4xx_and_store_nothing() {
             "unknown fixed parameter",
             input.form(Some(&json!({"fix": ["k4"]}))),
             422,
-            "fix: unknown parameter `k4`",
+            "part `options`: fix: unknown parameter `k4`; the names are x0,y0,z0,",
         ),
         (
             "check_every of 1",

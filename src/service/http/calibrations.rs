@@ -13,7 +13,9 @@ use nalgebra::Point2;
 use serde::{Deserialize, Serialize};
 use utoipa::ToSchema;
 
-use super::problem::{multipart_error, ApiError, ApiJson, ApiMultipart, ApiPath, JsonText};
+use super::problem::{
+    multipart_error, parse_json, ApiError, ApiJson, ApiMultipart, ApiPath, JsonText,
+};
 use super::sequences::{check_image, drain, text_part};
 use super::Shared;
 use crate::formats::{self, control, openptv::OriTexts};
@@ -515,8 +517,7 @@ fn check_solve_parts(parts: &SolveParts) -> Result<CheckedSolve, ApiError> {
             .map_err(invalid)?;
     let options: SolveOptions = match &parts.options {
         None => SolveOptions::default(),
-        Some(text) => serde_json::from_str(text)
-            .map_err(|e| ApiError::unprocessable(format!("part `options`: {e}")))?,
+        Some(text) => parse_json(text).map_err(|e| e.at("part `options`"))?,
     };
     let calibration_options = options
         .calibration_options()

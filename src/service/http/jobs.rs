@@ -13,6 +13,32 @@ use super::Shared;
 use crate::service::app::AppState;
 use crate::service::store::{JobId, JobState};
 
+/// A job's state.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, ToSchema)]
+#[serde(rename_all = "snake_case")]
+#[schema(as = JobState)]
+pub enum JobStateView {
+    /// Waiting for a worker.
+    Queued,
+    /// A worker has it.
+    Running,
+    /// Done; its result is stored.
+    Succeeded,
+    /// Given up; `error` says why.
+    Failed,
+}
+
+impl From<JobState> for JobStateView {
+    fn from(state: JobState) -> Self {
+        match state {
+            JobState::Queued => JobStateView::Queued,
+            JobState::Running => JobStateView::Running,
+            JobState::Succeeded => JobStateView::Succeeded,
+            JobState::Failed => JobStateView::Failed,
+        }
+    }
+}
+
 pub(super) fn router() -> Router<Arc<AppState>> {
     Router::new().route("/jobs/{id}", get(read))
 }
@@ -26,7 +52,7 @@ pub struct JobView {
     /// What it does: `process_frame`, ...
     pub kind: String,
     /// Its state.
-    pub state: JobState,
+    pub state: JobStateView,
     /// How often a worker took it up.
     pub attempts: i64,
     /// Why it failed (or why its last attempt did).
@@ -65,7 +91,7 @@ pub async fn read(
     Ok(Json(JobView {
         id: row.id,
         kind: row.kind,
-        state: row.state.parse().map_err(ApiError::internal)?,
+        state: row.state.into(),
         attempts: row.attempts,
         error: row.error,
         result: row.result,

@@ -80,6 +80,14 @@ impl ApiError {
     pub fn status(&self) -> StatusCode {
         self.status
     }
+    /// The same error, its detail prefixed with where in the request it
+    /// lies (`part `options``).
+    pub fn at(self, place: &str) -> ApiError {
+        ApiError {
+            detail: format!("{place}: {}", self.detail),
+            ..self
+        }
+    }
 }
 
 impl From<sqlx::Error> for ApiError {
@@ -169,19 +177,23 @@ impl<S: Send + Sync, T: DeserializeOwned> FromRequest<S> for ApiJson<T> {
 
     async fn from_request(req: Request, state: &S) -> Result<Self, Self::Rejection> {
         let JsonText(text) = JsonText::from_request(req, state).await?;
-        let deserializer = &mut serde_json::Deserializer::from_str(&text);
-        serde_path_to_error::deserialize(deserializer)
-            .map(ApiJson)
-            .map_err(|e| {
-                let path = e.path().to_string();
-                let location = if path == "." {
-                    String::new()
-                } else {
-                    format!("{path}: ")
-                };
-                ApiError::unprocessable(format!("{location}{}", e.into_inner()))
-            })
+        parse_json(&text).map(ApiJson)
     }
+}
+
+/// A JSON document as `T`: a value of the wrong shape is a 422 that names
+/// its path (`fix: unknown parameter ...`).
+pub fn parse_json<T: DeserializeOwned>(text: &str) -> Result<T, ApiError> {
+    let deserializer = &mut serde_json::Deserializer::from_str(text);
+    serde_path_to_error::deserialize(deserializer).map_err(|e| {
+        let path = e.path().to_string();
+        let location = if path == "." {
+            String::new()
+        } else {
+            format!("{path}: ")
+        };
+        ApiError::unprocessable(format!("{location}{}", e.into_inner()))
+    })
 }
 
 /// Path parameters; malformed ones are 400 problems.

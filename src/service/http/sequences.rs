@@ -27,7 +27,7 @@ use crate::service::images::UploadedFile;
 use crate::service::jobs::{prepare_pipeline, StoredRawLayout};
 use crate::service::parameters::{DetectionSettings, MatchingSettings, SequenceParameters};
 use crate::service::store::{
-    CalibrationId, FrameNumber, InsertFrameError, JobId, NewFrame, SequenceId, SequenceRow,
+    CalibrationId, FrameInputKind, FrameNumber, InsertFrameError, JobId, NewFrame, SequenceId, SequenceRow,
 };
 
 /// Longest sequence name.
@@ -530,7 +530,11 @@ pub async fn upload_frame(
     let mut new_frame = NewFrame {
         sequence_id: id,
         frame,
-        input: if image_count > 0 { "images" } else { "targets" },
+        input: if image_count > 0 {
+            FrameInputKind::Images
+        } else {
+            FrameInputKind::Targets
+        },
         raw_layout: raw
             .as_ref()
             .map(serde_json::to_string)

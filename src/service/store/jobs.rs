@@ -3,18 +3,16 @@
 
 use std::str::FromStr;
 
-use serde::{Deserialize, Serialize};
 use sqlx::sqlite::SqliteRow;
 use sqlx::{FromRow, Row, Sqlite, Transaction};
 
-use super::{CompleteError, JobId, Store};
+use super::{text_column, CompleteError, JobId, Store, TextColumn, UnknownValue};
 
 /// How often a job may be claimed before a crash-looping one is failed.
 pub const MAX_ATTEMPTS: i64 = 3;
 
-/// A job's state.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, utoipa::ToSchema)]
-#[serde(rename_all = "snake_case")]
+/// A job's state (the `jobs.state` column).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum JobState {
     /// Waiting for a worker.
     Queued,
@@ -26,17 +24,17 @@ pub enum JobState {
     Failed,
 }
 
-impl JobState {
-    /// Every state, in the order of a job's life.
-    pub const ALL: [JobState; 4] = [
+impl TextColumn for JobState {
+    const WHAT: &'static str = "job state";
+    /// In the order of a job's life.
+    const ALL: &'static [JobState] = &[
         JobState::Queued,
         JobState::Running,
         JobState::Succeeded,
         JobState::Failed,
     ];
 
-    /// The name stored in the database.
-    pub fn as_str(self) -> &'static str {
+    fn as_str(self) -> &'static str {
         match self {
             JobState::Queued => "queued",
             JobState::Running => "running",
@@ -47,12 +45,9 @@ impl JobState {
 }
 
 impl FromStr for JobState {
-    type Err = String;
-    fn from_str(s: &str) -> Result<Self, String> {
-        JobState::ALL
-            .into_iter()
-            .find(|state| state.as_str() == s)
-            .ok_or_else(|| format!("unknown job state `{s}`"))
+    type Err = UnknownValue;
+    fn from_str(text: &str) -> Result<Self, UnknownValue> {
+        JobState::parse_text(text)
     }
 }
 
@@ -65,8 +60,8 @@ pub struct JobRow {
     pub kind: String,
     /// What it works on (JSON).
     pub payload: String,
-    /// queued, running, succeeded or failed.
-    pub state: String,
+    /// Its state.
+    pub state: JobState,
     /// How often a worker claimed it.
     pub attempts: i64,
     /// Why it failed (or why its last attempt did).
@@ -102,7 +97,7 @@ impl FromRow<'_, SqliteRow> for JobRow {
             id: row.try_get("id")?,
             kind: row.try_get("kind")?,
             payload: row.try_get("payload")?,
-            state: row.try_get("state")?,
+            state: text_column(row, "state")?,
             attempts: row.try_get("attempts")?,
             error: row.try_get("error")?,
             result: row.try_get("result")?,
@@ -355,4 +350,42 @@ pub async fn finish(
         return Err(CompleteError::LostLease(job.id));
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A row of the `jobs` table as `Store::job` reads it, with `state`.
+    async fn job_row_with_state(state: &str) -> Result<JobRow, sqlx::Error> {
+        let pool = sqlx::sqlite::SqlitePoolOptions::new()
+            .connect("sqlite::memory:")
+            .await?;
+        sqlx::query_as(
+            "SELECT 7 AS id, 'process_frame' AS kind, '{}' AS payload, ? AS state, \
+             1 AS attempts, NULL AS error, NULL AS result, '2024-01-01T00:00:00Z' AS created_at, \
+             NULL AS started_at, NULL AS finished_at",
+        )
+        .bind(state)
+        .fetch_one(&pool)
+        .await
+    }
+
+    #[tokio::test]
+    async fn a_stored_state_is_read_as_its_enum_and_an_unknown_one_is_named() {
+        let row = job_row_with_state("succeeded").await.unwrap();
+        assert_eq!(row.state, JobState::Succeeded);
+        let error = job_row_with_state("paused").await.unwrap_err();
+        assert!(
+            matches!(&error, sqlx::Error::ColumnDecode { index, .. } if index == "state"),
+            "{error:?}"
+        );
+        let message = error.to_string();
+        assert!(
+            message.contains(
+                "unknown job state `paused`; this version knows queued, running, succeeded, failed"
+            ),
+            "{message}"
+        );
+    }
 }

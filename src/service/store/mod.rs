@@ -21,6 +21,7 @@ mod jobs;
 mod sequences;
 
 use std::path::Path;
+use std::str::FromStr;
 use std::time::Duration;
 
 use std::future::Future;
@@ -29,13 +30,15 @@ use std::pin::Pin;
 use sqlx::error::BoxDynError;
 use sqlx::migrate::{Migration, MigrationSource, MigrationType, Migrator};
 use sqlx::sqlite::{
-    SqliteConnectOptions, SqliteJournalMode, SqlitePool, SqlitePoolOptions, SqliteSynchronous,
+    SqliteConnectOptions, SqliteJournalMode, SqlitePool, SqlitePoolOptions, SqliteRow,
+    SqliteSynchronous,
 };
+use sqlx::Row;
 
 pub use self::calibrations::{insert_calibration, CalibrationRow};
 pub use self::ids::{CalibrationId, FrameNumber, JobId, SequenceId};
 pub use self::jobs::{enqueue, finish, ClaimedJob, JobFile, JobRow, JobState, MAX_ATTEMPTS};
-pub use self::sequences::{FrameCounts, FrameInput, NewFrame, SequenceRow};
+pub use self::sequences::{FrameCounts, FrameInput, FrameInputKind, NewFrame, SequenceRow};
 
 /// The database.
 #[derive(Clone, Debug)]
@@ -107,6 +110,62 @@ pub enum CompleteError {
     /// The database failed.
     #[error(transparent)]
     Database(#[from] sqlx::Error),
+}
+
+/// A stored text that names none of a column's values (a database written
+/// by a newer version, or edited by hand).
+#[derive(Debug, thiserror::Error)]
+#[error("unknown {what} `{value}`; this version knows {known}")]
+pub struct UnknownValue {
+    /// What the column holds: `job state`, ...
+    what: &'static str,
+    /// The text found.
+    value: String,
+    /// The values this version knows, comma-separated.
+    known: String,
+}
+
+/// An enum stored as text: its values and their names in the database.
+trait TextColumn: Copy + 'static {
+    /// What the column holds, for messages.
+    const WHAT: &'static str;
+    /// Every value.
+    const ALL: &'static [Self];
+    /// The name stored in the database.
+    fn as_str(self) -> &'static str;
+
+    /// The value of a stored name.
+    fn parse_text(text: &str) -> Result<Self, UnknownValue> {
+        Self::ALL
+            .iter()
+            .copied()
+            .find(|value| value.as_str() == text)
+            .ok_or_else(|| UnknownValue {
+                what: Self::WHAT,
+                value: text.to_owned(),
+                known: Self::ALL.iter().map(|v| v.as_str()).collect::<Vec<_>>().join(", "),
+            })
+    }
+}
+
+/// A text column read as its enum; an unknown text is a decode error that
+/// names the column and the text.
+fn decode_text<T: FromStr<Err = UnknownValue>>(
+    column: &str,
+    text: &str,
+) -> Result<T, sqlx::Error> {
+    text.parse().map_err(|error| sqlx::Error::ColumnDecode {
+        index: column.to_owned(),
+        source: Box::new(error),
+    })
+}
+
+/// The text column `column` of `row`, as its enum (see [`decode_text`]).
+fn text_column<T: FromStr<Err = UnknownValue>>(
+    row: &SqliteRow,
+    column: &str,
+) -> Result<T, sqlx::Error> {
+    decode_text(column, row.try_get::<&str, _>(column)?)
 }
 
 /// Whether an error is SQLite's unique or primary-key violation.

@@ -1,12 +1,14 @@
 //! Sequences and their frames: a frame's upload (inputs and its job in one
 //! transaction), what its job reads, and its results.
 
+use std::str::FromStr;
+
 use sqlx::sqlite::SqliteRow;
 use sqlx::{FromRow, Row, Sqlite, Transaction};
 
 use super::jobs::{enqueue, finish, ClaimedJob, JobState};
 use super::{
-    file_in_use, is_unique_violation, CalibrationId, CompleteError, FrameNumber, InsertFrameError,
+    decode_text, file_in_use, is_unique_violation, text_column, TextColumn, UnknownValue, CalibrationId, CompleteError, FrameNumber, InsertFrameError,
     JobId, SequenceId, Store,
 };
 
@@ -27,6 +29,34 @@ pub struct SequenceRow {
     pub created_at: String,
 }
 
+/// What was uploaded for a frame (the `frames.input` column).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum FrameInputKind {
+    /// One image per camera, to detect the targets in.
+    Images,
+    /// One target list per camera, detected elsewhere.
+    Targets,
+}
+
+impl TextColumn for FrameInputKind {
+    const WHAT: &'static str = "frame input";
+    const ALL: &'static [FrameInputKind] = &[FrameInputKind::Images, FrameInputKind::Targets];
+
+    fn as_str(self) -> &'static str {
+        match self {
+            FrameInputKind::Images => "images",
+            FrameInputKind::Targets => "targets",
+        }
+    }
+}
+
+impl FromStr for FrameInputKind {
+    type Err = UnknownValue;
+    fn from_str(text: &str) -> Result<Self, UnknownValue> {
+        FrameInputKind::parse_text(text)
+    }
+}
+
 /// A frame upload to store with its job.
 #[derive(Clone, Debug)]
 pub struct NewFrame {
@@ -34,8 +64,8 @@ pub struct NewFrame {
     pub sequence_id: SequenceId,
     /// The frame number.
     pub frame: FrameNumber,
-    /// `images` or `targets`.
-    pub input: &'static str,
+    /// Images or targets.
+    pub input: FrameInputKind,
     /// The raw images' layout (JSON), if raw.
     pub raw_layout: Option<String>,
     /// Per camera, the image's hash and size.
@@ -51,8 +81,8 @@ pub struct FrameInput {
     pub sequence_id: SequenceId,
     /// The frame.
     pub frame: FrameNumber,
-    /// `images` or `targets`.
-    pub input: String,
+    /// Images or targets.
+    pub input: FrameInputKind,
     /// The raw layout (JSON), if raw.
     pub raw_layout: Option<String>,
     /// The sequence's calibration.
@@ -90,7 +120,7 @@ impl FromRow<'_, SqliteRow> for FrameInput {
         Ok(FrameInput {
             sequence_id: row.try_get("sequence_id")?,
             frame: row.try_get("frame")?,
-            input: row.try_get("input")?,
+            input: text_column(row, "input")?,
             raw_layout: row.try_get("raw_layout")?,
             calibration_id: row.try_get("calibration_id")?,
         })
@@ -142,12 +172,11 @@ impl Store {
         .await?;
         let mut counts = FrameCounts::default();
         for (state, count) in rows {
-            match state.parse() {
-                Ok(JobState::Queued) => counts.queued = count,
-                Ok(JobState::Running) => counts.running = count,
-                Ok(JobState::Succeeded) => counts.done = count,
-                Ok(JobState::Failed) => counts.failed = count,
-                Err(_) => {}
+            match decode_text("state", &state)? {
+                JobState::Queued => counts.queued = count,
+                JobState::Running => counts.running = count,
+                JobState::Succeeded => counts.done = count,
+                JobState::Failed => counts.failed = count,
             }
         }
         Ok(counts)
@@ -167,7 +196,7 @@ impl Store {
         .bind(frame.sequence_id)
         .bind(frame.frame)
         .bind(job_id)
-        .bind(frame.input)
+        .bind(frame.input.as_str())
         .bind(&frame.raw_layout)
         .execute(&mut *tx)
         .await;
