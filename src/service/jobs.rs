@@ -36,11 +36,15 @@ use super::parameters::SolveOptions;
 use super::store::{
     CalibrationId, ClaimedJob, CompleteError, FrameInputKind, FrameNumber, JobFile, SequenceId, Store, MAX_ATTEMPTS,
 };
-use crate::formats;
-use crate::formats::control;
+use super::codec::DamagedBlob;
+use crate::formats::control::{self, OptionError};
 use crate::formats::image::RawLayout;
-use crate::photogrammetry::calibrate;
-use crate::photogrammetry::{BitDepth, FramePipeline, GreyImage, PipelineError};
+use crate::formats::{self, FormatError};
+use crate::photogrammetry::calibrate::{self, CalibrationError};
+use crate::photogrammetry::correspond::MatchError;
+use crate::photogrammetry::{
+    BitDepth, FramePipeline, GreyImage, InvalidDetectionParameters, PipelineError,
+};
 
 /// The kind of the job that processes one uploaded frame.
 pub const PROCESS_FRAME: &str = "process_frame";
@@ -61,6 +65,14 @@ pub enum JobError {
     /// The worker no longer holds the job; nothing to do.
     #[error("lost the job's claim")]
     LostLease,
+}
+
+impl JobError {
+    /// The job cannot succeed: it fails with `error` and its causes as
+    /// its message.
+    pub fn failed(error: impl std::error::Error + 'static) -> JobError {
+        JobError::Failed(error_chain(&error))
+    }
 }
 
 impl From<sqlx::Error> for JobError {
@@ -133,6 +145,17 @@ impl JobKinds {
     }
 }
 
+/// Why work handed to the [`CpuPool`] gave no result.
+#[derive(Debug, thiserror::Error)]
+pub enum CpuError {
+    /// The work panicked, with this message.
+    #[error("panicked: {0}")]
+    Panicked(String),
+    /// The pool dropped the work without running it to its end.
+    #[error("the CPU pool dropped the work")]
+    Dropped,
+}
+
 /// A bounded pool of CPU threads for detection and matching.
 #[derive(Debug)]
 pub struct CpuPool {
@@ -150,8 +173,8 @@ impl CpuPool {
     }
 
     /// Runs `work` on the pool and waits for it without blocking the async
-    /// runtime; a panic in `work` comes back as an error message.
-    pub async fn run<T, F>(&self, work: F) -> Result<T, String>
+    /// runtime; a panic in `work` comes back as [`CpuError::Panicked`].
+    pub async fn run<T, F>(&self, work: F) -> Result<T, CpuError>
     where
         T: Send + 'static,
         F: FnOnce() -> T + Send + 'static,
@@ -163,13 +186,26 @@ impl CpuPool {
         });
         match receiver.await {
             Ok(Ok(value)) => Ok(value),
-            Ok(Err(panic)) => Err(panic
-                .downcast_ref::<&str>()
-                .map(|s| s.to_string())
-                .or_else(|| panic.downcast_ref::<String>().cloned())
-                .unwrap_or_else(|| "a panic".to_owned())),
-            Err(_) => Err("the CPU pool dropped the work".to_owned()),
+            Ok(Err(panic)) => Err(CpuError::Panicked(
+                panic
+                    .downcast_ref::<&str>()
+                    .map(|s| s.to_string())
+                    .or_else(|| panic.downcast_ref::<String>().cloned())
+                    .unwrap_or_else(|| "a panic".to_owned()),
+            )),
+            Err(_) => Err(CpuError::Dropped),
         }
+    }
+
+    /// [`CpuPool::run`] for work that can fail: its error, or the pool's
+    /// turned into it.
+    pub async fn try_run<T, E, F>(&self, work: F) -> Result<T, E>
+    where
+        T: Send + 'static,
+        E: From<CpuError> + Send + 'static,
+        F: FnOnce() -> Result<T, E> + Send + 'static,
+    {
+        self.run(work).await?
     }
 }
 
@@ -200,22 +236,34 @@ impl PipelineCache {
     }
 }
 
+/// Why a frame pipeline could not be prepared.
+#[derive(Debug, thiserror::Error)]
+pub enum PrepareError {
+    /// The stored calibration does not read.
+    #[error(transparent)]
+    Calibration(#[from] FormatError),
+    /// The parameters do not work with the calibration.
+    #[error(transparent)]
+    Pipeline(#[from] PipelineError),
+    /// The preparation did not finish.
+    #[error("preparing the frame pipeline {0}")]
+    Cpu(#[from] CpuError),
+}
+
 /// Prepares the frame pipeline of a calibration and parameters, on the CPU
 /// pool.
 pub async fn prepare_pipeline(
     state: &AppState,
     calibration_model: &str,
     parameters: &SequenceParameters,
-) -> Result<FramePipeline, String> {
-    let cameras = formats::calibration::from_json(calibration_model, "the stored calibration")
-        .map_err(|e| e.to_string())?;
+) -> Result<FramePipeline, PrepareError> {
+    let cameras = formats::calibration::from_json(calibration_model, "the stored calibration")?;
     let detection = parameters.detection();
     let matching = parameters.matching();
     state
         .cpu
-        .run(move || FramePipeline::new(&cameras, &detection, &matching))
-        .await?
-        .map_err(|e| error_chain(&e))
+        .try_run(move || Ok(FramePipeline::new(&cameras, &detection, &matching)?))
+        .await
 }
 
 /// An error and its sources as one line, `: `-separated, a cause the text
@@ -380,10 +428,30 @@ async fn pipeline_of(
     let pipeline = Arc::new(
         prepare_pipeline(state, &calibration.model, &parameters)
             .await
-            .map_err(JobError::Failed)?,
+            .map_err(JobError::failed)?,
     );
     state.pipelines.insert(sequence_id, pipeline.clone());
     Ok(pipeline)
+}
+
+/// Why a frame could not be processed.
+#[derive(Debug, thiserror::Error)]
+pub enum FrameError {
+    /// An image does not decode.
+    #[error(transparent)]
+    Image(#[from] FormatError),
+    /// Detection or matching refused the frame.
+    #[error(transparent)]
+    Pipeline(#[from] PipelineError),
+    /// Matching refused the uploaded targets.
+    #[error(transparent)]
+    Matching(#[from] MatchError),
+    /// The uploaded targets' blob does not read.
+    #[error(transparent)]
+    StoredTargets(#[from] DamagedBlob),
+    /// The work did not finish.
+    #[error("processing {0}")]
+    Cpu(#[from] CpuError),
 }
 
 /// The process_frame job: the frame's images (or uploaded targets) to
@@ -420,9 +488,9 @@ pub async fn process_frame(state: Arc<AppState>, run: JobRun) -> Result<(), JobE
             files.push((camera, bytes));
         }
         let pipeline = pipeline.clone();
-        let result = state
+        state
             .cpu
-            .run(move || {
+            .try_run(move || {
                 let images = files
                     .iter()
                     .map(|(camera, bytes)| {
@@ -432,11 +500,8 @@ pub async fn process_frame(state: Arc<AppState>, run: JobRun) -> Result<(), JobE
                             None => formats::image::decode_image(bytes, &source),
                         }
                     })
-                    .collect::<Result<Vec<GreyImage>, _>>()
-                    .map_err(|e| e.to_string())?;
-                let frame = pipeline
-                    .process(&images)
-                    .map_err(|e: PipelineError| error_chain(&e))?;
+                    .collect::<Result<Vec<GreyImage>, _>>()?;
+                let frame = pipeline.process(&images)?;
                 let targets: Vec<(i64, i64, Vec<u8>)> = frame
                     .targets
                     .iter()
@@ -449,11 +514,10 @@ pub async fn process_frame(state: Arc<AppState>, run: JobRun) -> Result<(), JobE
                         )
                     })
                     .collect();
-                Ok::<_, String>((targets, frame.particles))
+                Ok::<_, FrameError>((targets, frame.particles))
             })
             .await
-            .map_err(|panic| JobError::Failed(format!("processing panicked: {panic}")))?;
-        result.map_err(JobError::Failed)?
+            .map_err(JobError::failed)?
     } else {
         let stored = state
             .store
@@ -462,20 +526,15 @@ pub async fn process_frame(state: Arc<AppState>, run: JobRun) -> Result<(), JobE
         let pipeline = pipeline.clone();
         let particles = state
             .cpu
-            .run(move || {
+            .try_run(move || {
                 let targets = stored
                     .iter()
                     .map(|(_, _, blob)| codec::decode_targets(blob))
-                    .collect::<Result<Vec<_>, _>>()
-                    .map_err(|e| e.to_string())?;
-                pipeline
-                    .matcher()
-                    .match_frame(&targets)
-                    .map_err(|e| error_chain(&e))
+                    .collect::<Result<Vec<_>, _>>()?;
+                Ok::<_, FrameError>(pipeline.matcher().match_frame(&targets)?)
             })
             .await
-            .map_err(|panic| JobError::Failed(format!("matching panicked: {panic}")))?
-            .map_err(JobError::Failed)?;
+            .map_err(JobError::failed)?;
         (Vec::new(), particles)
     };
 
@@ -517,9 +576,38 @@ pub fn part_source(part: &str, camera: Option<usize>) -> String {
     }
 }
 
+/// Why a solve request's files do not give a calibration.
+#[derive(Debug, thiserror::Error)]
+pub enum SolveError {
+    /// A file does not parse.
+    #[error(transparent)]
+    Format(#[from] FormatError),
+    /// A text part is not text (its source named).
+    #[error("{0} is not UTF-8 text")]
+    NotText(String),
+    /// A part this job does not know.
+    #[error("unknown input part `{0}`")]
+    UnknownPart(String),
+    /// A part that must be there is not.
+    #[error("the `{0}` part is missing")]
+    Missing(&'static str),
+    /// An option is invalid.
+    #[error("options.{0}")]
+    Options(#[from] OptionError),
+    /// The marks' detection parameters are invalid.
+    #[error("options.detection")]
+    Detection(#[from] InvalidDetectionParameters),
+    /// The calibration itself failed.
+    #[error(transparent)]
+    Calibration(#[from] CalibrationError),
+    /// The work did not finish.
+    #[error("the calibration {0}")]
+    Cpu(#[from] CpuError),
+}
+
 /// Text of a part, or what is wrong with it.
-pub fn part_text(bytes: Vec<u8>, source: &str) -> Result<String, String> {
-    String::from_utf8(bytes).map_err(|_| format!("{source} is not UTF-8 text"))
+pub fn part_text(bytes: Vec<u8>, source: &str) -> Result<String, SolveError> {
+    String::from_utf8(bytes).map_err(|_| SolveError::NotText(source.to_owned()))
 }
 
 /// Calibrates from a solve request's files (part, camera, bytes; per-camera
@@ -528,46 +616,40 @@ pub fn part_text(bytes: Vec<u8>, source: &str) -> Result<String, String> {
 pub fn solve(
     files: Vec<(JobFile, Vec<u8>)>,
     options: &SolveOptions,
-) -> Result<(String, i64, String), String> {
+) -> Result<(String, i64, String), SolveError> {
     let (mut setup, mut control_points) = (None, None);
     let (mut observations, mut references, mut images) = (Vec::new(), Vec::new(), Vec::new());
     for (file, bytes) in files {
         let source = part_source(&file.part, file.camera.map(|c| c as usize));
-        let fail = |e: formats::FormatError| e.to_string();
         match file.part.as_str() {
             "setup" => {
                 let text = part_text(bytes, &source)?;
-                setup =
-                    Some(formats::calibration::parameters_from_json(&text, &source).map_err(fail)?);
+                setup = Some(formats::calibration::parameters_from_json(&text, &source)?);
             }
             "control" => {
                 let text = part_text(bytes, &source)?;
-                control_points = Some(control::parse_control_points(&text, &source).map_err(fail)?);
+                control_points = Some(control::parse_control_points(&text, &source)?);
             }
             "observations" | "reference" => {
                 let text = part_text(bytes, &source)?;
-                let marks = control::parse_mark_observations(&text, &source).map_err(fail)?;
+                let marks = control::parse_mark_observations(&text, &source)?;
                 if file.part == "observations" {
                     observations.push(marks);
                 } else {
                     references.push(marks);
                 }
             }
-            "image" => images.push(formats::image::decode_image(&bytes, &source).map_err(fail)?),
-            other => return Err(format!("unknown input part `{other}`")),
+            "image" => images.push(formats::image::decode_image(&bytes, &source)?),
+            other => return Err(SolveError::UnknownPart(other.to_owned())),
         }
     }
-    let setup = setup.ok_or("the `setup` part is missing")?;
-    let control_points = control_points.ok_or("the `control` part is missing")?;
-    let calibration_options = options
-        .calibration_options()
-        .map_err(|e| format!("options.{e}"))?;
+    let setup = setup.ok_or(SolveError::Missing("setup"))?;
+    let control_points = control_points.ok_or(SolveError::Missing("control"))?;
+    let calibration_options = options.calibration_options()?;
     let result = if images.is_empty() {
         calibrate::calibrate(&setup, &control_points, &observations, &calibration_options)
     } else {
-        let parameters = options
-            .mark_detection()
-            .map_err(|e| format!("options.detection: {}", error_chain(&e)))?;
+        let parameters = options.mark_detection()?;
         let marks: Vec<_> = images
             .iter()
             .map(|image| calibrate::detect_marks(image, &parameters))
@@ -582,9 +664,8 @@ pub fn solve(
             &references,
             &calibration_options,
         )
-    }
-    .map_err(|e| error_chain(&e))?;
-    let cameras = result.camera_models().map_err(|e| error_chain(&e))?;
+    }?;
+    let cameras = result.camera_models()?;
     Ok((
         formats::calibration::to_json(&cameras),
         cameras.len() as i64,
@@ -611,10 +692,9 @@ pub async fn solve_calibration(state: Arc<AppState>, run: JobRun) -> Result<(), 
     let options = payload.options.clone();
     let (model, cameras, report) = state
         .cpu
-        .run(move || solve(files, &options))
+        .try_run(move || solve(files, &options))
         .await
-        .map_err(|panic| JobError::Failed(format!("the calibration panicked: {panic}")))?
-        .map_err(JobError::Failed)?;
+        .map_err(JobError::failed)?;
     let (_, orphans) = state
         .store
         .complete_calibration(

@@ -24,7 +24,7 @@ use crate::photogrammetry::{Sensor, Target};
 use crate::service::app::AppState;
 use crate::service::codec;
 use crate::service::images::UploadedFile;
-use crate::service::jobs::{prepare_pipeline, StoredRawLayout};
+use crate::service::jobs::{error_chain, prepare_pipeline, StoredRawLayout};
 use crate::service::parameters::{DetectionSettings, MatchingSettings, SequenceParameters};
 use crate::service::store::{
     CalibrationId, FrameInputKind, FrameNumber, InsertFrameError, JobId, NewFrame, SequenceId, SequenceRow,
@@ -169,7 +169,7 @@ pub async fn create(
     let parameters = SequenceParameters::with_defaults(request.detection, request.matching);
     let pipeline = prepare_pipeline(&state, &calibration.model, &parameters)
         .await
-        .map_err(ApiError::unprocessable)?;
+        .map_err(|e| ApiError::unprocessable(error_chain(&e)))?;
     let stored = serde_json::to_string(&parameters).map_err(ApiError::internal)?;
     let row = state
         .store
