@@ -31,12 +31,13 @@ use tokio::sync::{oneshot, watch};
 
 use super::app::AppState;
 use super::codec;
+use super::codec::DamagedBlob;
 use super::parameters::SequenceParameters;
 use super::parameters::SolveOptions;
 use super::store::{
-    CalibrationId, ClaimedJob, CompleteError, FrameInputKind, FrameNumber, JobFile, SequenceId, Store, MAX_ATTEMPTS,
+    CalibrationId, ClaimedJob, CompleteError, FrameInputKind, FrameNumber, JobFile, SequenceId,
+    Store, MAX_ATTEMPTS,
 };
-use super::codec::DamagedBlob;
 use crate::formats::control::{self, OptionError};
 use crate::formats::image::RawLayout;
 use crate::formats::{self, FormatError};

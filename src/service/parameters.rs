@@ -8,9 +8,7 @@ use serde::{Deserialize, Deserializer, Serialize};
 use utoipa::ToSchema;
 
 use crate::formats::control::{calibration_options, fixed_parameters, OptionError};
-use crate::photogrammetry::calibrate::{
-    mark_detection_parameters, CalibrationOptions, Parameter,
-};
+use crate::photogrammetry::calibrate::{mark_detection_parameters, CalibrationOptions, Parameter};
 use crate::photogrammetry::correspond::{MatchingParameters, DEFAULT_TOLERANCE_PX};
 use crate::photogrammetry::{
     DetectionParameters, FrameDetection, InvalidDetectionParameters, Volume,

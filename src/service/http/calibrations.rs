@@ -13,9 +13,7 @@ use nalgebra::Point2;
 use serde::{Deserialize, Serialize};
 use utoipa::ToSchema;
 
-use super::problem::{
-    multipart_error, parse_json, ApiError, ApiJson, ApiMultipart, ApiPath, JsonText,
-};
+use super::problem::{parse_json, ApiError, ApiJson, ApiMultipart, ApiPath, JsonText};
 use super::sequences::{check_image, drain, text_part};
 use super::Shared;
 use crate::formats::{self, control, openptv::OriTexts};
@@ -23,7 +21,7 @@ use crate::photogrammetry::calibrate;
 use crate::photogrammetry::{intersect, Camera, Observation, Sensor};
 use crate::service::app::AppState;
 use crate::service::images::UploadedFile;
-use crate::service::jobs::{error_chain, part_source, SolvePayload, SOLVE_CALIBRATION};
+use crate::service::jobs::{part_source, SolvePayload, SOLVE_CALIBRATION};
 use crate::service::parameters::SolveOptions;
 use crate::service::store::{CalibrationId, CalibrationRow, JobFile, JobId};
 
@@ -66,13 +64,12 @@ impl CalibrationView {
         Ok(CalibrationView {
             id: row.id,
             cameras: row.cameras,
-            model: serde_json::from_str(&row.model).map_err(ApiError::internal)?,
+            model: serde_json::from_str(&row.model)?,
             report: row
                 .report
                 .as_deref()
                 .map(serde_json::from_str)
-                .transpose()
-                .map_err(ApiError::internal)?,
+                .transpose()?,
             created_at: row.created_at,
         })
     }
@@ -105,8 +102,7 @@ async fn store_cameras(state: &AppState, cameras: &[Camera]) -> Result<Response,
     )
 )]
 pub async fn create(State(state): Shared, JsonText(text): JsonText) -> Result<Response, ApiError> {
-    let cameras = formats::calibration::from_json(&text, "the body")
-        .map_err(|e| ApiError::unprocessable(e.to_string()))?;
+    let cameras = formats::calibration::from_json(&text, "the body")?;
     store_cameras(&state, &cameras).await
 }
 
@@ -128,7 +124,7 @@ pub async fn create_openptv(
 ) -> Result<Response, ApiError> {
     let mut ptv_par = None;
     let mut cameras: Vec<OriTexts> = Vec::new();
-    while let Some(mut field) = multipart.next_field().await.map_err(multipart_error)? {
+    while let Some(mut field) = multipart.next_field().await? {
         let name = field.name().unwrap_or("").to_owned();
         match name.as_str() {
             "ptv_par" => ptv_par = Some(text_part(&mut field, &name, MAX_TEXT_PART).await?),
@@ -165,18 +161,28 @@ pub async fn create_openptv(
         }
     }
     let ptv_par = ptv_par.ok_or_else(|| ApiError::bad_request("the `ptv_par` part is missing"))?;
-    let cameras = formats::openptv::import_texts(&ptv_par, "ptv_par part", &cameras)
-        .map_err(|e| ApiError::unprocessable(e.to_string()))?;
+    let cameras = formats::openptv::import_texts(&ptv_par, "ptv_par part", &cameras)?;
     store_cameras(&state, &cameras).await
 }
 
-/// The calibration's cameras, from the store.
-pub(super) async fn cameras_of(state: &AppState, id: CalibrationId) -> Result<Vec<Camera>, ApiError> {
-    let row = state
+/// A stored calibration, or a 404.
+async fn calibration(state: &AppState, id: CalibrationId) -> Result<CalibrationRow, ApiError> {
+    state
         .store
         .calibration(id)
         .await?
-        .ok_or_else(|| ApiError::not_found(format!("calibration {id} does not exist")))?;
+        .ok_or_else(|| ApiError::not_found(format!("calibration {id} does not exist")))
+}
+
+/// The calibration's cameras, from the store.
+async fn cameras_of(state: &AppState, id: CalibrationId) -> Result<Vec<Camera>, ApiError> {
+    let row = calibration(state, id).await?;
+    stored_cameras(&row)
+}
+
+/// A stored calibration's cameras (a model that does not read is the
+/// service's failure, a 500).
+pub(super) fn stored_cameras(row: &CalibrationRow) -> Result<Vec<Camera>, ApiError> {
     formats::calibration::from_json(&row.model, "the stored calibration")
         .map_err(ApiError::internal)
 }
@@ -194,12 +200,7 @@ pub async fn read(
     State(state): Shared,
     ApiPath(id): ApiPath<CalibrationId>,
 ) -> Result<Json<CalibrationView>, ApiError> {
-    let row = state
-        .store
-        .calibration(id)
-        .await?
-        .ok_or_else(|| ApiError::not_found(format!("calibration {id} does not exist")))?;
-    Ok(Json(CalibrationView::of(row)?))
+    Ok(Json(CalibrationView::of(calibration(&state, id).await?)?))
 }
 
 /// One camera's OpenPTV file: `{camera}.ori` or `{camera}.addpar`, camera
@@ -304,8 +305,7 @@ pub async fn project(
                 })
                 .collect()
         })
-        .await
-        .map_err(ApiError::internal)?;
+        .await?;
     Ok(Json(ProjectResponse { pixels }))
 }
 
@@ -375,8 +375,7 @@ pub async fn intersect_points(
             "every pixel coordinate must be finite",
         ));
     }
-    let result =
-        intersect(&cameras, &observations).map_err(|e| ApiError::unprocessable(error_chain(&e)))?;
+    let result = intersect(&cameras, &observations)?;
     Ok(Json(IntersectResponse {
         point: [result.point.x, result.point.y, result.point.z],
         sigma: [result.sigma.x, result.sigma.y, result.sigma.z],
@@ -416,7 +415,7 @@ async fn read_solve_parts(
     multipart: &mut Multipart,
 ) -> Result<SolveParts, ApiError> {
     let mut parts = SolveParts::default();
-    while let Some(mut field) = multipart.next_field().await.map_err(multipart_error)? {
+    while let Some(mut field) = multipart.next_field().await? {
         let name = field.name().unwrap_or("").to_owned();
         let once = |slot: &Option<String>| {
             if slot.is_some() {
@@ -448,7 +447,7 @@ async fn read_solve_parts(
                 .push(text_part(&mut field, &name, MAX_TEXT_PART).await?),
             "image" => {
                 let mut upload = state.images.create_upload().await?;
-                while let Some(chunk) = field.chunk().await.map_err(multipart_error)? {
+                while let Some(chunk) = field.chunk().await? {
                     upload.write(&chunk).await?;
                 }
                 parts.images.push(upload.finish().await?);
@@ -490,7 +489,6 @@ struct CheckedSolve {
 /// Checks a solve request's parts (everything but the images' headers and
 /// the resection itself).
 fn check_solve_parts(parts: &SolveParts) -> Result<CheckedSolve, ApiError> {
-    let invalid = |e: formats::FormatError| ApiError::unprocessable(e.to_string());
     let setup_text = parts.setup.clone().ok_or_else(|| {
         ApiError::bad_request(
             "the `setup` part is missing: give the calibration JSON with sensor and media of \
@@ -503,8 +501,7 @@ fn check_solve_parts(parts: &SolveParts) -> Result<CheckedSolve, ApiError> {
         )
     })?;
     let setup =
-        formats::calibration::parameters_from_json(&setup_text, &part_source("setup", None))
-            .map_err(invalid)?;
+        formats::calibration::parameters_from_json(&setup_text, &part_source("setup", None))?;
     let n = setup.len();
     if n < formats::calibration::MIN_CAMERAS {
         return Err(ApiError::unprocessable(format!(
@@ -513,18 +510,16 @@ fn check_solve_parts(parts: &SolveParts) -> Result<CheckedSolve, ApiError> {
         )));
     }
     let control_points =
-        control::parse_control_points(&control_text, &part_source("control", None))
-            .map_err(invalid)?;
+        control::parse_control_points(&control_text, &part_source("control", None))?;
     let options: SolveOptions = match &parts.options {
         None => SolveOptions::default(),
         Some(text) => parse_json(text).map_err(|e| e.at("part `options`"))?,
     };
     let calibration_options = options
         .calibration_options()
-        .map_err(|e| ApiError::unprocessable(format!("part `options`: {e}")))?;
+        .map_err(|e| ApiError::from(e).at("part `options`"))?;
     // What the core checks before any adjustment, with its messages.
-    calibrate::check_inputs(&setup, &control_points, n, &calibration_options)
-        .map_err(|e| ApiError::unprocessable(error_chain(&e)))?;
+    calibrate::check_inputs(&setup, &control_points, n, &calibration_options)?;
 
     let mut texts = vec![("setup", None, setup_text), ("control", None, control_text)];
     match (parts.observations.len(), parts.images.len()) {
@@ -542,8 +537,7 @@ fn check_solve_parts(parts: &SolveParts) -> Result<CheckedSolve, ApiError> {
                 ));
             }
             for (camera, text) in parts.observations.iter().enumerate() {
-                control::parse_mark_observations(text, &part_source("observations", Some(camera)))
-                    .map_err(invalid)?;
+                control::parse_mark_observations(text, &part_source("observations", Some(camera)))?;
                 texts.push(("observations", Some(camera), text.clone()));
             }
         }
@@ -552,12 +546,11 @@ fn check_solve_parts(parts: &SolveParts) -> Result<CheckedSolve, ApiError> {
             if !parts.references.is_empty() {
                 check_count("reference", parts.references.len(), n)?;
             }
-            options.mark_detection().map_err(|e| {
-                ApiError::unprocessable(format!("part `options`: detection: {}", error_chain(&e)))
-            })?;
+            options
+                .mark_detection()
+                .map_err(|e| ApiError::from(e).at("part `options`: detection"))?;
             for (camera, text) in parts.references.iter().enumerate() {
-                control::parse_mark_observations(text, &part_source("reference", Some(camera)))
-                    .map_err(invalid)?;
+                control::parse_mark_observations(text, &part_source("reference", Some(camera)))?;
                 texts.push(("reference", Some(camera), text.clone()));
             }
         }
@@ -653,7 +646,7 @@ pub async fn solve(
             size: file.size as i64,
         })
         .collect();
-    let payload = serde_json::to_string(&SolvePayload { options }).map_err(ApiError::internal)?;
+    let payload = serde_json::to_string(&SolvePayload { options })?;
     let job_id = {
         let _guard = state.images.lock().await;
         for (_, _, file) in uploads {

@@ -95,7 +95,7 @@ pub async fn read(
         attempts: row.attempts,
         error: row.error,
         result: row.result,
-        payload: serde_json::from_str(&row.payload).map_err(ApiError::internal)?,
+        payload: serde_json::from_str(&row.payload)?,
         created_at: row.created_at,
         started_at: row.started_at,
         finished_at: row.finished_at,

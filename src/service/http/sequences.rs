@@ -16,7 +16,8 @@ use axum::{Json, Router};
 use serde::{Deserialize, Serialize};
 use utoipa::{IntoParams, ToSchema};
 
-use super::problem::{multipart_error, ApiError, ApiJson, ApiMultipart, ApiPath, ApiQuery};
+use super::calibrations::stored_cameras;
+use super::problem::{ApiError, ApiJson, ApiMultipart, ApiPath, ApiQuery};
 use super::Shared;
 use crate::formats;
 use crate::photogrammetry::correspond::Particle;
@@ -24,10 +25,10 @@ use crate::photogrammetry::{Sensor, Target};
 use crate::service::app::AppState;
 use crate::service::codec;
 use crate::service::images::UploadedFile;
-use crate::service::jobs::{error_chain, prepare_pipeline, StoredRawLayout};
+use crate::service::jobs::{prepare_pipeline, StoredRawLayout};
 use crate::service::parameters::{DetectionSettings, MatchingSettings, SequenceParameters};
 use crate::service::store::{
-    CalibrationId, FrameInputKind, FrameNumber, InsertFrameError, JobId, NewFrame, SequenceId, SequenceRow,
+    CalibrationId, FrameInputKind, FrameNumber, JobId, NewFrame, SequenceId, SequenceRow,
 };
 
 /// Longest sequence name.
@@ -109,7 +110,7 @@ async fn view(state: &AppState, row: SequenceRow) -> Result<SequenceView, ApiErr
         id: row.id,
         calibration_id: row.calibration_id,
         name: row.name,
-        parameters: serde_json::from_str(&row.parameters).map_err(ApiError::internal)?,
+        parameters: serde_json::from_str(&row.parameters)?,
         keep_images: row.keep_images,
         created_at: row.created_at,
         frames: FrameCountsView {
@@ -167,10 +168,8 @@ pub async fn create(
             ))
         })?;
     let parameters = SequenceParameters::with_defaults(request.detection, request.matching);
-    let pipeline = prepare_pipeline(&state, &calibration.model, &parameters)
-        .await
-        .map_err(|e| ApiError::unprocessable(error_chain(&e)))?;
-    let stored = serde_json::to_string(&parameters).map_err(ApiError::internal)?;
+    let pipeline = prepare_pipeline(&state, &calibration.model, &parameters).await?;
+    let stored = serde_json::to_string(&parameters)?;
     let row = state
         .store
         .insert_sequence(
@@ -238,7 +237,7 @@ pub(super) async fn text_part(
     limit: usize,
 ) -> Result<String, ApiError> {
     let mut bytes = Vec::new();
-    while let Some(chunk) = field.chunk().await.map_err(multipart_error)? {
+    while let Some(chunk) = field.chunk().await? {
         if bytes.len() + chunk.len() > limit {
             return Err(ApiError::too_large(format!(
                 "part `{name}` is larger than {limit} bytes"
@@ -372,7 +371,7 @@ async fn read_parts(
         height: None,
         bits: None,
     };
-    while let Some(mut field) = multipart.next_field().await.map_err(multipart_error)? {
+    while let Some(mut field) = multipart.next_field().await? {
         let name = field.name().unwrap_or("").to_owned();
         let repeated = || ApiError::bad_request(format!("part `{name}` is given twice"));
         if name == "frame" {
@@ -398,7 +397,7 @@ async fn read_parts(
                 return Err(repeated());
             }
             let mut upload = state.images.create_upload().await?;
-            while let Some(chunk) = field.chunk().await.map_err(multipart_error)? {
+            while let Some(chunk) = field.chunk().await? {
                 upload.write(&chunk).await?;
             }
             parts.images[camera] = Some(upload.finish().await?);
@@ -412,9 +411,7 @@ async fn read_parts(
             let parsed = state
                 .cpu
                 .run(move || formats::parse_targets(&text, &name))
-                .await
-                .map_err(ApiError::internal)?
-                .map_err(|e| ApiError::unprocessable(e.to_string()))?;
+                .await??;
             parts.targets[camera] = Some(parsed);
         } else {
             return Err(ApiError::bad_request(format!(
@@ -464,8 +461,7 @@ pub async fn upload_frame(
         .calibration(row.calibration_id)
         .await?
         .ok_or_else(|| ApiError::internal("a sequence's calibration is missing"))?;
-    let cameras = formats::calibration::from_json(&calibration.model, "the stored calibration")
-        .map_err(ApiError::internal)?;
+    let cameras = stored_cameras(&calibration)?;
     let n = cameras.len();
 
     let parts = match read_parts(&state, id, n, &mut multipart).await {
@@ -599,12 +595,7 @@ pub async fn upload_frame(
                         state.images.remove(hash).await?;
                     }
                 }
-                return Err(match error {
-                    InsertFrameError::Exists(frame) => ApiError::conflict(format!(
-                        "frame {frame} of sequence {id} exists; frames are uploaded once"
-                    )),
-                    InsertFrameError::Database(e) => ApiError::internal(e),
-                });
+                return Err(error.into());
             }
         }
     };
@@ -689,16 +680,20 @@ async fn load_particles(
         .await?
         .map_or(0, |c| c.cameras as usize);
     match state.store.frame_particles(id, frame).await? {
-        Some((_, blob)) => Ok((
-            cameras,
-            codec::decode_particles(&blob, cameras).map_err(ApiError::internal)?,
-        )),
-        None if state.store.frame_exists(id, frame).await? => Err(ApiError::conflict(format!(
-            "frame {frame} is not processed (yet); see its job"
-        ))),
-        None => Err(ApiError::not_found(format!(
-            "sequence {id} has no frame {frame}"
-        ))),
+        Some((_, blob)) => Ok((cameras, codec::decode_particles(&blob, cameras)?)),
+        None => Err(no_results(state, id, frame).await),
+    }
+}
+
+/// Why a frame has no results: it is not processed yet (409), or it does
+/// not exist (404).
+async fn no_results(state: &AppState, id: SequenceId, frame: FrameNumber) -> ApiError {
+    match state.store.frame_exists(id, frame).await {
+        Ok(true) => {
+            ApiError::conflict(format!("frame {frame} is not processed (yet); see its job"))
+        }
+        Ok(false) => ApiError::not_found(format!("sequence {id} has no frame {frame}")),
+        Err(error) => error.into(),
     }
 }
 
@@ -828,11 +823,7 @@ pub async fn frame_targets(
     sequence(&state, id).await?;
     let stored = state.store.frame_targets(id, frame).await?;
     if stored.is_empty() {
-        return Err(if state.store.frame_exists(id, frame).await? {
-            ApiError::conflict(format!("frame {frame} is not processed (yet); see its job"))
-        } else {
-            ApiError::not_found(format!("sequence {id} has no frame {frame}"))
-        });
+        return Err(no_results(&state, id, frame).await);
     }
     let (_, _, blob) = stored
         .iter()
@@ -844,7 +835,7 @@ pub async fn frame_targets(
                 stored.len() - 1
             ))
         })?;
-    let targets = codec::decode_targets(blob).map_err(ApiError::internal)?;
+    let targets = codec::decode_targets(blob)?;
     Ok(match query.format {
         TargetFormat::Json => Json(FrameTargets {
             frame,

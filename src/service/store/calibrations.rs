@@ -49,7 +49,10 @@ impl Store {
     }
 
     /// A calibration by id.
-    pub async fn calibration(&self, id: CalibrationId) -> Result<Option<CalibrationRow>, sqlx::Error> {
+    pub async fn calibration(
+        &self,
+        id: CalibrationId,
+    ) -> Result<Option<CalibrationRow>, sqlx::Error> {
         sqlx::query_as(
             "SELECT id, model, cameras, report, created_at FROM calibrations WHERE id = ?",
         )

@@ -94,8 +94,13 @@ impl<'s> MigrationSource<'s> for Migrations {
 #[derive(Debug, thiserror::Error)]
 pub enum InsertFrameError {
     /// The frame number is taken.
-    #[error("frame {0} exists")]
-    Exists(FrameNumber),
+    #[error("frame {frame} of sequence {sequence_id} exists")]
+    Exists {
+        /// The sequence.
+        sequence_id: SequenceId,
+        /// The frame.
+        frame: FrameNumber,
+    },
     /// The database failed.
     #[error(transparent)]
     Database(#[from] sqlx::Error),
@@ -143,17 +148,18 @@ trait TextColumn: Copy + 'static {
             .ok_or_else(|| UnknownValue {
                 what: Self::WHAT,
                 value: text.to_owned(),
-                known: Self::ALL.iter().map(|v| v.as_str()).collect::<Vec<_>>().join(", "),
+                known: Self::ALL
+                    .iter()
+                    .map(|v| v.as_str())
+                    .collect::<Vec<_>>()
+                    .join(", "),
             })
     }
 }
 
 /// A text column read as its enum; an unknown text is a decode error that
 /// names the column and the text.
-fn decode_text<T: FromStr<Err = UnknownValue>>(
-    column: &str,
-    text: &str,
-) -> Result<T, sqlx::Error> {
+fn decode_text<T: FromStr<Err = UnknownValue>>(column: &str, text: &str) -> Result<T, sqlx::Error> {
     text.parse().map_err(|error| sqlx::Error::ColumnDecode {
         index: column.to_owned(),
         source: Box::new(error),
@@ -168,9 +174,21 @@ fn text_column<T: FromStr<Err = UnknownValue>>(
     decode_text(column, row.try_get::<&str, _>(column)?)
 }
 
-/// Whether an error is SQLite's unique or primary-key violation.
-fn is_unique_violation(error: &sqlx::Error) -> bool {
-    matches!(error, sqlx::Error::Database(e) if e.is_unique_violation())
+/// realworld-axum-sqlx's `on_constraint`, for SQLite's unique and
+/// primary-key violations: the statement's error, or the one that says
+/// what the violation means.
+trait OnUniqueViolation<T> {
+    /// `error()` where the statement violated a unique constraint.
+    fn on_unique_violation<E: From<sqlx::Error>>(self, error: impl FnOnce() -> E) -> Result<T, E>;
+}
+
+impl<T> OnUniqueViolation<T> for Result<T, sqlx::Error> {
+    fn on_unique_violation<E: From<sqlx::Error>>(self, error: impl FnOnce() -> E) -> Result<T, E> {
+        self.map_err(|e| match e {
+            sqlx::Error::Database(ref db) if db.is_unique_violation() => error(),
+            other => other.into(),
+        })
+    }
 }
 
 impl Store {

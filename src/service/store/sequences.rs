@@ -8,8 +8,8 @@ use sqlx::{FromRow, Row, Sqlite, Transaction};
 
 use super::jobs::{enqueue, finish, ClaimedJob, JobState};
 use super::{
-    decode_text, file_in_use, is_unique_violation, text_column, TextColumn, UnknownValue, CalibrationId, CompleteError, FrameNumber, InsertFrameError,
-    JobId, SequenceId, Store,
+    decode_text, file_in_use, text_column, CalibrationId, CompleteError, FrameNumber,
+    InsertFrameError, JobId, OnUniqueViolation, SequenceId, Store, TextColumn, UnknownValue,
 };
 
 /// A stored sequence.
@@ -189,7 +189,7 @@ impl Store {
         let payload =
             serde_json::json!({"sequence_id": frame.sequence_id, "frame": frame.frame}).to_string();
         let job_id = enqueue(&mut tx, crate::service::jobs::PROCESS_FRAME, &payload).await?;
-        let inserted = sqlx::query(
+        sqlx::query(
             "INSERT INTO frames (sequence_id, frame, job_id, input, raw_layout) \
              VALUES (?, ?, ?, ?, ?)",
         )
@@ -199,11 +199,11 @@ impl Store {
         .bind(frame.input.as_str())
         .bind(&frame.raw_layout)
         .execute(&mut *tx)
-        .await;
-        match inserted {
-            Err(e) if is_unique_violation(&e) => return Err(InsertFrameError::Exists(frame.frame)),
-            other => other?,
-        };
+        .await
+        .on_unique_violation(|| InsertFrameError::Exists {
+            sequence_id: frame.sequence_id,
+            frame: frame.frame,
+        })?;
         for (camera, sha256, size) in &frame.images {
             sqlx::query(
                 "INSERT INTO images (sequence_id, frame, camera, sha256, size) \
