@@ -13,8 +13,9 @@ use nalgebra::Point2;
 use serde::{Deserialize, Serialize};
 use utoipa::ToSchema;
 
+use super::links;
 use super::problem::{parse_json, ApiError, ApiJson, ApiMultipart, ApiPath, JsonText};
-use super::sequences::{check_image, drain, text_part};
+use super::upload::{accepted, check_images, or_drain, persist_and_commit, stream_part, text_part};
 use super::Shared;
 use crate::formats::{self, control, openptv::OriTexts};
 use crate::photogrammetry::calibrate;
@@ -82,7 +83,7 @@ async fn store_cameras(state: &AppState, cameras: &[Camera]) -> Result<Response,
         .store
         .insert_calibration(&model, cameras.len() as i64, None)
         .await?;
-    let location = format!("/api/v1/calibrations/{}", row.id);
+    let location = links::calibration(row.id);
     Ok((
         StatusCode::CREATED,
         [(header::LOCATION, location)],
@@ -445,13 +446,9 @@ async fn read_solve_parts(
             "reference" => parts
                 .references
                 .push(text_part(&mut field, &name, MAX_TEXT_PART).await?),
-            "image" => {
-                let mut upload = state.images.create_upload().await?;
-                while let Some(chunk) = field.chunk().await? {
-                    upload.write(&chunk).await?;
-                }
-                parts.images.push(upload.finish().await?);
-            }
+            "image" => parts
+                .images
+                .push(stream_part(&state.images, &mut field).await?),
             other => {
                 return Err(ApiError::bad_request(format!(
                     "unknown part `{}`; expected `setup`, `control`, per camera `observations` \
@@ -591,13 +588,8 @@ pub async fn solve(
     State(state): Shared,
     ApiMultipart(mut multipart): ApiMultipart,
 ) -> Result<Response, ApiError> {
-    let parts = match read_solve_parts(&state, &mut multipart).await {
-        Ok(parts) => parts,
-        Err(error) => {
-            drain(&mut multipart).await;
-            return Err(error);
-        }
-    };
+    let parts = read_solve_parts(&state, &mut multipart).await;
+    let parts = or_drain(parts, &mut multipart).await?;
     let CheckedSolve {
         texts,
         options,
@@ -605,26 +597,10 @@ pub async fn solve(
     } = check_solve_parts(&parts)?;
     let images = parts.images;
     if !images.is_empty() {
-        // Header checks read the files: blocking I/O, off the runtime.
-        let checks: Vec<(std::path::PathBuf, u64, Sensor)> = images
-            .iter()
-            .zip(sensors)
-            .map(|(f, sensor)| {
-                (
-                    f.temp_path().map(|p| p.to_owned()).unwrap_or_default(),
-                    f.size,
-                    sensor,
-                )
-            })
-            .collect();
-        tokio::task::spawn_blocking(move || {
-            for (camera, (path, size, sensor)) in checks.iter().enumerate() {
-                check_image(path, *size, camera, sensor, None)?;
-            }
-            Ok::<(), ApiError>(())
+        check_images(&images, &sensors, None, |camera| {
+            part_source("image", Some(camera))
         })
-        .await
-        .map_err(ApiError::internal)??;
+        .await?;
     }
 
     // Every file goes to the store; text parts become files too.
@@ -637,46 +613,28 @@ pub async fn solve(
     for (camera, file) in images.into_iter().enumerate() {
         uploads.push(("image", Some(camera), file));
     }
-    let files: Vec<JobFile> = uploads
-        .iter()
-        .map(|(part, camera, file)| JobFile {
-            part: (*part).to_owned(),
-            camera: camera.map(|c| c as i64),
-            sha256: file.sha256.clone(),
-            size: file.size as i64,
+    let (files, uploads): (Vec<JobFile>, Vec<UploadedFile>) = uploads
+        .into_iter()
+        .map(|(part, camera, file)| {
+            let row = JobFile {
+                part: part.to_owned(),
+                camera: camera.map(|c| c as i64),
+                sha256: file.sha256.clone(),
+                size: file.size as i64,
+            };
+            (row, file)
         })
-        .collect();
+        .unzip();
     let payload = serde_json::to_string(&SolvePayload { options })?;
-    let job_id = {
-        let _guard = state.images.lock().await;
-        for (_, _, file) in uploads {
-            state.images.persist(file).await?;
-        }
-        match state
+    let job_id = persist_and_commit(&state, uploads, || {
+        state
             .store
             .enqueue_with_files(SOLVE_CALIBRATION, &payload, &files)
-            .await
-        {
-            Ok(id) => id,
-            Err(error) => {
-                for file in &files {
-                    if !state.store.image_in_use(&file.sha256).await? {
-                        state.images.remove(&file.sha256).await?;
-                    }
-                }
-                return Err(ApiError::internal(error));
-            }
-        }
-    };
-    state.wake.notify_one();
-    let accepted = SolveAccepted {
+    })
+    .await?;
+    let body = SolveAccepted {
         job_id,
-        job: format!("/api/v1/jobs/{job_id}"),
+        job: links::job(job_id),
     };
-    Ok((
-        StatusCode::ACCEPTED,
-        [(header::LOCATION, accepted.job.clone())],
-        Json(accepted),
-    )
-        .into_response())
+    Ok(accepted(&state, job_id, body))
 }

@@ -16,8 +16,10 @@
 pub mod calibrations;
 pub mod docs;
 pub mod jobs;
+pub mod links;
 pub mod problem;
 pub mod sequences;
+pub mod upload;
 
 use std::sync::Arc;
 

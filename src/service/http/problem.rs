@@ -134,11 +134,13 @@ status_of!(|error| ApiError::unprocessable(error_chain(&error)) =>
 );
 
 impl From<FormatError> for ApiError {
-    /// A file the caller gave that does not parse is a 422; one the service
-    /// could not read itself is a 500.
+    /// A file the caller gave that does not parse is a 422, an image of a
+    /// kind this service does not open a 415; a file the service could not
+    /// read itself is a 500.
     fn from(error: FormatError) -> Self {
         match error {
             FormatError::Io { .. } => ApiError::internal(error),
+            FormatError::UnsupportedImage { .. } => ApiError::unsupported(error.to_string()),
             FormatError::Invalid { .. } => ApiError::unprocessable(error.to_string()),
         }
     }

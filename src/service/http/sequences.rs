@@ -17,7 +17,9 @@ use serde::{Deserialize, Serialize};
 use utoipa::{IntoParams, ToSchema};
 
 use super::calibrations::stored_cameras;
+use super::links;
 use super::problem::{ApiError, ApiJson, ApiMultipart, ApiPath, ApiQuery};
+use super::upload::{accepted, check_images, or_drain, persist_and_commit, stream_part, text_part};
 use super::Shared;
 use crate::formats;
 use crate::photogrammetry::correspond::Particle;
@@ -28,7 +30,8 @@ use crate::service::images::UploadedFile;
 use crate::service::jobs::{prepare_pipeline, StoredRawLayout};
 use crate::service::parameters::{DetectionSettings, MatchingSettings, SequenceParameters};
 use crate::service::store::{
-    CalibrationId, FrameInputKind, FrameNumber, JobId, NewFrame, SequenceId, SequenceRow,
+    CalibrationId, FrameInputKind, FrameNumber, InsertFrameError, JobId, NewFrame, SequenceId,
+    SequenceRow,
 };
 
 /// Longest sequence name.
@@ -181,7 +184,7 @@ pub async fn create(
         .await?
         .ok_or_else(|| ApiError::unprocessable("calibration_id: the calibration does not exist"))?;
     state.pipelines.insert(row.id, Arc::new(pipeline));
-    let location = format!("/api/v1/sequences/{}", row.id);
+    let location = links::sequence(row.id);
     Ok((
         StatusCode::CREATED,
         [(header::LOCATION, location)],
@@ -230,25 +233,6 @@ pub struct FrameAccepted {
     pub particles: String,
 }
 
-/// Reads a small text part whole, up to `limit` bytes.
-pub(super) async fn text_part(
-    field: &mut Field<'_>,
-    name: &str,
-    limit: usize,
-) -> Result<String, ApiError> {
-    let mut bytes = Vec::new();
-    while let Some(chunk) = field.chunk().await? {
-        if bytes.len() + chunk.len() > limit {
-            return Err(ApiError::too_large(format!(
-                "part `{name}` is larger than {limit} bytes"
-            )));
-        }
-        bytes.extend_from_slice(&chunk);
-    }
-    String::from_utf8(bytes)
-        .map_err(|_| ApiError::unprocessable(format!("part `{name}` is not UTF-8 text")))
-}
-
 /// A numeric part: `frame`, `width`, `height`, `bits`.
 async fn number_part<T: std::str::FromStr>(
     field: &mut Field<'_>,
@@ -281,68 +265,6 @@ fn camera_of(name: &str, prefix: &str, cameras: usize) -> Option<Result<usize, A
                 ))
             }),
     )
-}
-
-/// Checks an image file's header (PNG/TIFF: greyscale of the sensor's
-/// size) or its size (raw), without decoding the pixels.
-pub(super) fn check_image(
-    path: &std::path::Path,
-    size: u64,
-    camera: usize,
-    sensor: &Sensor,
-    raw: Option<&StoredRawLayout>,
-) -> Result<(), ApiError> {
-    let (width, height) = match raw {
-        Some(layout) => {
-            let expected =
-                u64::from(layout.width) * u64::from(layout.height) * (u64::from(layout.bits) / 8);
-            if size != expected {
-                return Err(ApiError::unprocessable(format!(
-                    "cam{camera}: {size} bytes, but a raw {}x{} {}-bit image has {expected}",
-                    layout.width, layout.height, layout.bits
-                )));
-            }
-            (layout.width, layout.height)
-        }
-        None => {
-            use image::ImageDecoder;
-            let unsupported = |reason: String| {
-                ApiError::unsupported(format!(
-                    "cam{camera}: {reason}; send a greyscale PNG or TIFF, or raw samples with \
-                     `width`, `height` and `bits` parts"
-                ))
-            };
-            let reader = image::ImageReader::open(path)
-                .and_then(|r| r.with_guessed_format())
-                .map_err(ApiError::internal)?;
-            if !matches!(
-                reader.format(),
-                Some(image::ImageFormat::Png | image::ImageFormat::Tiff)
-            ) {
-                return Err(unsupported("not a PNG or TIFF image".to_owned()));
-            }
-            let decoder = reader
-                .into_decoder()
-                .map_err(|e| unsupported(format!("cannot be read ({e})")))?;
-            if !matches!(
-                decoder.color_type(),
-                image::ColorType::L8 | image::ColorType::L16
-            ) {
-                return Err(ApiError::unprocessable(format!(
-                    "cam{camera}: the image is {:?}; the detector needs 8- or 16-bit greyscale",
-                    decoder.color_type()
-                )));
-            }
-            decoder.dimensions()
-        }
-    };
-    if (width, height) != (sensor.width, sensor.height) {
-        return Err(ApiError::unprocessable(format!(
-            "cam{camera}: the image is {width}x{height} px, but camera {camera}'s sensor is {}x{}",
-            sensor.width, sensor.height
-        )));
-    }
-    Ok(())
 }
 
 /// The parts of a frame upload, as read.
@@ -380,9 +302,11 @@ async fn read_parts(
             }
             let number = FrameNumber(number_part::<u32>(&mut field, &name).await?.into());
             if state.store.frame_exists(id, number).await? {
-                return Err(ApiError::conflict(format!(
-                    "frame {number} of sequence {id} exists; frames are uploaded once"
-                )));
+                return Err(InsertFrameError::Exists {
+                    sequence_id: id,
+                    frame: number,
+                }
+                .into());
             }
             parts.frame = Some(number);
         } else if name == "width" {
@@ -396,11 +320,7 @@ async fn read_parts(
             if parts.images[camera].is_some() {
                 return Err(repeated());
             }
-            let mut upload = state.images.create_upload().await?;
-            while let Some(chunk) = field.chunk().await? {
-                upload.write(&chunk).await?;
-            }
-            parts.images[camera] = Some(upload.finish().await?);
+            parts.images[camera] = Some(stream_part(&state.images, &mut field).await?);
         } else if let Some(camera) = camera_of(&name, "targets", n) {
             let camera = camera?;
             if parts.targets[camera].is_some() {
@@ -423,13 +343,6 @@ async fn read_parts(
         }
     }
     Ok(parts)
-}
-
-/// Reads and drops what is left of a multipart body.
-pub(super) async fn drain(multipart: &mut Multipart) {
-    while let Ok(Some(mut field)) = multipart.next_field().await {
-        while let Ok(Some(_)) = field.chunk().await {}
-    }
 }
 
 /// Uploads one frame: multipart with a `frame` number and, per camera,
@@ -464,15 +377,7 @@ pub async fn upload_frame(
     let cameras = stored_cameras(&calibration)?;
     let n = cameras.len();
 
-    let parts = match read_parts(&state, id, n, &mut multipart).await {
-        Ok(parts) => parts,
-        Err(error) => {
-            // Read the rest (bounded by the body limit) so that the client,
-            // still sending, gets the answer rather than a broken pipe.
-            drain(&mut multipart).await;
-            return Err(error);
-        }
-    };
+    let parts = read_parts(&state, id, n, &mut multipart).await;
     let UploadParts {
         frame,
         images,
@@ -480,7 +385,7 @@ pub async fn upload_frame(
         width,
         height,
         bits,
-    } = parts;
+    } = or_drain(parts, &mut multipart).await?;
     let frame = frame.ok_or_else(|| ApiError::bad_request("the `frame` part is missing"))?;
     let image_count = images.iter().flatten().count();
     let target_count = targets.iter().flatten().count();
@@ -531,35 +436,15 @@ pub async fn upload_frame(
         } else {
             FrameInputKind::Targets
         },
-        raw_layout: raw
-            .as_ref()
-            .map(serde_json::to_string)
-            .transpose()
-            .map_err(ApiError::internal)?,
+        raw_layout: raw.as_ref().map(serde_json::to_string).transpose()?,
         images: Vec::new(),
         targets: Vec::new(),
     };
     let images: Vec<UploadedFile> = images.into_iter().flatten().collect();
     if !images.is_empty() {
-        // Header checks read the files: blocking I/O, off the runtime.
-        let checks: Vec<(std::path::PathBuf, u64)> = images
-            .iter()
-            .map(|f| {
-                (
-                    f.temp_path().map(|p| p.to_owned()).unwrap_or_default(),
-                    f.size,
-                )
-            })
-            .collect();
-        let checked_cameras = cameras.clone();
-        tokio::task::spawn_blocking(move || {
-            for (camera, ((path, size), model)) in checks.iter().zip(&checked_cameras).enumerate() {
-                check_image(path, *size, camera, model.sensor(), raw.as_ref())?;
-            }
-            Ok::<(), ApiError>(())
-        })
-        .await
-        .map_err(ApiError::internal)??;
+        let sensors: Vec<Sensor> = cameras.iter().map(|c| c.sensor().clone()).collect();
+        let layout = raw.as_ref().and_then(StoredRawLayout::layout);
+        check_images(&images, &sensors, layout, |camera| format!("cam{camera}")).await?;
         new_frame.images = images
             .iter()
             .enumerate()
@@ -580,38 +465,15 @@ pub async fn upload_frame(
             .collect();
     }
 
-    let job_id = {
-        let _guard = state.images.lock().await;
-        let hashes: Vec<String> = images.iter().map(|f| f.sha256.clone()).collect();
-        for file in images {
-            state.images.persist(file).await?;
-        }
-        match state.store.insert_frame(&new_frame).await {
-            Ok(job_id) => job_id,
-            Err(error) => {
-                // Files this request persisted that no row refers to go.
-                for hash in &hashes {
-                    if !state.store.image_in_use(hash).await? {
-                        state.images.remove(hash).await?;
-                    }
-                }
-                return Err(error.into());
-            }
-        }
-    };
-    state.wake.notify_one();
-    let accepted = FrameAccepted {
+    let job_id =
+        persist_and_commit(&state, images, || state.store.insert_frame(&new_frame)).await?;
+    let body = FrameAccepted {
         frame,
         job_id,
-        job: format!("/api/v1/jobs/{job_id}"),
-        particles: format!("/api/v1/sequences/{id}/frames/{frame}/particles"),
+        job: links::job(job_id),
+        particles: links::frame_particles(id, frame),
     };
-    Ok((
-        StatusCode::ACCEPTED,
-        [(header::LOCATION, accepted.job.clone())],
-        Json(accepted),
-    )
-        .into_response())
+    Ok(accepted(&state, job_id, body))
 }
 
 /// How to write particles.

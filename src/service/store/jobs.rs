@@ -1,12 +1,10 @@
 //! The job queue: enqueue, claim, complete, fail, release, reap; and the
 //! input files of jobs that are not frames.
 
-use std::str::FromStr;
-
 use sqlx::sqlite::SqliteRow;
 use sqlx::{FromRow, Row, Sqlite, Transaction};
 
-use super::{text_column, CompleteError, JobId, Store, TextColumn, UnknownValue};
+use super::{stored_as_text, text_column, CompleteError, JobId, Store};
 
 /// How often a job may be claimed before a crash-looping one is failed.
 pub const MAX_ATTEMPTS: i64 = 3;
@@ -24,32 +22,12 @@ pub enum JobState {
     Failed,
 }
 
-impl TextColumn for JobState {
-    const WHAT: &'static str = "job state";
-    /// In the order of a job's life.
-    const ALL: &'static [JobState] = &[
-        JobState::Queued,
-        JobState::Running,
-        JobState::Succeeded,
-        JobState::Failed,
-    ];
-
-    fn as_str(self) -> &'static str {
-        match self {
-            JobState::Queued => "queued",
-            JobState::Running => "running",
-            JobState::Succeeded => "succeeded",
-            JobState::Failed => "failed",
-        }
-    }
-}
-
-impl FromStr for JobState {
-    type Err = UnknownValue;
-    fn from_str(text: &str) -> Result<Self, UnknownValue> {
-        JobState::parse_text(text)
-    }
-}
+stored_as_text!(JobState, "job state", {
+    Queued => "queued",
+    Running => "running",
+    Succeeded => "succeeded",
+    Failed => "failed",
+});
 
 /// A stored job.
 #[derive(Clone, Debug)]

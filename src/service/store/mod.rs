@@ -157,6 +157,30 @@ trait TextColumn: Copy + 'static {
     }
 }
 
+/// Makes an enum a [`TextColumn`] with these names, parsed by `FromStr`.
+macro_rules! stored_as_text {
+    ($type:ident, $what:literal, { $($variant:ident => $name:literal),+ $(,)? }) => {
+        impl $crate::service::store::TextColumn for $type {
+            const WHAT: &'static str = $what;
+            const ALL: &'static [$type] = &[$($type::$variant),+];
+
+            fn as_str(self) -> &'static str {
+                match self {
+                    $($type::$variant => $name),+
+                }
+            }
+        }
+
+        impl std::str::FromStr for $type {
+            type Err = $crate::service::store::UnknownValue;
+            fn from_str(text: &str) -> Result<Self, Self::Err> {
+                <$type as $crate::service::store::TextColumn>::parse_text(text)
+            }
+        }
+    };
+}
+use stored_as_text;
+
 /// A text column read as its enum; an unknown text is a decode error that
 /// names the column and the text.
 fn decode_text<T: FromStr<Err = UnknownValue>>(column: &str, text: &str) -> Result<T, sqlx::Error> {

@@ -1,15 +1,13 @@
 //! Sequences and their frames: a frame's upload (inputs and its job in one
 //! transaction), what its job reads, and its results.
 
-use std::str::FromStr;
-
 use sqlx::sqlite::SqliteRow;
 use sqlx::{FromRow, Row, Sqlite, Transaction};
 
 use super::jobs::{enqueue, finish, ClaimedJob, JobState};
 use super::{
-    decode_text, file_in_use, text_column, CalibrationId, CompleteError, FrameNumber,
-    InsertFrameError, JobId, OnUniqueViolation, SequenceId, Store, TextColumn, UnknownValue,
+    decode_text, file_in_use, stored_as_text, text_column, CalibrationId, CompleteError,
+    FrameNumber, InsertFrameError, JobId, OnUniqueViolation, SequenceId, Store, TextColumn,
 };
 
 /// A stored sequence.
@@ -38,24 +36,10 @@ pub enum FrameInputKind {
     Targets,
 }
 
-impl TextColumn for FrameInputKind {
-    const WHAT: &'static str = "frame input";
-    const ALL: &'static [FrameInputKind] = &[FrameInputKind::Images, FrameInputKind::Targets];
-
-    fn as_str(self) -> &'static str {
-        match self {
-            FrameInputKind::Images => "images",
-            FrameInputKind::Targets => "targets",
-        }
-    }
-}
-
-impl FromStr for FrameInputKind {
-    type Err = UnknownValue;
-    fn from_str(text: &str) -> Result<Self, UnknownValue> {
-        FrameInputKind::parse_text(text)
-    }
-}
+stored_as_text!(FrameInputKind, "frame input", {
+    Images => "images",
+    Targets => "targets",
+});
 
 /// A frame upload to store with its job.
 #[derive(Clone, Debug)]
