@@ -8,6 +8,7 @@ use axum::{Json, Router};
 use serde::Serialize;
 use utoipa::ToSchema;
 
+use super::links;
 use super::problem::{ApiError, ApiPath};
 use super::Shared;
 use crate::service::app::AppState;
@@ -94,7 +95,7 @@ pub async fn read(
         state: row.state.into(),
         attempts: row.attempts,
         error: row.error,
-        result: row.result,
+        result: row.result.as_ref().map(links::job_result),
         payload: serde_json::from_str(&row.payload)?,
         created_at: row.created_at,
         started_at: row.started_at,

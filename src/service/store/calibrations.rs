@@ -5,7 +5,7 @@ use sqlx::sqlite::SqliteRow;
 use sqlx::{FromRow, Row, Sqlite, Transaction};
 
 use super::jobs::{finish, ClaimedJob};
-use super::{file_in_use, CalibrationId, CompleteError, Store};
+use super::{file_in_use, CalibrationId, CompleteError, JobId, Store};
 
 /// A stored calibration.
 #[derive(Clone, Debug)]
@@ -43,7 +43,7 @@ impl Store {
         report: Option<&str>,
     ) -> Result<CalibrationRow, sqlx::Error> {
         let mut tx = self.write_transaction().await?;
-        let row = insert_calibration(&mut tx, model, cameras, report).await?;
+        let row = insert_calibration(&mut tx, model, cameras, report, None).await?;
         tx.commit().await?;
         Ok(row)
     }
@@ -62,7 +62,8 @@ impl Store {
     }
 
     /// Stores a solved calibration with its report and completes its job,
-    /// in one transaction; unless `keep_files`, the job's file rows go too.
+    /// in one transaction (the calibration names the job: its result);
+    /// unless `keep_files`, the job's file rows go too.
     /// Returns the calibration's id and the hashes of the files nothing
     /// refers to any more, whose files may go.
     pub async fn complete_calibration(
@@ -75,9 +76,8 @@ impl Store {
         duration_s: f64,
     ) -> Result<(CalibrationId, Vec<String>), CompleteError> {
         let mut tx = self.write_transaction().await?;
-        let row = insert_calibration(&mut tx, model, cameras, Some(report)).await?;
-        let result = format!("/api/v1/calibrations/{}", row.id);
-        finish(&mut tx, job, &result, duration_s).await?;
+        finish(&mut tx, job, None, duration_s).await?;
+        let row = insert_calibration(&mut tx, model, cameras, Some(report), Some(job.id)).await?;
         let mut orphans = Vec::new();
         if !keep_files {
             let hashes: Vec<(String,)> =
@@ -97,20 +97,23 @@ impl Store {
 }
 
 /// Stores a calibration inside the caller's transaction (a solve job's
-/// completion stores its calibration and finishes the job together).
+/// completion stores its calibration, naming the job, and finishes the job
+/// together).
 pub async fn insert_calibration(
     tx: &mut Transaction<'_, Sqlite>,
     model: &str,
     cameras: i64,
     report: Option<&str>,
+    solved_by: Option<JobId>,
 ) -> Result<CalibrationRow, sqlx::Error> {
     sqlx::query_as(
-        "INSERT INTO calibrations (model, cameras, report) VALUES (?, ?, ?) \
+        "INSERT INTO calibrations (model, cameras, report, job_id) VALUES (?, ?, ?, ?) \
          RETURNING id, model, cameras, report, created_at",
     )
     .bind(model)
     .bind(cameras)
     .bind(report)
+    .bind(solved_by)
     .fetch_one(&mut **tx)
     .await
 }

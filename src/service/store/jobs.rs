@@ -4,7 +4,10 @@
 use sqlx::sqlite::SqliteRow;
 use sqlx::{FromRow, Row, Sqlite, Transaction};
 
-use super::{stored_as_text, text_column, CompleteError, JobId, Store};
+use super::{
+    stored_as_text, text_column, CalibrationId, CompleteError, FrameNumber, JobId, SequenceId,
+    Store,
+};
 
 /// How often a job may be claimed before a crash-looping one is failed.
 pub const MAX_ATTEMPTS: i64 = 3;
@@ -44,14 +47,48 @@ pub struct JobRow {
     pub attempts: i64,
     /// Why it failed (or why its last attempt did).
     pub error: Option<String>,
-    /// Where its result is.
-    pub result: Option<String>,
+    /// Where its result is, once it succeeded.
+    pub result: Option<JobResult>,
     /// Enqueued at.
     pub created_at: String,
     /// Last claimed at.
     pub started_at: Option<String>,
     /// Finished at.
     pub finished_at: Option<String>,
+}
+
+/// Where a succeeded job's result is: what the HTTP layer links to.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum JobResult {
+    /// The calibration a solve_calibration job stored.
+    Calibration(CalibrationId),
+    /// The frame a process_frame job processed: its particles.
+    Frame {
+        /// The sequence.
+        sequence_id: SequenceId,
+        /// The frame.
+        frame: FrameNumber,
+    },
+    /// The link another kind of job gave when it succeeded
+    /// ([`Store::succeed`]).
+    Link(String),
+}
+
+impl JobResult {
+    /// The result of a row of [`Store::job`]'s query: the calibration or
+    /// frame it wrote, else the link it gave.
+    fn of(row: &SqliteRow) -> Result<Option<JobResult>, sqlx::Error> {
+        let calibration: Option<CalibrationId> = row.try_get("result_calibration")?;
+        let sequence: Option<SequenceId> = row.try_get("result_sequence")?;
+        let frame: Option<FrameNumber> = row.try_get("result_frame")?;
+        Ok(match (calibration, sequence, frame) {
+            (Some(id), _, _) => Some(JobResult::Calibration(id)),
+            (None, Some(sequence_id), Some(frame)) => Some(JobResult::Frame { sequence_id, frame }),
+            _ => row
+                .try_get::<Option<String>, _>("result")?
+                .map(JobResult::Link),
+        })
+    }
 }
 
 /// A job a worker has claimed.
@@ -78,7 +115,7 @@ impl FromRow<'_, SqliteRow> for JobRow {
             state: text_column(row, "state")?,
             attempts: row.try_get("attempts")?,
             error: row.try_get("error")?,
-            result: row.try_get("result")?,
+            result: JobResult::of(row)?,
             created_at: row.try_get("created_at")?,
             started_at: row.try_get("started_at")?,
             finished_at: row.try_get("finished_at")?,
@@ -191,11 +228,17 @@ impl Store {
         Ok((requeued, failed))
     }
 
-    /// A job by id.
+    /// A job by id, with what its result is: the calibration that names
+    /// it, or, once it succeeded, the frame that does.
     pub async fn job(&self, id: JobId) -> Result<Option<JobRow>, sqlx::Error> {
         sqlx::query_as(
-            "SELECT id, kind, payload, state, attempts, error, result, created_at, started_at, \
-             finished_at FROM jobs WHERE id = ?",
+            "SELECT j.id, j.kind, j.payload, j.state, j.attempts, j.error, j.result, \
+             j.created_at, j.started_at, j.finished_at, c.id AS result_calibration, \
+             f.sequence_id AS result_sequence, f.frame AS result_frame \
+             FROM jobs j \
+             LEFT JOIN calibrations c ON c.job_id = j.id \
+             LEFT JOIN frames f ON f.job_id = j.id AND j.state = 'succeeded' \
+             WHERE j.id = ?",
         )
         .bind(id)
         .fetch_optional(&self.reader)
@@ -208,6 +251,7 @@ impl Store {
             .fetch_all(&self.reader)
             .await
     }
+
     /// Enqueues a job and records its input files in one transaction;
     /// returns the job's id.
     pub async fn enqueue_with_files(
@@ -252,8 +296,9 @@ impl Store {
             })
             .collect())
     }
+
     /// Completes a held job whose results are stored elsewhere (or that
-    /// has none) with a link to its result.
+    /// has none) with a link to its result ([`JobResult::Link`]).
     pub async fn succeed(
         &self,
         job: &ClaimedJob,
@@ -261,7 +306,7 @@ impl Store {
         duration_s: f64,
     ) -> Result<(), CompleteError> {
         let mut tx = self.write_transaction().await?;
-        finish(&mut tx, job, result, duration_s).await?;
+        finish(&mut tx, job, Some(result), duration_s).await?;
         tx.commit().await?;
         Ok(())
     }
@@ -274,6 +319,7 @@ impl Store {
         tx.commit().await?;
         Ok(id)
     }
+
     /// Returns the jobs this process's workers hold to the queue (at a
     /// shutdown whose grace period ran out).
     pub async fn release_held(&self, instance: &str) -> Result<u64, sqlx::Error> {
@@ -306,11 +352,12 @@ pub async fn enqueue(
 
 /// Marks the held job succeeded inside the transaction that stores its
 /// results; fails (and the caller rolls back) if the worker no longer holds
-/// it.
+/// it. `link` is for kinds whose results no row names (the frame and
+/// calibration rows name their jobs).
 pub async fn finish(
     tx: &mut Transaction<'_, Sqlite>,
     job: &ClaimedJob,
-    result: &str,
+    link: Option<&str>,
     duration_s: f64,
 ) -> Result<(), CompleteError> {
     let done = sqlx::query(
@@ -318,7 +365,7 @@ pub async fn finish(
          duration_s = ?, finished_at = strftime('%Y-%m-%dT%H:%M:%fZ', 'now') \
          WHERE id = ? AND state = 'running' AND locked_by = ?",
     )
-    .bind(result)
+    .bind(link)
     .bind(duration_s)
     .bind(job.id)
     .bind(&job.locked_by)
@@ -342,7 +389,8 @@ mod tests {
         sqlx::query_as(
             "SELECT 7 AS id, 'process_frame' AS kind, '{}' AS payload, ? AS state, \
              1 AS attempts, NULL AS error, NULL AS result, '2024-01-01T00:00:00Z' AS created_at, \
-             NULL AS started_at, NULL AS finished_at",
+             NULL AS started_at, NULL AS finished_at, NULL AS result_calibration, \
+             NULL AS result_sequence, NULL AS result_frame",
         )
         .bind(state)
         .fetch_one(&pool)

@@ -37,7 +37,9 @@ use sqlx::Row;
 
 pub use self::calibrations::{insert_calibration, CalibrationRow};
 pub use self::ids::{CalibrationId, FrameNumber, JobId, SequenceId};
-pub use self::jobs::{enqueue, finish, ClaimedJob, JobFile, JobRow, JobState, MAX_ATTEMPTS};
+pub use self::jobs::{
+    enqueue, finish, ClaimedJob, JobFile, JobResult, JobRow, JobState, MAX_ATTEMPTS,
+};
 pub use self::sequences::{FrameCounts, FrameInput, FrameInputKind, NewFrame, SequenceRow};
 
 /// The database.
@@ -51,9 +53,10 @@ pub struct Store {
 
 /// The schema's migrations, `migrations/*.sql`, compiled into the binary
 /// (what `sqlx::migrate!` does, without its proc-macro, which would build
-/// SQLite a second time for the compiler).
+/// SQLite a second time for the compiler): [`MIGRATIONS`], or its first
+/// ones (the tests build older databases).
 #[derive(Debug)]
-struct Migrations;
+struct Migrations(&'static [(i64, &'static str, &'static str)]);
 
 /// Version, description and SQL of each migration, in order.
 const MIGRATIONS: &[(i64, &str, &str)] = &[
@@ -67,14 +70,20 @@ const MIGRATIONS: &[(i64, &str, &str)] = &[
         "job_files",
         include_str!("../../../migrations/0002_job_files.sql"),
     ),
+    (
+        3,
+        "job_results",
+        include_str!("../../../migrations/0003_job_results.sql"),
+    ),
 ];
 
 impl<'s> MigrationSource<'s> for Migrations {
     fn resolve(
         self,
     ) -> Pin<Box<dyn Future<Output = Result<Vec<Migration>, BoxDynError>> + Send + 's>> {
-        Box::pin(async {
-            Ok(MIGRATIONS
+        Box::pin(async move {
+            Ok(self
+                .0
                 .iter()
                 .map(|(version, description, sql)| {
                     Migration::new(
@@ -232,7 +241,7 @@ impl Store {
             .max_connections(1)
             .connect_with(options.clone())
             .await?;
-        Migrator::new(Migrations)
+        Migrator::new(Migrations(MIGRATIONS))
             .await
             .map_err(sqlx::Error::from)?
             .run(&writer)
@@ -278,4 +287,91 @@ async fn file_in_use(conn: &mut sqlx::SqliteConnection, sha256: &str) -> Result<
     .fetch_one(&mut *conn)
     .await?;
     Ok(n > 0)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A database as the version before migration 3 left it: a calibration
+    /// stored from the API, one solved by a job, a processed frame and one
+    /// still queued, a job of a plug-in kind; the results as they stored
+    /// them, as paths.
+    async fn database_of_version_2(data_dir: &Path) {
+        let pool = SqlitePoolOptions::new()
+            .max_connections(1)
+            .connect_with(
+                SqliteConnectOptions::new()
+                    .filename(data_dir.join("ptv.sqlite"))
+                    .create_if_missing(true),
+            )
+            .await
+            .unwrap();
+        Migrator::new(Migrations(&MIGRATIONS[..2]))
+            .await
+            .unwrap()
+            .run(&pool)
+            .await
+            .unwrap();
+        sqlx::raw_sql(
+            "INSERT INTO calibrations (id, model, cameras) VALUES (1, '{}', 2), (2, '{}', 2);
+             INSERT INTO jobs (id, kind, payload, state, result) VALUES
+                 (1, 'solve_calibration', '{}', 'succeeded', '/api/v1/calibrations/2'),
+                 (2, 'process_frame', '{}', 'succeeded', '/api/v1/sequences/1/frames/0/particles'),
+                 (3, 'process_frame', '{}', 'queued', NULL),
+                 (4, 'echo', '{}', 'succeeded', '/echo'),
+                 (5, 'solve_calibration', '{}', 'failed', NULL);
+             INSERT INTO sequences (id, calibration_id, name, parameters, keep_images)
+                 VALUES (1, 1, '', '{}', 1);
+             INSERT INTO frames (sequence_id, frame, job_id, input) VALUES
+                 (1, 0, 2, 'images'), (1, 1, 3, 'targets');",
+        )
+        .execute(&pool)
+        .await
+        .unwrap();
+        pool.close().await;
+    }
+
+    #[tokio::test]
+    async fn results_stored_as_paths_are_read_as_the_rows_they_name() {
+        let dir = tempfile::tempdir().unwrap();
+        database_of_version_2(dir.path()).await;
+        let store = Store::open(dir.path(), 1).await.unwrap();
+        let result = |id| {
+            let store = store.clone();
+            async move { store.job(JobId(id)).await.unwrap().unwrap().result }
+        };
+        assert_eq!(
+            result(1).await,
+            Some(JobResult::Calibration(CalibrationId(2)))
+        );
+        assert_eq!(
+            result(2).await,
+            Some(JobResult::Frame {
+                sequence_id: SequenceId(1),
+                frame: FrameNumber(0)
+            })
+        );
+        assert_eq!(result(3).await, None);
+        assert_eq!(result(4).await, Some(JobResult::Link("/echo".to_owned())));
+        assert_eq!(result(5).await, None);
+        // The paths are gone from the jobs the rows now name; a plug-in
+        // kind's link stays.
+        let links: Vec<(i64, Option<String>)> =
+            sqlx::query_as("SELECT id, result FROM jobs ORDER BY id")
+                .fetch_all(&store.reader)
+                .await
+                .unwrap();
+        assert_eq!(
+            links,
+            vec![
+                (1, None),
+                (2, None),
+                (3, None),
+                (4, Some("/echo".to_owned())),
+                (5, None)
+            ]
+        );
+        store.close().await;
+    }
 }

@@ -322,8 +322,7 @@ impl Store {
     ) -> Result<Vec<String>, CompleteError> {
         let (sequence_id, frame) = (input.sequence_id, input.frame);
         let mut tx = self.write_transaction().await?;
-        let result = format!("/api/v1/sequences/{sequence_id}/frames/{frame}/particles");
-        finish(&mut tx, job, &result, duration_s).await?;
+        finish(&mut tx, job, None, duration_s).await?;
         for (camera, count, data) in targets {
             insert_targets(&mut tx, sequence_id, frame, *camera, *count, data).await?;
         }
