@@ -6,7 +6,10 @@
 //! - [`sequences`]: create, read, upload frames, fetch particles and
 //!   targets.
 //! - [`jobs`]: a job's state.
-//! - [`problem`]: the one error type and the extractors that use it.
+//! - [`problem`]: the one error type, its statuses by the errors' types,
+//!   and the extractors that use it.
+//! - [`upload`]: the multipart upload path frames and solving share.
+//! - [`links`]: the API's URLs.
 //! - [`docs`]: the OpenAPI document and the vendored Swagger UI.
 //!
 //! Every request is counted for `/metrics`; a declared body larger than

@@ -20,7 +20,9 @@ use utoipa::ToSchema;
 use crate::formats::control::OptionError;
 use crate::formats::FormatError;
 use crate::photogrammetry::calibrate::CalibrationError;
-use crate::photogrammetry::{IntersectionError, InvalidDetectionParameters, PipelineError};
+use crate::photogrammetry::{
+    IntersectionError, InvalidDetectionParameters, PipelineError, SensorMismatch,
+};
 use crate::service::codec::DamagedBlob;
 use crate::service::jobs::{error_chain, CpuError, PrepareError};
 use crate::service::store::InsertFrameError;
@@ -131,6 +133,7 @@ status_of!(|error| ApiError::unprocessable(error_chain(&error)) =>
     PipelineError,
     OptionError,
     InvalidDetectionParameters,
+    SensorMismatch,
 );
 
 impl From<FormatError> for ApiError {

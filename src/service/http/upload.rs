@@ -103,7 +103,7 @@ pub async fn check_images(
             let source = source(camera);
             let header = read_header(path, raw.as_ref(), &source)?;
             SensorMismatch::check(header.width, header.height, sensor)
-                .map_err(|e| ApiError::unprocessable(format!("{source}: {e}")))?;
+                .map_err(|e| ApiError::from(e).at(&source))?;
         }
         Ok::<(), ApiError>(())
     })
