@@ -503,18 +503,7 @@ pub async fn process_frame(state: Arc<AppState>, run: JobRun) -> Result<(), JobE
                     })
                     .collect::<Result<Vec<GreyImage>, _>>()?;
                 let frame = pipeline.process(&images)?;
-                let targets: Vec<(i64, i64, Vec<u8>)> = frame
-                    .targets
-                    .iter()
-                    .enumerate()
-                    .map(|(camera, list)| {
-                        (
-                            camera as i64,
-                            list.len() as i64,
-                            codec::encode_targets(list),
-                        )
-                    })
-                    .collect();
+                let targets = codec::encode_frame_targets(&frame.targets);
                 Ok::<_, FrameError>((targets, frame.particles))
             })
             .await

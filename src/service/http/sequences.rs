@@ -451,18 +451,7 @@ pub async fn upload_frame(
             .map(|(camera, f)| (camera as i64, f.sha256.clone(), f.size as i64))
             .collect();
     } else {
-        new_frame.targets = targets
-            .iter()
-            .flatten()
-            .enumerate()
-            .map(|(camera, list)| {
-                (
-                    camera as i64,
-                    list.len() as i64,
-                    codec::encode_targets(list),
-                )
-            })
-            .collect();
+        new_frame.targets = codec::encode_frame_targets(targets.iter().flatten());
     }
 
     let job_id =
