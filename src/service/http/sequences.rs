@@ -23,7 +23,7 @@ use super::upload::{accepted, check_images, or_drain, persist_and_commit, stream
 use super::Shared;
 use crate::formats;
 use crate::photogrammetry::correspond::Particle;
-use crate::photogrammetry::{Sensor, Target};
+use crate::photogrammetry::{Camera, Sensor, Target};
 use crate::service::app::AppState;
 use crate::service::codec;
 use crate::service::images::UploadedFile;
@@ -345,6 +345,17 @@ async fn read_parts(
     Ok(parts)
 }
 
+/// The cameras of a sequence's calibration, or a 404.
+async fn sequence_cameras(state: &AppState, id: SequenceId) -> Result<Vec<Camera>, ApiError> {
+    let row = sequence(state, id).await?;
+    let calibration = state
+        .store
+        .calibration(row.calibration_id)
+        .await?
+        .ok_or_else(|| ApiError::internal("a sequence's calibration is missing"))?;
+    stored_cameras(&calibration)
+}
+
 /// Uploads one frame: multipart with a `frame` number and, per camera,
 /// `cam0`, `cam1`, ... images (PNG or TIFF, or raw with `width`, `height`,
 /// `bits` parts) or `targets0`, `targets1`, ... (CSV or OpenPTV
@@ -368,13 +379,7 @@ pub async fn upload_frame(
     ApiPath(id): ApiPath<SequenceId>,
     ApiMultipart(mut multipart): ApiMultipart,
 ) -> Result<Response, ApiError> {
-    let row = sequence(&state, id).await?;
-    let calibration = state
-        .store
-        .calibration(row.calibration_id)
-        .await?
-        .ok_or_else(|| ApiError::internal("a sequence's calibration is missing"))?;
-    let cameras = stored_cameras(&calibration)?;
+    let cameras = or_drain(sequence_cameras(&state, id).await, &mut multipart).await?;
     let n = cameras.len();
 
     let parts = read_parts(&state, id, n, &mut multipart).await;

@@ -65,9 +65,10 @@ pub async fn stream_part(
     Ok(upload.finish().await?)
 }
 
-/// The parts as read; when reading failed, the rest of the body is read
-/// and dropped first (bounded by the body limit), so that the client,
-/// still sending, gets the answer rather than a broken pipe.
+/// `read` (the parts as read, or anything decided before the body is
+/// read); when it failed, the rest of the body is read and dropped first
+/// (bounded by the body limit), so that the client, still sending, gets
+/// the answer rather than a broken pipe.
 pub async fn or_drain<T>(
     read: Result<T, ApiError>,
     multipart: &mut Multipart,
