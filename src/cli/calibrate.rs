@@ -74,7 +74,10 @@ fn options(args: &CalibrateArgs) -> Result<CalibrationOptions, CliError> {
         )?),
         None => None,
     };
-    control::calibration_options(&args.fix, args.check_every, check_ids, args.max_correlation)
+    control::fixed_parameters(&args.fix)
+        .and_then(|fixed| {
+            control::calibration_options(fixed, args.check_every, check_ids, args.max_correlation)
+        })
         .map_err(|e| {
             flag(
                 match e.option {

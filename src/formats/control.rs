@@ -119,32 +119,36 @@ pub struct OptionError {
     pub reason: String,
 }
 
+/// The parameters to hold, by OpenPTV's names (case-insensitive; blank
+/// names are ignored), as `ptv calibrate --fix` and the service's `fix`
+/// take them.
+pub fn fixed_parameters(names: &[String]) -> Result<Vec<Parameter>, OptionError> {
+    names
+        .iter()
+        .filter(|name| !name.trim().is_empty())
+        .map(|name| {
+            Parameter::from_name(name.trim()).ok_or_else(|| OptionError {
+                option: "fix",
+                reason: format!(
+                    "unknown parameter `{name}`; the names are {}",
+                    Parameter::ALL.map(Parameter::name).join(",")
+                ),
+            })
+        })
+        .collect()
+}
+
 /// The options of a calibration from what `ptv calibrate` and the service
-/// take: parameters to hold by OpenPTV's names (blank names are ignored),
-/// check points (every K-th, K >= 2, or ids; not both) and the largest
-/// correlation of free parameters.
+/// take: parameters to hold ([`fixed_parameters`]), check points (every
+/// K-th, K >= 2, or ids; not both) and the largest correlation of free
+/// parameters.
 pub fn calibration_options(
-    fix: &[String],
+    fixed: Vec<Parameter>,
     check_every: Option<usize>,
     check_ids: Option<Vec<u64>>,
     max_correlation: f64,
 ) -> Result<CalibrationOptions, OptionError> {
     let invalid = |option, reason: String| OptionError { option, reason };
-    let fixed = fix
-        .iter()
-        .filter(|name| !name.trim().is_empty())
-        .map(|name| {
-            Parameter::from_name(name.trim()).ok_or_else(|| {
-                invalid(
-                    "fix",
-                    format!(
-                        "unknown parameter `{name}`; the names are {}",
-                        Parameter::ALL.map(Parameter::name).join(",")
-                    ),
-                )
-            })
-        })
-        .collect::<Result<Vec<_>, _>>()?;
     let check_points = match (check_every, check_ids) {
         (Some(_), Some(_)) => {
             return Err(invalid(
@@ -251,20 +255,22 @@ mod tests {
     #[test]
     fn options_say_which_option_is_wrong() {
         let names = |v: &[&str]| v.iter().map(|s| s.to_string()).collect::<Vec<_>>();
-        let options = calibration_options(&names(&["k3", " c", ""]), Some(5), None, 0.95).unwrap();
+        let fixed = fixed_parameters(&names(&["k3", " C", ""])).unwrap();
+        assert_eq!(fixed, vec![Parameter::K3, Parameter::C]);
+        let options = calibration_options(fixed, Some(5), None, 0.95).unwrap();
         assert_eq!(options.fixed, vec![Parameter::K3, Parameter::C]);
         assert_eq!(options.check_points, CheckPoints::Every(5));
         assert_eq!(options.max_correlation, 0.95);
-        let error = calibration_options(&names(&["k4"]), None, None, 0.99).unwrap_err();
+        let error = fixed_parameters(&names(&["k4"])).unwrap_err();
         assert_eq!(error.option, "fix");
         assert!(error.reason.contains("unknown parameter `k4`"), "{error}");
-        let error = calibration_options(&[], Some(1), None, 0.99).unwrap_err();
+        let error = calibration_options(vec![], Some(1), None, 0.99).unwrap_err();
         assert_eq!(
             error.to_string(),
             "check_every: K must be at least 2, got 1"
         );
-        assert!(calibration_options(&[], Some(3), Some(vec![1]), 0.99).is_err());
-        let error = calibration_options(&[], None, None, 1.5).unwrap_err();
+        assert!(calibration_options(vec![], Some(3), Some(vec![1]), 0.99).is_err());
+        let error = calibration_options(vec![], None, None, 1.5).unwrap_err();
         assert_eq!(error.option, "max_correlation");
         assert_eq!(parse_check_ids("3 7\n12", "ids").unwrap(), vec![3, 7, 12]);
         let error = parse_check_ids("3 x", "ids.txt").unwrap_err();

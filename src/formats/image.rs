@@ -12,11 +12,16 @@
 //! truncated or corrupt files, zero sizes, raw buffers whose length does not
 //! match the stated size. Whether an image fits a camera's sensor is
 //! [`GreyImage::check_sensor`]'s question.
+//!
+//! Whether a file is such an image is decided in one place, from its header
+//! alone ([`probe_image`], [`probe_raw`], [`read_header`] for a file):
+//! decoding starts there, and the service checks uploads with it before it
+//! accepts them, without decoding their pixels.
 
-use std::io::Cursor;
+use std::io::{BufRead, BufReader, Cursor, Seek};
 use std::path::Path;
 
-use image::{DynamicImage, ImageFormat, ImageReader};
+use image::{ColorType, DynamicImage, ImageDecoder, ImageFormat, ImageReader};
 
 use super::FormatError;
 use crate::photogrammetry::{BitDepth, GreyImage};
@@ -45,93 +50,49 @@ pub fn read_image(path: &Path, raw: Option<&RawLayout>) -> Result<GreyImage, For
     }
 }
 
-/// The container a file's first bytes announce.
-fn sniff(bytes: &[u8]) -> Option<ImageFormat> {
-    if bytes.starts_with(b"\x89PNG\r\n\x1a\n") {
-        Some(ImageFormat::Png)
-    } else if [b"II*\0", b"MM\0*", b"II+\0", b"MM\0+"]
-        .iter()
-        .any(|magic| bytes.starts_with(*magic))
-    {
-        Some(ImageFormat::Tiff)
-    } else {
-        None
-    }
+/// What an image's header says: a greyscale image of this size and depth.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct ImageHeader {
+    /// Width in pixels.
+    pub width: u32,
+    /// Height in pixels.
+    pub height: u32,
+    /// Bits per sample.
+    pub bit_depth: BitDepth,
 }
 
-/// Decodes a greyscale PNG or TIFF file's bytes.
-pub fn decode_image(bytes: &[u8], source: &str) -> Result<GreyImage, FormatError> {
-    if bytes.is_empty() {
-        return Err(FormatError::invalid(
-            source,
-            "file",
-            "the file is empty; expected a greyscale PNG or TIFF image",
-        ));
-    }
-    let Some(format) = sniff(bytes) else {
-        let head: Vec<String> = bytes.iter().take(4).map(|b| format!("{b:02x}")).collect();
-        return Err(FormatError::invalid(
-            source,
-            "format",
-            format!(
-                "neither a PNG nor a TIFF image (it starts with bytes {}); for raw pixel data \
-                 give its width, height and bit depth",
-                head.join(" ")
-            ),
-        ));
-    };
-    let name = match format {
-        ImageFormat::Png => "PNG",
-        _ => "TIFF",
-    };
-    let decoded = ImageReader::with_format(Cursor::new(bytes), format)
-        .decode()
-        .map_err(|error| {
-            let reason = match error {
-                image::ImageError::Unsupported(e) => format!(
-                    "this kind of {name} is not supported ({e}); save the frame as 8- or 16-bit \
-                     greyscale"
-                ),
-                image::ImageError::Limits(e) => format!("the image is too large to decode ({e})"),
-                e => format!("cannot be decoded, the file is truncated or corrupt ({e})"),
-            };
-            FormatError::invalid(source, name, reason)
-        })?;
-    let (width, height) = (decoded.width(), decoded.height());
-    let image = match decoded {
-        DynamicImage::ImageLuma8(buffer) => GreyImage::from_u8(width, height, buffer.into_raw()),
-        DynamicImage::ImageLuma16(buffer) => GreyImage::from_u16(width, height, buffer.into_raw()),
-        other => {
-            let kind = match other {
-                DynamicImage::ImageLumaA8(_) | DynamicImage::ImageLumaA16(_) => {
-                    "grey with an alpha channel"
-                }
-                DynamicImage::ImageRgb32F(_) | DynamicImage::ImageRgba32F(_) => {
-                    "floating-point colour"
-                }
-                _ => "colour",
-            };
-            return Err(FormatError::invalid(
-                source,
-                name,
-                format!(
-                    "the image is {kind} ({:?}); the detector needs 8- or 16-bit greyscale, \
-                     so convert the frame to greyscale without alpha",
-                    other.color()
-                ),
-            ));
-        }
-    };
-    image.map_err(|e| FormatError::invalid(source, name, e.to_string()))
-}
-
-/// Decodes raw samples: `width * height` of them, row by row, 16-bit ones
-/// little-endian.
-pub fn decode_raw(
-    bytes: &[u8],
-    layout: &RawLayout,
+/// Reads the header of an image file without decoding its pixels: raw
+/// samples if `raw` is given (the file's length must fit the layout), else
+/// PNG or TIFF; `source` names the file in errors.
+pub fn read_header(
+    path: &Path,
+    raw: Option<&RawLayout>,
     source: &str,
-) -> Result<GreyImage, FormatError> {
+) -> Result<ImageHeader, FormatError> {
+    let io = |reason| FormatError::Io {
+        path: path.to_owned(),
+        reason,
+    };
+    match raw {
+        Some(layout) => probe_raw(std::fs::metadata(path).map_err(io)?.len(), layout, source),
+        None => probe_image(
+            BufReader::new(std::fs::File::open(path).map_err(io)?),
+            source,
+        ),
+    }
+}
+
+/// Reads a PNG or TIFF image's header from its first bytes: its size and
+/// depth if it is an 8- or 16-bit greyscale image the detector takes, else
+/// why not. The pixels are not decoded (a file cut short after its header
+/// passes here and fails in [`decode_image`]).
+pub fn probe_image<R: BufRead + Seek>(reader: R, source: &str) -> Result<ImageHeader, FormatError> {
+    open_image(reader, source).map(|(header, _, _)| header)
+}
+
+/// The header of a raw buffer of `len` bytes with `layout`: a size of at
+/// least one pixel, and exactly the bytes it needs.
+pub fn probe_raw(len: u64, layout: &RawLayout, source: &str) -> Result<ImageHeader, FormatError> {
     let RawLayout {
         width,
         height,
@@ -149,16 +110,15 @@ pub fn decode_raw(
         BitDepth::Sixteen => 2,
     };
     let expected = u64::from(width) * u64::from(height) * bytes_per_sample;
-    let actual = bytes.len() as u64;
-    if actual != expected {
+    if len != expected {
         return Err(FormatError::invalid(
             source,
             "size",
             format!(
                 "a raw {width}x{height} image of {} bits needs {expected} bytes, but the file has \
-                 {actual}; check the width, height and bit depth{}",
+                 {len}; check the width, height and bit depth{}",
                 bit_depth.bits(),
-                if actual < expected {
+                if len < expected {
                     ", or whether the file is truncated"
                 } else {
                     ""
@@ -166,6 +126,141 @@ pub fn decode_raw(
             ),
         ));
     }
+    Ok(ImageHeader {
+        width,
+        height,
+        bit_depth,
+    })
+}
+
+/// Opens a PNG or TIFF image and reads its header: the header, the
+/// container's name for messages, and the decoder, ready for the pixels.
+fn open_image<'a, R: BufRead + Seek + 'a>(
+    mut reader: R,
+    source: &str,
+) -> Result<(ImageHeader, &'static str, impl ImageDecoder + 'a), FormatError> {
+    let unsupported = |location: &str, reason: String| FormatError::UnsupportedImage {
+        input: source.to_owned(),
+        location: location.to_owned(),
+        reason,
+    };
+    let head = reader.fill_buf().map_err(|reason| FormatError::Io {
+        path: source.into(),
+        reason,
+    })?;
+    if head.is_empty() {
+        return Err(unsupported(
+            "file",
+            "the file is empty; expected a greyscale PNG or TIFF image".to_owned(),
+        ));
+    }
+    let Some(format) = sniff(head) else {
+        let head: Vec<String> = head.iter().take(4).map(|b| format!("{b:02x}")).collect();
+        return Err(unsupported(
+            "format",
+            format!(
+                "neither a PNG nor a TIFF image (it starts with bytes {}); for raw pixel data \
+                 give its width, height and bit depth",
+                head.join(" ")
+            ),
+        ));
+    };
+    let name = match format {
+        ImageFormat::Png => "PNG",
+        _ => "TIFF",
+    };
+    let decoder = ImageReader::with_format(reader, format)
+        .into_decoder()
+        .map_err(|error| unsupported(name, decoding_problem(error, name)))?;
+    let color = decoder.color_type();
+    let bit_depth = match color {
+        ColorType::L8 => BitDepth::Eight,
+        ColorType::L16 => BitDepth::Sixteen,
+        other => {
+            let kind = match other {
+                ColorType::La8 | ColorType::La16 => "grey with an alpha channel",
+                ColorType::Rgb32F | ColorType::Rgba32F => "floating-point colour",
+                _ => "colour",
+            };
+            return Err(FormatError::invalid(
+                source,
+                name,
+                format!(
+                    "the image is {kind} ({other:?}); the detector needs 8- or 16-bit greyscale, \
+                     so convert the frame to greyscale without alpha"
+                ),
+            ));
+        }
+    };
+    let (width, height) = decoder.dimensions();
+    let header = ImageHeader {
+        width,
+        height,
+        bit_depth,
+    };
+    Ok((header, name, decoder))
+}
+
+/// What went wrong decoding a PNG or TIFF (`name`), and what to do.
+fn decoding_problem(error: image::ImageError, name: &str) -> String {
+    match error {
+        image::ImageError::Unsupported(e) => format!(
+            "this kind of {name} is not supported ({e}); save the frame as 8- or 16-bit greyscale"
+        ),
+        image::ImageError::Limits(e) => format!("the image is too large to decode ({e})"),
+        e => format!("cannot be decoded, the file is truncated or corrupt ({e})"),
+    }
+}
+
+/// The container a file's first bytes announce.
+fn sniff(bytes: &[u8]) -> Option<ImageFormat> {
+    if bytes.starts_with(b"\x89PNG\r\n\x1a\n") {
+        Some(ImageFormat::Png)
+    } else if [b"II*\0", b"MM\0*", b"II+\0", b"MM\0+"]
+        .iter()
+        .any(|magic| bytes.starts_with(*magic))
+    {
+        Some(ImageFormat::Tiff)
+    } else {
+        None
+    }
+}
+
+/// Decodes a greyscale PNG or TIFF file's bytes.
+pub fn decode_image(bytes: &[u8], source: &str) -> Result<GreyImage, FormatError> {
+    let (ImageHeader { width, height, .. }, name, decoder) =
+        open_image(Cursor::new(bytes), source)?;
+    let decoded = DynamicImage::from_decoder(decoder)
+        .map_err(|error| FormatError::invalid(source, name, decoding_problem(error, name)))?;
+    let image = match decoded {
+        DynamicImage::ImageLuma8(buffer) => GreyImage::from_u8(width, height, buffer.into_raw()),
+        DynamicImage::ImageLuma16(buffer) => GreyImage::from_u16(width, height, buffer.into_raw()),
+        other => {
+            return Err(FormatError::invalid(
+                source,
+                name,
+                format!(
+                    "decoded as {:?}, not the greyscale its header says",
+                    other.color()
+                ),
+            ))
+        }
+    };
+    image.map_err(|e| FormatError::invalid(source, name, e.to_string()))
+}
+
+/// Decodes raw samples: `width * height` of them, row by row, 16-bit ones
+/// little-endian.
+pub fn decode_raw(
+    bytes: &[u8],
+    layout: &RawLayout,
+    source: &str,
+) -> Result<GreyImage, FormatError> {
+    let ImageHeader {
+        width,
+        height,
+        bit_depth,
+    } = probe_raw(bytes.len() as u64, layout, source)?;
     let image = match bit_depth {
         BitDepth::Eight => GreyImage::from_u8(width, height, bytes.to_vec()),
         BitDepth::Sixteen => GreyImage::from_u16(
@@ -204,6 +299,119 @@ mod tests {
         );
         let empty = RawLayout { width: 0, ..layout };
         assert!(decode_raw(&[], &empty, "x").is_err());
+    }
+
+    /// A `width` x `height` image of `color` encoded as `format`.
+    fn encoded(
+        format: ImageFormat,
+        color: image::ExtendedColorType,
+        width: u32,
+        height: u32,
+    ) -> Vec<u8> {
+        use image::ImageEncoder;
+        let bytes_per_pixel = usize::from(color.bits_per_pixel() / 8);
+        let samples = vec![7u8; width as usize * height as usize * bytes_per_pixel];
+        let mut out = Cursor::new(Vec::new());
+        match format {
+            ImageFormat::Png => image::codecs::png::PngEncoder::new(&mut out)
+                .write_image(&samples, width, height, color)
+                .unwrap(),
+            _ => image::codecs::tiff::TiffEncoder::new(&mut out)
+                .write_image(&samples, width, height, color)
+                .unwrap(),
+        }
+        out.into_inner()
+    }
+
+    #[test]
+    fn the_header_says_size_and_depth_without_decoding_the_pixels() {
+        use image::ExtendedColorType::{Rgb8, L16, L8};
+        let probe = |bytes: &[u8]| probe_image(Cursor::new(bytes), "cam0");
+        let header = |width, height, bit_depth| ImageHeader {
+            width,
+            height,
+            bit_depth,
+        };
+        let png8 = encoded(ImageFormat::Png, L8, 5, 3);
+        assert_eq!(probe(&png8).unwrap(), header(5, 3, BitDepth::Eight));
+        let png16 = encoded(ImageFormat::Png, L16, 4, 2);
+        assert_eq!(probe(&png16).unwrap(), header(4, 2, BitDepth::Sixteen));
+        let tiff16 = encoded(ImageFormat::Tiff, L16, 6, 4);
+        assert_eq!(probe(&tiff16).unwrap(), header(6, 4, BitDepth::Sixteen));
+        // The header alone decides: a PNG cut after its header passes here
+        // and fails when decoded.
+        let cut = &png8[..png8.len() - 20];
+        assert_eq!(probe(cut).unwrap(), header(5, 3, BitDepth::Eight));
+        assert!(decode_image(cut, "cam0")
+            .unwrap_err()
+            .to_string()
+            .contains("truncated or corrupt"));
+
+        // Colour is refused as a value (the service's 422), anything that
+        // is not an image this program opens as unsupported (415).
+        let colour = probe(&encoded(ImageFormat::Png, Rgb8, 2, 2)).unwrap_err();
+        assert!(matches!(colour, FormatError::Invalid { .. }), "{colour}");
+        assert!(
+            colour
+                .to_string()
+                .starts_with("cam0: PNG: the image is colour (Rgb8)"),
+            "{colour}"
+        );
+        for (bytes, message) in [
+            (
+                &b"this is not an image"[..],
+                "cam0: format: neither a PNG nor a TIFF image (it starts with bytes 74 68 69 73)",
+            ),
+            (&b""[..], "cam0: file: the file is empty"),
+            (
+                &b"\x89PNG\r\n\x1a\n\xa5\xa5\xa5\xa5"[..],
+                "cam0: PNG: cannot be decoded",
+            ),
+        ] {
+            let error = probe(bytes).unwrap_err();
+            assert!(
+                matches!(error, FormatError::UnsupportedImage { .. })
+                    && error.to_string().starts_with(message),
+                "{error}"
+            );
+        }
+    }
+
+    #[test]
+    fn raw_headers_and_files_are_read_by_their_length() {
+        let layout = RawLayout {
+            width: 3,
+            height: 2,
+            bit_depth: BitDepth::Sixteen,
+        };
+        let header = probe_raw(12, &layout, "cam1").unwrap();
+        assert_eq!((header.width, header.height), (3, 2));
+        let error = probe_raw(13, &layout, "cam1").unwrap_err();
+        assert!(
+            error.to_string().starts_with(
+                "cam1: size: a raw 3x2 image of 16 bits needs 12 bytes, but the file has 13"
+            ),
+            "{error}"
+        );
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("upload");
+        std::fs::write(&path, [0u8; 12]).unwrap();
+        assert_eq!(read_header(&path, Some(&layout), "cam1").unwrap(), header);
+        std::fs::write(
+            &path,
+            encoded(ImageFormat::Png, image::ExtendedColorType::L8, 3, 2),
+        )
+        .unwrap();
+        assert_eq!(
+            read_header(&path, None, "cam1").unwrap(),
+            ImageHeader {
+                width: 3,
+                height: 2,
+                bit_depth: BitDepth::Eight
+            }
+        );
+        let missing = read_header(&dir.path().join("gone"), None, "cam1").unwrap_err();
+        assert!(matches!(missing, FormatError::Io { .. }), "{missing}");
     }
 
     #[test]

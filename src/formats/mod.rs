@@ -35,6 +35,17 @@ pub enum FormatError {
         /// separate cause, so that it is printed once).
         reason: std::io::Error,
     },
+    /// A file that is not an image this program opens: empty, neither PNG
+    /// nor TIFF, or a header that does not read (the service answers 415).
+    #[error("{input}: {location}: {reason}")]
+    UnsupportedImage {
+        /// The file or other source.
+        input: String,
+        /// `file`, `format`, `PNG` or `TIFF`.
+        location: String,
+        /// What is wrong and what is expected.
+        reason: String,
+    },
     /// A value is missing, malformed or out of range.
     #[error("{input}: {location}: {reason}")]
     Invalid {

@@ -112,6 +112,23 @@ pub struct SensorMismatch {
     pub sensor_height: u32,
 }
 
+impl SensorMismatch {
+    /// Checks that an image of `width` x `height` pixels can come from a
+    /// camera with `sensor` (also for an image known only by its header).
+    pub fn check(width: u32, height: u32, sensor: &Sensor) -> Result<(), SensorMismatch> {
+        if width == sensor.width && height == sensor.height {
+            Ok(())
+        } else {
+            Err(SensorMismatch {
+                width,
+                height,
+                sensor_width: sensor.width,
+                sensor_height: sensor.height,
+            })
+        }
+    }
+}
+
 fn check_size(width: u32, height: u32, actual: usize) -> Result<(), ImageError> {
     if width == 0 || height == 0 {
         return Err(ImageError::Empty { width, height });
@@ -192,16 +209,7 @@ impl GreyImage {
     /// width and height. The frame pipeline calls this before detection, so
     /// that targets are never measured in the wrong pixel grid.
     pub fn check_sensor(&self, sensor: &Sensor) -> Result<(), SensorMismatch> {
-        if self.width == sensor.width && self.height == sensor.height {
-            Ok(())
-        } else {
-            Err(SensorMismatch {
-                width: self.width,
-                height: self.height,
-                sensor_width: sensor.width,
-                sensor_height: sensor.height,
-            })
-        }
+        SensorMismatch::check(self.width, self.height, sensor)
     }
 }
 

@@ -45,6 +45,18 @@ pub fn encode_targets(targets: &[Target]) -> Vec<u8> {
     out
 }
 
+/// Encodes a frame's targets, per camera in camera order, as the store
+/// keeps them: camera, count and blob.
+pub fn encode_frame_targets<'a>(
+    cameras: impl IntoIterator<Item = &'a Vec<Target>>,
+) -> Vec<(i64, i64, Vec<u8>)> {
+    cameras
+        .into_iter()
+        .enumerate()
+        .map(|(camera, targets)| (camera as i64, targets.len() as i64, encode_targets(targets)))
+        .collect()
+}
+
 /// Decodes what [`encode_targets`] wrote.
 pub fn decode_targets(blob: &[u8]) -> Result<Vec<Target>, DamagedBlob> {
     if blob.len() % TARGET_BYTES != 0 {

@@ -31,14 +31,21 @@ use tokio::sync::{oneshot, watch};
 
 use super::app::AppState;
 use super::codec;
+use super::codec::DamagedBlob;
 use super::parameters::SequenceParameters;
 use super::parameters::SolveOptions;
-use super::store::{ClaimedJob, CompleteError, JobFile, Store, MAX_ATTEMPTS};
-use crate::formats;
-use crate::formats::control;
+use super::store::{
+    CalibrationId, ClaimedJob, CompleteError, FrameInputKind, FrameNumber, JobFile, SequenceId,
+    Store, MAX_ATTEMPTS,
+};
+use crate::formats::control::{self, OptionError};
 use crate::formats::image::RawLayout;
-use crate::photogrammetry::calibrate;
-use crate::photogrammetry::{BitDepth, FramePipeline, GreyImage, PipelineError};
+use crate::formats::{self, FormatError};
+use crate::photogrammetry::calibrate::{self, CalibrationError};
+use crate::photogrammetry::correspond::MatchError;
+use crate::photogrammetry::{
+    BitDepth, FramePipeline, GreyImage, InvalidDetectionParameters, PipelineError,
+};
 
 /// The kind of the job that processes one uploaded frame.
 pub const PROCESS_FRAME: &str = "process_frame";
@@ -59,6 +66,14 @@ pub enum JobError {
     /// The worker no longer holds the job; nothing to do.
     #[error("lost the job's claim")]
     LostLease,
+}
+
+impl JobError {
+    /// The job cannot succeed: it fails with `error` and its causes as
+    /// its message.
+    pub fn failed(error: impl std::error::Error + 'static) -> JobError {
+        JobError::Failed(error_chain(&error))
+    }
 }
 
 impl From<sqlx::Error> for JobError {
@@ -131,6 +146,17 @@ impl JobKinds {
     }
 }
 
+/// Why work handed to the [`CpuPool`] gave no result.
+#[derive(Debug, thiserror::Error)]
+pub enum CpuError {
+    /// The work panicked, with this message.
+    #[error("panicked: {0}")]
+    Panicked(String),
+    /// The pool dropped the work without running it to its end.
+    #[error("the CPU pool dropped the work")]
+    Dropped,
+}
+
 /// A bounded pool of CPU threads for detection and matching.
 #[derive(Debug)]
 pub struct CpuPool {
@@ -148,8 +174,8 @@ impl CpuPool {
     }
 
     /// Runs `work` on the pool and waits for it without blocking the async
-    /// runtime; a panic in `work` comes back as an error message.
-    pub async fn run<T, F>(&self, work: F) -> Result<T, String>
+    /// runtime; a panic in `work` comes back as [`CpuError::Panicked`].
+    pub async fn run<T, F>(&self, work: F) -> Result<T, CpuError>
     where
         T: Send + 'static,
         F: FnOnce() -> T + Send + 'static,
@@ -161,13 +187,26 @@ impl CpuPool {
         });
         match receiver.await {
             Ok(Ok(value)) => Ok(value),
-            Ok(Err(panic)) => Err(panic
-                .downcast_ref::<&str>()
-                .map(|s| s.to_string())
-                .or_else(|| panic.downcast_ref::<String>().cloned())
-                .unwrap_or_else(|| "a panic".to_owned())),
-            Err(_) => Err("the CPU pool dropped the work".to_owned()),
+            Ok(Err(panic)) => Err(CpuError::Panicked(
+                panic
+                    .downcast_ref::<&str>()
+                    .map(|s| s.to_string())
+                    .or_else(|| panic.downcast_ref::<String>().cloned())
+                    .unwrap_or_else(|| "a panic".to_owned()),
+            )),
+            Err(_) => Err(CpuError::Dropped),
         }
+    }
+
+    /// [`CpuPool::run`] for work that can fail: its error, or the pool's
+    /// turned into it.
+    pub async fn try_run<T, E, F>(&self, work: F) -> Result<T, E>
+    where
+        T: Send + 'static,
+        E: From<CpuError> + Send + 'static,
+        F: FnOnce() -> Result<T, E> + Send + 'static,
+    {
+        self.run(work).await?
     }
 }
 
@@ -175,7 +214,7 @@ impl CpuPool {
 /// matcher's refraction tables, far more work than a frame).
 #[derive(Debug, Default)]
 pub struct PipelineCache {
-    pipelines: Mutex<HashMap<i64, Arc<FramePipeline>>>,
+    pipelines: Mutex<HashMap<SequenceId, Arc<FramePipeline>>>,
 }
 
 /// Pipelines kept at most; beyond, the cache starts afresh.
@@ -183,13 +222,13 @@ const CACHED_PIPELINES: usize = 32;
 
 impl PipelineCache {
     /// The sequence's pipeline, if prepared.
-    pub fn get(&self, sequence_id: i64) -> Option<Arc<FramePipeline>> {
+    pub fn get(&self, sequence_id: SequenceId) -> Option<Arc<FramePipeline>> {
         let map = self.pipelines.lock().unwrap_or_else(|e| e.into_inner());
         map.get(&sequence_id).cloned()
     }
 
     /// Keeps a prepared pipeline.
-    pub fn insert(&self, sequence_id: i64, pipeline: Arc<FramePipeline>) {
+    pub fn insert(&self, sequence_id: SequenceId, pipeline: Arc<FramePipeline>) {
         let mut map = self.pipelines.lock().unwrap_or_else(|e| e.into_inner());
         if map.len() >= CACHED_PIPELINES {
             map.clear();
@@ -198,22 +237,34 @@ impl PipelineCache {
     }
 }
 
+/// Why a frame pipeline could not be prepared.
+#[derive(Debug, thiserror::Error)]
+pub enum PrepareError {
+    /// The stored calibration does not read.
+    #[error(transparent)]
+    Calibration(#[from] FormatError),
+    /// The parameters do not work with the calibration.
+    #[error(transparent)]
+    Pipeline(#[from] PipelineError),
+    /// The preparation did not finish.
+    #[error("preparing the frame pipeline {0}")]
+    Cpu(#[from] CpuError),
+}
+
 /// Prepares the frame pipeline of a calibration and parameters, on the CPU
 /// pool.
 pub async fn prepare_pipeline(
     state: &AppState,
     calibration_model: &str,
     parameters: &SequenceParameters,
-) -> Result<FramePipeline, String> {
-    let cameras = formats::calibration::from_json(calibration_model, "the stored calibration")
-        .map_err(|e| e.to_string())?;
+) -> Result<FramePipeline, PrepareError> {
+    let cameras = formats::calibration::from_json(calibration_model, "the stored calibration")?;
     let detection = parameters.detection();
     let matching = parameters.matching();
     state
         .cpu
-        .run(move || FramePipeline::new(&cameras, &detection, &matching))
-        .await?
-        .map_err(|e| error_chain(&e))
+        .try_run(move || Ok(FramePipeline::new(&cameras, &detection, &matching)?))
+        .await
 }
 
 /// An error and its sources as one line, `: `-separated, a cause the text
@@ -297,19 +348,19 @@ async fn execute(state: &Arc<AppState>, kinds: &JobKinds, job: ClaimedJob) {
     let label = match outcome {
         Ok(()) => "succeeded",
         Err(JobError::LostLease) => {
-            tracing::warn!(job = job.id, "job completed elsewhere; result dropped");
+            tracing::warn!(job = %job.id, "job completed elsewhere; result dropped");
             "lost"
         }
         Err(JobError::Failed(message)) => {
             if let Err(error) = state.store.fail(&job, &message, seconds).await {
-                tracing::error!(job = job.id, %error, "cannot record a failure");
+                tracing::error!(job = %job.id, %error, "cannot record a failure");
             }
             "failed"
         }
         Err(JobError::Retry(message)) if job.attempts < MAX_ATTEMPTS => {
-            tracing::warn!(job = job.id, %message, "job attempt failed; queued again");
+            tracing::warn!(job = %job.id, %message, "job attempt failed; queued again");
             if let Err(error) = state.store.release(&job, Some(&message)).await {
-                tracing::error!(job = job.id, %error, "cannot queue a job again");
+                tracing::error!(job = %job.id, %error, "cannot queue a job again");
             }
             state.wake.notify_one();
             "retried"
@@ -317,7 +368,7 @@ async fn execute(state: &Arc<AppState>, kinds: &JobKinds, job: ClaimedJob) {
         Err(JobError::Retry(message)) => {
             let message = format!("gave up after {} attempts: {message}", job.attempts);
             if let Err(error) = state.store.fail(&job, &message, seconds).await {
-                tracing::error!(job = job.id, %error, "cannot record a failure");
+                tracing::error!(job = %job.id, %error, "cannot record a failure");
             }
             "failed"
         }
@@ -328,8 +379,8 @@ async fn execute(state: &Arc<AppState>, kinds: &JobKinds, job: ClaimedJob) {
 /// A process_frame job's payload.
 #[derive(Debug, Deserialize)]
 struct FramePayload {
-    sequence_id: i64,
-    frame: i64,
+    sequence_id: SequenceId,
+    frame: FrameNumber,
 }
 
 /// The raw layout as stored with a frame.
@@ -357,8 +408,8 @@ impl StoredRawLayout {
 /// The sequence's pipeline, from the cache or prepared now.
 async fn pipeline_of(
     state: &AppState,
-    sequence_id: i64,
-    calibration_id: i64,
+    sequence_id: SequenceId,
+    calibration_id: CalibrationId,
 ) -> Result<Arc<FramePipeline>, JobError> {
     if let Some(pipeline) = state.pipelines.get(sequence_id) {
         return Ok(pipeline);
@@ -378,10 +429,30 @@ async fn pipeline_of(
     let pipeline = Arc::new(
         prepare_pipeline(state, &calibration.model, &parameters)
             .await
-            .map_err(JobError::Failed)?,
+            .map_err(JobError::failed)?,
     );
     state.pipelines.insert(sequence_id, pipeline.clone());
     Ok(pipeline)
+}
+
+/// Why a frame could not be processed.
+#[derive(Debug, thiserror::Error)]
+pub enum FrameError {
+    /// An image does not decode.
+    #[error(transparent)]
+    Image(#[from] FormatError),
+    /// Detection or matching refused the frame.
+    #[error(transparent)]
+    Pipeline(#[from] PipelineError),
+    /// Matching refused the uploaded targets.
+    #[error(transparent)]
+    Matching(#[from] MatchError),
+    /// The uploaded targets' blob does not read.
+    #[error(transparent)]
+    StoredTargets(#[from] DamagedBlob),
+    /// The work did not finish.
+    #[error("processing {0}")]
+    Cpu(#[from] CpuError),
 }
 
 /// The process_frame job: the frame's images (or uploaded targets) to
@@ -397,7 +468,7 @@ pub async fn process_frame(state: Arc<AppState>, run: JobRun) -> Result<(), JobE
     let pipeline = pipeline_of(&state, input.sequence_id, input.calibration_id).await?;
     let cameras = pipeline.cameras().len();
 
-    let (targets, particles) = if input.input == "images" {
+    let (targets, particles) = if input.input == FrameInputKind::Images {
         let layout = match &input.raw_layout {
             None => None,
             Some(text) => serde_json::from_str::<StoredRawLayout>(text)
@@ -418,9 +489,9 @@ pub async fn process_frame(state: Arc<AppState>, run: JobRun) -> Result<(), JobE
             files.push((camera, bytes));
         }
         let pipeline = pipeline.clone();
-        let result = state
+        state
             .cpu
-            .run(move || {
+            .try_run(move || {
                 let images = files
                     .iter()
                     .map(|(camera, bytes)| {
@@ -430,28 +501,13 @@ pub async fn process_frame(state: Arc<AppState>, run: JobRun) -> Result<(), JobE
                             None => formats::image::decode_image(bytes, &source),
                         }
                     })
-                    .collect::<Result<Vec<GreyImage>, _>>()
-                    .map_err(|e| e.to_string())?;
-                let frame = pipeline
-                    .process(&images)
-                    .map_err(|e: PipelineError| error_chain(&e))?;
-                let targets: Vec<(i64, i64, Vec<u8>)> = frame
-                    .targets
-                    .iter()
-                    .enumerate()
-                    .map(|(camera, list)| {
-                        (
-                            camera as i64,
-                            list.len() as i64,
-                            codec::encode_targets(list),
-                        )
-                    })
-                    .collect();
-                Ok::<_, String>((targets, frame.particles))
+                    .collect::<Result<Vec<GreyImage>, _>>()?;
+                let frame = pipeline.process(&images)?;
+                let targets = codec::encode_frame_targets(&frame.targets);
+                Ok::<_, FrameError>((targets, frame.particles))
             })
             .await
-            .map_err(|panic| JobError::Failed(format!("processing panicked: {panic}")))?;
-        result.map_err(JobError::Failed)?
+            .map_err(JobError::failed)?
     } else {
         let stored = state
             .store
@@ -460,20 +516,15 @@ pub async fn process_frame(state: Arc<AppState>, run: JobRun) -> Result<(), JobE
         let pipeline = pipeline.clone();
         let particles = state
             .cpu
-            .run(move || {
+            .try_run(move || {
                 let targets = stored
                     .iter()
                     .map(|(_, _, blob)| codec::decode_targets(blob))
-                    .collect::<Result<Vec<_>, _>>()
-                    .map_err(|e| e.to_string())?;
-                pipeline
-                    .matcher()
-                    .match_frame(&targets)
-                    .map_err(|e| error_chain(&e))
+                    .collect::<Result<Vec<_>, _>>()?;
+                Ok::<_, FrameError>(pipeline.matcher().match_frame(&targets)?)
             })
             .await
-            .map_err(|panic| JobError::Failed(format!("matching panicked: {panic}")))?
-            .map_err(JobError::Failed)?;
+            .map_err(JobError::failed)?;
         (Vec::new(), particles)
     };
 
@@ -515,9 +566,38 @@ pub fn part_source(part: &str, camera: Option<usize>) -> String {
     }
 }
 
+/// Why a solve request's files do not give a calibration.
+#[derive(Debug, thiserror::Error)]
+pub enum SolveError {
+    /// A file does not parse.
+    #[error(transparent)]
+    Format(#[from] FormatError),
+    /// A text part is not text (its source named).
+    #[error("{0} is not UTF-8 text")]
+    NotText(String),
+    /// A part this job does not know.
+    #[error("unknown input part `{0}`")]
+    UnknownPart(String),
+    /// A part that must be there is not.
+    #[error("the `{0}` part is missing")]
+    Missing(&'static str),
+    /// An option is invalid.
+    #[error("options.{0}")]
+    Options(#[from] OptionError),
+    /// The marks' detection parameters are invalid.
+    #[error("options.detection")]
+    Detection(#[from] InvalidDetectionParameters),
+    /// The calibration itself failed.
+    #[error(transparent)]
+    Calibration(#[from] CalibrationError),
+    /// The work did not finish.
+    #[error("the calibration {0}")]
+    Cpu(#[from] CpuError),
+}
+
 /// Text of a part, or what is wrong with it.
-pub fn part_text(bytes: Vec<u8>, source: &str) -> Result<String, String> {
-    String::from_utf8(bytes).map_err(|_| format!("{source} is not UTF-8 text"))
+pub fn part_text(bytes: Vec<u8>, source: &str) -> Result<String, SolveError> {
+    String::from_utf8(bytes).map_err(|_| SolveError::NotText(source.to_owned()))
 }
 
 /// Calibrates from a solve request's files (part, camera, bytes; per-camera
@@ -526,46 +606,40 @@ pub fn part_text(bytes: Vec<u8>, source: &str) -> Result<String, String> {
 pub fn solve(
     files: Vec<(JobFile, Vec<u8>)>,
     options: &SolveOptions,
-) -> Result<(String, i64, String), String> {
+) -> Result<(String, i64, String), SolveError> {
     let (mut setup, mut control_points) = (None, None);
     let (mut observations, mut references, mut images) = (Vec::new(), Vec::new(), Vec::new());
     for (file, bytes) in files {
         let source = part_source(&file.part, file.camera.map(|c| c as usize));
-        let fail = |e: formats::FormatError| e.to_string();
         match file.part.as_str() {
             "setup" => {
                 let text = part_text(bytes, &source)?;
-                setup =
-                    Some(formats::calibration::parameters_from_json(&text, &source).map_err(fail)?);
+                setup = Some(formats::calibration::parameters_from_json(&text, &source)?);
             }
             "control" => {
                 let text = part_text(bytes, &source)?;
-                control_points = Some(control::parse_control_points(&text, &source).map_err(fail)?);
+                control_points = Some(control::parse_control_points(&text, &source)?);
             }
             "observations" | "reference" => {
                 let text = part_text(bytes, &source)?;
-                let marks = control::parse_mark_observations(&text, &source).map_err(fail)?;
+                let marks = control::parse_mark_observations(&text, &source)?;
                 if file.part == "observations" {
                     observations.push(marks);
                 } else {
                     references.push(marks);
                 }
             }
-            "image" => images.push(formats::image::decode_image(&bytes, &source).map_err(fail)?),
-            other => return Err(format!("unknown input part `{other}`")),
+            "image" => images.push(formats::image::decode_image(&bytes, &source)?),
+            other => return Err(SolveError::UnknownPart(other.to_owned())),
         }
     }
-    let setup = setup.ok_or("the `setup` part is missing")?;
-    let control_points = control_points.ok_or("the `control` part is missing")?;
-    let calibration_options = options
-        .calibration_options()
-        .map_err(|e| format!("options.{e}"))?;
+    let setup = setup.ok_or(SolveError::Missing("setup"))?;
+    let control_points = control_points.ok_or(SolveError::Missing("control"))?;
+    let calibration_options = options.calibration_options()?;
     let result = if images.is_empty() {
         calibrate::calibrate(&setup, &control_points, &observations, &calibration_options)
     } else {
-        let parameters = options
-            .mark_detection()
-            .map_err(|e| format!("options.detection: {}", error_chain(&e)))?;
+        let parameters = options.mark_detection()?;
         let marks: Vec<_> = images
             .iter()
             .map(|image| calibrate::detect_marks(image, &parameters))
@@ -580,9 +654,8 @@ pub fn solve(
             &references,
             &calibration_options,
         )
-    }
-    .map_err(|e| error_chain(&e))?;
-    let cameras = result.camera_models().map_err(|e| error_chain(&e))?;
+    }?;
+    let cameras = result.camera_models()?;
     Ok((
         formats::calibration::to_json(&cameras),
         cameras.len() as i64,
@@ -609,10 +682,9 @@ pub async fn solve_calibration(state: Arc<AppState>, run: JobRun) -> Result<(), 
     let options = payload.options.clone();
     let (model, cameras, report) = state
         .cpu
-        .run(move || solve(files, &options))
+        .try_run(move || solve(files, &options))
         .await
-        .map_err(|panic| JobError::Failed(format!("the calibration panicked: {panic}")))?
-        .map_err(JobError::Failed)?;
+        .map_err(JobError::failed)?;
     let (_, orphans) = state
         .store
         .complete_calibration(

@@ -4,11 +4,11 @@
 //! stored, so a stored sequence never changes meaning when a default does.
 
 use nalgebra::Point3;
-use serde::{Deserialize, Serialize};
+use serde::{Deserialize, Deserializer, Serialize};
 use utoipa::ToSchema;
 
-use crate::formats::control::{calibration_options, OptionError};
-use crate::photogrammetry::calibrate::{mark_detection_parameters, CalibrationOptions};
+use crate::formats::control::{calibration_options, fixed_parameters, OptionError};
+use crate::photogrammetry::calibrate::{mark_detection_parameters, CalibrationOptions, Parameter};
 use crate::photogrammetry::correspond::{MatchingParameters, DEFAULT_TOLERANCE_PX};
 use crate::photogrammetry::{
     DetectionParameters, FrameDetection, InvalidDetectionParameters, Volume,
@@ -56,9 +56,10 @@ impl DetectionSettings {
 pub struct SolveOptions {
     /// Parameters held at the setup's values, OpenPTV's names:
     /// x0,y0,z0,omega,phi,kappa,xh,yh,c,k1,k2,k3,p1,p2,scx,she [default:
-    /// none].
-    #[serde(default)]
-    pub fix: Vec<String>,
+    /// none]. Case-insensitive; blank names are ignored.
+    #[serde(default, deserialize_with = "fixed")]
+    #[schema(value_type = Vec<String>)]
+    pub fix: Vec<Parameter>,
     /// Every K-th control point (file order) is a check point, left out of
     /// the resections and intersected from all cameras (K >= 2).
     #[serde(default)]
@@ -84,7 +85,7 @@ impl SolveOptions {
     /// The core's options, checked.
     pub fn calibration_options(&self) -> Result<CalibrationOptions, OptionError> {
         calibration_options(
-            &self.fix,
+            self.fix.clone(),
             self.check_every,
             self.check_ids.clone(),
             self.max_correlation
@@ -96,6 +97,14 @@ impl SolveOptions {
     pub fn mark_detection(&self) -> Result<DetectionParameters, InvalidDetectionParameters> {
         mark_detection_parameters(&self.detection.parameters())
     }
+}
+
+/// `fix` as the command line's `--fix` reads it (not as `Parameter`'s own
+/// serde, which takes exact lower-case names only: queued jobs' payloads
+/// keep the names as they were given).
+fn fixed<'de, D: Deserializer<'de>>(deserializer: D) -> Result<Vec<Parameter>, D::Error> {
+    let names = Vec::<String>::deserialize(deserializer)?;
+    fixed_parameters(&names).map_err(|e| serde::de::Error::custom(e.reason))
 }
 
 /// How to match targets across cameras (all optional; the defaults are
@@ -159,5 +168,28 @@ impl SequenceParameters {
             min_cameras: m.min_cameras.unwrap_or(2),
             ..MatchingParameters::default()
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn fix_takes_the_command_lines_names_and_writes_them_back_in_lower_case() {
+        let options: SolveOptions = serde_json::from_str(r#"{"fix": ["k3", " C", ""]}"#).unwrap();
+        assert_eq!(options.fix, vec![Parameter::K3, Parameter::C]);
+        let json = serde_json::to_value(&options).unwrap();
+        assert_eq!(json["fix"], serde_json::json!(["k3", "c"]));
+        let error = serde_json::from_str::<SolveOptions>(r#"{"fix": ["k4"]}"#)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            error.contains(
+                "unknown parameter `k4`; the names are \
+                 x0,y0,z0,omega,phi,kappa,xh,yh,c,k1,k2,k3,p1,p2,scx,she"
+            ),
+            "{error}"
+        );
     }
 }

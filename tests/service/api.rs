@@ -83,6 +83,7 @@ async fn synthetic_experiment_gives_the_true_particles() {
     let sequence = app.create_sequence(calibration, &rig.volume, false).await;
 
     let mut truth = Vec::new();
+    let mut accepted = Vec::new();
     for frame in 0..FRAMES {
         let rendered = rig.render(PARTICLES, 1000 + frame as u64);
         let form = if frame % 2 == 0 {
@@ -97,9 +98,24 @@ async fn synthetic_experiment_gives_the_true_particles() {
         assert_eq!(status, 202, "{body}");
         assert_eq!(body["frame"], frame);
         truth.push(rendered.points);
+        accepted.push(body);
     }
     let view = app.wait_for_sequence(sequence).await;
     assert_eq!(view["frames"]["done"], FRAMES, "{view}");
+    // A processed frame's job links to its particles.
+    for body in &accepted {
+        let (status, job) = app.get_json(&format!("/jobs/{}", body["job_id"])).await;
+        assert_eq!(status, 200, "{job}");
+        assert_eq!(
+            job["result"],
+            format!(
+                "/api/v1/sequences/{sequence}/frames/{}/particles",
+                body["frame"]
+            ),
+            "{job}"
+        );
+        assert_eq!(job["result"], body["particles"], "{job}");
+    }
 
     // Each particle's error against the nearest true particle. A pixel
     // spans about 0.15 mm in object space here, and isolated particles are

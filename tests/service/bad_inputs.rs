@@ -396,7 +396,7 @@ async fn bad_solve_requests_get_their_4xx_and_store_nothing() {
             "unknown fixed parameter",
             input.form(Some(&json!({"fix": ["k4"]}))),
             422,
-            "fix: unknown parameter `k4`",
+            "part `options`: fix: unknown parameter `k4`; the names are x0,y0,z0,",
         ),
         (
             "check_every of 1",
@@ -436,7 +436,7 @@ async fn bad_solve_requests_get_their_4xx_and_store_nothing() {
                 .part("image", Part::bytes(b"not an image".to_vec()))
                 .part("image", Part::bytes(b"not an image".to_vec())),
             415,
-            "not a PNG or TIFF image",
+            "part `image` of camera 0: format: neither a PNG nor a TIFF image",
         ),
     ];
     for (case, form, status, detail) in cases {

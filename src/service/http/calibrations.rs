@@ -13,17 +13,18 @@ use nalgebra::Point2;
 use serde::{Deserialize, Serialize};
 use utoipa::ToSchema;
 
-use super::problem::{multipart_error, ApiError, ApiJson, ApiMultipart, ApiPath, JsonText};
-use super::sequences::{check_image, drain, text_part};
+use super::links;
+use super::problem::{parse_json, ApiError, ApiJson, ApiMultipart, ApiPath, JsonText};
+use super::upload::{accepted, check_images, or_drain, persist_and_commit, stream_part, text_part};
 use super::Shared;
 use crate::formats::{self, control, openptv::OriTexts};
 use crate::photogrammetry::calibrate;
 use crate::photogrammetry::{intersect, Camera, Observation, Sensor};
 use crate::service::app::AppState;
 use crate::service::images::UploadedFile;
-use crate::service::jobs::{error_chain, part_source, SolvePayload, SOLVE_CALIBRATION};
+use crate::service::jobs::{part_source, SolvePayload, SOLVE_CALIBRATION};
 use crate::service::parameters::SolveOptions;
-use crate::service::store::{CalibrationRow, JobFile};
+use crate::service::store::{CalibrationId, CalibrationRow, JobFile, JobId};
 
 /// Largest OpenPTV text file accepted (bytes).
 const MAX_TEXT_PART: usize = 1 << 20;
@@ -45,7 +46,8 @@ pub(super) fn router() -> Router<Arc<AppState>> {
 #[derive(Debug, Serialize, ToSchema)]
 pub struct CalibrationView {
     /// Its id.
-    pub id: i64,
+    #[schema(value_type = i64)]
+    pub id: CalibrationId,
     /// How many cameras.
     pub cameras: i64,
     /// The calibration JSON (see `src/formats/calibration.rs`).
@@ -63,13 +65,12 @@ impl CalibrationView {
         Ok(CalibrationView {
             id: row.id,
             cameras: row.cameras,
-            model: serde_json::from_str(&row.model).map_err(ApiError::internal)?,
+            model: serde_json::from_str(&row.model)?,
             report: row
                 .report
                 .as_deref()
                 .map(serde_json::from_str)
-                .transpose()
-                .map_err(ApiError::internal)?,
+                .transpose()?,
             created_at: row.created_at,
         })
     }
@@ -82,7 +83,7 @@ async fn store_cameras(state: &AppState, cameras: &[Camera]) -> Result<Response,
         .store
         .insert_calibration(&model, cameras.len() as i64, None)
         .await?;
-    let location = format!("/api/v1/calibrations/{}", row.id);
+    let location = links::calibration(row.id);
     Ok((
         StatusCode::CREATED,
         [(header::LOCATION, location)],
@@ -102,8 +103,7 @@ async fn store_cameras(state: &AppState, cameras: &[Camera]) -> Result<Response,
     )
 )]
 pub async fn create(State(state): Shared, JsonText(text): JsonText) -> Result<Response, ApiError> {
-    let cameras = formats::calibration::from_json(&text, "the body")
-        .map_err(|e| ApiError::unprocessable(e.to_string()))?;
+    let cameras = formats::calibration::from_json(&text, "the body")?;
     store_cameras(&state, &cameras).await
 }
 
@@ -125,7 +125,7 @@ pub async fn create_openptv(
 ) -> Result<Response, ApiError> {
     let mut ptv_par = None;
     let mut cameras: Vec<OriTexts> = Vec::new();
-    while let Some(mut field) = multipart.next_field().await.map_err(multipart_error)? {
+    while let Some(mut field) = multipart.next_field().await? {
         let name = field.name().unwrap_or("").to_owned();
         match name.as_str() {
             "ptv_par" => ptv_par = Some(text_part(&mut field, &name, MAX_TEXT_PART).await?),
@@ -162,18 +162,28 @@ pub async fn create_openptv(
         }
     }
     let ptv_par = ptv_par.ok_or_else(|| ApiError::bad_request("the `ptv_par` part is missing"))?;
-    let cameras = formats::openptv::import_texts(&ptv_par, "ptv_par part", &cameras)
-        .map_err(|e| ApiError::unprocessable(e.to_string()))?;
+    let cameras = formats::openptv::import_texts(&ptv_par, "ptv_par part", &cameras)?;
     store_cameras(&state, &cameras).await
 }
 
-/// The calibration's cameras, from the store.
-pub(super) async fn cameras_of(state: &AppState, id: i64) -> Result<Vec<Camera>, ApiError> {
-    let row = state
+/// A stored calibration, or a 404.
+async fn calibration(state: &AppState, id: CalibrationId) -> Result<CalibrationRow, ApiError> {
+    state
         .store
         .calibration(id)
         .await?
-        .ok_or_else(|| ApiError::not_found(format!("calibration {id} does not exist")))?;
+        .ok_or_else(|| ApiError::not_found(format!("calibration {id} does not exist")))
+}
+
+/// The calibration's cameras, from the store.
+async fn cameras_of(state: &AppState, id: CalibrationId) -> Result<Vec<Camera>, ApiError> {
+    let row = calibration(state, id).await?;
+    stored_cameras(&row)
+}
+
+/// A stored calibration's cameras (a model that does not read is the
+/// service's failure, a 500).
+pub(super) fn stored_cameras(row: &CalibrationRow) -> Result<Vec<Camera>, ApiError> {
     formats::calibration::from_json(&row.model, "the stored calibration")
         .map_err(ApiError::internal)
 }
@@ -189,14 +199,9 @@ pub(super) async fn cameras_of(state: &AppState, id: i64) -> Result<Vec<Camera>,
 )]
 pub async fn read(
     State(state): Shared,
-    ApiPath(id): ApiPath<i64>,
+    ApiPath(id): ApiPath<CalibrationId>,
 ) -> Result<Json<CalibrationView>, ApiError> {
-    let row = state
-        .store
-        .calibration(id)
-        .await?
-        .ok_or_else(|| ApiError::not_found(format!("calibration {id} does not exist")))?;
-    Ok(Json(CalibrationView::of(row)?))
+    Ok(Json(CalibrationView::of(calibration(&state, id).await?)?))
 }
 
 /// One camera's OpenPTV file: `{camera}.ori` or `{camera}.addpar`, camera
@@ -214,7 +219,7 @@ pub async fn read(
 )]
 pub async fn openptv_file(
     State(state): Shared,
-    ApiPath((id, file)): ApiPath<(i64, String)>,
+    ApiPath((id, file)): ApiPath<(CalibrationId, String)>,
 ) -> Result<Response, ApiError> {
     let cameras = cameras_of(&state, id).await?;
     let unknown = || {
@@ -267,7 +272,7 @@ pub struct ProjectResponse {
 )]
 pub async fn project(
     State(state): Shared,
-    ApiPath(id): ApiPath<i64>,
+    ApiPath(id): ApiPath<CalibrationId>,
     ApiJson(request): ApiJson<ProjectRequest>,
 ) -> Result<Json<ProjectResponse>, ApiError> {
     if request.points.len() > MAX_POINTS {
@@ -301,8 +306,7 @@ pub async fn project(
                 })
                 .collect()
         })
-        .await
-        .map_err(ApiError::internal)?;
+        .await?;
     Ok(Json(ProjectResponse { pixels }))
 }
 
@@ -341,7 +345,7 @@ pub struct IntersectResponse {
 )]
 pub async fn intersect_points(
     State(state): Shared,
-    ApiPath(id): ApiPath<i64>,
+    ApiPath(id): ApiPath<CalibrationId>,
     ApiJson(request): ApiJson<IntersectRequest>,
 ) -> Result<Json<IntersectResponse>, ApiError> {
     let cameras = cameras_of(&state, id).await?;
@@ -372,8 +376,7 @@ pub async fn intersect_points(
             "every pixel coordinate must be finite",
         ));
     }
-    let result =
-        intersect(&cameras, &observations).map_err(|e| ApiError::unprocessable(error_chain(&e)))?;
+    let result = intersect(&cameras, &observations)?;
     Ok(Json(IntersectResponse {
         point: [result.point.x, result.point.y, result.point.z],
         sigma: [result.sigma.x, result.sigma.y, result.sigma.z],
@@ -389,7 +392,8 @@ const MAX_OPTIONS_PART: usize = 64 << 10;
 #[derive(Debug, Serialize, ToSchema)]
 pub struct SolveAccepted {
     /// The job that solves it.
-    pub job_id: i64,
+    #[schema(value_type = i64)]
+    pub job_id: JobId,
     /// Where to poll the job; once succeeded, its `result` is the
     /// calibration.
     pub job: String,
@@ -412,7 +416,7 @@ async fn read_solve_parts(
     multipart: &mut Multipart,
 ) -> Result<SolveParts, ApiError> {
     let mut parts = SolveParts::default();
-    while let Some(mut field) = multipart.next_field().await.map_err(multipart_error)? {
+    while let Some(mut field) = multipart.next_field().await? {
         let name = field.name().unwrap_or("").to_owned();
         let once = |slot: &Option<String>| {
             if slot.is_some() {
@@ -442,13 +446,9 @@ async fn read_solve_parts(
             "reference" => parts
                 .references
                 .push(text_part(&mut field, &name, MAX_TEXT_PART).await?),
-            "image" => {
-                let mut upload = state.images.create_upload().await?;
-                while let Some(chunk) = field.chunk().await.map_err(multipart_error)? {
-                    upload.write(&chunk).await?;
-                }
-                parts.images.push(upload.finish().await?);
-            }
+            "image" => parts
+                .images
+                .push(stream_part(&state.images, &mut field).await?),
             other => {
                 return Err(ApiError::bad_request(format!(
                     "unknown part `{}`; expected `setup`, `control`, per camera `observations` \
@@ -486,7 +486,6 @@ struct CheckedSolve {
 /// Checks a solve request's parts (everything but the images' headers and
 /// the resection itself).
 fn check_solve_parts(parts: &SolveParts) -> Result<CheckedSolve, ApiError> {
-    let invalid = |e: formats::FormatError| ApiError::unprocessable(e.to_string());
     let setup_text = parts.setup.clone().ok_or_else(|| {
         ApiError::bad_request(
             "the `setup` part is missing: give the calibration JSON with sensor and media of \
@@ -499,8 +498,7 @@ fn check_solve_parts(parts: &SolveParts) -> Result<CheckedSolve, ApiError> {
         )
     })?;
     let setup =
-        formats::calibration::parameters_from_json(&setup_text, &part_source("setup", None))
-            .map_err(invalid)?;
+        formats::calibration::parameters_from_json(&setup_text, &part_source("setup", None))?;
     let n = setup.len();
     if n < formats::calibration::MIN_CAMERAS {
         return Err(ApiError::unprocessable(format!(
@@ -509,19 +507,16 @@ fn check_solve_parts(parts: &SolveParts) -> Result<CheckedSolve, ApiError> {
         )));
     }
     let control_points =
-        control::parse_control_points(&control_text, &part_source("control", None))
-            .map_err(invalid)?;
+        control::parse_control_points(&control_text, &part_source("control", None))?;
     let options: SolveOptions = match &parts.options {
         None => SolveOptions::default(),
-        Some(text) => serde_json::from_str(text)
-            .map_err(|e| ApiError::unprocessable(format!("part `options`: {e}")))?,
+        Some(text) => parse_json(text).map_err(|e| e.at("part `options`"))?,
     };
     let calibration_options = options
         .calibration_options()
-        .map_err(|e| ApiError::unprocessable(format!("part `options`: {e}")))?;
+        .map_err(|e| ApiError::from(e).at("part `options`"))?;
     // What the core checks before any adjustment, with its messages.
-    calibrate::check_inputs(&setup, &control_points, n, &calibration_options)
-        .map_err(|e| ApiError::unprocessable(error_chain(&e)))?;
+    calibrate::check_inputs(&setup, &control_points, n, &calibration_options)?;
 
     let mut texts = vec![("setup", None, setup_text), ("control", None, control_text)];
     match (parts.observations.len(), parts.images.len()) {
@@ -539,8 +534,7 @@ fn check_solve_parts(parts: &SolveParts) -> Result<CheckedSolve, ApiError> {
                 ));
             }
             for (camera, text) in parts.observations.iter().enumerate() {
-                control::parse_mark_observations(text, &part_source("observations", Some(camera)))
-                    .map_err(invalid)?;
+                control::parse_mark_observations(text, &part_source("observations", Some(camera)))?;
                 texts.push(("observations", Some(camera), text.clone()));
             }
         }
@@ -549,12 +543,11 @@ fn check_solve_parts(parts: &SolveParts) -> Result<CheckedSolve, ApiError> {
             if !parts.references.is_empty() {
                 check_count("reference", parts.references.len(), n)?;
             }
-            options.mark_detection().map_err(|e| {
-                ApiError::unprocessable(format!("part `options`: detection: {}", error_chain(&e)))
-            })?;
+            options
+                .mark_detection()
+                .map_err(|e| ApiError::from(e).at("part `options`: detection"))?;
             for (camera, text) in parts.references.iter().enumerate() {
-                control::parse_mark_observations(text, &part_source("reference", Some(camera)))
-                    .map_err(invalid)?;
+                control::parse_mark_observations(text, &part_source("reference", Some(camera)))?;
                 texts.push(("reference", Some(camera), text.clone()));
             }
         }
@@ -595,13 +588,8 @@ pub async fn solve(
     State(state): Shared,
     ApiMultipart(mut multipart): ApiMultipart,
 ) -> Result<Response, ApiError> {
-    let parts = match read_solve_parts(&state, &mut multipart).await {
-        Ok(parts) => parts,
-        Err(error) => {
-            drain(&mut multipart).await;
-            return Err(error);
-        }
-    };
+    let parts = read_solve_parts(&state, &mut multipart).await;
+    let parts = or_drain(parts, &mut multipart).await?;
     let CheckedSolve {
         texts,
         options,
@@ -609,26 +597,10 @@ pub async fn solve(
     } = check_solve_parts(&parts)?;
     let images = parts.images;
     if !images.is_empty() {
-        // Header checks read the files: blocking I/O, off the runtime.
-        let checks: Vec<(std::path::PathBuf, u64, Sensor)> = images
-            .iter()
-            .zip(sensors)
-            .map(|(f, sensor)| {
-                (
-                    f.temp_path().map(|p| p.to_owned()).unwrap_or_default(),
-                    f.size,
-                    sensor,
-                )
-            })
-            .collect();
-        tokio::task::spawn_blocking(move || {
-            for (camera, (path, size, sensor)) in checks.iter().enumerate() {
-                check_image(path, *size, camera, sensor, None)?;
-            }
-            Ok::<(), ApiError>(())
+        check_images(&images, &sensors, None, |camera| {
+            part_source("image", Some(camera))
         })
-        .await
-        .map_err(ApiError::internal)??;
+        .await?;
     }
 
     // Every file goes to the store; text parts become files too.
@@ -641,46 +613,28 @@ pub async fn solve(
     for (camera, file) in images.into_iter().enumerate() {
         uploads.push(("image", Some(camera), file));
     }
-    let files: Vec<JobFile> = uploads
-        .iter()
-        .map(|(part, camera, file)| JobFile {
-            part: (*part).to_owned(),
-            camera: camera.map(|c| c as i64),
-            sha256: file.sha256.clone(),
-            size: file.size as i64,
+    let (files, uploads): (Vec<JobFile>, Vec<UploadedFile>) = uploads
+        .into_iter()
+        .map(|(part, camera, file)| {
+            let row = JobFile {
+                part: part.to_owned(),
+                camera: camera.map(|c| c as i64),
+                sha256: file.sha256.clone(),
+                size: file.size as i64,
+            };
+            (row, file)
         })
-        .collect();
-    let payload = serde_json::to_string(&SolvePayload { options }).map_err(ApiError::internal)?;
-    let job_id = {
-        let _guard = state.images.lock().await;
-        for (_, _, file) in uploads {
-            state.images.persist(file).await?;
-        }
-        match state
+        .unzip();
+    let payload = serde_json::to_string(&SolvePayload { options })?;
+    let job_id = persist_and_commit(&state, uploads, || {
+        state
             .store
             .enqueue_with_files(SOLVE_CALIBRATION, &payload, &files)
-            .await
-        {
-            Ok(id) => id,
-            Err(error) => {
-                for file in &files {
-                    if !state.store.image_in_use(&file.sha256).await? {
-                        state.images.remove(&file.sha256).await?;
-                    }
-                }
-                return Err(ApiError::internal(error));
-            }
-        }
-    };
-    state.wake.notify_one();
-    let accepted = SolveAccepted {
+    })
+    .await?;
+    let body = SolveAccepted {
         job_id,
-        job: format!("/api/v1/jobs/{job_id}"),
+        job: links::job(job_id),
     };
-    Ok((
-        StatusCode::ACCEPTED,
-        [(header::LOCATION, accepted.job.clone())],
-        Json(accepted),
-    )
-        .into_response())
+    Ok(accepted(&state, job_id, body))
 }

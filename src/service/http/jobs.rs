@@ -8,10 +8,37 @@ use axum::{Json, Router};
 use serde::Serialize;
 use utoipa::ToSchema;
 
+use super::links;
 use super::problem::{ApiError, ApiPath};
 use super::Shared;
 use crate::service::app::AppState;
-use crate::service::store::JobState;
+use crate::service::store::{JobId, JobState};
+
+/// A job's state.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, ToSchema)]
+#[serde(rename_all = "snake_case")]
+#[schema(as = JobState)]
+pub enum JobStateView {
+    /// Waiting for a worker.
+    Queued,
+    /// A worker has it.
+    Running,
+    /// Done; its result is stored.
+    Succeeded,
+    /// Given up; `error` says why.
+    Failed,
+}
+
+impl From<JobState> for JobStateView {
+    fn from(state: JobState) -> Self {
+        match state {
+            JobState::Queued => JobStateView::Queued,
+            JobState::Running => JobStateView::Running,
+            JobState::Succeeded => JobStateView::Succeeded,
+            JobState::Failed => JobStateView::Failed,
+        }
+    }
+}
 
 pub(super) fn router() -> Router<Arc<AppState>> {
     Router::new().route("/jobs/{id}", get(read))
@@ -21,11 +48,12 @@ pub(super) fn router() -> Router<Arc<AppState>> {
 #[derive(Debug, Serialize, ToSchema)]
 pub struct JobView {
     /// Its id.
-    pub id: i64,
+    #[schema(value_type = i64)]
+    pub id: JobId,
     /// What it does: `process_frame`, ...
     pub kind: String,
     /// Its state.
-    pub state: JobState,
+    pub state: JobStateView,
     /// How often a worker took it up.
     pub attempts: i64,
     /// Why it failed (or why its last attempt did).
@@ -54,7 +82,7 @@ pub struct JobView {
 )]
 pub async fn read(
     State(state): Shared,
-    ApiPath(id): ApiPath<i64>,
+    ApiPath(id): ApiPath<JobId>,
 ) -> Result<Json<JobView>, ApiError> {
     let row = state
         .store
@@ -64,11 +92,11 @@ pub async fn read(
     Ok(Json(JobView {
         id: row.id,
         kind: row.kind,
-        state: row.state.parse().map_err(ApiError::internal)?,
+        state: row.state.into(),
         attempts: row.attempts,
         error: row.error,
-        result: row.result,
-        payload: serde_json::from_str(&row.payload).map_err(ApiError::internal)?,
+        result: row.result.as_ref().map(links::job_result),
+        payload: serde_json::from_str(&row.payload)?,
         created_at: row.created_at,
         started_at: row.started_at,
         finished_at: row.finished_at,

@@ -6,7 +6,10 @@
 //! - [`sequences`]: create, read, upload frames, fetch particles and
 //!   targets.
 //! - [`jobs`]: a job's state.
-//! - [`problem`]: the one error type and the extractors that use it.
+//! - [`problem`]: the one error type, its statuses by the errors' types,
+//!   and the extractors that use it.
+//! - [`upload`]: the multipart upload path frames and solving share.
+//! - [`links`]: the API's URLs.
 //! - [`docs`]: the OpenAPI document and the vendored Swagger UI.
 //! - [`layers`]: the tower and tower-http layers every request passes
 //!   through (request ids, tracing, compression, timeouts, body limits,
@@ -17,8 +20,10 @@ pub mod calibrations;
 pub mod docs;
 pub mod jobs;
 pub mod layers;
+pub mod links;
 pub mod problem;
 pub mod sequences;
+pub mod upload;
 
 use std::sync::Arc;
 

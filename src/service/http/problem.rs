@@ -3,7 +3,9 @@
 //! whose rejections use it.
 //!
 //! Database and other internal errors are logged and answered as a 500
-//! without their details; everything a caller can cause is a 4xx.
+//! without their details; everything a caller can cause is a 4xx. The
+//! status follows from the error's type (the `From` impls below, as
+//! realworld-axum-sqlx maps its errors), so handlers use `?`.
 
 use axum::body::Bytes;
 use axum::extract::rejection::{BytesRejection, PathRejection, QueryRejection};
@@ -14,6 +16,16 @@ use axum::response::{IntoResponse, Response};
 use serde::de::DeserializeOwned;
 use serde::Serialize;
 use utoipa::ToSchema;
+
+use crate::formats::control::OptionError;
+use crate::formats::FormatError;
+use crate::photogrammetry::calibrate::CalibrationError;
+use crate::photogrammetry::{
+    IntersectionError, InvalidDetectionParameters, PipelineError, SensorMismatch,
+};
+use crate::service::codec::DamagedBlob;
+use crate::service::jobs::{error_chain, CpuError, PrepareError};
+use crate::service::store::InsertFrameError;
 
 /// An RFC 9457 problem document.
 #[derive(Debug, Serialize, ToSchema)]
@@ -80,17 +92,89 @@ impl ApiError {
     pub fn status(&self) -> StatusCode {
         self.status
     }
-}
-
-impl From<sqlx::Error> for ApiError {
-    fn from(error: sqlx::Error) -> Self {
-        ApiError::internal(error)
+    /// The same error, its detail prefixed with where in the request it
+    /// lies (`part `options``).
+    pub fn at(self, place: &str) -> ApiError {
+        ApiError {
+            detail: format!("{place}: {}", self.detail),
+            ..self
+        }
     }
 }
 
-impl From<std::io::Error> for ApiError {
-    fn from(error: std::io::Error) -> Self {
-        ApiError::internal(error)
+/// `From` impls for errors that always mean one status: `$make(error)`.
+macro_rules! status_of {
+    ($make:expr => $($error:ty),+ $(,)?) => {
+        $(impl From<$error> for ApiError {
+            fn from(error: $error) -> Self {
+                $make(error)
+            }
+        })+
+    };
+}
+
+// The service's own failures: logged, a 500. JSON errors here are the
+// service's own documents (stored rows, payloads); request bodies are read
+// by `parse_json`.
+status_of!(ApiError::internal =>
+    sqlx::Error,
+    std::io::Error,
+    serde_json::Error,
+    tokio::task::JoinError,
+    CpuError,
+    DamagedBlob,
+);
+
+// The core's refusals of the values a caller gave: a 422 with the reason
+// and its causes.
+status_of!(|error| ApiError::unprocessable(error_chain(&error)) =>
+    IntersectionError,
+    CalibrationError,
+    PipelineError,
+    OptionError,
+    InvalidDetectionParameters,
+    SensorMismatch,
+);
+
+impl From<FormatError> for ApiError {
+    /// A file the caller gave that does not parse is a 422, an image of a
+    /// kind this service does not open a 415; a file the service could not
+    /// read itself is a 500.
+    fn from(error: FormatError) -> Self {
+        match error {
+            FormatError::Io { .. } => ApiError::internal(error),
+            FormatError::UnsupportedImage { .. } => ApiError::unsupported(error.to_string()),
+            FormatError::Invalid { .. } => ApiError::unprocessable(error.to_string()),
+        }
+    }
+}
+
+impl From<PrepareError> for ApiError {
+    /// Parameters that do not work with the calibration are a 422; a stored
+    /// calibration that does not read, or work that did not finish, a 500.
+    fn from(error: PrepareError) -> Self {
+        match error {
+            PrepareError::Pipeline(error) => error.into(),
+            PrepareError::Calibration(_) | PrepareError::Cpu(_) => ApiError::internal(error),
+        }
+    }
+}
+
+impl From<InsertFrameError> for ApiError {
+    /// A frame uploaded twice is a 409.
+    fn from(error: InsertFrameError) -> Self {
+        match error {
+            InsertFrameError::Exists { .. } => {
+                ApiError::conflict(format!("{error}; frames are uploaded once"))
+            }
+            InsertFrameError::Database(error) => error.into(),
+        }
+    }
+}
+
+impl From<axum::extract::multipart::MultipartError> for ApiError {
+    fn from(error: axum::extract::multipart::MultipartError) -> Self {
+        multipart_error(error)
     }
 }
 
@@ -169,19 +253,23 @@ impl<S: Send + Sync, T: DeserializeOwned> FromRequest<S> for ApiJson<T> {
 
     async fn from_request(req: Request, state: &S) -> Result<Self, Self::Rejection> {
         let JsonText(text) = JsonText::from_request(req, state).await?;
-        let deserializer = &mut serde_json::Deserializer::from_str(&text);
-        serde_path_to_error::deserialize(deserializer)
-            .map(ApiJson)
-            .map_err(|e| {
-                let path = e.path().to_string();
-                let location = if path == "." {
-                    String::new()
-                } else {
-                    format!("{path}: ")
-                };
-                ApiError::unprocessable(format!("{location}{}", e.into_inner()))
-            })
+        parse_json(&text).map(ApiJson)
     }
+}
+
+/// A JSON document as `T`: a value of the wrong shape is a 422 that names
+/// its path (`fix: unknown parameter ...`).
+pub fn parse_json<T: DeserializeOwned>(text: &str) -> Result<T, ApiError> {
+    let deserializer = &mut serde_json::Deserializer::from_str(text);
+    serde_path_to_error::deserialize(deserializer).map_err(|e| {
+        let path = e.path().to_string();
+        let location = if path == "." {
+            String::new()
+        } else {
+            format!("{path}: ")
+        };
+        ApiError::unprocessable(format!("{location}{}", e.into_inner()))
+    })
 }
 
 /// Path parameters; malformed ones are 400 problems.

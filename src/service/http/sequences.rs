@@ -16,17 +16,23 @@ use axum::{Json, Router};
 use serde::{Deserialize, Serialize};
 use utoipa::{IntoParams, ToSchema};
 
-use super::problem::{multipart_error, ApiError, ApiJson, ApiMultipart, ApiPath, ApiQuery};
+use super::calibrations::stored_cameras;
+use super::links;
+use super::problem::{ApiError, ApiJson, ApiMultipart, ApiPath, ApiQuery};
+use super::upload::{accepted, check_images, or_drain, persist_and_commit, stream_part, text_part};
 use super::Shared;
 use crate::formats;
 use crate::photogrammetry::correspond::Particle;
-use crate::photogrammetry::{Sensor, Target};
+use crate::photogrammetry::{Camera, Sensor, Target};
 use crate::service::app::AppState;
 use crate::service::codec;
 use crate::service::images::UploadedFile;
 use crate::service::jobs::{prepare_pipeline, StoredRawLayout};
 use crate::service::parameters::{DetectionSettings, MatchingSettings, SequenceParameters};
-use crate::service::store::{InsertFrameError, NewFrame, SequenceRow};
+use crate::service::store::{
+    CalibrationId, FrameInputKind, FrameNumber, InsertFrameError, JobId, NewFrame, SequenceId,
+    SequenceRow,
+};
 
 /// Longest sequence name.
 const MAX_NAME: usize = 200;
@@ -51,7 +57,8 @@ pub(super) fn router() -> Router<Arc<AppState>> {
 #[serde(deny_unknown_fields)]
 pub struct CreateSequence {
     /// The calibration its frames are processed with.
-    pub calibration_id: i64,
+    #[schema(value_type = i64)]
+    pub calibration_id: CalibrationId,
     /// A label (no path separators or control characters).
     #[serde(default)]
     pub name: Option<String>,
@@ -83,9 +90,11 @@ pub struct FrameCountsView {
 #[derive(Debug, Serialize, ToSchema)]
 pub struct SequenceView {
     /// Its id.
-    pub id: i64,
+    #[schema(value_type = i64)]
+    pub id: SequenceId,
     /// Its calibration.
-    pub calibration_id: i64,
+    #[schema(value_type = i64)]
+    pub calibration_id: CalibrationId,
     /// Its name.
     pub name: String,
     /// The parameters, defaults filled in.
@@ -104,7 +113,7 @@ async fn view(state: &AppState, row: SequenceRow) -> Result<SequenceView, ApiErr
         id: row.id,
         calibration_id: row.calibration_id,
         name: row.name,
-        parameters: serde_json::from_str(&row.parameters).map_err(ApiError::internal)?,
+        parameters: serde_json::from_str(&row.parameters)?,
         keep_images: row.keep_images,
         created_at: row.created_at,
         frames: FrameCountsView {
@@ -162,10 +171,8 @@ pub async fn create(
             ))
         })?;
     let parameters = SequenceParameters::with_defaults(request.detection, request.matching);
-    let pipeline = prepare_pipeline(&state, &calibration.model, &parameters)
-        .await
-        .map_err(ApiError::unprocessable)?;
-    let stored = serde_json::to_string(&parameters).map_err(ApiError::internal)?;
+    let pipeline = prepare_pipeline(&state, &calibration.model, &parameters).await?;
+    let stored = serde_json::to_string(&parameters)?;
     let row = state
         .store
         .insert_sequence(
@@ -177,7 +184,7 @@ pub async fn create(
         .await?
         .ok_or_else(|| ApiError::unprocessable("calibration_id: the calibration does not exist"))?;
     state.pipelines.insert(row.id, Arc::new(pipeline));
-    let location = format!("/api/v1/sequences/{}", row.id);
+    let location = links::sequence(row.id);
     Ok((
         StatusCode::CREATED,
         [(header::LOCATION, location)],
@@ -186,7 +193,7 @@ pub async fn create(
         .into_response())
 }
 
-async fn sequence(state: &AppState, id: i64) -> Result<SequenceRow, ApiError> {
+async fn sequence(state: &AppState, id: SequenceId) -> Result<SequenceRow, ApiError> {
     state
         .store
         .sequence(id)
@@ -205,7 +212,7 @@ async fn sequence(state: &AppState, id: i64) -> Result<SequenceRow, ApiError> {
 )]
 pub async fn read(
     State(state): Shared,
-    ApiPath(id): ApiPath<i64>,
+    ApiPath(id): ApiPath<SequenceId>,
 ) -> Result<Json<SequenceView>, ApiError> {
     let row = sequence(&state, id).await?;
     Ok(Json(view(&state, row).await?))
@@ -215,32 +222,15 @@ pub async fn read(
 #[derive(Debug, Serialize, ToSchema)]
 pub struct FrameAccepted {
     /// The frame number.
-    pub frame: i64,
+    #[schema(value_type = i64)]
+    pub frame: FrameNumber,
     /// The job that processes it.
-    pub job_id: i64,
+    #[schema(value_type = i64)]
+    pub job_id: JobId,
     /// Where to poll the job.
     pub job: String,
     /// Where the particles will be.
     pub particles: String,
-}
-
-/// Reads a small text part whole, up to `limit` bytes.
-pub(super) async fn text_part(
-    field: &mut Field<'_>,
-    name: &str,
-    limit: usize,
-) -> Result<String, ApiError> {
-    let mut bytes = Vec::new();
-    while let Some(chunk) = field.chunk().await.map_err(multipart_error)? {
-        if bytes.len() + chunk.len() > limit {
-            return Err(ApiError::too_large(format!(
-                "part `{name}` is larger than {limit} bytes"
-            )));
-        }
-        bytes.extend_from_slice(&chunk);
-    }
-    String::from_utf8(bytes)
-        .map_err(|_| ApiError::unprocessable(format!("part `{name}` is not UTF-8 text")))
 }
 
 /// A numeric part: `frame`, `width`, `height`, `bits`.
@@ -277,71 +267,9 @@ fn camera_of(name: &str, prefix: &str, cameras: usize) -> Option<Result<usize, A
     )
 }
 
-/// Checks an image file's header (PNG/TIFF: greyscale of the sensor's
-/// size) or its size (raw), without decoding the pixels.
-pub(super) fn check_image(
-    path: &std::path::Path,
-    size: u64,
-    camera: usize,
-    sensor: &Sensor,
-    raw: Option<&StoredRawLayout>,
-) -> Result<(), ApiError> {
-    let (width, height) = match raw {
-        Some(layout) => {
-            let expected =
-                u64::from(layout.width) * u64::from(layout.height) * (u64::from(layout.bits) / 8);
-            if size != expected {
-                return Err(ApiError::unprocessable(format!(
-                    "cam{camera}: {size} bytes, but a raw {}x{} {}-bit image has {expected}",
-                    layout.width, layout.height, layout.bits
-                )));
-            }
-            (layout.width, layout.height)
-        }
-        None => {
-            use image::ImageDecoder;
-            let unsupported = |reason: String| {
-                ApiError::unsupported(format!(
-                    "cam{camera}: {reason}; send a greyscale PNG or TIFF, or raw samples with \
-                     `width`, `height` and `bits` parts"
-                ))
-            };
-            let reader = image::ImageReader::open(path)
-                .and_then(|r| r.with_guessed_format())
-                .map_err(ApiError::internal)?;
-            if !matches!(
-                reader.format(),
-                Some(image::ImageFormat::Png | image::ImageFormat::Tiff)
-            ) {
-                return Err(unsupported("not a PNG or TIFF image".to_owned()));
-            }
-            let decoder = reader
-                .into_decoder()
-                .map_err(|e| unsupported(format!("cannot be read ({e})")))?;
-            if !matches!(
-                decoder.color_type(),
-                image::ColorType::L8 | image::ColorType::L16
-            ) {
-                return Err(ApiError::unprocessable(format!(
-                    "cam{camera}: the image is {:?}; the detector needs 8- or 16-bit greyscale",
-                    decoder.color_type()
-                )));
-            }
-            decoder.dimensions()
-        }
-    };
-    if (width, height) != (sensor.width, sensor.height) {
-        return Err(ApiError::unprocessable(format!(
-            "cam{camera}: the image is {width}x{height} px, but camera {camera}'s sensor is {}x{}",
-            sensor.width, sensor.height
-        )));
-    }
-    Ok(())
-}
-
 /// The parts of a frame upload, as read.
 struct UploadParts {
-    frame: Option<i64>,
+    frame: Option<FrameNumber>,
     images: Vec<Option<UploadedFile>>,
     targets: Vec<Option<Vec<Target>>>,
     width: Option<u32>,
@@ -353,7 +281,7 @@ struct UploadParts {
 /// streamed to temporary files, targets parsed, numbers checked.
 async fn read_parts(
     state: &AppState,
-    id: i64,
+    id: SequenceId,
     n: usize,
     multipart: &mut Multipart,
 ) -> Result<UploadParts, ApiError> {
@@ -365,20 +293,22 @@ async fn read_parts(
         height: None,
         bits: None,
     };
-    while let Some(mut field) = multipart.next_field().await.map_err(multipart_error)? {
+    while let Some(mut field) = multipart.next_field().await? {
         let name = field.name().unwrap_or("").to_owned();
         let repeated = || ApiError::bad_request(format!("part `{name}` is given twice"));
         if name == "frame" {
             if parts.frame.is_some() {
                 return Err(repeated());
             }
-            let number: u32 = number_part(&mut field, &name).await?;
-            if state.store.frame_exists(id, number.into()).await? {
-                return Err(ApiError::conflict(format!(
-                    "frame {number} of sequence {id} exists; frames are uploaded once"
-                )));
+            let number = FrameNumber(number_part::<u32>(&mut field, &name).await?.into());
+            if state.store.frame_exists(id, number).await? {
+                return Err(InsertFrameError::Exists {
+                    sequence_id: id,
+                    frame: number,
+                }
+                .into());
             }
-            parts.frame = Some(number.into());
+            parts.frame = Some(number);
         } else if name == "width" {
             parts.width = Some(number_part::<u32>(&mut field, &name).await?);
         } else if name == "height" {
@@ -390,11 +320,7 @@ async fn read_parts(
             if parts.images[camera].is_some() {
                 return Err(repeated());
             }
-            let mut upload = state.images.create_upload().await?;
-            while let Some(chunk) = field.chunk().await.map_err(multipart_error)? {
-                upload.write(&chunk).await?;
-            }
-            parts.images[camera] = Some(upload.finish().await?);
+            parts.images[camera] = Some(stream_part(&state.images, &mut field).await?);
         } else if let Some(camera) = camera_of(&name, "targets", n) {
             let camera = camera?;
             if parts.targets[camera].is_some() {
@@ -405,9 +331,7 @@ async fn read_parts(
             let parsed = state
                 .cpu
                 .run(move || formats::parse_targets(&text, &name))
-                .await
-                .map_err(ApiError::internal)?
-                .map_err(|e| ApiError::unprocessable(e.to_string()))?;
+                .await??;
             parts.targets[camera] = Some(parsed);
         } else {
             return Err(ApiError::bad_request(format!(
@@ -421,11 +345,15 @@ async fn read_parts(
     Ok(parts)
 }
 
-/// Reads and drops what is left of a multipart body.
-pub(super) async fn drain(multipart: &mut Multipart) {
-    while let Ok(Some(mut field)) = multipart.next_field().await {
-        while let Ok(Some(_)) = field.chunk().await {}
-    }
+/// The cameras of a sequence's calibration, or a 404.
+async fn sequence_cameras(state: &AppState, id: SequenceId) -> Result<Vec<Camera>, ApiError> {
+    let row = sequence(state, id).await?;
+    let calibration = state
+        .store
+        .calibration(row.calibration_id)
+        .await?
+        .ok_or_else(|| ApiError::internal("a sequence's calibration is missing"))?;
+    stored_cameras(&calibration)
 }
 
 /// Uploads one frame: multipart with a `frame` number and, per camera,
@@ -448,28 +376,13 @@ pub(super) async fn drain(multipart: &mut Multipart) {
 )]
 pub async fn upload_frame(
     State(state): Shared,
-    ApiPath(id): ApiPath<i64>,
+    ApiPath(id): ApiPath<SequenceId>,
     ApiMultipart(mut multipart): ApiMultipart,
 ) -> Result<Response, ApiError> {
-    let row = sequence(&state, id).await?;
-    let calibration = state
-        .store
-        .calibration(row.calibration_id)
-        .await?
-        .ok_or_else(|| ApiError::internal("a sequence's calibration is missing"))?;
-    let cameras = formats::calibration::from_json(&calibration.model, "the stored calibration")
-        .map_err(ApiError::internal)?;
+    let cameras = or_drain(sequence_cameras(&state, id).await, &mut multipart).await?;
     let n = cameras.len();
 
-    let parts = match read_parts(&state, id, n, &mut multipart).await {
-        Ok(parts) => parts,
-        Err(error) => {
-            // Read the rest (bounded by the body limit) so that the client,
-            // still sending, gets the answer rather than a broken pipe.
-            drain(&mut multipart).await;
-            return Err(error);
-        }
-    };
+    let parts = read_parts(&state, id, n, &mut multipart).await;
     let UploadParts {
         frame,
         images,
@@ -477,7 +390,7 @@ pub async fn upload_frame(
         width,
         height,
         bits,
-    } = parts;
+    } = or_drain(parts, &mut multipart).await?;
     let frame = frame.ok_or_else(|| ApiError::bad_request("the `frame` part is missing"))?;
     let image_count = images.iter().flatten().count();
     let target_count = targets.iter().flatten().count();
@@ -523,93 +436,38 @@ pub async fn upload_frame(
     let mut new_frame = NewFrame {
         sequence_id: id,
         frame,
-        input: if image_count > 0 { "images" } else { "targets" },
-        raw_layout: raw
-            .as_ref()
-            .map(serde_json::to_string)
-            .transpose()
-            .map_err(ApiError::internal)?,
+        input: if image_count > 0 {
+            FrameInputKind::Images
+        } else {
+            FrameInputKind::Targets
+        },
+        raw_layout: raw.as_ref().map(serde_json::to_string).transpose()?,
         images: Vec::new(),
         targets: Vec::new(),
     };
     let images: Vec<UploadedFile> = images.into_iter().flatten().collect();
     if !images.is_empty() {
-        // Header checks read the files: blocking I/O, off the runtime.
-        let checks: Vec<(std::path::PathBuf, u64)> = images
-            .iter()
-            .map(|f| {
-                (
-                    f.temp_path().map(|p| p.to_owned()).unwrap_or_default(),
-                    f.size,
-                )
-            })
-            .collect();
-        let checked_cameras = cameras.clone();
-        tokio::task::spawn_blocking(move || {
-            for (camera, ((path, size), model)) in checks.iter().zip(&checked_cameras).enumerate() {
-                check_image(path, *size, camera, model.sensor(), raw.as_ref())?;
-            }
-            Ok::<(), ApiError>(())
-        })
-        .await
-        .map_err(ApiError::internal)??;
+        let sensors: Vec<Sensor> = cameras.iter().map(|c| c.sensor().clone()).collect();
+        let layout = raw.as_ref().and_then(StoredRawLayout::layout);
+        check_images(&images, &sensors, layout, |camera| format!("cam{camera}")).await?;
         new_frame.images = images
             .iter()
             .enumerate()
             .map(|(camera, f)| (camera as i64, f.sha256.clone(), f.size as i64))
             .collect();
     } else {
-        new_frame.targets = targets
-            .iter()
-            .flatten()
-            .enumerate()
-            .map(|(camera, list)| {
-                (
-                    camera as i64,
-                    list.len() as i64,
-                    codec::encode_targets(list),
-                )
-            })
-            .collect();
+        new_frame.targets = codec::encode_frame_targets(targets.iter().flatten());
     }
 
-    let job_id = {
-        let _guard = state.images.lock().await;
-        let hashes: Vec<String> = images.iter().map(|f| f.sha256.clone()).collect();
-        for file in images {
-            state.images.persist(file).await?;
-        }
-        match state.store.insert_frame(&new_frame).await {
-            Ok(job_id) => job_id,
-            Err(error) => {
-                // Files this request persisted that no row refers to go.
-                for hash in &hashes {
-                    if !state.store.image_in_use(hash).await? {
-                        state.images.remove(hash).await?;
-                    }
-                }
-                return Err(match error {
-                    InsertFrameError::Exists(frame) => ApiError::conflict(format!(
-                        "frame {frame} of sequence {id} exists; frames are uploaded once"
-                    )),
-                    InsertFrameError::Database(e) => ApiError::internal(e),
-                });
-            }
-        }
-    };
-    state.wake.notify_one();
-    let accepted = FrameAccepted {
+    let job_id =
+        persist_and_commit(&state, images, || state.store.insert_frame(&new_frame)).await?;
+    let body = FrameAccepted {
         frame,
         job_id,
-        job: format!("/api/v1/jobs/{job_id}"),
-        particles: format!("/api/v1/sequences/{id}/frames/{frame}/particles"),
+        job: links::job(job_id),
+        particles: links::frame_particles(id, frame),
     };
-    Ok((
-        StatusCode::ACCEPTED,
-        [(header::LOCATION, accepted.job.clone())],
-        Json(accepted),
-    )
-        .into_response())
+    Ok(accepted(&state, job_id, body))
 }
 
 /// How to write particles.
@@ -656,9 +514,11 @@ pub struct ParticleView {
 #[derive(Debug, Serialize, ToSchema)]
 pub struct FrameParticles {
     /// The sequence.
-    pub sequence_id: i64,
+    #[schema(value_type = i64)]
+    pub sequence_id: SequenceId,
     /// The frame.
-    pub frame: i64,
+    #[schema(value_type = i64)]
+    pub frame: FrameNumber,
     /// The particles.
     pub particles: Vec<ParticleView>,
 }
@@ -666,8 +526,8 @@ pub struct FrameParticles {
 /// The frame's stored particles, or why there are none.
 async fn load_particles(
     state: &AppState,
-    id: i64,
-    frame: i64,
+    id: SequenceId,
+    frame: FrameNumber,
 ) -> Result<(usize, Vec<Particle>), ApiError> {
     let row = sequence(state, id).await?;
     let cameras = state
@@ -676,16 +536,20 @@ async fn load_particles(
         .await?
         .map_or(0, |c| c.cameras as usize);
     match state.store.frame_particles(id, frame).await? {
-        Some((_, blob)) => Ok((
-            cameras,
-            codec::decode_particles(&blob, cameras).map_err(ApiError::internal)?,
-        )),
-        None if state.store.frame_exists(id, frame).await? => Err(ApiError::conflict(format!(
-            "frame {frame} is not processed (yet); see its job"
-        ))),
-        None => Err(ApiError::not_found(format!(
-            "sequence {id} has no frame {frame}"
-        ))),
+        Some((_, blob)) => Ok((cameras, codec::decode_particles(&blob, cameras)?)),
+        None => Err(no_results(state, id, frame).await),
+    }
+}
+
+/// Why a frame has no results: it is not processed yet (409), or it does
+/// not exist (404).
+async fn no_results(state: &AppState, id: SequenceId, frame: FrameNumber) -> ApiError {
+    match state.store.frame_exists(id, frame).await {
+        Ok(true) => {
+            ApiError::conflict(format!("frame {frame} is not processed (yet); see its job"))
+        }
+        Ok(false) => ApiError::not_found(format!("sequence {id} has no frame {frame}")),
+        Err(error) => error.into(),
     }
 }
 
@@ -705,7 +569,7 @@ async fn load_particles(
 )]
 pub async fn frame_particles(
     State(state): Shared,
-    ApiPath((id, frame)): ApiPath<(i64, i64)>,
+    ApiPath((id, frame)): ApiPath<(SequenceId, FrameNumber)>,
     ApiQuery(query): ApiQuery<ParticleQuery>,
 ) -> Result<Response, ApiError> {
     let (cameras, particles) = load_particles(&state, id, frame).await?;
@@ -784,7 +648,8 @@ pub struct TargetView {
 #[derive(Debug, Serialize, ToSchema)]
 pub struct FrameTargets {
     /// The frame.
-    pub frame: i64,
+    #[schema(value_type = i64)]
+    pub frame: FrameNumber,
     /// The camera.
     pub camera: usize,
     /// The targets, indexed as the particles' `targets` refer to them.
@@ -808,17 +673,13 @@ pub struct FrameTargets {
 )]
 pub async fn frame_targets(
     State(state): Shared,
-    ApiPath((id, frame)): ApiPath<(i64, i64)>,
+    ApiPath((id, frame)): ApiPath<(SequenceId, FrameNumber)>,
     ApiQuery(query): ApiQuery<TargetQuery>,
 ) -> Result<Response, ApiError> {
     sequence(&state, id).await?;
     let stored = state.store.frame_targets(id, frame).await?;
     if stored.is_empty() {
-        return Err(if state.store.frame_exists(id, frame).await? {
-            ApiError::conflict(format!("frame {frame} is not processed (yet); see its job"))
-        } else {
-            ApiError::not_found(format!("sequence {id} has no frame {frame}"))
-        });
+        return Err(no_results(&state, id, frame).await);
     }
     let (_, _, blob) = stored
         .iter()
@@ -830,7 +691,7 @@ pub async fn frame_targets(
                 stored.len() - 1
             ))
         })?;
-    let targets = codec::decode_targets(blob).map_err(ApiError::internal)?;
+    let targets = codec::decode_targets(blob)?;
     Ok(match query.format {
         TargetFormat::Json => Json(FrameTargets {
             frame,
@@ -883,7 +744,7 @@ pub struct AllParticlesQuery {
 )]
 pub async fn all_particles(
     State(state): Shared,
-    ApiPath(id): ApiPath<i64>,
+    ApiPath(id): ApiPath<SequenceId>,
     ApiQuery(query): ApiQuery<AllParticlesQuery>,
 ) -> Result<Response, ApiError> {
     if let Some(format) = query.format.as_deref().filter(|f| *f != "csv") {
@@ -929,7 +790,7 @@ pub async fn all_particles(
 }
 
 /// A frame's particle rows with the frame number in front.
-fn frame_rows(frame: i64, particles: &[Particle], cameras: usize) -> String {
+fn frame_rows(frame: FrameNumber, particles: &[Particle], cameras: usize) -> String {
     let table = formats::csv::format_particles(particles, cameras);
     let mut out = String::with_capacity(table.len() + particles.len() * 8);
     for line in table.lines().skip(1) {

@@ -1,0 +1,156 @@
+//! The one multipart upload path, shared by frame uploads
+//! (`POST /sequences/{id}/frames`) and calibration solving
+//! (`POST /calibrations/solve`):
+//!
+//! 1. read the parts ([`text_part`] for small text parts read whole,
+//!    [`stream_part`] for files streamed into the image store, never whole
+//!    in memory), draining the body when reading fails ([`or_drain`]);
+//! 2. check the images' headers against their cameras' sensors before
+//!    anything is committed ([`check_images`], on the blocking pool:
+//!    it reads the files);
+//! 3. persist the files and commit the rows that refer to them under the
+//!    image store's lock, removing the files again if the commit fails
+//!    ([`persist_and_commit`]), so that a failed request leaves no file
+//!    and a crash at any instant at most files no row refers to, which the
+//!    start-up sweep removes;
+//! 4. wake a worker and answer 202 with the job ([`accepted`]).
+
+use std::future::Future;
+use std::path::{Path, PathBuf};
+
+use axum::extract::multipart::Field;
+use axum::extract::Multipart;
+use axum::http::{header, StatusCode};
+use axum::response::{IntoResponse, Response};
+use axum::Json;
+use serde::Serialize;
+
+use super::links;
+use super::problem::ApiError;
+use crate::formats::image::{read_header, RawLayout};
+use crate::photogrammetry::{Sensor, SensorMismatch};
+use crate::service::app::AppState;
+use crate::service::images::{ImageStore, UploadedFile};
+use crate::service::store::JobId;
+
+/// Reads a small text part whole, up to `limit` bytes.
+pub async fn text_part(
+    field: &mut Field<'_>,
+    name: &str,
+    limit: usize,
+) -> Result<String, ApiError> {
+    let mut bytes = Vec::new();
+    while let Some(chunk) = field.chunk().await? {
+        if bytes.len() + chunk.len() > limit {
+            return Err(ApiError::too_large(format!(
+                "part `{name}` is larger than {limit} bytes"
+            )));
+        }
+        bytes.extend_from_slice(&chunk);
+    }
+    String::from_utf8(bytes)
+        .map_err(|_| ApiError::unprocessable(format!("part `{name}` is not UTF-8 text")))
+}
+
+/// Streams a part into a temporary file of the image store, hashed as it
+/// is written; the body limit bounds it.
+pub async fn stream_part(
+    images: &ImageStore,
+    field: &mut Field<'_>,
+) -> Result<UploadedFile, ApiError> {
+    let mut upload = images.create_upload().await?;
+    while let Some(chunk) = field.chunk().await? {
+        upload.write(&chunk).await?;
+    }
+    Ok(upload.finish().await?)
+}
+
+/// `read` (the parts as read, or anything decided before the body is
+/// read); when it failed, the rest of the body is read and dropped first
+/// (bounded by the body limit), so that the client, still sending, gets
+/// the answer rather than a broken pipe.
+pub async fn or_drain<T>(
+    read: Result<T, ApiError>,
+    multipart: &mut Multipart,
+) -> Result<T, ApiError> {
+    if read.is_err() {
+        while let Ok(Some(mut field)) = multipart.next_field().await {
+            while let Ok(Some(_)) = field.chunk().await {}
+        }
+    }
+    read
+}
+
+/// Checks uploaded images, one per camera in camera order, without
+/// decoding their pixels: PNG or TIFF greyscale (raw: the length `raw`
+/// needs) of their camera's sensor size. `source(camera)` names an image
+/// in messages. Unreadable kinds are 415, wrong sizes 422.
+pub async fn check_images(
+    files: &[UploadedFile],
+    sensors: &[Sensor],
+    raw: Option<RawLayout>,
+    source: fn(usize) -> String,
+) -> Result<(), ApiError> {
+    let checks: Vec<(PathBuf, Sensor)> = files
+        .iter()
+        .zip(sensors)
+        .map(|(file, sensor)| {
+            let path = file.temp_path().map(Path::to_owned).unwrap_or_default();
+            (path, sensor.clone())
+        })
+        .collect();
+    tokio::task::spawn_blocking(move || {
+        for (camera, (path, sensor)) in checks.iter().enumerate() {
+            let source = source(camera);
+            let header = read_header(path, raw.as_ref(), &source)?;
+            SensorMismatch::check(header.width, header.height, sensor)
+                .map_err(|e| ApiError::from(e).at(&source))?;
+        }
+        Ok::<(), ApiError>(())
+    })
+    .await?
+}
+
+/// Moves the request's files into the image store and runs `commit`, which
+/// stores the rows that refer to them, under the store's lock. If either
+/// fails, the files that no row refers to go again.
+pub async fn persist_and_commit<T, E, F, Fut>(
+    state: &AppState,
+    files: Vec<UploadedFile>,
+    commit: F,
+) -> Result<T, ApiError>
+where
+    F: FnOnce() -> Fut,
+    Fut: Future<Output = Result<T, E>>,
+    ApiError: From<E>,
+{
+    let _guard = state.images.lock().await;
+    let hashes: Vec<String> = files.iter().map(|f| f.sha256.clone()).collect();
+    let committed = async {
+        for file in files {
+            state.images.persist(file).await?;
+        }
+        Ok::<T, ApiError>(commit().await?)
+    }
+    .await;
+    if committed.is_err() {
+        for hash in &hashes {
+            if !state.store.image_in_use(hash).await? {
+                state.images.remove(hash).await?;
+            }
+        }
+    }
+    committed
+}
+
+/// Wakes a worker for the job just enqueued and answers 202 with `body`,
+/// its `Location` the job.
+pub fn accepted(state: &AppState, job_id: JobId, body: impl Serialize) -> Response {
+    state.wake.notify_one();
+    (
+        StatusCode::ACCEPTED,
+        [(header::LOCATION, links::job(job_id))],
+        Json(body),
+    )
+        .into_response()
+}

@@ -1,0 +1,119 @@
+//! Calibrations: stored from the API, or solved by a job and stored with
+//! its report when the job completes.
+
+use sqlx::sqlite::SqliteRow;
+use sqlx::{FromRow, Row, Sqlite, Transaction};
+
+use super::jobs::{finish, ClaimedJob};
+use super::{file_in_use, CalibrationId, CompleteError, JobId, Store};
+
+/// A stored calibration.
+#[derive(Clone, Debug)]
+pub struct CalibrationRow {
+    /// Its id.
+    pub id: CalibrationId,
+    /// The calibration JSON.
+    pub model: String,
+    /// How many cameras.
+    pub cameras: i64,
+    /// The resection report (JSON), if solved.
+    pub report: Option<String>,
+    /// When it was stored.
+    pub created_at: String,
+}
+
+impl FromRow<'_, SqliteRow> for CalibrationRow {
+    fn from_row(row: &SqliteRow) -> Result<Self, sqlx::Error> {
+        Ok(CalibrationRow {
+            id: row.try_get("id")?,
+            model: row.try_get("model")?,
+            cameras: row.try_get("cameras")?,
+            report: row.try_get("report")?,
+            created_at: row.try_get("created_at")?,
+        })
+    }
+}
+
+impl Store {
+    /// Stores a calibration.
+    pub async fn insert_calibration(
+        &self,
+        model: &str,
+        cameras: i64,
+        report: Option<&str>,
+    ) -> Result<CalibrationRow, sqlx::Error> {
+        let mut tx = self.write_transaction().await?;
+        let row = insert_calibration(&mut tx, model, cameras, report, None).await?;
+        tx.commit().await?;
+        Ok(row)
+    }
+
+    /// A calibration by id.
+    pub async fn calibration(
+        &self,
+        id: CalibrationId,
+    ) -> Result<Option<CalibrationRow>, sqlx::Error> {
+        sqlx::query_as(
+            "SELECT id, model, cameras, report, created_at FROM calibrations WHERE id = ?",
+        )
+        .bind(id)
+        .fetch_optional(&self.reader)
+        .await
+    }
+
+    /// Stores a solved calibration with its report and completes its job,
+    /// in one transaction (the calibration names the job: its result);
+    /// unless `keep_files`, the job's file rows go too.
+    /// Returns the calibration's id and the hashes of the files nothing
+    /// refers to any more, whose files may go.
+    pub async fn complete_calibration(
+        &self,
+        job: &ClaimedJob,
+        model: &str,
+        cameras: i64,
+        report: &str,
+        keep_files: bool,
+        duration_s: f64,
+    ) -> Result<(CalibrationId, Vec<String>), CompleteError> {
+        let mut tx = self.write_transaction().await?;
+        finish(&mut tx, job, None, duration_s).await?;
+        let row = insert_calibration(&mut tx, model, cameras, Some(report), Some(job.id)).await?;
+        let mut orphans = Vec::new();
+        if !keep_files {
+            let hashes: Vec<(String,)> =
+                sqlx::query_as("DELETE FROM job_files WHERE job_id = ? RETURNING sha256")
+                    .bind(job.id)
+                    .fetch_all(&mut *tx)
+                    .await?;
+            for (hash,) in hashes {
+                if !orphans.contains(&hash) && !file_in_use(&mut tx, &hash).await? {
+                    orphans.push(hash);
+                }
+            }
+        }
+        tx.commit().await?;
+        Ok((row.id, orphans))
+    }
+}
+
+/// Stores a calibration inside the caller's transaction (a solve job's
+/// completion stores its calibration, naming the job, and finishes the job
+/// together).
+pub async fn insert_calibration(
+    tx: &mut Transaction<'_, Sqlite>,
+    model: &str,
+    cameras: i64,
+    report: Option<&str>,
+    solved_by: Option<JobId>,
+) -> Result<CalibrationRow, sqlx::Error> {
+    sqlx::query_as(
+        "INSERT INTO calibrations (model, cameras, report, job_id) VALUES (?, ?, ?, ?) \
+         RETURNING id, model, cameras, report, created_at",
+    )
+    .bind(model)
+    .bind(cameras)
+    .bind(report)
+    .bind(solved_by)
+    .fetch_one(&mut **tx)
+    .await
+}

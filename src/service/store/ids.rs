@@ -1,0 +1,79 @@
+//! Ids that cannot be mixed up: a calibration's id passed where a
+//! sequence's is expected does not compile. Each is its integer in JSON
+//! (`serde(transparent)`) and in SQL (encoded and decoded as `INTEGER`),
+//! so rows bind and read them directly. Their OpenAPI schema is the HTTP
+//! layer's business (`#[schema(value_type = i64)]` on its fields).
+//!
+//! ```compile_fail
+//! # use ptv::service::store::{CalibrationId, Store};
+//! # async fn mixed_up(store: &Store) {
+//! // A sequence is looked up by a sequence's id only.
+//! let _ = store.sequence(CalibrationId(1)).await;
+//! # }
+//! ```
+
+use std::fmt;
+
+use serde::{Deserialize, Serialize};
+use sqlx::encode::IsNull;
+use sqlx::error::BoxDynError;
+use sqlx::sqlite::{SqliteTypeInfo, SqliteValueRef};
+use sqlx::{Decode, Encode, Sqlite, Type};
+
+/// Declares an id type over `i64`.
+macro_rules! id {
+    ($(#[$doc:meta])* $name:ident) => {
+        $(#[$doc])*
+        #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
+        #[serde(transparent)]
+        pub struct $name(pub i64);
+
+        impl fmt::Display for $name {
+            fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+                self.0.fmt(f)
+            }
+        }
+
+        impl Type<Sqlite> for $name {
+            fn type_info() -> SqliteTypeInfo {
+                <i64 as Type<Sqlite>>::type_info()
+            }
+
+            fn compatible(ty: &SqliteTypeInfo) -> bool {
+                <i64 as Type<Sqlite>>::compatible(ty)
+            }
+        }
+
+        impl<'q> Encode<'q, Sqlite> for $name {
+            fn encode_by_ref(
+                &self,
+                buf: &mut <Sqlite as sqlx::Database>::ArgumentBuffer<'q>,
+            ) -> Result<IsNull, BoxDynError> {
+                <i64 as Encode<'q, Sqlite>>::encode_by_ref(&self.0, buf)
+            }
+        }
+
+        impl<'r> Decode<'r, Sqlite> for $name {
+            fn decode(value: SqliteValueRef<'r>) -> Result<Self, BoxDynError> {
+                <i64 as Decode<'r, Sqlite>>::decode(value).map($name)
+            }
+        }
+    };
+}
+
+id!(
+    /// A calibration's id.
+    CalibrationId
+);
+id!(
+    /// A sequence's id.
+    SequenceId
+);
+id!(
+    /// A job's id.
+    JobId
+);
+id!(
+    /// A frame's number within its sequence (from 0).
+    FrameNumber
+);

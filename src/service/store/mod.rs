@@ -1,0 +1,377 @@
+//! All of the service's SQL: calibrations, sequences, frames and their
+//! inputs and results, and the job queue, in one SQLite database.
+//!
+//! SQLite runs in WAL mode (readers never wait for the writer) with a busy
+//! timeout. Writes go through a pool of one connection, so they queue in
+//! the process instead of failing on SQLite's lock; reads use their own
+//! pool. Every multi-statement write is one transaction: an upload and its
+//! job, a job's results and its completion. Queries are checked at run
+//! time (no database at build time); their results map onto `FromRow`
+//! structs (`FromRow` written out, no derive macros).
+//!
+//! One file per table group, each with its own `impl Store`:
+//! [`calibrations`](self::calibrations), [`sequences`](self::sequences)
+//! (sequences and their frames' inputs and results) and [`jobs`](self::jobs)
+//! (the queue and the jobs' input files); here the pools, the migrations
+//! and what they share.
+
+mod calibrations;
+mod ids;
+mod jobs;
+mod sequences;
+
+use std::path::Path;
+use std::str::FromStr;
+use std::time::Duration;
+
+use std::future::Future;
+use std::pin::Pin;
+
+use sqlx::error::BoxDynError;
+use sqlx::migrate::{Migration, MigrationSource, MigrationType, Migrator};
+use sqlx::sqlite::{
+    SqliteConnectOptions, SqliteJournalMode, SqlitePool, SqlitePoolOptions, SqliteRow,
+    SqliteSynchronous,
+};
+use sqlx::Row;
+
+pub use self::calibrations::{insert_calibration, CalibrationRow};
+pub use self::ids::{CalibrationId, FrameNumber, JobId, SequenceId};
+pub use self::jobs::{
+    enqueue, finish, ClaimedJob, JobFile, JobResult, JobRow, JobState, MAX_ATTEMPTS,
+};
+pub use self::sequences::{FrameCounts, FrameInput, FrameInputKind, NewFrame, SequenceRow};
+
+/// The database.
+#[derive(Clone, Debug)]
+pub struct Store {
+    /// Readers, several at once.
+    reader: SqlitePool,
+    /// The one writer.
+    writer: SqlitePool,
+}
+
+/// The schema's migrations, `migrations/*.sql`, compiled into the binary
+/// (what `sqlx::migrate!` does, without its proc-macro, which would build
+/// SQLite a second time for the compiler): [`MIGRATIONS`], or its first
+/// ones (the tests build older databases).
+#[derive(Debug)]
+struct Migrations(&'static [(i64, &'static str, &'static str)]);
+
+/// Version, description and SQL of each migration, in order.
+const MIGRATIONS: &[(i64, &str, &str)] = &[
+    (
+        1,
+        "service",
+        include_str!("../../../migrations/0001_service.sql"),
+    ),
+    (
+        2,
+        "job_files",
+        include_str!("../../../migrations/0002_job_files.sql"),
+    ),
+    (
+        3,
+        "job_results",
+        include_str!("../../../migrations/0003_job_results.sql"),
+    ),
+];
+
+impl<'s> MigrationSource<'s> for Migrations {
+    fn resolve(
+        self,
+    ) -> Pin<Box<dyn Future<Output = Result<Vec<Migration>, BoxDynError>> + Send + 's>> {
+        Box::pin(async move {
+            Ok(self
+                .0
+                .iter()
+                .map(|(version, description, sql)| {
+                    Migration::new(
+                        *version,
+                        (*description).into(),
+                        MigrationType::Simple,
+                        (*sql).into(),
+                        false,
+                    )
+                })
+                .collect())
+        })
+    }
+}
+
+/// Why a frame could not be stored.
+#[derive(Debug, thiserror::Error)]
+pub enum InsertFrameError {
+    /// The frame number is taken.
+    #[error("frame {frame} of sequence {sequence_id} exists")]
+    Exists {
+        /// The sequence.
+        sequence_id: SequenceId,
+        /// The frame.
+        frame: FrameNumber,
+    },
+    /// The database failed.
+    #[error(transparent)]
+    Database(#[from] sqlx::Error),
+}
+
+/// A completion that the job's holder may no longer make.
+#[derive(Debug, thiserror::Error)]
+pub enum CompleteError {
+    /// The job is no longer running under this worker.
+    #[error("job {0} is no longer held by this worker")]
+    LostLease(JobId),
+    /// The database failed.
+    #[error(transparent)]
+    Database(#[from] sqlx::Error),
+}
+
+/// A stored text that names none of a column's values (a database written
+/// by a newer version, or edited by hand).
+#[derive(Debug, thiserror::Error)]
+#[error("unknown {what} `{value}`; this version knows {known}")]
+pub struct UnknownValue {
+    /// What the column holds: `job state`, ...
+    what: &'static str,
+    /// The text found.
+    value: String,
+    /// The values this version knows, comma-separated.
+    known: String,
+}
+
+/// An enum stored as text: its values and their names in the database.
+trait TextColumn: Copy + 'static {
+    /// What the column holds, for messages.
+    const WHAT: &'static str;
+    /// Every value.
+    const ALL: &'static [Self];
+    /// The name stored in the database.
+    fn as_str(self) -> &'static str;
+
+    /// The value of a stored name.
+    fn parse_text(text: &str) -> Result<Self, UnknownValue> {
+        Self::ALL
+            .iter()
+            .copied()
+            .find(|value| value.as_str() == text)
+            .ok_or_else(|| UnknownValue {
+                what: Self::WHAT,
+                value: text.to_owned(),
+                known: Self::ALL
+                    .iter()
+                    .map(|v| v.as_str())
+                    .collect::<Vec<_>>()
+                    .join(", "),
+            })
+    }
+}
+
+/// Makes an enum a [`TextColumn`] with these names, parsed by `FromStr`.
+macro_rules! stored_as_text {
+    ($type:ident, $what:literal, { $($variant:ident => $name:literal),+ $(,)? }) => {
+        impl $crate::service::store::TextColumn for $type {
+            const WHAT: &'static str = $what;
+            const ALL: &'static [$type] = &[$($type::$variant),+];
+
+            fn as_str(self) -> &'static str {
+                match self {
+                    $($type::$variant => $name),+
+                }
+            }
+        }
+
+        impl std::str::FromStr for $type {
+            type Err = $crate::service::store::UnknownValue;
+            fn from_str(text: &str) -> Result<Self, Self::Err> {
+                <$type as $crate::service::store::TextColumn>::parse_text(text)
+            }
+        }
+    };
+}
+use stored_as_text;
+
+/// A text column read as its enum; an unknown text is a decode error that
+/// names the column and the text.
+fn decode_text<T: FromStr<Err = UnknownValue>>(column: &str, text: &str) -> Result<T, sqlx::Error> {
+    text.parse().map_err(|error| sqlx::Error::ColumnDecode {
+        index: column.to_owned(),
+        source: Box::new(error),
+    })
+}
+
+/// The text column `column` of `row`, as its enum (see [`decode_text`]).
+fn text_column<T: FromStr<Err = UnknownValue>>(
+    row: &SqliteRow,
+    column: &str,
+) -> Result<T, sqlx::Error> {
+    decode_text(column, row.try_get::<&str, _>(column)?)
+}
+
+/// realworld-axum-sqlx's `on_constraint`, for SQLite's unique and
+/// primary-key violations: the statement's error, or the one that says
+/// what the violation means.
+trait OnUniqueViolation<T> {
+    /// `error()` where the statement violated a unique constraint.
+    fn on_unique_violation<E: From<sqlx::Error>>(self, error: impl FnOnce() -> E) -> Result<T, E>;
+}
+
+impl<T> OnUniqueViolation<T> for Result<T, sqlx::Error> {
+    fn on_unique_violation<E: From<sqlx::Error>>(self, error: impl FnOnce() -> E) -> Result<T, E> {
+        self.map_err(|e| match e {
+            sqlx::Error::Database(ref db) if db.is_unique_violation() => error(),
+            other => other.into(),
+        })
+    }
+}
+
+impl Store {
+    /// Opens (creating if missing) the database `ptv.sqlite` in
+    /// `data_dir` and brings its schema up to date.
+    pub async fn open(data_dir: &Path, readers: u32) -> Result<Store, sqlx::Error> {
+        let options = SqliteConnectOptions::new()
+            .filename(data_dir.join("ptv.sqlite"))
+            .create_if_missing(true)
+            .journal_mode(SqliteJournalMode::Wal)
+            // In WAL mode NORMAL survives a crash of the process (a kill);
+            // only a power loss may lose the last transactions.
+            .synchronous(SqliteSynchronous::Normal)
+            .busy_timeout(Duration::from_secs(10))
+            .foreign_keys(true);
+        let writer = SqlitePoolOptions::new()
+            .max_connections(1)
+            .connect_with(options.clone())
+            .await?;
+        Migrator::new(Migrations(MIGRATIONS))
+            .await
+            .map_err(sqlx::Error::from)?
+            .run(&writer)
+            .await?;
+        let reader = SqlitePoolOptions::new()
+            .max_connections(readers.max(1))
+            .connect_with(options.read_only(true))
+            .await?;
+        Ok(Store { reader, writer })
+    }
+
+    /// Starts a write transaction with `BEGIN IMMEDIATE`: it takes SQLite's
+    /// write lock at once, so a transaction that reads before it writes never
+    /// finds its snapshot stale when it comes to write (a deferred `BEGIN`
+    /// would then fail with SQLITE_BUSY whatever the busy timeout), also
+    /// with several processes on one database.
+    async fn write_transaction(
+        &self,
+    ) -> Result<sqlx::Transaction<'static, sqlx::Sqlite>, sqlx::Error> {
+        self.writer.begin_with("BEGIN IMMEDIATE").await
+    }
+
+    /// Closes both pools.
+    pub async fn close(&self) {
+        self.writer.close().await;
+        self.reader.close().await;
+    }
+
+    /// Whether any frame or job refers to the file with this hash.
+    pub async fn image_in_use(&self, sha256: &str) -> Result<bool, sqlx::Error> {
+        let mut conn = self.writer.acquire().await?;
+        file_in_use(&mut conn, sha256).await
+    }
+}
+
+/// Whether any frame's image or job's file is the file with this hash.
+async fn file_in_use(conn: &mut sqlx::SqliteConnection, sha256: &str) -> Result<bool, sqlx::Error> {
+    let (n,): (i64,) = sqlx::query_as(
+        "SELECT (SELECT count(*) FROM images WHERE sha256 = ?1) + \
+                (SELECT count(*) FROM job_files WHERE sha256 = ?1)",
+    )
+    .bind(sha256)
+    .fetch_one(&mut *conn)
+    .await?;
+    Ok(n > 0)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A database as the version before migration 3 left it: a calibration
+    /// stored from the API, one solved by a job, a processed frame and one
+    /// still queued, a job of a plug-in kind; the results as they stored
+    /// them, as paths.
+    async fn database_of_version_2(data_dir: &Path) {
+        let pool = SqlitePoolOptions::new()
+            .max_connections(1)
+            .connect_with(
+                SqliteConnectOptions::new()
+                    .filename(data_dir.join("ptv.sqlite"))
+                    .create_if_missing(true),
+            )
+            .await
+            .unwrap();
+        Migrator::new(Migrations(&MIGRATIONS[..2]))
+            .await
+            .unwrap()
+            .run(&pool)
+            .await
+            .unwrap();
+        sqlx::raw_sql(
+            "INSERT INTO calibrations (id, model, cameras) VALUES (1, '{}', 2), (2, '{}', 2);
+             INSERT INTO jobs (id, kind, payload, state, result) VALUES
+                 (1, 'solve_calibration', '{}', 'succeeded', '/api/v1/calibrations/2'),
+                 (2, 'process_frame', '{}', 'succeeded', '/api/v1/sequences/1/frames/0/particles'),
+                 (3, 'process_frame', '{}', 'queued', NULL),
+                 (4, 'echo', '{}', 'succeeded', '/echo'),
+                 (5, 'solve_calibration', '{}', 'failed', NULL);
+             INSERT INTO sequences (id, calibration_id, name, parameters, keep_images)
+                 VALUES (1, 1, '', '{}', 1);
+             INSERT INTO frames (sequence_id, frame, job_id, input) VALUES
+                 (1, 0, 2, 'images'), (1, 1, 3, 'targets');",
+        )
+        .execute(&pool)
+        .await
+        .unwrap();
+        pool.close().await;
+    }
+
+    #[tokio::test]
+    async fn results_stored_as_paths_are_read_as_the_rows_they_name() {
+        let dir = tempfile::tempdir().unwrap();
+        database_of_version_2(dir.path()).await;
+        let store = Store::open(dir.path(), 1).await.unwrap();
+        let result = |id| {
+            let store = store.clone();
+            async move { store.job(JobId(id)).await.unwrap().unwrap().result }
+        };
+        assert_eq!(
+            result(1).await,
+            Some(JobResult::Calibration(CalibrationId(2)))
+        );
+        assert_eq!(
+            result(2).await,
+            Some(JobResult::Frame {
+                sequence_id: SequenceId(1),
+                frame: FrameNumber(0)
+            })
+        );
+        assert_eq!(result(3).await, None);
+        assert_eq!(result(4).await, Some(JobResult::Link("/echo".to_owned())));
+        assert_eq!(result(5).await, None);
+        // The paths are gone from the jobs the rows now name; a plug-in
+        // kind's link stays.
+        let links: Vec<(i64, Option<String>)> =
+            sqlx::query_as("SELECT id, result FROM jobs ORDER BY id")
+                .fetch_all(&store.reader)
+                .await
+                .unwrap();
+        assert_eq!(
+            links,
+            vec![
+                (1, None),
+                (2, None),
+                (3, None),
+                (4, Some("/echo".to_owned())),
+                (5, None)
+            ]
+        );
+        store.close().await;
+    }
+}
