@@ -60,16 +60,26 @@
 //! `match`, `process`, `simulate`, `serve`). It wires [`formats`] to
 //! [`photogrammetry`] and has no numerics of its own.
 //!
-//! [`service`]: the HTTP service (`ptv serve`): the API under `/api/v1`
-//! ([`http`](service::http)), a durable job queue whose workers run the core
-//! on a CPU pool ([`jobs`](service::jobs)), all SQL in one place
-//! ([`store`](service::store), SQLite), content-addressed image files
-//! ([`images`](service::images)), the blobs targets and particles are stored
-//! in ([`codec`](service::codec)), a sequence's parameters
-//! ([`parameters`](service::parameters)), `/metrics`
-//! ([`metrics`](service::metrics)), the flags ([`config`](service::config))
-//! and start-up and shutdown ([`app`](service::app)). The core knows nothing
-//! of it.
+//! [`service`]: the HTTP service (`ptv serve`). The core knows nothing of
+//! it.
+//!
+//! - [`http`](service::http): the API under `/api/v1`, one router per
+//!   resource; the one error type, problem+json, with statuses by the
+//!   errors' types; the one multipart upload path; the tower layers every
+//!   request passes through (request ids, tracing, compression, timeouts,
+//!   body limits, the panic guard, load shedding, the bearer token).
+//! - [`jobs`](service::jobs): the durable job queue's workers, which run the
+//!   core on a CPU pool: frames to particles, calibrations solved.
+//! - [`store`](service::store): all SQL (SQLite), one file per table group,
+//!   with the typed ids.
+//! - [`images`](service::images): uploaded files, content-addressed.
+//! - [`codec`](service::codec): the blobs targets and particles are stored
+//!   in.
+//! - [`parameters`](service::parameters): a sequence's detection and
+//!   matching parameters, a solve's options.
+//! - [`metrics`](service::metrics): `/metrics`.
+//! - [`config`](service::config) and [`app`](service::app): the flags, and
+//!   start-up, serving and shutdown.
 
 pub mod cli;
 pub mod formats;
