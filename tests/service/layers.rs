@@ -276,3 +276,96 @@ async fn a_declared_body_over_the_limit_is_refused_before_it_is_sent() {
     assert!(lower.contains("x-request-id: "), "{}", exchange.answer);
     app.stop().await;
 }
+
+/// With a token, every path under `/api` answers 401 without it, whether
+/// it names a route, takes the method or not (routes cannot be probed);
+/// with the token, unknown routes and methods get their 404 and 405.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn without_the_token_everything_under_api_is_401() {
+    let app = spawn_app_with(Some("s3cret")).await;
+    let cases = [
+        ("GET", "/api/v1/nowhere", 404),
+        ("DELETE", "/api/v1/jobs/1", 405),
+        ("PUT", "/api/v1/calibrations", 405),
+        ("GET", "/api", 404),
+        ("GET", "/api/", 404),
+        ("GET", "/api/v2/calibrations", 404),
+        ("BREW", "/api/v1/sequences", 405),
+    ];
+    for (method, path, with_token) in cases {
+        let method = reqwest::Method::from_bytes(method.as_bytes()).unwrap();
+        let url = format!("{}{path}", app.address);
+        let refused = app
+            .client
+            .request(method.clone(), &url)
+            .send()
+            .await
+            .unwrap();
+        assert_eq!(
+            refused.headers()["www-authenticate"],
+            "Bearer",
+            "{method} {path}"
+        );
+        let (status, body) = status_and_json(refused).await;
+        assert_eq!(status, 401, "{method} {path}: {body}");
+        let allowed = app
+            .client
+            .request(method.clone(), &url)
+            .bearer_auth("s3cret")
+            .send()
+            .await
+            .unwrap();
+        assert_eq!(allowed.status().as_u16(), with_token, "{method} {path}");
+    }
+    // Outside /api nothing needs the token.
+    for (path, status) in [("/healthz", 200), ("/apix", 404), ("/nowhere", 404)] {
+        let response = get(&app, &format!("{}{path}", app.address), None).await;
+        assert_eq!(response.status().as_u16(), status, "{path}");
+    }
+    app.stop().await;
+}
+
+/// `/metrics` has as many request series after 300 requests with invented
+/// methods as after one: unknown methods count as `OTHER`.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn invented_methods_do_not_grow_the_metrics() {
+    let app = spawn_app().await;
+    let series = |text: &str| {
+        text.lines()
+            .filter(|l| l.starts_with("ptv_http_requests_total{"))
+            .count()
+    };
+    let invented = |i: usize| reqwest::Method::from_bytes(format!("M{i:08X}").as_bytes()).unwrap();
+    let metrics_url = format!("{}/metrics", app.address);
+    let send = |i: usize| {
+        let method = invented(i);
+        let client = app.client.clone();
+        let urls = [
+            format!("{}/healthz", app.address),
+            app.api(&format!("/nowhere/{i}")),
+        ];
+        async move {
+            for url in urls {
+                let response = client.request(method.clone(), url).send().await.unwrap();
+                assert!(response.status().is_client_error(), "{}", response.status());
+            }
+        }
+    };
+    send(0).await;
+    let after_one = app.get_text(metrics_url.clone()).await;
+    for i in 1..300 {
+        send(i).await;
+    }
+    let after_many = app.get_text(metrics_url.clone()).await;
+    // The scrape itself adds one series (GET /metrics 200) the first time.
+    assert_eq!(series(&after_many), series(&after_one) + 1, "{after_many}");
+    assert!(after_many.contains("method=\"OTHER\""), "{after_many}");
+    assert!(!after_many.contains("M0000"), "{after_many}");
+    assert!(
+        after_many.len() < after_one.len() + 200,
+        "{} -> {}",
+        after_one.len(),
+        after_many.len()
+    );
+    app.stop().await;
+}

@@ -21,23 +21,27 @@
 //!    partly unread gets `Connection: close` (what no layer does).
 //! 8. `CatchPanicLayer`: a panicking handler is logged and answered with a
 //!    problem+json 500.
-//! 9. `ValidateRequestHeaderLayer`: a declared body over `--max-upload-mb`
-//!    is refused with 413 before any of it is read.
-//! 10. `HandleErrorLayer` over tower's `TimeoutLayer`: a request not
+//! 9. [`bearer_token`], a `ValidateRequestHeaderLayer`: with
+//!    `--api-token`, any path under `/api` without the token is a 401,
+//!    before the route or method is looked at (an unknown route or method
+//!    would otherwise answer 404 or 405 and let routes be probed).
+//! 10. `ValidateRequestHeaderLayer`: a declared body over `--max-upload-mb`
+//!     is refused with 413 before any of it is read.
+//! 11. `HandleErrorLayer` over tower's `TimeoutLayer`: a request not
 //!     answered within `--request-timeout-secs` gets 408 if its body was
 //!     still arriving, else 503.
-//! 11. `shed_cpu_routes`: on the routes that run CPU work inside the
+//! 12. `shed_cpu_routes`: on the routes that run CPU work inside the
 //!     request (creating a sequence builds its matcher, projecting points),
 //!     `load_shed` over a `GlobalConcurrencyLimitLayer` of
 //!     `--max-cpu-requests`: one more is answered 503 with `Retry-After`
 //!     at once rather than queued on the rayon pool ahead of the frames.
-//! 12. `RequestBodyLimitLayer`: a body without a declared length fails
+//! 13. `RequestBodyLimitLayer`: a body without a declared length fails
 //!     with 413 as soon as it passes the limit, whoever reads it (axum's
 //!     own default limit of 2 MB is disabled).
 //!
-//! The bearer token check ([`bearer_token`]) is a `ValidateRequestHeaderLayer`
-//! on `/api` alone. Header read and idle connection timeouts are hyper's
-//! (see [`crate::service::app`]).
+//! `Router::layer` wraps the routes, the fallback and the method-not-allowed
+//! answers alike, so all of the above applies to every request. Header read
+//! and idle connection timeouts are hyper's (see [`crate::service::app`]).
 
 use std::any::Any;
 use std::pin::Pin;
@@ -109,6 +113,7 @@ pub fn apply<S: Clone + Send + Sync + 'static>(
             watch_body,
         ))
         .layer(CatchPanicLayer::custom(answer_panic))
+        .layer(bearer_token(config.api_token.as_deref()))
         .layer(ValidateRequestHeaderLayer::custom(DeclaredLength { limit }))
         .layer(HandleErrorLayer::new(
             move |progress: Option<Extension<BodyProgress>>, error: BoxError| async move {
@@ -122,26 +127,40 @@ pub fn apply<S: Clone + Send + Sync + 'static>(
     router.layer(stack)
 }
 
-/// With a token, `/api` needs `Authorization: Bearer <token>` (the scheme
-/// in any case, RFC 9110 section 11.1); the token is compared in constant
-/// time, and a missing or wrong one is a 401 problem with
-/// `WWW-Authenticate: Bearer`.
-pub fn bearer_token(token: &str) -> ValidateRequestHeaderLayer<BearerToken> {
+/// With a token, every path under `/api` needs `Authorization: Bearer
+/// <token>` (the scheme in any case, RFC 9110 section 11.1), whether it
+/// names a route and takes the method or not, so that routes cannot be
+/// probed without it; the token is compared in constant time, and a missing
+/// or wrong one is a 401 problem with `WWW-Authenticate: Bearer`.
+pub fn bearer_token(token: Option<&str>) -> ValidateRequestHeaderLayer<BearerToken> {
     ValidateRequestHeaderLayer::custom(BearerToken {
-        token: token.as_bytes().into(),
+        token: token.map(|t| t.as_bytes().into()),
     })
 }
 
-/// The check behind [`bearer_token`].
+/// The check behind [`bearer_token`] (none without a token).
 #[derive(Clone, Debug)]
 pub struct BearerToken {
-    token: Arc<[u8]>,
+    token: Option<Arc<[u8]>>,
+}
+
+/// Whether `path` is under `/api` (as routed: the path as sent, not
+/// percent-decoded).
+fn under_api(path: &str) -> bool {
+    path.strip_prefix("/api")
+        .is_some_and(|rest| rest.is_empty() || rest.starts_with('/'))
 }
 
 impl ValidateRequest<Body> for BearerToken {
     type ResponseBody = Body;
 
     fn validate(&mut self, request: &mut Request) -> Result<(), Response> {
+        let Some(token) = &self.token else {
+            return Ok(());
+        };
+        if !under_api(request.uri().path()) {
+            return Ok(());
+        }
         let given = request
             .headers()
             .get(header::AUTHORIZATION)
@@ -149,7 +168,7 @@ impl ValidateRequest<Body> for BearerToken {
             .and_then(|v| v.split_once(' '))
             .filter(|(scheme, _)| scheme.eq_ignore_ascii_case("bearer"))
             .map(|(_, given)| given.trim());
-        if given.is_some_and(|given| constant_time_eq(given.as_bytes(), &self.token)) {
+        if given.is_some_and(|given| constant_time_eq(given.as_bytes(), token)) {
             return Ok(());
         }
         let error = ApiError::new(
