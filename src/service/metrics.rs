@@ -19,6 +19,7 @@
 
 use std::collections::BTreeMap;
 use std::fmt::Write;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Mutex;
 
 /// A cumulative histogram.
@@ -132,6 +133,10 @@ struct Inner {
 #[derive(Debug, Default)]
 pub struct Metrics {
     inner: Mutex<Inner>,
+    /// Open connections, the limit, and connections closed to make room.
+    connections: AtomicU64,
+    connection_limit: AtomicU64,
+    evicted: AtomicU64,
 }
 
 impl Metrics {
@@ -150,6 +155,22 @@ impl Metrics {
             StatusLabel::of(status),
         );
         self.with(|i| *i.requests.entry(key).or_default() += 1);
+    }
+
+    /// The connection limit (`--max-connections`).
+    pub fn connection_limit(&self, max: usize) {
+        self.connection_limit.store(max as u64, Ordering::Relaxed);
+    }
+
+    /// The connections open now.
+    pub fn connections_open(&self, open: usize) {
+        self.connections.store(open as u64, Ordering::Relaxed);
+    }
+
+    /// An idle connection closed to make room for a new one; `open` now.
+    pub fn connection_evicted(&self, open: usize) {
+        self.evicted.fetch_add(1, Ordering::Relaxed);
+        self.connections_open(open);
     }
 
     /// Records a finished job attempt.
@@ -185,6 +206,30 @@ impl Metrics {
                 );
             }
         });
+        let connections = [
+            (
+                "ptv_http_connections",
+                "gauge",
+                "Open HTTP connections.",
+                &self.connections,
+            ),
+            (
+                "ptv_http_connections_max",
+                "gauge",
+                "The connection limit (--max-connections).",
+                &self.connection_limit,
+            ),
+            (
+                "ptv_http_connections_evicted_total",
+                "counter",
+                "Idle connections closed at the limit to let a new one in.",
+                &self.evicted,
+            ),
+        ];
+        for (name, kind, help, value) in connections {
+            let _ = writeln!(out, "# HELP {name} {help}\n# TYPE {name} {kind}");
+            let _ = writeln!(out, "{name} {}", value.load(Ordering::Relaxed));
+        }
         out.push_str("# HELP ptv_queue_depth Jobs waiting for a worker.\n");
         out.push_str("# TYPE ptv_queue_depth gauge\n");
         let queued: i64 = jobs

@@ -466,6 +466,7 @@ mod tests {
             max_upload_mb: 1,
             api_token: None,
             max_cpu_requests: Some(max_cpu_requests),
+            max_connections: None,
             timeouts: Timeouts {
                 request_secs,
                 ..Timeouts::default()
