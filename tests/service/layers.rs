@@ -369,3 +369,66 @@ async fn invented_methods_do_not_grow_the_metrics() {
     );
     app.stop().await;
 }
+
+/// A request target over 8 KiB gets a 414, and header fields over 64 KiB
+/// or over 100 a 431, each a problem+json naming the limit (hyper alone
+/// answered them with an empty body).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn long_targets_and_large_heads_are_refused_with_problems() {
+    let app = spawn_app().await;
+    let long_path = format!("/api/v1/jobs/{}", "1".repeat(20 * 1024));
+    let long_query = format!("/healthz?{}", "a=b&".repeat(3000));
+    let big_field = format!("X-Big: {}\r\n", "v".repeat(70 * 1024));
+    let many_fields: String = (0..150).map(|i| format!("X-F{i}: v\r\n")).collect();
+    let cases = [
+        (
+            "long path",
+            long_path.as_str(),
+            String::new(),
+            414,
+            "8192 bytes",
+        ),
+        (
+            "long query",
+            long_query.as_str(),
+            String::new(),
+            414,
+            "8192 bytes",
+        ),
+        ("big field", "/healthz", big_field, 431, "65536 bytes"),
+        (
+            "150 fields",
+            "/healthz",
+            many_fields,
+            431,
+            "at most 100 fields",
+        ),
+    ];
+    for (case, target, fields, status, needle) in cases {
+        let head = format!("GET {target} HTTP/1.1\r\nHost: x\r\nConnection: close\r\n{fields}\r\n");
+        let exchange = exchange(&app.address, head.as_bytes(), &[], Duration::from_secs(10)).await;
+        let answer = &exchange.answer;
+        assert!(
+            answer.starts_with(&format!("HTTP/1.1 {status} ")),
+            "{case}: {answer}"
+        );
+        let lower = answer.to_ascii_lowercase();
+        assert!(
+            lower.contains("content-type: application/problem+json"),
+            "{case}: {answer}"
+        );
+        assert!(answer.contains(needle), "{case}: {answer}");
+        assert!(exchange.closed_after.is_some(), "{case}: still open");
+    }
+    // Just within the limits: 100 fields, 8 KiB of target.
+    let fields: String = (0..98).map(|i| format!("X-F{i}: v\r\n")).collect();
+    let target = format!("/healthz?{}", "a".repeat(8192 - 9));
+    let head = format!("GET {target} HTTP/1.1\r\nHost: x\r\nConnection: close\r\n{fields}\r\n");
+    let exchange = exchange(&app.address, head.as_bytes(), &[], Duration::from_secs(10)).await;
+    assert!(
+        exchange.answer.starts_with("HTTP/1.1 200 "),
+        "{}",
+        exchange.answer
+    );
+    app.stop().await;
+}
