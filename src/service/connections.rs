@@ -421,7 +421,11 @@ async fn serve_connection(
         return;
     }
     let stream = connection.into_parts().io.into_inner();
-    linger(stream, &settings).await;
+    // A shutdown cuts the lingering short.
+    tokio::select! {
+        () = linger(stream, &settings) => {}
+        _ = stopped.changed() => {}
+    }
 }
 
 /// Shuts the write side (the answer is complete) and reads and discards
