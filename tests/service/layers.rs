@@ -1,8 +1,11 @@
 //! What every request passes through (`src/service/http/layers.rs` and
-//! hyper's settings in `app.rs`): request ids, gzip, the header, body and
-//! request timeouts, the early 413 and the bearer token. The panic guard,
-//! the 503 of a handler past the request timeout and the load shedding of
-//! the CPU routes are unit tests beside the layers.
+//! hyper's settings in `src/service/connections.rs`): request ids, gzip,
+//! the header, body and request timeouts, the early 413, the bearer token
+//! on every path under `/api` before routing, the 414 and 431 problems, and
+//! bounded `/metrics` labels. The panic guard, the 503 of a handler past the
+//! request timeout and the load shedding of the CPU routes are unit tests
+//! beside the layers; the connection limit and the lingering close are in
+//! `connections`.
 
 use std::io::Read;
 use std::time::{Duration, Instant};
