@@ -119,6 +119,7 @@ async fn run(options: Options) {
         max_upload_mb: 256,
         api_token: None,
         max_cpu_requests: None,
+        max_connections: None,
         timeouts: Timeouts::default(),
     };
     let workers = args.worker_count();

@@ -8,15 +8,11 @@ use std::net::SocketAddr;
 use std::sync::Arc;
 use std::time::Duration;
 
-use axum::Router;
-use hyper::server::conn::http1;
-use hyper_util::rt::{TokioIo, TokioTimer};
-use hyper_util::server::graceful::GracefulShutdown;
-use hyper_util::service::TowerToHyperService;
 use tokio::net::TcpListener;
 use tokio::sync::{watch, Notify};
 
 use super::config::ServeArgs;
+use super::connections::{self, Registry};
 use super::images::ImageStore;
 use super::jobs::{self, CpuPool, JobKinds, PipelineCache};
 use super::metrics::Metrics;
@@ -51,6 +47,7 @@ pub struct AppState {
 /// The built service, bound and ready to run.
 pub struct Application {
     listener: TcpListener,
+    connections: Arc<Registry>,
     state: Arc<AppState>,
     kinds: JobKinds,
 }
@@ -61,7 +58,8 @@ impl Application {
         let data_dir = &config.data_dir;
         std::fs::create_dir_all(data_dir).map_err(|e| ServiceError::io(data_dir, e))?;
         let workers = config.worker_count();
-        let store = Store::open(data_dir, (workers as u32 + 4).min(16))
+        let readers = (workers as u32 + 4).min(16);
+        let store = Store::open(data_dir, readers)
             .await
             .map_err(ServiceError::Database)?;
         let (requeued, failed) = store.reap().await.map_err(ServiceError::Database)?;
@@ -100,18 +98,31 @@ impl Application {
             .duration_since(std::time::UNIX_EPOCH)
             .map(|d| d.as_nanos())
             .unwrap_or_default();
+        let open_files = connections::raise_open_file_limit();
+        let max_connections = config.max_connections.map_or_else(
+            || connections::default_max_connections(open_files, workers, readers + 1),
+            |n| usize::try_from(n).unwrap_or(usize::MAX),
+        );
+        tracing::info!(
+            open_files = open_files.map_or_else(|| "unknown".to_owned(), |n| n.to_string()),
+            max_connections,
+            "connection limit"
+        );
+        let metrics = Arc::new(Metrics::default());
+        let connections = Arc::new(Registry::new(max_connections, metrics.clone()));
         let state = Arc::new(AppState {
             config,
             store,
             images,
             cpu,
             pipelines: PipelineCache::default(),
-            metrics: Arc::default(),
+            metrics,
             wake: Notify::new(),
             instance: format!("{}-{nanos}", std::process::id()),
         });
         Ok(Application {
             listener,
+            connections,
             state,
             kinds: JobKinds::standard(),
         })
@@ -143,6 +154,7 @@ impl Application {
     ) -> Result<(), ServiceError> {
         let Application {
             listener,
+            connections,
             state,
             kinds,
         } = self;
@@ -150,7 +162,8 @@ impl Application {
         let mut workers =
             jobs::spawn_workers(state.clone(), kinds, state.config.worker_count(), stopped);
         let router = http::router(state.clone());
-        serve(listener, router, state.config.timeouts.header(), shutdown).await;
+        let settings = connections::Settings::new(&state.config);
+        connections::serve(listener, router, connections, settings, shutdown).await;
         let _ = stop_workers.send(true);
         let drained = tokio::time::timeout(SHUTDOWN_GRACE, async {
             while workers.join_next().await.is_some() {}
@@ -166,60 +179,4 @@ impl Application {
         state.store.close().await;
         Ok(())
     }
-}
-
-/// Serves HTTP/1.1 connections with hyper until `shutdown` completes, then
-/// stops accepting and waits for the connections to finish their requests
-/// (idle ones close at once). A client gets `header_timeout` to send a
-/// request's headers; the same limit closes a kept-alive connection that
-/// stays idle (hyper times the wait for the next request's headers).
-/// axum::serve offers no header timeout, hence this loop (axum's
-/// serve-with-hyper example, with its graceful shutdown).
-async fn serve(
-    listener: TcpListener,
-    router: Router,
-    header_timeout: Duration,
-    shutdown: impl Future<Output = ()>,
-) {
-    let mut http = http1::Builder::new();
-    http.timer(TokioTimer::new())
-        .header_read_timeout(header_timeout);
-    let connections = GracefulShutdown::new();
-    let mut shutdown = std::pin::pin!(shutdown);
-    loop {
-        let stream = tokio::select! {
-            accepted = listener.accept() => match accepted {
-                Ok((stream, _)) => stream,
-                Err(error) => {
-                    accept_failed(error).await;
-                    continue;
-                }
-            },
-            () = &mut shutdown => break,
-        };
-        let service = TowerToHyperService::new(router.clone());
-        let connection = connections.watch(http.serve_connection(TokioIo::new(stream), service));
-        tokio::spawn(async move {
-            if let Err(error) = connection.await {
-                tracing::debug!(%error, "connection closed with an error");
-            }
-        });
-    }
-    drop(listener);
-    connections.shutdown().await;
-}
-
-/// A failed accept: a client that gave up is nothing; anything else (out
-/// of file descriptors, most likely) is logged and waited out for a second,
-/// as axum::serve does.
-async fn accept_failed(error: std::io::Error) {
-    use std::io::ErrorKind::{ConnectionAborted, ConnectionRefused, ConnectionReset};
-    if matches!(
-        error.kind(),
-        ConnectionAborted | ConnectionRefused | ConnectionReset
-    ) {
-        return;
-    }
-    tracing::error!(%error, "cannot accept a connection");
-    tokio::time::sleep(Duration::from_secs(1)).await;
 }

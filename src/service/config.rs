@@ -33,6 +33,12 @@ pub struct ServeArgs {
     /// workers]
     #[arg(long, env = "PTV_MAX_CPU_REQUESTS", value_parser = clap::value_parser!(u32).range(1..))]
     pub max_cpu_requests: Option<u32>,
+    /// Connections open at once. At the limit, a new connection closes the
+    /// one that has waited longest without sending a complete request
+    /// [default: the open-file limit (raised to its hard value at start)
+    /// less a reserve for the database, image files and workers]
+    #[arg(long, env = "PTV_MAX_CONNECTIONS", value_parser = clap::value_parser!(u64).range(1..))]
+    pub max_connections: Option<u64>,
     /// Time limits on connections and requests.
     #[command(flatten)]
     pub timeouts: Timeouts,

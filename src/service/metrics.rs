@@ -1,6 +1,6 @@
 //! Counters for `/metrics`, rendered in Prometheus' text format by hand:
-//! HTTP requests by route and status, job durations and particles per
-//! frame as histograms. Queue depth and jobs by state are read from the
+//! HTTP requests by method, route and status, job durations and particles
+//! per frame as histograms. Queue depth and jobs by state are read from the
 //! database at scrape time, so they are right across restarts.
 //!
 //! Written by hand rather than with the `metrics` crate and its Prometheus
@@ -9,9 +9,17 @@
 //! asserting its own counts), and without the macros its per-instance use is
 //! no shorter than this file; it would also bring about fifteen crates
 //! (evmap, quanta, sketches, ...) to replace some 170 lines.
+//!
+//! Every label takes its values from a set fixed here or by the code, never
+//! from what a client sends, so the series cannot grow without bound
+//! (a client could otherwise make one per invented method name): methods
+//! outside RFC 9110's eight and PATCH count as `OTHER`, routes are the
+//! router's patterns (`unmatched` for the rest), and a status outside
+//! [`STATUSES`] counts as its class (`4xx`).
 
 use std::collections::BTreeMap;
 use std::fmt::Write;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Mutex;
 
 /// A cumulative histogram.
@@ -66,10 +74,56 @@ impl Histogram {
 const DURATION_BOUNDS: &[f64] = &[0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0];
 const PARTICLE_BOUNDS: &[f64] = &[0.0, 10.0, 100.0, 500.0, 1000.0, 2000.0, 5000.0, 10000.0];
 
+/// The statuses counted by their own code; any other counts as its class.
+pub const STATUSES: &[u16] = &[
+    100, 101, 200, 201, 202, 204, 206, 301, 302, 303, 304, 307, 308, 400, 401, 403, 404, 405, 406,
+    408, 409, 410, 411, 412, 413, 414, 415, 416, 417, 422, 426, 428, 429, 431, 500, 501, 502, 503,
+    504, 505, 507,
+];
+
+/// The method's label: its name if it is one of the standard ones, else
+/// `OTHER`.
+fn method_label(method: &str) -> &'static str {
+    const METHODS: [&str; 9] = [
+        "GET", "HEAD", "POST", "PUT", "DELETE", "CONNECT", "OPTIONS", "TRACE", "PATCH",
+    ];
+    METHODS
+        .into_iter()
+        .find(|known| *known == method)
+        .unwrap_or("OTHER")
+}
+
+/// A status label: the code itself if it is in [`STATUSES`], else its
+/// class (`4xx`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
+enum StatusLabel {
+    Code(u16),
+    Class(u16),
+}
+
+impl StatusLabel {
+    fn of(status: u16) -> StatusLabel {
+        if STATUSES.contains(&status) {
+            StatusLabel::Code(status)
+        } else {
+            StatusLabel::Class((status / 100).min(9))
+        }
+    }
+}
+
+impl std::fmt::Display for StatusLabel {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            StatusLabel::Code(code) => write!(f, "{code}"),
+            StatusLabel::Class(class) => write!(f, "{class}xx"),
+        }
+    }
+}
+
 #[derive(Debug, Default)]
 struct Inner {
-    /// (method, route, status) -> count.
-    requests: BTreeMap<(String, String, u16), u64>,
+    /// (method, route, status) -> count, each label from a bounded set.
+    requests: BTreeMap<(&'static str, String, StatusLabel), u64>,
     /// (kind, outcome) -> durations.
     job_seconds: BTreeMap<(String, &'static str), Histogram>,
     particles: Option<Histogram>,
@@ -79,6 +133,10 @@ struct Inner {
 #[derive(Debug, Default)]
 pub struct Metrics {
     inner: Mutex<Inner>,
+    /// Open connections, the limit, and connections closed to make room.
+    connections: AtomicU64,
+    connection_limit: AtomicU64,
+    evicted: AtomicU64,
 }
 
 impl Metrics {
@@ -87,13 +145,32 @@ impl Metrics {
         f(&mut inner)
     }
 
-    /// Counts a request to `route` (the matched path pattern).
+    /// Counts a request to `route` (the matched path pattern, or
+    /// `unmatched`: never the path a client sent); the method and status
+    /// are folded into bounded labels here.
     pub fn request(&self, method: &str, route: &str, status: u16) {
-        self.with(|i| {
-            *i.requests
-                .entry((method.to_owned(), route.to_owned(), status))
-                .or_default() += 1;
-        });
+        let key = (
+            method_label(method),
+            route.to_owned(),
+            StatusLabel::of(status),
+        );
+        self.with(|i| *i.requests.entry(key).or_default() += 1);
+    }
+
+    /// The connection limit (`--max-connections`).
+    pub fn connection_limit(&self, max: usize) {
+        self.connection_limit.store(max as u64, Ordering::Relaxed);
+    }
+
+    /// The connections open now.
+    pub fn connections_open(&self, open: usize) {
+        self.connections.store(open as u64, Ordering::Relaxed);
+    }
+
+    /// An idle connection closed to make room for a new one; `open` now.
+    pub fn connection_evicted(&self, open: usize) {
+        self.evicted.fetch_add(1, Ordering::Relaxed);
+        self.connections_open(open);
     }
 
     /// Records a finished job attempt.
@@ -129,6 +206,30 @@ impl Metrics {
                 );
             }
         });
+        let connections = [
+            (
+                "ptv_http_connections",
+                "gauge",
+                "Open HTTP connections.",
+                &self.connections,
+            ),
+            (
+                "ptv_http_connections_max",
+                "gauge",
+                "The connection limit (--max-connections).",
+                &self.connection_limit,
+            ),
+            (
+                "ptv_http_connections_evicted_total",
+                "counter",
+                "Idle connections closed at the limit to let a new one in.",
+                &self.evicted,
+            ),
+        ];
+        for (name, kind, help, value) in connections {
+            let _ = writeln!(out, "# HELP {name} {help}\n# TYPE {name} {kind}");
+            let _ = writeln!(out, "{name} {}", value.load(Ordering::Relaxed));
+        }
         out.push_str("# HELP ptv_queue_depth Jobs waiting for a worker.\n");
         out.push_str("# TYPE ptv_queue_depth gauge\n");
         let queued: i64 = jobs
@@ -171,4 +272,42 @@ fn escape(value: &str) -> String {
         .replace('\\', "\\\\")
         .replace('"', "\\\"")
         .replace('\n', "\\n")
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn request_lines(metrics: &Metrics) -> Vec<String> {
+        metrics
+            .render(&[])
+            .lines()
+            .filter(|l| l.starts_with("ptv_http_requests_total{"))
+            .map(str::to_owned)
+            .collect()
+    }
+
+    #[test]
+    fn labels_come_from_bounded_sets() {
+        let metrics = Metrics::default();
+        for i in 0..300 {
+            metrics.request(&format!("X{i}"), "unmatched", 405);
+            metrics.request("GET", "/healthz", 200 + (i % 100) as u16);
+            metrics.request("GET", "/healthz", 600 + i as u16);
+        }
+        let lines = request_lines(&metrics);
+        assert!(
+            lines.contains(
+                &"ptv_http_requests_total{method=\"OTHER\",route=\"unmatched\",status=\"405\"} 300"
+                    .to_owned()
+            ),
+            "{lines:#?}"
+        );
+        // 200, 201, 202, 204, 206 and 2xx; 6xx, 7xx, 8xx; OTHER's 405.
+        assert_eq!(lines.len(), 6 + 3 + 1, "{lines:#?}");
+        assert!(
+            lines.iter().any(|l| l.contains("status=\"2xx\"} 285")),
+            "{lines:#?}"
+        );
+    }
 }

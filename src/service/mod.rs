@@ -4,6 +4,9 @@
 //! - [`config`]: `ptv serve`'s flags (each also an environment variable).
 //! - [`app`]: builds the service from its settings, binds, serves until a
 //!   shutdown signal, drains the workers.
+//! - [`connections`]: serves HTTP/1.1 with hyper within a connection limit
+//!   (the longest-idle connection makes room for a new one) and closes a
+//!   connection whose upload was refused unread by lingering.
 //! - [`http`]: axum routers per resource under `/api/v1`, one error type
 //!   rendered as RFC 9457 problem+json, the OpenAPI document and docs page,
 //!   and the tower layers every request passes through.
@@ -19,6 +22,7 @@
 pub mod app;
 pub mod codec;
 pub mod config;
+pub mod connections;
 pub mod http;
 pub mod images;
 pub mod jobs;

@@ -45,6 +45,7 @@ pub fn test_args(data_dir: &Path, api_token: Option<&str>) -> ServeArgs {
         max_upload_mb: 64,
         api_token: api_token.map(str::to_owned),
         max_cpu_requests: None,
+        max_connections: None,
         timeouts: Timeouts::default(),
     }
 }

@@ -1,8 +1,11 @@
 //! What every request passes through (`src/service/http/layers.rs` and
-//! hyper's settings in `app.rs`): request ids, gzip, the header, body and
-//! request timeouts, the early 413 and the bearer token. The panic guard,
-//! the 503 of a handler past the request timeout and the load shedding of
-//! the CPU routes are unit tests beside the layers.
+//! hyper's settings in `src/service/connections.rs`): request ids, gzip,
+//! the header, body and request timeouts, the early 413, the bearer token
+//! on every path under `/api` before routing, the 414 and 431 problems, and
+//! bounded `/metrics` labels. The panic guard, the 503 of a handler past the
+//! request timeout and the load shedding of the CPU routes are unit tests
+//! beside the layers; the connection limit and the lingering close are in
+//! `connections`.
 
 use std::io::Read;
 use std::time::{Duration, Instant};
@@ -274,5 +277,161 @@ async fn a_declared_body_over_the_limit_is_refused_before_it_is_sent() {
     assert_refused(&exchange, 413, "--max-upload-mb", "2 GiB declared");
     let lower = exchange.answer.to_ascii_lowercase();
     assert!(lower.contains("x-request-id: "), "{}", exchange.answer);
+    app.stop().await;
+}
+
+/// With a token, every path under `/api` answers 401 without it, whether
+/// it names a route, takes the method or not (routes cannot be probed);
+/// with the token, unknown routes and methods get their 404 and 405.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn without_the_token_everything_under_api_is_401() {
+    let app = spawn_app_with(Some("s3cret")).await;
+    let cases = [
+        ("GET", "/api/v1/nowhere", 404),
+        ("DELETE", "/api/v1/jobs/1", 405),
+        ("PUT", "/api/v1/calibrations", 405),
+        ("GET", "/api", 404),
+        ("GET", "/api/", 404),
+        ("GET", "/api/v2/calibrations", 404),
+        ("BREW", "/api/v1/sequences", 405),
+    ];
+    for (method, path, with_token) in cases {
+        let method = reqwest::Method::from_bytes(method.as_bytes()).unwrap();
+        let url = format!("{}{path}", app.address);
+        let refused = app
+            .client
+            .request(method.clone(), &url)
+            .send()
+            .await
+            .unwrap();
+        assert_eq!(
+            refused.headers()["www-authenticate"],
+            "Bearer",
+            "{method} {path}"
+        );
+        let (status, body) = status_and_json(refused).await;
+        assert_eq!(status, 401, "{method} {path}: {body}");
+        let allowed = app
+            .client
+            .request(method.clone(), &url)
+            .bearer_auth("s3cret")
+            .send()
+            .await
+            .unwrap();
+        assert_eq!(allowed.status().as_u16(), with_token, "{method} {path}");
+    }
+    // Outside /api nothing needs the token.
+    for (path, status) in [("/healthz", 200), ("/apix", 404), ("/nowhere", 404)] {
+        let response = get(&app, &format!("{}{path}", app.address), None).await;
+        assert_eq!(response.status().as_u16(), status, "{path}");
+    }
+    app.stop().await;
+}
+
+/// `/metrics` has as many request series after 300 requests with invented
+/// methods as after one: unknown methods count as `OTHER`.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn invented_methods_do_not_grow_the_metrics() {
+    let app = spawn_app().await;
+    let series = |text: &str| {
+        text.lines()
+            .filter(|l| l.starts_with("ptv_http_requests_total{"))
+            .count()
+    };
+    let invented = |i: usize| reqwest::Method::from_bytes(format!("M{i:08X}").as_bytes()).unwrap();
+    let metrics_url = format!("{}/metrics", app.address);
+    let send = |i: usize| {
+        let method = invented(i);
+        let client = app.client.clone();
+        let urls = [
+            format!("{}/healthz", app.address),
+            app.api(&format!("/nowhere/{i}")),
+        ];
+        async move {
+            for url in urls {
+                let response = client.request(method.clone(), url).send().await.unwrap();
+                assert!(response.status().is_client_error(), "{}", response.status());
+            }
+        }
+    };
+    send(0).await;
+    let after_one = app.get_text(metrics_url.clone()).await;
+    for i in 1..300 {
+        send(i).await;
+    }
+    let after_many = app.get_text(metrics_url.clone()).await;
+    // The scrape itself adds one series (GET /metrics 200) the first time.
+    assert_eq!(series(&after_many), series(&after_one) + 1, "{after_many}");
+    assert!(after_many.contains("method=\"OTHER\""), "{after_many}");
+    assert!(!after_many.contains("M0000"), "{after_many}");
+    assert!(
+        after_many.len() < after_one.len() + 200,
+        "{} -> {}",
+        after_one.len(),
+        after_many.len()
+    );
+    app.stop().await;
+}
+
+/// A request target over 8 KiB gets a 414, and header fields over 64 KiB
+/// or over 100 a 431, each a problem+json naming the limit (hyper alone
+/// answered them with an empty body).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn long_targets_and_large_heads_are_refused_with_problems() {
+    let app = spawn_app().await;
+    let long_path = format!("/api/v1/jobs/{}", "1".repeat(20 * 1024));
+    let long_query = format!("/healthz?{}", "a=b&".repeat(3000));
+    let big_field = format!("X-Big: {}\r\n", "v".repeat(70 * 1024));
+    let many_fields: String = (0..150).map(|i| format!("X-F{i}: v\r\n")).collect();
+    let cases = [
+        (
+            "long path",
+            long_path.as_str(),
+            String::new(),
+            414,
+            "8192 bytes",
+        ),
+        (
+            "long query",
+            long_query.as_str(),
+            String::new(),
+            414,
+            "8192 bytes",
+        ),
+        ("big field", "/healthz", big_field, 431, "65536 bytes"),
+        (
+            "150 fields",
+            "/healthz",
+            many_fields,
+            431,
+            "at most 100 fields",
+        ),
+    ];
+    for (case, target, fields, status, needle) in cases {
+        let head = format!("GET {target} HTTP/1.1\r\nHost: x\r\nConnection: close\r\n{fields}\r\n");
+        let exchange = exchange(&app.address, head.as_bytes(), &[], Duration::from_secs(10)).await;
+        let answer = &exchange.answer;
+        assert!(
+            answer.starts_with(&format!("HTTP/1.1 {status} ")),
+            "{case}: {answer}"
+        );
+        let lower = answer.to_ascii_lowercase();
+        assert!(
+            lower.contains("content-type: application/problem+json"),
+            "{case}: {answer}"
+        );
+        assert!(answer.contains(needle), "{case}: {answer}");
+        assert!(exchange.closed_after.is_some(), "{case}: still open");
+    }
+    // Just within the limits: 100 fields, 8 KiB of target.
+    let fields: String = (0..98).map(|i| format!("X-F{i}: v\r\n")).collect();
+    let target = format!("/healthz?{}", "a".repeat(8192 - 9));
+    let head = format!("GET {target} HTTP/1.1\r\nHost: x\r\nConnection: close\r\n{fields}\r\n");
+    let exchange = exchange(&app.address, head.as_bytes(), &[], Duration::from_secs(10)).await;
+    assert!(
+        exchange.answer.starts_with("HTTP/1.1 200 "),
+        "{}",
+        exchange.answer
+    );
     app.stop().await;
 }

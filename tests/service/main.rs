@@ -8,10 +8,14 @@
 //! - `bad_inputs`: every kind of bad request gets its 4xx and leaves the
 //!   database consistent.
 //! - `layers`: what every request passes through: request ids, gzip,
-//!   header and body timeouts, the early 413, the bearer token.
+//!   header and body timeouts, the early 413, the bearer token before
+//!   routing, bounded metrics labels.
+//! - `connections`: the connection limit under idle and slowloris
+//!   connections, and refused uploads drained before the close.
 
 mod api;
 mod bad_inputs;
+mod connections;
 mod helpers;
 mod layers;
 mod reliability;

@@ -21,23 +21,32 @@
 //!    partly unread gets `Connection: close` (what no layer does).
 //! 8. `CatchPanicLayer`: a panicking handler is logged and answered with a
 //!    problem+json 500.
-//! 9. `ValidateRequestHeaderLayer`: a declared body over `--max-upload-mb`
-//!    is refused with 413 before any of it is read.
-//! 10. `HandleErrorLayer` over tower's `TimeoutLayer`: a request not
+//! 9. `HeadLimits`: a request target over 8 KiB is a 414, header fields
+//!    over 64 KiB or 100 a 431, both problem+json naming the limit (hyper
+//!    would answer larger heads itself, with an empty body).
+//! 10. [`bearer_token`], a `ValidateRequestHeaderLayer`: with
+//!     `--api-token`, any path under `/api` without the token is a 401,
+//!     before the route or method is looked at (an unknown route or method
+//!     would otherwise answer 404 or 405 and let routes be probed).
+//! 11. `ValidateRequestHeaderLayer`: a declared body over `--max-upload-mb`
+//!     is refused with 413 before any of it is read.
+//! 12. `HandleErrorLayer` over tower's `TimeoutLayer`: a request not
 //!     answered within `--request-timeout-secs` gets 408 if its body was
 //!     still arriving, else 503.
-//! 11. `shed_cpu_routes`: on the routes that run CPU work inside the
+//! 13. `shed_cpu_routes`: on the routes that run CPU work inside the
 //!     request (creating a sequence builds its matcher, projecting points),
 //!     `load_shed` over a `GlobalConcurrencyLimitLayer` of
 //!     `--max-cpu-requests`: one more is answered 503 with `Retry-After`
 //!     at once rather than queued on the rayon pool ahead of the frames.
-//! 12. `RequestBodyLimitLayer`: a body without a declared length fails
+//! 14. `RequestBodyLimitLayer`: a body without a declared length fails
 //!     with 413 as soon as it passes the limit, whoever reads it (axum's
 //!     own default limit of 2 MB is disabled).
 //!
-//! The bearer token check ([`bearer_token`]) is a `ValidateRequestHeaderLayer`
-//! on `/api` alone. Header read and idle connection timeouts are hyper's
-//! (see [`crate::service::app`]).
+//! `Router::layer` wraps the routes, the fallback and the method-not-allowed
+//! answers alike, so all of the above applies to every request. Header read
+//! and idle connection timeouts are hyper's, the connection limit and the
+//! lingering close after a refused upload are
+//! [`crate::service::connections`]'s.
 
 use std::any::Any;
 use std::pin::Pin;
@@ -109,6 +118,8 @@ pub fn apply<S: Clone + Send + Sync + 'static>(
             watch_body,
         ))
         .layer(CatchPanicLayer::custom(answer_panic))
+        .layer(ValidateRequestHeaderLayer::custom(HeadLimits))
+        .layer(bearer_token(config.api_token.as_deref()))
         .layer(ValidateRequestHeaderLayer::custom(DeclaredLength { limit }))
         .layer(HandleErrorLayer::new(
             move |progress: Option<Extension<BodyProgress>>, error: BoxError| async move {
@@ -122,26 +133,95 @@ pub fn apply<S: Clone + Send + Sync + 'static>(
     router.layer(stack)
 }
 
-/// With a token, `/api` needs `Authorization: Bearer <token>` (the scheme
-/// in any case, RFC 9110 section 11.1); the token is compared in constant
-/// time, and a missing or wrong one is a 401 problem with
-/// `WWW-Authenticate: Bearer`.
-pub fn bearer_token(token: &str) -> ValidateRequestHeaderLayer<BearerToken> {
+/// The longest request target (path and query) taken; longer is a 414.
+pub const MAX_TARGET_BYTES: usize = 8 * 1024;
+/// The most bytes of header fields taken (name, value and 4 bytes of
+/// separators each, as sent); more is a 431.
+pub const MAX_HEADER_BYTES: usize = 64 * 1024;
+/// The most header fields taken; more is a 431.
+pub const MAX_HEADER_FIELDS: usize = 100;
+
+/// Refuses a request head past the service's limits ([`MAX_TARGET_BYTES`],
+/// [`MAX_HEADER_BYTES`], [`MAX_HEADER_FIELDS`]) with a 414 or 431 problem
+/// that names the limit. Hyper's own limits lie above these (see
+/// [`crate::service::connections::HYPER_MAX_HEAD_BYTES`]), so a head between
+/// the two gets this problem rather than hyper's empty answer.
+#[derive(Clone, Copy, Debug)]
+struct HeadLimits;
+
+impl<B> ValidateRequest<B> for HeadLimits {
+    type ResponseBody = Body;
+
+    fn validate(&mut self, request: &mut Request<B>) -> Result<(), Response> {
+        let uri = request.uri();
+        let target = uri.path_and_query().map_or(0, |p| p.as_str().len())
+            + uri.authority().map_or(0, |a| a.as_str().len());
+        if target > MAX_TARGET_BYTES {
+            return Err(ApiError::new(
+                StatusCode::URI_TOO_LONG,
+                format!(
+                    "the request target is {target} bytes, more than the service's limit of \
+                     {MAX_TARGET_BYTES} bytes"
+                ),
+            )
+            .into_response());
+        }
+        // As the client sent them: without the request id set above.
+        let sent = request
+            .headers()
+            .iter()
+            .filter(|(name, _)| name.as_str() != "x-request-id");
+        let (fields, bytes) = sent.fold((0, 0), |(fields, bytes), (name, value)| {
+            (fields + 1, bytes + name.as_str().len() + value.len() + 4)
+        });
+        if fields > MAX_HEADER_FIELDS || bytes > MAX_HEADER_BYTES {
+            return Err(ApiError::new(
+                StatusCode::REQUEST_HEADER_FIELDS_TOO_LARGE,
+                format!(
+                    "the request has {fields} header fields of {bytes} bytes; the service takes \
+                     at most {MAX_HEADER_FIELDS} fields and {MAX_HEADER_BYTES} bytes"
+                ),
+            )
+            .into_response());
+        }
+        Ok(())
+    }
+}
+
+/// With a token, every path under `/api` needs `Authorization: Bearer
+/// <token>` (the scheme in any case, RFC 9110 section 11.1), whether it
+/// names a route and takes the method or not, so that routes cannot be
+/// probed without it; the token is compared in constant time, and a missing
+/// or wrong one is a 401 problem with `WWW-Authenticate: Bearer`.
+pub fn bearer_token(token: Option<&str>) -> ValidateRequestHeaderLayer<BearerToken> {
     ValidateRequestHeaderLayer::custom(BearerToken {
-        token: token.as_bytes().into(),
+        token: token.map(|t| t.as_bytes().into()),
     })
 }
 
-/// The check behind [`bearer_token`].
+/// The check behind [`bearer_token`] (none without a token).
 #[derive(Clone, Debug)]
 pub struct BearerToken {
-    token: Arc<[u8]>,
+    token: Option<Arc<[u8]>>,
+}
+
+/// Whether `path` is under `/api` (as routed: the path as sent, not
+/// percent-decoded).
+fn under_api(path: &str) -> bool {
+    path.strip_prefix("/api")
+        .is_some_and(|rest| rest.is_empty() || rest.starts_with('/'))
 }
 
 impl ValidateRequest<Body> for BearerToken {
     type ResponseBody = Body;
 
     fn validate(&mut self, request: &mut Request) -> Result<(), Response> {
+        let Some(token) = &self.token else {
+            return Ok(());
+        };
+        if !under_api(request.uri().path()) {
+            return Ok(());
+        }
         let given = request
             .headers()
             .get(header::AUTHORIZATION)
@@ -149,7 +229,7 @@ impl ValidateRequest<Body> for BearerToken {
             .and_then(|v| v.split_once(' '))
             .filter(|(scheme, _)| scheme.eq_ignore_ascii_case("bearer"))
             .map(|(_, given)| given.trim());
-        if given.is_some_and(|given| constant_time_eq(given.as_bytes(), &self.token)) {
+        if given.is_some_and(|given| constant_time_eq(given.as_bytes(), token)) {
             return Ok(());
         }
         let error = ApiError::new(
@@ -176,12 +256,19 @@ fn request_span(request: &Request) -> Span {
         .extensions()
         .get::<MatchedPath>()
         .map_or("unmatched", MatchedPath::as_str);
+    // A path is logged up to 256 bytes (it may be up to MAX_TARGET_BYTES
+    // and more, on a request about to be refused for it).
+    let path = request.uri().path();
+    let path = match path.char_indices().nth(256) {
+        Some((end, _)) => &path[..end],
+        None => path,
+    };
     tracing::info_span!(
         "request",
         id,
         method = %request.method(),
         route,
-        path = request.uri().path(),
+        path,
     )
 }
 
@@ -447,6 +534,7 @@ mod tests {
             max_upload_mb: 1,
             api_token: None,
             max_cpu_requests: Some(max_cpu_requests),
+            max_connections: None,
             timeouts: Timeouts {
                 request_secs,
                 ..Timeouts::default()

@@ -41,13 +41,12 @@ pub type Shared = State<Arc<AppState>>;
 
 /// The whole application's routes, in the service's layers.
 pub fn router(state: Arc<AppState>) -> Router {
-    let mut api = Router::new()
+    // The bearer token is checked in `layers::apply`, on every path under
+    // `/api` whether it names a route or not.
+    let api = Router::new()
         .merge(calibrations::router())
         .merge(sequences::router())
         .merge(jobs::router());
-    if let Some(token) = state.config.api_token.as_deref() {
-        api = api.layer(layers::bearer_token(token));
-    }
     let routes = Router::new()
         .nest("/api/v1", api)
         .route("/healthz", get(healthz))
