@@ -10,12 +10,15 @@
 //! - `layers`: what every request passes through: request ids, gzip,
 //!   header and body timeouts, the early 413, the bearer token before
 //!   routing, bounded metrics labels.
+//! - `fuzz`: multipart uploads to every multipart route, fuzzed (seeded;
+//!   `PTV_FUZZ_CASES` for longer runs), and the 10,000-camera calibration.
 //! - `connections`: the connection limit under idle and slowloris
 //!   connections, and refused uploads drained before the close.
 
 mod api;
 mod bad_inputs;
 mod connections;
+mod fuzz;
 mod helpers;
 mod layers;
 mod reliability;
