@@ -120,6 +120,7 @@ async fn run(options: Options) {
         api_token: None,
         max_cpu_requests: None,
         timeouts: Timeouts::default(),
+        job_limits: Default::default(),
     };
     let workers = args.worker_count();
     let app = Application::build(args).await.unwrap();

@@ -13,7 +13,7 @@ use nalgebra::Point3;
 use ptv::formats;
 use ptv::photogrammetry::simulate::{self, RenderSpec, RigSpec, TargetFrame};
 use ptv::photogrammetry::{Camera, GreyImage, GreyPixels, Volume};
-use ptv::service::{Application, ServeArgs, Timeouts};
+use ptv::service::{Application, JobLimits, ServeArgs, Timeouts};
 use reqwest::multipart::{Form, Part};
 use serde_json::{json, Value};
 use tempfile::TempDir;
@@ -46,6 +46,7 @@ pub fn test_args(data_dir: &Path, api_token: Option<&str>) -> ServeArgs {
         api_token: api_token.map(str::to_owned),
         max_cpu_requests: None,
         timeouts: Timeouts::default(),
+        job_limits: JobLimits::default(),
     }
 }
 
