@@ -79,6 +79,10 @@ async fn a_frame_past_its_time_limit_fails_and_frees_the_worker() {
         "stopped after {:?}",
         started.elapsed()
     );
+    let (status, body) = app
+        .get_json(&format!("/sequences/{sequence}/frames/0/particles"))
+        .await;
+    assert_eq!(status, 409, "{body}");
 
     let (status, body) = app
         .upload(sequence, targets_form(1, &rig.targets(100, 2)))
