@@ -9,7 +9,8 @@
 //!    decode each image whole, one at a time, so that a truncated or
 //!    corrupt file is refused now rather than failing its job later
 //!    ([`check_images`], on the blocking pool: it reads the files; a
-//!    1280x1024 8-bit PNG decodes in about 3 ms);
+//!    1280x1024 8-bit PNG decodes in under 20 ms, and an upload of four
+//!    8192x8192 PNGs of a dark field was answered in 175 ms);
 //! 3. persist the files and commit the rows that refer to them under the
 //!    image store's lock, removing the files again if the commit fails
 //!    ([`persist_and_commit`]), so that a failed request leaves no file
@@ -105,6 +106,13 @@ pub async fn check_images(
             (path, sensor.clone())
         })
         .collect();
+    // At most one check per core decodes at a time, whatever the uploads
+    // in flight: each holds one decoded image (128 MiB at the largest
+    // sensor).
+    let _permit = decode_permits()
+        .acquire()
+        .await
+        .map_err(ApiError::internal)?;
     tokio::task::spawn_blocking(move || {
         for (camera, (path, sensor)) in checks.iter().enumerate() {
             let source = source(camera);
@@ -122,6 +130,15 @@ pub async fn check_images(
         Ok::<(), ApiError>(())
     })
     .await?
+}
+
+/// The permits of [`check_images`]' decoding: one per core.
+fn decode_permits() -> &'static tokio::sync::Semaphore {
+    static PERMITS: std::sync::OnceLock<tokio::sync::Semaphore> = std::sync::OnceLock::new();
+    PERMITS.get_or_init(|| {
+        let cores = std::thread::available_parallelism().map_or(1, usize::from);
+        tokio::sync::Semaphore::new(cores)
+    })
 }
 
 /// Moves the request's files into the image store and runs `commit`, which
