@@ -121,6 +121,7 @@ async fn run(options: Options) {
         max_cpu_requests: None,
         max_connections: None,
         timeouts: Timeouts::default(),
+        job_limits: Default::default(),
     };
     let workers = args.worker_count();
     let app = Application::build(args).await.unwrap();

@@ -17,6 +17,7 @@
 
 pub mod calibrate;
 pub mod camera;
+pub mod cancel;
 pub mod correspond;
 pub mod detect;
 pub mod image;
@@ -30,6 +31,7 @@ pub mod volume;
 pub use camera::{
     Camera, CameraParameters, Distortion, Exterior, Interior, ProjectionError, Ray, Sensor,
 };
+pub use cancel::{Cancel, Cancelled, StopOnDrop};
 pub use detect::{detect, detect_cameras, DetectionParameters, InvalidDetectionParameters};
 pub use image::{BitDepth, GreyImage, GreyPixels, ImageError, SensorMismatch};
 pub use intersect::{intersect, Intersection, IntersectionError, Observation};

@@ -15,10 +15,19 @@
 //! matcher builds its refraction tables then) and processes any number of
 //! frames; it holds no state between frames, so one pipeline can serve
 //! several threads.
+//!
+//! [`FramePipeline::process`] takes all images at once and detects them in
+//! parallel. Where memory matters more than one frame's latency (the
+//! service's workers), a caller decodes and detects one camera at a time
+//! ([`FramePipeline::detect_camera`]), keeping only its targets, and then
+//! matches ([`FramePipeline::match_targets`]): at most one decoded image is
+//! alive at a time. Both stop between cameras and in the matcher's loops
+//! once a [`Cancel`] token fires.
 
 use super::camera::Camera;
+use super::cancel::{Cancel, Cancelled};
 use super::correspond::{MatchError, Matcher, MatchingParameters, Particle};
-use super::detect::{detect_cameras, DetectionParameters, InvalidDetectionParameters};
+use super::detect::{detect, detect_cameras, DetectionParameters, InvalidDetectionParameters};
 use super::image::{GreyImage, SensorMismatch};
 use super::target::Target;
 use super::volume::Volume;
@@ -84,6 +93,17 @@ pub enum PipelineError {
     /// The matching parameters are invalid, or matching failed.
     #[error(transparent)]
     Matching(#[from] MatchError),
+    /// A camera index beyond the calibration's cameras.
+    #[error("camera {camera} does not exist; the calibration has {cameras} cameras")]
+    NoCamera {
+        /// The camera asked for (0-based).
+        camera: usize,
+        /// Cameras in the calibration.
+        cameras: usize,
+    },
+    /// The work was stopped before detection ended.
+    #[error("detection {0}")]
+    Cancelled(#[from] Cancelled),
 }
 
 /// What one frame gives.
@@ -151,6 +171,37 @@ impl FramePipeline {
     /// detected elsewhere.
     pub fn matcher(&self) -> &Matcher {
         &self.matcher
+    }
+
+    /// Detects camera `camera`'s targets in its image, checked against its
+    /// sensor first. With [`FramePipeline::match_targets`], a frame one
+    /// camera at a time.
+    pub fn detect_camera(
+        &self,
+        camera: usize,
+        image: &GreyImage,
+    ) -> Result<Vec<Target>, PipelineError> {
+        let cameras = self.cameras();
+        let model = cameras.get(camera).ok_or(PipelineError::NoCamera {
+            camera,
+            cameras: cameras.len(),
+        })?;
+        image
+            .check_sensor(model.sensor())
+            .map_err(|source| PipelineError::Sensor { camera, source })?;
+        Ok(detect(image, &self.detection[camera]))
+    }
+
+    /// Matches a frame's targets, `targets[c]` camera c's (as
+    /// [`FramePipeline::detect_camera`] gave them), stopping with
+    /// [`MatchError::Cancelled`] once `cancel` fires.
+    pub fn match_targets(
+        &self,
+        targets: Vec<Vec<Target>>,
+        cancel: &Cancel,
+    ) -> Result<FrameResult, PipelineError> {
+        let particles = self.matcher.match_frame_until(&targets, cancel)?;
+        Ok(FrameResult { targets, particles })
     }
 
     /// Processes one frame: `images[c]` is camera c's image.
@@ -259,6 +310,71 @@ mod tests {
             .iter()
             .all(|p| p.targets[2].is_none() && p.camera_count() >= 2));
         assert!(result.particles.len() >= 40, "{}", result.particles.len());
+    }
+
+    #[test]
+    fn camera_by_camera_gives_what_process_gives() {
+        let (cameras, matching) = rig();
+        let points = simulate::particles(&matching.volume.unwrap(), 200, &mut simulate::rng(3));
+        let pipeline =
+            FramePipeline::new(&cameras, &DetectionParameters::default().into(), &matching)
+                .unwrap();
+        let frame = images(&cameras, &points, 4);
+        let whole = pipeline.process(&frame).unwrap();
+        let targets = frame
+            .iter()
+            .enumerate()
+            .map(|(camera, image)| pipeline.detect_camera(camera, image).unwrap())
+            .collect();
+        let by_camera = pipeline.match_targets(targets, &Cancel::new()).unwrap();
+        assert_eq!(by_camera, whole);
+        assert!(matches!(
+            pipeline.detect_camera(4, &frame[0]),
+            Err(PipelineError::NoCamera {
+                camera: 4,
+                cameras: 4
+            })
+        ));
+        let stopped = Cancel::new();
+        stopped.stop();
+        assert_eq!(
+            pipeline.match_targets(whole.targets, &stopped),
+            Err(PipelineError::Matching(MatchError::Cancelled(
+                Cancelled::Stopped
+            )))
+        );
+    }
+
+    #[test]
+    fn matching_stops_at_the_deadline() {
+        // 20,000 particles take a few hundred ms to match here; a 5 ms
+        // limit stops the search in its outer loops, long before its end.
+        let (cameras, matching) = rig();
+        let points = simulate::particles(&matching.volume.unwrap(), 20_000, &mut simulate::rng(8));
+        let frame = simulate::target_frame(&cameras, &points, 0.1, 0.0, &mut simulate::rng(9));
+        let pipeline =
+            FramePipeline::new(&cameras, &DetectionParameters::default().into(), &matching)
+                .unwrap();
+        let started = std::time::Instant::now();
+        let full = pipeline
+            .match_targets(frame.targets.clone(), &Cancel::new())
+            .unwrap();
+        let full_time = started.elapsed();
+        assert!(full.particles.len() > 19_000);
+        let limit = std::time::Duration::from_millis(5);
+        let started = std::time::Instant::now();
+        let error = pipeline
+            .match_targets(frame.targets, &Cancel::with_limit(limit))
+            .unwrap_err();
+        let stopped_after = started.elapsed();
+        assert_eq!(
+            error,
+            PipelineError::Matching(MatchError::Cancelled(Cancelled::TimedOut(limit)))
+        );
+        assert!(
+            stopped_after < full_time / 4,
+            "stopped after {stopped_after:?}, the whole search takes {full_time:?}"
+        );
     }
 
     #[test]

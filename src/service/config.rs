@@ -42,6 +42,43 @@ pub struct ServeArgs {
     /// Time limits on connections and requests.
     #[command(flatten)]
     pub timeouts: Timeouts,
+    /// Time limits on jobs.
+    #[command(flatten)]
+    pub job_limits: JobLimits,
+}
+
+/// How long a job may run: `--job-timeout-secs` plus
+/// `--job-timeout-factor` times the single-core time its size is expected
+/// to take (see `service::jobs::TimeLimit`). A job past its limit is
+/// stopped and fails with the reason; it is not retried.
+#[derive(Clone, Debug, Args)]
+pub struct JobLimits {
+    /// Seconds every job may take whatever its size (the limit's floor).
+    #[arg(long = "job-timeout-secs", env = "PTV_JOB_TIMEOUT_SECS",
+          default_value_t = JobLimits::FLOOR_SECS)]
+    pub floor_secs: f64,
+    /// How many times the expected single-core time of a job's size
+    /// (pixels decoded and detected, targets matched) it may take on top
+    /// of the floor.
+    #[arg(long = "job-timeout-factor", env = "PTV_JOB_TIMEOUT_FACTOR",
+          default_value_t = JobLimits::FACTOR)]
+    pub factor: f64,
+}
+
+impl JobLimits {
+    /// Default of `--job-timeout-secs`.
+    pub const FLOOR_SECS: f64 = 60.0;
+    /// Default of `--job-timeout-factor`.
+    pub const FACTOR: f64 = 10.0;
+}
+
+impl Default for JobLimits {
+    fn default() -> Self {
+        JobLimits {
+            floor_secs: JobLimits::FLOOR_SECS,
+            factor: JobLimits::FACTOR,
+        }
+    }
 }
 
 /// How long the service waits for a client, in seconds (each at least 1).

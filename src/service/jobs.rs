@@ -42,10 +42,11 @@ use crate::formats::control::{self, OptionError};
 use crate::formats::image::RawLayout;
 use crate::formats::{self, FormatError};
 use crate::photogrammetry::calibrate::{self, CalibrationError};
-use crate::photogrammetry::correspond::MatchError;
+use crate::photogrammetry::correspond::{MatchError, Particle};
 use crate::photogrammetry::{
-    BitDepth, FramePipeline, GreyImage, InvalidDetectionParameters, PipelineError,
+    BitDepth, Cancel, FramePipeline, InvalidDetectionParameters, PipelineError,
 };
+use crate::service::config::JobLimits;
 
 /// The kind of the job that processes one uploaded frame.
 pub const PROCESS_FRAME: &str = "process_frame";
@@ -155,7 +156,15 @@ pub enum CpuError {
     /// The pool dropped the work without running it to its end.
     #[error("the CPU pool dropped the work")]
     Dropped,
+    /// The work ran past its deadline and did not stop when told to.
+    #[error("ran past its time limit of {:.1} s and did not stop", .0.as_secs_f64())]
+    Overran(Duration),
 }
+
+/// How long work past its deadline gets to notice its [`Cancel`] token
+/// before the waiter sets it itself, and then to return, before the waiter
+/// gives up on it.
+const STOP_GRACE: Duration = Duration::from_secs(5);
 
 /// A bounded pool of CPU threads for detection and matching.
 #[derive(Debug)]
@@ -196,6 +205,37 @@ impl CpuPool {
             )),
             Err(_) => Err(CpuError::Dropped),
         }
+    }
+
+    /// [`CpuPool::run`] for work that checks `cancel` (a deadline, or a
+    /// waiter that may go away): the token's deadline is its own to notice;
+    /// [`STOP_GRACE`] after it the token is stopped from here, and if the
+    /// work has still not returned after another grace, the wait ends with
+    /// [`CpuError::Overran`] (the thread stays busy until the work's next
+    /// check; every loop of the core checks within milliseconds).
+    pub async fn run_until<T, F>(&self, cancel: &Cancel, work: F) -> Result<T, CpuError>
+    where
+        T: Send + 'static,
+        F: FnOnce() -> T + Send + 'static,
+    {
+        let run = self.run(work);
+        tokio::pin!(run);
+        let limit = loop {
+            let Some(deadline) = cancel.deadline() else {
+                return run.await;
+            };
+            let at = tokio::time::Instant::from_std(deadline + STOP_GRACE);
+            match tokio::time::timeout_at(at, &mut run).await {
+                Ok(result) => return result,
+                // The limit grew meanwhile: wait on.
+                Err(_) if cancel.deadline() > Some(deadline) => continue,
+                Err(_) => break cancel.limit().unwrap_or_default(),
+            }
+        };
+        cancel.stop();
+        tokio::time::timeout(STOP_GRACE, &mut run)
+            .await
+            .unwrap_or(Err(CpuError::Overran(limit)))
     }
 
     /// [`CpuPool::run`] for work that can fail: its error, or the pool's
@@ -252,18 +292,25 @@ pub enum PrepareError {
 }
 
 /// Prepares the frame pipeline of a calibration and parameters, on the CPU
-/// pool.
+/// pool; not started if `cancel` fired while it waited for a thread (a
+/// request whose client has gone). The preparation itself is bounded by
+/// the cameras a calibration may have.
 pub async fn prepare_pipeline(
     state: &AppState,
     calibration_model: &str,
     parameters: &SequenceParameters,
+    cancel: &Cancel,
 ) -> Result<FramePipeline, PrepareError> {
     let cameras = formats::calibration::from_json(calibration_model, "the stored calibration")?;
     let detection = parameters.detection();
     let matching = parameters.matching();
+    let cancel = cancel.clone();
     state
         .cpu
-        .try_run(move || Ok(FramePipeline::new(&cameras, &detection, &matching)?))
+        .try_run(move || {
+            cancel.check().map_err(PipelineError::from)?;
+            Ok(FramePipeline::new(&cameras, &detection, &matching)?)
+        })
         .await
 }
 
@@ -427,12 +474,59 @@ async fn pipeline_of(
     let parameters: SequenceParameters = serde_json::from_str(&sequence.parameters)
         .map_err(|e| JobError::Failed(format!("the sequence's stored parameters: {e}")))?;
     let pipeline = Arc::new(
-        prepare_pipeline(state, &calibration.model, &parameters)
+        prepare_pipeline(state, &calibration.model, &parameters, &Cancel::new())
             .await
             .map_err(JobError::failed)?,
     );
     state.pipelines.insert(sequence_id, pipeline.clone());
     Ok(pipeline)
+}
+
+/// Expected single-core time to decode and detect one pixel (ns): `ptv
+/// detect` on a 1280x1024 8-bit PNG takes 30-50 ms with process start-up
+/// in the dev profile (at most 25 ns a pixel), a release build less.
+const NS_PER_PIXEL: f64 = 25.0;
+
+/// Expected single-core time to match one target (ns): 4 cameras of 10,000
+/// targets match in about 40 ms (`benches/correspond.rs`), 1 us per target,
+/// doubled for denser frames.
+const NS_PER_TARGET: f64 = 2_000.0;
+
+/// A job's time limit from its size (`--job-timeout-secs`,
+/// `--job-timeout-factor`): the floor plus the factor times the expected
+/// single-core time of its pixels and targets.
+#[derive(Clone, Copy, Debug)]
+pub struct TimeLimit {
+    floor_secs: f64,
+    factor: f64,
+}
+
+impl TimeLimit {
+    /// The service's settings.
+    pub fn of(limits: &JobLimits) -> TimeLimit {
+        TimeLimit {
+            floor_secs: limits.floor_secs.max(0.0),
+            factor: limits.factor.max(0.0),
+        }
+    }
+
+    /// The limit for work on `pixels` pixels and `targets` targets.
+    pub fn for_work(&self, pixels: u64, targets: u64) -> Duration {
+        let expected = (pixels as f64 * NS_PER_PIXEL + targets as f64 * NS_PER_TARGET) * 1e-9;
+        Duration::try_from_secs_f64(self.floor_secs + self.factor * expected)
+            .unwrap_or(Duration::MAX)
+    }
+
+    /// The rule, for messages.
+    fn describe(&self, pixels: u64, targets: u64) -> String {
+        format!(
+            "{:.1} s = --job-timeout-secs {} + --job-timeout-factor {} x the expected {:.2} s              for {pixels} pixels and {targets} targets",
+            self.for_work(pixels, targets).as_secs_f64(),
+            self.floor_secs,
+            self.factor,
+            (pixels as f64 * NS_PER_PIXEL + targets as f64 * NS_PER_TARGET) * 1e-9,
+        )
+    }
 }
 
 /// Why a frame could not be processed.
@@ -455,6 +549,116 @@ pub enum FrameError {
     Cpu(#[from] CpuError),
 }
 
+/// A frame's targets (encoded per camera, for images) and particles. Images
+/// are read, decoded and detected one camera at a time, keeping only their
+/// targets, so a worker holds at most one compressed and one decoded image
+/// at a time; `size` keeps the pixels and targets seen so far, for the
+/// time limit that `cancel` carries.
+async fn frame_work(
+    state: &AppState,
+    input: &super::store::FrameInput,
+    pipeline: &Arc<FramePipeline>,
+    limit: &TimeLimit,
+    cancel: &Cancel,
+    size: &mut (u64, u64),
+) -> Result<(Vec<(i64, i64, Vec<u8>)>, Vec<Particle>), JobError> {
+    let cameras = pipeline.cameras().len();
+    if input.input == FrameInputKind::Images {
+        let layout = match &input.raw_layout {
+            None => None,
+            Some(text) => serde_json::from_str::<StoredRawLayout>(text)
+                .ok()
+                .and_then(|l| l.layout())
+                .map(Some)
+                .ok_or_else(|| JobError::Failed(format!("malformed raw layout {text}")))?,
+        };
+        size.0 = pipeline
+            .cameras()
+            .iter()
+            .map(|c| u64::from(c.sensor().width) * u64::from(c.sensor().height))
+            .sum();
+        cancel.set_limit(limit.for_work(size.0, 0));
+        let images = state
+            .store
+            .frame_images(input.sequence_id, input.frame)
+            .await?;
+        if images.len() != cameras {
+            return Err(JobError::failed(PipelineError::ImageCount {
+                images: images.len(),
+                cameras,
+            }));
+        }
+        let mut targets = Vec::with_capacity(cameras);
+        for (index, (camera, sha256)) in images.into_iter().enumerate() {
+            cancel.check().map_err(JobError::failed)?;
+            let bytes = state.images.read(&sha256).await.map_err(|e| {
+                JobError::Failed(format!("the image of camera {camera} is missing: {e}"))
+            })?;
+            let (pipeline, work_cancel) = (pipeline.clone(), cancel.clone());
+            let found = state
+                .cpu
+                .run_until(cancel, move || {
+                    work_cancel.check().map_err(PipelineError::from)?;
+                    let source = format!("cam{camera}");
+                    let image = match &layout {
+                        Some(layout) => formats::image::decode_raw(&bytes, layout, &source),
+                        None => formats::image::decode_image(&bytes, &source),
+                    }?;
+                    drop(bytes);
+                    Ok::<_, FrameError>(pipeline.detect_camera(index, &image)?)
+                })
+                .await
+                .map_err(FrameError::from)
+                .and_then(|r| r)
+                .map_err(JobError::failed)?;
+            size.1 += found.len() as u64;
+            targets.push(found);
+        }
+        cancel.set_limit(limit.for_work(size.0, size.1));
+        let (pipeline, work_cancel) = (pipeline.clone(), cancel.clone());
+        state
+            .cpu
+            .run_until(cancel, move || {
+                let frame = pipeline.match_targets(targets, &work_cancel)?;
+                let targets = codec::encode_frame_targets(&frame.targets);
+                Ok::<_, FrameError>((targets, frame.particles))
+            })
+            .await
+            .map_err(FrameError::from)
+            .and_then(|r| r)
+            .map_err(JobError::failed)
+    } else {
+        let stored = state
+            .store
+            .frame_targets(input.sequence_id, input.frame)
+            .await?;
+        size.1 = stored
+            .iter()
+            .map(|(_, count, _)| u64::try_from(*count).unwrap_or(0))
+            .sum();
+        cancel.set_limit(limit.for_work(0, size.1));
+        let (pipeline, work_cancel) = (pipeline.clone(), cancel.clone());
+        let particles = state
+            .cpu
+            .run_until(cancel, move || {
+                let targets = stored
+                    .iter()
+                    .map(|(_, _, blob)| codec::decode_targets(blob))
+                    .collect::<Result<Vec<_>, _>>()?;
+                Ok::<_, FrameError>(
+                    pipeline
+                        .matcher()
+                        .match_frame_until(&targets, &work_cancel)?,
+                )
+            })
+            .await
+            .map_err(FrameError::from)
+            .and_then(|r| r)
+            .map_err(JobError::failed)?;
+        Ok((Vec::new(), particles))
+    }
+}
+
 /// The process_frame job: the frame's images (or uploaded targets) to
 /// particles, stored with the detected targets.
 pub async fn process_frame(state: Arc<AppState>, run: JobRun) -> Result<(), JobError> {
@@ -468,64 +672,24 @@ pub async fn process_frame(state: Arc<AppState>, run: JobRun) -> Result<(), JobE
     let pipeline = pipeline_of(&state, input.sequence_id, input.calibration_id).await?;
     let cameras = pipeline.cameras().len();
 
-    let (targets, particles) = if input.input == FrameInputKind::Images {
-        let layout = match &input.raw_layout {
-            None => None,
-            Some(text) => serde_json::from_str::<StoredRawLayout>(text)
-                .ok()
-                .and_then(|l| l.layout())
-                .map(Some)
-                .ok_or_else(|| JobError::Failed(format!("malformed raw layout {text}")))?,
-        };
-        let mut files = Vec::new();
-        for (camera, sha256) in state
-            .store
-            .frame_images(input.sequence_id, input.frame)
-            .await?
-        {
-            let bytes = state.images.read(&sha256).await.map_err(|e| {
-                JobError::Failed(format!("the image of camera {camera} is missing: {e}"))
-            })?;
-            files.push((camera, bytes));
+    // The time limit follows the frame's size: its pixels from the start,
+    // its targets once they are known.
+    let limit = TimeLimit::of(&state.config.job_limits);
+    let cancel = Cancel::new();
+    let mut size = (0u64, 0u64);
+    let computed = frame_work(&state, &input, &pipeline, &limit, &cancel, &mut size).await;
+    let (targets, particles) = match computed {
+        Ok(result) => result,
+        Err(_) if cancel.is_stopped() || cancel.check().is_err() => {
+            let (pixels, targets) = size;
+            return Err(JobError::Failed(format!(
+                "stopped after {:.1} s, past the frame's time limit of {}; not retried, as it \
+                 would stop again",
+                run.elapsed_s(),
+                limit.describe(pixels, targets)
+            )));
         }
-        let pipeline = pipeline.clone();
-        state
-            .cpu
-            .try_run(move || {
-                let images = files
-                    .iter()
-                    .map(|(camera, bytes)| {
-                        let source = format!("cam{camera}");
-                        match &layout {
-                            Some(layout) => formats::image::decode_raw(bytes, layout, &source),
-                            None => formats::image::decode_image(bytes, &source),
-                        }
-                    })
-                    .collect::<Result<Vec<GreyImage>, _>>()?;
-                let frame = pipeline.process(&images)?;
-                let targets = codec::encode_frame_targets(&frame.targets);
-                Ok::<_, FrameError>((targets, frame.particles))
-            })
-            .await
-            .map_err(JobError::failed)?
-    } else {
-        let stored = state
-            .store
-            .frame_targets(input.sequence_id, input.frame)
-            .await?;
-        let pipeline = pipeline.clone();
-        let particles = state
-            .cpu
-            .try_run(move || {
-                let targets = stored
-                    .iter()
-                    .map(|(_, _, blob)| codec::decode_targets(blob))
-                    .collect::<Result<Vec<_>, _>>()?;
-                Ok::<_, FrameError>(pipeline.matcher().match_frame(&targets)?)
-            })
-            .await
-            .map_err(JobError::failed)?;
-        (Vec::new(), particles)
+        Err(error) => return Err(error),
     };
 
     let blob = codec::encode_particles(&particles, cameras);

@@ -35,7 +35,7 @@ use std::net::SocketAddr;
 use std::path::Path;
 
 pub use app::{AppState, Application};
-pub use config::{ServeArgs, Timeouts};
+pub use config::{JobLimits, ServeArgs, Timeouts};
 
 /// Why the service could not start or stopped with an error.
 #[derive(Debug, thiserror::Error)]

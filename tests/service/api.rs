@@ -474,10 +474,12 @@ async fn job_kinds_plug_in_with_one_call() {
     server.await.unwrap().unwrap();
 }
 
-/// A frame whose image header is fine but whose data is not is accepted,
-/// and its job fails with the reason; its particles are a 409, not a 500.
+/// A frame whose image header is fine but whose data is not is refused at
+/// upload with the decoder's reason (it used to be accepted and its job
+/// failed later); nothing is stored. A frame whose job fails answers 409
+/// for its particles: see `job_bounds`.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn a_frame_that_cannot_be_processed_fails_its_job_with_the_reason() {
+async fn a_frame_whose_image_does_not_decode_is_refused_with_the_reason() {
     let app = spawn_app().await;
     let rig = rig();
     let calibration = app.create_calibration(&rig.cameras).await;
@@ -486,22 +488,16 @@ async fn a_frame_that_cannot_be_processed_fails_its_job_with_the_reason() {
     let half = files[2].len() / 2;
     files[2].truncate(half);
     let (status, body) = app.upload(sequence, image_form(0, &files)).await;
-    assert_eq!(status, 202, "{body}");
-    let view = app.wait_for_sequence(sequence).await;
-    assert_eq!(view["frames"]["failed"], 1, "{view}");
-    let (status, job) = app.get_json(&format!("/jobs/{}", body["job_id"])).await;
-    assert_eq!(status, 200);
-    assert_eq!(job["state"], "failed");
-    assert_eq!(job["attempts"], 1);
-    let error = job["error"].as_str().unwrap();
+    assert_eq!(status, 422, "{body}");
+    let detail = body["detail"].as_str().unwrap();
     assert!(
-        error.contains("cam2") && error.contains("truncated or corrupt"),
-        "{error}"
+        detail.contains("cam2") && detail.contains("truncated or corrupt"),
+        "{detail}"
     );
     let (status, body) = app
         .get_json(&format!("/sequences/{sequence}/frames/0/particles"))
         .await;
-    assert_eq!(status, 409, "{body}");
+    assert_eq!(status, 404, "{body}");
     app.stop().await;
 }
 

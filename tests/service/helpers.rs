@@ -13,7 +13,7 @@ use nalgebra::Point3;
 use ptv::formats;
 use ptv::photogrammetry::simulate::{self, RenderSpec, RigSpec, TargetFrame};
 use ptv::photogrammetry::{Camera, GreyImage, GreyPixels, Volume};
-use ptv::service::{Application, ServeArgs, Timeouts};
+use ptv::service::{Application, JobLimits, ServeArgs, Timeouts};
 use reqwest::multipart::{Form, Part};
 use serde_json::{json, Value};
 use tempfile::TempDir;
@@ -47,6 +47,7 @@ pub fn test_args(data_dir: &Path, api_token: Option<&str>) -> ServeArgs {
         max_cpu_requests: None,
         max_connections: None,
         timeouts: Timeouts::default(),
+        job_limits: JobLimits::default(),
     }
 }
 

@@ -7,6 +7,8 @@
 //! - `reliability`: a kill -9 while jobs run, and 32 concurrent uploaders.
 //! - `bad_inputs`: every kind of bad request gets its 4xx and leaves the
 //!   database consistent.
+//! - `job_bounds`: projections per request bounded, a frame past its time
+//!   limit failed and its worker freed, corrupt images refused at upload.
 //! - `layers`: what every request passes through: request ids, gzip,
 //!   header and body timeouts, the early 413, the bearer token before
 //!   routing, bounded metrics labels.
@@ -20,5 +22,6 @@ mod bad_inputs;
 mod connections;
 mod fuzz;
 mod helpers;
+mod job_bounds;
 mod layers;
 mod reliability;

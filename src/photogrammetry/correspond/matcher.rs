@@ -9,6 +9,7 @@ use super::grid::CameraFrame;
 use super::search::Search;
 use super::{default_volume, MatchError, MatchingParameters, Particle, Similarity};
 use crate::photogrammetry::camera::Camera;
+use crate::photogrammetry::cancel::Cancel;
 use crate::photogrammetry::target::Target;
 use crate::photogrammetry::volume::Volume;
 
@@ -141,6 +142,18 @@ impl Matcher {
 
     /// Finds the particles of one frame: `targets[c]` are camera c's targets.
     pub fn match_frame(&self, targets: &[Vec<Target>]) -> Result<Vec<Particle>, MatchError> {
+        self.match_frame_until(targets, &Cancel::new())
+    }
+
+    /// [`Matcher::match_frame`], stopped with [`MatchError::Cancelled`]
+    /// once `cancel` fires (checked between cameras and every few dozen
+    /// targets of the search's outer loops).
+    pub fn match_frame_until(
+        &self,
+        targets: &[Vec<Target>],
+        cancel: &Cancel,
+    ) -> Result<Vec<Particle>, MatchError> {
+        cancel.check()?;
         let count = self.cameras.len();
         if targets.len() != count {
             return Err(MatchError::CameraCount {
@@ -156,13 +169,12 @@ impl Matcher {
                 return Err(MatchError::InvalidTarget { camera, index });
             }
         }
-        let frames: Vec<CameraFrame> = self
-            .cameras
-            .iter()
-            .zip(targets)
-            .map(|(camera, list)| CameraFrame::new(camera, list, self.tolerance))
-            .collect();
-        Ok(Search::new(self, &frames).run())
+        let mut frames = Vec::with_capacity(count);
+        for (camera, list) in self.cameras.iter().zip(targets) {
+            cancel.check()?;
+            frames.push(CameraFrame::new(camera, list, self.tolerance));
+        }
+        Ok(Search::new(self, &frames).until(cancel).run()?)
     }
 
     /// Whether `a` and `b` pass the similarity criteria.

@@ -155,6 +155,9 @@ pub enum MatchError {
         /// The target's index in its list.
         index: usize,
     },
+    /// The search was stopped ([`Matcher::match_frame_until`]).
+    #[error("matching {0}")]
+    Cancelled(#[from] crate::photogrammetry::cancel::Cancelled),
 }
 
 /// A particle found in the frame.

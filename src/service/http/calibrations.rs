@@ -19,7 +19,7 @@ use super::upload::{accepted, check_images, or_drain, persist_and_commit, stream
 use super::Shared;
 use crate::formats::{self, control, openptv::OriTexts};
 use crate::photogrammetry::calibrate;
-use crate::photogrammetry::{intersect, Camera, Observation, Sensor};
+use crate::photogrammetry::{intersect, Camera, Cancel, Observation, Sensor, StopOnDrop};
 use crate::service::app::AppState;
 use crate::service::images::UploadedFile;
 use crate::service::jobs::{part_source, SolvePayload, SOLVE_CALIBRATION};
@@ -28,8 +28,46 @@ use crate::service::store::{CalibrationId, CalibrationRow, JobFile, JobId};
 
 /// Largest OpenPTV text file accepted (bytes).
 const MAX_TEXT_PART: usize = 1 << 20;
-/// Most points in one projection request.
-const MAX_POINTS: usize = 100_000;
+/// Most projections (points x cameras) in one projection request: each is
+/// at most about 45 bytes of JSON (`[-1234.5678901234567,...],`), so the
+/// answer stays under 10 MB, and 24 bytes in memory before it is written.
+pub const MAX_PROJECTIONS: usize = 200_000;
+/// Most points in one projection request whatever the cameras (a
+/// calibration has at least 2): refused while the body is parsed, before
+/// more are read into memory.
+const MAX_POINTS: usize = MAX_PROJECTIONS / 2;
+
+/// Deserializes `points`, refusing more than [`MAX_POINTS`] as soon as the
+/// parser reaches one more.
+fn bounded_points<'de, D>(deserializer: D) -> Result<Vec<[f64; 3]>, D::Error>
+where
+    D: serde::Deserializer<'de>,
+{
+    struct Points;
+    impl<'de> serde::de::Visitor<'de> for Points {
+        type Value = Vec<[f64; 3]>;
+        fn expecting(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+            write!(f, "at most {MAX_POINTS} points [x, y, z]")
+        }
+        fn visit_seq<A: serde::de::SeqAccess<'de>>(
+            self,
+            mut seq: A,
+        ) -> Result<Self::Value, A::Error> {
+            let mut points = Vec::with_capacity(seq.size_hint().unwrap_or(0).min(4096));
+            while let Some(point) = seq.next_element()? {
+                if points.len() == MAX_POINTS {
+                    return Err(serde::de::Error::custom(format!(
+                        "more than {MAX_POINTS} points; at most {MAX_PROJECTIONS} projections \
+                         (points x cameras) per request"
+                    )));
+                }
+                points.push(point);
+            }
+            Ok(points)
+        }
+    }
+    deserializer.deserialize_seq(Points)
+}
 
 pub(super) fn router() -> Router<Arc<AppState>> {
     Router::new()
@@ -246,7 +284,8 @@ pub async fn openptv_file(
 #[derive(Debug, Deserialize, ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct ProjectRequest {
-    /// 3D points (mm).
+    /// 3D points (mm); at most 200,000 projections (points x cameras).
+    #[serde(deserialize_with = "bounded_points")]
     pub points: Vec<[f64; 3]>,
 }
 
@@ -275,12 +314,6 @@ pub async fn project(
     ApiPath(id): ApiPath<CalibrationId>,
     ApiJson(request): ApiJson<ProjectRequest>,
 ) -> Result<Json<ProjectResponse>, ApiError> {
-    if request.points.len() > MAX_POINTS {
-        return Err(ApiError::unprocessable(format!(
-            "{} points; at most {MAX_POINTS} per request",
-            request.points.len()
-        )));
-    }
     if let Some(i) = request
         .points
         .iter()
@@ -291,22 +324,46 @@ pub async fn project(
         )));
     }
     let cameras = cameras_of(&state, id).await?;
+    let projections = request.points.len().saturating_mul(cameras.len());
+    if projections > MAX_PROJECTIONS {
+        return Err(ApiError::unprocessable(format!(
+            "{} points x {} cameras = {projections} projections; at most {MAX_PROJECTIONS} \
+             (points x cameras) per request, so that the answer stays under 10 MB: send at most \
+             {} points per request to this calibration",
+            request.points.len(),
+            cameras.len(),
+            MAX_PROJECTIONS / cameras.len().max(1)
+        )));
+    }
+    // The work stops when this handler is dropped (its client gone, or
+    // the request timeout).
+    let cancel = Cancel::new();
+    let _stop = StopOnDrop(cancel.clone());
     let pixels = state
         .cpu
         .run(move || {
-            request
-                .points
-                .iter()
-                .map(|p| {
-                    let point = nalgebra::Point3::new(p[0], p[1], p[2]);
+            let mut pixels = Vec::with_capacity(request.points.len());
+            for (i, p) in request.points.iter().enumerate() {
+                if i % 1024 == 0 && cancel.check().is_err() {
+                    return None;
+                }
+                let point = nalgebra::Point3::new(p[0], p[1], p[2]);
+                pixels.push(
                     cameras
                         .iter()
                         .map(|camera| camera.project(&point).ok().map(|px| [px.x, px.y]))
-                        .collect()
-                })
-                .collect()
+                        .collect(),
+                );
+            }
+            Some(pixels)
         })
-        .await?;
+        .await?
+        .ok_or_else(|| {
+            ApiError::new(
+                StatusCode::SERVICE_UNAVAILABLE,
+                "the projection was stopped",
+            )
+        })?;
     Ok(Json(ProjectResponse { pixels }))
 }
 

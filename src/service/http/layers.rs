@@ -539,6 +539,7 @@ mod tests {
                 request_secs,
                 ..Timeouts::default()
             },
+            job_limits: Default::default(),
         }
     }
 

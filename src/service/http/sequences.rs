@@ -23,7 +23,7 @@ use super::upload::{accepted, check_images, or_drain, persist_and_commit, stream
 use super::Shared;
 use crate::formats;
 use crate::photogrammetry::correspond::Particle;
-use crate::photogrammetry::{Camera, Sensor, Target};
+use crate::photogrammetry::{Camera, Cancel, Sensor, StopOnDrop, Target};
 use crate::service::app::AppState;
 use crate::service::codec;
 use crate::service::images::UploadedFile;
@@ -171,7 +171,11 @@ pub async fn create(
             ))
         })?;
     let parameters = SequenceParameters::with_defaults(request.detection, request.matching);
-    let pipeline = prepare_pipeline(&state, &calibration.model, &parameters).await?;
+    // Dropped with this handler (client gone, request timeout): the
+    // preparation does not start if it still waits for a CPU thread.
+    let cancel = Cancel::new();
+    let _stop = StopOnDrop(cancel.clone());
+    let pipeline = prepare_pipeline(&state, &calibration.model, &parameters, &cancel).await?;
     let stored = serde_json::to_string(&parameters)?;
     let row = state
         .store

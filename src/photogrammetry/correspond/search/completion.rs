@@ -56,6 +56,9 @@ impl Search<'_, '_> {
         let mut own_members: Vec<u32> = Vec::new();
         {
             for a in 0..self.frames[i].targets.len() {
+                if self.should_stop(a) {
+                    break;
+                }
                 if self.used[i][a] {
                     continue;
                 }

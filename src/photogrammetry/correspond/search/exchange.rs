@@ -53,6 +53,9 @@ impl Search<'_, '_> {
         let mut p_alternative = vec![NONE; count];
         let mut q_alternative = vec![NONE; count];
         for p in 0..self.accepted.len() / count {
+            if super::stop_at(self.cancel.as_ref(), &mut self.stopped, p) {
+                return;
+            }
             for k in 0..count {
                 let t = self.group(p)[k];
                 if t == NONE || !crowded[k][t as usize] {

@@ -22,6 +22,7 @@ use super::matcher::Matcher;
 use super::pencil::PencilGrid;
 use super::Particle;
 use crate::photogrammetry::camera::Ray;
+use crate::photogrammetry::cancel::{Cancel, Cancelled};
 use crate::photogrammetry::intersect::{intersect_from, ray_midpoint, Observation};
 use crate::photogrammetry::target::Target;
 
@@ -67,6 +68,33 @@ pub(super) struct Search<'m, 'f> {
     accepted: Vec<u32>,
     /// Per camera and target, the accepted group that holds it, or NONE.
     owner: Vec<Vec<u32>>,
+    /// Checked in the outer loops; once it fires, the steps end early and
+    /// [`Search::run`] gives the reason.
+    cancel: Option<Cancel>,
+    /// Why the search stopped early, once it did.
+    stopped: Option<Cancelled>,
+}
+
+/// Outer-loop iterations between two checks of the cancel token (each
+/// iteration is a band search, microseconds).
+const CHECK_EVERY: usize = 64;
+
+/// [`Search::should_stop`] on the two fields, for loops that hold other
+/// borrows of the search.
+fn stop_at(cancel: Option<&Cancel>, stopped: &mut Option<Cancelled>, step: usize) -> bool {
+    if stopped.is_some() {
+        return true;
+    }
+    if step % CHECK_EVERY != 0 {
+        return false;
+    }
+    match cancel.map(Cancel::check) {
+        Some(Err(reason)) => {
+            *stopped = Some(reason);
+            true
+        }
+        _ => false,
+    }
 }
 
 impl<'m, 'f> Search<'m, 'f> {
@@ -86,7 +114,21 @@ impl<'m, 'f> Search<'m, 'f> {
             acceptance: matcher.tolerance,
             accepted: Vec::new(),
             owner: frames.iter().map(|f| vec![NONE; f.targets.len()]).collect(),
+            cancel: None,
+            stopped: None,
         }
+    }
+
+    /// The search, stopping early once `cancel` fires.
+    pub(super) fn until(mut self, cancel: &Cancel) -> Self {
+        self.cancel = Some(cancel.clone());
+        self
+    }
+
+    /// Whether to stop: checks the token at every `CHECK_EVERY`th `step`
+    /// of an outer loop and remembers why it fired.
+    fn should_stop(&mut self, step: usize) -> bool {
+        stop_at(self.cancel.as_ref(), &mut self.stopped, step)
     }
 
     /// Traces target `a` of camera `i` into camera `j` (`self.curves[j]`);
@@ -253,8 +295,9 @@ impl<'m, 'f> Search<'m, 'f> {
         }
     }
 
-    /// Steps 2 to 6: the particles of the frame.
-    pub(super) fn run(mut self) -> Vec<Particle> {
+    /// Steps 2 to 6: the particles of the frame, or why the search was
+    /// stopped before its end.
+    pub(super) fn run(mut self) -> Result<Vec<Particle>, Cancelled> {
         if self.frames.len() >= 3 {
             for (stage, &seed) in self.matcher.seeds.iter().enumerate() {
                 let groups = self.candidate_groups(seed);
@@ -264,11 +307,17 @@ impl<'m, 'f> Search<'m, 'f> {
                 self.select(groups);
             }
         }
-        self.improve();
-        if self.matcher.min_cameras == 2 {
+        if !self.should_stop(0) {
+            self.improve();
+        }
+        if self.matcher.min_cameras == 2 && !self.should_stop(0) {
             self.pairs();
         }
-        self.finish()
+        let particles = self.finish();
+        match self.stopped {
+            Some(reason) => Err(reason),
+            None => Ok(particles),
+        }
     }
 
     /// Least-squares intersection of a group, with its targets numbered as
@@ -326,12 +375,18 @@ impl<'m, 'f> Search<'m, 'f> {
     }
 
     /// The particles: every accepted group's least-squares intersection.
-    fn finish(&self) -> Vec<Particle> {
+    fn finish(&mut self) -> Vec<Particle> {
         let mut observations = Vec::with_capacity(self.frames.len());
-        self.accepted
-            .chunks_exact(self.frames.len())
-            .filter_map(|members| self.intersect(members, &mut observations))
-            .collect()
+        let mut particles = Vec::new();
+        let mut stopped = self.stopped;
+        for (step, members) in self.accepted.chunks_exact(self.frames.len()).enumerate() {
+            if stop_at(self.cancel.as_ref(), &mut stopped, step) {
+                break;
+            }
+            particles.extend(self.intersect(members, &mut observations));
+        }
+        self.stopped = stopped;
+        particles
     }
 }
 

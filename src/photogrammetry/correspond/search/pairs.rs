@@ -13,6 +13,9 @@ impl Search<'_, '_> {
         for i in 0..count {
             for j in i + 1..count {
                 for a in 0..self.frames[i].targets.len() {
+                    if self.should_stop(a) {
+                        return;
+                    }
                     if self.used[i][a] {
                         continue;
                     }
