@@ -729,7 +729,9 @@ mod tests {
 
     fn with(f: impl FnOnce(&mut CameraParameters)) -> Result<Camera, InvalidCamera> {
         use crate::photogrammetry::simulate::RigSpec;
-        let mut p = RigSpec::convergent(2).build().unwrap()[0].parameters().clone();
+        let mut p = RigSpec::convergent(2).build().unwrap()[0]
+            .parameters()
+            .clone();
         f(&mut p);
         Camera::new(p)
     }
@@ -757,7 +759,13 @@ mod tests {
     #[test]
     fn camera_names_are_short_plain_file_names() {
         let longest = "c".repeat(MAX_CAMERA_NAME_LEN);
-        for good in ["cam1", "left_top.serial-1234", "C", "a..b", longest.as_str()] {
+        for good in [
+            "cam1",
+            "left_top.serial-1234",
+            "C",
+            "a..b",
+            longest.as_str(),
+        ] {
             assert!(check_camera_name(good).is_ok(), "{good}");
             assert!(with(|p| p.name = good.to_owned()).is_ok(), "{good}");
         }
@@ -765,11 +773,14 @@ mod tests {
         let huge = "x".repeat(1 << 20);
         for (bad, problem) in [
             ("", "is empty"),
-            (too_long.as_str(), "65 bytes long, more than the limit of 64"),
+            (
+                too_long.as_str(),
+                "65 bytes long, more than the limit of 64",
+            ),
             (huge.as_str(), "1048576 bytes long"),
             ("../../etc/passwd", "character '/'"),
             ("cam\\1", "character '\\\\'"),
-            ("cam\01", "character '\\0'"),
+            ("cam\0x", "character '\\0'"),
             ("cam 1", "character ' '"),
             ("kamera\u{e9}", "character '\u{e9}'"),
             (".hidden", "starts with `.`"),
