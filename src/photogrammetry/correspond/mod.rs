@@ -144,9 +144,10 @@ pub enum MatchError {
     /// A tolerance wider than a camera's sensor: a band that covers the
     /// whole image selects nothing.
     #[error(
-        "the tolerance of {tolerance} px is wider than the sensor of camera {camera} (its \
-         diagonal, {diagonal:.0} px, is the limit): an epipolar band that wide covers the whole \
-         image; give the image measurement's uncertainty, typically 0.2..2 px"
+        "the tolerance of {} px is wider than the sensor of camera {camera} (its diagonal, \
+         {diagonal:.0} px, is the limit): an epipolar band that wide covers the whole image; \
+         give the image measurement's uncertainty, typically 0.2..2 px",
+        readable(*.tolerance)
     )]
     ToleranceTooWide {
         /// The tolerance given (px).
@@ -176,7 +177,7 @@ pub enum MatchError {
         "the observation volume reaches {axis} = {} mm, beyond {VOLUME_REACH} times the region \
          the cameras see ({region}); give a volume around the particles, within {axis} \
          {low:.1}..{high:.1} mm, or none to use that region",
-        millimetres(*.value)
+        readable(*.value)
     )]
     VolumeTooLarge {
         /// The axis: `x`, `y` or `z`.
@@ -238,11 +239,10 @@ pub enum MatchError {
     },
 }
 
-/// A length in mm for a message: one decimal, or in exponent form when
-/// huge.
-fn millimetres(value: f64) -> String {
+/// A number for a message: as it is, or in exponent form when huge.
+fn readable(value: f64) -> String {
     if value.abs() < 1e7 {
-        format!("{value:.1}")
+        format!("{value}")
     } else {
         format!("{value:e}")
     }
