@@ -41,8 +41,9 @@
 //!
 //! Memory grows linearly with the targets, and the work with the targets
 //! times the (small) number of band candidates. The inputs are bounded by
-//! what the physics allows: at most [`MAX_CAMERAS`] cameras, at most one
-//! target per 2x2 pixels of a camera's sensor ([`max_targets`]), a
+//! what the physics and the machine allow: at most [`MAX_CAMERAS`]
+//! cameras, at most one target per 2x2 pixels of a camera's sensor and
+//! [`MAX_TARGETS_PER_CAMERA`] ([`max_targets`]), a
 //! tolerance no wider than the sensor and a volume the cameras see
 //! ([`Matcher::new`]).
 //!
@@ -206,9 +207,10 @@ pub enum MatchError {
     },
     /// More targets in one camera than its sensor can hold.
     #[error(
-        "camera {camera} has {count} targets, more than its sensor can hold: at most one \
-         particle image per 2x2 pixels, {limit} for its sensor; give this camera's targets of \
-         one frame"
+        "camera {camera} has {count} targets, more than the limit of {limit} for its sensor: \
+         at most one particle image per 2x2 pixels, and at most {MAX_TARGETS_PER_CAMERA} per \
+         camera (MAX_TARGETS_PER_CAMERA); give this camera's targets of one frame, or raise \
+         the detection threshold"
     )]
     TooManyTargets {
         /// The camera (0-based).
@@ -256,8 +258,20 @@ fn readable(value: f64) -> String {
 /// leaves the epipolar segments too long to sample, and found nothing).
 pub const VOLUME_REACH: f64 = 100.0;
 
+/// The most targets any camera may have in one frame, whatever its
+/// sensor: 2^20 (1,048,576), what the machine allows.
+///
+/// Matching holds about 250 bytes per target (measured: 8 cameras x
+/// 100,000 targets peaked at 213 MB, the parsed files included), so this
+/// is about 256 MiB per camera and 4 GiB for [`MAX_CAMERAS`]. It is 0.25
+/// particles per pixel of a 4 Mpx sensor, denser than any frame that can
+/// be matched (PTV works to about 0.05 particles per pixel, iterative
+/// methods to 0.1); larger sensors reach it only with frames that dense.
+pub const MAX_TARGETS_PER_CAMERA: usize = 1 << 20;
+
 /// The most targets a camera of this sensor can have in one frame:
-/// one per 2x2 pixels, `ceil(width / 2) * ceil(height / 2)`.
+/// one per 2x2 pixels, `ceil(width / 2) * ceil(height / 2)`, and at most
+/// [`MAX_TARGETS_PER_CAMERA`].
 ///
 /// A particle image is at least one pixel, and two particle images are
 /// told apart only with a pixel between them: the detector's 8-connected
@@ -268,7 +282,7 @@ pub const VOLUME_REACH: f64 = 100.0;
 /// pixel.)
 pub fn max_targets(sensor: &Sensor) -> usize {
     let half = |side: u32| side.div_ceil(2) as usize;
-    half(sensor.width) * half(sensor.height)
+    (half(sensor.width) * half(sensor.height)).min(MAX_TARGETS_PER_CAMERA)
 }
 
 /// A particle found in the frame.
@@ -375,7 +389,15 @@ mod tests {
         assert_eq!(max_targets(&sensor(1280, 1024)), 327_680);
         assert_eq!(max_targets(&sensor(1, 1)), 1);
         assert_eq!(max_targets(&sensor(3, 5)), 6);
-        assert_eq!(max_targets(&sensor(8192, 8192)), 1 << 24);
+        // 2048 x 2048 px hold exactly the machine's limit; larger sensors
+        // are capped by it.
+        assert_eq!(max_targets(&sensor(2048, 2048)), MAX_TARGETS_PER_CAMERA);
+        assert_eq!(max_targets(&sensor(2050, 2048)), MAX_TARGETS_PER_CAMERA);
+        assert_eq!(
+            max_targets(&sensor(2046, 2048)),
+            MAX_TARGETS_PER_CAMERA - 1024
+        );
+        assert_eq!(max_targets(&sensor(8192, 8192)), MAX_TARGETS_PER_CAMERA);
     }
 
     #[test]
