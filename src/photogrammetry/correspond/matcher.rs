@@ -114,7 +114,8 @@ fn check_reach(volume: &Volume, region: &Volume) -> Result<(), MatchError> {
 /// the volume, sampled at 33 points each, and projected into the other
 /// cameras. Stops at the first point seen twice, so an ordinary volume
 /// costs a few projections; a refused one at most cameras x (cameras - 1)
-/// x 81 x 33 (0.6 M projections for 16 cameras, about a second).
+/// x 81 x 33 (0.64 M projections for 16 cameras: 75 ms through walls,
+/// measured unoptimised).
 fn seen_by_two(cameras: &[Camera], volume: &Volume) -> bool {
     const RAYS: u32 = 8;
     const STEPS: u32 = 32;
