@@ -109,8 +109,8 @@ fn check_reach(volume: &Volume, region: &Volume) -> Result<(), MatchError> {
     Ok(())
 }
 
-/// Whether some point of `volume` is imaged by two cameras: rays through a
-/// 9 x 9 grid of each camera's sensor (corners and centre included), cut by
+/// Whether some point of `volume` is imaged by two cameras: the box's 27
+/// corner, edge, face and centre points, then rays through a 9 x 9 grid of each camera's sensor (corners and centre included), cut by
 /// the volume, sampled at 33 points each, and projected into the other
 /// cameras. Stops at the first point seen twice, so an ordinary volume
 /// costs a few projections; a refused one at most cameras x (cameras - 1)
@@ -119,6 +119,29 @@ fn check_reach(volume: &Volume, region: &Volume) -> Result<(), MatchError> {
 fn seen_by_two(cameras: &[Camera], volume: &Volume) -> bool {
     const RAYS: u32 = 8;
     const STEPS: u32 = 32;
+    let seen_twice = |point: &Point3<f64>| {
+        cameras
+            .iter()
+            .filter(|c| c.project(point).is_ok_and(|p| c.sensor().contains(p)))
+            .nth(1)
+            .is_some()
+    };
+    // The box's own corners, edge and face centres and centre, for a box
+    // small enough to slip between the rays (non-finite ones have no image).
+    let grid = |i: usize, k: usize| match k {
+        0 => volume.min[i],
+        1 => (volume.min[i] + volume.max[i]) / 2.0,
+        _ => volume.max[i],
+    };
+    if (0..27).any(|n| {
+        seen_twice(&Point3::new(
+            grid(0, n % 3),
+            grid(1, n / 3 % 3),
+            grid(2, n / 9),
+        ))
+    }) {
+        return true;
+    }
     for (i, camera) in cameras.iter().enumerate() {
         let sensor = camera.sensor();
         for row in 0..=RAYS {
@@ -644,6 +667,12 @@ mod tests {
             with(reach(VOLUME_REACH * 1.01)),
             Err(MatchError::VolumeTooLarge { .. })
         ));
+        // A tiny volume between the rays of the check's grid is seen.
+        let tiny = Volume {
+            min: Point3::new(23.0, -31.0, 7.0),
+            max: Point3::new(24.0, -30.0, 8.0),
+        };
+        assert!(with(tiny).is_ok());
         // A volume beside the rig, well within the reach: no camera sees it.
         let shift = nalgebra::Vector3::new(20.0 * edge, 0.0, 0.0);
         let beside = Volume {
