@@ -22,16 +22,63 @@ use serde::{Deserialize, Serialize};
 
 use super::FormatError;
 use crate::photogrammetry::{
-    Camera, CameraParameters, Distortion, Exterior, Interior, Media, Sensor, Wall,
+    check_camera_name, Camera, CameraParameters, Distortion, Exterior, Interior, Media, Sensor,
+    Wall,
 };
 
 /// The fewest cameras a calibration may have: a point needs two rays.
 pub const MIN_CAMERAS: usize = 2;
 
+/// The most cameras a calibration may have: 16, the core's
+/// [`MAX_CAMERAS`](crate::photogrammetry::correspond::MAX_CAMERAS) (rigs
+/// have 2..8 cameras; twice that leaves margin). The JSON list is cut off
+/// while it is read, so a document of 10,000 cameras is refused after
+/// the 17th, without holding the rest.
+pub const MAX_CAMERAS: usize = crate::photogrammetry::correspond::MAX_CAMERAS;
+
 #[derive(Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 struct CalibrationFile {
+    #[serde(deserialize_with = "bounded_cameras")]
     cameras: Vec<CameraJson>,
+}
+
+/// Reads the cameras' list, refusing it as soon as it holds more than
+/// [`MAX_CAMERAS`].
+fn bounded_cameras<'de, D>(deserializer: D) -> Result<Vec<CameraJson>, D::Error>
+where
+    D: serde::Deserializer<'de>,
+{
+    struct Bounded;
+    impl<'de> serde::de::Visitor<'de> for Bounded {
+        type Value = Vec<CameraJson>;
+        fn expecting(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+            write!(f, "a list of {MIN_CAMERAS} to {MAX_CAMERAS} cameras")
+        }
+        fn visit_seq<A: serde::de::SeqAccess<'de>>(
+            self,
+            mut seq: A,
+        ) -> Result<Self::Value, A::Error> {
+            let mut cameras = Vec::new();
+            while let Some(camera) = seq.next_element()? {
+                if cameras.len() == MAX_CAMERAS {
+                    return Err(serde::de::Error::custom(too_many_cameras(format!(
+                        "more than {MAX_CAMERAS}"
+                    ))));
+                }
+                cameras.push(camera);
+            }
+            Ok(cameras)
+        }
+    }
+    deserializer.deserialize_seq(Bounded)
+}
+
+fn too_many_cameras(got: impl std::fmt::Display) -> String {
+    format!(
+        "a calibration has at most {MAX_CAMERAS} cameras (MAX_CAMERAS), got {got}; give one \
+         entry per physical camera of the rig"
+    )
 }
 
 #[derive(Serialize, Deserialize)]
@@ -181,20 +228,35 @@ pub fn parameters_from_json(
         };
         FormatError::invalid(source, location, err.into_inner().to_string())
     })?;
-    Ok(file
+    let parameters: Vec<CameraParameters> = file
         .cameras
         .into_iter()
         .enumerate()
         .map(|(i, camera)| camera.into_parameters(i))
-        .collect())
+        .collect();
+    // A setup's cameras are not validated as cameras (their orientation is
+    // only a start), but their names become file names all the same.
+    for (i, p) in parameters.iter().enumerate() {
+        check_camera_name(&p.name).map_err(|e| {
+            FormatError::invalid(source, format!("cameras[{i}].{}", e.field), e.reason)
+        })?;
+    }
+    Ok(parameters)
 }
 
-/// Validates a list of camera parameters as a calibration: at least
-/// [`MIN_CAMERAS`] cameras, each one valid.
+/// Validates a list of camera parameters as a calibration:
+/// [`MIN_CAMERAS`]..=[`MAX_CAMERAS`] cameras, each one valid.
 pub fn from_parameters(
     parameters: Vec<CameraParameters>,
     source: &str,
 ) -> Result<Vec<Camera>, FormatError> {
+    if parameters.len() > MAX_CAMERAS {
+        return Err(FormatError::invalid(
+            source,
+            "cameras",
+            too_many_cameras(parameters.len()),
+        ));
+    }
     if parameters.len() < MIN_CAMERAS {
         return Err(FormatError::invalid(
             source,
@@ -311,6 +373,64 @@ mod tests {
         let one: serde_json::Value = serde_json::from_str(TWO_CAMERAS).unwrap();
         let text = serde_json::json!({"cameras": [one["cameras"][0].clone()]}).to_string();
         assert!(error_of(&text).contains("at least 2 cameras"));
+    }
+
+    /// A calibration of `count` copies of the first camera.
+    fn cameras_json(count: usize) -> String {
+        let two: serde_json::Value = serde_json::from_str(TWO_CAMERAS).unwrap();
+        serde_json::json!({"cameras": vec![two["cameras"][0].clone(); count]}).to_string()
+    }
+
+    #[test]
+    fn at_most_max_cameras() {
+        assert_eq!(
+            from_json(&cameras_json(MAX_CAMERAS), "x").unwrap().len(),
+            16
+        );
+        for count in [MAX_CAMERAS + 1, 10_000] {
+            let message = error_of(&cameras_json(count));
+            assert!(
+                message.starts_with(
+                    "cal.json: cameras: a calibration has at most 16 cameras \
+                                     (MAX_CAMERAS), got more than 16"
+                ),
+                "{message}"
+            );
+            let setup = parameters_from_json(&cameras_json(count), "setup.json").unwrap_err();
+            assert!(setup.to_string().contains("MAX_CAMERAS"), "{setup}");
+        }
+        // Built in memory, the count is checked before the cameras.
+        let parameters = parameters_from_json(&cameras_json(MAX_CAMERAS), "x").unwrap();
+        let mut many = parameters.clone();
+        many.push(parameters[0].clone());
+        let message = from_parameters(many, "rig").unwrap_err().to_string();
+        assert!(
+            message.contains("at most 16 cameras (MAX_CAMERAS), got 17"),
+            "{message}"
+        );
+    }
+
+    #[test]
+    fn hostile_camera_names_are_refused_at_parse_time() {
+        for name in ["../../etc/passwd", "a/b", "cam\u{0}1", ".ori", ""] {
+            let text = TWO_CAMERAS.replacen(
+                "\"name\": \"a\"",
+                &format!("\"name\": {}", serde_json::to_string(name).unwrap()),
+                1,
+            );
+            let message = error_of(&text);
+            assert!(
+                message.starts_with("cal.json: cameras[0].name: the camera name")
+                    && message.contains("1 to 64 characters"),
+                "{name:?}: {message}"
+            );
+            // Setups too: their names name files just the same.
+            let setup = parameters_from_json(&text, "setup.json").unwrap_err();
+            assert!(setup.to_string().contains("cameras[0].name"), "{setup}");
+        }
+        let long = "n".repeat(1 << 20);
+        let text = TWO_CAMERAS.replacen("\"name\": \"a\"", &format!("\"name\": {long:?}"), 1);
+        assert!(error_of(&text).contains("1048576 bytes long, more than the limit of 64"));
     }
 
     #[test]

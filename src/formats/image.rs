@@ -17,14 +17,56 @@
 //! alone ([`probe_image`], [`probe_raw`], [`read_header`] for a file):
 //! decoding starts there, and the service checks uploads with it before it
 //! accepts them, without decoding their pixels.
+//!
+//! Images larger than any sensor may be ([`MAX_SENSOR_SIDE`] per side,
+//! [`MAX_SENSOR_PIXELS`] in all) are refused from their header, before a
+//! sample is decoded: a small PNG of zeros can declare 22,000 x 22,000
+//! pixels. The decoder's own allocation limit ([`MAX_DECODE_BYTES`])
+//! backs this up.
 
 use std::io::{BufRead, BufReader, Cursor, Seek};
 use std::path::Path;
 
-use image::{ColorType, DynamicImage, ImageDecoder, ImageFormat, ImageReader};
+use image::{ColorType, DynamicImage, ImageDecoder, ImageFormat, ImageReader, Limits};
 
 use super::FormatError;
-use crate::photogrammetry::{BitDepth, GreyImage};
+use crate::photogrammetry::{BitDepth, GreyImage, MAX_SENSOR_PIXELS, MAX_SENSOR_SIDE};
+
+/// The most the image decoder may allocate at once: the largest allowed
+/// 16-bit image (128 MiB) twice over, for a decoder's buffers beside its
+/// output (TIFF strips, PNG rows). A colour image of the largest size
+/// would need more, and is refused either way.
+pub const MAX_DECODE_BYTES: u64 = 2 * 2 * MAX_SENSOR_PIXELS;
+
+/// Checks an image's declared size against the sensor limits, before
+/// anything is decoded or copied.
+fn check_image_size(width: u32, height: u32, source: &str) -> Result<(), FormatError> {
+    let pixels = u64::from(width) * u64::from(height);
+    let problem = if width > MAX_SENSOR_SIDE || height > MAX_SENSOR_SIDE {
+        format!("more than the limit of {MAX_SENSOR_SIDE} px per side (MAX_SENSOR_SIDE)")
+    } else if pixels > MAX_SENSOR_PIXELS {
+        format!("{pixels} pixels, more than the limit of {MAX_SENSOR_PIXELS} (64 Mpx, MAX_SENSOR_PIXELS)")
+    } else {
+        return Ok(());
+    };
+    Err(FormatError::invalid(
+        source,
+        "size",
+        format!(
+            "the image is {width}x{height} pixels, {problem}; no camera's sensor is that large, \
+             so give one camera's frame"
+        ),
+    ))
+}
+
+/// The decoder's limits, from the sensor limits.
+fn decoder_limits() -> Limits {
+    let mut limits = Limits::default();
+    limits.max_image_width = Some(MAX_SENSOR_SIDE);
+    limits.max_image_height = Some(MAX_SENSOR_SIDE);
+    limits.max_alloc = Some(MAX_DECODE_BYTES);
+    limits
+}
 
 /// The layout of a raw image buffer, which has no header to say it.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -105,6 +147,7 @@ pub fn probe_raw(len: u64, layout: &RawLayout, source: &str) -> Result<ImageHead
             format!("a raw image of {width}x{height} pixels is empty; give a width and height of at least 1"),
         ));
     }
+    check_image_size(width, height, source)?;
     let bytes_per_sample: u64 = match bit_depth {
         BitDepth::Eight => 1,
         BitDepth::Sixteen => 2,
@@ -169,7 +212,11 @@ fn open_image<'a, R: BufRead + Seek + 'a>(
         ImageFormat::Png => "PNG",
         _ => "TIFF",
     };
-    let decoder = ImageReader::with_format(reader, format)
+    let mut reader = ImageReader::with_format(reader, format);
+    // Our own size check first, so that a refusal names the sensor limits;
+    // the decoder's limits then bound what it allocates.
+    reader.no_limits();
+    let mut decoder = reader
         .into_decoder()
         .map_err(|error| unsupported(name, decoding_problem(error, name)))?;
     let color = decoder.color_type();
@@ -193,6 +240,10 @@ fn open_image<'a, R: BufRead + Seek + 'a>(
         }
     };
     let (width, height) = decoder.dimensions();
+    check_image_size(width, height, source)?;
+    decoder
+        .set_limits(decoder_limits())
+        .map_err(|error| FormatError::invalid(source, name, decoding_problem(error, name)))?;
     let header = ImageHeader {
         width,
         height,
@@ -207,7 +258,11 @@ fn decoding_problem(error: image::ImageError, name: &str) -> String {
         image::ImageError::Unsupported(e) => format!(
             "this kind of {name} is not supported ({e}); save the frame as 8- or 16-bit greyscale"
         ),
-        image::ImageError::Limits(e) => format!("the image is too large to decode ({e})"),
+        image::ImageError::Limits(e) => format!(
+            "the image needs more memory to decode than the limit of {MAX_DECODE_BYTES} bytes \
+             (MAX_DECODE_BYTES) ({e}); give an 8- or 16-bit greyscale frame of at most \
+             {MAX_SENSOR_PIXELS} pixels"
+        ),
         e => format!("cannot be decoded, the file is truncated or corrupt ({e})"),
     }
 }
@@ -278,6 +333,91 @@ pub fn decode_raw(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A 1x1 8-bit PNG whose header then declares `width` x `height`
+    /// (its one row of data left as it is).
+    fn png_declaring(width: u32, height: u32) -> Vec<u8> {
+        use ::image::ImageEncoder;
+        let mut bytes = Vec::new();
+        ::image::codecs::png::PngEncoder::new(&mut bytes)
+            .write_image(&[0], 1, 1, ::image::ExtendedColorType::L8)
+            .unwrap();
+        // Signature (8), IHDR length (4) and type (4), then width, height.
+        bytes[16..20].copy_from_slice(&width.to_be_bytes());
+        bytes[20..24].copy_from_slice(&height.to_be_bytes());
+        let mut crc = flate2::Crc::new();
+        crc.update(&bytes[12..29]);
+        bytes[29..33].copy_from_slice(&crc.sum().to_be_bytes());
+        bytes
+    }
+
+    #[test]
+    fn images_larger_than_a_sensor_are_refused_from_their_header() {
+        // The 22,000 x 22,000 PNG of the issue, in 70 bytes.
+        let message = decode_image(&png_declaring(22_000, 22_000), "huge.png")
+            .unwrap_err()
+            .to_string();
+        assert!(
+            message.starts_with("huge.png: size: the image is 22000x22000 pixels")
+                && message.contains("MAX_SENSOR_SIDE"),
+            "{message}"
+        );
+        let message = decode_image(&png_declaring(8193, 8192), "many.png")
+            .unwrap_err()
+            .to_string();
+        assert!(message.contains("MAX_SENSOR_PIXELS"), "{message}");
+        // At the limits the size passes, and this file fails as truncated.
+        for (width, height) in [(8192, 8192), (MAX_SENSOR_SIDE, 4096)] {
+            let message = decode_image(&png_declaring(width, height), "at.png")
+                .unwrap_err()
+                .to_string();
+            assert!(message.contains("truncated or corrupt"), "{message}");
+        }
+        // A real image one past the side limit, and one at it.
+        let encode = |width: u32| {
+            use ::image::ImageEncoder;
+            let mut bytes = Vec::new();
+            ::image::codecs::tiff::TiffEncoder::new(std::io::Cursor::new(&mut bytes))
+                .write_image(
+                    &vec![0; width as usize],
+                    width,
+                    1,
+                    ::image::ExtendedColorType::L8,
+                )
+                .unwrap();
+            bytes
+        };
+        let wide = decode_image(&encode(MAX_SENSOR_SIDE + 1), "wide.tif").unwrap_err();
+        assert!(wide.to_string().contains("16385x1"), "{wide}");
+        assert_eq!(
+            decode_image(&encode(MAX_SENSOR_SIDE), "ok.tif")
+                .unwrap()
+                .width(),
+            MAX_SENSOR_SIDE
+        );
+    }
+
+    #[test]
+    fn raw_layouts_larger_than_a_sensor_are_refused_before_the_length() {
+        let layout = |width, height| RawLayout {
+            width,
+            height,
+            bit_depth: BitDepth::Sixteen,
+        };
+        let message = decode_raw(&[], &layout(22_000, 22_000), "huge.raw")
+            .unwrap_err()
+            .to_string();
+        assert!(
+            message.contains("22000x22000") && message.contains("MAX_SENSOR_SIDE"),
+            "{message}"
+        );
+        let message = decode_raw(&[], &layout(8192, 8193), "many.raw")
+            .unwrap_err()
+            .to_string();
+        assert!(message.contains("MAX_SENSOR_PIXELS"), "{message}");
+        let at = vec![0; 2 * MAX_SENSOR_SIDE as usize];
+        assert!(decode_raw(&at, &layout(MAX_SENSOR_SIDE, 1), "at.raw").is_ok());
+    }
 
     #[test]
     fn raw_buffers_need_exactly_their_size() {

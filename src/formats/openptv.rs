@@ -288,11 +288,23 @@ pub fn parse_ptv_par(text: &str, source: &str) -> Result<PtvPar, FormatError> {
         finite_number(line(index, what)?, source, index + 1, what)
     };
     let count = parse(0, "the number of cameras")?;
-    if count < 1.0 || count.fract() != 0.0 || count > 1000.0 {
+    if count < 1.0 || count.fract() != 0.0 {
         return Err(FormatError::invalid(
             source,
             "line 1",
             format!("the number of cameras must be a positive integer, got {count}"),
+        ));
+    }
+    // Before the per-camera lists are allocated.
+    if count > calibration::MAX_CAMERAS as f64 {
+        return Err(FormatError::invalid(
+            source,
+            "line 1",
+            format!(
+                "the number of cameras is {count}, more than the limit of {} (MAX_CAMERAS); \
+                 give the rig's camera count",
+                calibration::MAX_CAMERAS
+            ),
         ));
     }
     let count = count as usize;
@@ -719,6 +731,64 @@ mod tests {
             assert!(message.contains(expected), "{bad:?}: {message}");
         }
         assert_eq!(parse_targets("0\n", "t").unwrap(), vec![]);
+    }
+
+    #[test]
+    fn ptv_par_camera_count_is_bounded_before_the_names_are_read() {
+        let par = |count: usize| {
+            let mut text = format!("{count}\n");
+            for k in 1..=count {
+                text += &format!("img/cam{k}.10003\ncal/cam{k}.tif\n");
+            }
+            text + "1\n0\n1\n1280\n1024\n0.012\n0.012\n0\n1\n1.33\n1.46\n6\n"
+        };
+        assert_eq!(
+            parse_ptv_par(&par(16), "ptv.par")
+                .unwrap()
+                .image_names
+                .len(),
+            16
+        );
+        let message = parse_ptv_par(&par(17), "ptv.par").unwrap_err().to_string();
+        assert!(
+            message.starts_with(
+                "ptv.par: line 1: the number of cameras is 17, more than the \
+                                 limit of 16 (MAX_CAMERAS)"
+            ),
+            "{message}"
+        );
+        // Refused from the count alone, as a billion would be.
+        let message = parse_ptv_par("1000000000\n", "ptv.par")
+            .unwrap_err()
+            .to_string();
+        assert!(message.contains("MAX_CAMERAS"), "{message}");
+    }
+
+    #[test]
+    fn imported_camera_names_are_checked() {
+        let ori = include_str!("../../tests/data/openptv/test_cavity/cal/cam1.tif.ori");
+        let par = include_str!("../../tests/data/openptv/test_cavity/parameters/ptv.par");
+        let texts = |first: &str| -> Vec<OriTexts> {
+            (0..4)
+                .map(|k| OriTexts {
+                    name: if k == 0 {
+                        first.to_owned()
+                    } else {
+                        format!("cam{}", k + 1)
+                    },
+                    ori: (ori.to_owned(), "cam.ori".to_owned()),
+                    addpar: None,
+                })
+                .collect()
+        };
+        assert!(import_texts(par, "ptv.par", &texts("cam1")).is_ok());
+        let message = import_texts(par, "ptv.par", &texts("../../etc/passwd"))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            message.contains("cameras[0].name: the camera name"),
+            "{message}"
+        );
     }
 
     #[test]

@@ -220,7 +220,9 @@ proptest! {
     fn calibration_json(text in calibration_input()) {
         match calibration::from_json(&text, SOURCE) {
             // Cameras exist only through Camera::new: accepted means valid.
-            Ok(cameras) => prop_assert!(cameras.len() >= calibration::MIN_CAMERAS),
+            Ok(cameras) => prop_assert!(
+                (calibration::MIN_CAMERAS..=calibration::MAX_CAMERAS).contains(&cameras.len())
+            ),
             Err(error) => prop_assert!(names_its_source(&error), "{error}"),
         }
         if let Err(error) = calibration::parameters_from_json(&text, SOURCE) {
@@ -316,6 +318,8 @@ proptest! {
                     crate::photogrammetry::GreyPixels::Sixteen(p) => p.len(),
                 };
                 prop_assert_eq!(samples as u64, decoded.width() as u64 * decoded.height() as u64);
+                prop_assert!(decoded.width() <= crate::photogrammetry::MAX_SENSOR_SIDE);
+                prop_assert!(samples as u64 <= crate::photogrammetry::MAX_SENSOR_PIXELS);
             }
             Err(error) => prop_assert!(names_its_source(&error), "{error}"),
         }

@@ -26,6 +26,70 @@ use serde::{Deserialize, Serialize};
 use super::media::{Media, MediaGeometry};
 use super::volume::Volume;
 
+/// The widest or tallest sensor a camera may have (px): 16,384 = 2^14.
+///
+/// The largest sensors in scientific and high-speed cameras are about
+/// 8,000 px on a side (a 47 Mpx 8,192 x 5,760 CMOS); twice that leaves
+/// margin for stitched or line-scan sensors. A sensor this wide is at most
+/// 4,096 px tall, by [`MAX_SENSOR_PIXELS`].
+pub const MAX_SENSOR_SIDE: u32 = 16_384;
+
+/// The most pixels a sensor may have: 64 Mpx (2^26).
+///
+/// Today's largest PTV and high-speed cameras have 25..47 Mpx; 64 Mpx
+/// leaves margin and bounds one decoded image at 64 MiB (8-bit) or
+/// 128 MiB (16-bit), so that memory per frame is the cameras times that
+/// (see `formats::image`, which refuses larger images before decoding).
+pub const MAX_SENSOR_PIXELS: u64 = 1 << 26;
+
+/// The longest camera name, in characters.
+///
+/// Names label cameras for people and name files (OpenPTV export writes
+/// `NAME.ori`): 64 characters are plenty for `cam1` or
+/// `left_top.serial-1234`, and far below any file system's 255.
+pub const MAX_CAMERA_NAME_LEN: usize = 64;
+
+/// Checks a camera name: 1..=[`MAX_CAMERA_NAME_LEN`] characters, each an
+/// ASCII letter or digit, `.`, `_` or `-`, not starting with `.`. Names
+/// become file names (`NAME.ori`), so path separators, `..`, NUL, spaces
+/// and control characters are refused rather than escaped.
+pub fn check_camera_name(name: &str) -> Result<(), InvalidCamera> {
+    let allowed = |c: char| c.is_ascii_alphanumeric() || matches!(c, '.' | '_' | '-');
+    let shown = || {
+        let mut s: String = name.chars().take(MAX_CAMERA_NAME_LEN).collect();
+        if name.chars().count() > MAX_CAMERA_NAME_LEN {
+            s.push_str("...");
+        }
+        format!("{s:?}")
+    };
+    let problem = if name.is_empty() {
+        Some("is empty".to_owned())
+    } else if name.len() > MAX_CAMERA_NAME_LEN {
+        Some(format!(
+            "is {} bytes long, more than the limit of {MAX_CAMERA_NAME_LEN}",
+            name.len()
+        ))
+    } else if let Some(c) = name.chars().find(|&c| !allowed(c)) {
+        Some(format!("contains the character {c:?}"))
+    } else if name.starts_with('.') {
+        Some("starts with `.`".to_owned())
+    } else {
+        None
+    };
+    match problem {
+        None => Ok(()),
+        Some(problem) => Err(InvalidCamera::new(
+            "name",
+            format!(
+                "the camera name {} {problem}; a camera name is 1 to {MAX_CAMERA_NAME_LEN} \
+                 characters of letters, digits, `.`, `_` and `-`, not starting with `.` \
+                 (it names files), so rename the camera, e.g. `cam1`",
+                shown()
+            ),
+        )),
+    }
+}
+
 /// The image sensor: its size and pixel pitch.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Sensor {
@@ -40,6 +104,41 @@ pub struct Sensor {
 }
 
 impl Sensor {
+    /// Checks the size against the limits: each side 1..=[`MAX_SENSOR_SIDE`]
+    /// pixels, and at most [`MAX_SENSOR_PIXELS`] in all.
+    pub fn check_size(&self) -> Result<(), InvalidCamera> {
+        for (field, side) in [
+            ("image_size[0]", self.width),
+            ("image_size[1]", self.height),
+        ] {
+            if side == 0 {
+                return Err(InvalidCamera::new(field, "must be positive, got 0"));
+            }
+            if side > MAX_SENSOR_SIDE {
+                return Err(InvalidCamera::new(
+                    field,
+                    format!(
+                        "{side} px is more than the limit of {MAX_SENSOR_SIDE} px per sensor \
+                         side (MAX_SENSOR_SIDE); give the sensor's size in pixels"
+                    ),
+                ));
+            }
+        }
+        let pixels = u64::from(self.width) * u64::from(self.height);
+        if pixels > MAX_SENSOR_PIXELS {
+            return Err(InvalidCamera::new(
+                "image_size",
+                format!(
+                    "a {}x{} sensor has {pixels} pixels, more than the limit of \
+                     {MAX_SENSOR_PIXELS} (64 Mpx, MAX_SENSOR_PIXELS); give the sensor's size \
+                     in pixels",
+                    self.width, self.height
+                ),
+            ));
+        }
+        Ok(())
+    }
+
     /// Metric image coordinates (mm, y up, origin at the sensor centre) to pixels.
     pub fn metric_to_pixel(&self, metric: Vector2<f64>) -> Point2<f64> {
         Point2::new(
@@ -379,18 +478,8 @@ impl Camera {
     /// Validates the parameters and precomputes what projection needs.
     pub fn new(parameters: CameraParameters) -> Result<Camera, InvalidCamera> {
         let p = &parameters;
-        if p.sensor.width == 0 {
-            return Err(InvalidCamera::new(
-                "image_size[0]",
-                "must be positive, got 0",
-            ));
-        }
-        if p.sensor.height == 0 {
-            return Err(InvalidCamera::new(
-                "image_size[1]",
-                "must be positive, got 0",
-            ));
-        }
+        check_camera_name(&p.name)?;
+        p.sensor.check_size()?;
         check_positive("pixel_size[0]", p.sensor.pixel_size_x)?;
         check_positive("pixel_size[1]", p.sensor.pixel_size_y)?;
         for (i, v) in p.exterior.position.iter().enumerate() {
@@ -635,6 +724,76 @@ mod tests {
             p2: 8.7e-6,
             scx: 1.0015,
             shear: -0.0015,
+        }
+    }
+
+    fn with(f: impl FnOnce(&mut CameraParameters)) -> Result<Camera, InvalidCamera> {
+        use crate::photogrammetry::simulate::RigSpec;
+        let mut p = RigSpec::convergent(2).build().unwrap()[0]
+            .parameters()
+            .clone();
+        f(&mut p);
+        Camera::new(p)
+    }
+
+    #[test]
+    fn sensor_sides_and_pixels_are_bounded() {
+        // At each limit accepted, one past it refused with the limit named.
+        assert!(with(|p| (p.sensor.width, p.sensor.height) = (MAX_SENSOR_SIDE, 4096)).is_ok());
+        assert_eq!(u64::from(MAX_SENSOR_SIDE) * 4096, MAX_SENSOR_PIXELS);
+        assert!(with(|p| (p.sensor.width, p.sensor.height) = (8192, 8192)).is_ok());
+        let wide = with(|p| p.sensor.width = MAX_SENSOR_SIDE + 1).unwrap_err();
+        assert_eq!(wide.field, "image_size[0]");
+        assert!(wide.reason.contains("16385 px") && wide.reason.contains("MAX_SENSOR_SIDE"));
+        let tall = with(|p| p.sensor.height = 22_000).unwrap_err();
+        assert_eq!(tall.field, "image_size[1]");
+        let many = with(|p| (p.sensor.width, p.sensor.height) = (8193, 8192)).unwrap_err();
+        assert_eq!(many.field, "image_size");
+        assert!(
+            many.reason.contains("67117056 pixels") && many.reason.contains("MAX_SENSOR_PIXELS"),
+            "{many}"
+        );
+        assert!(with(|p| p.sensor.width = 0).is_err());
+    }
+
+    #[test]
+    fn camera_names_are_short_plain_file_names() {
+        let longest = "c".repeat(MAX_CAMERA_NAME_LEN);
+        for good in [
+            "cam1",
+            "left_top.serial-1234",
+            "C",
+            "a..b",
+            longest.as_str(),
+        ] {
+            assert!(check_camera_name(good).is_ok(), "{good}");
+            assert!(with(|p| p.name = good.to_owned()).is_ok(), "{good}");
+        }
+        let too_long = "c".repeat(MAX_CAMERA_NAME_LEN + 1);
+        let huge = "x".repeat(1 << 20);
+        for (bad, problem) in [
+            ("", "is empty"),
+            (
+                too_long.as_str(),
+                "65 bytes long, more than the limit of 64",
+            ),
+            (huge.as_str(), "1048576 bytes long"),
+            ("../../etc/passwd", "character '/'"),
+            ("cam\\1", "character '\\\\'"),
+            ("cam\0x", "character '\\0'"),
+            ("cam 1", "character ' '"),
+            ("kamera\u{e9}", "character '\u{e9}'"),
+            (".hidden", "starts with `.`"),
+            ("..", "starts with `.`"),
+        ] {
+            let error = with(|p| p.name = bad.to_owned()).unwrap_err();
+            assert_eq!(error.field, "name");
+            assert!(
+                error.reason.contains(problem) && error.reason.contains("1 to 64 characters"),
+                "{bad:?}: {error}"
+            );
+            // The message quotes at most the limit's length of the name.
+            assert!(error.reason.len() < 400, "{}", error.reason.len());
         }
     }
 

@@ -257,6 +257,14 @@ impl PathEquation<'_> {
     }
 }
 
+/// The most walls a camera may look through: 8.
+///
+/// A tank has one glass wall per camera; a water-filled prism against it
+/// adds two more layers, a window with a coating or a second pane one or
+/// two. Eight leaves margin; every projection and ray costs one Newton
+/// term per layer, so the count also bounds that work.
+pub const MAX_WALLS: usize = 8;
+
 impl MediaGeometry {
     /// Validates the media for a camera at `camera` and precomputes its
     /// layers; `Ok(None)` when all indices are equal (straight rays).
@@ -274,6 +282,16 @@ impl MediaGeometry {
                 ))
             }
         };
+        if media.walls.len() > MAX_WALLS {
+            return Err(InvalidCamera::new(
+                "media.walls",
+                format!(
+                    "{} walls are more than the limit of {MAX_WALLS} (MAX_WALLS); list the \
+                     layers between the camera and the water: usually one glass wall",
+                    media.walls.len()
+                ),
+            ));
+        }
         positive("media.n_air".into(), media.n_air)?;
         positive("media.n_object".into(), media.n_object)?;
         for (i, wall) in media.walls.iter().enumerate() {
@@ -642,6 +660,27 @@ mod tests {
         let ray = geometry.trace(camera, &direction).unwrap();
         let rel = point - ray.origin;
         (rel - ray.direction * rel.dot(&ray.direction)).norm()
+    }
+
+    #[test]
+    fn at_most_max_walls() {
+        let camera = Vector3::new(0.0, 0.0, 600.0);
+        let walls = |count: usize| {
+            let wall = Wall {
+                n: 1.49,
+                thickness: 5.0,
+            };
+            water_tank(vec![wall; count], Vector3::new(0.0, 0.0, 100.0))
+        };
+        assert!(MediaGeometry::new(&walls(MAX_WALLS), &camera).is_ok());
+        let error = MediaGeometry::new(&walls(MAX_WALLS + 1), &camera).unwrap_err();
+        assert_eq!(error.field, "media.walls");
+        assert!(
+            error
+                .reason
+                .contains("9 walls are more than the limit of 8 (MAX_WALLS)"),
+            "{error}"
+        );
     }
 
     #[test]

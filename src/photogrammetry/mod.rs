@@ -29,7 +29,8 @@ pub mod target;
 pub mod volume;
 
 pub use camera::{
-    Camera, CameraParameters, Distortion, Exterior, Interior, ProjectionError, Ray, Sensor,
+    check_camera_name, Camera, CameraParameters, Distortion, Exterior, Interior, ProjectionError,
+    Ray, Sensor, MAX_CAMERA_NAME_LEN, MAX_SENSOR_PIXELS, MAX_SENSOR_SIDE,
 };
 pub use cancel::{Cancel, Cancelled, StopOnDrop};
 pub use detect::{detect, detect_cameras, DetectionParameters, InvalidDetectionParameters};

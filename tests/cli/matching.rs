@@ -287,9 +287,25 @@ fn failures_print_one_error_line() {
             "--volume: zmin (20) must be below zmax (-20)",
         ),
         ("-40,40,a,40,-20,20", "--volume: ymin is `a`, not a number"),
+        (
+            "-1e300,1e300,-1e300,1e300,-1e300,1e300",
+            "the observation volume reaches x = -1e300 mm, beyond 100 times the region the \
+             cameras see",
+        ),
+        (
+            "-inf,inf,-inf,inf,-inf,inf",
+            "no two cameras see the observation volume",
+        ),
     ] {
         fails(&run_match(&["--volume", volume], &targets), &[message]);
     }
+    fails(
+        &run_match(&["--tolerance", "1e308"], &targets),
+        &[
+            "the tolerance of 1e308 px",
+            "is wider than the sensor of camera 0",
+        ],
+    );
     fails(
         &run_match(&["--tolerance", "-1"], &targets),
         &["cannot match the targets: the tolerance must be a positive number of pixels, got -1"],

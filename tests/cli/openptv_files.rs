@@ -468,6 +468,47 @@ fn export_of_a_calibration_openptv_cannot_hold_is_refused() {
 }
 
 #[test]
+fn export_under_a_hostile_camera_name_is_impossible() {
+    // Export writes NAME.ori and NAME.addpar: a name that is a path would
+    // write outside the output directory. Such names are refused when the
+    // calibration is read, before anything is written.
+    let dir = with_calibration();
+    let mut calibration: Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.path().join("cal.json")).unwrap())
+            .unwrap();
+    for name in [
+        "../escaped",
+        "/tmp/ptv-absolute",
+        "..",
+        "a\\b",
+        ".hidden",
+        "cam\u{0}1",
+        &"n".repeat(65),
+    ] {
+        calibration["cameras"][0]["name"] = Value::from(name);
+        std::fs::write(dir.path().join("hostile.json"), calibration.to_string()).unwrap();
+        let output = ptv(
+            &[
+                "calibration",
+                "export-openptv",
+                "--calibration",
+                "hostile.json",
+                "--out-dir",
+                "out/deeper",
+            ],
+            dir.path(),
+        );
+        fails(
+            &output,
+            &["hostile.json", "cameras[0].name", "1 to 64 characters"],
+        );
+        assert!(!dir.path().join("out").exists(), "{name:?}");
+        assert!(!dir.path().join("escaped.ori").exists());
+        assert!(!Path::new("/tmp/ptv-absolute.ori").exists());
+    }
+}
+
+#[test]
 fn help_lists_the_commands_and_no_subcommand_serves() {
     let dir = tempfile::tempdir().unwrap();
     let output = ptv(&["--help"], dir.path());

@@ -39,9 +39,13 @@
 //!    ([`intersect_from`](super::intersect::intersect_from)), with standard deviations and residuals; a group
 //!    whose largest residual exceeds the acceptance is dropped.
 //!
-//! There is no fixed limit on cameras or targets: memory grows linearly
-//! with the targets, and the work with the targets times the (small) number
-//! of band candidates.
+//! Memory grows linearly with the targets, and the work with the targets
+//! times the (small) number of band candidates. The inputs are bounded by
+//! what the physics and the machine allow: at most [`MAX_CAMERAS`]
+//! cameras, at most one target per 2x2 pixels of a camera's sensor and
+//! [`MAX_TARGETS_PER_CAMERA`] ([`max_targets`]), a
+//! tolerance no wider than the sensor and a volume the cameras see
+//! ([`Matcher::new`]).
 //!
 //! The files follow the seams of the method: `matcher.rs`, the
 //! [`Matcher`] (preparation per calibration, seed pairs, the checks of a
@@ -58,11 +62,22 @@ mod search;
 use nalgebra::{Point2, Point3, Vector3};
 use serde::{Deserialize, Serialize};
 
-use super::camera::{Camera, Ray};
+use super::camera::{Camera, Ray, Sensor};
 use super::intersect::ray_midpoint;
 use super::volume::Volume;
 
 pub use matcher::Matcher;
+
+/// The most cameras a rig may have: 16.
+///
+/// The method needs 2 cameras and gains little beyond 4 (the design
+/// paper's Table 2: a fourth camera cuts the ambiguities by an order of
+/// magnitude); rigs people build have 2..8 (the simulator's range). Twice
+/// the largest leaves margin. Preparation grows with the square of the
+/// cameras (an epipolar geometry per ordered pair, refraction tables per
+/// camera) and every per-point answer with the cameras, so the limit also
+/// bounds those: 16 cameras are 240 camera pairs.
+pub const MAX_CAMERAS: usize = 16;
 
 /// Default epipolar band half-width (px).
 pub const DEFAULT_TOLERANCE_PX: f64 = 1.0;
@@ -110,6 +125,12 @@ pub enum MatchError {
     /// Fewer than two cameras.
     #[error("matching needs at least 2 cameras, the calibration has {0}")]
     TooFewCameras(usize),
+    /// More than [`MAX_CAMERAS`] cameras.
+    #[error(
+        "matching takes at most {MAX_CAMERAS} cameras (MAX_CAMERAS), the calibration has {0}; \
+         match a subset of the cameras"
+    )]
+    TooManyCameras(usize),
     /// A target list per camera is expected.
     #[error("got targets for {targets} cameras, but the calibration has {cameras}; give one target list per camera, in camera order")]
     CameraCount {
@@ -121,6 +142,22 @@ pub enum MatchError {
     /// The tolerance must be positive and finite.
     #[error("the tolerance must be a positive number of pixels, got {0}")]
     Tolerance(f64),
+    /// A tolerance wider than a camera's sensor: a band that covers the
+    /// whole image selects nothing.
+    #[error(
+        "the tolerance of {} px is wider than the sensor of camera {camera} (its diagonal, \
+         {diagonal:.0} px, is the limit): an epipolar band that wide covers the whole image; \
+         give the image measurement's uncertainty, typically 0.2..2 px",
+        readable(*.tolerance)
+    )]
+    ToleranceTooWide {
+        /// The tolerance given (px).
+        tolerance: f64,
+        /// The camera (0-based) with the smallest sensor.
+        camera: usize,
+        /// Its sensor's diagonal (px).
+        diagonal: f64,
+    },
     /// No volume was given, and the cameras have no common view to take one
     /// from (see [`default_volume`]).
     #[error(
@@ -136,6 +173,53 @@ pub enum MatchError {
         .0.min.x, .0.max.x, .0.min.y, .0.max.y, .0.min.z, .0.max.z
     )]
     EmptyVolume(Volume),
+    /// A volume that reaches far beyond the region the cameras see.
+    #[error(
+        "the observation volume reaches {axis} = {} mm, beyond {VOLUME_REACH} times the region \
+         the cameras see ({region}); give a volume around the particles, within {axis} \
+         {low:.1}..{high:.1} mm, or none to use that region",
+        readable(*.value)
+    )]
+    VolumeTooLarge {
+        /// The axis: `x`, `y` or `z`.
+        axis: char,
+        /// The bound that reaches too far (mm).
+        value: f64,
+        /// The region the volume is compared with, described.
+        region: String,
+        /// The lowest bound allowed on this axis (mm).
+        low: f64,
+        /// The highest bound allowed on this axis (mm).
+        high: f64,
+    },
+    /// A volume that no two cameras see.
+    #[error(
+        "no two cameras see the observation volume x {}..{}, y {}..{}, z {}..{} mm (the \
+         region they see: {region}); give a volume inside their common field of view, or none \
+         to use that region",
+        .volume.min.x, .volume.max.x, .volume.min.y, .volume.max.y, .volume.min.z, .volume.max.z
+    )]
+    VolumeNotSeen {
+        /// The volume given.
+        volume: Volume,
+        /// The region the cameras see, described.
+        region: String,
+    },
+    /// More targets in one camera than its sensor can hold.
+    #[error(
+        "camera {camera} has {count} targets, more than the limit of {limit} for its sensor: \
+         at most one particle image per 2x2 pixels, and at most {MAX_TARGETS_PER_CAMERA} per \
+         camera (MAX_TARGETS_PER_CAMERA); give this camera's targets of one frame, or raise \
+         the detection threshold"
+    )]
+    TooManyTargets {
+        /// The camera (0-based).
+        camera: usize,
+        /// Its targets.
+        count: usize,
+        /// The limit, [`max_targets`] of its sensor.
+        limit: usize,
+    },
     /// `min_cameras` out of range.
     #[error("min_cameras must be between 2 and the number of cameras ({cameras}), got {min}")]
     MinCameras {
@@ -158,6 +242,50 @@ pub enum MatchError {
     /// The search was stopped ([`Matcher::match_frame_until`]).
     #[error("matching {0}")]
     Cancelled(#[from] crate::photogrammetry::cancel::Cancelled),
+}
+
+/// A number for a message: as it is, or in exponent form when huge.
+fn readable(value: f64) -> String {
+    if value.abs() < 1e7 {
+        format!("{value}")
+    } else {
+        format!("{value:e}")
+    }
+}
+
+/// How many times the region the cameras see a volume's bounds may reach:
+/// 100. A given volume is usually a little larger or smaller than that
+/// region (the tank, the light sheet), never a hundred times: each
+/// finite bound must lie within the region scaled 100 times about its
+/// centre. Beyond that a volume is a typo or a placeholder (±1e300 mm
+/// leaves the epipolar segments too long to sample, and found nothing).
+pub const VOLUME_REACH: f64 = 100.0;
+
+/// The most targets any camera may have in one frame, whatever its
+/// sensor: 2^20 (1,048,576), what the machine allows.
+///
+/// Matching holds about 250 bytes per target (measured: 8 cameras x
+/// 100,000 targets peaked at 213 MB, the parsed files included), so this
+/// is about 256 MiB per camera and 4 GiB for [`MAX_CAMERAS`]. It is 0.25
+/// particles per pixel of a 4 Mpx sensor, denser than any frame that can
+/// be matched (PTV works to about 0.05 particles per pixel, iterative
+/// methods to 0.1); larger sensors reach it only with frames that dense.
+pub const MAX_TARGETS_PER_CAMERA: usize = 1 << 20;
+
+/// The most targets a camera of this sensor can have in one frame:
+/// one per 2x2 pixels, `ceil(width / 2) * ceil(height / 2)`, and at most
+/// [`MAX_TARGETS_PER_CAMERA`].
+///
+/// A particle image is at least one pixel, and two particle images are
+/// told apart only with a pixel between them: the detector's 8-connected
+/// blobs split at grey value minima, so two targets' brightest pixels are
+/// never neighbours, and each 2x2 block of pixels holds at most one. No
+/// detector separates more; a list with more targets is not one frame of
+/// this sensor. (Real frames are far sparser: 0.005..0.05 particles per
+/// pixel.)
+pub fn max_targets(sensor: &Sensor) -> usize {
+    let half = |side: u32| side.div_ceil(2) as usize;
+    (half(sensor.width) * half(sensor.height)).min(MAX_TARGETS_PER_CAMERA)
 }
 
 /// A particle found in the frame.
@@ -223,6 +351,57 @@ pub fn default_volume(cameras: &[Camera]) -> Option<Volume> {
 mod tests {
     use super::*;
     use crate::photogrammetry::simulate::{self, RigSpec};
+    use proptest::prelude::*;
+
+    proptest! {
+        /// The bound of `max_targets` holds for the detector on any image:
+        /// random grey values (the densest maxima there are), no filters.
+        #[test]
+        fn the_detector_never_finds_more_than_max_targets(
+            (width, height, pixels) in (1u32..40, 1u32..40).prop_flat_map(|(w, h)| {
+                (Just(w), Just(h), prop::collection::vec(any::<u8>(), (w * h) as usize))
+            }),
+            split_depth in 0u16..3,
+        ) {
+            use crate::photogrammetry::{detect, DetectionParameters, GreyImage};
+            let image = GreyImage::from_u8(width, height, pixels).unwrap();
+            let parameters = DetectionParameters {
+                threshold: 0,
+                highpass_radius: 0,
+                min_pixels: 1,
+                max_pixels: u32::MAX,
+                max_nx: u32::MAX,
+                max_ny: u32::MAX,
+                split_depth,
+                ..DetectionParameters::default()
+            };
+            let sensor = Sensor { width, height, pixel_size_x: 0.01, pixel_size_y: 0.01 };
+            let found = detect(&image, &parameters).len();
+            prop_assert!(found <= max_targets(&sensor), "{found} > {}", max_targets(&sensor));
+        }
+    }
+
+    #[test]
+    fn max_targets_is_one_per_two_by_two_pixels() {
+        let sensor = |width, height| Sensor {
+            width,
+            height,
+            pixel_size_x: 0.01,
+            pixel_size_y: 0.01,
+        };
+        assert_eq!(max_targets(&sensor(1280, 1024)), 327_680);
+        assert_eq!(max_targets(&sensor(1, 1)), 1);
+        assert_eq!(max_targets(&sensor(3, 5)), 6);
+        // 2048 x 2048 px hold exactly the machine's limit; larger sensors
+        // are capped by it.
+        assert_eq!(max_targets(&sensor(2048, 2048)), MAX_TARGETS_PER_CAMERA);
+        assert_eq!(max_targets(&sensor(2050, 2048)), MAX_TARGETS_PER_CAMERA);
+        assert_eq!(
+            max_targets(&sensor(2046, 2048)),
+            MAX_TARGETS_PER_CAMERA - 1024
+        );
+        assert_eq!(max_targets(&sensor(8192, 8192)), MAX_TARGETS_PER_CAMERA);
+    }
 
     #[test]
     fn default_volume_covers_the_simulated_volume() {
