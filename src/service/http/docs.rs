@@ -36,6 +36,7 @@ use crate::service::parameters;
         sequences::frame_targets,
         sequences::all_particles,
         jobs::read,
+        jobs::retry,
         super::healthz,
         super::metrics,
     ),
