@@ -9,9 +9,13 @@
 //!   database consistent.
 //! - `layers`: what every request passes through: request ids, gzip,
 //!   header and body timeouts, the early 413, the bearer token.
+//! - `recovery`: a full disk (SQLite's page limit as fault injection) is a
+//!   507 and the service recovers without a restart; a failed frame is
+//!   processed after `POST /jobs/{id}/retry`.
 
 mod api;
 mod bad_inputs;
 mod helpers;
 mod layers;
+mod recovery;
 mod reliability;
