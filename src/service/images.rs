@@ -213,10 +213,7 @@ mod tests {
     fn a_full_disk_is_told_from_other_io_errors() {
         assert!(is_storage_full(&io::Error::from_raw_os_error(28)));
         assert!(!is_storage_full(&io::Error::from_raw_os_error(13)));
-        assert!(!is_storage_full(&io::Error::new(
-            io::ErrorKind::Other,
-            "no space"
-        )));
+        assert!(!is_storage_full(&io::Error::other("no space")));
     }
 
     /// Writes to `/dev/full` fail with ENOSPC, as on a full disk.
