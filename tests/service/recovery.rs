@@ -223,3 +223,70 @@ async fn a_failed_frame_is_processed_after_a_retry() {
     assert_eq!(status, 404, "{body}");
     app.stop().await;
 }
+
+/// A real full disk: the data directory on a 16 MiB tmpfs, filled by
+/// another file. Needs the right to mount (root); skipped otherwise.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_real_full_disk_is_a_507_and_freeing_space_is_enough() {
+    let mount = tempfile::tempdir().unwrap();
+    let mounted = std::process::Command::new("mount")
+        .args(["-t", "tmpfs", "-o", "size=16m", "tmpfs"])
+        .arg(mount.path())
+        .status()
+        .is_ok_and(|status| status.success());
+    if !mounted {
+        eprintln!("skipped: cannot mount a tmpfs here");
+        return;
+    }
+    /// Unmounts when the test ends, however it ends.
+    struct Unmount(std::path::PathBuf);
+    impl Drop for Unmount {
+        fn drop(&mut self) {
+            let _ = std::process::Command::new("umount")
+                .arg("-l")
+                .arg(&self.0)
+                .status();
+        }
+    }
+    let _unmount = Unmount(mount.path().to_owned());
+    let data_dir = mount.path().join("data");
+    let app = spawn_app_configured(|args| args.data_dir = data_dir.clone()).await;
+    let (rig, sequence) = app.rig_sequence().await;
+    let calibration = ptv::formats::calibration::to_json(&rig.cameras);
+
+    // Fill the disk.
+    let filler = mount.path().join("filler");
+    {
+        use std::io::Write;
+        let mut file = std::fs::File::create(&filler).unwrap();
+        let chunk = vec![0u8; 1 << 16];
+        while file.write_all(&chunk).is_ok() {}
+        let _ = file.sync_all();
+    }
+    let mut created = 0;
+    let (status, retry_after, body) = loop {
+        let answer = create_calibration(&app, &calibration).await;
+        if answer.0 != 201 {
+            break answer;
+        }
+        created += 1;
+        assert!(created < 10_000, "the disk never filled");
+    };
+    assert_eq!(status, 507, "{body}");
+    assert_eq!(retry_after.as_deref(), Some("30"), "{body}");
+    let files: Vec<Vec<u8>> = rig.render(100, 4).images.iter().map(png).collect();
+    let (status, body) = app.upload(sequence, image_form(0, &files)).await;
+    assert_eq!(status, 507, "{body}");
+
+    // Free the space: no restart.
+    std::fs::remove_file(&filler).unwrap();
+    for _ in 0..5 {
+        let (status, _, body) = create_calibration(&app, &calibration).await;
+        assert_eq!(status, 201, "{body}");
+    }
+    let (status, body) = app.upload(sequence, image_form(0, &files)).await;
+    assert_eq!(status, 202, "{body}");
+    let view = app.wait_for_sequence(sequence).await;
+    assert_eq!(view["frames"]["done"], 1, "{view}");
+    app.stop().await;
+}
