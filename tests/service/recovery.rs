@@ -90,6 +90,10 @@ async fn a_full_disk_is_a_507_and_the_service_recovers_without_a_restart() {
     let (status, body) = app.get_json(&format!("/sequences/{sequence}")).await;
     assert_eq!(status, 200, "{body}");
     app.get_text(format!("{}/healthz", app.address)).await;
+    assert_eq!(
+        app.get_text(format!("{}/readyz", app.address)).await,
+        "ready\n"
+    );
 
     // The frame's attempt found the disk full: it is queued again, not
     // failed, its images kept although the sequence keeps none.

@@ -38,6 +38,7 @@ use crate::service::parameters;
         jobs::read,
         jobs::retry,
         super::healthz,
+        super::readyz,
         super::metrics,
     ),
     components(schemas(

@@ -369,6 +369,20 @@ impl Store {
         self.writer.begin_with("BEGIN IMMEDIATE").await
     }
 
+    /// Readiness: the writer takes SQLite's write lock (`BEGIN
+    /// IMMEDIATE`, then `ROLLBACK`: nothing written) within `within`. A
+    /// full disk does not show here (only a write that needs space finds
+    /// it); a writer that cannot be opened or locked does.
+    pub async fn ready(&self, within: Duration) -> Result<(), sqlx::Error> {
+        tokio::time::timeout(within, async {
+            let mut conn = self.writer.acquire().await?;
+            conn.execute("BEGIN IMMEDIATE; ROLLBACK").await?;
+            Ok(())
+        })
+        .await
+        .unwrap_or(Err(sqlx::Error::PoolTimedOut))
+    }
+
     /// Closes both pools.
     pub async fn close(&self) {
         self.writer.close().await;
@@ -477,6 +491,26 @@ mod tests {
         for _ in 0..3 {
             write(&store, 10).await.unwrap();
         }
+        store.close().await;
+    }
+
+    /// Ready while the writer can take the write lock; not while another
+    /// process holds it.
+    #[tokio::test]
+    async fn ready_means_the_write_lock_can_be_taken() {
+        let dir = tempfile::tempdir().unwrap();
+        let store = Store::open(dir.path(), 1).await.unwrap();
+        store.ready(Duration::from_secs(5)).await.unwrap();
+        let other = SqlitePoolOptions::new()
+            .max_connections(1)
+            .connect_with(SqliteConnectOptions::new().filename(dir.path().join("ptv.sqlite")))
+            .await
+            .unwrap();
+        let lock = other.begin_with("BEGIN IMMEDIATE").await.unwrap();
+        assert!(store.ready(Duration::from_millis(300)).await.is_err());
+        lock.rollback().await.unwrap();
+        store.ready(Duration::from_secs(5)).await.unwrap();
+        other.close().await;
         store.close().await;
     }
 
