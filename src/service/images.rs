@@ -15,6 +15,28 @@ use sha2::{Digest, Sha256};
 use tokio::io::AsyncWriteExt;
 use tokio::sync::{Mutex, MutexGuard};
 
+/// The operating system's "no space left on device" (ENOSPC: 28 on Linux
+/// and the BSDs) and "disk quota exceeded" (EDQUOT) codes;
+/// `io::ErrorKind::StorageFull` would say it by kind, but needs a newer
+/// Rust than this crate's minimum.
+#[cfg(target_os = "linux")]
+const STORAGE_FULL_CODES: &[i32] = &[28, 122];
+#[cfg(all(unix, not(target_os = "linux")))]
+const STORAGE_FULL_CODES: &[i32] = &[28, 69];
+/// Windows' ERROR_HANDLE_DISK_FULL and ERROR_DISK_FULL.
+#[cfg(windows)]
+const STORAGE_FULL_CODES: &[i32] = &[39, 112];
+#[cfg(not(any(unix, windows)))]
+const STORAGE_FULL_CODES: &[i32] = &[];
+
+/// Whether an I/O error means that the disk is full (or the quota used
+/// up): what an upload or the database answers with a 507.
+pub fn is_storage_full(error: &io::Error) -> bool {
+    error
+        .raw_os_error()
+        .is_some_and(|code| STORAGE_FULL_CODES.contains(&code))
+}
+
 /// The files of uploaded images.
 #[derive(Debug)]
 pub struct ImageStore {
@@ -180,5 +202,39 @@ impl Drop for Upload {
         if !self.path.as_os_str().is_empty() {
             let _ = std::fs::remove_file(&self.path);
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_full_disk_is_told_from_other_io_errors() {
+        assert!(is_storage_full(&io::Error::from_raw_os_error(28)));
+        assert!(!is_storage_full(&io::Error::from_raw_os_error(13)));
+        assert!(!is_storage_full(&io::Error::other("no space")));
+    }
+
+    /// Writes to `/dev/full` fail with ENOSPC, as on a full disk.
+    #[cfg(target_os = "linux")]
+    #[tokio::test]
+    async fn an_upload_to_a_full_disk_fails_as_storage_full() {
+        let mut upload = Upload {
+            file: tokio::fs::OpenOptions::new()
+                .write(true)
+                .open("/dev/full")
+                .await
+                .unwrap(),
+            path: PathBuf::new(),
+            hasher: Sha256::new(),
+            size: 0,
+        };
+        let mut error = upload.write(&[0; 1 << 16]).await.err();
+        if error.is_none() {
+            error = upload.finish().await.err();
+        }
+        let error = error.expect("a write to /dev/full fails");
+        assert!(is_storage_full(&error), "{error:?}");
     }
 }

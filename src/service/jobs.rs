@@ -64,10 +64,20 @@ pub enum JobError {
     /// [`MAX_ATTEMPTS`] claims.
     #[error("{0}")]
     Retry(String),
+    /// The disk is full (the database's or the image store's): not the
+    /// job's fault, so the attempt is given back uncounted and the job
+    /// queued again, however often, the worker pausing
+    /// [`STORAGE_FULL_PAUSE`] before its next claim.
+    #[error("{0}")]
+    StorageFull(String),
     /// The worker no longer holds the job; nothing to do.
     #[error("lost the job's claim")]
     LostLease,
 }
+
+/// How long a worker waits after an attempt that found the disk full
+/// before it claims again (or tries again to give the job back).
+pub const STORAGE_FULL_PAUSE: Duration = Duration::from_secs(2);
 
 impl JobError {
     /// The job cannot succeed: it fails with `error` and its causes as
@@ -79,7 +89,11 @@ impl JobError {
 
 impl From<sqlx::Error> for JobError {
     fn from(error: sqlx::Error) -> Self {
-        JobError::Retry(format!("database: {error}"))
+        if super::store::is_storage_full(&error) {
+            JobError::StorageFull(format!("the disk is full; waiting for space: {error}"))
+        } else {
+            JobError::Retry(format!("database: {error}"))
+        }
     }
 }
 
@@ -418,6 +432,18 @@ async fn execute(state: &Arc<AppState>, kinds: &JobKinds, job: ClaimedJob) {
                 tracing::error!(job = %job.id, %error, "cannot record a failure");
             }
             "failed"
+        }
+        Err(JobError::StorageFull(message)) => {
+            tracing::warn!(job = %job.id, %message, "the disk is full; job queued again");
+            // Giving the job back is a write too: on a full disk it may
+            // fail, so keep trying (a shutdown's grace period ends this,
+            // and the job then goes back with the others held).
+            while let Err(error) = state.store.give_back(&job, &message).await {
+                tracing::error!(job = %job.id, %error, "cannot queue a job again");
+                tokio::time::sleep(STORAGE_FULL_PAUSE).await;
+            }
+            tokio::time::sleep(STORAGE_FULL_PAUSE).await;
+            "storage_full"
         }
     };
     state.metrics.job(&kind, label, seconds);

@@ -32,6 +32,9 @@ pub struct TestApp {
     pub client: reqwest::Client,
     /// The data directory (removed on drop).
     pub data_dir: TempDir,
+    /// What the service's handlers and workers share (its store, for
+    /// fault injection).
+    pub state: std::sync::Arc<ptv::service::AppState>,
     stop: Option<oneshot::Sender<()>>,
     server: Option<JoinHandle<()>>,
 }
@@ -83,6 +86,7 @@ async fn spawn(data_dir: TempDir, api_token: Option<&str>) -> TestApp {
 async fn spawn_with_args(data_dir: TempDir, args: ServeArgs) -> TestApp {
     let app = Application::build(args).await.expect("the service starts");
     let address = format!("http://{}", app.local_addr().unwrap());
+    let state = app.state();
     let (stop, stopped) = oneshot::channel::<()>();
     let server = tokio::spawn(async move {
         app.run_until(async {
@@ -95,6 +99,7 @@ async fn spawn_with_args(data_dir: TempDir, args: ServeArgs) -> TestApp {
         address,
         client: reqwest::Client::new(),
         data_dir,
+        state,
         stop: Some(stop),
         server: Some(server),
     }

@@ -16,6 +16,9 @@
 //!   `PTV_FUZZ_CASES` for longer runs), and the 10,000-camera calibration.
 //! - `connections`: the connection limit under idle and slowloris
 //!   connections, and refused uploads drained before the close.
+//! - `recovery`: a full disk (SQLite's page limit as fault injection) is a
+//!   507 and the service recovers without a restart; a failed frame is
+//!   processed after `POST /jobs/{id}/retry`.
 
 mod api;
 mod bad_inputs;
@@ -24,4 +27,5 @@ mod fuzz;
 mod helpers;
 mod job_bounds;
 mod layers;
+mod recovery;
 mod reliability;

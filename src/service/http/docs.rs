@@ -36,7 +36,9 @@ use crate::service::parameters;
         sequences::frame_targets,
         sequences::all_particles,
         jobs::read,
+        jobs::retry,
         super::healthz,
+        super::readyz,
         super::metrics,
     ),
     components(schemas(

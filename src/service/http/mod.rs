@@ -50,6 +50,7 @@ pub fn router(state: Arc<AppState>) -> Router {
     let routes = Router::new()
         .nest("/api/v1", api)
         .route("/healthz", get(healthz))
+        .route("/readyz", get(readyz))
         .route("/metrics", get(metrics))
         .merge(docs::router())
         .fallback(not_found)
@@ -62,6 +63,27 @@ pub fn router(state: Arc<AppState>) -> Router {
     responses((status = 200, content_type = "text/plain", body = String)))]
 pub async fn healthz() -> &'static str {
     "ok\n"
+}
+
+/// Readiness: 200 `ready` when the database takes a write lock within
+/// 5 s, else 503 (problem+json): the service cannot store anything now.
+/// `/healthz` stays liveness.
+#[utoipa::path(get, path = "/readyz", tag = "operations", security(()),
+    responses(
+        (status = 200, content_type = "text/plain", body = String),
+        (status = 503, body = problem::Problem, content_type = "application/problem+json"),
+    ))]
+pub async fn readyz(State(state): Shared) -> Result<&'static str, ApiError> {
+    match state.store.ready(std::time::Duration::from_secs(5)).await {
+        Ok(()) => Ok("ready\n"),
+        Err(error) => {
+            tracing::warn!(%error, "not ready");
+            Err(ApiError::new(
+                StatusCode::SERVICE_UNAVAILABLE,
+                "the database cannot take writes now; the error is in the service's log",
+            ))
+        }
+    }
 }
 
 /// Counters in Prometheus' text format: requests by route and status,

@@ -3,7 +3,10 @@
 //! whose rejections use it.
 //!
 //! Database and other internal errors are logged and answered as a 500
-//! without their details; everything a caller can cause is a 4xx. The
+//! without their details; everything a caller can cause is a 4xx. A full
+//! disk, the database's (SQLITE_FULL) or the image store's (ENOSPC), is a
+//! 507 with `Retry-After`: nothing is stored, and the same request may
+//! succeed once space is freed, without a restart. The
 //! status follows from the error's type (the `From` impls below, as
 //! realworld-axum-sqlx maps its errors), so handlers use `?`.
 
@@ -24,8 +27,9 @@ use crate::photogrammetry::{
     IntersectionError, InvalidDetectionParameters, PipelineError, SensorMismatch,
 };
 use crate::service::codec::DamagedBlob;
+use crate::service::images;
 use crate::service::jobs::{error_chain, CpuError, PrepareError};
-use crate::service::store::InsertFrameError;
+use crate::service::store::{self, InsertFrameError};
 
 /// An RFC 9457 problem document.
 #[derive(Debug, Serialize, ToSchema)]
@@ -46,7 +50,13 @@ pub struct Problem {
 pub struct ApiError {
     status: StatusCode,
     detail: String,
+    /// Seconds for `Retry-After`, if the request may succeed later.
+    retry_after: Option<u32>,
 }
+
+/// `Retry-After` of a 507: how long a client should wait before trying
+/// again once the service's disk was full.
+pub const STORAGE_FULL_RETRY_AFTER_S: u32 = 30;
 
 impl ApiError {
     /// An error of `status` with `detail`.
@@ -54,6 +64,7 @@ impl ApiError {
         ApiError {
             status,
             detail: detail.into(),
+            retry_after: None,
         }
     }
     /// 400: the request is malformed.
@@ -88,6 +99,18 @@ impl ApiError {
             "the service failed; the error is in its log",
         )
     }
+    /// 507: the disk is full; logged, answered with `Retry-After`.
+    pub fn storage_full(error: impl std::fmt::Display) -> ApiError {
+        tracing::error!(%error, "storage full");
+        ApiError {
+            retry_after: Some(STORAGE_FULL_RETRY_AFTER_S),
+            ..ApiError::new(
+                StatusCode::INSUFFICIENT_STORAGE,
+                "the service's disk is full; nothing was stored. Try again later \
+                 (Retry-After); the service recovers by itself once space is freed",
+            )
+        }
+    }
     /// The status.
     pub fn status(&self) -> StatusCode {
         self.status
@@ -117,8 +140,6 @@ macro_rules! status_of {
 // service's own documents (stored rows, payloads); request bodies are read
 // by `parse_json`.
 status_of!(ApiError::internal =>
-    sqlx::Error,
-    std::io::Error,
     serde_json::Error,
     tokio::task::JoinError,
     CpuError,
@@ -135,6 +156,28 @@ status_of!(|error| ApiError::unprocessable(error_chain(&error)) =>
     InvalidDetectionParameters,
     SensorMismatch,
 );
+
+impl From<sqlx::Error> for ApiError {
+    /// A full disk is a 507; any other database error a 500.
+    fn from(error: sqlx::Error) -> Self {
+        if store::is_storage_full(&error) {
+            ApiError::storage_full(error)
+        } else {
+            ApiError::internal(error)
+        }
+    }
+}
+
+impl From<std::io::Error> for ApiError {
+    /// A full disk (ENOSPC) is a 507; any other I/O error a 500.
+    fn from(error: std::io::Error) -> Self {
+        if images::is_storage_full(&error) {
+            ApiError::storage_full(error)
+        } else {
+            ApiError::internal(error)
+        }
+    }
+}
 
 impl From<FormatError> for ApiError {
     /// A file the caller gave that does not parse is a 422, an image of a
@@ -187,12 +230,18 @@ impl IntoResponse for ApiError {
             detail: self.detail,
         };
         let body = serde_json::to_vec(&problem).unwrap_or_default();
-        (
+        let mut response = (
             self.status,
             [(header::CONTENT_TYPE, "application/problem+json")],
             body,
         )
-            .into_response()
+            .into_response();
+        if let Some(seconds) = self.retry_after {
+            response
+                .headers_mut()
+                .insert(header::RETRY_AFTER, seconds.into());
+        }
+        response
     }
 }
 
@@ -341,5 +390,29 @@ pub fn multipart_error(error: axum::extract::multipart::MultipartError) -> ApiEr
                 error.body_text()
             ),
         )
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_full_disk_is_a_507_with_retry_after() {
+        for error in [
+            ApiError::from(std::io::Error::from_raw_os_error(28)),
+            ApiError::from(sqlx::Error::Io(std::io::Error::from_raw_os_error(28))),
+        ] {
+            let response = error.into_response();
+            assert_eq!(response.status(), StatusCode::INSUFFICIENT_STORAGE);
+            assert_eq!(response.headers()[header::RETRY_AFTER], "30");
+            assert_eq!(
+                response.headers()[header::CONTENT_TYPE],
+                "application/problem+json"
+            );
+        }
+        let other = ApiError::from(std::io::Error::from_raw_os_error(13)).into_response();
+        assert_eq!(other.status(), StatusCode::INTERNAL_SERVER_ERROR);
+        assert!(other.headers().get(header::RETRY_AFTER).is_none());
     }
 }

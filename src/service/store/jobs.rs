@@ -5,8 +5,8 @@ use sqlx::sqlite::SqliteRow;
 use sqlx::{FromRow, Row, Sqlite, Transaction};
 
 use super::{
-    stored_as_text, text_column, CalibrationId, CompleteError, FrameNumber, JobId, SequenceId,
-    Store,
+    decode_text, stored_as_text, text_column, CalibrationId, CompleteError, FrameNumber, JobId,
+    SequenceId, Store,
 };
 
 /// How often a job may be claimed before a crash-looping one is failed.
@@ -31,6 +31,17 @@ stored_as_text!(JobState, "job state", {
     Succeeded => "succeeded",
     Failed => "failed",
 });
+
+/// What [`Store::retry`] did.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum RetryOutcome {
+    /// The failed job is queued again.
+    Queued,
+    /// The job is not failed, but in this state; nothing changed.
+    NotFailed(JobState),
+    /// No job has this id.
+    Unknown,
+}
 
 /// A stored job.
 #[derive(Clone, Debug)]
@@ -199,6 +210,52 @@ impl Store {
         .execute(&self.writer)
         .await?;
         Ok(())
+    }
+
+    /// Returns a job the worker holds to the queue without counting the
+    /// claim (its attempt failed for want of disk space, which is not the
+    /// job's fault): `attempts` goes back by one, `error` says why.
+    pub async fn give_back(&self, job: &ClaimedJob, error: &str) -> Result<(), sqlx::Error> {
+        sqlx::query(
+            "UPDATE jobs SET state = 'queued', attempts = max(attempts - 1, 0), error = ?, \
+             locked_by = NULL WHERE id = ? AND state = 'running' AND locked_by = ?",
+        )
+        .bind(error)
+        .bind(job.id)
+        .bind(&job.locked_by)
+        .execute(&self.writer)
+        .await?;
+        Ok(())
+    }
+
+    /// Queues a failed job again with its attempts reset (`POST
+    /// /jobs/{id}/retry`); its error stays until it runs. What it works on
+    /// is still there: a frame's images and targets and a solve's files
+    /// go only when their job succeeds.
+    pub async fn retry(&self, id: JobId) -> Result<RetryOutcome, sqlx::Error> {
+        let mut tx = self.write_transaction().await?;
+        let state: Option<(String,)> = sqlx::query_as("SELECT state FROM jobs WHERE id = ?")
+            .bind(id)
+            .fetch_optional(&mut *tx)
+            .await?;
+        let outcome = match state {
+            None => RetryOutcome::Unknown,
+            Some((state,)) => match decode_text("state", &state)? {
+                JobState::Failed => {
+                    sqlx::query(
+                        "UPDATE jobs SET state = 'queued', attempts = 0, locked_by = NULL, \
+                         finished_at = NULL, duration_s = NULL WHERE id = ?",
+                    )
+                    .bind(id)
+                    .execute(&mut *tx)
+                    .await?;
+                    RetryOutcome::Queued
+                }
+                other => RetryOutcome::NotFailed(other),
+            },
+        };
+        tx.commit().await?;
+        Ok(outcome)
     }
 
     /// The reaper, run at start-up before any worker: a job left running

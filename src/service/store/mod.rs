@@ -9,6 +9,30 @@
 //! time (no database at build time); their results map onto `FromRow`
 //! structs (`FromRow` written out, no derive macros).
 //!
+//! **No connection is left inside a transaction.** A failed statement or
+//! `COMMIT` leaves sqlx's `Transaction` to be dropped, which only queues a
+//! `ROLLBACK` for the connection's next use. If SQLite already ended the
+//! transaction itself (it may, on SQLITE_FULL, SQLITE_IOERR or
+//! SQLITE_NOMEM), that `ROLLBACK` fails ("no transaction is active") and
+//! sqlx's transaction depth stays at 1, so that every later `BEGIN
+//! IMMEDIATE` on the one writer fails ("attempted to call begin_with at
+//! non-zero transaction depth") until the process restarts. The writer
+//! pool therefore checks every connection it gets back
+//! (`after_release`, [`left_clean`]): the queued rollback has run by then
+//! (the connection's worker runs its commands in order), and a connection
+//! that sqlx or SQLite still thinks inside a transaction is closed, not
+//! returned (closing rolls back whatever SQLite still holds). The next
+//! write opens a fresh connection. One check at the pool covers every
+//! write path, transactions and single statements alike, and also a
+//! transaction whose future was cancelled; an explicit rollback in each
+//! path would add nothing the queued one does not do.
+//!
+//! **A full disk** (SQLITE_FULL, [`is_storage_full`]) is an error of its
+//! own kind to the callers: a 507 with `Retry-After` to a client, a job
+//! attempt given back to the queue ([`Store::give_back`]) rather than
+//! counted. [`Store::set_max_page_count`] makes the writer fail exactly so
+//! (SQLite's page limit), for tests.
+//!
 //! One file per table group, each with its own `impl Store`:
 //! [`calibrations`](self::calibrations), [`sequences`](self::sequences)
 //! (sequences and their frames' inputs and results) and [`jobs`](self::jobs)
@@ -22,6 +46,8 @@ mod sequences;
 
 use std::path::Path;
 use std::str::FromStr;
+use std::sync::atomic::{AtomicU32, Ordering};
+use std::sync::Arc;
 use std::time::Duration;
 
 use std::future::Future;
@@ -30,15 +56,15 @@ use std::pin::Pin;
 use sqlx::error::BoxDynError;
 use sqlx::migrate::{Migration, MigrationSource, MigrationType, Migrator};
 use sqlx::sqlite::{
-    SqliteConnectOptions, SqliteJournalMode, SqlitePool, SqlitePoolOptions, SqliteRow,
-    SqliteSynchronous,
+    SqliteConnectOptions, SqliteConnection, SqliteJournalMode, SqlitePool, SqlitePoolOptions,
+    SqliteRow, SqliteSynchronous,
 };
-use sqlx::Row;
+use sqlx::{Database, Executor, Row, Sqlite, TransactionManager};
 
 pub use self::calibrations::{insert_calibration, CalibrationRow};
 pub use self::ids::{CalibrationId, FrameNumber, JobId, SequenceId};
 pub use self::jobs::{
-    enqueue, finish, ClaimedJob, JobFile, JobResult, JobRow, JobState, MAX_ATTEMPTS,
+    enqueue, finish, ClaimedJob, JobFile, JobResult, JobRow, JobState, RetryOutcome, MAX_ATTEMPTS,
 };
 pub use self::sequences::{FrameCounts, FrameInput, FrameInputKind, NewFrame, SequenceRow};
 
@@ -49,6 +75,45 @@ pub struct Store {
     reader: SqlitePool,
     /// The one writer.
     writer: SqlitePool,
+    /// The page limit put on the writer by [`Store::set_max_page_count`]
+    /// (0: none), applied again to every writer connection opened.
+    page_limit: Arc<AtomicU32>,
+}
+
+/// SQLite's result code for "database or disk is full" (it has no
+/// extended codes).
+const SQLITE_FULL: &str = "13";
+
+/// Whether a database error means that the disk (or the page limit) is
+/// full: SQLITE_FULL, or an I/O error that says so.
+pub fn is_storage_full(error: &sqlx::Error) -> bool {
+    match error {
+        sqlx::Error::Database(db) => db.code().as_deref() == Some(SQLITE_FULL),
+        sqlx::Error::Io(io) => crate::service::images::is_storage_full(io),
+        _ => false,
+    }
+}
+
+/// Whether a writer connection came back outside any transaction, by
+/// sqlx's count and by SQLite's own state (`BEGIN` fails inside a
+/// transaction; a deferred one takes no lock and writes nothing). A
+/// connection for which this is false is closed rather than reused.
+async fn left_clean(conn: &mut SqliteConnection) -> bool {
+    let depth = <<Sqlite as Database>::TransactionManager>::get_transaction_depth(conn);
+    if depth > 0 {
+        tracing::warn!(
+            depth,
+            "a database connection was left inside a transaction; it is closed"
+        );
+        return false;
+    }
+    match conn.execute("BEGIN DEFERRED; ROLLBACK").await {
+        Ok(_) => true,
+        Err(error) => {
+            tracing::warn!(%error, "a database connection is in an unknown state; it is closed");
+            false
+        }
+    }
 }
 
 /// The schema's migrations, `migrations/*.sql`, compiled into the binary
@@ -237,8 +302,20 @@ impl Store {
             .synchronous(SqliteSynchronous::Normal)
             .busy_timeout(Duration::from_secs(10))
             .foreign_keys(true);
+        let page_limit = Arc::new(AtomicU32::new(0));
+        let limit = page_limit.clone();
         let writer = SqlitePoolOptions::new()
             .max_connections(1)
+            .after_connect(move |conn, _| {
+                let limit = limit.load(Ordering::Acquire);
+                Box::pin(async move {
+                    if limit > 0 {
+                        apply_page_limit(conn, limit).await?;
+                    }
+                    Ok(())
+                })
+            })
+            .after_release(|conn, _| Box::pin(async move { Ok(left_clean(conn).await) }))
             .connect_with(options.clone())
             .await?;
         Migrator::new(Migrations(MIGRATIONS))
@@ -250,7 +327,35 @@ impl Store {
             .max_connections(readers.max(1))
             .connect_with(options.read_only(true))
             .await?;
-        Ok(Store { reader, writer })
+        Ok(Store {
+            reader,
+            writer,
+            page_limit,
+        })
+    }
+
+    /// Fault injection for tests: limits the database to `pages` pages
+    /// (SQLite's `max_page_count`; never below its current size, so
+    /// `Some(0)` means "not one page more"), so that writes that need
+    /// more fail with SQLITE_FULL exactly as on a full disk; `None` lifts
+    /// the limit. Returns the limit in force.
+    #[doc(hidden)]
+    pub async fn set_max_page_count(&self, pages: Option<u32>) -> Result<u32, sqlx::Error> {
+        self.page_limit
+            .store(pages.map_or(0, |p| p.max(1)), Ordering::Release);
+        let mut conn = self.writer.acquire().await?;
+        match pages {
+            Some(pages) => apply_page_limit(&mut conn, pages.max(1)).await,
+            None => {
+                // A fresh connection has SQLite's default limit.
+                conn.close().await?;
+                let mut conn = self.writer.acquire().await?;
+                let (limit,): (i64,) = sqlx::query_as("PRAGMA max_page_count")
+                    .fetch_one(&mut *conn)
+                    .await?;
+                Ok(u32::try_from(limit).unwrap_or(u32::MAX))
+            }
+        }
     }
 
     /// Starts a write transaction with `BEGIN IMMEDIATE`: it takes SQLite's
@@ -264,6 +369,20 @@ impl Store {
         self.writer.begin_with("BEGIN IMMEDIATE").await
     }
 
+    /// Readiness: the writer takes SQLite's write lock (`BEGIN
+    /// IMMEDIATE`, then `ROLLBACK`: nothing written) within `within`. A
+    /// full disk does not show here (only a write that needs space finds
+    /// it); a writer that cannot be opened or locked does.
+    pub async fn ready(&self, within: Duration) -> Result<(), sqlx::Error> {
+        tokio::time::timeout(within, async {
+            let mut conn = self.writer.acquire().await?;
+            conn.execute("BEGIN IMMEDIATE; ROLLBACK").await?;
+            Ok(())
+        })
+        .await
+        .unwrap_or(Err(sqlx::Error::PoolTimedOut))
+    }
+
     /// Closes both pools.
     pub async fn close(&self) {
         self.writer.close().await;
@@ -275,6 +394,14 @@ impl Store {
         let mut conn = self.writer.acquire().await?;
         file_in_use(&mut conn, sha256).await
     }
+}
+
+/// Sets the connection's `max_page_count`; returns the limit in force.
+async fn apply_page_limit(conn: &mut SqliteConnection, pages: u32) -> Result<u32, sqlx::Error> {
+    let (limit,): (i64,) = sqlx::query_as(&format!("PRAGMA max_page_count = {pages}"))
+        .fetch_one(&mut *conn)
+        .await?;
+    Ok(u32::try_from(limit).unwrap_or(u32::MAX))
 }
 
 /// Whether any frame's image or job's file is the file with this hash.
@@ -330,6 +457,91 @@ mod tests {
         .await
         .unwrap();
         pool.close().await;
+    }
+
+    /// A calibration row of `size` bytes.
+    async fn write(store: &Store, size: usize) -> Result<CalibrationRow, sqlx::Error> {
+        store.insert_calibration(&"x".repeat(size), 2, None).await
+    }
+
+    /// SQLite ended the transaction behind sqlx's back (as it may on a
+    /// full disk): sqlx's queued ROLLBACK then fails and its depth stays
+    /// at 1, which made every later write fail with "attempted to call
+    /// begin_with at non-zero transaction depth".
+    #[tokio::test]
+    async fn a_transaction_sqlite_ended_itself_does_not_block_later_writes() {
+        let dir = tempfile::tempdir().unwrap();
+        let store = Store::open(dir.path(), 1).await.unwrap();
+        let mut tx = store.write_transaction().await.unwrap();
+        sqlx::query("ROLLBACK").execute(&mut *tx).await.unwrap();
+        drop(tx);
+        for _ in 0..3 {
+            write(&store, 10).await.unwrap();
+        }
+        store.close().await;
+    }
+
+    /// The other way round: SQLite inside a transaction that sqlx does not
+    /// know of.
+    #[tokio::test]
+    async fn a_transaction_left_open_does_not_block_later_writes() {
+        let dir = tempfile::tempdir().unwrap();
+        let store = Store::open(dir.path(), 1).await.unwrap();
+        sqlx::query("BEGIN").execute(&store.writer).await.unwrap();
+        for _ in 0..3 {
+            write(&store, 10).await.unwrap();
+        }
+        store.close().await;
+    }
+
+    /// Ready while the writer can take the write lock; not while another
+    /// process holds it.
+    #[tokio::test]
+    async fn ready_means_the_write_lock_can_be_taken() {
+        let dir = tempfile::tempdir().unwrap();
+        let store = Store::open(dir.path(), 1).await.unwrap();
+        store.ready(Duration::from_secs(5)).await.unwrap();
+        let other = SqlitePoolOptions::new()
+            .max_connections(1)
+            .connect_with(SqliteConnectOptions::new().filename(dir.path().join("ptv.sqlite")))
+            .await
+            .unwrap();
+        let lock = other.begin_with("BEGIN IMMEDIATE").await.unwrap();
+        assert!(store.ready(Duration::from_millis(300)).await.is_err());
+        lock.rollback().await.unwrap();
+        store.ready(Duration::from_secs(5)).await.unwrap();
+        other.close().await;
+        store.close().await;
+    }
+
+    /// The page limit fails writes with SQLITE_FULL as a full disk does;
+    /// once lifted, writes succeed again on the same store.
+    #[tokio::test]
+    async fn writes_fail_as_storage_full_at_the_page_limit_and_recover_when_lifted() {
+        let dir = tempfile::tempdir().unwrap();
+        let store = Store::open(dir.path(), 1).await.unwrap();
+        let limit = store.set_max_page_count(Some(0)).await.unwrap();
+        assert!(limit > 0);
+        let mut failure = None;
+        for _ in 0..1000 {
+            if let Err(error) = write(&store, 3000).await {
+                failure = Some(error);
+                break;
+            }
+        }
+        let failure = failure.expect("the page limit was reached");
+        assert!(is_storage_full(&failure), "{failure:?}");
+        // Still full, and still failing as full (not as a stuck
+        // transaction), on every write.
+        for _ in 0..3 {
+            let error = write(&store, 3000).await.unwrap_err();
+            assert!(is_storage_full(&error), "{error:?}");
+        }
+        store.set_max_page_count(None).await.unwrap();
+        for _ in 0..3 {
+            write(&store, 3000).await.unwrap();
+        }
+        store.close().await;
     }
 
     #[tokio::test]

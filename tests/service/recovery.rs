@@ -1,0 +1,296 @@
+//! Recovery: a full disk and a frame whose job failed.
+//!
+//! The full disk is SQLite's page limit on the writer
+//! (`Store::set_max_page_count`), which fails writes with SQLITE_FULL
+//! exactly as a full disk does.
+
+use std::time::{Duration, Instant};
+
+use serde_json::Value;
+
+use crate::helpers::*;
+
+/// POSTs a calibration of the rig's cameras: status, `Retry-After` and
+/// body.
+async fn create_calibration(app: &TestApp, body: &str) -> (u16, Option<String>, Value) {
+    let response = app
+        .client
+        .post(app.api("/calibrations"))
+        .header("content-type", "application/json")
+        .body(body.to_owned())
+        .send()
+        .await
+        .unwrap();
+    let retry_after = response
+        .headers()
+        .get("retry-after")
+        .map(|v| v.to_str().unwrap().to_owned());
+    let (status, body) = status_and_json(response).await;
+    (status, retry_after, body)
+}
+
+/// Polls the job until `done(view)`; its view.
+async fn wait_until(app: &TestApp, job_id: i64, done: impl Fn(&Value) -> bool) -> Value {
+    let start = Instant::now();
+    loop {
+        let (status, view) = app.get_json(&format!("/jobs/{job_id}")).await;
+        assert_eq!(status, 200, "{view}");
+        if done(&view) {
+            return view;
+        }
+        assert!(start.elapsed() < PATIENCE, "job never got there: {view}");
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+}
+
+/// Issue 12, defect 2: after one disk-full error every write failed with
+/// 500 until a restart (the writer connection was left inside a
+/// transaction), and a frame accepted just before failed for good. Now:
+/// 507 with Retry-After while full; once space is back, creates and
+/// uploads succeed without a restart, and the frame accepted before is
+/// processed, its storage-full attempts not counted.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_full_disk_is_a_507_and_the_service_recovers_without_a_restart() {
+    let app = spawn_app().await;
+    let (rig, sequence) = app.rig_sequence().await;
+    let files: Vec<Vec<u8>> = rig.render(300, 12).images.iter().map(png).collect();
+    let (status, accepted) = app.upload(sequence, image_form(0, &files)).await;
+    assert_eq!(status, 202, "{accepted}");
+    let job_id = accepted["job_id"].as_i64().unwrap();
+
+    // The disk fills up while the frame is being processed (its first
+    // frame prepares the sequence's pipeline: far longer than this).
+    let store = &app.state.store;
+    store.set_max_page_count(Some(0)).await.unwrap();
+    let calibration = ptv::formats::calibration::to_json(&rig.cameras);
+    let mut created = 0;
+    let (status, retry_after, body) = loop {
+        let answer = create_calibration(&app, &calibration).await;
+        if answer.0 != 201 {
+            break answer;
+        }
+        created += 1;
+        assert!(created < 10_000, "the page limit never filled");
+    };
+    assert_eq!(status, 507, "{body}");
+    assert_eq!(retry_after.as_deref(), Some("30"), "{body}");
+    // Every write keeps failing as full (not as a connection stuck in a
+    // transaction), uploads too; reads and liveness go on.
+    for _ in 0..3 {
+        let (status, retry_after, body) = create_calibration(&app, &calibration).await;
+        assert_eq!(
+            (status, retry_after.as_deref()),
+            (507, Some("30")),
+            "{body}"
+        );
+    }
+    let targets = rig.targets(200, 3);
+    let (status, body) = app.upload(sequence, targets_form(1, &targets)).await;
+    assert_eq!(status, 507, "{body}");
+    let (status, body) = app.get_json(&format!("/sequences/{sequence}")).await;
+    assert_eq!(status, 200, "{body}");
+    app.get_text(format!("{}/healthz", app.address)).await;
+    assert_eq!(
+        app.get_text(format!("{}/readyz", app.address)).await,
+        "ready\n"
+    );
+
+    // The frame's attempt found the disk full: it is queued again, not
+    // failed, its images kept although the sequence keeps none.
+    let view = wait_until(&app, job_id, |view| {
+        view["error"]
+            .as_str()
+            .is_some_and(|e| e.contains("disk is full"))
+    })
+    .await;
+    assert_ne!(view["state"], "failed", "{view}");
+    assert_ne!(view["state"], "succeeded", "{view}");
+    let db = app.database().await;
+    assert_eq!(
+        count(&db, "SELECT count(*) FROM images WHERE frame = 0").await,
+        4
+    );
+
+    // Space comes back: no restart.
+    store.set_max_page_count(None).await.unwrap();
+    for _ in 0..3 {
+        let (status, _, body) = create_calibration(&app, &calibration).await;
+        assert_eq!(status, 201, "{body}");
+    }
+    let (status, body) = app.upload(sequence, targets_form(1, &targets)).await;
+    assert_eq!(status, 202, "{body}");
+    let view = app.wait_for_sequence(sequence).await;
+    assert_eq!(view["frames"]["done"], 2, "{view}");
+    assert_eq!(view["frames"]["failed"], 0, "{view}");
+    let job = app.wait_for_job(job_id).await;
+    assert_eq!(job["state"], "succeeded", "{job}");
+    assert_eq!(
+        job["attempts"], 1,
+        "storage-full attempts are not counted: {job}"
+    );
+    let (status, particles) = app
+        .get_json(&format!("/sequences/{sequence}/frames/0/particles"))
+        .await;
+    assert_eq!(status, 200, "{particles}");
+    app.stop().await;
+}
+
+/// Issue 12, defect 7: a frame whose job the service died running 3 times
+/// was failed for good: its re-upload is a 409 and nothing retried it.
+/// Now `POST /jobs/{id}/retry` queues it again and it is processed.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_failed_frame_is_processed_after_a_retry() {
+    let app = spawn_app().await;
+    let (rig, sequence) = app.rig_sequence().await;
+    let targets = rig.targets(300, 7);
+    let (status, accepted) = app.upload(sequence, targets_form(0, &targets)).await;
+    assert_eq!(status, 202, "{accepted}");
+    let job_id = accepted["job_id"].as_i64().unwrap();
+    app.wait_for_sequence(sequence).await;
+    let data_dir = app.stop_keeping_data().await;
+
+    // What three kill -9 while its job runs leave: the frame's inputs, no
+    // result, the job running under a dead process, claimed 3 times.
+    {
+        let options =
+            sqlx::sqlite::SqliteConnectOptions::new().filename(data_dir.path().join("ptv.sqlite"));
+        let db = sqlx::sqlite::SqlitePoolOptions::new()
+            .max_connections(1)
+            .connect_with(options)
+            .await
+            .unwrap();
+        sqlx::query("DELETE FROM particles WHERE sequence_id = ? AND frame = 0")
+            .bind(sequence)
+            .execute(&db)
+            .await
+            .unwrap();
+        sqlx::query(
+            "UPDATE jobs SET state = 'running', attempts = 3, locked_by = 'killed/0', \
+             error = NULL, finished_at = NULL WHERE id = ?",
+        )
+        .bind(job_id)
+        .execute(&db)
+        .await
+        .unwrap();
+        db.close().await;
+    }
+
+    // The reaper fails it at the next start.
+    let app = spawn_app_in(data_dir).await;
+    let (_, job) = app.get_json(&format!("/jobs/{job_id}")).await;
+    assert_eq!(job["state"], "failed", "{job}");
+    let reason = job["error"].as_str().unwrap().to_owned();
+    assert!(reason.contains("3 times"), "{job}");
+    let (status, body) = app.upload(sequence, targets_form(0, &targets)).await;
+    assert_eq!(status, 409, "{body}");
+
+    let retry = |id: i64| {
+        let request = app.client.post(app.api(&format!("/jobs/{id}/retry")));
+        async move {
+            let response = request.send().await.unwrap();
+            let location = response
+                .headers()
+                .get("location")
+                .map(|v| v.to_str().unwrap().to_owned());
+            let (status, body) = status_and_json(response).await;
+            (status, location, body)
+        }
+    };
+    let (status, location, job) = retry(job_id).await;
+    assert_eq!(status, 202, "{job}");
+    assert_eq!(location, Some(format!("/api/v1/jobs/{job_id}")));
+    assert_eq!(job["attempts"], 0, "{job}");
+    assert!(
+        job["state"] == "queued" || job["state"] == "running",
+        "{job}"
+    );
+    let job = app.wait_for_job(job_id).await;
+    assert_eq!(job["state"], "succeeded", "{job}");
+    assert_eq!(job["attempts"], 1, "{job}");
+    assert_eq!(job["error"], Value::Null, "{job}");
+    let (status, particles) = app
+        .get_json(&format!("/sequences/{sequence}/frames/0/particles"))
+        .await;
+    assert_eq!(status, 200, "{particles}");
+    let view = app.wait_for_sequence(sequence).await;
+    assert_eq!(view["frames"]["done"], 1, "{view}");
+    assert_eq!(view["frames"]["failed"], 0, "{view}");
+
+    // Only a failed job is retried.
+    let (status, _, body) = retry(job_id).await;
+    assert_eq!(status, 409, "{body}");
+    assert!(
+        body["detail"].as_str().unwrap().contains("succeeded"),
+        "{body}"
+    );
+    let (status, _, body) = retry(999_999).await;
+    assert_eq!(status, 404, "{body}");
+    app.stop().await;
+}
+
+/// A real full disk: the data directory on a 16 MiB tmpfs, filled by
+/// another file. Needs the right to mount (root); skipped otherwise.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_real_full_disk_is_a_507_and_freeing_space_is_enough() {
+    let mount = tempfile::tempdir().unwrap();
+    let mounted = std::process::Command::new("mount")
+        .args(["-t", "tmpfs", "-o", "size=16m", "tmpfs"])
+        .arg(mount.path())
+        .status()
+        .is_ok_and(|status| status.success());
+    if !mounted {
+        eprintln!("skipped: cannot mount a tmpfs here");
+        return;
+    }
+    /// Unmounts when the test ends, however it ends.
+    struct Unmount(std::path::PathBuf);
+    impl Drop for Unmount {
+        fn drop(&mut self) {
+            let _ = std::process::Command::new("umount")
+                .arg("-l")
+                .arg(&self.0)
+                .status();
+        }
+    }
+    let _unmount = Unmount(mount.path().to_owned());
+    let data_dir = mount.path().join("data");
+    let app = spawn_app_configured(|args| args.data_dir = data_dir.clone()).await;
+    let (rig, sequence) = app.rig_sequence().await;
+    let calibration = ptv::formats::calibration::to_json(&rig.cameras);
+
+    // Fill the disk.
+    let filler = mount.path().join("filler");
+    {
+        use std::io::Write;
+        let mut file = std::fs::File::create(&filler).unwrap();
+        let chunk = vec![0u8; 1 << 16];
+        while file.write_all(&chunk).is_ok() {}
+        let _ = file.sync_all();
+    }
+    let mut created = 0;
+    let (status, retry_after, body) = loop {
+        let answer = create_calibration(&app, &calibration).await;
+        if answer.0 != 201 {
+            break answer;
+        }
+        created += 1;
+        assert!(created < 10_000, "the disk never filled");
+    };
+    assert_eq!(status, 507, "{body}");
+    assert_eq!(retry_after.as_deref(), Some("30"), "{body}");
+    let files: Vec<Vec<u8>> = rig.render(100, 4).images.iter().map(png).collect();
+    let (status, body) = app.upload(sequence, image_form(0, &files)).await;
+    assert_eq!(status, 507, "{body}");
+
+    // Free the space: no restart.
+    std::fs::remove_file(&filler).unwrap();
+    for _ in 0..5 {
+        let (status, _, body) = create_calibration(&app, &calibration).await;
+        assert_eq!(status, 201, "{body}");
+    }
+    let (status, body) = app.upload(sequence, image_form(0, &files)).await;
+    assert_eq!(status, 202, "{body}");
+    let view = app.wait_for_sequence(sequence).await;
+    assert_eq!(view["frames"]["done"], 1, "{view}");
+    app.stop().await;
+}
