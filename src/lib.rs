@@ -36,6 +36,9 @@
 //! - [`pipeline`](photogrammetry::pipeline): one frame's images to
 //!   particles, detection then correspondences, prepared once per
 //!   calibration.
+//! - [`cancel`](photogrammetry::cancel): a stop flag with a deadline that
+//!   long work checks, so a job past its time limit or a request whose
+//!   client left stops.
 //! - [`calibrate`](mod@photogrammetry::calibrate): system calibration by
 //!   resection on control points (section 5), from image coordinates or
 //!   detected marks, with held parameters, gross-error detection, check
@@ -69,7 +72,8 @@
 //!   request passes through (request ids, tracing, compression, timeouts,
 //!   body limits, the panic guard, load shedding, the bearer token).
 //! - [`jobs`](service::jobs): the durable job queue's workers, which run the
-//!   core on a CPU pool: frames to particles, calibrations solved.
+//!   core on a CPU pool: frames to particles (one camera at a time, under a
+//!   time limit), calibrations solved.
 //! - [`store`](service::store): all SQL (SQLite), one file per table group,
 //!   with the typed ids.
 //! - [`images`](service::images): uploaded files, content-addressed.
@@ -78,6 +82,8 @@
 //! - [`parameters`](service::parameters): a sequence's detection and
 //!   matching parameters, a solve's options.
 //! - [`metrics`](service::metrics): `/metrics`.
+//! - [`connections`](service::connections): HTTP/1.1 with hyper within a
+//!   connection limit, and the lingering close of refused uploads.
 //! - [`config`](service::config) and [`app`](service::app): the flags, and
 //!   start-up, serving and shutdown.
 
