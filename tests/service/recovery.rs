@@ -29,6 +29,27 @@ async fn create_calibration(app: &TestApp, body: &str) -> (u16, Option<String>, 
     (status, retry_after, body)
 }
 
+/// Creates calibrations until one is refused (the store is full); that
+/// answer, after asserting it is a 507 with `Retry-After: 30`.
+async fn fill_until_refused(
+    app: &TestApp,
+    calibration: &str,
+    what: &str,
+) -> (u16, Option<String>, Value) {
+    let mut created = 0;
+    let answer = loop {
+        let answer = create_calibration(app, calibration).await;
+        if answer.0 != 201 {
+            break answer;
+        }
+        created += 1;
+        assert!(created < 10_000, "{what} never filled");
+    };
+    assert_eq!(answer.0, 507, "{}", answer.2);
+    assert_eq!(answer.1.as_deref(), Some("30"), "{}", answer.2);
+    answer
+}
+
 /// Polls the job until `done(view)`; its view.
 async fn wait_until(app: &TestApp, job_id: i64, done: impl Fn(&Value) -> bool) -> Value {
     let start = Instant::now();
@@ -63,17 +84,7 @@ async fn a_full_disk_is_a_507_and_the_service_recovers_without_a_restart() {
     let store = &app.state.store;
     store.set_max_page_count(Some(0)).await.unwrap();
     let calibration = ptv::formats::calibration::to_json(&rig.cameras);
-    let mut created = 0;
-    let (status, retry_after, body) = loop {
-        let answer = create_calibration(&app, &calibration).await;
-        if answer.0 != 201 {
-            break answer;
-        }
-        created += 1;
-        assert!(created < 10_000, "the page limit never filled");
-    };
-    assert_eq!(status, 507, "{body}");
-    assert_eq!(retry_after.as_deref(), Some("30"), "{body}");
+    fill_until_refused(&app, &calibration, "the page limit").await;
     // Every write keeps failing as full (not as a connection stuck in a
     // transaction), uploads too; reads and liveness go on.
     for _ in 0..3 {
@@ -267,17 +278,7 @@ async fn a_real_full_disk_is_a_507_and_freeing_space_is_enough() {
         while file.write_all(&chunk).is_ok() {}
         let _ = file.sync_all();
     }
-    let mut created = 0;
-    let (status, retry_after, body) = loop {
-        let answer = create_calibration(&app, &calibration).await;
-        if answer.0 != 201 {
-            break answer;
-        }
-        created += 1;
-        assert!(created < 10_000, "the disk never filled");
-    };
-    assert_eq!(status, 507, "{body}");
-    assert_eq!(retry_after.as_deref(), Some("30"), "{body}");
+    fill_until_refused(&app, &calibration, "the disk").await;
     let files: Vec<Vec<u8>> = rig.render(100, 4).images.iter().map(png).collect();
     let (status, body) = app.upload(sequence, image_form(0, &files)).await;
     assert_eq!(status, 507, "{body}");
