@@ -5,7 +5,8 @@
 use nalgebra::{DMatrix, DVector, Point2, Point3, Vector3};
 use ptv::photogrammetry::calibrate::{
     calibrate, projection_with_parameter_jacobian, CalibrationError, CalibrationOptions,
-    CheckPoints, ControlPoint, MarkObservation, Parameter, ParameterStatus, RigCalibration,
+    CheckPoints, ControlPoint, MarkObservation, Parameter, ParameterSet, ParameterStatus,
+    RigCalibration,
 };
 use ptv::photogrammetry::camera::{rotation_angles, rotation_matrix};
 use ptv::photogrammetry::simulate::{self, RigSpec, TargetShape};
@@ -785,19 +786,9 @@ fn test_cavity_block_from_golden_projections() {
         })
         .collect();
     let interior_fixed = CalibrationOptions {
-        fixed: [
-            Parameter::Xh,
-            Parameter::Yh,
-            Parameter::C,
-            Parameter::K1,
-            Parameter::K2,
-            Parameter::K3,
-            Parameter::P1,
-            Parameter::P2,
-            Parameter::Scx,
-            Parameter::She,
-        ]
-        .to_vec(),
+        fixed: (ParameterSet::interior() | ParameterSet::distortion())
+            .iter()
+            .collect(),
         ..CalibrationOptions::default()
     };
     let result = calibrate(&setup, &target, &observations, &interior_fixed).unwrap();
