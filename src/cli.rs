@@ -16,6 +16,10 @@
 //!   every camera's targets (correspondences, section 6.2, and intersection).
 //! - `ptv process` (`cli/process.rs`): the particles of one frame from every
 //!   camera's image, through the frame pipeline (detection, then `match`).
+//! - `ptv background` (`cli/background.rs`): a camera's background image,
+//!   the per-pixel median or minimum over its frames, streamed.
+//! - `ptv upload` (`cli/upload.rs`): a recording's frames pushed to a
+//!   running `ptv serve`, several at once, retried, resumable.
 //! - `ptv simulate` (`cli/simulate.rs`): a synthetic experiment for the
 //!   commands above: calibration, targets, images and the truth.
 //!
@@ -25,6 +29,7 @@
 //! this module only wires the two together. `main.rs` parses the arguments
 //! and prints a [`CliError`].
 
+mod background;
 mod calibrate;
 mod calibration;
 mod detect;
@@ -33,17 +38,20 @@ mod match_targets;
 mod process;
 mod project;
 mod simulate;
+mod upload;
 
 use std::io::{self, Write};
 use std::path::{Path, PathBuf};
 
 use clap::{Args, Parser, Subcommand};
 
+pub use self::background::{BackgroundArgs, ModeArg};
 pub use self::calibrate::CalibrateArgs;
 pub use self::detect::{DetectArgs, DetectionFlags, RawImageFlags, TargetFormat};
 pub use self::match_targets::{MatchArgs, MatchingFlags};
 pub use self::process::ProcessArgs;
 pub use self::simulate::SimulateArgs;
+pub use self::upload::{FrameRange, Pattern, UploadArgs};
 use crate::formats::{self, FormatError};
 use crate::photogrammetry::camera::InvalidCamera;
 use crate::photogrammetry::correspond::MatchError;
@@ -88,6 +96,14 @@ pub enum Command {
     /// Write a synthetic experiment into a directory: calibration.json,
     /// per camera camN_targets.csv and camN.png, and truth.csv.
     Simulate(SimulateArgs),
+    /// Compute a camera's background image from its frames (the per-pixel
+    /// median or minimum), streaming them one at a time; writes PNG or TIFF
+    /// at the frames' bit depth.
+    Background(BackgroundArgs),
+    /// Push a recording's frames to a running `ptv serve`: several at once,
+    /// retried on connection errors and 5xx, frames already there skipped;
+    /// prints a summary and fails if any frame failed.
+    Upload(UploadArgs),
     /// Run the HTTP service (the default without a subcommand); prints the
     /// address it listens on and where its API docs are.
     Serve(crate::service::ServeArgs),
@@ -226,6 +242,18 @@ pub enum CliError {
     /// The simulator built a camera that the camera model refuses.
     #[error("the simulated rig is invalid")]
     Simulation(#[from] InvalidCamera),
+    /// A frame does not fit the background being computed from the others.
+    #[error("{}", image.display())]
+    Background {
+        /// The frame given.
+        image: PathBuf,
+        /// What does not fit.
+        #[source]
+        source: crate::photogrammetry::BackgroundError,
+    },
+    /// `ptv upload` could not reach the sequence, or frames failed.
+    #[error("upload: {0}")]
+    Upload(String),
     /// The service could not start, or stopped with an error.
     #[error("the service")]
     Service(#[from] crate::service::ServiceError),
@@ -261,6 +289,8 @@ pub fn run(
         Command::Match(args) => match_targets::run(&args, stdout),
         Command::Process(args) => process::run(&args, stdout, stderr),
         Command::Simulate(args) => simulate::run(&args, stderr),
+        Command::Background(args) => background::run(&args, stderr),
+        Command::Upload(args) => upload::run(&args, stdout),
         Command::Serve(args) => Ok(crate::service::run(args, stdout)?),
     }
 }
