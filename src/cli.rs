@@ -20,6 +20,10 @@
 //!   experiment as the calibration JSON and the service's sequence body.
 //! - `ptv process-sequence` (`cli/process_sequence.rs`): every frame of an
 //!   OpenPTV experiment, in parallel, to particles and OpenPTV's `rt_is`.
+//! - `ptv background` (`cli/background.rs`): a camera's background image,
+//!   the per-pixel median or minimum over its frames, streamed.
+//! - `ptv upload` (`cli/upload.rs`): a recording's frames pushed to a
+//!   running `ptv serve`, several at once, retried, resumable.
 //! - `ptv simulate` (`cli/simulate.rs`): a synthetic experiment for the
 //!   commands above: calibration, targets, images and the truth.
 //!
@@ -29,6 +33,7 @@
 //! this module only wires the two together. `main.rs` parses the arguments
 //! and prints a [`CliError`].
 
+mod background;
 mod calibrate;
 mod calibration;
 mod detect;
@@ -39,12 +44,14 @@ mod process;
 mod process_sequence;
 mod project;
 mod simulate;
+mod upload;
 
 use std::io::{self, Write};
 use std::path::{Path, PathBuf};
 
 use clap::{Args, Parser, Subcommand};
 
+pub use self::background::{BackgroundArgs, ModeArg};
 pub use self::calibrate::CalibrateArgs;
 pub use self::detect::{DetectArgs, DetectionFlags, RawImageFlags, TargetFormat};
 pub use self::experiment::{sequence_settings, ExperimentCommand, ImportExperimentArgs};
@@ -52,6 +59,7 @@ pub use self::match_targets::{MatchArgs, MatchingFlags};
 pub use self::process::ProcessArgs;
 pub use self::process_sequence::ProcessSequenceArgs;
 pub use self::simulate::SimulateArgs;
+pub use self::upload::{FrameRange, Pattern, UploadArgs};
 use crate::formats::{self, FormatError};
 use crate::photogrammetry::camera::InvalidCamera;
 use crate::photogrammetry::correspond::MatchError;
@@ -103,6 +111,14 @@ pub enum Command {
     /// Write a synthetic experiment into a directory: calibration.json,
     /// per camera camN_targets.csv and camN.png, and truth.csv.
     Simulate(SimulateArgs),
+    /// Compute a camera's background image from its frames (the per-pixel
+    /// median or minimum), streaming them one at a time; writes PNG or TIFF
+    /// at the frames' bit depth.
+    Background(BackgroundArgs),
+    /// Push a recording's frames to a running `ptv serve`: several at once,
+    /// retried on connection errors and 5xx, frames already there skipped;
+    /// prints a summary and fails if any frame failed.
+    Upload(UploadArgs),
     /// Run the HTTP service (the default without a subcommand); prints the
     /// address it listens on and where its API docs are.
     Serve(crate::service::ServeArgs),
@@ -262,6 +278,18 @@ pub enum CliError {
         #[source]
         source: Box<CliError>,
     },
+    /// A frame does not fit the background being computed from the others.
+    #[error("{}", image.display())]
+    Background {
+        /// The frame given.
+        image: PathBuf,
+        /// What does not fit.
+        #[source]
+        source: crate::photogrammetry::BackgroundError,
+    },
+    /// `ptv upload` could not reach the sequence, or frames failed.
+    #[error("upload: {0}")]
+    Upload(String),
     /// The service could not start, or stopped with an error.
     #[error("the service")]
     Service(#[from] crate::service::ServiceError),
@@ -299,6 +327,8 @@ pub fn run(
         Command::Experiment(ExperimentCommand::Import(args)) => experiment::import(&args, stderr),
         Command::ProcessSequence(args) => process_sequence::run(&args, stdout),
         Command::Simulate(args) => simulate::run(&args, stderr),
+        Command::Background(args) => background::run(&args, stderr),
+        Command::Upload(args) => upload::run(&args, stdout),
         Command::Serve(args) => Ok(crate::service::run(args, stdout)?),
     }
 }

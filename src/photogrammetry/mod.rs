@@ -17,6 +17,7 @@
 //! framework, SQL or OpenAPI crates; ARCHITECTURE.md's invariant greps for
 //! their names): inputs and outputs are plain structs and nalgebra types.
 
+pub mod background;
 pub mod calibrate;
 pub mod camera;
 pub mod cancel;
@@ -31,6 +32,7 @@ pub mod splitter;
 pub mod target;
 pub mod volume;
 
+pub use background::{BackgroundBuilder, BackgroundError, BackgroundMode};
 pub use camera::{
     check_camera_name, Camera, CameraParameters, Distortion, Exterior, Interior, ProjectionError,
     Ray, Sensor, MAX_CAMERA_NAME_LEN, MAX_SENSOR_PIXELS, MAX_SENSOR_SIDE,
