@@ -16,7 +16,7 @@ use axum::routing::{get, post};
 use axum::{Json, Router};
 use serde_json::json;
 
-use super::helpers::{png, spawn_app};
+use super::helpers::{png, spawn_app, spawn_app_with};
 
 /// Runs `ptv upload ARGS` as a process (off the runtime's threads).
 async fn upload(args: Vec<String>) -> Output {
@@ -250,4 +250,29 @@ async fn an_unreachable_server_is_given_up_on_with_the_reason() {
     );
     let out = upload(args("https://lab:8080", 1, &["c.%d".to_owned()], "1")).await;
     assert!(text(&out.stderr).contains("plain HTTP only"));
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_token_is_sent() {
+    let app = spawn_app_with(Some("s3cret")).await;
+    let patterns = ["c.%d.png".to_owned()];
+    // Without the token: the service's 401 and its detail.
+    let out = upload(args(&app.address, 77, &patterns, "1")).await;
+    let stderr = text(&out.stderr);
+    assert!(
+        stderr.starts_with("error: upload: cannot read sequence 77")
+            && stderr.contains("401")
+            && stderr.contains("--token"),
+        "{stderr}"
+    );
+    // With it: past the token check, to the (missing) sequence's 404.
+    let mut with_token = args(&app.address, 77, &patterns, "1");
+    with_token.extend(["--token".into(), "s3cret".into()]);
+    let out = upload(with_token).await;
+    let stderr = text(&out.stderr);
+    assert!(
+        stderr.contains("404") && stderr.contains("create the sequence first"),
+        "{stderr}"
+    );
+    app.stop().await;
 }
