@@ -8,8 +8,10 @@
 //! ground truth ([`simulate`]); and section 6.1's particle detection in grey
 //! images ([`image`], [`mod@detect`]); correspondences ([`correspond`]); and
 //! the frame pipeline that runs detection and correspondences on the images
-//! of one time step ([`pipeline`]); section 5's system calibration by
-//! resection on control points ([`mod@calibrate`]).
+//! of one time step ([`pipeline`]), and the image splitter that cuts one
+//! sensor's image into the views of several cameras ([`splitter`]);
+//! section 5's system calibration by resection on control points
+//! ([`mod@calibrate`]).
 //!
 //! This module never imports the service's shell (no async runtime, web
 //! framework, SQL or OpenAPI crates; ARCHITECTURE.md's invariant greps for
@@ -26,6 +28,7 @@ pub mod intersect;
 pub mod media;
 pub mod pipeline;
 pub mod simulate;
+pub mod splitter;
 pub mod target;
 pub mod volume;
 
@@ -40,5 +43,6 @@ pub use image::{BitDepth, GreyImage, GreyPixels, ImageError, SensorMismatch};
 pub use intersect::{intersect, Intersection, IntersectionError, Observation};
 pub use media::{Media, MediaGeometry, Wall};
 pub use pipeline::{FrameDetection, FramePipeline, FrameResult, PipelineError};
+pub use splitter::{Splitter, SplitterError, SplitterLayout};
 pub use target::Target;
 pub use volume::Volume;
