@@ -16,6 +16,14 @@
 //!   every camera's targets (correspondences, section 6.2, and intersection).
 //! - `ptv process` (`cli/process.rs`): the particles of one frame from every
 //!   camera's image, through the frame pipeline (detection, then `match`).
+//! - `ptv experiment import` (`cli/experiment.rs`): an OpenPTV/pyptv
+//!   experiment as the calibration JSON and the service's sequence body.
+//! - `ptv process-sequence` (`cli/process_sequence.rs`): every frame of an
+//!   OpenPTV experiment, in parallel, to particles and OpenPTV's `rt_is`.
+//! - `ptv background` (`cli/background.rs`): a camera's background image,
+//!   the per-pixel median or minimum over its frames, streamed.
+//! - `ptv upload` (`cli/upload.rs`): a recording's frames pushed to a
+//!   running `ptv serve`, several at once, retried, resumable.
 //! - `ptv simulate` (`cli/simulate.rs`): a synthetic experiment for the
 //!   commands above: calibration, targets, images and the truth.
 //!
@@ -25,25 +33,33 @@
 //! this module only wires the two together. `main.rs` parses the arguments
 //! and prints a [`CliError`].
 
+mod background;
 mod calibrate;
 mod calibration;
 mod detect;
+mod experiment;
 mod intersect;
 mod match_targets;
 mod process;
+mod process_sequence;
 mod project;
 mod simulate;
+mod upload;
 
 use std::io::{self, Write};
 use std::path::{Path, PathBuf};
 
 use clap::{Args, Parser, Subcommand};
 
+pub use self::background::{BackgroundArgs, ModeArg};
 pub use self::calibrate::CalibrateArgs;
 pub use self::detect::{DetectArgs, DetectionFlags, RawImageFlags, TargetFormat};
+pub use self::experiment::{sequence_settings, ExperimentCommand, ImportExperimentArgs};
 pub use self::match_targets::{MatchArgs, MatchingFlags};
 pub use self::process::ProcessArgs;
+pub use self::process_sequence::ProcessSequenceArgs;
 pub use self::simulate::SimulateArgs;
+pub use self::upload::{FrameRange, Pattern, UploadArgs};
 use crate::formats::{self, FormatError};
 use crate::photogrammetry::camera::InvalidCamera;
 use crate::photogrammetry::correspond::MatchError;
@@ -85,9 +101,24 @@ pub enum Command {
     /// Find the particles of one frame from the image of every camera
     /// (detection, then as `ptv match`); writes the same CSV as `ptv match`.
     Process(ProcessArgs),
+    /// Import an OpenPTV/pyptv experiment.
+    #[command(subcommand)]
+    Experiment(ExperimentCommand),
+    /// Process every frame of an OpenPTV experiment (frames in parallel)
+    /// with its own parameters; writes per frame particles.<frame>.csv,
+    /// rt_is.<frame> and the targets, and a JSON summary to standard output.
+    ProcessSequence(ProcessSequenceArgs),
     /// Write a synthetic experiment into a directory: calibration.json,
     /// per camera camN_targets.csv and camN.png, and truth.csv.
     Simulate(SimulateArgs),
+    /// Compute a camera's background image from its frames (the per-pixel
+    /// median or minimum), streaming them one at a time; writes PNG or TIFF
+    /// at the frames' bit depth.
+    Background(BackgroundArgs),
+    /// Push a recording's frames to a running `ptv serve`: several at once,
+    /// retried on connection errors and 5xx, frames already there skipped;
+    /// prints a summary and fails if any frame failed.
+    Upload(UploadArgs),
     /// Run the HTTP service (the default without a subcommand); prints the
     /// address it listens on and where its API docs are.
     Serve(crate::service::ServeArgs),
@@ -226,6 +257,39 @@ pub enum CliError {
     /// The simulator built a camera that the camera model refuses.
     #[error("the simulated rig is invalid")]
     Simulation(#[from] InvalidCamera),
+    /// An OpenPTV experiment that cannot be read.
+    #[error(transparent)]
+    Experiment(#[from] crate::formats::experiment::ExperimentError),
+    /// An image the calibration's splitter does not fit.
+    #[error("cannot split {} into the calibration's views", image.display())]
+    Splitter {
+        /// The image file.
+        image: PathBuf,
+        /// Why.
+        #[source]
+        source: crate::photogrammetry::SplitterError,
+    },
+    /// One frame of a sequence failed.
+    #[error("frame {frame}")]
+    Frame {
+        /// The frame number.
+        frame: u64,
+        /// Why.
+        #[source]
+        source: Box<CliError>,
+    },
+    /// A frame does not fit the background being computed from the others.
+    #[error("{}", image.display())]
+    Background {
+        /// The frame given.
+        image: PathBuf,
+        /// What does not fit.
+        #[source]
+        source: crate::photogrammetry::BackgroundError,
+    },
+    /// `ptv upload` could not reach the sequence, or frames failed.
+    #[error("upload: {0}")]
+    Upload(String),
     /// The service could not start, or stopped with an error.
     #[error("the service")]
     Service(#[from] crate::service::ServiceError),
@@ -260,7 +324,11 @@ pub fn run(
         Command::Detect(args) => detect::run(&args, stdout, stderr),
         Command::Match(args) => match_targets::run(&args, stdout),
         Command::Process(args) => process::run(&args, stdout, stderr),
+        Command::Experiment(ExperimentCommand::Import(args)) => experiment::import(&args, stderr),
+        Command::ProcessSequence(args) => process_sequence::run(&args, stdout),
         Command::Simulate(args) => simulate::run(&args, stderr),
+        Command::Background(args) => background::run(&args, stderr),
+        Command::Upload(args) => upload::run(&args, stdout),
         Command::Serve(args) => Ok(crate::service::run(args, stdout)?),
     }
 }
@@ -268,6 +336,16 @@ pub fn run(
 /// Reads and validates a calibration JSON file.
 fn read_calibration(path: &Path) -> Result<Vec<Camera>, FormatError> {
     formats::calibration::from_json(&formats::read_text(path)?, &path.display().to_string())
+}
+
+/// Reads and validates a calibration JSON file and its splitter, if any.
+fn read_calibration_with_splitter(
+    path: &Path,
+) -> Result<(Vec<Camera>, Option<crate::photogrammetry::Splitter>), FormatError> {
+    formats::calibration::from_json_with_splitter(
+        &formats::read_text(path)?,
+        &path.display().to_string(),
+    )
 }
 
 /// Checks that one file per camera of the calibration was given with

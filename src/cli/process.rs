@@ -3,7 +3,9 @@
 //! correspondences and intersection as in `ptv match` (sections 6.2, 4.3).
 //!
 //! The detection flags are `ptv detect`'s and apply to every camera; the
-//! matching flags are `ptv match`'s, and so is the output.
+//! matching flags are `ptv match`'s, and so is the output. With a
+//! calibration that declares a splitter (its cameras are views of one
+//! sensor), one `--image` is the frame: it is cut into the views.
 
 use std::io::Write;
 use std::path::PathBuf;
@@ -12,7 +14,7 @@ use clap::Args;
 
 use super::detect::{DetectionFlags, RawImageFlags};
 use super::match_targets::MatchingFlags;
-use super::{check_camera_count, read_calibration, write_stdout, CliError};
+use super::{check_camera_count, read_calibration_with_splitter, write_stdout, CliError};
 use crate::formats;
 use crate::photogrammetry::{FrameDetection, FramePipeline, GreyImage, PipelineError};
 
@@ -24,7 +26,8 @@ pub struct ProcessArgs {
     pub calibration: PathBuf,
     /// The image of one camera: greyscale PNG or TIFF (8 or 16 bits), or
     /// raw samples with --width, --height and --bits. Give the flag once per
-    /// camera, in camera order.
+    /// camera, in camera order; once with a splitter calibration (the whole
+    /// sensor's image).
     #[arg(long = "image", value_name = "FILE", required = true)]
     pub images: Vec<PathBuf>,
     /// How to find the targets.
@@ -45,13 +48,29 @@ pub(super) fn run(
     stdout: &mut dyn Write,
     stderr: &mut dyn Write,
 ) -> Result<(), CliError> {
-    let cameras = read_calibration(&args.calibration)?;
-    check_camera_count(
-        &args.calibration,
-        cameras.len(),
-        args.images.len(),
-        ("--image", "image"),
-    )?;
+    let (cameras, splitter) = read_calibration_with_splitter(&args.calibration)?;
+    if let Some(splitter) = splitter {
+        if args.images.len() != 1 {
+            return Err(CliError::Flag {
+                flag: "--image",
+                reason: format!(
+                    "{} declares a {} splitter: its {} cameras are views of one sensor; give \
+                     --image once, the whole sensor's image, not {} images",
+                    args.calibration.display(),
+                    splitter.name(),
+                    cameras.len(),
+                    args.images.len()
+                ),
+            });
+        }
+    } else {
+        check_camera_count(
+            &args.calibration,
+            cameras.len(),
+            args.images.len(),
+            ("--image", "image"),
+        )?;
+    }
     let detection = FrameDetection::AllCameras(args.detection.parameters());
     let pipeline = FramePipeline::new(&cameras, &detection, &args.matching.parameters()?)
         .map_err(|error| cli_error(args, error))?;
@@ -66,6 +85,15 @@ pub(super) fn run(
             Ok(image)
         })
         .collect::<Result<Vec<GreyImage>, CliError>>()?;
+    let images = match splitter {
+        Some(splitter) => splitter
+            .split(&images[0])
+            .map_err(|source| CliError::Splitter {
+                image: args.images[0].clone(),
+                source,
+            })?,
+        None => images,
+    };
     let frame = pipeline
         .process(&images)
         .map_err(|error| cli_error(args, error))?;
@@ -82,7 +110,11 @@ fn cli_error(args: &ProcessArgs, error: PipelineError) -> CliError {
     match error {
         PipelineError::Detection { source, .. } => CliError::Detection(source),
         PipelineError::Matching(source) => CliError::Matching(source),
-        PipelineError::Sensor { camera, source } => match args.images.get(camera) {
+        PipelineError::Sensor { camera, source } => match args
+            .images
+            .get(camera)
+            .or(args.images.first().filter(|_| args.images.len() == 1))
+        {
             Some(image) => CliError::ImageSize {
                 image: image.clone(),
                 camera,

@@ -16,6 +16,13 @@
 //! `affine` (1, 0), `media.n_air` (1), `media.walls` (none),
 //! `media.glass_vector` (0, 0, 0; required when the media refract). Unknown
 //! fields are errors, so that a typo never silently falls back to a default.
+//!
+//! An optional top-level `"splitter": {"layout": "quadrants"}` (or
+//! `left_right`, `top_bottom`) says that the cameras are views of one
+//! sensor ([`crate::photogrammetry::splitter`]): each camera's `image_size`
+//! is its view's, and it has as many cameras as the layout has views.
+//! Absent, every camera has its own sensor. [`from_json`] reads the cameras
+//! alone; [`from_json_with_splitter`] also the splitter, checked.
 
 use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
@@ -23,7 +30,7 @@ use serde::{Deserialize, Serialize};
 use super::FormatError;
 use crate::photogrammetry::{
     check_camera_name, Camera, CameraParameters, Distortion, Exterior, Interior, Media, Sensor,
-    Wall,
+    Splitter, Wall,
 };
 
 /// The fewest cameras a calibration may have: a point needs two rays.
@@ -41,6 +48,8 @@ pub const MAX_CAMERAS: usize = crate::photogrammetry::correspond::MAX_CAMERAS;
 struct CalibrationFile {
     #[serde(deserialize_with = "bounded_cameras")]
     cameras: Vec<CameraJson>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    splitter: Option<Splitter>,
 }
 
 /// Reads the cameras' list, refusing it as soon as it holds more than
@@ -211,6 +220,51 @@ pub fn from_json(text: &str, source: &str) -> Result<Vec<Camera>, FormatError> {
     from_parameters(parameters_from_json(text, source)?, source)
 }
 
+/// Parses and validates a calibration JSON document and its splitter, if
+/// any: the splitter's views must be the cameras, all of one size.
+pub fn from_json_with_splitter(
+    text: &str,
+    source: &str,
+) -> Result<(Vec<Camera>, Option<Splitter>), FormatError> {
+    let file = parse_file(text, source)?;
+    let splitter = file.splitter;
+    let cameras = from_parameters(camera_parameters(file, source)?, source)?;
+    if let Some(splitter) = splitter {
+        if splitter.views() != cameras.len() {
+            return Err(FormatError::invalid(
+                source,
+                "splitter.layout",
+                format!(
+                    "the {} layout has {} views but the calibration has {} cameras; give one \
+                     camera per view, in the layout's order",
+                    splitter.name(),
+                    splitter.views(),
+                    cameras.len()
+                ),
+            ));
+        }
+        let first = cameras[0].sensor();
+        if let Some((i, other)) = cameras
+            .iter()
+            .enumerate()
+            .find(|(_, c)| (c.sensor().width, c.sensor().height) != (first.width, first.height))
+        {
+            return Err(FormatError::invalid(
+                source,
+                format!("cameras[{i}].image_size"),
+                format!(
+                    "is {}x{} but camera 0's is {}x{}; a splitter's views are all of one size",
+                    other.sensor().width,
+                    other.sensor().height,
+                    first.width,
+                    first.height
+                ),
+            ));
+        }
+    }
+    Ok((cameras, splitter))
+}
+
 /// Parses a calibration JSON document into plain parameters without
 /// validating them as cameras: for a calibration setup, whose orientation
 /// values are only optional starting values.
@@ -218,6 +272,10 @@ pub fn parameters_from_json(
     text: &str,
     source: &str,
 ) -> Result<Vec<CameraParameters>, FormatError> {
+    camera_parameters(parse_file(text, source)?, source)
+}
+
+fn parse_file(text: &str, source: &str) -> Result<CalibrationFile, FormatError> {
     let deserializer = &mut serde_json::Deserializer::from_str(text);
     let file: CalibrationFile = serde_path_to_error::deserialize(deserializer).map_err(|err| {
         let path = err.path().to_string();
@@ -228,6 +286,13 @@ pub fn parameters_from_json(
         };
         FormatError::invalid(source, location, err.into_inner().to_string())
     })?;
+    Ok(file)
+}
+
+fn camera_parameters(
+    file: CalibrationFile,
+    source: &str,
+) -> Result<Vec<CameraParameters>, FormatError> {
     let parameters: Vec<CameraParameters> = file
         .cameras
         .into_iter()
@@ -281,11 +346,17 @@ pub fn from_parameters(
 /// Serialises cameras as calibration JSON (pretty-printed, every field
 /// written, numbers in their shortest exact form).
 pub fn to_json(cameras: &[Camera]) -> String {
+    to_json_with_splitter(cameras, None)
+}
+
+/// Serialises cameras and their splitter, if any, as calibration JSON.
+pub fn to_json_with_splitter(cameras: &[Camera], splitter: Option<Splitter>) -> String {
     let file = CalibrationFile {
         cameras: cameras
             .iter()
             .map(|c| CameraJson::from_parameters(c.parameters()))
             .collect(),
+        splitter,
     };
     serde_json::to_string_pretty(&file).expect("plain data serialises") + "\n"
 }
@@ -444,5 +515,30 @@ mod tests {
         ] {
             assert!(from_json(text, "x").is_err(), "{text}");
         }
+    }
+
+    #[test]
+    fn a_splitter_round_trips_and_must_have_one_view_per_camera() {
+        let cameras = from_json(TWO_CAMERAS, "x").unwrap();
+        let halves = Splitter {
+            layout: crate::photogrammetry::SplitterLayout::LeftRight,
+        };
+        let text = to_json_with_splitter(&cameras, Some(halves));
+        assert!(text.contains(r#""layout": "left_right""#), "{text}");
+        let (again, splitter) = from_json_with_splitter(&text, "x").unwrap();
+        assert_eq!((again, splitter), (cameras.clone(), Some(halves)));
+        // Without one, none is written, and none is read.
+        assert!(!to_json(&cameras).contains("splitter"));
+        assert_eq!(from_json_with_splitter(TWO_CAMERAS, "x").unwrap().1, None);
+        // Four views for two cameras.
+        let text = to_json_with_splitter(&cameras, Some(Splitter::quadrants()));
+        let error = from_json_with_splitter(&text, "cal.json")
+            .unwrap_err()
+            .to_string();
+        assert!(
+            error.starts_with("cal.json: splitter.layout: the quadrants layout has 4 views")
+                && error.contains("has 2 cameras"),
+            "{error}"
+        );
     }
 }

@@ -4,6 +4,8 @@
 //! - [`control`]: calibration inputs (control points `id X Y Z`, image
 //!   coordinates `id x y`) and the calibration report.
 //! - [`openptv`]: OpenPTV's `.ori`, `.addpar` and `ptv.par`.
+//! - [`experiment`]: a whole OpenPTV/pyptv experiment (the `parameters/`
+//!   folder or pyptv's YAML) in `ptv`'s settings.
 //! - [`csv`]: point, observation and target tables of the command line.
 //! - [`image`]: camera images (greyscale PNG, TIFF, raw buffers).
 //!
@@ -16,6 +18,7 @@
 pub mod calibration;
 pub mod control;
 pub mod csv;
+pub mod experiment;
 pub mod image;
 pub mod openptv;
 #[cfg(test)]

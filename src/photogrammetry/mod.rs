@@ -8,13 +8,16 @@
 //! ground truth ([`simulate`]); and section 6.1's particle detection in grey
 //! images ([`image`], [`mod@detect`]); correspondences ([`correspond`]); and
 //! the frame pipeline that runs detection and correspondences on the images
-//! of one time step ([`pipeline`]); section 5's system calibration by
-//! resection on control points ([`mod@calibrate`]).
+//! of one time step ([`pipeline`]), and the image splitter that cuts one
+//! sensor's image into the views of several cameras ([`splitter`]);
+//! section 5's system calibration by resection on control points
+//! ([`mod@calibrate`]).
 //!
 //! This module never imports the service's shell (no async runtime, web
 //! framework, SQL or OpenAPI crates; ARCHITECTURE.md's invariant greps for
 //! their names): inputs and outputs are plain structs and nalgebra types.
 
+pub mod background;
 pub mod calibrate;
 pub mod camera;
 pub mod cancel;
@@ -25,9 +28,11 @@ pub mod intersect;
 pub mod media;
 pub mod pipeline;
 pub mod simulate;
+pub mod splitter;
 pub mod target;
 pub mod volume;
 
+pub use background::{BackgroundBuilder, BackgroundError, BackgroundMode};
 pub use camera::{
     check_camera_name, Camera, CameraParameters, Distortion, Exterior, Interior, ProjectionError,
     Ray, Sensor, MAX_CAMERA_NAME_LEN, MAX_SENSOR_PIXELS, MAX_SENSOR_SIDE,
@@ -38,5 +43,6 @@ pub use image::{BitDepth, GreyImage, GreyPixels, ImageError, SensorMismatch};
 pub use intersect::{intersect, Intersection, IntersectionError, Observation};
 pub use media::{Media, MediaGeometry, Wall};
 pub use pipeline::{FrameDetection, FramePipeline, FrameResult, PipelineError};
+pub use splitter::{Splitter, SplitterError, SplitterLayout};
 pub use target::Target;
 pub use volume::Volume;

@@ -15,13 +15,19 @@ use crate::photogrammetry::{
 };
 
 /// How to find the targets in each camera's image (all optional; the
-/// defaults are `ptv detect`'s).
+/// defaults are `ptv detect`'s). Sequences stored before a field existed
+/// read it as absent, that is as its default.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize, ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct DetectionSettings {
     /// Grey threshold above the high-pass filtered background [default: 10,
     /// for 8-bit images].
     pub threshold: Option<u16>,
+    /// Per camera, in camera order, its grey threshold (overrides
+    /// `threshold`; OpenPTV's `gvthres`): one value per camera of the
+    /// calibration.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub thresholds: Option<Vec<u16>>,
     /// Radius (px) of the high-pass filter's window; 0 turns it off
     /// [default: 10].
     pub highpass_radius: Option<u32>,
@@ -29,13 +35,35 @@ pub struct DetectionSettings {
     pub min_pixels: Option<u32>,
     /// Most pixels of a target [default: 500].
     pub max_pixels: Option<u32>,
+    /// Smallest extent of a target in x, columns spanned [default: 1].
+    #[serde(default)]
+    pub min_nx: Option<u32>,
+    /// Largest extent of a target in x [default: 50].
+    #[serde(default)]
+    pub max_nx: Option<u32>,
+    /// Smallest extent of a target in y, rows spanned [default: 1].
+    #[serde(default)]
+    pub min_ny: Option<u32>,
+    /// Largest extent of a target in y [default: 50].
+    #[serde(default)]
+    pub max_ny: Option<u32>,
     /// Smallest sum of grey values of a target [default: as `ptv detect`].
     pub min_sumg: Option<u64>,
+    /// Whether to split blobs of touching particles at grey minima
+    /// [default: true].
+    #[serde(default)]
+    pub split: Option<bool>,
+    /// How far (grey levels) the fainter of two maxima must rise above the
+    /// brightest path joining them for a blob to be split there; OpenPTV's
+    /// `discont` [default: as `ptv detect --split-depth`].
+    #[serde(default)]
+    pub split_depth: Option<u16>,
 }
 
 impl DetectionSettings {
     /// The core's detection parameters, defaults where unset (not yet
-    /// validated).
+    /// validated), with `threshold` for every camera (`thresholds` is
+    /// applied by [`DetectionSettings::frame_detection`]).
     pub fn parameters(&self) -> DetectionParameters {
         let d = DetectionParameters::default();
         DetectionParameters {
@@ -43,8 +71,61 @@ impl DetectionSettings {
             highpass_radius: self.highpass_radius.unwrap_or(d.highpass_radius),
             min_pixels: self.min_pixels.unwrap_or(d.min_pixels),
             max_pixels: self.max_pixels.unwrap_or(d.max_pixels),
+            min_nx: self.min_nx.unwrap_or(d.min_nx),
+            max_nx: self.max_nx.unwrap_or(d.max_nx),
+            min_ny: self.min_ny.unwrap_or(d.min_ny),
+            max_ny: self.max_ny.unwrap_or(d.max_ny),
             min_sumg: self.min_sumg.unwrap_or(d.min_sumg),
-            ..d
+            split: self.split.unwrap_or(d.split),
+            split_depth: self.split_depth.unwrap_or(d.split_depth),
+        }
+    }
+
+    /// The core's detection parameters for a calibration of `cameras`
+    /// cameras (not yet validated): one set per camera when `thresholds`
+    /// is given, and then it must have one threshold per camera.
+    pub fn frame_detection(
+        &self,
+        cameras: usize,
+    ) -> Result<FrameDetection, InvalidDetectionParameters> {
+        let parameters = self.parameters();
+        match &self.thresholds {
+            None => Ok(FrameDetection::AllCameras(parameters)),
+            Some(list) if list.len() == cameras => Ok(FrameDetection::PerCamera(
+                list.iter()
+                    .map(|&threshold| DetectionParameters {
+                        threshold,
+                        ..parameters.clone()
+                    })
+                    .collect(),
+            )),
+            Some(list) => Err(InvalidDetectionParameters {
+                field: "thresholds",
+                reason: format!(
+                    "gives {} thresholds but the calibration has {cameras} cameras; give one \
+                     per camera, in camera order, or `threshold` for all",
+                    list.len()
+                ),
+            }),
+        }
+    }
+
+    /// Every field set: the given value, else the default.
+    pub fn with_defaults(&self) -> DetectionSettings {
+        let p = self.parameters();
+        DetectionSettings {
+            threshold: Some(p.threshold),
+            thresholds: self.thresholds.clone(),
+            highpass_radius: Some(p.highpass_radius),
+            min_pixels: Some(p.min_pixels),
+            max_pixels: Some(p.max_pixels),
+            min_nx: Some(p.min_nx),
+            max_nx: Some(p.max_nx),
+            min_ny: Some(p.min_ny),
+            max_ny: Some(p.max_ny),
+            min_sumg: Some(p.min_sumg),
+            split: Some(p.split),
+            split_depth: Some(p.split_depth),
         }
     }
 }
@@ -134,15 +215,8 @@ pub struct SequenceParameters {
 impl SequenceParameters {
     /// Fills in the defaults.
     pub fn with_defaults(detection: DetectionSettings, matching: MatchingSettings) -> Self {
-        let d = DetectionParameters::default();
         SequenceParameters {
-            detection: DetectionSettings {
-                threshold: Some(detection.threshold.unwrap_or(d.threshold)),
-                highpass_radius: Some(detection.highpass_radius.unwrap_or(d.highpass_radius)),
-                min_pixels: Some(detection.min_pixels.unwrap_or(d.min_pixels)),
-                max_pixels: Some(detection.max_pixels.unwrap_or(d.max_pixels)),
-                min_sumg: Some(detection.min_sumg.unwrap_or(d.min_sumg)),
-            },
+            detection: detection.with_defaults(),
             matching: MatchingSettings {
                 tolerance: Some(matching.tolerance.unwrap_or(DEFAULT_TOLERANCE_PX)),
                 volume: matching.volume,
@@ -151,9 +225,23 @@ impl SequenceParameters {
         }
     }
 
-    /// The core's detection parameters (not yet validated).
+    /// The core's detection parameters (not yet validated): per camera
+    /// when `thresholds` is set (the frame pipeline then checks their count
+    /// against the calibration's cameras; [`DetectionSettings::frame_detection`]
+    /// checks it with the field's name).
     pub fn detection(&self) -> FrameDetection {
-        FrameDetection::AllCameras(self.detection.parameters())
+        let parameters = self.detection.parameters();
+        match &self.detection.thresholds {
+            None => FrameDetection::AllCameras(parameters),
+            Some(list) => FrameDetection::PerCamera(
+                list.iter()
+                    .map(|&threshold| DetectionParameters {
+                        threshold,
+                        ..parameters.clone()
+                    })
+                    .collect(),
+            ),
+        }
     }
 
     /// The core's matching parameters (not yet validated).
@@ -190,6 +278,59 @@ mod tests {
                  x0,y0,z0,omega,phi,kappa,xh,yh,c,k1,k2,k3,p1,p2,scx,she"
             ),
             "{error}"
+        );
+    }
+
+    #[test]
+    fn per_camera_thresholds_and_the_split_rule_reach_the_core() {
+        let settings: DetectionSettings = serde_json::from_str(
+            r#"{"thresholds": [9, 9, 11], "split_depth": 100, "min_nx": 2, "max_ny": 80}"#,
+        )
+        .unwrap();
+        let FrameDetection::PerCamera(list) = settings.frame_detection(3).unwrap() else {
+            panic!("thresholds give one set per camera")
+        };
+        assert_eq!(
+            list.iter().map(|p| p.threshold).collect::<Vec<_>>(),
+            vec![9, 9, 11]
+        );
+        assert!(list
+            .iter()
+            .all(|p| p.split_depth == 100 && p.min_nx == 2 && p.max_ny == 80 && p.split));
+        let error = settings.frame_detection(4).unwrap_err();
+        assert_eq!(error.field, "thresholds");
+        assert!(error
+            .reason
+            .contains("gives 3 thresholds but the calibration has 4 cameras"));
+        // with_defaults fills every field and keeps the list.
+        let filled = SequenceParameters::with_defaults(settings, MatchingSettings::default());
+        let d = DetectionParameters::default();
+        assert_eq!(filled.detection.split, Some(d.split));
+        assert_eq!(filled.detection.max_nx, Some(d.max_nx));
+        assert_eq!(filled.detection.thresholds, Some(vec![9, 9, 11]));
+        assert_eq!(
+            filled.detection().clone(),
+            filled.detection.frame_detection(3).unwrap()
+        );
+    }
+
+    #[test]
+    fn parameters_stored_before_the_new_fields_still_read() {
+        // A sequence's stored JSON as it was written before the extent
+        // bounds, the split rule and per-camera thresholds existed.
+        let stored = r#"{"detection": {"threshold": 12, "highpass_radius": 10, "min_pixels": 2,
+            "max_pixels": 500, "min_sumg": 0},
+            "matching": {"tolerance": 1.0, "volume": null, "min_cameras": 2}}"#;
+        let parameters: SequenceParameters = serde_json::from_str(stored).unwrap();
+        let FrameDetection::AllCameras(p) = parameters.detection() else {
+            panic!("no thresholds list: one set for all")
+        };
+        assert_eq!(
+            p,
+            DetectionParameters {
+                threshold: 12,
+                ..DetectionParameters::default()
+            }
         );
     }
 }

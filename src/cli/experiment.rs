@@ -1,0 +1,170 @@
+//! `ptv experiment import`: an OpenPTV/pyptv experiment (the legacy
+//! `parameters/` folder or a pyptv YAML, read by
+//! [`crate::formats::experiment`]) written as `ptv`'s files:
+//!
+//! - `calibration.json`: the calibration JSON, with the splitter if any
+//!   (`POST /api/v1/calibrations` takes it as it is);
+//! - `sequence.json`: the body of `POST /api/v1/sequences` without
+//!   `calibration_id` (add the id of the calibration created from
+//!   `calibration.json`): name, detection (per-camera `thresholds`) and
+//!   matching settings;
+//! - `experiment.json`: what the images are: the experiment's directory
+//!   (absolute), per camera the image name pattern (`%d` = frame), the
+//!   first and last frame, the masks, the splitter, and the settings not
+//!   mapped.
+//!
+//! `ptv process-sequence` and `ptv upload --experiment` read the OpenPTV
+//! experiment itself (the directory or YAML given here), so that there is
+//! one source of truth; `experiment.json` records what they will read.
+//! The settings that cannot be mapped are printed on standard error, one
+//! line each, with the reason.
+
+use std::io::Write;
+use std::path::PathBuf;
+
+use clap::{Args, Subcommand};
+use serde::Serialize;
+
+use super::{write_stderr_line, CliError};
+use crate::formats::experiment::{read_experiment, Experiment, UnmappedSetting};
+use crate::formats::{self, FormatError};
+use crate::photogrammetry::Splitter;
+use crate::service::parameters::{DetectionSettings, MatchingSettings};
+
+/// The `experiment` subcommands.
+#[derive(Debug, Subcommand)]
+pub enum ExperimentCommand {
+    /// Read an OpenPTV experiment (a directory with parameters/*.par, or a
+    /// pyptv parameters_*.yaml) and write calibration.json, sequence.json
+    /// and experiment.json; the settings it cannot map are listed on
+    /// standard error.
+    Import(ImportExperimentArgs),
+}
+
+/// Arguments of `ptv experiment import`.
+#[derive(Debug, Args)]
+pub struct ImportExperimentArgs {
+    /// The experiment: a directory with parameters/ptv.par (or with one
+    /// parameters_*.yaml), or a pyptv YAML file.
+    #[arg(value_name = "DIR")]
+    pub dir: PathBuf,
+    /// Where to write the three files (created if missing).
+    #[arg(short, long, value_name = "OUTDIR", default_value = ".")]
+    pub output: PathBuf,
+}
+
+/// The body of `POST /api/v1/sequences` without `calibration_id`.
+#[derive(Serialize)]
+struct SequenceBody {
+    name: String,
+    detection: DetectionSettings,
+    matching: MatchingSettings,
+}
+
+/// `experiment.json`.
+#[derive(Serialize)]
+struct ExperimentFile<'a> {
+    root: String,
+    images: &'a [String],
+    first: u64,
+    last: u64,
+    masks: Option<Vec<String>>,
+    splitter: Option<Splitter>,
+    calibration: &'static str,
+    sequence: &'static str,
+    unmapped: &'a [UnmappedSetting],
+}
+
+/// The sequence settings of an experiment, as the service takes them.
+pub fn sequence_settings(experiment: &Experiment) -> (DetectionSettings, MatchingSettings) {
+    let first = &experiment.detection[0];
+    let detection = DetectionSettings {
+        threshold: Some(first.threshold),
+        thresholds: Some(experiment.detection.iter().map(|d| d.threshold).collect()),
+        highpass_radius: Some(first.highpass_radius),
+        min_pixels: Some(first.min_pixels),
+        max_pixels: Some(first.max_pixels),
+        min_nx: Some(first.min_nx),
+        max_nx: Some(first.max_nx),
+        min_ny: Some(first.min_ny),
+        max_ny: Some(first.max_ny),
+        min_sumg: Some(first.min_sumg),
+        split: Some(first.split),
+        split_depth: Some(first.split_depth),
+    };
+    let m = &experiment.matching;
+    let matching = MatchingSettings {
+        tolerance: Some(m.tolerance),
+        volume: m
+            .volume
+            .map(|v| [v.min.x, v.max.x, v.min.y, v.max.y, v.min.z, v.max.z]),
+        min_cameras: Some(m.min_cameras),
+    };
+    (detection, matching)
+}
+
+/// Runs `ptv experiment import`.
+pub(super) fn import(args: &ImportExperimentArgs, stderr: &mut dyn Write) -> Result<(), CliError> {
+    let experiment = read_experiment(&args.dir)?;
+    std::fs::create_dir_all(&args.output).map_err(|reason| FormatError::Io {
+        path: args.output.clone(),
+        reason,
+    })?;
+    let calibration =
+        formats::calibration::to_json_with_splitter(&experiment.cameras, experiment.splitter);
+    let (detection, matching) = sequence_settings(&experiment);
+    let root = std::path::absolute(&experiment.root).unwrap_or(experiment.root.clone());
+    let name = root
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    let sequence = SequenceBody {
+        name,
+        detection,
+        matching,
+    };
+    let file = ExperimentFile {
+        root: root.display().to_string(),
+        images: &experiment.sequence.base_names,
+        first: experiment.sequence.first,
+        last: experiment.sequence.last,
+        masks: experiment
+            .masks
+            .as_ref()
+            .map(|list| list.iter().map(|p| p.display().to_string()).collect()),
+        splitter: experiment.splitter,
+        calibration: "calibration.json",
+        sequence: "sequence.json",
+        unmapped: &experiment.unmapped,
+    };
+    let json = |value: &dyn erased::Json| value.pretty() + "\n";
+    for (name, text) in [
+        ("calibration.json", calibration),
+        ("sequence.json", json(&sequence)),
+        ("experiment.json", json(&file)),
+    ] {
+        formats::write_text(&args.output.join(name), &text)?;
+    }
+    for setting in &experiment.unmapped {
+        write_stderr_line(
+            stderr,
+            &format!(
+                "not mapped: {}: {} = {}: {}",
+                setting.file, setting.key, setting.value, setting.reason
+            ),
+        )?;
+    }
+    Ok(())
+}
+
+/// Pretty JSON of either file's struct.
+mod erased {
+    pub trait Json {
+        fn pretty(&self) -> String;
+    }
+    impl<T: serde::Serialize> Json for T {
+        fn pretty(&self) -> String {
+            serde_json::to_string_pretty(self).expect("plain data serialises")
+        }
+    }
+}

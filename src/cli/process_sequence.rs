@@ -1,0 +1,288 @@
+//! `ptv process-sequence`: a whole OpenPTV experiment processed locally,
+//! frame by frame through [`FramePipeline`] (detection, section 6.1;
+//! correspondences and intersection, sections 6.2 and 4.3), with the
+//! experiment's own settings as [`crate::formats::experiment`] maps them.
+//!
+//! It reads the OpenPTV experiment directly (the directory or pyptv YAML
+//! that `ptv experiment import` takes). Frames run in parallel (rayon); a
+//! progress bar with frames per second is drawn on standard error when it
+//! is a terminal. Per frame it writes, into the output directory:
+//! `particles.<frame>.csv` (as `ptv process` writes), `rt_is.<frame>`
+//! (OpenPTV's) and `<camera>.<frame>_targets` (OpenPTV's targets, the
+//! indices `rt_is` and the CSV refer to). At the end a JSON summary goes to
+//! standard output: frames, targets per camera (total and per frame),
+//! particles by the number of cameras that see them, and the median
+//! residual.
+
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::time::Duration;
+
+use clap::Args;
+use rayon::prelude::*;
+use serde::Serialize;
+
+use super::{write_stdout, CliError};
+use crate::formats::experiment::{read_experiment, Experiment};
+use crate::formats::{self, FormatError};
+use crate::photogrammetry::{
+    FrameDetection, FramePipeline, GreyImage, PipelineError, SplitterError,
+};
+
+/// Arguments of `ptv process-sequence`.
+#[derive(Debug, Args)]
+pub struct ProcessSequenceArgs {
+    /// The OpenPTV experiment: a directory with parameters/ptv.par (or one
+    /// parameters_*.yaml), or a pyptv YAML file.
+    #[arg(long, value_name = "DIR")]
+    pub experiment: PathBuf,
+    /// Where to write the per-frame files (created if missing) [default:
+    /// res/ in the experiment's directory, where OpenPTV writes them].
+    #[arg(short, long, value_name = "OUTDIR")]
+    pub output: Option<PathBuf>,
+    /// The frames to process, FIRST..LAST inclusive [default: the
+    /// experiment's sequence].
+    #[arg(long, value_name = "FIRST..LAST")]
+    pub frames: Option<String>,
+}
+
+/// Why one frame failed (sent back from the worker threads).
+#[derive(Debug)]
+enum FrameFailure {
+    Format(FormatError),
+    Split(PathBuf, SplitterError),
+    Pipeline(PipelineError, Vec<PathBuf>),
+}
+
+/// One frame's counts.
+struct FrameCounts {
+    targets: Vec<usize>,
+    by_cameras: Vec<usize>,
+    residuals: Vec<f64>,
+}
+
+/// The summary printed at the end.
+#[derive(Serialize)]
+struct Summary {
+    frames: u64,
+    first: u64,
+    last: u64,
+    output: String,
+    cameras: Vec<String>,
+    targets_per_camera: Vec<usize>,
+    targets_per_camera_per_frame: Vec<f64>,
+    particles: usize,
+    /// Index k: particles seen by k cameras.
+    particles_by_cameras: Vec<usize>,
+    median_residual_px: Option<f64>,
+}
+
+fn parse_frames(text: &str, experiment: &Experiment) -> Result<(u64, u64), CliError> {
+    let error = |reason: String| CliError::Flag {
+        flag: "--frames",
+        reason,
+    };
+    let (a, b) = text
+        .split_once("..")
+        .ok_or_else(|| error(format!("expected FIRST..LAST, got `{text}`")))?;
+    let number = |s: &str| {
+        s.trim()
+            .parse::<u64>()
+            .map_err(|_| error(format!("`{s}` is not a frame number in `{text}`")))
+    };
+    let (first, last) = (number(a)?, number(b)?);
+    if first > last {
+        return Err(error(format!(
+            "the first frame {first} is after the last {last}"
+        )));
+    }
+    let s = &experiment.sequence;
+    if first < s.first || last > s.last {
+        return Err(error(format!(
+            "{first}..{last} is outside the experiment's frames {}..{}",
+            s.first, s.last
+        )));
+    }
+    Ok((first, last))
+}
+
+fn process_frame(
+    experiment: &Experiment,
+    pipeline: &FramePipeline,
+    frame: u64,
+    output: &Path,
+) -> Result<FrameCounts, FrameFailure> {
+    let root = &experiment.root;
+    let cameras = experiment.cameras.len();
+    let (paths, images) = match experiment.splitter {
+        Some(splitter) => {
+            let path = experiment.sequence.image_path(root, 0, frame);
+            let image = formats::image::read_image(&path, None).map_err(FrameFailure::Format)?;
+            let views = splitter
+                .split(&image)
+                .map_err(|e| FrameFailure::Split(path.clone(), e))?;
+            (vec![path; cameras], views)
+        }
+        None => {
+            let paths: Vec<PathBuf> = (0..cameras)
+                .map(|camera| experiment.sequence.image_path(root, camera, frame))
+                .collect();
+            let images = paths
+                .iter()
+                .map(|path| formats::image::read_image(path, None))
+                .collect::<Result<Vec<GreyImage>, _>>()
+                .map_err(FrameFailure::Format)?;
+            (paths, images)
+        }
+    };
+    let result = pipeline
+        .process(&images)
+        .map_err(|e| FrameFailure::Pipeline(e, paths))?;
+    let write = |name: String, text: &str| {
+        formats::write_text(&output.join(name), text).map_err(FrameFailure::Format)
+    };
+    write(
+        format!("particles.{frame}.csv"),
+        &formats::csv::format_particles(&result.particles, cameras),
+    )?;
+    write(
+        format!("rt_is.{frame}"),
+        &formats::openptv::format_rt_is(&result.particles, cameras),
+    )?;
+    for (camera, targets) in experiment.cameras.iter().zip(&result.targets) {
+        write(
+            format!("{}.{frame}_targets", camera.name()),
+            &formats::openptv::format_targets(targets),
+        )?;
+    }
+    let mut by_cameras = vec![0; cameras + 1];
+    for particle in &result.particles {
+        by_cameras[particle.camera_count()] += 1;
+    }
+    Ok(FrameCounts {
+        targets: result.targets.iter().map(Vec::len).collect(),
+        by_cameras,
+        residuals: result.particles.iter().map(|p| p.rms_px).collect(),
+    })
+}
+
+/// Runs `ptv process-sequence`.
+pub(super) fn run(args: &ProcessSequenceArgs, stdout: &mut dyn Write) -> Result<(), CliError> {
+    let experiment = read_experiment(&args.experiment)?;
+    let (first, last) = match &args.frames {
+        Some(text) => parse_frames(text, &experiment)?,
+        None => (experiment.sequence.first, experiment.sequence.last),
+    };
+    let output = args
+        .output
+        .clone()
+        .unwrap_or_else(|| experiment.root.join("res"));
+    std::fs::create_dir_all(&output).map_err(|reason| FormatError::Io {
+        path: output.clone(),
+        reason,
+    })?;
+    let pipeline = FramePipeline::new(
+        &experiment.cameras,
+        &FrameDetection::PerCamera(experiment.detection.clone()),
+        &experiment.matching,
+    )
+    .map_err(CliError::Pipeline)?;
+
+    let frames: Vec<u64> = (first..=last).collect();
+    let done = AtomicU64::new(0);
+    let bar = indicatif::ProgressBar::with_draw_target(
+        Some(frames.len() as u64),
+        indicatif::ProgressDrawTarget::stderr(),
+    );
+    bar.set_style(
+        indicatif::ProgressStyle::with_template(
+            "{bar:40} {pos}/{len} frames, {per_sec}, {elapsed} (eta {eta})",
+        )
+        .expect("a valid template"),
+    );
+    // The bar is drawn from this thread only: the frames run on another,
+    // so that standard error (locked by this thread in `main`) is never
+    // waited for by a worker.
+    let results = std::thread::scope(|scope| {
+        let worker = scope.spawn(|| {
+            frames
+                .par_iter()
+                .map(|&frame| {
+                    let result = process_frame(&experiment, &pipeline, frame, &output);
+                    done.fetch_add(1, Ordering::Relaxed);
+                    (frame, result)
+                })
+                .collect::<Vec<_>>()
+        });
+        while !worker.is_finished() {
+            bar.set_position(done.load(Ordering::Relaxed));
+            std::thread::sleep(Duration::from_millis(100));
+        }
+        bar.set_position(done.load(Ordering::Relaxed));
+        worker.join().expect("the frames' worker does not panic")
+    });
+    bar.finish_and_clear();
+
+    let cameras = experiment.cameras.len();
+    let mut targets = vec![0; cameras];
+    let mut by_cameras = vec![0; cameras + 1];
+    let mut residuals = Vec::new();
+    for (frame, result) in results {
+        let counts = result.map_err(|failure| frame_error(&args.experiment, frame, failure))?;
+        for (total, n) in targets.iter_mut().zip(&counts.targets) {
+            *total += n;
+        }
+        for (total, n) in by_cameras.iter_mut().zip(&counts.by_cameras) {
+            *total += n;
+        }
+        residuals.extend(counts.residuals);
+    }
+    residuals.sort_by(f64::total_cmp);
+    let median = match residuals.len() {
+        0 => None,
+        n if n % 2 == 1 => Some(residuals[n / 2]),
+        n => Some((residuals[n / 2 - 1] + residuals[n / 2]) / 2.0),
+    };
+    let count = frames.len() as u64;
+    let summary = Summary {
+        frames: count,
+        first,
+        last,
+        output: output.display().to_string(),
+        cameras: experiment
+            .cameras
+            .iter()
+            .map(|c| c.name().to_owned())
+            .collect(),
+        targets_per_camera_per_frame: targets.iter().map(|&t| t as f64 / count as f64).collect(),
+        targets_per_camera: targets,
+        particles: by_cameras.iter().sum(),
+        particles_by_cameras: by_cameras,
+        median_residual_px: median,
+    };
+    write_stdout(
+        stdout,
+        &(serde_json::to_string_pretty(&summary).expect("plain data serialises") + "\n"),
+    )
+}
+
+fn frame_error(experiment: &Path, frame: u64, failure: FrameFailure) -> CliError {
+    let source = match failure {
+        FrameFailure::Format(error) => CliError::Format(error),
+        FrameFailure::Split(image, source) => CliError::Splitter { image, source },
+        FrameFailure::Pipeline(PipelineError::Sensor { camera, source }, paths) => {
+            CliError::ImageSize {
+                image: paths.get(camera).cloned().unwrap_or_default(),
+                camera,
+                calibration: experiment.to_owned(),
+                source,
+            }
+        }
+        FrameFailure::Pipeline(error, _) => CliError::Pipeline(error),
+    };
+    CliError::Frame {
+        frame,
+        source: Box::new(source),
+    }
+}

@@ -1,0 +1,632 @@
+//! `ptv upload`: pushes a recording's frames to a running `ptv serve`, as
+//! an acquisition PC or a batch job would (issue 13).
+//!
+//! Each frame is one `POST /api/v1/sequences/{id}/frames`, multipart with
+//! a `frame` part (its number) and one image part per camera, `cam0` ..
+//! `camN-1` in camera order (see `src/service/http/sequences.rs`). The
+//! images of frame `F` are named by one pattern per camera with a
+//! printf-style frame number: `img/cam1.%d`, `img/cam1_%05d.tif`.
+//!
+//! - `--jobs N` frames are in flight at once (default 4).
+//! - A connection error, a timeout and a 5xx are retried with exponential
+//!   backoff (0.2 s doubling, at most 10 s between attempts, with jitter),
+//!   at most `--retries` times; a 429 or 503 with `Retry-After` waits what
+//!   the server asks (at most 60 s) instead.
+//! - A 409 means the frame is already on the server: it counts as done, so
+//!   running the same command again after an interruption resumes where
+//!   the first run stopped (a frame whose answer was lost also ends as a
+//!   409 on its retry).
+//! - Any other 4xx fails that frame with the server's problem+json
+//!   `detail`; so does a camera image that cannot be read (with its path).
+//!   The other frames go on.
+//!
+//! A progress bar on standard error (hidden when it is not a terminal);
+//! at the end a summary on standard output: frames accepted, already
+//! there, and failed with the reasons. The command fails (exit 1) if any
+//! frame failed. `--follow` then waits until the sequence has no queued or
+//! running frame and reports the jobs' states (exit 1 if one of the
+//! frames uploaded now failed).
+//!
+//! The client speaks plain HTTP only (no TLS in the build): labs upload
+//! over their own network. For https, put a reverse proxy in front of
+//! `ptv serve` and run `ptv upload` on its side of it, or wait for TLS
+//! support (future work).
+
+use std::fmt::Write as _;
+use std::io::Write;
+use std::path::PathBuf;
+use std::time::Duration;
+
+use clap::Args;
+use futures_util::StreamExt;
+use reqwest::multipart::{Form, Part};
+use reqwest::StatusCode;
+use serde_json::Value;
+
+use super::{write_stdout, CliError};
+
+/// Arguments of `ptv upload`.
+#[derive(Debug, Args)]
+pub struct UploadArgs {
+    /// The service: `http://HOST:PORT` (plain HTTP; see the docs for https).
+    #[arg(long, value_name = "URL")]
+    pub server: String,
+    /// The service's API token, if it has one (`ptv serve --api-token`).
+    #[arg(long, env = "PTV_API_TOKEN", hide_env_values = true, value_name = "T")]
+    pub token: Option<String>,
+    /// The sequence to add the frames to (create it first:
+    /// `POST /api/v1/sequences`).
+    #[arg(long, value_name = "ID")]
+    pub sequence: i64,
+    /// One file name pattern per camera, in camera order, with a
+    /// printf-style frame number: `img/cam1.%d`, `img/cam1_%05d.tif`.
+    #[arg(long = "images", value_name = "PATTERN", required = true, num_args = 1..)]
+    pub images: Vec<String>,
+    /// The frames to upload, both ends included: `10001..10004`, or one
+    /// frame `10001`.
+    #[arg(long, value_name = "FIRST..LAST", value_parser = parse_frames)]
+    pub frames: FrameRange,
+    /// How many frames are uploaded at once.
+    #[arg(long, value_name = "N", default_value_t = 4, value_parser = clap::value_parser!(u16).range(1..=64))]
+    pub jobs: u16,
+    /// How often a frame is retried after a connection error or a 5xx
+    /// before it counts as failed.
+    #[arg(long, value_name = "N", default_value_t = 6)]
+    pub retries: u32,
+    /// After uploading, wait for the sequence's frames to be processed and
+    /// report the jobs' states.
+    #[arg(long)]
+    pub follow: bool,
+}
+
+/// Frames `first..=last`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct FrameRange {
+    /// The first frame.
+    pub first: u64,
+    /// The last frame (included).
+    pub last: u64,
+}
+
+/// The most frames one command uploads (a typo guard: `1..10000000`).
+const MAX_FRAMES: u64 = 10_000_000;
+
+fn parse_frames(text: &str) -> Result<FrameRange, String> {
+    let number = |s: &str| {
+        s.trim().parse::<u64>().map_err(|_| {
+            format!("`{s}` is not a frame number; give FIRST..LAST, e.g. 10001..10004")
+        })
+    };
+    let (first, last) = match text.split_once("..") {
+        Some((first, last)) => (number(first)?, number(last.trim_start_matches('='))?),
+        None => {
+            let frame = number(text)?;
+            (frame, frame)
+        }
+    };
+    if last < first {
+        return Err(format!(
+            "the last frame {last} comes before the first {first}"
+        ));
+    }
+    if last - first >= MAX_FRAMES {
+        return Err(format!(
+            "{} frames; upload at most {MAX_FRAMES} per command",
+            last - first + 1
+        ));
+    }
+    Ok(FrameRange { first, last })
+}
+
+/// A file name pattern with one printf-style frame number.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Pattern {
+    prefix: String,
+    /// Minimum digits, and whether padded with zeros (else spaces).
+    width: usize,
+    zeros: bool,
+    suffix: String,
+}
+
+impl Pattern {
+    /// Parses `img/cam1.%d`, `%05d`, `%5d`; `%%` is a literal `%`.
+    pub fn parse(text: &str) -> Result<Pattern, String> {
+        let mut prefix: Option<String> = None;
+        let mut current = String::new();
+        let mut spec: Option<(usize, bool)> = None;
+        let mut chars = text.chars().peekable();
+        while let Some(c) = chars.next() {
+            if c != '%' {
+                current.push(c);
+                continue;
+            }
+            if chars.peek() == Some(&'%') {
+                chars.next();
+                current.push('%');
+                continue;
+            }
+            let mut digits = String::new();
+            while let Some(&d) = chars.peek().filter(|d| d.is_ascii_digit()) {
+                digits.push(d);
+                chars.next();
+            }
+            if chars.next() != Some('d') {
+                return Err(format!(
+                    "`{text}`: only %d, %0Nd or %Nd (the frame number) and %% may follow a %"
+                ));
+            }
+            if spec.is_some() {
+                return Err(format!(
+                    "`{text}` has two frame numbers; give one %d per pattern"
+                ));
+            }
+            let zeros = digits.starts_with('0');
+            let width = digits.parse::<usize>().unwrap_or(0);
+            if width > 20 {
+                return Err(format!("`{text}`: a frame number of {width} digits"));
+            }
+            spec = Some((width, zeros));
+            prefix = Some(std::mem::take(&mut current));
+        }
+        let Some((width, zeros)) = spec else {
+            return Err(format!(
+                "`{text}` has no frame number; put %d (or %05d) where the frame goes, \
+                 e.g. img/cam1.%d"
+            ));
+        };
+        Ok(Pattern {
+            prefix: prefix.unwrap_or_default(),
+            width,
+            zeros,
+            suffix: current,
+        })
+    }
+
+    /// The file of `frame`.
+    pub fn path(&self, frame: u64) -> PathBuf {
+        let number = if self.zeros {
+            format!("{frame:0width$}", width = self.width)
+        } else {
+            format!("{frame:width$}", width = self.width)
+        };
+        PathBuf::from(format!("{}{number}{}", self.prefix, self.suffix))
+    }
+}
+
+/// How one frame ended.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum Outcome {
+    /// Accepted now: its job.
+    Accepted(i64),
+    /// The server had it already (409).
+    AlreadyThere,
+    /// Not uploaded: why.
+    Failed(String),
+}
+
+/// The server, the token and the client.
+struct Server {
+    client: reqwest::Client,
+    api: String,
+    token: Option<String>,
+    retries: u32,
+}
+
+impl Server {
+    fn get(&self, path: &str) -> reqwest::RequestBuilder {
+        self.authorized(self.client.get(format!("{}{path}", self.api)))
+    }
+
+    fn authorized(&self, request: reqwest::RequestBuilder) -> reqwest::RequestBuilder {
+        match &self.token {
+            Some(token) => request.bearer_auth(token),
+            None => request,
+        }
+    }
+
+    /// GETs JSON, retrying connection errors and 5xx like uploads; a 4xx
+    /// is an error with the server's detail.
+    async fn get_json(&self, path: &str) -> Result<Value, String> {
+        let mut attempt = 0;
+        loop {
+            let (wait, reason) = match self.get(path).send().await {
+                Ok(response) if response.status().is_success() => {
+                    return response
+                        .json::<Value>()
+                        .await
+                        .map_err(|e| format!("GET {path}: the answer is not JSON: {e}"));
+                }
+                Ok(response) if retried(response.status()) => {
+                    let wait = retry_after(&response);
+                    let reason = format!("GET {path}: {}", problem(response).await);
+                    (wait, reason)
+                }
+                Ok(response) => return Err(problem(response).await),
+                Err(error) => (None, chain(&error)),
+            };
+            attempt += 1;
+            if attempt > self.retries {
+                return Err(format!("gave up after {attempt} attempts: {reason}"));
+            }
+            tokio::time::sleep(wait.unwrap_or_else(|| backoff(attempt))).await;
+        }
+    }
+}
+
+/// Whether a status is worth retrying: 5xx, 429.
+fn retried(status: StatusCode) -> bool {
+    status.is_server_error() || status == StatusCode::TOO_MANY_REQUESTS
+}
+
+/// The wait a 429/503 asks for in `Retry-After` (seconds), at most 60 s.
+fn retry_after(response: &reqwest::Response) -> Option<Duration> {
+    let status = response.status();
+    if status != StatusCode::TOO_MANY_REQUESTS && status != StatusCode::SERVICE_UNAVAILABLE {
+        return None;
+    }
+    let seconds: u64 = response
+        .headers()
+        .get(reqwest::header::RETRY_AFTER)?
+        .to_str()
+        .ok()?
+        .trim()
+        .parse()
+        .ok()?;
+    Some(Duration::from_secs(seconds.min(60)))
+}
+
+/// The wait before attempt `attempt` (1-based): 0.2 s doubling, at most
+/// 10 s, plus up to half of it again at random (so that many clients
+/// refused at once do not come back at once).
+fn backoff(attempt: u32) -> Duration {
+    let base = Duration::from_millis(200)
+        .saturating_mul(1u32 << attempt.saturating_sub(1).min(16))
+        .min(Duration::from_secs(10));
+    let jitter = rand::random_range(0.0..0.5);
+    base.mul_f64(1.0 + jitter)
+}
+
+/// The status and the problem+json `detail` of an error answer (else its
+/// title, else the text, cut at 300 characters).
+async fn problem(response: reqwest::Response) -> String {
+    let status = response.status();
+    let text = response.text().await.unwrap_or_default();
+    let detail = serde_json::from_str::<Value>(&text).ok().and_then(|body| {
+        body.get("detail")
+            .or_else(|| body.get("title"))
+            .and_then(Value::as_str)
+            .map(str::to_owned)
+    });
+    let detail = detail.unwrap_or_else(|| text.chars().take(300).collect());
+    if detail.is_empty() {
+        status.to_string()
+    } else {
+        format!("{status}: {detail}")
+    }
+}
+
+/// An error and its causes as one line.
+fn chain(error: &dyn std::error::Error) -> String {
+    let mut text = error.to_string();
+    let mut source = error.source();
+    while let Some(cause) = source {
+        let cause_text = cause.to_string();
+        if !text.ends_with(&cause_text) {
+            let _ = write!(text, ": {cause_text}");
+        }
+        source = cause.source();
+    }
+    text
+}
+
+/// Uploads one frame; never an error: a failure is an [`Outcome::Failed`].
+async fn upload_frame(server: &Server, sequence: i64, frame: u64, paths: &[PathBuf]) -> Outcome {
+    let mut files = Vec::with_capacity(paths.len());
+    for path in paths {
+        match tokio::fs::read(path).await {
+            Ok(bytes) => files.push(bytes),
+            Err(error) => return Outcome::Failed(format!("{}: {error}", path.display())),
+        }
+    }
+    let url = format!("{}/sequences/{sequence}/frames", server.api);
+    let mut attempt = 0;
+    loop {
+        let mut form = Form::new().text("frame", frame.to_string());
+        for (camera, (bytes, path)) in files.iter().zip(paths).enumerate() {
+            let name = path
+                .file_name()
+                .map(|n| n.to_string_lossy().into_owned())
+                .unwrap_or_else(|| format!("cam{camera}"));
+            form = form.part(
+                format!("cam{camera}"),
+                Part::bytes(bytes.clone()).file_name(name),
+            );
+        }
+        let request = server.authorized(server.client.post(&url)).multipart(form);
+        let (wait, reason) = match request.send().await {
+            Ok(response) => match response.status() {
+                status if status.is_success() => {
+                    let body: Value = response.json().await.unwrap_or(Value::Null);
+                    return Outcome::Accepted(body["job_id"].as_i64().unwrap_or(-1));
+                }
+                StatusCode::CONFLICT => return Outcome::AlreadyThere,
+                status if retried(status) => {
+                    let wait = retry_after(&response);
+                    (wait, problem(response).await)
+                }
+                _ => return Outcome::Failed(problem(response).await),
+            },
+            Err(error) => (None, chain(&error)),
+        };
+        attempt += 1;
+        if attempt > server.retries {
+            return Outcome::Failed(format!("gave up after {attempt} attempts: {reason}"));
+        }
+        tokio::time::sleep(wait.unwrap_or_else(|| backoff(attempt))).await;
+    }
+}
+
+/// The frames' outcomes, in frame order.
+pub type Outcomes = Vec<(u64, Outcome)>;
+
+/// Runs `ptv upload`: the summary to standard output, the progress bar to
+/// standard error.
+pub fn run(args: &UploadArgs, stdout: &mut dyn Write) -> Result<(), CliError> {
+    let patterns = args
+        .images
+        .iter()
+        .map(|text| Pattern::parse(text))
+        .collect::<Result<Vec<_>, _>>()
+        .map_err(|reason| CliError::Flag {
+            flag: "--images",
+            reason,
+        })?;
+    let server = args.server.trim_end_matches('/');
+    if server.starts_with("https://") {
+        return Err(CliError::Flag {
+            flag: "--server",
+            reason: format!(
+                "{server}: this client speaks plain HTTP only; upload to the service's \
+                 http:// address, or through a reverse proxy that terminates TLS"
+            ),
+        });
+    }
+    if !server.starts_with("http://") {
+        return Err(CliError::Flag {
+            flag: "--server",
+            reason: format!("{server}: give the service's address as http://HOST:PORT"),
+        });
+    }
+    let client = reqwest::Client::builder()
+        .connect_timeout(Duration::from_secs(10))
+        .timeout(Duration::from_secs(600))
+        .build()
+        .map_err(|e| CliError::Upload(format!("cannot make an HTTP client: {}", chain(&e))))?;
+    let server = Server {
+        client,
+        api: format!("{server}/api/v1"),
+        token: args.token.clone(),
+        retries: args.retries,
+    };
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .map_err(|e| CliError::Upload(format!("cannot start the runtime: {e}")))?;
+    runtime.block_on(async {
+        check_sequence(&server, args.sequence, patterns.len()).await?;
+        let outcomes = upload_all(&server, args, &patterns).await;
+        write_stdout(stdout, &summary(&outcomes))?;
+        let mut failed = outcomes
+            .iter()
+            .filter(|(_, o)| matches!(o, Outcome::Failed(_)))
+            .count();
+        if args.follow {
+            let (report, jobs_failed) = follow(&server, args.sequence, &outcomes).await?;
+            write_stdout(stdout, &report)?;
+            failed += jobs_failed;
+        }
+        if failed > 0 {
+            return Err(CliError::Upload(format!(
+                "{failed} of {} frames failed (see above)",
+                outcomes.len()
+            )));
+        }
+        Ok(())
+    })
+}
+
+/// Checks that the sequence exists and its calibration has one camera per
+/// pattern, before any upload.
+async fn check_sequence(server: &Server, sequence: i64, patterns: usize) -> Result<(), CliError> {
+    let failed = |reason: String| {
+        CliError::Upload(format!(
+            "cannot read sequence {sequence} at {}: {reason}",
+            server.api
+        ))
+    };
+    let view = server
+        .get_json(&format!("/sequences/{sequence}"))
+        .await
+        .map_err(failed)?;
+    let calibration = view["calibration_id"].as_i64().unwrap_or(-1);
+    let calibration = server
+        .get_json(&format!("/calibrations/{calibration}"))
+        .await
+        .map_err(failed)?;
+    if let Some(cameras) = calibration["cameras"].as_i64() {
+        if cameras != patterns as i64 {
+            return Err(CliError::Flag {
+                flag: "--images",
+                reason: format!(
+                    "sequence {sequence}'s calibration has {cameras} cameras but {patterns} \
+                     patterns were given; give one per camera, in camera order"
+                ),
+            });
+        }
+    }
+    Ok(())
+}
+
+/// Uploads every frame, `--jobs` at once, with a progress bar.
+async fn upload_all(server: &Server, args: &UploadArgs, patterns: &[Pattern]) -> Outcomes {
+    let total = args.frames.last - args.frames.first + 1;
+    let progress = progress_bar(total, "uploaded");
+    let frames = args.frames.first..=args.frames.last;
+    let mut outcomes: Outcomes = futures_util::stream::iter(frames)
+        .map(|frame| {
+            let paths: Vec<PathBuf> = patterns.iter().map(|p| p.path(frame)).collect();
+            let progress = &progress;
+            async move {
+                let outcome = upload_frame(server, args.sequence, frame, &paths).await;
+                progress.inc(1);
+                (frame, outcome)
+            }
+        })
+        .buffer_unordered(usize::from(args.jobs))
+        .collect()
+        .await;
+    progress.finish_and_clear();
+    outcomes.sort_by_key(|(frame, _)| *frame);
+    outcomes
+}
+
+fn progress_bar(total: u64, what: &str) -> indicatif::ProgressBar {
+    let progress = indicatif::ProgressBar::with_draw_target(
+        Some(total),
+        indicatif::ProgressDrawTarget::stderr(),
+    );
+    let template = format!("{{bar:40}} {{pos}}/{{len}} frames {what} ({{per_sec}}, {{eta}})");
+    progress.set_style(
+        indicatif::ProgressStyle::with_template(&template)
+            .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+    );
+    progress
+}
+
+/// The summary: counts, then one line per failed frame.
+fn summary(outcomes: &Outcomes) -> String {
+    let count = |f: fn(&Outcome) -> bool| outcomes.iter().filter(|(_, o)| f(o)).count();
+    let mut text = format!(
+        "accepted: {}, already there: {}, failed: {}\n",
+        count(|o| matches!(o, Outcome::Accepted(_))),
+        count(|o| matches!(o, Outcome::AlreadyThere)),
+        count(|o| matches!(o, Outcome::Failed(_))),
+    );
+    for (frame, outcome) in outcomes {
+        if let Outcome::Failed(reason) = outcome {
+            let _ = writeln!(text, "frame {frame} failed: {}", one_line(reason));
+        }
+    }
+    text
+}
+
+fn one_line(text: &str) -> String {
+    text.replace(['\r', '\n'], " ")
+}
+
+/// Waits until the sequence has no queued or running frame; the report
+/// (the sequence's frames by state, and the jobs of the frames accepted
+/// now that failed, with their errors) and how many of those failed.
+async fn follow(
+    server: &Server,
+    sequence: i64,
+    outcomes: &Outcomes,
+) -> Result<(String, usize), CliError> {
+    let failed =
+        |reason: String| CliError::Upload(format!("cannot follow sequence {sequence}: {reason}"));
+    let path = format!("/sequences/{sequence}");
+    let mut progress: Option<indicatif::ProgressBar> = None;
+    let view = loop {
+        let view = server.get_json(&path).await.map_err(failed)?;
+        let count = |state: &str| view["frames"][state].as_i64().unwrap_or(0).max(0) as u64;
+        let (queued, running) = (count("queued"), count("running"));
+        let finished = count("done") + count("failed");
+        let bar =
+            progress.get_or_insert_with(|| progress_bar(finished + queued + running, "processed"));
+        bar.set_length(finished + queued + running);
+        bar.set_position(finished);
+        if queued == 0 && running == 0 {
+            break view;
+        }
+        tokio::time::sleep(Duration::from_millis(250)).await;
+    };
+    if let Some(bar) = progress {
+        bar.finish_and_clear();
+    }
+    let count = |state: &str| view["frames"][state].as_i64().unwrap_or(0);
+    let mut report = format!(
+        "sequence {sequence}: done: {}, failed: {}\n",
+        count("done"),
+        count("failed")
+    );
+    let mut jobs_failed = 0;
+    if count("failed") > 0 {
+        for (frame, outcome) in outcomes {
+            let Outcome::Accepted(job) = outcome else {
+                continue;
+            };
+            let job = server
+                .get_json(&format!("/jobs/{job}"))
+                .await
+                .map_err(failed)?;
+            if job["state"] == "failed" {
+                jobs_failed += 1;
+                let error = job["error"].as_str().unwrap_or("no reason given");
+                let _ = writeln!(
+                    report,
+                    "frame {frame}: job {} failed: {}",
+                    job["id"],
+                    one_line(error)
+                );
+            }
+        }
+    }
+    Ok((report, jobs_failed))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn patterns_put_the_frame_number_in_place() {
+        let path = |p: &str, f| Pattern::parse(p).unwrap().path(f);
+        assert_eq!(path("img/cam1.%d", 10001), PathBuf::from("img/cam1.10001"));
+        assert_eq!(path("c%05d.tif", 42), PathBuf::from("c00042.tif"));
+        assert_eq!(path("c%3d", 7), PathBuf::from("c  7"));
+        assert_eq!(path("100%%_%d.png", 3), PathBuf::from("100%_3.png"));
+        assert_eq!(path("%d", 123456), PathBuf::from("123456"));
+        for bad in ["img/cam1", "a%d%d", "a%s", "a%05x", "a%"] {
+            assert!(Pattern::parse(bad).is_err(), "{bad}");
+        }
+    }
+
+    #[test]
+    fn frame_ranges_include_both_ends() {
+        assert_eq!(
+            parse_frames("10001..10004"),
+            Ok(FrameRange {
+                first: 10001,
+                last: 10004
+            })
+        );
+        assert_eq!(parse_frames("7"), Ok(FrameRange { first: 7, last: 7 }));
+        assert!(parse_frames("5..3").unwrap_err().contains("comes before"));
+        assert!(parse_frames("a..3").is_err());
+        assert!(parse_frames("0..99999999").is_err());
+    }
+
+    #[test]
+    fn backoff_doubles_and_is_bounded() {
+        for attempt in 1..40 {
+            let wait = backoff(attempt);
+            let base = 0.2 * 2f64.powi(attempt as i32 - 1);
+            let base = base.min(10.0);
+            assert!(
+                wait.as_secs_f64() >= base - 1e-9 && wait.as_secs_f64() <= 1.5 * base + 1e-9,
+                "{attempt}: {wait:?}"
+            );
+        }
+    }
+}

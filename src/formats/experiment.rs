@@ -1,0 +1,1246 @@
+//! OpenPTV/pyptv experiments: the legacy `parameters/` folder of `.par`
+//! files or pyptv's `parameters_*.yaml`, with the calibration files they
+//! name, read into `ptv`'s own settings ([`Experiment`]).
+//!
+//! [`read_experiment`] takes a directory or a YAML file:
+//!
+//! - a YAML file (`parameters_Run1.yaml`): pyptv's sections `num_cams`,
+//!   `ptv`, `cal_ori`, `criteria`, `targ_rec`, `sequence`, `masking`, ...;
+//!   paths in it are relative to the YAML's directory;
+//! - a directory with `parameters/ptv.par`: the legacy folder (`ptv.par`,
+//!   `cal_ori.par`, `targ_rec.par`, `criteria.par`, `sequence.par`, ...,
+//!   one value per line as liboptv's `parameters.c` reads them); paths are
+//!   relative to the directory;
+//! - a directory with exactly one `parameters_*.yaml` and no `parameters/`:
+//!   that YAML. With several, the error lists them: give the file's path.
+//!
+//! Both forms are first read into one set of sections named as pyptv's YAML
+//! names them, then mapped, so the two give the same settings. The mapping
+//! (design paper, sections 6.1 and 6.2):
+//!
+//! | OpenPTV | ptv |
+//! | --- | --- |
+//! | `ptv.par`: sensor, pixel size, n1/n2/n3, wall thickness; `cal_ori`'s `.ori` and `.addpar` | [`Camera`]s (the calibration JSON) |
+//! | `hp_flag` | `highpass_radius` 25 (liboptv's `preprocess_image` box filter of half-width 25, pyptv's default) or 0 |
+//! | `allcam_flag` | `min_cameras`: every camera, or 2 |
+//! | `targ_rec.gvthres` | per camera `threshold` |
+//! | `disco` | `split_depth` (absolute grey levels, OpenPTV's meaning), `split` on |
+//! | `nnmin`/`nnmax`, `nxmin`/`nxmax`, `nymin`/`nymax`, `sumg_min` | `min_pixels`/`max_pixels`, `min_nx`/`max_nx`, `min_ny`/`max_ny`, `min_sumg` |
+//! | `criteria.eps0` (mm on the image plane) | `tolerance` (px): eps0 divided by the mean pixel size |
+//! | `X_lay`, `Zmin_lay`, `Zmax_lay` | the observation [`Volume`], see below |
+//! | `sequence.base_name`, `first`, `last` | [`SequenceFrames`] |
+//! | `ptv.splitter` (pyptv) | [`Splitter::quadrants`] |
+//! | `masking.mask_base_name` (pyptv, `%d` = camera 1..N) | `masks` |
+//!
+//! **The volume.** OpenPTV bounds depth only: between `X_lay[0]` and
+//! `X_lay[1]` the range `Zmin..Zmax` is interpolated linearly in X, and Y is
+//! not bounded at all (only by what the cameras see). `ptv`'s volume is a
+//! box, so: X is `X_lay[0]..X_lay[1]`; Z is the smallest `Zmin_lay` to the
+//! largest `Zmax_lay`, the box around a sloped range, which keeps every
+//! point OpenPTV keeps and some more near the shallow end; Y is the union
+//! over the cameras of where their image corners' rays meet the depth range,
+//! that is every Y some camera can see.
+//!
+//! Everything else (`cnx`, `cny`, `cn`, `csumg`, `corrmin`, `cr_sz`,
+//! `track`, calibration-only sections, ...) is listed in
+//! [`Experiment::unmapped`] with the reason. Errors name the file, the line
+//! and the key.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use nalgebra::{Point2, Point3};
+use serde::Deserialize;
+
+use super::{calibration, openptv, FormatError};
+use crate::photogrammetry::correspond::MatchingParameters;
+use crate::photogrammetry::{
+    Camera, CameraParameters, DetectionParameters, Distortion, Media, Sensor, Splitter, Volume,
+    Wall,
+};
+
+/// The high-pass radius `hp_flag` stands for: liboptv's
+/// `preprocess_image(img, 0, cpar, 25)` as pyptv calls it subtracts a box
+/// average of half-width 25 px.
+pub const OPENPTV_HIGHPASS_RADIUS: u32 = 25;
+
+/// An OpenPTV experiment in `ptv`'s terms.
+#[derive(Clone, Debug)]
+pub struct Experiment {
+    /// The experiment directory: image and calibration paths are relative
+    /// to it.
+    pub root: PathBuf,
+    /// From `ptv.par` and `cal_ori`'s `.ori`/`.addpar`.
+    pub cameras: Vec<Camera>,
+    /// pyptv's splitter: the cameras are the quadrants of one image.
+    pub splitter: Option<Splitter>,
+    /// One set per camera (their thresholds differ).
+    pub detection: Vec<DetectionParameters>,
+    /// The correspondence search.
+    pub matching: MatchingParameters,
+    /// The image sequence.
+    pub sequence: SequenceFrames,
+    /// pyptv's masking images, one per camera, if masking is on.
+    pub masks: Option<Vec<PathBuf>>,
+    /// The settings `ptv` cannot map, and why.
+    pub unmapped: Vec<UnmappedSetting>,
+}
+
+/// The frames of an experiment.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct SequenceFrames {
+    /// Per camera (one with a splitter), the image name pattern relative to
+    /// the root, with a printf-style `%d` (or `%05d`, ...) for the frame.
+    pub base_names: Vec<String>,
+    /// The first frame.
+    pub first: u64,
+    /// The last frame (inclusive).
+    pub last: u64,
+}
+
+impl SequenceFrames {
+    /// The image of `camera` (0-based) at `frame`.
+    pub fn image_path(&self, root: &Path, camera: usize, frame: u64) -> PathBuf {
+        let pattern = self
+            .base_names
+            .get(camera)
+            .or(self.base_names.last())
+            .map_or("", String::as_str);
+        root.join(format_frame(pattern, frame))
+    }
+}
+
+/// A setting read but not used, with the reason.
+#[derive(Clone, Debug, PartialEq, Eq, serde::Serialize)]
+pub struct UnmappedSetting {
+    /// The file it is in.
+    pub file: String,
+    /// Its key: `criteria.cn`.
+    pub key: String,
+    /// Its value as written.
+    pub value: String,
+    /// Why `ptv` does not use it.
+    pub reason: String,
+}
+
+/// Why an experiment cannot be read.
+#[derive(Debug, thiserror::Error)]
+pub enum ExperimentError {
+    /// A file that does not parse, or a value out of range.
+    #[error("{}: {location}: {reason}", file.display())]
+    Invalid {
+        /// The parameter file.
+        file: PathBuf,
+        /// `line 5 (disco)`, `line 12, targ_rec.gvthres[2]`.
+        location: String,
+        /// What is wrong and what is expected.
+        reason: String,
+    },
+    /// A file the experiment names is not there.
+    #[error(
+        "{}: {location}: names {}, which does not exist; copy it there or correct the name",
+        file.display(), missing.display()
+    )]
+    Missing {
+        /// The parameter file.
+        file: PathBuf,
+        /// Where it names it.
+        location: String,
+        /// The missing file.
+        missing: PathBuf,
+    },
+    /// The directory holds no experiment, or several YAMLs.
+    #[error("{}: {reason}", dir.display())]
+    NotAnExperiment {
+        /// The directory given.
+        dir: PathBuf,
+        /// What was found and what to give.
+        reason: String,
+    },
+    /// A calibration file (`.ori`, `.addpar`) that does not parse, or a
+    /// camera the model refuses.
+    #[error(transparent)]
+    Format(#[from] FormatError),
+}
+
+/// Formats a printf-style frame pattern: `%d`, `%5d`, `%05d` take the frame;
+/// `%%` is a percent sign. A pattern without one gets the frame appended
+/// after a dot (OpenPTV's `base.frame` naming).
+pub fn format_frame(pattern: &str, frame: u64) -> String {
+    let mut out = String::new();
+    let mut chars = pattern.chars().peekable();
+    let mut used = false;
+    while let Some(c) = chars.next() {
+        if c != '%' {
+            out.push(c);
+            continue;
+        }
+        if chars.peek() == Some(&'%') {
+            chars.next();
+            out.push('%');
+            continue;
+        }
+        let mut spec = String::new();
+        while let Some(&d) = chars.peek() {
+            if d.is_ascii_digit() {
+                spec.push(d);
+                chars.next();
+            } else {
+                break;
+            }
+        }
+        if chars.peek() == Some(&'d') {
+            chars.next();
+            let width: usize = spec.parse().unwrap_or(0);
+            if spec.starts_with('0') {
+                out.push_str(&format!("{frame:0width$}"));
+            } else {
+                out.push_str(&format!("{frame:width$}"));
+            }
+            used = true;
+        } else {
+            out.push('%');
+            out.push_str(&spec);
+        }
+    }
+    if !used {
+        out.push_str(&format!(".{frame}"));
+    }
+    out
+}
+
+// --- The sections, as pyptv's YAML names them --------------------------------
+
+#[derive(Debug, Deserialize)]
+struct Sections {
+    num_cams: Option<usize>,
+    ptv: PtvSection,
+    cal_ori: CalOriSection,
+    criteria: CriteriaSection,
+    targ_rec: TargRecSection,
+    sequence: SequenceSection,
+    #[serde(default)]
+    masking: Option<MaskingSection>,
+}
+
+#[derive(Debug, Deserialize)]
+struct PtvSection {
+    #[serde(default)]
+    n_img: Option<usize>,
+    #[serde(default)]
+    img_name: Vec<String>,
+    hp_flag: bool,
+    allcam_flag: bool,
+    #[serde(default)]
+    tiff_flag: bool,
+    imx: u32,
+    imy: u32,
+    pix_x: f64,
+    pix_y: f64,
+    #[serde(default)]
+    chfield: i64,
+    mmp_n1: f64,
+    mmp_n2: f64,
+    mmp_n3: f64,
+    mmp_d: f64,
+    #[serde(default)]
+    splitter: bool,
+}
+
+#[derive(Debug, Deserialize)]
+struct CalOriSection {
+    img_ori: Vec<String>,
+}
+
+#[allow(non_snake_case)]
+#[derive(Debug, Deserialize)]
+struct CriteriaSection {
+    X_lay: Vec<f64>,
+    Zmin_lay: Vec<f64>,
+    Zmax_lay: Vec<f64>,
+    eps0: f64,
+}
+
+#[derive(Debug, Deserialize)]
+struct TargRecSection {
+    gvthres: Vec<i64>,
+    disco: i64,
+    nnmin: i64,
+    nnmax: i64,
+    nxmin: i64,
+    nxmax: i64,
+    nymin: i64,
+    nymax: i64,
+    sumg_min: i64,
+}
+
+#[derive(Debug, Deserialize)]
+struct SequenceSection {
+    base_name: Vec<String>,
+    first: u64,
+    last: u64,
+}
+
+#[derive(Debug, Deserialize)]
+struct MaskingSection {
+    #[serde(default)]
+    mask_flag: bool,
+    #[serde(default)]
+    mask_base_name: String,
+}
+
+/// Where each `section.key` was read: its file and line.
+struct Locator {
+    /// Per `section.key` (list items as `section.key[i]` where known).
+    places: BTreeMap<String, (PathBuf, usize)>,
+    /// The file of a section with no recorded line.
+    section_files: BTreeMap<String, PathBuf>,
+}
+
+impl Locator {
+    fn file_of(&self, key: &str) -> PathBuf {
+        let section = key.split('.').next().unwrap_or(key);
+        self.places
+            .get(key)
+            .map(|(file, _)| file.clone())
+            .or_else(|| self.section_files.get(section).cloned())
+            .unwrap_or_default()
+    }
+
+    fn location(&self, key: &str) -> String {
+        let base = key.split('[').next().unwrap_or(key);
+        match self.places.get(key).or_else(|| self.places.get(base)) {
+            Some((_, line)) => format!("line {line}, {key}"),
+            None => key.to_owned(),
+        }
+    }
+
+    fn invalid(&self, key: &str, reason: impl Into<String>) -> ExperimentError {
+        ExperimentError::Invalid {
+            file: self.file_of(key),
+            location: self.location(key),
+            reason: reason.into(),
+        }
+    }
+}
+
+/// Reads an experiment: a directory (the legacy `parameters/` folder, or
+/// its one `parameters_*.yaml`) or a pyptv YAML file.
+pub fn read_experiment(dir: &Path) -> Result<Experiment, ExperimentError> {
+    if dir.is_file() {
+        let root = dir.parent().unwrap_or(Path::new(".")).to_owned();
+        return read_yaml(dir, &root);
+    }
+    if !dir.is_dir() {
+        return Err(ExperimentError::NotAnExperiment {
+            dir: dir.to_owned(),
+            reason: "no such file or directory; give an OpenPTV experiment directory (with \
+                     parameters/ptv.par) or a pyptv parameters_*.yaml"
+                .into(),
+        });
+    }
+    if dir.join("parameters").join("ptv.par").is_file() {
+        return read_legacy(dir);
+    }
+    let mut yamls: Vec<PathBuf> = std::fs::read_dir(dir)
+        .map_err(|reason| FormatError::Io {
+            path: dir.to_owned(),
+            reason,
+        })?
+        .filter_map(|entry| entry.ok().map(|e| e.path()))
+        .filter(|path| {
+            path.file_name().and_then(|n| n.to_str()).is_some_and(|n| {
+                n.starts_with("parameters") && (n.ends_with(".yaml") || n.ends_with(".yml"))
+            })
+        })
+        .collect();
+    yamls.sort();
+    match yamls.as_slice() {
+        [one] => read_yaml(one, dir),
+        [] => Err(ExperimentError::NotAnExperiment {
+            dir: dir.to_owned(),
+            reason: "has neither parameters/ptv.par nor a parameters_*.yaml; give an OpenPTV \
+                     experiment directory or a pyptv YAML file"
+                .into(),
+        }),
+        several => Err(ExperimentError::NotAnExperiment {
+            dir: dir.to_owned(),
+            reason: format!(
+                "has several pyptv YAMLs ({}); give the path of the one to use",
+                several
+                    .iter()
+                    .filter_map(|p| p.file_name().map(|n| n.to_string_lossy().into_owned()))
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            ),
+        }),
+    }
+}
+
+// --- pyptv's YAML ---------------------------------------------------------
+
+/// The line (1-based) of `key:` inside the top-level `section:` of a YAML
+/// text, for errors found after parsing.
+fn yaml_line(text: &str, section: &str, key: &str) -> Option<usize> {
+    let mut inside = false;
+    for (i, line) in text.lines().enumerate() {
+        let indented = line.starts_with(' ') || line.starts_with('\t');
+        let trimmed = line.trim_start();
+        if !indented && !trimmed.is_empty() {
+            if inside && key.is_empty() {
+                return None;
+            }
+            inside = trimmed.strip_suffix(':').unwrap_or(trimmed) == section
+                || trimmed.starts_with(&format!("{section}:"));
+            if inside && key.is_empty() {
+                return Some(i + 1);
+            }
+            continue;
+        }
+        if inside && indented && trimmed.starts_with(&format!("{key}:")) {
+            return Some(i + 1);
+        }
+    }
+    None
+}
+
+fn read_yaml(path: &Path, root: &Path) -> Result<Experiment, ExperimentError> {
+    let text = super::read_text(path)?;
+    let deserializer = serde_norway::Deserializer::from_str(&text);
+    let sections: Sections = serde_path_to_error::deserialize(deserializer).map_err(|err| {
+        let key = err.path().to_string();
+        let inner = err.into_inner();
+        let line = inner.location().map(|l| l.line());
+        // The YAML library's message ends with its own position; the
+        // location says it once.
+        let mut reason = inner.to_string();
+        if let Some(at) = reason.find(" at line ") {
+            reason.truncate(at);
+        }
+        ExperimentError::Invalid {
+            file: path.to_owned(),
+            location: match (line, key.as_str()) {
+                (Some(line), ".") => format!("line {line}"),
+                (Some(line), key) => format!("line {line}, {key}"),
+                (None, key) => key.to_owned(),
+            },
+            reason,
+        }
+    })?;
+    let mut places = BTreeMap::new();
+    let mut section_files = BTreeMap::new();
+    let value: serde_norway::Value =
+        serde_norway::from_str(&text).expect("a YAML that deserialised into sections parses");
+    let mut unmapped = Vec::new();
+    if let serde_norway::Value::Mapping(top) = &value {
+        for (section, body) in top {
+            let Some(section) = section.as_str() else {
+                continue;
+            };
+            section_files.insert(section.to_owned(), path.to_owned());
+            if let Some(line) = yaml_line(&text, section, "") {
+                places.insert(section.to_owned(), (path.to_owned(), line));
+            }
+            let per_key = matches!(
+                section,
+                "ptv" | "cal_ori" | "criteria" | "targ_rec" | "sequence" | "masking" | "track"
+            );
+            match body {
+                serde_norway::Value::Mapping(keys) if per_key => {
+                    for (key, value) in keys {
+                        let Some(key) = key.as_str() else { continue };
+                        let full = format!("{section}.{key}");
+                        if let Some(line) = yaml_line(&text, section, key) {
+                            places.insert(full.clone(), (path.to_owned(), line));
+                        }
+                        if let Some(reason) = unmapped_reason(section, key) {
+                            unmapped.push(UnmappedSetting {
+                                file: path.display().to_string(),
+                                key: full,
+                                value: yaml_value_text(value),
+                                reason: reason.to_owned(),
+                            });
+                        }
+                    }
+                }
+                other => {
+                    if let Some(reason) = unmapped_reason(section, "") {
+                        unmapped.push(UnmappedSetting {
+                            file: path.display().to_string(),
+                            key: section.to_owned(),
+                            value: match other {
+                                serde_norway::Value::Mapping(_) => "(the whole section)".into(),
+                                other => yaml_value_text(other),
+                            },
+                            reason: reason.to_owned(),
+                        });
+                    }
+                }
+            }
+        }
+    }
+    let locator = Locator {
+        places,
+        section_files,
+    };
+    map(sections, root, &locator, unmapped)
+}
+
+fn yaml_value_text(value: &serde_norway::Value) -> String {
+    match value {
+        serde_norway::Value::String(s) => s.clone(),
+        other => serde_norway::to_string(other)
+            .map(|s| s.trim().replace('\n', " "))
+            .unwrap_or_default(),
+    }
+}
+
+/// Why a `section.key` is not used, or `None` for the keys that are.
+fn unmapped_reason(section: &str, key: &str) -> Option<&'static str> {
+    let used = match section {
+        "num_cams" => return None,
+        "ptv" => matches!(
+            key,
+            "n_img"
+                | "hp_flag"
+                | "allcam_flag"
+                | "imx"
+                | "imy"
+                | "pix_x"
+                | "pix_y"
+                | "mmp_n1"
+                | "mmp_n2"
+                | "mmp_n3"
+                | "mmp_d"
+                | "splitter"
+        ),
+        "cal_ori" => key == "img_ori",
+        "criteria" => matches!(key, "X_lay" | "Zmin_lay" | "Zmax_lay" | "eps0"),
+        "targ_rec" => matches!(
+            key,
+            "gvthres"
+                | "disco"
+                | "nnmin"
+                | "nnmax"
+                | "nxmin"
+                | "nxmax"
+                | "nymin"
+                | "nymax"
+                | "sumg_min"
+        ),
+        "sequence" => matches!(key, "base_name" | "first" | "last"),
+        "masking" => matches!(key, "mask_flag" | "mask_base_name"),
+        _ => false,
+    };
+    if used {
+        return None;
+    }
+    Some(match (section, key) {
+        ("ptv", "img_name") => {
+            "the images of one frame for pyptv's single-frame preview; ptv takes the sequence's"
+        }
+        ("ptv", "img_cal") => {
+            "the calibration images; ptv takes each camera's orientation from the .ori that \
+             cal_ori.img_ori names"
+        }
+        ("ptv", "tiff_flag") | ("cal_ori", "tiff_flag") => {
+            "ptv reads the image format from the file itself"
+        }
+        ("ptv", "chfield") | ("cal_ori", "chfield") => {
+            "field-interlaced images; ptv reads full frames (0 is the only value it supports)"
+        }
+        ("ptv", "inverse") => "inverted (negative) images are not supported; invert them first",
+        ("criteria", "cnx" | "cny" | "cn" | "csumg") => {
+            "OpenPTV's similarity limits on the targets' extent, size and brightness; ptv matches \
+             by epipolar geometry alone here"
+        }
+        ("criteria", "corrmin") => {
+            "OpenPTV's least correlation of a candidate; ptv ranks candidates by their \
+             intersection residual"
+        }
+        ("targ_rec", "cr_sz") => {
+            "the size of the cross OpenPTV draws on targets in its GUI; nothing to detect"
+        }
+        ("track", _) => "tracking (linking particles over frames) is not part of ptv yet",
+        (
+            "cal_ori"
+            | "detect_plate"
+            | "man_ori"
+            | "man_ori_coordinates"
+            | "orient"
+            | "shaking"
+            | "multi_planes"
+            | "dumbbell"
+            | "sortgrid"
+            | "examine",
+            _,
+        ) => {
+            "a calibration setting; ptv calibrates with `ptv calibrate`, this import takes the \
+             calibration from the .ori files"
+        }
+        ("unsharp_mask", _) => {
+            "pyptv's unsharp-mask preprocessing; ptv's detection uses its high-pass filter \
+             (hp_flag) only"
+        }
+        ("plugins", _) => "pyptv's Python plugins cannot run in ptv",
+        ("pft_version", _) => {
+            "reading existing targets instead of images; ptv detects from the images"
+        }
+        _ => "ptv has no such setting",
+    })
+}
+
+// --- The legacy parameters/ folder ----------------------------------------
+
+/// One `.par` file's lines, read one value at a time.
+struct ParFile<'a> {
+    path: PathBuf,
+    lines: Vec<String>,
+    next: usize,
+    section: &'static str,
+    places: &'a mut BTreeMap<String, (PathBuf, usize)>,
+}
+
+impl<'a> ParFile<'a> {
+    fn open(
+        dir: &Path,
+        name: &str,
+        section: &'static str,
+        places: &'a mut BTreeMap<String, (PathBuf, usize)>,
+    ) -> Result<Self, ExperimentError> {
+        let path = dir.join("parameters").join(name);
+        let text = std::fs::read_to_string(&path).map_err(|reason| FormatError::Io {
+            path: path.clone(),
+            reason,
+        })?;
+        Ok(ParFile {
+            path,
+            lines: text.lines().map(|l| l.trim().to_owned()).collect(),
+            next: 0,
+            section,
+            places,
+        })
+    }
+
+    /// The next line's first token, recorded as `section.key`.
+    fn token(&mut self, key: &str) -> Result<(String, usize), ExperimentError> {
+        let index = self.next;
+        self.next += 1;
+        let full = format!("{}.{key}", self.section);
+        match self.lines.get(index) {
+            Some(line) if !line.is_empty() => {
+                self.places.insert(full, (self.path.clone(), index + 1));
+                Ok((
+                    line.split_whitespace().next().unwrap_or(line).to_owned(),
+                    index + 1,
+                ))
+            }
+            found => Err(ExperimentError::Invalid {
+                file: self.path.clone(),
+                location: format!("line {}, {full}", index + 1),
+                reason: format!(
+                    "expected {key}, found {}",
+                    if found.is_some() {
+                        "an empty line"
+                    } else {
+                        "the end of the file"
+                    }
+                ),
+            }),
+        }
+    }
+
+    fn text(&mut self, key: &str) -> Result<String, ExperimentError> {
+        Ok(self.token(key)?.0)
+    }
+
+    fn number(&mut self, key: &str) -> Result<f64, ExperimentError> {
+        let (token, line) = self.token(key)?;
+        token
+            .parse::<f64>()
+            .ok()
+            .filter(|v| v.is_finite())
+            .ok_or_else(|| ExperimentError::Invalid {
+                file: self.path.clone(),
+                location: format!("line {line}, {}.{key}", self.section),
+                reason: format!("expected a number, got `{token}`"),
+            })
+    }
+
+    fn integer(&mut self, key: &str) -> Result<i64, ExperimentError> {
+        let (token, line) = self.token(key)?;
+        token.parse::<i64>().map_err(|_| ExperimentError::Invalid {
+            file: self.path.clone(),
+            location: format!("line {line}, {}.{key}", self.section),
+            reason: format!("expected an integer, got `{token}`"),
+        })
+    }
+
+    fn unsigned(&mut self, key: &str) -> Result<u64, ExperimentError> {
+        let value = self.integer(key)?;
+        u64::try_from(value).map_err(|_| ExperimentError::Invalid {
+            file: self.path.clone(),
+            location: format!("line {}, {}.{key}", self.next, self.section),
+            reason: format!("expected a whole number >= 0, got {value}"),
+        })
+    }
+
+    fn flag(&mut self, key: &str) -> Result<bool, ExperimentError> {
+        Ok(self.integer(key)? != 0)
+    }
+}
+
+fn read_legacy(dir: &Path) -> Result<Experiment, ExperimentError> {
+    let mut places = BTreeMap::new();
+    let mut section_files = BTreeMap::new();
+    let mut unmapped = Vec::new();
+    let par = |name: &str| dir.join("parameters").join(name);
+    for (section, file) in [
+        ("ptv", "ptv.par"),
+        ("cal_ori", "cal_ori.par"),
+        ("criteria", "criteria.par"),
+        ("targ_rec", "targ_rec.par"),
+        ("sequence", "sequence.par"),
+        ("track", "track.par"),
+    ] {
+        section_files.insert(section.to_owned(), par(file));
+    }
+
+    let mut f = ParFile::open(dir, "ptv.par", "ptv", &mut places)?;
+    let count = f.unsigned("n_img")?;
+    if !(1..=calibration::MAX_CAMERAS as u64).contains(&count) {
+        return Err(ExperimentError::Invalid {
+            file: f.path.clone(),
+            location: "line 1, ptv.n_img".into(),
+            reason: format!(
+                "the number of cameras must be 1..{}, got {count}",
+                calibration::MAX_CAMERAS
+            ),
+        });
+    }
+    let n = count as usize;
+    let mut img_name = Vec::new();
+    for i in 0..n {
+        img_name.push(f.text(&format!("img_name[{i}]"))?);
+        f.text(&format!("img_cal[{i}]"))?;
+    }
+    let hp_flag = f.flag("hp_flag")?;
+    let allcam_flag = f.flag("allcam_flag")?;
+    let tiff_flag = f.flag("tiff_flag")?;
+    let imx = f.unsigned("imx")?;
+    let imy = f.unsigned("imy")?;
+    let ptv = PtvSection {
+        n_img: Some(n),
+        img_name,
+        hp_flag,
+        allcam_flag,
+        tiff_flag,
+        imx: u32::try_from(imx).unwrap_or(u32::MAX),
+        imy: u32::try_from(imy).unwrap_or(u32::MAX),
+        pix_x: f.number("pix_x")?,
+        pix_y: f.number("pix_y")?,
+        chfield: f.integer("chfield")?,
+        mmp_n1: f.number("mmp_n1")?,
+        mmp_n2: f.number("mmp_n2")?,
+        mmp_n3: f.number("mmp_n3")?,
+        mmp_d: f.number("mmp_d")?,
+        splitter: false,
+    };
+    let ptv_path = f.path.clone();
+    unmapped.push(UnmappedSetting {
+        file: ptv_path.display().to_string(),
+        key: "ptv.img_name".into(),
+        value: ptv.img_name.join(" "),
+        reason: unmapped_reason("ptv", "img_name")
+            .unwrap_or_default()
+            .into(),
+    });
+    unmapped.push(UnmappedSetting {
+        file: ptv_path.display().to_string(),
+        key: "ptv.tiff_flag".into(),
+        value: u8::from(ptv.tiff_flag).to_string(),
+        reason: unmapped_reason("ptv", "tiff_flag")
+            .unwrap_or_default()
+            .into(),
+    });
+
+    let mut f = ParFile::open(dir, "cal_ori.par", "cal_ori", &mut places)?;
+    let fixp_name = f.text("fixp_name")?;
+    let mut img_ori = Vec::new();
+    for i in 0..n {
+        f.text(&format!("img_cal_name[{i}]"))?;
+        img_ori.push(f.text(&format!("img_ori[{i}]"))?);
+    }
+    let cal_ori_path = f.path.clone();
+    unmapped.push(UnmappedSetting {
+        file: cal_ori_path.display().to_string(),
+        key: "cal_ori.fixp_name".into(),
+        value: fixp_name,
+        reason: unmapped_reason("cal_ori", "fixp_name")
+            .unwrap_or_default()
+            .into(),
+    });
+    let cal_ori = CalOriSection { img_ori };
+
+    let mut f = ParFile::open(dir, "criteria.par", "criteria", &mut places)?;
+    let mut lay = [[0.0; 3]; 2];
+    for (i, layer) in lay.iter_mut().enumerate() {
+        layer[0] = f.number(&format!("X_lay[{i}]"))?;
+        layer[1] = f.number(&format!("Zmin_lay[{i}]"))?;
+        layer[2] = f.number(&format!("Zmax_lay[{i}]"))?;
+    }
+    let mut similarity = Vec::new();
+    for key in ["cnx", "cny", "cn", "csumg", "corrmin"] {
+        similarity.push((key, f.number(key)?));
+    }
+    let criteria = CriteriaSection {
+        X_lay: vec![lay[0][0], lay[1][0]],
+        Zmin_lay: vec![lay[0][1], lay[1][1]],
+        Zmax_lay: vec![lay[0][2], lay[1][2]],
+        eps0: f.number("eps0")?,
+    };
+    let criteria_path = f.path.clone();
+    for (key, value) in similarity {
+        unmapped.push(UnmappedSetting {
+            file: criteria_path.display().to_string(),
+            key: format!("criteria.{key}"),
+            value: value.to_string(),
+            reason: unmapped_reason("criteria", key).unwrap_or_default().into(),
+        });
+    }
+
+    // liboptv reads four thresholds whatever the camera count.
+    let mut f = ParFile::open(dir, "targ_rec.par", "targ_rec", &mut places)?;
+    let mut gvthres = Vec::new();
+    for i in 0..n.max(4) {
+        gvthres.push(f.integer(&format!("gvthres[{i}]"))?);
+    }
+    let targ_rec = TargRecSection {
+        gvthres,
+        disco: f.integer("disco")?,
+        nnmin: f.integer("nnmin")?,
+        nnmax: f.integer("nnmax")?,
+        nxmin: f.integer("nxmin")?,
+        nxmax: f.integer("nxmax")?,
+        nymin: f.integer("nymin")?,
+        nymax: f.integer("nymax")?,
+        sumg_min: f.integer("sumg_min")?,
+    };
+    let cr_sz = f.integer("cr_sz")?;
+    unmapped.push(UnmappedSetting {
+        file: f.path.display().to_string(),
+        key: "targ_rec.cr_sz".into(),
+        value: cr_sz.to_string(),
+        reason: unmapped_reason("targ_rec", "cr_sz")
+            .unwrap_or_default()
+            .into(),
+    });
+
+    let mut f = ParFile::open(dir, "sequence.par", "sequence", &mut places)?;
+    let mut base_name = Vec::new();
+    for i in 0..n {
+        base_name.push(f.text(&format!("base_name[{i}]"))?);
+    }
+    let sequence = SequenceSection {
+        base_name,
+        first: f.unsigned("first")?,
+        last: f.unsigned("last")?,
+    };
+
+    // Tracking is read only to report it.
+    if par("track.par").is_file() {
+        let mut f = ParFile::open(dir, "track.par", "track", &mut places)?;
+        for key in [
+            "dvxmin",
+            "dvxmax",
+            "dvymin",
+            "dvymax",
+            "dvzmin",
+            "dvzmax",
+            "angle",
+            "dacc",
+            "flagNewParticles",
+        ] {
+            let value = f.number(key)?;
+            unmapped.push(UnmappedSetting {
+                file: f.path.display().to_string(),
+                key: format!("track.{key}"),
+                value: value.to_string(),
+                reason: unmapped_reason("track", key).unwrap_or_default().into(),
+            });
+        }
+    }
+    // The other files are calibration's or the GUI's.
+    let mut others: Vec<String> = std::fs::read_dir(dir.join("parameters"))
+        .map(|entries| {
+            entries
+                .filter_map(|e| e.ok())
+                .filter_map(|e| e.file_name().to_str().map(str::to_owned))
+                .filter(|name| name.ends_with(".par"))
+                .filter(|name| {
+                    ![
+                        "ptv.par",
+                        "cal_ori.par",
+                        "criteria.par",
+                        "targ_rec.par",
+                        "sequence.par",
+                        "track.par",
+                    ]
+                    .contains(&name.as_str())
+                })
+                .collect()
+        })
+        .unwrap_or_default();
+    others.sort();
+    for name in others {
+        let section = name.trim_end_matches(".par").to_owned();
+        unmapped.push(UnmappedSetting {
+            file: par(&name).display().to_string(),
+            key: section.clone(),
+            value: "(the whole file)".into(),
+            reason: unmapped_reason(&section, "").unwrap_or_default().into(),
+        });
+    }
+
+    let sections = Sections {
+        num_cams: Some(n),
+        ptv,
+        cal_ori,
+        criteria,
+        targ_rec,
+        sequence,
+        masking: None,
+    };
+    let locator = Locator {
+        places,
+        section_files,
+    };
+    map(sections, dir, &locator, unmapped)
+}
+
+// --- The mapping ----------------------------------------------------------
+
+fn map(
+    s: Sections,
+    root: &Path,
+    at: &Locator,
+    unmapped: Vec<UnmappedSetting>,
+) -> Result<Experiment, ExperimentError> {
+    let n = match (s.num_cams, s.ptv.n_img) {
+        (Some(n), _) | (None, Some(n)) => n,
+        (None, None) => return Err(at.invalid("num_cams", "the number of cameras is missing")),
+    };
+    if !(1..=calibration::MAX_CAMERAS).contains(&n) {
+        return Err(at.invalid(
+            "num_cams",
+            format!(
+                "the number of cameras must be 1..{}, got {n}",
+                calibration::MAX_CAMERAS
+            ),
+        ));
+    }
+    if s.ptv.chfield != 0 {
+        return Err(at.invalid(
+            "ptv.chfield",
+            format!(
+                "field-interlaced images (chfield {}) are not supported; set it to 0",
+                s.ptv.chfield
+            ),
+        ));
+    }
+    let count = |key: &str, len: usize, at_least: bool| {
+        if len == n || (at_least && len > n) {
+            Ok(())
+        } else {
+            Err(at.invalid(
+                key,
+                format!("gives {len} values for {n} cameras; give one per camera, in camera order"),
+            ))
+        }
+    };
+    count("cal_ori.img_ori", s.cal_ori.img_ori.len(), false)?;
+    count("targ_rec.gvthres", s.targ_rec.gvthres.len(), true)?;
+    let splitter = s.ptv.splitter.then(Splitter::quadrants);
+    if let Some(splitter) = splitter {
+        if splitter.views() != n {
+            return Err(at.invalid(
+                "ptv.splitter",
+                format!(
+                    "pyptv's splitter makes {} views of one image, but the experiment has {n} \
+                     cameras",
+                    splitter.views()
+                ),
+            ));
+        }
+    } else {
+        count("sequence.base_name", s.sequence.base_name.len(), false)?;
+    }
+    if s.sequence.base_name.is_empty() {
+        return Err(at.invalid("sequence.base_name", "no image name pattern is given"));
+    }
+
+    // Cameras.
+    let sensor = Sensor {
+        width: s.ptv.imx,
+        height: s.ptv.imy,
+        pixel_size_x: s.ptv.pix_x,
+        pixel_size_y: s.ptv.pix_y,
+    };
+    let mut parameters = Vec::with_capacity(n);
+    for (i, ori) in s.cal_ori.img_ori.iter().enumerate() {
+        let key = format!("cal_ori.img_ori[{i}]");
+        let ori_path = root.join(ori);
+        if !ori_path.is_file() {
+            return Err(ExperimentError::Missing {
+                file: at.file_of(&key),
+                location: at.location(&key),
+                missing: ori_path,
+            });
+        }
+        let source = ori_path.display().to_string();
+        let (exterior, interior, glass_vector) =
+            openptv::parse_ori(&super::read_text(&ori_path)?, &source)?;
+        let addpar = openptv::addpar_path(&ori_path);
+        let distortion = if addpar.is_file() {
+            openptv::parse_addpar(&super::read_text(&addpar)?, &addpar.display().to_string())?
+        } else {
+            Distortion::default()
+        };
+        let name = Path::new(ori)
+            .file_name()
+            .and_then(|n| n.to_str())
+            .map(|n| n.split('.').next().unwrap_or(n).to_owned())
+            .filter(|n| !n.is_empty())
+            .unwrap_or_else(|| format!("cam{}", i + 1));
+        parameters.push(CameraParameters {
+            name,
+            sensor: sensor.clone(),
+            exterior,
+            interior,
+            distortion,
+            media: Media {
+                n_air: s.ptv.mmp_n1,
+                walls: vec![Wall {
+                    n: s.ptv.mmp_n2,
+                    thickness: s.ptv.mmp_d,
+                }],
+                n_object: s.ptv.mmp_n3,
+                glass_vector,
+            },
+        });
+    }
+    let cameras = calibration::from_parameters(
+        parameters,
+        &format!(
+            "{} with the .ori files of cal_ori",
+            at.file_of("ptv.imx").display()
+        ),
+    )?;
+
+    // Detection.
+    let t = &s.targ_rec;
+    let range = |key: &str, value: i64, max: i64| -> Result<i64, ExperimentError> {
+        if (0..=max).contains(&value) {
+            Ok(value)
+        } else {
+            Err(at.invalid(key, format!("must be 0..{max}, got {value}")))
+        }
+    };
+    let u16_max = i64::from(u16::MAX);
+    let u32_max = i64::from(u32::MAX);
+    let base = DetectionParameters {
+        threshold: 0,
+        highpass_radius: if s.ptv.hp_flag {
+            OPENPTV_HIGHPASS_RADIUS
+        } else {
+            0
+        },
+        min_pixels: range("targ_rec.nnmin", t.nnmin, u32_max)? as u32,
+        max_pixels: range("targ_rec.nnmax", t.nnmax, u32_max)? as u32,
+        min_nx: range("targ_rec.nxmin", t.nxmin, u32_max)? as u32,
+        max_nx: range("targ_rec.nxmax", t.nxmax, u32_max)? as u32,
+        min_ny: range("targ_rec.nymin", t.nymin, u32_max)? as u32,
+        max_ny: range("targ_rec.nymax", t.nymax, u32_max)? as u32,
+        min_sumg: range("targ_rec.sumg_min", t.sumg_min, i64::MAX)? as u64,
+        split: true,
+        split_depth: range("targ_rec.disco", t.disco, u16_max)? as u16,
+    };
+    let mut detection = Vec::with_capacity(n);
+    for (i, &threshold) in t.gvthres.iter().take(n).enumerate() {
+        let parameters = DetectionParameters {
+            threshold: range(&format!("targ_rec.gvthres[{i}]"), threshold, u16_max)? as u16,
+            ..base.clone()
+        };
+        parameters.validate().map_err(|e| {
+            let key = match e.field {
+                "min_pixels" => "nnmin",
+                "min_nx" => "nxmin",
+                "min_ny" => "nymin",
+                other => other,
+            };
+            at.invalid(&format!("targ_rec.{key}"), e.reason)
+        })?;
+        detection.push(parameters);
+    }
+
+    // Matching.
+    let c = &s.criteria;
+    for key in ["X_lay", "Zmin_lay", "Zmax_lay"] {
+        let len = match key {
+            "X_lay" => c.X_lay.len(),
+            "Zmin_lay" => c.Zmin_lay.len(),
+            _ => c.Zmax_lay.len(),
+        };
+        if len != 2 {
+            return Err(at.invalid(
+                &format!("criteria.{key}"),
+                format!("must have 2 values (the two layers), got {len}"),
+            ));
+        }
+    }
+    if c.X_lay[0] >= c.X_lay[1] {
+        return Err(at.invalid(
+            "criteria.X_lay",
+            format!(
+                "X_lay[0] ({}) must be smaller than X_lay[1] ({})",
+                c.X_lay[0], c.X_lay[1]
+            ),
+        ));
+    }
+    for i in 0..2 {
+        if c.Zmin_lay[i] >= c.Zmax_lay[i] {
+            return Err(at.invalid(
+                &format!("criteria.Zmin_lay[{i}]"),
+                format!(
+                    "Zmin_lay[{i}] ({}) must be smaller than Zmax_lay[{i}] ({})",
+                    c.Zmin_lay[i], c.Zmax_lay[i]
+                ),
+            ));
+        }
+    }
+    if !(c.eps0.is_finite() && c.eps0 > 0.0) {
+        return Err(at.invalid(
+            "criteria.eps0",
+            format!("must be a positive length (mm), got {}", c.eps0),
+        ));
+    }
+    let z_min = c.Zmin_lay[0].min(c.Zmin_lay[1]);
+    let z_max = c.Zmax_lay[0].max(c.Zmax_lay[1]);
+    let (y_min, y_max) = seen_y_range(&cameras, z_min, z_max).ok_or_else(|| {
+        at.invalid(
+            "criteria.Zmin_lay",
+            "no camera sees the depth range Zmin_lay..Zmax_lay; check the volume and the \
+             calibration",
+        )
+    })?;
+    let matching = MatchingParameters {
+        tolerance: c.eps0 / ((s.ptv.pix_x + s.ptv.pix_y) / 2.0),
+        volume: Some(Volume {
+            min: Point3::new(c.X_lay[0], y_min, z_min),
+            max: Point3::new(c.X_lay[1], y_max, z_max),
+        }),
+        min_cameras: if s.ptv.allcam_flag { n.max(2) } else { 2 },
+        ..MatchingParameters::default()
+    };
+
+    // Sequence.
+    if s.sequence.first > s.sequence.last {
+        return Err(at.invalid(
+            "sequence.first",
+            format!(
+                "the first frame ({}) is after the last ({})",
+                s.sequence.first, s.sequence.last
+            ),
+        ));
+    }
+    let base_names = if splitter.is_some() {
+        s.sequence.base_name[..1].to_vec()
+    } else {
+        s.sequence.base_name.clone()
+    };
+
+    // Masks: pyptv's `mask_base_name % (camera + 1)`.
+    let masks = match &s.masking {
+        Some(m) if m.mask_flag => {
+            let mut list = Vec::with_capacity(n);
+            for camera in 0..n {
+                let path = root.join(format_frame(&m.mask_base_name, camera as u64 + 1));
+                if !path.is_file() {
+                    return Err(ExperimentError::Missing {
+                        file: at.file_of("masking.mask_base_name"),
+                        location: at.location("masking.mask_base_name"),
+                        missing: path,
+                    });
+                }
+                list.push(path);
+            }
+            Some(list)
+        }
+        _ => None,
+    };
+
+    Ok(Experiment {
+        root: root.to_owned(),
+        cameras,
+        splitter,
+        detection,
+        matching,
+        sequence: SequenceFrames {
+            base_names,
+            first: s.sequence.first,
+            last: s.sequence.last,
+        },
+        masks,
+        unmapped,
+    })
+}
+
+/// The Y range some camera sees between depths `z_min` and `z_max`: the
+/// union over the cameras of where the rays through their image corners
+/// meet those depths.
+fn seen_y_range(cameras: &[Camera], z_min: f64, z_max: f64) -> Option<(f64, f64)> {
+    let mut range: Option<(f64, f64)> = None;
+    for camera in cameras {
+        let s = camera.sensor();
+        let (w, h) = (f64::from(s.width), f64::from(s.height));
+        for pixel in [(0.0, 0.0), (w, 0.0), (0.0, h), (w, h)] {
+            let Ok(ray) = camera.ray(Point2::new(pixel.0, pixel.1)) else {
+                continue;
+            };
+            for z in [z_min, z_max] {
+                if let Some(point) = ray.at_z(z) {
+                    let y = point.y;
+                    if y.is_finite() {
+                        range = Some(match range {
+                            None => (y, y),
+                            Some((lo, hi)) => (lo.min(y), hi.max(y)),
+                        });
+                    }
+                }
+            }
+        }
+    }
+    range.filter(|(lo, hi)| hi > lo)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn frame_patterns_as_printf_and_openptv_write_them() {
+        assert_eq!(format_frame("img/cam1.%d", 10001), "img/cam1.10001");
+        assert_eq!(format_frame("img/c%05d.tif", 42), "img/c00042.tif");
+        assert_eq!(format_frame("img/c%3d", 7), "img/c  7");
+        assert_eq!(format_frame("100%%_%d", 3), "100%_3");
+        assert_eq!(format_frame("img/cam1", 10001), "img/cam1.10001");
+    }
+
+    #[test]
+    fn yaml_lines_are_found_inside_their_section() {
+        let text = "ptv:\n  imx: 1\ntarg_rec:\n  disco: 100\n  nnmin: 4\nsequence:\n  first: 1\n";
+        assert_eq!(yaml_line(text, "targ_rec", "nnmin"), Some(5));
+        assert_eq!(yaml_line(text, "targ_rec", ""), Some(3));
+        assert_eq!(yaml_line(text, "ptv", "nnmin"), None);
+    }
+}
