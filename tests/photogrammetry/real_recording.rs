@@ -153,9 +153,11 @@ fn default_parameters_on_the_real_recording() {
     // Issue 13's goal with defaults only: at most 1.25x OpenPTV's count and
     // 80% of theirs found. TODAY'S LEVEL, NOT THE GOAL: the default split
     // depth of 4 grey levels cuts this recording's large particle images
-    // and glare into 4.3-4.8x OpenPTV's count, and 3-6% of theirs are
-    // found within 0.5 px. Asserted is only what a better default rule
-    // keeps: no more than 5x their count, and at least 2% found.
+    // and glare into 4.3-4.8x OpenPTV's count; 63-73% of theirs have one
+    // of ours within 0.5 px, and 14-16% of ours one of theirs. Asserted is
+    // only what a better default rule keeps, with a margin of about 8
+    // points and 0.16x: no more than 5x their count, and at least 55% of
+    // theirs found.
     for Row {
         camera,
         frame,
@@ -164,6 +166,6 @@ fn default_parameters_on_the_real_recording() {
     } in agreements(|_| DetectionParameters::default())
     {
         assert!(a.count_ratio() <= 5.0, "cam{camera}.{frame}: {a:?}");
-        assert!(a.theirs_share() >= 0.02, "cam{camera}.{frame}: {a:?}");
+        assert!(a.theirs_share() >= 0.55, "cam{camera}.{frame}: {a:?}");
     }
 }
