@@ -10,7 +10,8 @@
 //! - `--jobs N` frames are in flight at once (default 4).
 //! - A connection error, a timeout and a 5xx are retried with exponential
 //!   backoff (0.2 s doubling, at most 10 s between attempts, with jitter),
-//!   at most `--retries` times; a 429 or 503 with `Retry-After` waits what
+//!   at most `--retries` times; a 429, or a 5xx with `Retry-After` (the
+//!   service's 503 when busy, its 507 when its disk is full), waits what
 //!   the server asks (at most 60 s) instead.
 //! - A 409 means the frame is already on the server: it counts as done, so
 //!   running the same command again after an interruption resumes where
@@ -258,12 +259,9 @@ fn retried(status: StatusCode) -> bool {
     status.is_server_error() || status == StatusCode::TOO_MANY_REQUESTS
 }
 
-/// The wait a 429/503 asks for in `Retry-After` (seconds), at most 60 s.
+/// The wait a retried answer (429, 503, 507, ...) asks for in
+/// `Retry-After` (seconds), at most 60 s.
 fn retry_after(response: &reqwest::Response) -> Option<Duration> {
-    let status = response.status();
-    if status != StatusCode::TOO_MANY_REQUESTS && status != StatusCode::SERVICE_UNAVAILABLE {
-        return None;
-    }
     let seconds: u64 = response
         .headers()
         .get(reqwest::header::RETRY_AFTER)?
@@ -440,8 +438,15 @@ pub fn run(args: &UploadArgs, stdout: &mut dyn Write) -> Result<(), CliError> {
 /// pattern, before any upload.
 async fn check_sequence(server: &Server, sequence: i64, patterns: usize) -> Result<(), CliError> {
     let failed = |reason: String| {
+        let hint = if reason.starts_with("401") {
+            "; give the service's API token with --token"
+        } else if reason.starts_with("404") {
+            "; check --sequence, or create the sequence first (POST /api/v1/sequences)"
+        } else {
+            ""
+        };
         CliError::Upload(format!(
-            "cannot read sequence {sequence} at {}: {reason}",
+            "cannot read sequence {sequence} at {}: {reason}{hint}",
             server.api
         ))
     };

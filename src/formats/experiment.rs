@@ -417,6 +417,10 @@ fn read_yaml(path: &Path, root: &Path) -> Result<Experiment, ExperimentError> {
         if let Some(at) = reason.find(" at line ") {
             reason.truncate(at);
         }
+        // ... and may start with the key, which the location also names.
+        if let Some(rest) = reason.strip_prefix(&format!("{key}: ")) {
+            reason = rest.to_owned();
+        }
         ExperimentError::Invalid {
             file: path.to_owned(),
             location: match (line, key.as_str()) {

@@ -60,6 +60,27 @@
 //! repeatable: translating an image by whole pixels translates every
 //! centroid by exactly that. [`detect_cameras`] detects the frames of
 //! several cameras in parallel.
+//!
+//! # Memory
+//!
+//! Detection's scratch is bounded per pixel of the image, whatever the
+//! image holds: at most **17 bytes a pixel** (plus a few bytes a row and a
+//! column), 1.06 GiB for the largest sensor
+//! ([`MAX_SENSOR_PIXELS`](super::camera::MAX_SENSOR_PIXELS), 2^26 px),
+//! besides the image itself and the targets found (40 bytes each, at most
+//! twice that while their vector grows and is sorted). It is made of:
+//! the filtered levels (2 bytes a pixel); the blob being measured, each
+//! pixel packed with its level in one `u64` that is the flood's queue,
+//! then sorted into flooding order, then re-keyed by particle (8 bytes a
+//! pixel above the threshold, reserved once); for a blob that is split, its
+//! bounding box's map of regions (4 bytes a cell) and a union-find node and
+//! a particle number per local maximum (12 bytes; maxima are never
+//! 8-neighbours, so there is at most one per 2x2 pixels: 3 bytes a pixel).
+//! Particles are measured one at a time. The worst case is an image whose
+//! pixels are all above the threshold in one noisy blob; a test in this
+//! module counts the allocations of such an image and holds them to the
+//! bound. A particle image (a few percent of the pixels above the threshold,
+//! small blobs) needs little more than its 2 bytes a pixel of levels.
 
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -173,10 +194,7 @@ impl DetectionParameters {
 /// The targets of one frame, sorted by y, then x (as OpenPTV sorts them
 /// for the correspondence search).
 pub fn detect(image: &GreyImage, parameters: &DetectionParameters) -> Vec<Target> {
-    detect_with_pixels_if::<false>(image, parameters)
-        .into_iter()
-        .map(|(target, _)| target)
-        .collect()
+    detect_with_pixels_if::<false>(image, parameters).0
 }
 
 /// A target and the pixels (column, row) it was measured from.
@@ -194,8 +212,10 @@ pub fn detect_with_pixels(
     image: &GreyImage,
     parameters: &DetectionParameters,
 ) -> Vec<TargetPixels> {
-    detect_with_pixels_if::<true>(image, parameters)
+    let (targets, pixels) = detect_with_pixels_if::<true>(image, parameters);
+    targets
         .into_iter()
+        .zip(pixels)
         .map(|(target, pixels)| TargetPixels { target, pixels })
         .collect()
 }
@@ -212,10 +232,10 @@ pub fn detect_cameras(frames: &[(&GreyImage, &DetectionParameters)]) -> Vec<Vec<
 fn detect_with_pixels_if<const PIXELS: bool>(
     image: &GreyImage,
     parameters: &DetectionParameters,
-) -> Vec<(Target, Vec<(u32, u32)>)> {
+) -> Found {
     // A GreyImage has at least one pixel and its samples fill its size.
     let (width, height) = (image.width() as usize, image.height() as usize);
-    let mut found = match image.pixels() {
+    let (mut targets, pixels) = match image.pixels() {
         GreyPixels::Eight(pixels) => {
             Detector::new(pixels, width, height, parameters).run::<PIXELS>()
         }
@@ -223,8 +243,16 @@ fn detect_with_pixels_if<const PIXELS: bool>(
             Detector::new(pixels, width, height, parameters).run::<PIXELS>()
         }
     };
-    found.sort_by(|(a, _), (b, _)| a.y.total_cmp(&b.y).then(a.x.total_cmp(&b.x)));
-    found
+    let order = |a: &Target, b: &Target| a.y.total_cmp(&b.y).then(a.x.total_cmp(&b.x));
+    if PIXELS {
+        let mut found: Vec<_> = targets.into_iter().zip(pixels).collect();
+        found.sort_by(|(a, _), (b, _)| order(a, b));
+        found.into_iter().unzip()
+    } else {
+        // Stable, as before: targets at the same position keep their order.
+        targets.sort_by(order);
+        (targets, pixels)
+    }
 }
 
 /// A sample type the detector works on directly.
@@ -259,7 +287,7 @@ impl Grey for u16 {
 /// One row of [`Detector::highpass_threshold`]: the window sum of column
 /// `x` is the sum of `column_sums` over columns `x-r ..= x+r` (clipped), of
 /// `rows * columns` pixels. Writes the level of every pixel above the
-/// threshold into `out` and its index (`first` + column) into `seeds`.
+/// threshold into `out` and counts them in `above`.
 #[allow(clippy::too_many_arguments)]
 fn filter_row<G: Grey>(
     row: &[G],
@@ -268,8 +296,7 @@ fn filter_row<G: Grey>(
     rows: u64,
     threshold: u64,
     out: &mut [u16],
-    first: usize,
-    seeds: &mut Vec<usize>,
+    above: &mut usize,
 ) {
     let width = row.len();
     // round(k (g c - s) / c) with k = LEVEL_SCALE, above k t: only called
@@ -279,7 +306,7 @@ fn filter_row<G: Grey>(
     let mut keep = |x: usize, d: u64, c: u64| {
         let level = (2 * d * scale + c) / (2 * c);
         out[x] = level.max(threshold * scale + 1).min(u64::from(u16::MAX)) as u16;
-        seeds.push(first + x);
+        *above += 1;
     };
     let columns = |x: usize| ((x + r).min(width - 1) - x.saturating_sub(r) + 1) as u64;
     // Columns 0 .. r-1; the loop adds column x + r before it looks at x.
@@ -337,13 +364,26 @@ fn filter_row<G: Grey>(
 /// "No region / not yet visited" in the splitting step.
 const NONE: u32 = u32::MAX;
 
-/// A pixel of a blob: position and level (filtered grey value in 16-bit
-/// grey levels, see [`Grey::LEVEL_SCALE`]).
-#[derive(Clone, Copy, Debug)]
-struct BlobPixel {
-    x: usize,
-    y: usize,
-    level: u32,
+/// A blob pixel packed in one `u64`: `(65535 - level) << 32 | index`, with
+/// `index = y * width + x` (a [`GreyImage`] has at most 2^32 pixels). Sorted
+/// ascending, keys run bright to dark and, at equal levels, in raster
+/// order: the flooding order of the splitting step.
+#[inline(always)]
+fn key(level: u16, index: usize) -> u64 {
+    (u64::from(u16::MAX - level) << 32) | index as u64
+}
+
+/// The pixel index of a [`key`] (also of the keys `slot << 32 | index` of
+/// the measuring step).
+#[inline(always)]
+fn key_index(key: u64) -> usize {
+    (key & 0xffff_ffff) as usize
+}
+
+/// The level of a [`key`].
+#[inline(always)]
+fn key_level(key: u64) -> u16 {
+    u16::MAX - (key >> 32) as u16
 }
 
 /// One maximum's particle while a blob is flooded (a union-find node).
@@ -354,7 +394,7 @@ struct Region {
     peak: u32,
 }
 
-/// The sums a target's centroid and filters need.
+/// The sums a target's centroid and filters need; one particle's at a time.
 #[derive(Clone, Copy, Debug)]
 struct Moments {
     n: u64,
@@ -387,46 +427,53 @@ impl Moments {
     }
 
     #[inline]
-    fn add(&mut self, p: &BlobPixel, corner: (usize, usize), threshold: u32) {
+    fn add(&mut self, (x, y): (usize, usize), level: u32, corner: (usize, usize), threshold: u32) {
         // Every blob pixel is above the threshold, so its weight is >= 1.
-        let w = u64::from(p.level.saturating_sub(threshold));
+        let w = u64::from(level.saturating_sub(threshold));
         self.n += 1;
-        self.sumg += u64::from(p.level);
+        self.sumg += u64::from(level);
         self.weight += w;
-        self.weight_x += u128::from(w) * (p.x - corner.0) as u128;
-        self.weight_y += u128::from(w) * (p.y - corner.1) as u128;
-        self.xmin = self.xmin.min(p.x);
-        self.xmax = self.xmax.max(p.x);
-        self.ymin = self.ymin.min(p.y);
-        self.ymax = self.ymax.max(p.y);
+        self.weight_x += u128::from(w) * (x - corner.0) as u128;
+        self.weight_y += u128::from(w) * (y - corner.1) as u128;
+        self.xmin = self.xmin.min(x);
+        self.xmax = self.xmax.max(x);
+        self.ymin = self.ymin.min(y);
+        self.ymax = self.ymax.max(y);
     }
 }
 
-/// One frame's detection, with the scratch space it reuses from blob to blob.
+/// Targets, and when asked for, each one's pixels (else no vectors at all).
+type Found = (Vec<Target>, Vec<Vec<(u32, u32)>>);
+
+/// One frame's detection, with the scratch space it reuses from blob to
+/// blob. Its memory is bounded per pixel of the image whatever the image
+/// holds (see the module's "Memory" section): `levels` (2 bytes a pixel),
+/// `blob` (8 bytes a pixel above the threshold, reserved once), `grid` (4
+/// bytes a cell of the largest split blob's bounding box), `regions` and
+/// `slot` (12 bytes a local maximum of the largest split blob; maxima are
+/// never 8-neighbours, so at most one per 2x2 cells of its bounding box).
 struct Detector<'a, G: Grey> {
     pixels: &'a [G],
     width: usize,
     height: usize,
     parameters: &'a DetectionParameters,
     /// Levels (high-pass filtered grey values in 16-bit grey levels) of the
-    /// pixels above the threshold; 0 elsewhere and once a pixel has been
-    /// taken into a blob.
+    /// pixels above the threshold; 0 elsewhere and once a pixel's blob has
+    /// been measured (while a blob is flooded its pixels are 0, while it is
+    /// measured they hold their levels again).
     levels: Vec<u16>,
-    /// The pixels above the threshold, in raster order.
-    seeds: Vec<usize>,
-    /// The blob being measured.
-    blob: Vec<BlobPixel>,
-    /// The flood fill's pixels still to visit.
-    stack: Vec<(usize, usize)>,
-    /// Splitting: per cell of the blob's bounding box, the rank (in bright to
-    /// dark order) of its pixel once visited, else `NONE`.
+    /// How many pixels are above the threshold.
+    above: usize,
+    /// The blob being measured, as [`key`]s: first the flood's queue (the
+    /// pixels before `head` have been expanded), then sorted into flooding
+    /// order, then re-keyed by particle to measure them one at a time.
+    blob: Vec<u64>,
+    /// Splitting: per cell of the blob's bounding box, the region of its
+    /// pixel once visited, else `NONE`.
     grid: Vec<u32>,
-    /// Splitting: per blob pixel (by rank), its region.
-    region_of: Vec<u32>,
     regions: Vec<Region>,
-    /// Splitting: per region root, its target's index in `moments`.
+    /// Measuring: per region root, its particle's number in the blob.
     slot: Vec<u32>,
-    moments: Vec<Moments>,
 }
 
 impl<'a, G: Grey> Detector<'a, G> {
@@ -442,33 +489,36 @@ impl<'a, G: Grey> Detector<'a, G> {
             height,
             parameters,
             levels: Vec::new(),
-            seeds: Vec::new(),
+            above: 0,
             blob: Vec::new(),
-            stack: Vec::new(),
             grid: Vec::new(),
-            region_of: Vec::new(),
             regions: Vec::new(),
             slot: Vec::new(),
-            moments: Vec::new(),
         }
     }
 
-    fn run<const PIXELS: bool>(mut self) -> Vec<(Target, Vec<(u32, u32)>)> {
+    fn run<const PIXELS: bool>(mut self) -> Found {
         self.highpass_threshold();
-        let mut found = Vec::new();
-        let seeds = std::mem::take(&mut self.seeds);
-        for &seed in &seeds {
+        // The blob never holds more than the pixels above the threshold:
+        // reserved once, exactly, it never grows.
+        self.blob.reserve_exact(self.above);
+        let mut found = (Vec::new(), Vec::new());
+        // Blobs in raster order of their first pixel.
+        for seed in 0..self.levels.len() {
             if self.levels[seed] == 0 {
-                continue; // already part of an earlier blob
+                continue; // below the threshold, or part of an earlier blob
             }
             self.flood(seed);
             self.measure_blob::<PIXELS>(&mut found);
+            for &k in &self.blob {
+                self.levels[key_index(k)] = 0;
+            }
         }
         found
     }
 
     /// Steps 1 and 2: fills `levels` with the high-pass filtered value of
-    /// every pixel above the threshold and lists them in `seeds`.
+    /// every pixel above the threshold and counts them in `above`.
     ///
     /// For pixel value `g`, window sum `s` and window size `c` the filtered
     /// value is `g - s / c`; the test `g - s/c > t` is done exactly as
@@ -480,15 +530,16 @@ impl<'a, G: Grey> Detector<'a, G> {
         let (width, height) = (self.width, self.height);
         let threshold = u64::from(self.parameters.threshold);
         self.levels = vec![0; width * height];
+        self.above = 0;
         let levels = &mut self.levels;
-        let seeds = &mut self.seeds;
+        let above = &mut self.above;
         let pixels = self.pixels;
         let r = self.parameters.highpass_radius.min(MAX_HIGHPASS_RADIUS) as usize;
         if r == 0 {
             for (i, &g) in pixels.iter().enumerate() {
                 if u64::from(g.value()) > threshold {
                     levels[i] = (u64::from(g.value()) * G::LEVEL_SCALE) as u16;
-                    seeds.push(i);
+                    *above += 1;
                 }
             }
             return;
@@ -519,28 +570,25 @@ impl<'a, G: Grey> Detector<'a, G> {
             let rows = ((y + r).min(height - 1) - y.saturating_sub(r) + 1) as u64;
             let row = &pixels[y * width..(y + 1) * width];
             let out = &mut levels[y * width..(y + 1) * width];
-            filter_row(row, &column_sums, r, rows, threshold, out, y * width, seeds);
+            filter_row(row, &column_sums, r, rows, threshold, out, above);
         }
     }
 
-    /// Collects the 8-connected blob of `seed` into `blob`, taking its
-    /// pixels out of `levels`.
+    /// Collects the 8-connected blob of `seed` into `blob`, breadth first
+    /// with `blob` itself as the queue. Pixels are taken out of `levels`
+    /// while it runs (so none is taken twice) and put back at the end, for
+    /// the measuring step to read.
     fn flood(&mut self, seed: usize) {
         let (width, height) = (self.width, self.height);
         self.blob.clear();
-        self.stack.clear();
-        let (x, y) = (seed % width, seed / width);
-        self.blob.push(BlobPixel {
-            x,
-            y,
-            level: u32::from(self.levels[seed]),
-        });
-        self.levels[seed] = 0;
-        self.stack.push((x, y));
-        while let Some((x, y)) = self.stack.pop() {
+        self.take(seed);
+        let mut head = 0;
+        while head < self.blob.len() {
+            let p = key_index(self.blob[head]);
+            head += 1;
+            let (x, y) = (p % width, p / width);
             if x > 0 && y > 0 && x + 1 < width && y + 1 < height {
                 // Away from the border: the eight neighbours by offset.
-                let p = y * width + x;
                 for q in [
                     p - width - 1,
                     p - width,
@@ -551,113 +599,162 @@ impl<'a, G: Grey> Detector<'a, G> {
                     p + width,
                     p + width + 1,
                 ] {
-                    self.take(q, q % width, q / width);
+                    self.take(q);
                 }
                 continue;
             }
             for ny in y.saturating_sub(1)..=(y + 1).min(height - 1) {
                 for nx in x.saturating_sub(1)..=(x + 1).min(width - 1) {
-                    self.take(ny * width + nx, nx, ny);
+                    self.take(ny * width + nx);
                 }
             }
         }
+        for &k in &self.blob {
+            self.levels[key_index(k)] = key_level(k);
+        }
     }
 
-    /// Moves pixel `q` = (`x`, `y`) into the blob if it is above the
-    /// threshold and not taken yet.
+    /// Moves pixel `q` into the blob if it is above the threshold and not
+    /// taken yet.
     #[inline(always)]
-    fn take(&mut self, q: usize, x: usize, y: usize) {
+    fn take(&mut self, q: usize) {
         let level = self.levels[q];
         if level != 0 {
             self.levels[q] = 0;
-            self.blob.push(BlobPixel {
-                x,
-                y,
-                level: u32::from(level),
-            });
-            self.stack.push((x, y));
+            // Within the capacity reserved in `run`: no reallocation.
+            self.blob.push(key(level, q));
         }
+    }
+
+    /// Column and row of pixel index `p`.
+    #[inline(always)]
+    fn position(&self, p: usize) -> (usize, usize) {
+        (p % self.width, p / self.width)
     }
 
     /// Steps 3 and 4 for the blob in `blob`: splits it, measures each
     /// particle and keeps those that pass the filters.
-    fn measure_blob<const PIXELS: bool>(&mut self, found: &mut Vec<(Target, Vec<(u32, u32)>)>) {
+    fn measure_blob<const PIXELS: bool>(&mut self, found: &mut Found) {
         let threshold =
             (u64::from(self.parameters.threshold) * G::LEVEL_SCALE).min(u64::from(u32::MAX)) as u32;
-        let mut xmin = usize::MAX;
-        let mut ymin = usize::MAX;
-        for p in &self.blob {
-            xmin = xmin.min(p.x);
-            ymin = ymin.min(p.y);
+        let (mut xmin, mut ymin, mut xmax, mut ymax) = (usize::MAX, usize::MAX, 0, 0);
+        for &k in &self.blob {
+            let (x, y) = self.position(key_index(k));
+            xmin = xmin.min(x);
+            ymin = ymin.min(y);
+            xmax = xmax.max(x);
+            ymax = ymax.max(y);
         }
         let corner = (xmin, ymin);
-        self.moments.clear();
-        if !self.parameters.split || self.blob.len() < 3 || self.one_maximum(corner) {
+        let size = (xmax - xmin + 1, ymax - ymin + 1);
+        let maxima = if !self.parameters.split || self.blob.len() < 3 {
+            1
+        } else {
+            self.count_maxima(2)
+        };
+        if maxima == 1 {
             let mut m = Moments::new();
-            for p in &self.blob {
-                m.add(p, corner, threshold);
+            for &k in &self.blob {
+                let p = key_index(k);
+                m.add(
+                    self.position(p),
+                    u32::from(self.levels[p]),
+                    corner,
+                    threshold,
+                );
             }
             if let Some(target) = self.target(&m, corner) {
-                let pixels = if PIXELS {
-                    self.blob.iter().map(|p| (p.x as u32, p.y as u32)).collect()
-                } else {
-                    Vec::new()
-                };
-                found.push((target, pixels));
+                found.0.push(target);
+                if PIXELS {
+                    found.1.push(
+                        self.blob
+                            .iter()
+                            .map(|&k| {
+                                let (x, y) = self.position(key_index(k));
+                                (x as u32, y as u32)
+                            })
+                            .collect(),
+                    );
+                }
             }
             return;
         }
-        self.split(corner);
-        // Accumulate each pixel into its particle.
+        let maxima = self.count_maxima(usize::MAX);
+        self.split(corner, size, maxima);
+        // Number the particles in flooding order, and re-key each pixel by
+        // its particle: sorted, each particle's pixels are contiguous and
+        // particles are measured one at a time, in that order.
         self.slot.clear();
         self.slot.resize(self.regions.len(), NONE);
+        let mut particles = 0u32;
         for rank in 0..self.blob.len() {
-            let root = self.find(self.region_of[rank]) as usize;
+            let p = key_index(self.blob[rank]);
+            let (x, y) = self.position(p);
+            let cell = (y - corner.1) * size.0 + (x - corner.0);
+            let root = self.find(self.grid[cell]) as usize;
             if self.slot[root] == NONE {
-                self.slot[root] = self.moments.len() as u32;
-                self.moments.push(Moments::new());
+                self.slot[root] = particles;
+                particles += 1;
             }
-            let p = self.blob[rank];
-            self.moments[self.slot[root] as usize].add(&p, corner, threshold);
+            self.blob[rank] = (u64::from(self.slot[root]) << 32) | p as u64;
         }
-        // Each particle's pixels, when asked for; else empty vectors, which
-        // do not allocate.
-        let mut pixels: Vec<Vec<(u32, u32)>> = vec![Vec::new(); self.moments.len()];
-        if PIXELS {
-            for rank in 0..self.blob.len() {
-                let root = self.find(self.region_of[rank]) as usize;
-                let p = self.blob[rank];
-                pixels[self.slot[root] as usize].push((p.x as u32, p.y as u32));
+        self.blob.sort_unstable();
+        let mut start = 0;
+        while start < self.blob.len() {
+            let particle = self.blob[start] >> 32;
+            let end = start
+                + self.blob[start..]
+                    .iter()
+                    .position(|&k| k >> 32 != particle)
+                    .unwrap_or(self.blob.len() - start);
+            let mut m = Moments::new();
+            for &k in &self.blob[start..end] {
+                let p = key_index(k);
+                m.add(
+                    self.position(p),
+                    u32::from(self.levels[p]),
+                    corner,
+                    threshold,
+                );
             }
-        }
-        for (m, own) in self.moments.iter().zip(pixels) {
-            if let Some(target) = self.target(m, corner) {
-                found.push((target, own));
+            if let Some(target) = self.target(&m, corner) {
+                found.0.push(target);
+                if PIXELS {
+                    found.1.push(
+                        self.blob[start..end]
+                            .iter()
+                            .map(|&k| {
+                                let (x, y) = self.position(key_index(k));
+                                (x as u32, y as u32)
+                            })
+                            .collect(),
+                    );
+                }
             }
+            start = end;
         }
     }
 
-    /// Whether flooding the blob would start only one particle: whether
-    /// exactly one pixel has no neighbour that comes before it in flooding
-    /// order (brighter, or as bright and earlier in raster order). Most
-    /// blobs are single particles, and this spares them the sort.
-    fn one_maximum(&mut self, corner: (usize, usize)) -> bool {
-        let (box_width, box_height) = self.bounding_box(corner);
-        self.grid.clear();
-        self.grid.resize(box_width * box_height, 0);
-        for p in &self.blob {
-            self.grid[(p.y - corner.1) * box_width + (p.x - corner.0)] = p.level;
-        }
+    /// How many pixels of the blob would start a particle when it is
+    /// flooded, counting up to `limit`: those with no neighbour that comes
+    /// before them in flooding order (brighter, or as bright and earlier in
+    /// raster order). Any neighbour above the threshold is in the blob (the
+    /// blob is its 8-connected component). Most blobs are single particles,
+    /// and counting to 2 spares them the sort.
+    fn count_maxima(&self, limit: usize) -> usize {
+        let (width, height) = (self.width, self.height);
         let mut maxima = 0;
-        for p in &self.blob {
-            let (bx, by) = (p.x - corner.0, p.y - corner.1);
+        for &k in &self.blob {
+            let p = key_index(k);
+            let level = self.levels[p];
+            let (x, y) = self.position(p);
             let mut first = true;
-            'neighbours: for ny in by.saturating_sub(1)..=(by + 1).min(box_height - 1) {
-                for nx in bx.saturating_sub(1)..=(bx + 1).min(box_width - 1) {
-                    let level = self.grid[ny * box_width + nx];
+            'neighbours: for ny in y.saturating_sub(1)..=(y + 1).min(height - 1) {
+                for nx in x.saturating_sub(1)..=(x + 1).min(width - 1) {
+                    let q = ny * width + nx;
+                    let other = self.levels[q];
                     // Raster order: rows above, or this row to the left.
-                    let earlier = (ny, nx) < (by, bx);
-                    if level > p.level || (level == p.level && earlier) {
+                    if other > level || (other == level && q < p) {
                         first = false;
                         break 'neighbours;
                     }
@@ -665,77 +762,67 @@ impl<'a, G: Grey> Detector<'a, G> {
             }
             if first {
                 maxima += 1;
-                if maxima > 1 {
-                    return false;
+                if maxima >= limit {
+                    return maxima;
                 }
             }
         }
-        true
+        maxima
     }
 
-    /// Width and height of the blob's bounding box, whose top-left corner is
-    /// `corner`.
-    fn bounding_box(&self, corner: (usize, usize)) -> (usize, usize) {
-        let (mut xmax, mut ymax) = (0, 0);
-        for p in &self.blob {
-            xmax = xmax.max(p.x);
-            ymax = ymax.max(p.y);
-        }
-        (xmax - corner.0 + 1, ymax - corner.1 + 1)
-    }
-
-    /// Step 3: floods the blob from its brightest pixel down, leaving each
-    /// pixel's region in `region_of` (indexed by rank in `blob`, which is
-    /// sorted bright to dark).
-    fn split(&mut self, corner: (usize, usize)) {
+    /// Step 3: floods the blob (`maxima` local maxima, bounding box of
+    /// `size` at `corner`) from its brightest pixel down, leaving each
+    /// pixel's region in `grid`.
+    fn split(&mut self, corner: (usize, usize), size: (usize, usize), maxima: usize) {
         let depth = (u64::from(self.parameters.split_depth) * G::LEVEL_SCALE)
             .min(u64::from(u32::MAX)) as u32;
         // Bright to dark; equal values in raster order, so that the result
         // does not depend on where the blob lies in the image.
-        self.blob.sort_unstable_by(|a, b| {
-            b.level
-                .cmp(&a.level)
-                .then(a.y.cmp(&b.y))
-                .then(a.x.cmp(&b.x))
-        });
-        let (box_width, box_height) = self.bounding_box(corner);
+        self.blob.sort_unstable();
+        let (box_width, box_height) = size;
+        let cells = box_width * box_height;
+        // Exact reservations: these grow to the largest blob's needs and no
+        // further.
         self.grid.clear();
-        self.grid.resize(box_width * box_height, NONE);
-        self.region_of.clear();
-        self.region_of.resize(self.blob.len(), NONE);
+        self.grid.reserve_exact(cells);
+        self.grid.resize(cells, NONE);
         self.regions.clear();
+        self.regions.reserve_exact(maxima);
+        self.slot.clear();
+        self.slot.reserve_exact(maxima);
         for rank in 0..self.blob.len() {
-            let p = self.blob[rank];
-            let (bx, by) = (p.x - corner.0, p.y - corner.1);
-            // Visited neighbours (all at least as bright): rank and region root.
-            let mut neighbours = [(NONE, NONE); 8];
+            let k = self.blob[rank];
+            let level = u32::from(key_level(k));
+            let (x, y) = self.position(key_index(k));
+            let (bx, by) = (x - corner.0, y - corner.1);
+            // Visited neighbours (all at least as bright): key and region root.
+            let mut neighbours = [(u64::MAX, NONE); 8];
             let mut count = 0;
             for ny in by.saturating_sub(1)..=(by + 1).min(box_height - 1) {
                 for nx in bx.saturating_sub(1)..=(bx + 1).min(box_width - 1) {
-                    let q = self.grid[ny * box_width + nx];
-                    if q != NONE {
-                        neighbours[count] = (q, self.find(self.region_of[q as usize]));
+                    let region = self.grid[ny * box_width + nx];
+                    if region != NONE {
+                        let q = (ny + corner.1) * self.width + nx + corner.0;
+                        neighbours[count] = (key(self.levels[q], q), self.find(region));
                         count += 1;
                     }
                 }
             }
             let neighbours = &neighbours[..count];
-            let Some(&(brightest, _)) = neighbours.iter().min_by_key(|(q, _)| *q) else {
+            let Some(&(_, brightest)) = neighbours.iter().min_by_key(|(q, _)| *q) else {
                 // A local maximum: a new particle.
-                self.region_of[rank] = self.regions.len() as u32;
+                self.grid[by * box_width + bx] = self.regions.len() as u32;
                 self.regions.push(Region {
                     parent: self.regions.len() as u32,
-                    peak: p.level,
+                    peak: level,
                 });
-                self.grid[by * box_width + bx] = rank as u32;
                 continue;
             };
             if neighbours.iter().any(|&(_, root)| root != neighbours[0].1) {
-                self.merge_insignificant(neighbours, p.level, depth);
+                self.merge_insignificant(neighbours, level, depth);
             }
             // A saddle pixel goes to the particle of its brightest neighbour.
-            self.region_of[rank] = self.find(self.region_of[brightest as usize]);
-            self.grid[by * box_width + bx] = rank as u32;
+            self.grid[by * box_width + bx] = self.find(brightest);
         }
     }
 
@@ -743,7 +830,7 @@ impl<'a, G: Grey> Detector<'a, G> {
     /// particle whose peak rises no more than `depth` above it is noise on a
     /// neighbour, and is merged into the particle of the brightest neighbour
     /// that is significant (or, if none is, into the highest one).
-    fn merge_insignificant(&mut self, neighbours: &[(u32, u32)], level: u32, depth: u32) {
+    fn merge_insignificant(&mut self, neighbours: &[(u64, u32)], level: u32, depth: u32) {
         let significant = |regions: &[Region], root: u32| {
             regions[root as usize].peak.saturating_sub(level) > depth
         };
@@ -769,7 +856,6 @@ impl<'a, G: Grey> Detector<'a, G> {
             }
         }
     }
-
     /// The root of a region, halving paths on the way.
     fn find(&mut self, mut region: u32) -> u32 {
         while self.regions[region as usize].parent != region {
@@ -1050,6 +1136,121 @@ mod tests {
             "{message}"
         );
         assert!(DetectionParameters::default().validate().is_ok());
+    }
+
+    /// Counts the bytes each thread has allocated and not freed, and their
+    /// peak, so that a test can measure the scratch of what it calls.
+    mod counting {
+        use std::alloc::{GlobalAlloc, Layout, System};
+        use std::cell::Cell;
+
+        pub struct Counting;
+
+        thread_local! {
+            static LIVE: Cell<isize> = const { Cell::new(0) };
+            static PEAK: Cell<isize> = const { Cell::new(0) };
+        }
+
+        fn note(change: isize) {
+            // Ignored while the thread's locals are being torn down.
+            let _ = LIVE.try_with(|live| {
+                let now = live.get().wrapping_add(change);
+                live.set(now);
+                let _ = PEAK.try_with(|peak| peak.set(peak.get().max(now)));
+            });
+        }
+
+        // SAFETY: every call is forwarded to the system allocator as it is;
+        // the counting touches only const-initialised thread locals, which
+        // do not allocate.
+        unsafe impl GlobalAlloc for Counting {
+            unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
+                let p = unsafe { System.alloc(layout) };
+                if !p.is_null() {
+                    note(layout.size() as isize);
+                }
+                p
+            }
+            unsafe fn alloc_zeroed(&self, layout: Layout) -> *mut u8 {
+                let p = unsafe { System.alloc_zeroed(layout) };
+                if !p.is_null() {
+                    note(layout.size() as isize);
+                }
+                p
+            }
+            unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
+                unsafe { System.dealloc(ptr, layout) };
+                note(-(layout.size() as isize));
+            }
+            unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
+                let p = unsafe { System.realloc(ptr, layout, new_size) };
+                if !p.is_null() {
+                    note(new_size as isize - layout.size() as isize);
+                }
+                p
+            }
+        }
+
+        #[global_allocator]
+        static COUNTING: Counting = Counting;
+
+        /// The peak of this thread's allocated bytes while `f` runs, above
+        /// what it held before, and `f`'s result.
+        pub fn peak_of<T>(f: impl FnOnce() -> T) -> (usize, T) {
+            let start = LIVE.with(Cell::get);
+            PEAK.with(|peak| peak.set(start));
+            let result = f();
+            let peak = PEAK.with(Cell::get);
+            ((peak - start).max(0) as usize, result)
+        }
+    }
+
+    /// The worst case the module documents: bytes of scratch per image
+    /// pixel, whatever the image holds (targets aside).
+    const SCRATCH_BYTES_PER_PIXEL: usize = 17;
+
+    #[test]
+    fn scratch_is_bounded_per_pixel_on_a_hostile_image() {
+        // Every pixel above the threshold, all in one blob. Low noise (less
+        // than the split depth) makes it one particle, too large to be a
+        // target; strong noise makes a local maximum about every 9 pixels,
+        // most of them particles. Both are the worst case for the flood and
+        // the split; the second also for the targets, which are output, not
+        // scratch, and are counted at their own size (40 bytes each, at most
+        // twice that for the vector's spare capacity and the stable sort's
+        // buffer).
+        let (width, height) = (2048usize, 2048usize);
+        let mut rng = rng(5);
+        for noise in [3u16, 4095] {
+            let pixels: Vec<u16> = (0..width * height)
+                .map(|_| 40000 + rng.random_range(0..=noise))
+                .collect();
+            let image = GreyImage::from_u16(width as u32, height as u32, pixels).unwrap();
+            let parameters = DetectionParameters {
+                threshold: 100,
+                highpass_radius: 0,
+                min_pixels: 1,
+                ..DetectionParameters::default()
+            };
+            let (peak, targets) = counting::peak_of(|| detect(&image, &parameters));
+            if noise == 3 {
+                assert!(targets.is_empty(), "{} targets", targets.len());
+            } else {
+                assert!(targets.len() > width * height / 20, "{}", targets.len());
+            }
+            let output = 2 * targets.len() * std::mem::size_of::<Target>();
+            eprintln!(
+                "noise {noise}: peak {peak} bytes for {} targets",
+                targets.len()
+            );
+            let bound = SCRATCH_BYTES_PER_PIXEL * width * height + output;
+            assert!(
+                peak <= bound,
+                "noise {noise}: peak {peak} bytes, {:.1} a pixel besides {} targets; bound {bound}",
+                (peak - output.min(peak)) as f64 / (width * height) as f64,
+                targets.len()
+            );
+        }
     }
 
     #[test]

@@ -93,7 +93,23 @@ pub enum ImageError {
         /// Samples given.
         actual: u64,
     },
+    /// More pixels than detection can index (2^32); camera images are far
+    /// smaller (see `camera::MAX_SENSOR_PIXELS`).
+    #[error(
+        "the image is {width}x{height} pixels, more than the {MAX_IMAGE_PIXELS} an image may have; \
+         split it or use a smaller region of interest"
+    )]
+    TooLarge {
+        /// Width in pixels.
+        width: u32,
+        /// Height in pixels.
+        height: u32,
+    },
 }
+
+/// The most pixels a [`GreyImage`] may have: detection packs a pixel's index
+/// in 32 bits.
+pub const MAX_IMAGE_PIXELS: u64 = 1 << 32;
 
 /// An image that does not fit the sensor it is said to come from.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
@@ -134,6 +150,9 @@ fn check_size(width: u32, height: u32, actual: usize) -> Result<(), ImageError> 
         return Err(ImageError::Empty { width, height });
     }
     let expected = u64::from(width) * u64::from(height);
+    if expected > MAX_IMAGE_PIXELS {
+        return Err(ImageError::TooLarge { width, height });
+    }
     // A length that does not fit in u64 cannot equal `expected` either.
     let actual = u64::try_from(actual).unwrap_or(u64::MAX);
     if actual != expected {
@@ -230,6 +249,24 @@ mod tests {
                 height: 2
             }
         );
+    }
+
+    #[test]
+    fn images_beyond_two_to_the_32_pixels_are_refused() {
+        // Checked before the samples, so no 4 GB vector is needed.
+        let error = GreyImage::from_u8(65536, 65537, Vec::new()).unwrap_err();
+        assert_eq!(
+            error,
+            ImageError::TooLarge {
+                width: 65536,
+                height: 65537
+            }
+        );
+        assert!(error.to_string().contains("65536x65537"), "{error}");
+        assert!(matches!(
+            GreyImage::from_u8(65536, 65536, Vec::new()),
+            Err(ImageError::WrongLength { .. })
+        ));
     }
 
     #[test]

@@ -12,7 +12,12 @@
 //! chosen diameter, integrated over the pixel area, on a sloping background,
 //! with photon (Poisson) and read (Gaussian) noise, quantised to 8 or 16
 //! bits. The exact image coordinates of every particle come back as ground
-//! truth.
+//! truth. [`render_scene`] puts the particles in front of a
+//! [`StructuredBackground`] (glare streaks, bright static objects,
+//! vignetting, hot pixels, an illumination drift over frames; the
+//! `background` submodule): what real recordings add, and what the
+//! detector's high-pass filter (section 6.1) or a background subtraction
+//! must remove.
 
 use nalgebra::{Matrix3, Point2, Point3, Vector2, Vector3};
 use rand::rngs::StdRng;
@@ -29,6 +34,9 @@ use super::intersect::Observation;
 use super::media::{Media, MediaGeometry, Wall};
 use super::target::Target;
 use super::volume::Volume;
+
+mod background;
+pub use background::{BackgroundField, StructuredBackground};
 
 /// A box-shaped water tank centred on the origin.
 #[derive(Clone, Debug, PartialEq)]
@@ -376,6 +384,43 @@ pub fn render(
     spec: &RenderSpec,
     rng: &mut impl Rng,
 ) -> GreyImage {
+    render_with(width, height, positions, spec, None, rng)
+}
+
+/// [`render`] in front of a structured background, at frame `frame` of a
+/// sequence (which sets the illumination drift's gain), with the field's
+/// size. The particles and the plane background are rendered as by
+/// [`render`]; the field's streaks and objects are added to the plane, the
+/// whole scene is multiplied by the vignetting and the drift's gain, the
+/// sensor noise follows, and the hot pixels are set to the largest grey
+/// value last. With [`StructuredBackground::none`] the image is exactly
+/// [`render`]'s for the same random numbers.
+pub fn render_scene(
+    field: &BackgroundField,
+    frame: u64,
+    positions: &[Point2<f64>],
+    spec: &RenderSpec,
+    rng: &mut impl Rng,
+) -> GreyImage {
+    let gain = field.spec().gain(frame);
+    render_with(
+        field.width(),
+        field.height(),
+        positions,
+        spec,
+        Some((field, gain)),
+        rng,
+    )
+}
+
+fn render_with(
+    width: u32,
+    height: u32,
+    positions: &[Point2<f64>],
+    spec: &RenderSpec,
+    scene: Option<(&BackgroundField, f64)>,
+    rng: &mut impl Rng,
+) -> GreyImage {
     let (width, height) = (width.max(1), height.max(1));
     let (w, h) = (width as usize, height as usize);
     let centre = Vector2::new(f64::from(width) / 2.0, f64::from(height) / 2.0);
@@ -417,6 +462,11 @@ pub fn render(
             }
         }
     }
+    if let Some((field, gain)) = scene {
+        for (i, (value, added)) in signal.iter_mut().zip(field.additive()).enumerate() {
+            *value = (*value + added) * field.vignette(i) * gain;
+        }
+    }
     let read = Normal::new(0.0, spec.read_noise.max(0.0)).ok();
     let max = f64::from(spec.bit_depth.max_value());
     let quantised = signal.into_iter().map(|mean| {
@@ -431,11 +481,25 @@ pub fn render(
         }
         value.round().clamp(0.0, max)
     });
-    let image = match spec.bit_depth {
-        BitDepth::Eight => GreyImage::from_u8(width, height, quantised.map(|v| v as u8).collect()),
-        BitDepth::Sixteen => {
-            GreyImage::from_u16(width, height, quantised.map(|v| v as u16).collect())
+    let mut quantised: Vec<f64> = quantised.collect();
+    if let Some((field, _)) = scene {
+        for &i in field.hot_pixels() {
+            if let Some(value) = quantised.get_mut(i) {
+                *value = max;
+            }
         }
+    }
+    let image = match spec.bit_depth {
+        BitDepth::Eight => GreyImage::from_u8(
+            width,
+            height,
+            quantised.into_iter().map(|v| v as u8).collect(),
+        ),
+        BitDepth::Sixteen => GreyImage::from_u16(
+            width,
+            height,
+            quantised.into_iter().map(|v| v as u16).collect(),
+        ),
     };
     image.expect("the samples fill the image, whose sides are at least 1")
 }

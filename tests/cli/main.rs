@@ -1,6 +1,6 @@
 //! The `ptv` command line, run as a real process in temporary directories,
 //! in one test binary: OpenPTV's files in and out, project and intersect,
-//! detect, match and process, calibrate, background.
+//! detect, match and process, calibrate, background, OpenPTV experiments.
 //!
 //! One binary rather than one per file: each test binary links the whole
 //! crate, service included, so fewer binaries make a cold CI run shorter.
@@ -11,5 +11,6 @@ mod common;
 mod background;
 mod calibrate;
 mod detect;
+mod experiment;
 mod matching;
 mod openptv_files;

@@ -15,3 +15,5 @@ mod detect_accuracy;
 mod detect_properties;
 mod openptv_frames;
 mod openptv_golden;
+mod real_recording;
+mod structured_background;

@@ -26,6 +26,8 @@
 //! - `recovery`: a full disk (SQLite's page limit as fault injection) is a
 //!   507 and the service recovers without a restart; a failed frame is
 //!   processed after `POST /jobs/{id}/retry`.
+//! - `upload`: `ptv upload` against the service and a flaky stand-in:
+//!   concurrent, resumable, retried uploads and their summary.
 
 mod api;
 mod bad_inputs;
@@ -38,3 +40,4 @@ mod layers;
 mod preprocessing;
 mod recovery;
 mod reliability;
+mod upload;

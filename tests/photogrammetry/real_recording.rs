@@ -1,0 +1,169 @@
+//! Detection on a real recording against OpenPTV: test_cavity_recording's
+//! frames 10001-10004 of cameras 1-4 (`tests/data/openptv/`), against the
+//! targets optv 0.3.2 finds with the experiment's `targ_rec.par` after its
+//! 25-pixel high-pass (`golden/test_cavity_recording/`).
+//!
+//! **The experiment's parameters in our terms**: thresholds 9/9/9/11,
+//! `discont` 100 as `split_depth` 100 (both: the rise of a fainter maximum
+//! above the saddle that joins it to a brighter one, in grey levels, below
+//! which the two stay one target), 4..500 pixels, extent 2..100 in x and y,
+//! sum of grey >= 150. OpenPTV's high-pass subtracts a box average of
+//! `dim_lp = 25` pixels on each side of the pixel (liboptv's
+//! `fast_box_blur`: a `(2·25+1)²` window), which is our `highpass_radius`
+//! 25.
+//!
+//! **Pixel convention.** Ours puts pixel `i`'s centre at `i + 0.5`
+//! (`detect.rs`). The golden targets turn out to use the same: the mean
+//! offset of matched pairs is below 0.02 px in both axes on every image (a
+//! convention difference would show as 0.5 px), so no shift is applied.
+//!
+//! **Comparison** (`tests/common/target_match.rs`): a target of either list
+//! is found when the other has one within 0.5 px; targets whose bounding box
+//! may touch the border are left out (OpenPTV keeps border-touching
+//! targets, we drop them).
+//!
+//! Run with `cargo test --test photogrammetry real_recording -- --nocapture`
+//! to see the figures; `examples/detection_report.rs` prints the full table.
+
+use std::path::Path;
+
+use ptv::formats::image::read_image;
+use ptv::formats::{parse_targets, read_text};
+use ptv::photogrammetry::{detect, DetectionParameters, GreyImage, Target};
+
+use crate::common::target_match::{compare, Agreement};
+
+const DATA: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/data/openptv");
+const FRAMES: [&str; 4] = ["10001", "10002", "10003", "10004"];
+
+/// The experiment's `targ_rec.par` for camera `k` (1-based).
+fn experiment_parameters(k: usize) -> DetectionParameters {
+    DetectionParameters {
+        threshold: [9, 9, 9, 11][k - 1],
+        highpass_radius: 25,
+        min_pixels: 4,
+        max_pixels: 500,
+        min_nx: 2,
+        max_nx: 100,
+        min_ny: 2,
+        max_ny: 100,
+        min_sumg: 150,
+        split: true,
+        split_depth: 100,
+    }
+}
+
+fn image(k: usize, frame: &str) -> GreyImage {
+    read_image(
+        &Path::new(DATA).join(format!("test_cavity_recording/img/cam{k}.{frame}")),
+        None,
+    )
+    .expect("the recording's frame")
+}
+
+fn openptv_targets(k: usize, frame: &str) -> Vec<Target> {
+    let path = Path::new(DATA).join(format!(
+        "golden/test_cavity_recording/cam{k}.{frame}_targets"
+    ));
+    parse_targets(&read_text(&path).unwrap(), &path.display().to_string()).unwrap()
+}
+
+/// One image's comparison: within 0.5 px (the goal's radius) and within
+/// 1 px (so that a 0.5 px convention difference would still pair up and
+/// show in the mean offset).
+struct Row {
+    camera: usize,
+    frame: &'static str,
+    half: Agreement,
+    one: Agreement,
+}
+
+/// Per camera and frame, ours against OpenPTV's.
+fn agreements(parameters: impl Fn(usize) -> DetectionParameters) -> Vec<Row> {
+    let mut out = Vec::new();
+    for camera in 1..=4 {
+        for frame in FRAMES {
+            let image = image(camera, frame);
+            let ours = detect(&image, &parameters(camera));
+            let theirs = openptv_targets(camera, frame);
+            let (w, h) = (image.width(), image.height());
+            let half = compare(&ours, &theirs, (0.0, 0.0), 0.5, w, h);
+            let one = compare(&ours, &theirs, (0.0, 0.0), 1.0, w, h);
+            println!(
+                "cam{camera}.{frame}: ours {:5}  OpenPTV {:5}  ratio {:.3}  within 0.5 px: theirs found {:5.1}%, ours found {:5.1}%  within 1 px: {:5.1}%, mean offset ({:+.3}, {:+.3})",
+                half.ours,
+                half.theirs,
+                half.count_ratio(),
+                100.0 * half.theirs_share(),
+                100.0 * half.ours_share(),
+                100.0 * one.theirs_share(),
+                one.mean_dx,
+                one.mean_dy
+            );
+            out.push(Row {
+                camera,
+                frame,
+                half,
+                one,
+            });
+        }
+    }
+    out
+}
+
+#[test]
+fn experiment_parameters_reproduce_openptv_targets() {
+    let (mut found, mut scored) = (0, 0);
+    for Row {
+        camera,
+        frame,
+        half: a,
+        one,
+    } in agreements(experiment_parameters)
+    {
+        // The pixel convention: a half-pixel difference would show here.
+        // Today |mean| <= 0.013 px; most pairs (83-92%) take part.
+        assert!(
+            one.mean_dx.abs() < 0.05 && one.mean_dy.abs() < 0.05 && one.theirs_share() > 0.75,
+            "cam{camera}.{frame}: {one:?}"
+        );
+        // Issue 13's goal, met on every image (today within 3.5%).
+        assert!(
+            (a.count_ratio() - 1.0).abs() <= 0.1,
+            "cam{camera}.{frame}: {a:?}"
+        );
+        // Issue 13's goal is 85% both ways. TODAY'S LEVEL, NOT THE GOAL:
+        // camera 1 reaches 86-88%, cameras 2-4 79-85% (lowest 78.7%). The
+        // floor of 75% keeps a margin for the detector's tuning in
+        // progress (which moves centroids by hundredths of a pixel, enough
+        // to carry a few percent across the 0.5 px radius) while a real
+        // regression (a half-pixel shift leaves about 1%) fails.
+        assert!(a.theirs_share() >= 0.75, "cam{camera}.{frame}: {a:?}");
+        assert!(a.ours_share() >= 0.75, "cam{camera}.{frame}: {a:?}");
+        found += a.theirs_found;
+        scored += a.theirs_scored;
+    }
+    // Today 82.7% over the 16 images.
+    let share = found as f64 / scored as f64;
+    assert!(share >= 0.8, "{share}");
+}
+
+#[test]
+fn default_parameters_on_the_real_recording() {
+    // Issue 13's goal with defaults only: at most 1.25x OpenPTV's count and
+    // 80% of theirs found. TODAY'S LEVEL, NOT THE GOAL: the default split
+    // depth of 4 grey levels cuts this recording's large particle images
+    // and glare into 4.3-4.8x OpenPTV's count, and 3-6% of theirs are
+    // found within 0.5 px. Asserted is only what a better default rule
+    // keeps: no more than 5x their count, and at least 2% found.
+    for Row {
+        camera,
+        frame,
+        half: a,
+        ..
+    } in agreements(|_| DetectionParameters::default())
+    {
+        assert!(a.count_ratio() <= 5.0, "cam{camera}.{frame}: {a:?}");
+        assert!(a.theirs_share() >= 0.02, "cam{camera}.{frame}: {a:?}");
+    }
+}
