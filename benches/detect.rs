@@ -13,7 +13,9 @@ use std::hint::black_box;
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
 use nalgebra::Point2;
 use ptv::photogrammetry::simulate::{self, RenderSpec};
-use ptv::photogrammetry::{detect, detect_cameras, DetectionParameters, GreyImage};
+use ptv::photogrammetry::{
+    detect, detect_cameras, detect_preprocessed, DetectionParameters, GreyImage, Preprocessing,
+};
 use rand::Rng;
 
 const WIDTH: u32 = 1280;
@@ -81,5 +83,47 @@ fn several_cameras(c: &mut Criterion) {
     group.finish();
 }
 
-criterion_group!(benches, single_frame, several_cameras);
+/// Background subtraction (issue 13): the background is the simulator's
+/// frame without particles (its own noise), subtracted as the filter reads
+/// the samples; one core. Targets: <= 3 ms at 1280x1024, <= 8 ms at
+/// 2304x1720.
+fn background(c: &mut Criterion) {
+    for (width, height, particles) in [(1280u32, 1024u32, 2000usize), (2304, 1720, 6000)] {
+        let mut group = c.benchmark_group(format!(
+            "detect {width}x{height}, {particles} particles, background subtracted"
+        ));
+        group.throughput(Throughput::Elements(u64::from(width * height)));
+        let spec = RenderSpec::eight_bit(2.5);
+        let mut rng = simulate::rng(3);
+        let positions: Vec<Point2<f64>> = (0..particles)
+            .map(|_| {
+                Point2::new(
+                    rng.random_range(0.0..f64::from(width)),
+                    rng.random_range(0.0..f64::from(height)),
+                )
+            })
+            .collect();
+        let image = simulate::render(width, height, &positions, &spec, &mut rng);
+        let preprocessing = Preprocessing {
+            background: Some(simulate::render(width, height, &[], &spec, &mut rng)),
+            mask: None,
+        };
+        let parameters = DetectionParameters::default();
+        group.bench_function("8-bit, with background", |b| {
+            b.iter(|| {
+                black_box(detect_preprocessed(
+                    black_box(&image),
+                    &preprocessing,
+                    &parameters,
+                ))
+            })
+        });
+        group.bench_function("8-bit, without", |b| {
+            b.iter(|| black_box(detect(black_box(&image), &parameters)))
+        });
+        group.finish();
+    }
+}
+
+criterion_group!(benches, single_frame, several_cameras, background);
 criterion_main!(benches);

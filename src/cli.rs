@@ -57,7 +57,7 @@ pub use self::detect::{DetectArgs, DetectionFlags, RawImageFlags, TargetFormat};
 pub use self::experiment::{ExperimentCommand, ImportExperimentArgs};
 pub use self::match_targets::{MatchArgs, MatchingFlags};
 pub use self::process::ProcessArgs;
-pub use self::process_sequence::ProcessSequenceArgs;
+pub use self::process_sequence::{BackgroundChoice, ProcessSequenceArgs};
 pub use self::simulate::SimulateArgs;
 pub use self::upload::{FrameRange, Pattern, UploadArgs};
 use crate::formats::{self, FormatError};

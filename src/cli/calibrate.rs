@@ -57,6 +57,15 @@ pub struct CalibrateArgs {
     /// Detection of the marks, with --image.
     #[command(flatten)]
     pub detection: DetectionFlags,
+    /// With --image: an image of a camera's view without the target (same
+    /// size and bit depth), subtracted before detection; once per camera,
+    /// in camera order, or not at all.
+    #[arg(long = "background", value_name = "FILE", requires = "image")]
+    pub backgrounds: Vec<PathBuf>,
+    /// With --image: an image of the pixels of a camera to use (same size,
+    /// non-zero = use); once per camera, in camera order, or not at all.
+    #[arg(long = "mask", value_name = "FILE", requires = "image")]
+    pub masks: Vec<PathBuf>,
 }
 
 fn flag(flag: &'static str, reason: impl Into<String>) -> CliError {
@@ -144,12 +153,31 @@ pub(super) fn run(
             )?;
         }
         let parameters = calibrate::mark_detection_parameters(&args.detection.parameters())?;
+        let preprocessing = super::detect::read_camera_preprocessing(
+            &args.calibration,
+            setup.len(),
+            &args.backgrounds,
+            &args.masks,
+            None,
+        )?;
         let mut marks = Vec::with_capacity(args.image.len());
         for (k, path) in args.image.iter().enumerate() {
             let image = formats::image::read_image(path, None)?;
             args.detection
                 .warn_if_threshold_unsuited(&image, path, stderr)?;
-            let found: Vec<Point2<f64>> = calibrate::detect_marks(&image, &parameters);
+            let found: Vec<Point2<f64>> = if preprocessing[k].is_empty() {
+                calibrate::detect_marks(&image, &parameters)
+            } else {
+                let files = super::detect::PreprocessingFiles {
+                    background: args.backgrounds.get(k).map(PathBuf::as_path),
+                    mask: args.masks.get(k).map(PathBuf::as_path),
+                };
+                crate::photogrammetry::detect_preprocessed(&image, &preprocessing[k], &parameters)
+                    .map_err(|error| super::detect::preprocess_error(error, path, &files))?
+                    .iter()
+                    .map(|t| Point2::new(t.x, t.y))
+                    .collect()
+            };
             write_stderr_line(
                 stderr,
                 &format!(

@@ -16,7 +16,10 @@ use clap::{Args, ValueEnum};
 
 use super::{write_stderr_line, write_stdout, CliError};
 use crate::formats::{self, image::RawLayout};
-use crate::photogrammetry::{detect, BitDepth, DetectionParameters, GreyImage};
+use crate::photogrammetry::{
+    detect_preprocessed, BitDepth, DetectionParameters, GreyImage, Mask, PreprocessError,
+    Preprocessing,
+};
 
 /// How `ptv detect` writes its targets.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
@@ -37,6 +40,14 @@ pub struct DetectArgs {
     /// How to find the targets.
     #[command(flatten)]
     pub detection: DetectionFlags,
+    /// An image of the view without particles (same size and bit depth),
+    /// subtracted from the image before the high-pass filter.
+    #[arg(long, value_name = "FILE")]
+    pub background: Option<PathBuf>,
+    /// An image of the pixels to use (same size): non-zero = use, zero =
+    /// never part of a target.
+    #[arg(long, value_name = "FILE")]
+    pub mask: Option<PathBuf>,
     /// Output format.
     #[arg(long, value_enum, default_value_t = TargetFormat::Csv)]
     pub format: TargetFormat,
@@ -158,10 +169,96 @@ pub(super) fn run(
     let image = formats::image::read_image(&args.image, args.raw.layout().as_ref())?;
     args.detection
         .warn_if_threshold_unsuited(&image, &args.image, stderr)?;
-    let targets = detect(&image, &parameters);
+    let preprocessing = read_preprocessing(
+        args.background.as_deref(),
+        args.mask.as_deref(),
+        args.raw.layout().as_ref(),
+    )?;
+    let targets = detect_preprocessed(&image, &preprocessing, &parameters)
+        .map_err(|error| preprocess_error(error, &args.image, &preprocessing_files(args)))?;
     let text = match args.format {
         TargetFormat::Csv => formats::csv::format_targets(&targets),
         TargetFormat::Openptv => formats::openptv::format_targets(&targets),
     };
     write_stdout(stdout, &text)
+}
+
+/// The background and mask files of one camera, if given.
+#[derive(Clone, Copy, Debug, Default)]
+pub(super) struct PreprocessingFiles<'a> {
+    /// --background.
+    pub background: Option<&'a Path>,
+    /// --mask.
+    pub mask: Option<&'a Path>,
+}
+
+fn preprocessing_files(args: &DetectArgs) -> PreprocessingFiles<'_> {
+    PreprocessingFiles {
+        background: args.background.as_deref(),
+        mask: args.mask.as_deref(),
+    }
+}
+
+/// Reads a camera's background and mask (raw files in `layout`, as its
+/// images).
+pub(super) fn read_preprocessing(
+    background: Option<&Path>,
+    mask: Option<&Path>,
+    layout: Option<&RawLayout>,
+) -> Result<Preprocessing, CliError> {
+    let background = background
+        .map(|path| formats::image::read_image(path, layout))
+        .transpose()?;
+    let mask = mask
+        .map(|path| formats::image::read_image(path, layout).map(|image| Mask::from_image(&image)))
+        .transpose()?;
+    Ok(Preprocessing { background, mask })
+}
+
+/// Reads the backgrounds and masks of several cameras (`--background` and
+/// `--mask` given once per camera, in camera order, or not at all).
+pub(super) fn read_camera_preprocessing(
+    calibration: &Path,
+    cameras: usize,
+    backgrounds: &[PathBuf],
+    masks: &[PathBuf],
+    layout: Option<&RawLayout>,
+) -> Result<Vec<Preprocessing>, CliError> {
+    for (files, flag, what) in [
+        (backgrounds, "--background", "background"),
+        (masks, "--mask", "mask"),
+    ] {
+        if !files.is_empty() {
+            super::check_camera_count(calibration, cameras, files.len(), (flag, what))?;
+        }
+    }
+    (0..cameras)
+        .map(|camera| {
+            read_preprocessing(
+                backgrounds.get(camera).map(PathBuf::as_path),
+                masks.get(camera).map(PathBuf::as_path),
+                layout,
+            )
+        })
+        .collect()
+}
+
+/// A background or mask that does not fit `image`, by its flag and file.
+pub(super) fn preprocess_error(
+    error: PreprocessError,
+    image: &Path,
+    files: &PreprocessingFiles<'_>,
+) -> CliError {
+    let (flag, file) = match error {
+        PreprocessError::MaskSize { .. } => ("--mask", files.mask),
+        _ => ("--background", files.background),
+    };
+    CliError::Flag {
+        flag,
+        reason: format!(
+            "{} does not fit {}: {error}",
+            file.map_or_else(|| "the file".to_owned(), |f| f.display().to_string()),
+            image.display()
+        ),
+    }
 }

@@ -12,7 +12,9 @@ use std::path::PathBuf;
 
 use clap::Args;
 
-use super::detect::{DetectionFlags, RawImageFlags};
+use super::detect::{
+    preprocess_error, read_camera_preprocessing, DetectionFlags, PreprocessingFiles, RawImageFlags,
+};
 use super::match_targets::MatchingFlags;
 use super::{check_camera_count, read_calibration_with_splitter, write_stdout, CliError};
 use crate::formats;
@@ -33,6 +35,15 @@ pub struct ProcessArgs {
     /// How to find the targets.
     #[command(flatten)]
     pub detection: DetectionFlags,
+    /// An image of a camera's view without particles (its images' size and
+    /// bit depth), subtracted before the high-pass filter. Give it once per
+    /// camera, in camera order, or not at all.
+    #[arg(long = "background", value_name = "FILE")]
+    pub backgrounds: Vec<PathBuf>,
+    /// An image of the pixels of a camera to use (its images' size):
+    /// non-zero = use. Once per camera, in camera order, or not at all.
+    #[arg(long = "mask", value_name = "FILE")]
+    pub masks: Vec<PathBuf>,
     /// How to match.
     #[command(flatten)]
     pub matching: MatchingFlags,
@@ -72,9 +83,17 @@ pub(super) fn run(
         )?;
     }
     let detection = FrameDetection::AllCameras(args.detection.parameters());
-    let pipeline = FramePipeline::new(&cameras, &detection, &args.matching.parameters()?)
-        .map_err(|error| cli_error(args, error))?;
     let layout = args.raw.layout();
+    let preprocessing = read_camera_preprocessing(
+        &args.calibration,
+        cameras.len(),
+        &args.backgrounds,
+        &args.masks,
+        layout.as_ref(),
+    )?;
+    let pipeline = FramePipeline::new(&cameras, &detection, &args.matching.parameters()?)
+        .and_then(|pipeline| pipeline.with_preprocessing(preprocessing))
+        .map_err(|error| cli_error(args, error))?;
     let images = args
         .images
         .iter()
@@ -123,6 +142,16 @@ fn cli_error(args: &ProcessArgs, error: PipelineError) -> CliError {
             },
             None => CliError::Pipeline(PipelineError::Sensor { camera, source }),
         },
+        PipelineError::Preprocess { camera, source } => {
+            let files = PreprocessingFiles {
+                background: args.backgrounds.get(camera).map(PathBuf::as_path),
+                mask: args.masks.get(camera).map(PathBuf::as_path),
+            };
+            match args.images.get(camera) {
+                Some(image) => preprocess_error(source, image, &files),
+                None => preprocess_error(source, &args.calibration, &files),
+            }
+        }
         other => CliError::Pipeline(other),
     }
 }

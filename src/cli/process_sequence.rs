@@ -13,13 +13,20 @@
 //! standard output: frames, targets per camera (total and per frame),
 //! particles by the number of cameras that see them, and the median
 //! residual.
+//!
+//! Before detection, per camera (per sensor image with a splitter), in this
+//! order: pyptv's masking images are subtracted, as pyptv's sequence loop
+//! does (`masking.mask_base_name`; clipped at 0), then, with `--background
+//! median|min`, the camera's background over the processed frames
+//! ([`BackgroundBuilder`], one streaming pass over the frames first) is
+//! subtracted (clipped at 0).
 
 use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Duration;
 
-use clap::Args;
+use clap::{Args, ValueEnum};
 use rayon::prelude::*;
 use serde::Serialize;
 
@@ -27,8 +34,21 @@ use super::{write_stdout, CliError};
 use crate::formats::experiment::{read_experiment, Experiment};
 use crate::formats::{self, FormatError};
 use crate::photogrammetry::{
-    FrameDetection, FramePipeline, GreyImage, PipelineError, SplitterError,
+    BackgroundBuilder, BackgroundMode, FrameDetection, FramePipeline, GreyImage, GreyPixels,
+    PipelineError, SplitterError,
 };
+
+/// The background subtracted before detection.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum BackgroundChoice {
+    /// The per-pixel median of the processed frames (an evenly spaced
+    /// sample of at most 32).
+    Median,
+    /// The per-pixel minimum of the processed frames.
+    Min,
+    /// None.
+    None,
+}
 
 /// Arguments of `ptv process-sequence`.
 #[derive(Debug, Args)]
@@ -45,6 +65,118 @@ pub struct ProcessSequenceArgs {
     /// experiment's sequence].
     #[arg(long, value_name = "FIRST..LAST")]
     pub frames: Option<String>,
+    /// A background per camera, computed from the processed frames and
+    /// subtracted before detection.
+    #[arg(long, value_enum, default_value_t = BackgroundChoice::None)]
+    pub background: BackgroundChoice,
+}
+
+/// Per sensor image (camera, or the one image of a splitter), what is
+/// subtracted from each frame before detection: pyptv's masking image, then
+/// the background.
+type Subtract = Vec<Vec<GreyImage>>;
+
+/// `image - subtrahend`, clipped at 0, pixel by pixel; `None` if the sizes
+/// or depths differ.
+fn subtract(image: &GreyImage, subtrahend: &GreyImage) -> Option<GreyImage> {
+    if (image.width(), image.height()) != (subtrahend.width(), subtrahend.height()) {
+        return None;
+    }
+    let (w, h) = (image.width(), image.height());
+    match (image.pixels(), subtrahend.pixels()) {
+        (GreyPixels::Eight(a), GreyPixels::Eight(b)) => GreyImage::from_u8(
+            w,
+            h,
+            a.iter().zip(b).map(|(a, b)| a.saturating_sub(*b)).collect(),
+        )
+        .ok(),
+        (GreyPixels::Sixteen(a), GreyPixels::Sixteen(b)) => GreyImage::from_u16(
+            w,
+            h,
+            a.iter().zip(b).map(|(a, b)| a.saturating_sub(*b)).collect(),
+        )
+        .ok(),
+        _ => None,
+    }
+}
+
+/// The sensor images' count: one with a splitter, else one per camera.
+fn sensor_images(experiment: &Experiment) -> usize {
+    if experiment.splitter.is_some() {
+        1
+    } else {
+        experiment.cameras.len()
+    }
+}
+
+/// What to subtract from each sensor image: pyptv's masking images (read
+/// and checked against the first frame), then the background of `frames`.
+fn subtrahends(
+    experiment: &Experiment,
+    frames: &[u64],
+    background: BackgroundChoice,
+) -> Result<Subtract, CliError> {
+    let mode = match background {
+        BackgroundChoice::Median => Some(BackgroundMode::Median),
+        BackgroundChoice::Min => Some(BackgroundMode::Min),
+        BackgroundChoice::None => None,
+    };
+    (0..sensor_images(experiment))
+        .into_par_iter()
+        .map(|camera| {
+            let mut list = Vec::new();
+            let first = experiment
+                .sequence
+                .image_path(&experiment.root, camera, frames[0]);
+            let reference = formats::image::read_image(&first, None)?;
+            if let Some(masks) = &experiment.masks {
+                let path = &masks[camera.min(masks.len() - 1)];
+                let mask = formats::image::read_image(path, None)?;
+                if subtract(&reference, &mask).is_none() {
+                    return Err(CliError::Flag {
+                        flag: "masking.mask_base_name",
+                        reason: format!(
+                            "{} is {}x{} at {} bits but the frames ({}) are {}x{} at {} bits; \
+                             give masks of the images' size and depth",
+                            path.display(),
+                            mask.width(),
+                            mask.height(),
+                            mask.bit_depth().bits(),
+                            first.display(),
+                            reference.width(),
+                            reference.height(),
+                            reference.bit_depth().bits()
+                        ),
+                    });
+                }
+                list.push(mask);
+            }
+            if let Some(mode) = mode {
+                let mut builder = BackgroundBuilder::new(
+                    mode,
+                    reference.width(),
+                    reference.height(),
+                    reference.bit_depth(),
+                );
+                for &frame in frames {
+                    let path = experiment
+                        .sequence
+                        .image_path(&experiment.root, camera, frame);
+                    let image = formats::image::read_image(&path, None)?;
+                    builder.add(&image).map_err(|source| CliError::Background {
+                        image: path.clone(),
+                        source,
+                    })?;
+                }
+                let background = builder.finish().map_err(|source| CliError::Background {
+                    image: first.clone(),
+                    source,
+                })?;
+                list.push(background);
+            }
+            Ok(list)
+        })
+        .collect()
 }
 
 /// Why one frame failed (sent back from the worker threads).
@@ -107,9 +239,34 @@ fn parse_frames(text: &str, experiment: &Experiment) -> Result<(u64, u64), CliEr
     Ok((first, last))
 }
 
+/// Reads a sensor image and subtracts what is to be subtracted from it.
+fn read_prepared(path: &Path, subtract_from: &[GreyImage]) -> Result<GreyImage, FrameFailure> {
+    let mut image = formats::image::read_image(path, None).map_err(FrameFailure::Format)?;
+    for subtrahend in subtract_from {
+        image = subtract(&image, subtrahend).ok_or_else(|| {
+            FrameFailure::Format(FormatError::invalid(
+                &path.display().to_string(),
+                "image",
+                format!(
+                    "is {}x{} at {} bits, unlike the sequence's first frame ({}x{} at {} \
+                     bits); give one size and depth per camera",
+                    image.width(),
+                    image.height(),
+                    image.bit_depth().bits(),
+                    subtrahend.width(),
+                    subtrahend.height(),
+                    subtrahend.bit_depth().bits()
+                ),
+            ))
+        })?;
+    }
+    Ok(image)
+}
+
 fn process_frame(
     experiment: &Experiment,
     pipeline: &FramePipeline,
+    subtract: &Subtract,
     frame: u64,
     output: &Path,
 ) -> Result<FrameCounts, FrameFailure> {
@@ -118,7 +275,7 @@ fn process_frame(
     let (paths, images) = match experiment.splitter {
         Some(splitter) => {
             let path = experiment.sequence.image_path(root, 0, frame);
-            let image = formats::image::read_image(&path, None).map_err(FrameFailure::Format)?;
+            let image = read_prepared(&path, &subtract[0])?;
             let views = splitter
                 .split(&image)
                 .map_err(|e| FrameFailure::Split(path.clone(), e))?;
@@ -130,9 +287,9 @@ fn process_frame(
                 .collect();
             let images = paths
                 .iter()
-                .map(|path| formats::image::read_image(path, None))
-                .collect::<Result<Vec<GreyImage>, _>>()
-                .map_err(FrameFailure::Format)?;
+                .zip(subtract)
+                .map(|(path, subtract)| read_prepared(path, subtract))
+                .collect::<Result<Vec<GreyImage>, _>>()?;
             (paths, images)
         }
     };
@@ -190,6 +347,7 @@ pub(super) fn run(args: &ProcessSequenceArgs, stdout: &mut dyn Write) -> Result<
     .map_err(CliError::Pipeline)?;
 
     let frames: Vec<u64> = (first..=last).collect();
+    let subtract = subtrahends(&experiment, &frames, args.background)?;
     let done = AtomicU64::new(0);
     let bar = indicatif::ProgressBar::with_draw_target(
         Some(frames.len() as u64),
@@ -209,7 +367,7 @@ pub(super) fn run(args: &ProcessSequenceArgs, stdout: &mut dyn Write) -> Result<
             frames
                 .par_iter()
                 .map(|&frame| {
-                    let result = process_frame(&experiment, &pipeline, frame, &output);
+                    let result = process_frame(&experiment, &pipeline, &subtract, frame, &output);
                     done.fetch_add(1, Ordering::Relaxed);
                     (frame, result)
                 })

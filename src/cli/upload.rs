@@ -5,7 +5,13 @@
 //! a `frame` part (its number) and one image part per camera, `cam0` ..
 //! `camN-1` in camera order (see `src/service/http/sequences.rs`). The
 //! images of frame `F` are named by one pattern per camera with a
-//! printf-style frame number: `img/cam1.%d`, `img/cam1_%05d.tif`.
+//! printf-style frame number: `img/cam1.%d`, `img/cam1_%05d.tif`; or
+//! they come from an OpenPTV/pyptv experiment (`--experiment DIR`, read by
+//! [`crate::formats::experiment::read_experiment`]): its sequence's image
+//! names and, unless `--frames` says otherwise, its first and last frame.
+//! An experiment with an image splitter (one sensor, several views) sends
+//! its one image per frame as the part `image`, which the service cuts
+//! into the views.
 //!
 //! - `--jobs N` frames are in flight at once (default 4).
 //! - A connection error, a timeout and a 5xx are retried with exponential
@@ -38,16 +44,18 @@ use std::io::Write;
 use std::path::PathBuf;
 use std::time::Duration;
 
-use clap::Args;
+use clap::{ArgGroup, Args};
 use futures_util::StreamExt;
 use reqwest::multipart::{Form, Part};
 use reqwest::StatusCode;
 use serde_json::Value;
 
 use super::{write_stdout, CliError};
+use crate::formats::experiment::{read_experiment, Experiment};
 
 /// Arguments of `ptv upload`.
 #[derive(Debug, Args)]
+#[command(group(ArgGroup::new("recording").required(true).args(["experiment", "images"])))]
 pub struct UploadArgs {
     /// The service: `http://HOST:PORT` (plain HTTP; see the docs for https).
     #[arg(long, value_name = "URL")]
@@ -61,12 +69,18 @@ pub struct UploadArgs {
     pub sequence: i64,
     /// One file name pattern per camera, in camera order, with a
     /// printf-style frame number: `img/cam1.%d`, `img/cam1_%05d.tif`.
-    #[arg(long = "images", value_name = "PATTERN", required = true, num_args = 1..)]
+    #[arg(long = "images", value_name = "PATTERN", num_args = 1..)]
     pub images: Vec<String>,
+    /// An OpenPTV experiment directory (`parameters/` or a pyptv YAML): the
+    /// images its sequence parameters name, instead of --images.
+    #[arg(long, value_name = "DIR", conflicts_with = "images")]
+    pub experiment: Option<PathBuf>,
     /// The frames to upload, both ends included: `10001..10004`, or one
-    /// frame `10001`.
-    #[arg(long, value_name = "FIRST..LAST", value_parser = parse_frames)]
-    pub frames: FrameRange,
+    /// frame `10001`; with --experiment, its first to last frame if not
+    /// given.
+    #[arg(long, value_name = "FIRST..LAST", value_parser = parse_frames,
+          required_unless_present = "experiment")]
+    pub frames: Option<FrameRange>,
     /// How many frames are uploaded at once.
     #[arg(long, value_name = "N", default_value_t = 4, value_parser = clap::value_parser!(u16).range(1..=64))]
     pub jobs: u16,
@@ -194,6 +208,49 @@ impl Pattern {
     }
 }
 
+/// Where a frame's files are and which parts they go in.
+enum Recording {
+    /// One pattern per camera: parts `cam0`.. .
+    Patterns(Vec<Pattern>),
+    /// An experiment's sequence: parts `cam0`.., or `image` with a
+    /// splitter.
+    Experiment(Box<Experiment>),
+}
+
+impl Recording {
+    /// The files of `frame`, each with its part's name.
+    fn files(&self, frame: u64) -> Vec<(String, PathBuf)> {
+        match self {
+            Recording::Patterns(patterns) => patterns
+                .iter()
+                .enumerate()
+                .map(|(c, p)| (format!("cam{c}"), p.path(frame)))
+                .collect(),
+            Recording::Experiment(experiment) if experiment.splitter.is_some() => {
+                vec![(
+                    "image".to_owned(),
+                    experiment.sequence.image_path(&experiment.root, 0, frame),
+                )]
+            }
+            Recording::Experiment(experiment) => (0..experiment.cameras.len())
+                .map(|c| {
+                    let path = experiment.sequence.image_path(&experiment.root, c, frame);
+                    (format!("cam{c}"), path)
+                })
+                .collect(),
+        }
+    }
+
+    /// The cameras the sequence's calibration must have, if that is known
+    /// here (the images given, or the experiment's cameras).
+    fn cameras(&self) -> (usize, &'static str) {
+        match self {
+            Recording::Patterns(patterns) => (patterns.len(), "--images"),
+            Recording::Experiment(experiment) => (experiment.cameras.len(), "--experiment"),
+        }
+    }
+}
+
 /// How one frame ended.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub enum Outcome {
@@ -318,9 +375,14 @@ fn chain(error: &dyn std::error::Error) -> String {
 }
 
 /// Uploads one frame; never an error: a failure is an [`Outcome::Failed`].
-async fn upload_frame(server: &Server, sequence: i64, frame: u64, paths: &[PathBuf]) -> Outcome {
-    let mut files = Vec::with_capacity(paths.len());
-    for path in paths {
+async fn upload_frame(
+    server: &Server,
+    sequence: i64,
+    frame: u64,
+    parts: &[(String, PathBuf)],
+) -> Outcome {
+    let mut files = Vec::with_capacity(parts.len());
+    for (_, path) in parts {
         match tokio::fs::read(path).await {
             Ok(bytes) => files.push(bytes),
             Err(error) => return Outcome::Failed(format!("{}: {error}", path.display())),
@@ -330,15 +392,12 @@ async fn upload_frame(server: &Server, sequence: i64, frame: u64, paths: &[PathB
     let mut attempt = 0;
     loop {
         let mut form = Form::new().text("frame", frame.to_string());
-        for (camera, (bytes, path)) in files.iter().zip(paths).enumerate() {
+        for (bytes, (part, path)) in files.iter().zip(parts) {
             let name = path
                 .file_name()
                 .map(|n| n.to_string_lossy().into_owned())
-                .unwrap_or_else(|| format!("cam{camera}"));
-            form = form.part(
-                format!("cam{camera}"),
-                Part::bytes(bytes.clone()).file_name(name),
-            );
+                .unwrap_or_else(|| part.clone());
+            form = form.part(part.clone(), Part::bytes(bytes.clone()).file_name(name));
         }
         let request = server.authorized(server.client.post(&url)).multipart(form);
         let (wait, reason) = match request.send().await {
@@ -370,15 +429,33 @@ pub type Outcomes = Vec<(u64, Outcome)>;
 /// Runs `ptv upload`: the summary to standard output, the progress bar to
 /// standard error.
 pub fn run(args: &UploadArgs, stdout: &mut dyn Write) -> Result<(), CliError> {
-    let patterns = args
-        .images
-        .iter()
-        .map(|text| Pattern::parse(text))
-        .collect::<Result<Vec<_>, _>>()
-        .map_err(|reason| CliError::Flag {
-            flag: "--images",
-            reason,
-        })?;
+    let (recording, frames) = match &args.experiment {
+        Some(dir) => {
+            let experiment = read_experiment(dir)?;
+            let sequence = &experiment.sequence;
+            let frames = args.frames.unwrap_or(FrameRange {
+                first: sequence.first,
+                last: sequence.last,
+            });
+            (Recording::Experiment(Box::new(experiment)), frames)
+        }
+        None => {
+            let patterns = args
+                .images
+                .iter()
+                .map(|text| Pattern::parse(text))
+                .collect::<Result<Vec<_>, _>>()
+                .map_err(|reason| CliError::Flag {
+                    flag: "--images",
+                    reason,
+                })?;
+            let frames = args.frames.ok_or_else(|| CliError::Flag {
+                flag: "--frames",
+                reason: "give the frames to upload, FIRST..LAST".into(),
+            })?;
+            (Recording::Patterns(patterns), frames)
+        }
+    };
     let server = args.server.trim_end_matches('/');
     if server.starts_with("https://") {
         return Err(CliError::Flag {
@@ -412,8 +489,8 @@ pub fn run(args: &UploadArgs, stdout: &mut dyn Write) -> Result<(), CliError> {
         .build()
         .map_err(|e| CliError::Upload(format!("cannot start the runtime: {e}")))?;
     runtime.block_on(async {
-        check_sequence(&server, args.sequence, patterns.len()).await?;
-        let outcomes = upload_all(&server, args, &patterns).await;
+        check_sequence(&server, args.sequence, recording.cameras()).await?;
+        let outcomes = upload_all(&server, args, &recording, frames).await;
         write_stdout(stdout, &summary(&outcomes))?;
         let mut failed = outcomes
             .iter()
@@ -436,7 +513,11 @@ pub fn run(args: &UploadArgs, stdout: &mut dyn Write) -> Result<(), CliError> {
 
 /// Checks that the sequence exists and its calibration has one camera per
 /// pattern, before any upload.
-async fn check_sequence(server: &Server, sequence: i64, patterns: usize) -> Result<(), CliError> {
+async fn check_sequence(
+    server: &Server,
+    sequence: i64,
+    (given, flag): (usize, &'static str),
+) -> Result<(), CliError> {
     let failed = |reason: String| {
         let hint = if reason.starts_with("401") {
             "; give the service's API token with --token"
@@ -460,12 +541,16 @@ async fn check_sequence(server: &Server, sequence: i64, patterns: usize) -> Resu
         .await
         .map_err(failed)?;
     if let Some(cameras) = calibration["cameras"].as_i64() {
-        if cameras != patterns as i64 {
+        if cameras != given as i64 {
+            let what = if flag == "--images" {
+                "patterns were given; give one per camera, in camera order"
+            } else {
+                "cameras are in the experiment; upload to a sequence made from it"
+            };
             return Err(CliError::Flag {
-                flag: "--images",
+                flag,
                 reason: format!(
-                    "sequence {sequence}'s calibration has {cameras} cameras but {patterns} \
-                     patterns were given; give one per camera, in camera order"
+                    "sequence {sequence}'s calibration has {cameras} cameras but {given} {what}"
                 ),
             });
         }
@@ -474,16 +559,21 @@ async fn check_sequence(server: &Server, sequence: i64, patterns: usize) -> Resu
 }
 
 /// Uploads every frame, `--jobs` at once, with a progress bar.
-async fn upload_all(server: &Server, args: &UploadArgs, patterns: &[Pattern]) -> Outcomes {
-    let total = args.frames.last - args.frames.first + 1;
+async fn upload_all(
+    server: &Server,
+    args: &UploadArgs,
+    recording: &Recording,
+    frames: FrameRange,
+) -> Outcomes {
+    let total = frames.last - frames.first + 1;
     let progress = progress_bar(total, "uploaded");
-    let frames = args.frames.first..=args.frames.last;
+    let frames = frames.first..=frames.last;
     let mut outcomes: Outcomes = futures_util::stream::iter(frames)
         .map(|frame| {
-            let paths: Vec<PathBuf> = patterns.iter().map(|p| p.path(frame)).collect();
+            let parts = recording.files(frame);
             let progress = &progress;
             async move {
-                let outcome = upload_frame(server, args.sequence, frame, &paths).await;
+                let outcome = upload_frame(server, args.sequence, frame, &parts).await;
                 progress.inc(1);
                 (frame, outcome)
             }

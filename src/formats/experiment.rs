@@ -30,7 +30,7 @@
 //! | `X_lay`, `Zmin_lay`, `Zmax_lay` | the observation [`Volume`], see below |
 //! | `sequence.base_name`, `first`, `last` | [`SequenceFrames`] |
 //! | `ptv.splitter` (pyptv) | [`Splitter::quadrants`] |
-//! | `masking.mask_base_name` (pyptv, `%d` = camera 1..N) | `masks` |
+//! | `masking.mask_base_name` (pyptv, `%d` = camera 1..N) | `masks`: images pyptv subtracts from every frame (clipped at 0), and so does `ptv process-sequence` |
 //!
 //! **The volume.** OpenPTV bounds depth only: between `X_lay[0]` and
 //! `X_lay[1]` the range `Zmin..Zmax` is interpolated linearly in X, and Y is
@@ -80,7 +80,9 @@ pub struct Experiment {
     pub matching: MatchingParameters,
     /// The image sequence.
     pub sequence: SequenceFrames,
-    /// pyptv's masking images, one per camera, if masking is on.
+    /// pyptv's masking images, one per camera, if masking is on. pyptv
+    /// subtracts them from each frame (clipped at 0), like a background;
+    /// they are not "non-zero = use the pixel" masks.
     pub masks: Option<Vec<PathBuf>>,
     /// The settings `ptv` cannot map, and why.
     pub unmapped: Vec<UnmappedSetting>,

@@ -85,7 +85,7 @@
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use super::image::{GreyImage, GreyPixels};
+use super::image::{GreyImage, GreyPixels, Mask};
 use super::target::Target;
 
 /// The largest high-pass radius; larger ones are used as this. A window of
@@ -194,7 +194,7 @@ impl DetectionParameters {
 /// The targets of one frame, sorted by y, then x (as OpenPTV sorts them
 /// for the correspondence search).
 pub fn detect(image: &GreyImage, parameters: &DetectionParameters) -> Vec<Target> {
-    detect_with_pixels_if::<false>(image, parameters).0
+    detect_with_pixels_if::<false>(image, &NO_PREPROCESSING, parameters).0
 }
 
 /// A target and the pixels (column, row) it was measured from.
@@ -212,7 +212,7 @@ pub fn detect_with_pixels(
     image: &GreyImage,
     parameters: &DetectionParameters,
 ) -> Vec<TargetPixels> {
-    let (targets, pixels) = detect_with_pixels_if::<true>(image, parameters);
+    let (targets, pixels) = detect_with_pixels_if::<true>(image, &NO_PREPROCESSING, parameters);
     targets
         .into_iter()
         .zip(pixels)
@@ -229,18 +229,159 @@ pub fn detect_cameras(frames: &[(&GreyImage, &DetectionParameters)]) -> Vec<Vec<
         .collect()
 }
 
+/// What is done to a camera's frames before the high-pass filter: a
+/// background subtracted (an image of the view without particles, e.g. the
+/// mean or minimum of many frames: reflections and static bright objects
+/// disappear) and a mask of the pixels to use. Both are per camera and
+/// must have its frames' size; the background also their bit depth.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Preprocessing {
+    /// Subtracted from every frame, pixel by pixel, saturating at 0.
+    pub background: Option<GreyImage>,
+    /// Only the pixels it uses can be part of a target.
+    pub mask: Option<Mask>,
+}
+
+/// A background or mask that does not fit the frame it is applied to.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum PreprocessError {
+    /// The background's size is not the frame's.
+    #[error(
+        "the background is {width}x{height} pixels but the frame is \
+         {expected_width}x{expected_height}; use a background recorded with this camera"
+    )]
+    BackgroundSize {
+        /// Background width.
+        width: u32,
+        /// Background height.
+        height: u32,
+        /// Frame width.
+        expected_width: u32,
+        /// Frame height.
+        expected_height: u32,
+    },
+    /// The background's bit depth is not the frame's.
+    #[error(
+        "the background has {bits}-bit samples but the frame {expected_bits}-bit ones; \
+         use a background saved in the frames' bit depth"
+    )]
+    BackgroundDepth {
+        /// Background bits per sample.
+        bits: u32,
+        /// Frame bits per sample.
+        expected_bits: u32,
+    },
+    /// The mask's size is not the frame's.
+    #[error(
+        "the mask is {width}x{height} pixels but the frame is \
+         {expected_width}x{expected_height}; use a mask of this camera's image size"
+    )]
+    MaskSize {
+        /// Mask width.
+        width: u32,
+        /// Mask height.
+        height: u32,
+        /// Frame width.
+        expected_width: u32,
+        /// Frame height.
+        expected_height: u32,
+    },
+}
+
+impl Preprocessing {
+    /// Whether it does nothing.
+    pub fn is_empty(&self) -> bool {
+        self.background.is_none() && self.mask.is_none()
+    }
+
+    /// Checks the background's and the mask's size against frames of
+    /// `width` x `height` pixels (a camera's sensor).
+    pub fn check_size(&self, width: u32, height: u32) -> Result<(), PreprocessError> {
+        if let Some(background) = &self.background {
+            if (background.width(), background.height()) != (width, height) {
+                return Err(PreprocessError::BackgroundSize {
+                    width: background.width(),
+                    height: background.height(),
+                    expected_width: width,
+                    expected_height: height,
+                });
+            }
+        }
+        if let Some(mask) = &self.mask {
+            if (mask.width(), mask.height()) != (width, height) {
+                return Err(PreprocessError::MaskSize {
+                    width: mask.width(),
+                    height: mask.height(),
+                    expected_width: width,
+                    expected_height: height,
+                });
+            }
+        }
+        Ok(())
+    }
+
+    /// Checks that it fits `image`: sizes, and the background's bit depth.
+    pub fn check(&self, image: &GreyImage) -> Result<(), PreprocessError> {
+        self.check_size(image.width(), image.height())?;
+        if let Some(background) = &self.background {
+            if background.bit_depth() != image.bit_depth() {
+                return Err(PreprocessError::BackgroundDepth {
+                    bits: background.bit_depth().bits(),
+                    expected_bits: image.bit_depth().bits(),
+                });
+            }
+        }
+        Ok(())
+    }
+}
+
+/// [`detect`] after `preprocessing`: the background is subtracted
+/// (saturating at 0) as the filter reads the samples, before the high-pass
+/// filter and the threshold, and masked-out pixels are never above the
+/// threshold. Errors if the background or mask does not fit the image.
+pub fn detect_preprocessed(
+    image: &GreyImage,
+    preprocessing: &Preprocessing,
+    parameters: &DetectionParameters,
+) -> Result<Vec<Target>, PreprocessError> {
+    preprocessing.check(image)?;
+    Ok(detect_with_pixels_if::<false>(image, preprocessing, parameters).0)
+}
+
+/// An empty [`Preprocessing`], for the functions without one.
+const NO_PREPROCESSING: Preprocessing = Preprocessing {
+    background: None,
+    mask: None,
+};
+
+/// Detection after `preprocessing`, which fits the image (checked by the
+/// caller; one that does not is ignored where it does not fit).
 fn detect_with_pixels_if<const PIXELS: bool>(
     image: &GreyImage,
+    preprocessing: &Preprocessing,
     parameters: &DetectionParameters,
 ) -> Found {
     // A GreyImage has at least one pixel and its samples fill its size.
     let (width, height) = (image.width() as usize, image.height() as usize);
+    let fits = preprocessing.check(image).is_ok();
+    let mask = preprocessing.mask.as_ref().filter(|_| fits);
+    let background = preprocessing.background.as_ref().filter(|_| fits);
     let (mut targets, pixels) = match image.pixels() {
         GreyPixels::Eight(pixels) => {
-            Detector::new(pixels, width, height, parameters).run::<PIXELS>()
+            let mut detector = Detector::new(pixels, width, height, parameters);
+            detector.mask = mask;
+            if let Some(GreyPixels::Eight(b)) = background.map(GreyImage::pixels) {
+                detector.background = Some(b);
+            }
+            detector.run::<PIXELS>()
         }
         GreyPixels::Sixteen(pixels) => {
-            Detector::new(pixels, width, height, parameters).run::<PIXELS>()
+            let mut detector = Detector::new(pixels, width, height, parameters);
+            detector.mask = mask;
+            if let Some(GreyPixels::Sixteen(b)) = background.map(GreyImage::pixels) {
+                detector.background = Some(b);
+            }
+            detector.run::<PIXELS>()
         }
     };
     let order = |a: &Target, b: &Target| a.y.total_cmp(&b.y).then(a.x.total_cmp(&b.x));
@@ -266,6 +407,16 @@ trait Grey: Copy + Send + Sync {
     const LEVEL_SCALE: u64;
     /// The grey value.
     fn value(self) -> u32;
+    /// The grey value less the background's, saturating at 0, if `BG`;
+    /// else the grey value.
+    #[inline(always)]
+    fn less<const BG: bool>(self, background: Self) -> u32 {
+        if BG {
+            self.value().saturating_sub(background.value())
+        } else {
+            self.value()
+        }
+    }
 }
 
 impl Grey for u8 {
@@ -289,8 +440,9 @@ impl Grey for u16 {
 /// `rows * columns` pixels. Writes the level of every pixel above the
 /// threshold into `out` and counts them in `above`.
 #[allow(clippy::too_many_arguments)]
-fn filter_row<G: Grey>(
+fn filter_row<G: Grey, const BG: bool>(
     row: &[G],
+    background: &[G],
     column_sums: &[u32],
     r: usize,
     rows: u64,
@@ -321,7 +473,7 @@ fn filter_row<G: Grey>(
             s += u64::from(column_sums[x + r]);
         }
         let c = rows * columns(x);
-        let gc = u64::from(row[x].value()) * c;
+        let gc = u64::from(G::less::<BG>(row[x], background[x])) * c;
         if gc > s + threshold * c {
             keep(x, gc - s, c);
         }
@@ -336,10 +488,17 @@ fn filter_row<G: Grey>(
         let entering = &column_sums[left_end + r..interior_end + r];
         let leaving = &column_sums[left_end - r - 1..interior_end - r - 1];
         let pixels = &row[left_end..interior_end];
-        for (k, ((&enter, &leave), &g)) in entering.iter().zip(leaving).zip(pixels).enumerate() {
+        let behind = &background[left_end..interior_end];
+        for (k, (((&enter, &leave), &g), &b)) in entering
+            .iter()
+            .zip(leaving)
+            .zip(pixels)
+            .zip(behind)
+            .enumerate()
+        {
             // One add on the running sum's dependency chain, not two.
             s = s.wrapping_add_signed(i64::from(enter) - i64::from(leave));
-            let gc = u64::from(g.value()) * c;
+            let gc = u64::from(G::less::<BG>(g, b)) * c;
             if gc > s + tc {
                 keep(left_end + k, gc - s, c);
             }
@@ -354,7 +513,7 @@ fn filter_row<G: Grey>(
             s -= u64::from(column_sums[x - r - 1]);
         }
         let c = rows * columns(x);
-        let gc = u64::from(row[x].value()) * c;
+        let gc = u64::from(G::less::<BG>(row[x], background[x])) * c;
         if gc > s + threshold * c {
             keep(x, gc - s, c);
         }
@@ -457,6 +616,10 @@ struct Detector<'a, G: Grey> {
     width: usize,
     height: usize,
     parameters: &'a DetectionParameters,
+    /// Subtracted from the pixels before the filter, if any.
+    background: Option<&'a [G]>,
+    /// The pixels that may be above the threshold, if not all.
+    mask: Option<&'a Mask>,
     /// Levels (high-pass filtered grey values in 16-bit grey levels) of the
     /// pixels above the threshold; 0 elsewhere and once a pixel's blob has
     /// been measured (while a blob is flooded its pixels are 0, while it is
@@ -488,6 +651,8 @@ impl<'a, G: Grey> Detector<'a, G> {
             width,
             height,
             parameters,
+            background: None,
+            mask: None,
             levels: Vec::new(),
             above: 0,
             blob: Vec::new(),
@@ -527,6 +692,26 @@ impl<'a, G: Grey> Detector<'a, G> {
     /// kept above the threshold, so every blob pixel has a weight of at
     /// least 1.
     fn highpass_threshold(&mut self) {
+        match self.background {
+            Some(background) => self.highpass_threshold_of::<true>(background),
+            None => self.highpass_threshold_of::<false>(self.pixels),
+        }
+        if let Some(mask) = self.mask {
+            // Masked-out pixels are never above the threshold (they still
+            // count in their neighbours' background means).
+            for (i, level) in self.levels.iter_mut().enumerate() {
+                if *level != 0 && !mask.uses(i) {
+                    *level = 0;
+                    self.above -= 1;
+                }
+            }
+        }
+    }
+
+    /// [`Detector::highpass_threshold`] of the image less `background` if
+    /// `BG` (saturating at 0, as the samples are read: no copy of the image
+    /// is made), else of the image (`background` is then not read).
+    fn highpass_threshold_of<const BG: bool>(&mut self, background: &[G]) {
         let (width, height) = (self.width, self.height);
         let threshold = u64::from(self.parameters.threshold);
         self.levels = vec![0; width * height];
@@ -536,9 +721,10 @@ impl<'a, G: Grey> Detector<'a, G> {
         let pixels = self.pixels;
         let r = self.parameters.highpass_radius.min(MAX_HIGHPASS_RADIUS) as usize;
         if r == 0 {
-            for (i, &g) in pixels.iter().enumerate() {
-                if u64::from(g.value()) > threshold {
-                    levels[i] = (u64::from(g.value()) * G::LEVEL_SCALE) as u16;
+            for (i, (&g, &b)) in pixels.iter().zip(background).enumerate() {
+                let g = G::less::<BG>(g, b);
+                if u64::from(g) > threshold {
+                    levels[i] = (u64::from(g) * G::LEVEL_SCALE) as u16;
                     *above += 1;
                 }
             }
@@ -546,9 +732,16 @@ impl<'a, G: Grey> Detector<'a, G> {
         }
         // Window sums of each column over the rows of the current window.
         let mut column_sums = vec![0u32; width];
+        let row_of = |row: usize| {
+            (
+                &pixels[row * width..(row + 1) * width],
+                &background[row * width..(row + 1) * width],
+            )
+        };
         let add_row = |sums: &mut [u32], row: usize| {
-            for (sum, &g) in sums.iter_mut().zip(&pixels[row * width..(row + 1) * width]) {
-                *sum += g.value();
+            let (row, behind) = row_of(row);
+            for ((sum, &g), &b) in sums.iter_mut().zip(row).zip(behind) {
+                *sum += G::less::<BG>(g, b);
             }
         };
         for row in 0..r.min(height) {
@@ -559,18 +752,15 @@ impl<'a, G: Grey> Detector<'a, G> {
                 add_row(&mut column_sums, y + r);
             }
             if y > r {
-                let row = y - r - 1;
-                for (sum, &g) in column_sums
-                    .iter_mut()
-                    .zip(&pixels[row * width..(row + 1) * width])
-                {
-                    *sum -= g.value();
+                let (row, behind) = row_of(y - r - 1);
+                for ((sum, &g), &b) in column_sums.iter_mut().zip(row).zip(behind) {
+                    *sum -= G::less::<BG>(g, b);
                 }
             }
             let rows = ((y + r).min(height - 1) - y.saturating_sub(r) + 1) as u64;
-            let row = &pixels[y * width..(y + 1) * width];
+            let (row, behind) = row_of(y);
             let out = &mut levels[y * width..(y + 1) * width];
-            filter_row(row, &column_sums, r, rows, threshold, out, above);
+            filter_row::<G, BG>(row, behind, &column_sums, r, rows, threshold, out, above);
         }
     }
 
@@ -1251,6 +1441,113 @@ mod tests {
                 targets.len()
             );
         }
+    }
+
+    /// A 40x30 8-bit frame: a dim ramp, with 3x3 spots of peak `peak` at
+    /// `spots` (centre column, row).
+    fn frame(spots: &[(usize, usize)], peak: u8) -> GreyImage {
+        let (width, height) = (40usize, 30usize);
+        let mut pixels: Vec<u8> = (0..width * height).map(|i| (i % width) as u8).collect();
+        for &(x, y) in spots {
+            for (dx, dy, v) in [(0, 0, peak), (1, 0, peak / 2), (0, 1, peak / 2)] {
+                for (sx, sy) in [(1, 1), (-1, 1), (1, -1), (-1, -1)] {
+                    let (px, py) = ((x as i64 + sx * dx) as usize, (y as i64 + sy * dy) as usize);
+                    let p = &mut pixels[py * width + px];
+                    *p = (*p).max(v);
+                }
+            }
+        }
+        GreyImage::from_u8(width as u32, height as u32, pixels).unwrap()
+    }
+
+    fn with_background(background: GreyImage) -> Preprocessing {
+        Preprocessing {
+            background: Some(background),
+            mask: None,
+        }
+    }
+
+    #[test]
+    fn a_background_equal_to_the_frame_leaves_nothing() {
+        let image = frame(&[(10, 10), (25, 20)], 200);
+        let parameters = DetectionParameters::default();
+        assert_eq!(detect(&image, &parameters).len(), 2);
+        let found = detect_preprocessed(&image, &with_background(image.clone()), &parameters);
+        assert_eq!(found, Ok(Vec::new()));
+        // Without the filter too: the difference is 0 everywhere.
+        let unfiltered = DetectionParameters {
+            highpass_radius: 0,
+            ..parameters
+        };
+        let found = detect_preprocessed(&image, &with_background(image.clone()), &unfiltered);
+        assert_eq!(found, Ok(Vec::new()));
+    }
+
+    #[test]
+    fn a_static_bright_object_in_the_background_disappears() {
+        // The background holds a bright object at (30, 8); the frame holds it
+        // and a particle. Subtracted, only the particle is left, where it is
+        // found without the object.
+        let parameters = DetectionParameters::default();
+        let background = frame(&[(30, 8)], 250);
+        let image = frame(&[(30, 8), (12, 20)], 250);
+        let alone = detect(&frame(&[(12, 20)], 250), &parameters);
+        assert_eq!(detect(&image, &parameters).len(), 2);
+        let found = detect_preprocessed(&image, &with_background(background), &parameters).unwrap();
+        assert_eq!(found.len(), 1, "{found:?}");
+        assert!((found[0].x - alone[0].x).abs() < 1e-9 && (found[0].y - alone[0].y).abs() < 1e-9);
+        assert_eq!((found[0].x.floor(), found[0].y.floor()), (12.0, 20.0));
+    }
+
+    #[test]
+    fn masked_out_pixels_find_nothing() {
+        let image = frame(&[(10, 10), (25, 20)], 200);
+        // The mask hides the right half of the frame.
+        let mask_image = GreyImage::from_u8(
+            40,
+            30,
+            (0..40 * 30).map(|i| u8::from(i % 40 < 20)).collect(),
+        )
+        .unwrap();
+        let preprocessing = Preprocessing {
+            background: None,
+            mask: Some(Mask::from_image(&mask_image)),
+        };
+        let found =
+            detect_preprocessed(&image, &preprocessing, &DetectionParameters::default()).unwrap();
+        assert_eq!(found.len(), 1, "{found:?}");
+        assert!(found[0].x < 20.0);
+    }
+
+    #[test]
+    fn a_background_or_mask_that_does_not_fit_is_an_error() {
+        let image = frame(&[(10, 10)], 200);
+        let parameters = DetectionParameters::default();
+        let small = GreyImage::from_u8(39, 30, vec![0; 39 * 30]).unwrap();
+        let error =
+            detect_preprocessed(&image, &with_background(small.clone()), &parameters).unwrap_err();
+        assert_eq!(
+            error.to_string(),
+            "the background is 39x30 pixels but the frame is 40x30; \
+             use a background recorded with this camera"
+        );
+        let deep = GreyImage::from_u16(40, 30, vec![0; 40 * 30]).unwrap();
+        let error = detect_preprocessed(&image, &with_background(deep), &parameters).unwrap_err();
+        assert_eq!(
+            error,
+            PreprocessError::BackgroundDepth {
+                bits: 16,
+                expected_bits: 8
+            }
+        );
+        let mask = Preprocessing {
+            background: None,
+            mask: Some(Mask::from_image(&small)),
+        };
+        let error = detect_preprocessed(&image, &mask, &parameters).unwrap_err();
+        assert!(error
+            .to_string()
+            .starts_with("the mask is 39x30 pixels but the frame is 40x30"));
     }
 
     #[test]

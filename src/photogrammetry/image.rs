@@ -232,9 +232,83 @@ impl GreyImage {
     }
 }
 
+/// Which pixels of a camera's frames detection may use: a fixed mask of
+/// parts of the view that never hold particles (walls, windows' edges,
+/// reflections that do not move). One bit a pixel.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Mask {
+    width: u32,
+    height: u32,
+    /// Bit `i % 64` of word `i / 64` is pixel `i`'s (row by row): 1 = use it.
+    bits: Vec<u64>,
+}
+
+impl Mask {
+    /// The mask of an image: a non-zero pixel is used, a zero one is not (a
+    /// black-and-white image painted black where nothing is to be found).
+    pub fn from_image(image: &GreyImage) -> Mask {
+        let pixels = image.width as usize * image.height as usize;
+        let mut bits = vec![0u64; pixels.div_ceil(64)];
+        let mut set = |i: usize| bits[i / 64] |= 1 << (i % 64);
+        match &image.pixels {
+            GreyPixels::Eight(p) => p
+                .iter()
+                .enumerate()
+                .filter(|(_, &v)| v != 0)
+                .for_each(|(i, _)| set(i)),
+            GreyPixels::Sixteen(p) => p
+                .iter()
+                .enumerate()
+                .filter(|(_, &v)| v != 0)
+                .for_each(|(i, _)| set(i)),
+        }
+        Mask {
+            width: image.width,
+            height: image.height,
+            bits,
+        }
+    }
+
+    /// Width in pixels.
+    pub fn width(&self) -> u32 {
+        self.width
+    }
+
+    /// Height in pixels.
+    pub fn height(&self) -> u32 {
+        self.height
+    }
+
+    /// Whether pixel `index` (row by row) is used; false beyond the mask.
+    #[inline(always)]
+    pub fn uses(&self, index: usize) -> bool {
+        self.bits
+            .get(index / 64)
+            .is_some_and(|word| word >> (index % 64) & 1 == 1)
+    }
+
+    /// How many pixels are used.
+    pub fn used(&self) -> u64 {
+        self.bits.iter().map(|w| u64::from(w.count_ones())).sum()
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_mask_uses_the_non_zero_pixels() {
+        let image =
+            GreyImage::from_u16(70, 2, (0..140).map(|i| (i % 3) as u16 * 300).collect()).unwrap();
+        let mask = Mask::from_image(&image);
+        assert_eq!((mask.width(), mask.height()), (70, 2));
+        for i in 0..140 {
+            assert_eq!(mask.uses(i), i % 3 != 0, "pixel {i}");
+        }
+        assert!(!mask.uses(140));
+        assert_eq!(mask.used(), 93);
+    }
 
     #[test]
     fn samples_must_fill_the_size() {

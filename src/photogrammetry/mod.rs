@@ -38,8 +38,11 @@ pub use camera::{
     Ray, Sensor, MAX_CAMERA_NAME_LEN, MAX_SENSOR_PIXELS, MAX_SENSOR_SIDE,
 };
 pub use cancel::{Cancel, Cancelled, StopOnDrop};
-pub use detect::{detect, detect_cameras, DetectionParameters, InvalidDetectionParameters};
-pub use image::{BitDepth, GreyImage, GreyPixels, ImageError, SensorMismatch};
+pub use detect::{
+    detect, detect_cameras, detect_preprocessed, DetectionParameters, InvalidDetectionParameters,
+    PreprocessError, Preprocessing,
+};
+pub use image::{BitDepth, GreyImage, GreyPixels, ImageError, Mask, SensorMismatch};
 pub use intersect::{intersect, Intersection, IntersectionError, Observation};
 pub use media::{Media, MediaGeometry, Wall};
 pub use pipeline::{FrameDetection, FramePipeline, FrameResult, PipelineError};

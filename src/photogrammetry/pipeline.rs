@@ -4,9 +4,11 @@
 //!
 //! 1. Every image is checked against its camera's sensor, so that targets
 //!    are never measured in the wrong pixel grid.
-//! 2. **Detection** (section 6.1, [`detect_cameras`]): the targets of each
+//! 2. **Detection** (section 6.1, [`super::detect_cameras`]): the targets of each
 //!    image, cameras in parallel, each with its own parameters (cameras see
-//!    the light sheet at different brightness, so their thresholds differ).
+//!    the light sheet at different brightness, so their thresholds differ),
+//!    after its background and mask if it has any
+//!    ([`FramePipeline::with_preprocessing`]).
 //! 3. **Correspondences and intersection** (sections 6.2 and 4.3,
 //!    [`Matcher`]): which targets of different cameras image one particle,
 //!    and where that particle is.
@@ -24,10 +26,15 @@
 //! alive at a time. Both stop between cameras and in the matcher's loops
 //! once a [`Cancel`] token fires.
 
+use rayon::prelude::*;
+
 use super::camera::Camera;
 use super::cancel::{Cancel, Cancelled};
 use super::correspond::{MatchError, Matcher, MatchingParameters, Particle};
-use super::detect::{detect, detect_cameras, DetectionParameters, InvalidDetectionParameters};
+use super::detect::{
+    detect_preprocessed, DetectionParameters, InvalidDetectionParameters, PreprocessError,
+    Preprocessing,
+};
 use super::image::{GreyImage, SensorMismatch};
 use super::target::Target;
 use super::volume::Volume;
@@ -101,6 +108,26 @@ pub enum PipelineError {
         /// Cameras in the calibration.
         cameras: usize,
     },
+    /// Per-camera preprocessing whose count is not the cameras'.
+    #[error(
+        "got backgrounds/masks for {given} cameras, but the calibration has {cameras}; \
+         give one per camera, in camera order"
+    )]
+    PreprocessingCount {
+        /// Preprocessing sets given.
+        given: usize,
+        /// Cameras in the calibration.
+        cameras: usize,
+    },
+    /// A background or mask that does not fit its camera's images.
+    #[error("the background or mask of camera {camera} does not fit its images")]
+    Preprocess {
+        /// The camera (0-based).
+        camera: usize,
+        /// What does not fit.
+        #[source]
+        source: PreprocessError,
+    },
     /// The work was stopped before detection ended.
     #[error("detection {0}")]
     Cancelled(#[from] Cancelled),
@@ -122,6 +149,9 @@ pub struct FrameResult {
 pub struct FramePipeline {
     /// Per camera, its detection parameters.
     detection: Vec<DetectionParameters>,
+    /// Per camera, its background and mask (none until
+    /// [`FramePipeline::with_preprocessing`]).
+    preprocessing: Vec<Preprocessing>,
     /// The prepared correspondence search, which holds the cameras.
     matcher: Matcher,
 }
@@ -149,7 +179,41 @@ impl FramePipeline {
                 .map_err(|source| PipelineError::Detection { camera, source })?;
         }
         let matcher = Matcher::new(cameras, matching)?;
-        Ok(FramePipeline { detection, matcher })
+        let preprocessing = vec![Preprocessing::default(); detection.len()];
+        Ok(FramePipeline {
+            detection,
+            preprocessing,
+            matcher,
+        })
+    }
+
+    /// The pipeline with a background and mask per camera (camera order),
+    /// each checked against its camera's sensor; [`FramePipeline::process`]
+    /// and [`FramePipeline::detect_camera`] apply them.
+    pub fn with_preprocessing(
+        mut self,
+        per_camera: Vec<Preprocessing>,
+    ) -> Result<FramePipeline, PipelineError> {
+        let cameras = self.cameras();
+        if per_camera.len() != cameras.len() {
+            return Err(PipelineError::PreprocessingCount {
+                given: per_camera.len(),
+                cameras: cameras.len(),
+            });
+        }
+        for (camera, (preprocessing, model)) in per_camera.iter().zip(cameras).enumerate() {
+            let sensor = model.sensor();
+            preprocessing
+                .check_size(sensor.width, sensor.height)
+                .map_err(|source| PipelineError::Preprocess { camera, source })?;
+        }
+        self.preprocessing = per_camera;
+        Ok(self)
+    }
+
+    /// Per camera, its background and mask.
+    pub fn preprocessing(&self) -> &[Preprocessing] {
+        &self.preprocessing
     }
 
     /// The cameras (with the matcher's refraction tables).
@@ -189,7 +253,8 @@ impl FramePipeline {
         image
             .check_sensor(model.sensor())
             .map_err(|source| PipelineError::Sensor { camera, source })?;
-        Ok(detect(image, &self.detection[camera]))
+        detect_preprocessed(image, &self.preprocessing[camera], &self.detection[camera])
+            .map_err(|source| PipelineError::Preprocess { camera, source })
     }
 
     /// Matches a frame's targets, `targets[c]` camera c's (as
@@ -218,9 +283,16 @@ impl FramePipeline {
                 .check_sensor(model.sensor())
                 .map_err(|source| PipelineError::Sensor { camera, source })?;
         }
-        let frames: Vec<(&GreyImage, &DetectionParameters)> =
-            images.iter().zip(&self.detection).collect();
-        let targets = detect_cameras(&frames);
+        let targets = images
+            .par_iter()
+            .zip(&self.detection)
+            .zip(&self.preprocessing)
+            .enumerate()
+            .map(|(camera, ((image, parameters), preprocessing))| {
+                detect_preprocessed(image, preprocessing, parameters)
+                    .map_err(|source| PipelineError::Preprocess { camera, source })
+            })
+            .collect::<Result<Vec<_>, _>>()?;
         let particles = self.matcher.match_frame(&targets)?;
         Ok(FrameResult { targets, particles })
     }

@@ -14,7 +14,10 @@ use nalgebra::Point2;
 use ptv::formats::image::{decode_image, decode_raw, RawLayout};
 use ptv::formats::{csv, openptv};
 use ptv::photogrammetry::simulate::{self, RenderSpec};
-use ptv::photogrammetry::{detect, DetectionParameters, GreyImage, GreyPixels, Sensor};
+use ptv::photogrammetry::{
+    detect, detect_preprocessed, DetectionParameters, GreyImage, GreyPixels, Mask, Preprocessing,
+    Sensor,
+};
 
 use crate::common::{fails, ptv, succeeds_silently, text};
 
@@ -323,4 +326,70 @@ fn detect_failures_print_one_error_line() {
     ] {
         assert_eq!(ptv(&args, d).status.code(), Some(2), "{args:?}");
     }
+}
+
+#[test]
+fn detect_subtracts_a_background_and_applies_a_mask() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let image = frame(&RenderSpec::eight_bit(2.5));
+    std::fs::write(d.join("f.png"), png(&image)).unwrap();
+    // The frame as its own background: nothing is left.
+    let out = succeeds_silently(&ptv(
+        &["detect", "--image", "f.png", "--background", "f.png"],
+        d,
+    ));
+    assert_eq!(csv::parse_targets(&out, "stdout").unwrap(), Vec::new());
+    // A mask of the left half: the library's targets with that mask, all
+    // on the left.
+    let mask = GreyImage::from_u8(
+        320,
+        240,
+        (0..320 * 240)
+            .map(|i| if i % 320 < 160 { 255 } else { 0 })
+            .collect(),
+    )
+    .unwrap();
+    std::fs::write(d.join("mask.png"), png(&mask)).unwrap();
+    let preprocessing = Preprocessing {
+        background: None,
+        mask: Some(Mask::from_image(&mask)),
+    };
+    let expected =
+        detect_preprocessed(&image, &preprocessing, &DetectionParameters::default()).unwrap();
+    assert!(expected.len() > 40, "{}", expected.len());
+    assert!(expected.iter().all(|t| t.x < 160.0));
+    let out = succeeds_silently(&ptv(
+        &["detect", "--image", "f.png", "--mask", "mask.png"],
+        d,
+    ));
+    assert_eq!(csv::parse_targets(&out, "stdout").unwrap(), expected);
+
+    // Misfits name the flag, the file and the size expected.
+    let small = GreyImage::from_u8(100, 80, vec![0; 8000]).unwrap();
+    std::fs::write(d.join("small.png"), png(&small)).unwrap();
+    let deep = GreyImage::from_u16(320, 240, vec![0; 320 * 240]).unwrap();
+    std::fs::write(d.join("deep.png"), png(&deep)).unwrap();
+    fails(
+        &ptv(
+            &["detect", "--image", "f.png", "--background", "small.png"],
+            d,
+        ),
+        &["--background", "small.png", "100x80", "320x240"],
+    );
+    fails(
+        &ptv(
+            &["detect", "--image", "f.png", "--background", "deep.png"],
+            d,
+        ),
+        &["--background", "deep.png", "16-bit", "8-bit"],
+    );
+    fails(
+        &ptv(&["detect", "--image", "f.png", "--mask", "small.png"], d),
+        &["--mask", "small.png", "100x80", "320x240"],
+    );
+    fails(
+        &ptv(&["detect", "--image", "f.png", "--mask", "missing.png"], d),
+        &["missing.png"],
+    );
 }

@@ -583,3 +583,69 @@ fn process_sequence_runs_the_recording_with_its_own_parameters() {
         &["--frames: 9..10002 is outside the experiment's frames 10001..10004"],
     );
 }
+
+#[test]
+fn process_sequence_subtracts_pyptvs_masks_and_the_background() {
+    // The recording's YAML with masking on, each camera's "mask" being its
+    // own frame 10001 (pyptv subtracts the masking image): frame 10001
+    // becomes black and has no targets, frame 10002 keeps its particles.
+    let yaml = std::fs::read_to_string(recording("parameters_Run1.yaml"))
+        .unwrap()
+        .replace("img/cam", &format!("{RECORDING}/img/cam"))
+        .replace("cal/cam", &format!("{RECORDING}/cal/cam"))
+        .replace(
+            "mask_flag: false\n  mask_base_name: ''",
+            &format!("mask_flag: true\n  mask_base_name: {RECORDING}/img/cam%d.10001"),
+        );
+    assert!(yaml.contains("mask_flag: true"));
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::write(dir.path().join("parameters_Masked.yaml"), yaml).unwrap();
+    let (stdout, _) = run(
+        &[
+            "process-sequence",
+            "--experiment",
+            "parameters_Masked.yaml",
+            "-o",
+            "res",
+            "--frames",
+            "10001..10002",
+        ],
+        dir.path(),
+    );
+    let summary: Value = serde_json::from_str(&stdout).unwrap();
+    for c in 1..=4 {
+        let res = dir.path().join("res");
+        assert_eq!(first_count(&res.join(format!("cam{c}.10001_targets"))), 0);
+        assert!(first_count(&res.join(format!("cam{c}.10002_targets"))) > 500);
+    }
+    assert!(summary["particles"].as_u64().unwrap() > 300, "{summary}");
+
+    // A median background over the four frames: applied (the counts
+    // change) and the particles remain (a sanity bound: a median of four
+    // frames also takes away particles that stay in place).
+    let out = tempfile::tempdir().unwrap();
+    let (stdout, _) = run(
+        &[
+            "process-sequence",
+            "--experiment",
+            RECORDING,
+            "-o",
+            "res",
+            "--background",
+            "median",
+        ],
+        out.path(),
+    );
+    let with: Value = serde_json::from_str(&stdout).unwrap();
+    let (stdout, _) = run(
+        &["process-sequence", "--experiment", RECORDING, "-o", "plain"],
+        out.path(),
+    );
+    let without: Value = serde_json::from_str(&stdout).unwrap();
+    assert_ne!(with["targets_per_camera"], without["targets_per_camera"]);
+    let particles = |v: &Value| v["particles"].as_u64().unwrap() as f64;
+    assert!(
+        particles(&with) >= 0.5 * particles(&without),
+        "{with} {without}"
+    );
+}

@@ -6,15 +6,17 @@
 //! one-to-one matching within 1 px, nearest first; particles and targets
 //! within 5 px of the border are not scored. Background subtraction is done
 //! here by hand until the detector has its own: the per-pixel median of the
-//! sequence's frames (the frame itself included, as a recording's median
-//! is), subtracted from each frame, saturating at 0; then the default
-//! detection parameters. Run with
+//! sequence's frames by `BackgroundBuilder` (the frame itself included, as
+//! a recording's median is), subtracted from each frame, saturating at 0;
+//! then the default detection parameters. Run with
 //! `cargo test --test photogrammetry structured_background -- --nocapture`
 //! to see the table.
 
 use nalgebra::{Point2, Vector2};
 use ptv::photogrammetry::simulate::{self, BackgroundField, RenderSpec, StructuredBackground};
-use ptv::photogrammetry::{detect, DetectionParameters, GreyImage, GreyPixels};
+use ptv::photogrammetry::{
+    detect, BackgroundBuilder, BackgroundMode, BitDepth, DetectionParameters, GreyImage, GreyPixels,
+};
 use rand::Rng;
 
 use crate::common::target_match::{score_truth, TruthScore};
@@ -168,24 +170,22 @@ fn glare_streaks_have_ripples_that_fragment_them() {
     assert!(coarse < fine / 2, "{coarse} vs {fine}");
 }
 
-/// Per pixel, the median of `frames`.
-fn median(frames: &[GreyImage]) -> Vec<u8> {
-    let mut column = vec![0u8; frames.len()];
-    (0..eight(&frames[0]).len())
-        .map(|i| {
-            for (c, f) in column.iter_mut().zip(frames) {
-                *c = eight(f)[i];
-            }
-            column.sort_unstable();
-            column[column.len() / 2]
-        })
-        .collect()
+/// The background of `frames` by the project's own builder (`ptv
+/// background`'s core): the exact per-pixel median of the frames.
+fn median(frames: &[GreyImage]) -> GreyImage {
+    let (w, h) = (frames[0].width(), frames[0].height());
+    let mut builder = BackgroundBuilder::new(BackgroundMode::Median, w, h, BitDepth::Eight);
+    for frame in frames {
+        builder.add(frame).expect("frames of one size");
+    }
+    builder.finish().expect("frames were added")
 }
 
-fn subtract(frame: &GreyImage, background: &[u8]) -> GreyImage {
+/// `frame - background`, saturating at 0.
+fn subtract(frame: &GreyImage, background: &GreyImage) -> GreyImage {
     let pixels = eight(frame)
         .iter()
-        .zip(background)
+        .zip(eight(background))
         .map(|(g, b)| g.saturating_sub(*b))
         .collect();
     GreyImage::from_u8(frame.width(), frame.height(), pixels).unwrap()

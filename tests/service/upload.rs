@@ -276,3 +276,43 @@ async fn the_token_is_sent() {
     );
     app.stop().await;
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_openptv_experiment_goes_up_by_its_own_sequence_parameters() {
+    let app = spawn_app().await;
+    let dir = super::helpers::repository().join("tests/data/openptv/test_cavity_recording");
+    let experiment = ptv::formats::experiment::read_experiment(&dir).unwrap();
+    let calibration = app.create_calibration(&experiment.cameras).await;
+    let (status, body) = app
+        .post_json(
+            "/sequences",
+            &json!({"calibration_id": calibration, "keep_images": false}),
+        )
+        .await;
+    assert_eq!(status, 201, "{body}");
+    let sequence = body["id"].as_i64().unwrap();
+    // No --frames: the experiment's sequence.par says 10001..10004.
+    let out = upload(vec![
+        "--server".into(),
+        app.address.clone(),
+        "--sequence".into(),
+        sequence.to_string(),
+        "--experiment".into(),
+        dir.display().to_string(),
+    ])
+    .await;
+    let stdout = text(&out.stdout);
+    assert!(out.status.success(), "{stdout}{}", text(&out.stderr));
+    assert!(
+        stdout.contains("accepted: 4, already there: 0, failed: 0"),
+        "{stdout}"
+    );
+    let view = app.wait_for_sequence(sequence).await;
+    let frames = &view["frames"];
+    assert_eq!(
+        frames["done"].as_i64().unwrap() + frames["failed"].as_i64().unwrap(),
+        4,
+        "{view}"
+    );
+    app.stop().await;
+}
