@@ -54,7 +54,7 @@ use clap::{Args, Parser, Subcommand};
 pub use self::background::{BackgroundArgs, ModeArg};
 pub use self::calibrate::CalibrateArgs;
 pub use self::detect::{DetectArgs, DetectionFlags, RawImageFlags, TargetFormat};
-pub use self::experiment::{sequence_settings, ExperimentCommand, ImportExperimentArgs};
+pub use self::experiment::{ExperimentCommand, ImportExperimentArgs};
 pub use self::match_targets::{MatchArgs, MatchingFlags};
 pub use self::process::ProcessArgs;
 pub use self::process_sequence::{BackgroundChoice, ProcessSequenceArgs};

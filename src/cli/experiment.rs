@@ -26,10 +26,10 @@ use clap::{Args, Subcommand};
 use serde::Serialize;
 
 use super::{write_stderr_line, CliError};
-use crate::formats::experiment::{read_experiment, Experiment, UnmappedSetting};
+use crate::formats::experiment::{read_experiment, UnmappedSetting};
 use crate::formats::{self, FormatError};
 use crate::photogrammetry::Splitter;
-use crate::service::parameters::{DetectionSettings, MatchingSettings};
+use crate::service::parameters::{experiment_settings, DetectionSettings, MatchingSettings};
 
 /// The `experiment` subcommands.
 #[derive(Debug, Subcommand)]
@@ -75,34 +75,6 @@ struct ExperimentFile<'a> {
     unmapped: &'a [UnmappedSetting],
 }
 
-/// The sequence settings of an experiment, as the service takes them.
-pub fn sequence_settings(experiment: &Experiment) -> (DetectionSettings, MatchingSettings) {
-    let first = &experiment.detection[0];
-    let detection = DetectionSettings {
-        threshold: Some(first.threshold),
-        thresholds: Some(experiment.detection.iter().map(|d| d.threshold).collect()),
-        highpass_radius: Some(first.highpass_radius),
-        min_pixels: Some(first.min_pixels),
-        max_pixels: Some(first.max_pixels),
-        min_nx: Some(first.min_nx),
-        max_nx: Some(first.max_nx),
-        min_ny: Some(first.min_ny),
-        max_ny: Some(first.max_ny),
-        min_sumg: Some(first.min_sumg),
-        split: Some(first.split),
-        split_depth: Some(first.split_depth),
-    };
-    let m = &experiment.matching;
-    let matching = MatchingSettings {
-        tolerance: Some(m.tolerance),
-        volume: m
-            .volume
-            .map(|v| [v.min.x, v.max.x, v.min.y, v.max.y, v.min.z, v.max.z]),
-        min_cameras: Some(m.min_cameras),
-    };
-    (detection, matching)
-}
-
 /// Runs `ptv experiment import`.
 pub(super) fn import(args: &ImportExperimentArgs, stderr: &mut dyn Write) -> Result<(), CliError> {
     let experiment = read_experiment(&args.dir)?;
@@ -112,7 +84,7 @@ pub(super) fn import(args: &ImportExperimentArgs, stderr: &mut dyn Write) -> Res
     })?;
     let calibration =
         formats::calibration::to_json_with_splitter(&experiment.cameras, experiment.splitter);
-    let (detection, matching) = sequence_settings(&experiment);
+    let (detection, matching) = experiment_settings(&experiment);
     let root = std::path::absolute(&experiment.root).unwrap_or(experiment.root.clone());
     let name = root
         .file_name()

@@ -26,13 +26,12 @@ use std::io::Write;
 use std::path::{Path, PathBuf};
 
 use clap::Args;
-use image::{ExtendedColorType, ImageEncoder as _};
 use nalgebra::Point3;
 
 use super::{write_stderr_line, CliError};
 use crate::formats::{self, FormatError};
 use crate::photogrammetry::simulate::{self, RenderSpec, RigSpec};
-use crate::photogrammetry::{GreyImage, GreyPixels};
+use crate::photogrammetry::GreyImage;
 
 /// The most particles `ptv simulate` draws: about 0.15 particles per pixel
 /// of a 1280x1024 sensor, far denser than any matcher resolves.
@@ -210,25 +209,7 @@ fn format_truth(points: &[Point3<f64>], truth: &[Vec<usize>]) -> String {
 
 /// Writes a grey image as a PNG of its bit depth.
 fn write_png(path: &Path, image: &GreyImage) -> Result<(), FormatError> {
-    let mut bytes = Vec::new();
-    let encoder = image::codecs::png::PngEncoder::new(&mut bytes);
-    let (width, height) = (image.width(), image.height());
-    match image.pixels() {
-        GreyPixels::Eight(samples) => {
-            encoder.write_image(samples, width, height, ExtendedColorType::L8)
-        }
-        GreyPixels::Sixteen(samples) => {
-            let native: Vec<u8> = samples.iter().flat_map(|v| v.to_ne_bytes()).collect();
-            encoder.write_image(&native, width, height, ExtendedColorType::L16)
-        }
-    }
-    .map_err(|error| {
-        FormatError::invalid(
-            &path.display().to_string(),
-            "image",
-            format!("cannot encode as PNG: {error}"),
-        )
-    })?;
+    let bytes = formats::image::encode_png(image, &path.display().to_string())?;
     std::fs::write(path, bytes).map_err(|reason| FormatError::Io {
         path: path.to_owned(),
         reason,

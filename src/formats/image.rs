@@ -30,7 +30,7 @@ use std::path::Path;
 use image::{ColorType, DynamicImage, ImageDecoder, ImageFormat, ImageReader, Limits};
 
 use super::FormatError;
-use crate::photogrammetry::{BitDepth, GreyImage, MAX_SENSOR_PIXELS, MAX_SENSOR_SIDE};
+use crate::photogrammetry::{BitDepth, GreyImage, GreyPixels, MAX_SENSOR_PIXELS, MAX_SENSOR_SIDE};
 
 /// The most the image decoder may allocate at once: the largest allowed
 /// 16-bit image (128 MiB) twice over, for a decoder's buffers beside its
@@ -328,6 +328,26 @@ pub fn decode_raw(
         ),
     };
     image.map_err(|e| FormatError::invalid(source, "size", e.to_string()))
+}
+
+/// A grey image as a PNG of its own bit depth; `source` names it in the
+/// error (which the encoder gives only for sizes a `GreyImage` cannot have).
+pub fn encode_png(image: &GreyImage, source: &str) -> Result<Vec<u8>, FormatError> {
+    use ::image::ImageEncoder;
+    let mut bytes = Vec::new();
+    let encoder = ::image::codecs::png::PngEncoder::new(&mut bytes);
+    let (width, height) = (image.width(), image.height());
+    match image.pixels() {
+        GreyPixels::Eight(samples) => {
+            encoder.write_image(samples, width, height, ::image::ExtendedColorType::L8)
+        }
+        GreyPixels::Sixteen(samples) => {
+            let native: Vec<u8> = samples.iter().flat_map(|v| v.to_ne_bytes()).collect();
+            encoder.write_image(&native, width, height, ::image::ExtendedColorType::L16)
+        }
+    }
+    .map_err(|e| FormatError::invalid(source, "image", format!("cannot encode as PNG: {e}")))?;
+    Ok(bytes)
 }
 
 #[cfg(test)]

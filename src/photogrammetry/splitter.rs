@@ -119,6 +119,13 @@ impl Splitter {
         Ok((width / columns, height / rows))
     }
 
+    /// The size of the whole image whose views are `width` x `height`
+    /// (what a frame must have), or `None` past `u32`.
+    pub fn image_size(&self, width: u32, height: u32) -> Option<(u32, u32)> {
+        let (columns, rows) = self.grid();
+        Some((width.checked_mul(columns)?, height.checked_mul(rows)?))
+    }
+
     /// Cuts one image into the views, in camera order.
     pub fn split(&self, image: &GreyImage) -> Result<Vec<GreyImage>, SplitterError> {
         let (w, h) = self.view_size(image.width(), image.height())?;

@@ -102,6 +102,12 @@ impl ImageStore {
         })
     }
 
+    /// The directory of uploads in progress (emptied at every start): for
+    /// scratch files of a request, in a directory of their own.
+    pub fn temp_dir(&self) -> &Path {
+        &self.tmp
+    }
+
     /// Starts an upload.
     pub async fn create_upload(&self) -> io::Result<Upload> {
         static NEXT: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);

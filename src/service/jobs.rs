@@ -44,7 +44,8 @@ use crate::formats::{self, FormatError};
 use crate::photogrammetry::calibrate::{self, CalibrationError};
 use crate::photogrammetry::correspond::{MatchError, Particle};
 use crate::photogrammetry::{
-    BitDepth, Cancel, FramePipeline, InvalidDetectionParameters, PipelineError,
+    BitDepth, Cancel, FramePipeline, InvalidDetectionParameters, PipelineError, Splitter,
+    SplitterError,
 };
 use crate::service::config::JobLimits;
 
@@ -70,6 +71,12 @@ pub enum JobError {
     /// [`STORAGE_FULL_PAUSE`] before its next claim.
     #[error("{0}")]
     StorageFull(String),
+    /// The job waits for other work (its sequence's computed background):
+    /// given back uncounted, not claimed again for a while
+    /// ([`super::preprocessing::WAIT_FOR_BACKGROUND`]); the message says
+    /// what it waits for and shows as the job's `error` meanwhile.
+    #[error("{0}")]
+    Deferred(String),
     /// The worker no longer holds the job; nothing to do.
     #[error("lost the job's claim")]
     LostLease,
@@ -265,29 +272,39 @@ impl CpuPool {
 }
 
 /// Prepared frame pipelines by sequence (preparing one builds the
-/// matcher's refraction tables, far more work than a frame).
+/// matcher's refraction tables, far more work than a frame), each with the
+/// number of the sequence's stored backgrounds and masks it was made with:
+/// a sequence's images are only ever added, so a pipeline made with fewer
+/// than there are now is stale, whoever added them and when.
 #[derive(Debug, Default)]
 pub struct PipelineCache {
-    pipelines: Mutex<HashMap<SequenceId, Arc<FramePipeline>>>,
+    pipelines: Mutex<HashMap<SequenceId, (usize, Prepared)>>,
 }
+
+/// A sequence's prepared frame pipeline and its calibration's splitter
+/// (whether a frame is one image of several views).
+pub type Prepared = (Arc<FramePipeline>, Option<Splitter>);
 
 /// Pipelines kept at most; beyond, the cache starts afresh.
 const CACHED_PIPELINES: usize = 32;
 
 impl PipelineCache {
-    /// The sequence's pipeline, if prepared.
-    pub fn get(&self, sequence_id: SequenceId) -> Option<Arc<FramePipeline>> {
+    /// The sequence's pipeline, if prepared with `images` stored
+    /// backgrounds and masks.
+    pub fn get(&self, sequence_id: SequenceId, images: usize) -> Option<Prepared> {
         let map = self.pipelines.lock().unwrap_or_else(|e| e.into_inner());
-        map.get(&sequence_id).cloned()
+        map.get(&sequence_id)
+            .filter(|(made_with, _)| *made_with == images)
+            .map(|(_, prepared)| prepared.clone())
     }
 
-    /// Keeps a prepared pipeline.
-    pub fn insert(&self, sequence_id: SequenceId, pipeline: Arc<FramePipeline>) {
+    /// Keeps a pipeline prepared with `images` stored backgrounds and masks.
+    pub fn insert(&self, sequence_id: SequenceId, images: usize, prepared: Prepared) {
         let mut map = self.pipelines.lock().unwrap_or_else(|e| e.into_inner());
         if map.len() >= CACHED_PIPELINES {
             map.clear();
         }
-        map.insert(sequence_id, pipeline);
+        map.insert(sequence_id, (images, prepared));
     }
 }
 
@@ -308,14 +325,15 @@ pub enum PrepareError {
 /// Prepares the frame pipeline of a calibration and parameters, on the CPU
 /// pool; not started if `cancel` fired while it waited for a thread (a
 /// request whose client has gone). The preparation itself is bounded by
-/// the cameras a calibration may have.
+/// the cameras a calibration may have. Also the calibration's splitter.
 pub async fn prepare_pipeline(
     state: &AppState,
     calibration_model: &str,
     parameters: &SequenceParameters,
     cancel: &Cancel,
-) -> Result<FramePipeline, PrepareError> {
-    let cameras = formats::calibration::from_json(calibration_model, "the stored calibration")?;
+) -> Result<(FramePipeline, Option<Splitter>), PrepareError> {
+    let (cameras, splitter) =
+        formats::calibration::from_json_with_splitter(calibration_model, "the stored calibration")?;
     let detection = parameters.detection();
     let matching = parameters.matching();
     let cancel = cancel.clone();
@@ -323,7 +341,10 @@ pub async fn prepare_pipeline(
         .cpu
         .try_run(move || {
             cancel.check().map_err(PipelineError::from)?;
-            Ok(FramePipeline::new(&cameras, &detection, &matching)?)
+            Ok((
+                FramePipeline::new(&cameras, &detection, &matching)?,
+                splitter,
+            ))
         })
         .await
 }
@@ -445,6 +466,13 @@ async fn execute(state: &Arc<AppState>, kinds: &JobKinds, job: ClaimedJob) {
             tokio::time::sleep(STORAGE_FULL_PAUSE).await;
             "storage_full"
         }
+        Err(JobError::Deferred(note)) => {
+            let delay = super::preprocessing::WAIT_FOR_BACKGROUND.as_secs_f64();
+            if let Err(error) = state.store.defer(&job, &note, delay).await {
+                tracing::error!(job = %job.id, %error, "cannot defer a job");
+            }
+            "deferred"
+        }
     };
     state.metrics.job(&kind, label, seconds);
 }
@@ -478,34 +506,47 @@ impl StoredRawLayout {
     }
 }
 
-/// The sequence's pipeline, from the cache or prepared now.
-async fn pipeline_of(
+/// A sequence's stored parameters.
+async fn sequence_parameters(
     state: &AppState,
     sequence_id: SequenceId,
-    calibration_id: CalibrationId,
-) -> Result<Arc<FramePipeline>, JobError> {
-    if let Some(pipeline) = state.pipelines.get(sequence_id) {
-        return Ok(pipeline);
-    }
+) -> Result<SequenceParameters, JobError> {
     let sequence = state
         .store
         .sequence(sequence_id)
         .await?
         .ok_or_else(|| JobError::Failed(format!("sequence {sequence_id} does not exist")))?;
+    serde_json::from_str(&sequence.parameters)
+        .map_err(|e| JobError::Failed(format!("the sequence's stored parameters: {e}")))
+}
+
+/// The sequence's pipeline, from the cache or prepared now, with its
+/// backgrounds and masks.
+async fn pipeline_of(
+    state: &AppState,
+    sequence_id: SequenceId,
+    calibration_id: CalibrationId,
+) -> Result<Prepared, JobError> {
+    let images = state.store.sequence_images(sequence_id).await?;
+    if let Some(prepared) = state.pipelines.get(sequence_id, images.len()) {
+        return Ok(prepared);
+    }
+    let count = images.len();
+    let parameters = sequence_parameters(state, sequence_id).await?;
     let calibration = state
         .store
         .calibration(calibration_id)
         .await?
         .ok_or_else(|| JobError::Failed(format!("calibration {calibration_id} does not exist")))?;
-    let parameters: SequenceParameters = serde_json::from_str(&sequence.parameters)
-        .map_err(|e| JobError::Failed(format!("the sequence's stored parameters: {e}")))?;
-    let pipeline = Arc::new(
+    let (pipeline, splitter) =
         prepare_pipeline(state, &calibration.model, &parameters, &Cancel::new())
             .await
-            .map_err(JobError::failed)?,
-    );
-    state.pipelines.insert(sequence_id, pipeline.clone());
-    Ok(pipeline)
+            .map_err(JobError::failed)?;
+    let pipeline =
+        Arc::new(super::preprocessing::with_stored_images(state, images, pipeline).await?);
+    let prepared = (pipeline, splitter);
+    state.pipelines.insert(sequence_id, count, prepared.clone());
+    Ok(prepared)
 }
 
 /// Expected single-core time to decode and detect one pixel (ns): `ptv
@@ -567,6 +608,9 @@ pub enum FrameError {
     /// Matching refused the uploaded targets.
     #[error(transparent)]
     Matching(#[from] MatchError),
+    /// The splitter's layout does not fit the frame's image.
+    #[error(transparent)]
+    Splitter(#[from] SplitterError),
     /// The uploaded targets' blob does not read.
     #[error(transparent)]
     StoredTargets(#[from] DamagedBlob),
@@ -578,17 +622,19 @@ pub enum FrameError {
 /// A frame's targets (encoded per camera, for images) and particles. Images
 /// are read, decoded and detected one camera at a time, keeping only their
 /// targets, so a worker holds at most one compressed and one decoded image
-/// at a time; `size` keeps the pixels and targets seen so far, for the
-/// time limit that `cancel` carries.
+/// at a time (with a splitter, the one image and its views); `size` keeps
+/// the pixels and targets seen so far, for the time limit that `cancel`
+/// carries.
 async fn frame_work(
     state: &AppState,
     input: &super::store::FrameInput,
-    pipeline: &Arc<FramePipeline>,
+    (pipeline, splitter): &Prepared,
     limit: &TimeLimit,
     cancel: &Cancel,
     size: &mut (u64, u64),
 ) -> Result<(Vec<(i64, i64, Vec<u8>)>, Vec<Particle>), JobError> {
     let cameras = pipeline.cameras().len();
+    let splitter = *splitter;
     if input.input == FrameInputKind::Images {
         let layout = match &input.raw_layout {
             None => None,
@@ -608,10 +654,11 @@ async fn frame_work(
             .store
             .frame_images(input.sequence_id, input.frame)
             .await?;
-        if images.len() != cameras {
+        let expected = if splitter.is_some() { 1 } else { cameras };
+        if images.len() != expected {
             return Err(JobError::failed(PipelineError::ImageCount {
                 images: images.len(),
-                cameras,
+                cameras: expected,
             }));
         }
         let mut targets = Vec::with_capacity(cameras);
@@ -631,14 +678,24 @@ async fn frame_work(
                         None => formats::image::decode_image(&bytes, &source),
                     }?;
                     drop(bytes);
-                    Ok::<_, FrameError>(pipeline.detect_camera(index, &image)?)
+                    let Some(splitter) = splitter else {
+                        return Ok::<_, FrameError>(vec![pipeline.detect_camera(index, &image)?]);
+                    };
+                    let views = splitter.split(&image)?;
+                    drop(image);
+                    let mut found = Vec::with_capacity(views.len());
+                    for (view, image) in views.iter().enumerate() {
+                        work_cancel.check().map_err(PipelineError::from)?;
+                        found.push(pipeline.detect_camera(view, image)?);
+                    }
+                    Ok(found)
                 })
                 .await
                 .map_err(FrameError::from)
                 .and_then(|r| r)
                 .map_err(JobError::failed)?;
-            size.1 += found.len() as u64;
-            targets.push(found);
+            size.1 += found.iter().map(|t| t.len() as u64).sum::<u64>();
+            targets.extend(found);
         }
         cancel.set_limit(limit.for_work(size.0, size.1));
         let (pipeline, work_cancel) = (pipeline.clone(), cancel.clone());
@@ -695,15 +752,38 @@ pub async fn process_frame(state: Arc<AppState>, run: JobRun) -> Result<(), JobE
         .frame_input(payload.sequence_id, payload.frame)
         .await?
         .ok_or_else(|| JobError::Failed("the frame does not exist".to_owned()))?;
-    let pipeline = pipeline_of(&state, input.sequence_id, input.calibration_id).await?;
-    let cameras = pipeline.cameras().len();
+    if input.input == FrameInputKind::Images {
+        let parameters = sequence_parameters(&state, input.sequence_id).await?;
+        if let Some(computed) = &parameters.background {
+            let calibration = state
+                .store
+                .calibration(input.calibration_id)
+                .await?
+                .ok_or_else(|| JobError::Failed("the sequence's calibration is gone".into()))?;
+            let (cameras, splitter) = formats::calibration::from_json_with_splitter(
+                &calibration.model,
+                "the stored calibration",
+            )
+            .map_err(JobError::failed)?;
+            super::preprocessing::ensure_computed_background(
+                &state,
+                input.sequence_id,
+                computed,
+                cameras.len(),
+                splitter,
+            )
+            .await?;
+        }
+    }
+    let prepared = pipeline_of(&state, input.sequence_id, input.calibration_id).await?;
+    let cameras = prepared.0.cameras().len();
 
     // The time limit follows the frame's size: its pixels from the start,
     // its targets once they are known.
     let limit = TimeLimit::of(&state.config.job_limits);
     let cancel = Cancel::new();
     let mut size = (0u64, 0u64);
-    let computed = frame_work(&state, &input, &pipeline, &limit, &cancel, &mut size).await;
+    let computed = frame_work(&state, &input, &prepared, &limit, &cancel, &mut size).await;
     let (targets, particles) = match computed {
         Ok(result) => result,
         Err(_) if cancel.is_stopped() || cancel.check().is_err() => {

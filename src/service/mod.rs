@@ -28,6 +28,7 @@ pub mod images;
 pub mod jobs;
 pub mod metrics;
 pub mod parameters;
+pub mod preprocessing;
 pub mod store;
 
 use std::io::Write;

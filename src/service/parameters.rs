@@ -8,6 +8,8 @@ use serde::{Deserialize, Deserializer, Serialize};
 use utoipa::ToSchema;
 
 use crate::formats::control::{calibration_options, fixed_parameters, OptionError};
+use crate::formats::experiment::Experiment;
+use crate::photogrammetry::background::BackgroundMode;
 use crate::photogrammetry::calibrate::{mark_detection_parameters, CalibrationOptions, Parameter};
 use crate::photogrammetry::correspond::{MatchingParameters, DEFAULT_TOLERANCE_PX};
 use crate::photogrammetry::{
@@ -203,6 +205,56 @@ pub struct MatchingSettings {
     pub min_cameras: Option<usize>,
 }
 
+/// The most frames a computed background is taken from.
+pub const MAX_BACKGROUND_FRAMES: u32 = 1000;
+
+/// How many frames a computed background is taken from by default: the
+/// median of 10 frames removes a particle from a pixel as long as it is
+/// there in fewer than half of them.
+pub const DEFAULT_BACKGROUND_FRAMES: u32 = 10;
+
+/// A background the service computes from the sequence's own frames: per
+/// camera, the median or minimum of each pixel over the sequence's `frames`
+/// lowest-numbered frames, subtracted from every frame before the
+/// high-pass filter. A frame's job waits (queued, retried every few
+/// seconds, other jobs going first) until that many frames have arrived;
+/// then one job computes the background and every frame, those first ones
+/// included, is processed with it. A sequence with fewer frames than
+/// `frames` is never processed: upload a background instead
+/// (`POST /sequences/{id}/background`) for short ones.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct ComputedBackground {
+    /// `median` or `min` of each pixel over the frames [default: median].
+    #[serde(default = "median")]
+    #[schema(value_type = String, example = "median")]
+    pub mode: BackgroundMode,
+    /// How many frames, 2..=1000 [default: 10].
+    #[serde(default = "default_background_frames")]
+    pub frames: u32,
+}
+
+fn median() -> BackgroundMode {
+    BackgroundMode::Median
+}
+
+fn default_background_frames() -> u32 {
+    DEFAULT_BACKGROUND_FRAMES
+}
+
+impl ComputedBackground {
+    /// Checks the frame count.
+    pub fn validate(&self) -> Result<(), String> {
+        if !(2..=MAX_BACKGROUND_FRAMES).contains(&self.frames) {
+            return Err(format!(
+                "background.frames: {} is outside 2..={MAX_BACKGROUND_FRAMES}",
+                self.frames
+            ));
+        }
+        Ok(())
+    }
+}
+
 /// The parameters a sequence is processed with, defaults filled in.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, ToSchema)]
 pub struct SequenceParameters {
@@ -210,6 +262,10 @@ pub struct SequenceParameters {
     pub detection: DetectionSettings,
     /// Matching, every field set but `volume` (absent: the default volume).
     pub matching: MatchingSettings,
+    /// The background the service computes from the frames, if any
+    /// (absent: none, or an uploaded one).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub background: Option<ComputedBackground>,
 }
 
 impl SequenceParameters {
@@ -222,6 +278,7 @@ impl SequenceParameters {
                 volume: matching.volume,
                 min_cameras: Some(matching.min_cameras.unwrap_or(2)),
             },
+            background: None,
         }
     }
 
@@ -257,6 +314,34 @@ impl SequenceParameters {
             ..MatchingParameters::default()
         }
     }
+}
+
+/// The sequence settings of an experiment, as the service takes them.
+pub fn experiment_settings(experiment: &Experiment) -> (DetectionSettings, MatchingSettings) {
+    let first = &experiment.detection[0];
+    let detection = DetectionSettings {
+        threshold: Some(first.threshold),
+        thresholds: Some(experiment.detection.iter().map(|d| d.threshold).collect()),
+        highpass_radius: Some(first.highpass_radius),
+        min_pixels: Some(first.min_pixels),
+        max_pixels: Some(first.max_pixels),
+        min_nx: Some(first.min_nx),
+        max_nx: Some(first.max_nx),
+        min_ny: Some(first.min_ny),
+        max_ny: Some(first.max_ny),
+        min_sumg: Some(first.min_sumg),
+        split: Some(first.split),
+        split_depth: Some(first.split_depth),
+    };
+    let m = &experiment.matching;
+    let matching = MatchingSettings {
+        tolerance: Some(m.tolerance),
+        volume: m
+            .volume
+            .map(|v| [v.min.x, v.max.x, v.min.y, v.max.y, v.min.z, v.max.z]),
+        min_cameras: Some(m.min_cameras),
+    };
+    (detection, matching)
 }
 
 #[cfg(test)]

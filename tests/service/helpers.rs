@@ -8,7 +8,6 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
-use image::{ExtendedColorType, ImageEncoder};
 use nalgebra::Point3;
 use ptv::formats;
 use ptv::photogrammetry::simulate::{self, RenderSpec, RigSpec, TargetFrame};
@@ -342,32 +341,9 @@ impl Rig {
     }
 }
 
-/// An 8- or 16-bit greyscale PNG.
+/// An 8- or 16-bit greyscale PNG (the service's own encoder).
 pub fn png(image: &GreyImage) -> Vec<u8> {
-    let mut bytes = Vec::new();
-    let encoder = image::codecs::png::PngEncoder::new(&mut bytes);
-    match image.pixels() {
-        GreyPixels::Eight(samples) => encoder
-            .write_image(
-                samples,
-                image.width(),
-                image.height(),
-                ExtendedColorType::L8,
-            )
-            .unwrap(),
-        GreyPixels::Sixteen(samples) => {
-            let native: Vec<u8> = samples.iter().flat_map(|v| v.to_ne_bytes()).collect();
-            encoder
-                .write_image(
-                    &native,
-                    image.width(),
-                    image.height(),
-                    ExtendedColorType::L16,
-                )
-                .unwrap()
-        }
-    }
-    bytes
+    formats::image::encode_png(image, "a test image").unwrap()
 }
 
 /// The raw 8-bit samples of an image.

@@ -16,6 +16,13 @@
 //!   `PTV_FUZZ_CASES` for longer runs), and the 10,000-camera calibration.
 //! - `connections`: the connection limit under idle and slowloris
 //!   connections, and refused uploads drained before the close.
+//! - `experiments`: the real test_cavity recording imported in one call
+//!   from its `.par` files and from its YAML, a frame of it processed;
+//!   bad experiments refused by file and line; a splitter's one image cut
+//!   into its cameras' views.
+//! - `preprocessing`: a sequence's uploaded or computed background
+//!   removes static structure, a mask keeps targets out, and bad
+//!   backgrounds and masks change nothing.
 //! - `recovery`: a full disk (SQLite's page limit as fault injection) is a
 //!   507 and the service recovers without a restart; a failed frame is
 //!   processed after `POST /jobs/{id}/retry`.
@@ -25,10 +32,12 @@
 mod api;
 mod bad_inputs;
 mod connections;
+mod experiments;
 mod fuzz;
 mod helpers;
 mod job_bounds;
 mod layers;
+mod preprocessing;
 mod recovery;
 mod reliability;
 mod upload;

@@ -19,7 +19,7 @@ use super::upload::{accepted, check_images, or_drain, persist_and_commit, stream
 use super::Shared;
 use crate::formats::{self, control, openptv::OriTexts};
 use crate::photogrammetry::calibrate;
-use crate::photogrammetry::{intersect, Camera, Cancel, Observation, Sensor, StopOnDrop};
+use crate::photogrammetry::{intersect, Camera, Cancel, Observation, Sensor, Splitter, StopOnDrop};
 use crate::service::app::AppState;
 use crate::service::images::UploadedFile;
 use crate::service::jobs::{part_source, SolvePayload, SOLVE_CALIBRATION};
@@ -114,9 +114,14 @@ impl CalibrationView {
     }
 }
 
-/// Stores validated cameras and answers 201 with the calibration.
-async fn store_cameras(state: &AppState, cameras: &[Camera]) -> Result<Response, ApiError> {
-    let model = formats::calibration::to_json(cameras);
+/// Stores validated cameras (and their splitter, if they are views of one
+/// sensor) and answers 201 with the calibration.
+async fn store_cameras(
+    state: &AppState,
+    cameras: &[Camera],
+    splitter: Option<Splitter>,
+) -> Result<Response, ApiError> {
+    let model = formats::calibration::to_json_with_splitter(cameras, splitter);
     let row = state
         .store
         .insert_calibration(&model, cameras.len() as i64, None)
@@ -141,8 +146,8 @@ async fn store_cameras(state: &AppState, cameras: &[Camera]) -> Result<Response,
     )
 )]
 pub async fn create(State(state): Shared, JsonText(text): JsonText) -> Result<Response, ApiError> {
-    let cameras = formats::calibration::from_json(&text, "the body")?;
-    store_cameras(&state, &cameras).await
+    let (cameras, splitter) = formats::calibration::from_json_with_splitter(&text, "the body")?;
+    store_cameras(&state, &cameras, splitter).await
 }
 
 /// Creates a calibration from OpenPTV's files: multipart with `ptv_par`,
@@ -201,7 +206,7 @@ pub async fn create_openptv(
     }
     let ptv_par = ptv_par.ok_or_else(|| ApiError::bad_request("the `ptv_par` part is missing"))?;
     let cameras = formats::openptv::import_texts(&ptv_par, "ptv_par part", &cameras)?;
-    store_cameras(&state, &cameras).await
+    store_cameras(&state, &cameras, None).await
 }
 
 /// A stored calibration, or a 404.
@@ -222,7 +227,14 @@ async fn cameras_of(state: &AppState, id: CalibrationId) -> Result<Vec<Camera>, 
 /// A stored calibration's cameras (a model that does not read is the
 /// service's failure, a 500).
 pub(super) fn stored_cameras(row: &CalibrationRow) -> Result<Vec<Camera>, ApiError> {
-    formats::calibration::from_json(&row.model, "the stored calibration")
+    Ok(stored_rig(row)?.0)
+}
+
+/// A stored calibration's cameras and splitter.
+pub(super) fn stored_rig(
+    row: &CalibrationRow,
+) -> Result<(Vec<Camera>, Option<Splitter>), ApiError> {
+    formats::calibration::from_json_with_splitter(&row.model, "the stored calibration")
         .map_err(ApiError::internal)
 }
 

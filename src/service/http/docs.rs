@@ -9,7 +9,7 @@ use utoipa::openapi::security::{HttpAuthScheme, HttpBuilder, SecurityScheme};
 use utoipa::{Modify, OpenApi};
 use utoipa_swagger_ui::SwaggerUi;
 
-use super::{calibrations, jobs, problem, sequences};
+use super::{calibrations, experiments, jobs, problem, sequence_images, sequences};
 use crate::service::app::AppState;
 use crate::service::parameters;
 
@@ -32,6 +32,9 @@ use crate::service::parameters;
         sequences::create,
         sequences::read,
         sequences::upload_frame,
+        sequence_images::upload_background,
+        sequence_images::upload_mask,
+        experiments::import,
         sequences::frame_particles,
         sequences::frame_targets,
         sequences::all_particles,
@@ -46,6 +49,7 @@ use crate::service::parameters;
         parameters::DetectionSettings,
         parameters::MatchingSettings,
         parameters::SequenceParameters,
+        parameters::ComputedBackground,
         parameters::SolveOptions,
     )),
     modifiers(&BearerToken),

@@ -81,8 +81,9 @@ use crate::service::config::ServeArgs;
 use crate::service::metrics::Metrics;
 
 /// The routes whose handlers do CPU work before answering.
-const CPU_ROUTES: [(Method, &str); 2] = [
+const CPU_ROUTES: [(Method, &str); 3] = [
     (Method::POST, "/api/v1/sequences"),
+    (Method::POST, "/api/v1/experiments/openptv"),
     (Method::POST, "/api/v1/calibrations/{id}/project"),
 ];
 

@@ -18,10 +18,12 @@
 
 pub mod calibrations;
 pub mod docs;
+pub mod experiments;
 pub mod jobs;
 pub mod layers;
 pub mod links;
 pub mod problem;
+pub mod sequence_images;
 pub mod sequences;
 pub mod upload;
 
@@ -46,6 +48,8 @@ pub fn router(state: Arc<AppState>) -> Router {
     let api = Router::new()
         .merge(calibrations::router())
         .merge(sequences::router())
+        .merge(sequence_images::router())
+        .merge(experiments::router())
         .merge(jobs::router());
     let routes = Router::new()
         .nest("/api/v1", api)

@@ -16,22 +16,25 @@ use axum::{Json, Router};
 use serde::{Deserialize, Serialize};
 use utoipa::{IntoParams, ToSchema};
 
-use super::calibrations::stored_cameras;
+use super::calibrations::stored_rig;
 use super::links;
 use super::problem::{ApiError, ApiJson, ApiMultipart, ApiPath, ApiQuery};
 use super::upload::{accepted, check_images, or_drain, persist_and_commit, stream_part, text_part};
 use super::Shared;
 use crate::formats;
+use crate::formats::image::ImageHeader;
 use crate::photogrammetry::correspond::Particle;
-use crate::photogrammetry::{Camera, Cancel, Sensor, StopOnDrop, Target};
+use crate::photogrammetry::{Camera, Cancel, Sensor, Splitter, StopOnDrop, Target};
 use crate::service::app::AppState;
 use crate::service::codec;
 use crate::service::images::UploadedFile;
 use crate::service::jobs::{prepare_pipeline, StoredRawLayout};
-use crate::service::parameters::{DetectionSettings, MatchingSettings, SequenceParameters};
+use crate::service::parameters::{
+    ComputedBackground, DetectionSettings, MatchingSettings, SequenceParameters,
+};
 use crate::service::store::{
     CalibrationId, FrameInputKind, FrameNumber, InsertFrameError, JobId, NewFrame, SequenceId,
-    SequenceRow,
+    SequenceImageKind, SequenceRow,
 };
 
 /// Longest sequence name.
@@ -71,6 +74,11 @@ pub struct CreateSequence {
     /// Whether to keep the images after processing [default: true].
     #[serde(default)]
     pub keep_images: Option<bool>,
+    /// A background computed from the sequence's own frames [default:
+    /// none; a background can also be uploaded before the first frame,
+    /// `POST /sequences/{id}/background`].
+    #[serde(default)]
+    pub background: Option<ComputedBackground>,
 }
 
 /// Frames of a sequence by state.
@@ -84,6 +92,20 @@ pub struct FrameCountsView {
     pub done: i64,
     /// Failed (see their jobs).
     pub failed: i64,
+}
+
+/// Where a sequence's background stands.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, ToSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum BackgroundStatus {
+    /// No background: frames are detected as they are.
+    None,
+    /// Uploaded (`POST /sequences/{id}/background`).
+    Uploaded,
+    /// To be computed from the frames, which wait until enough have arrived.
+    Waiting,
+    /// Computed from the sequence's first frames.
+    Computed,
 }
 
 /// A sequence.
@@ -101,20 +123,45 @@ pub struct SequenceView {
     pub parameters: SequenceParameters,
     /// Whether images are kept after processing.
     pub keep_images: bool,
+    /// Its background.
+    pub background: BackgroundStatus,
+    /// The cameras that have a background.
+    pub background_cameras: Vec<i64>,
+    /// The cameras that have a mask.
+    pub mask_cameras: Vec<i64>,
     /// When it was created (UTC).
     pub created_at: String,
     /// Its frames by state.
     pub frames: FrameCountsView,
 }
 
-async fn view(state: &AppState, row: SequenceRow) -> Result<SequenceView, ApiError> {
+pub(super) async fn view(state: &AppState, row: SequenceRow) -> Result<SequenceView, ApiError> {
     let counts = state.store.frame_counts(row.id).await?;
+    let parameters: SequenceParameters = serde_json::from_str(&row.parameters)?;
+    let images = state.store.sequence_images(row.id).await?;
+    let cameras_of = |kind| {
+        images
+            .iter()
+            .filter(|i| i.kind == kind)
+            .map(|i| i.camera)
+            .collect::<Vec<_>>()
+    };
+    let background_cameras = cameras_of(SequenceImageKind::Background);
+    let background = match (&parameters.background, background_cameras.is_empty()) {
+        (None, true) => BackgroundStatus::None,
+        (None, false) => BackgroundStatus::Uploaded,
+        (Some(_), true) => BackgroundStatus::Waiting,
+        (Some(_), false) => BackgroundStatus::Computed,
+    };
     Ok(SequenceView {
         id: row.id,
         calibration_id: row.calibration_id,
         name: row.name,
-        parameters: serde_json::from_str(&row.parameters)?,
+        parameters,
         keep_images: row.keep_images,
+        background,
+        background_cameras,
+        mask_cameras: cameras_of(SequenceImageKind::Mask),
         created_at: row.created_at,
         frames: FrameCountsView {
             queued: counts.queued,
@@ -126,7 +173,7 @@ async fn view(state: &AppState, row: SequenceRow) -> Result<SequenceView, ApiErr
 }
 
 /// Checks a sequence name: a label, never a path.
-fn check_name(name: &str) -> Result<(), ApiError> {
+pub(super) fn check_name(name: &str) -> Result<(), ApiError> {
     if name.len() > MAX_NAME {
         return Err(ApiError::unprocessable(format!(
             "name: at most {MAX_NAME} bytes, got {}",
@@ -170,12 +217,17 @@ pub async fn create(
                 request.calibration_id
             ))
         })?;
-    let parameters = SequenceParameters::with_defaults(request.detection, request.matching);
+    let mut parameters = SequenceParameters::with_defaults(request.detection, request.matching);
+    if let Some(background) = &request.background {
+        background.validate().map_err(ApiError::unprocessable)?;
+    }
+    parameters.background = request.background;
     // Dropped with this handler (client gone, request timeout): the
     // preparation does not start if it still waits for a CPU thread.
     let cancel = Cancel::new();
     let _stop = StopOnDrop(cancel.clone());
-    let pipeline = prepare_pipeline(&state, &calibration.model, &parameters, &cancel).await?;
+    let (pipeline, splitter) =
+        prepare_pipeline(&state, &calibration.model, &parameters, &cancel).await?;
     let stored = serde_json::to_string(&parameters)?;
     let row = state
         .store
@@ -187,7 +239,9 @@ pub async fn create(
         )
         .await?
         .ok_or_else(|| ApiError::unprocessable("calibration_id: the calibration does not exist"))?;
-    state.pipelines.insert(row.id, Arc::new(pipeline));
+    state
+        .pipelines
+        .insert(row.id, 0, (Arc::new(pipeline), splitter));
     let location = links::sequence(row.id);
     Ok((
         StatusCode::CREATED,
@@ -197,7 +251,7 @@ pub async fn create(
         .into_response())
 }
 
-async fn sequence(state: &AppState, id: SequenceId) -> Result<SequenceRow, ApiError> {
+pub(super) async fn sequence(state: &AppState, id: SequenceId) -> Result<SequenceRow, ApiError> {
     state
         .store
         .sequence(id)
@@ -252,7 +306,11 @@ async fn number_part<T: std::str::FromStr>(
 }
 
 /// The camera index of a part named `{prefix}{index}`, below `cameras`.
-fn camera_of(name: &str, prefix: &str, cameras: usize) -> Option<Result<usize, ApiError>> {
+pub(super) fn camera_of(
+    name: &str,
+    prefix: &str,
+    cameras: usize,
+) -> Option<Result<usize, ApiError>> {
     let digits = name.strip_prefix(prefix)?;
     if digits.is_empty() || !digits.bytes().all(|b| b.is_ascii_digit()) {
         return None;
@@ -275,6 +333,8 @@ fn camera_of(name: &str, prefix: &str, cameras: usize) -> Option<Result<usize, A
 struct UploadParts {
     frame: Option<FrameNumber>,
     images: Vec<Option<UploadedFile>>,
+    /// The whole sensor's image, for a calibration with a splitter.
+    whole: Option<UploadedFile>,
     targets: Vec<Option<Vec<Target>>>,
     width: Option<u32>,
     height: Option<u32>,
@@ -287,11 +347,13 @@ async fn read_parts(
     state: &AppState,
     id: SequenceId,
     n: usize,
+    splitter: Option<Splitter>,
     multipart: &mut Multipart,
 ) -> Result<UploadParts, ApiError> {
     let mut parts = UploadParts {
         frame: None,
         images: (0..n).map(|_| None).collect(),
+        whole: None,
         targets: vec![None; n],
         width: None,
         height: None,
@@ -319,8 +381,20 @@ async fn read_parts(
             parts.height = Some(number_part::<u32>(&mut field, &name).await?);
         } else if name == "bits" {
             parts.bits = Some(number_part::<u32>(&mut field, &name).await?);
+        } else if name == "image" && splitter.is_some() {
+            if parts.whole.is_some() {
+                return Err(repeated());
+            }
+            parts.whole = Some(stream_part(&state.images, &mut field).await?);
         } else if let Some(camera) = camera_of(&name, "cam", n) {
             let camera = camera?;
+            if let Some(splitter) = splitter {
+                return Err(ApiError::unprocessable(format!(
+                    "part `{name}`: the calibration's cameras are the {} views of one sensor \
+                     (its `splitter`); send the whole sensor's image as one part `image`",
+                    splitter.name()
+                )));
+            }
             if parts.images[camera].is_some() {
                 return Err(repeated());
             }
@@ -349,15 +423,33 @@ async fn read_parts(
     Ok(parts)
 }
 
-/// The cameras of a sequence's calibration, or a 404.
-async fn sequence_cameras(state: &AppState, id: SequenceId) -> Result<Vec<Camera>, ApiError> {
+/// A sequence and its calibration's cameras and splitter.
+pub(super) struct SequenceRig {
+    /// The sequence.
+    pub row: SequenceRow,
+    /// Its calibration's cameras.
+    pub cameras: Vec<Camera>,
+    /// Whether they are views of one sensor.
+    pub splitter: Option<Splitter>,
+}
+
+/// A sequence and its calibration's cameras and splitter, or a 404.
+pub(super) async fn sequence_cameras_and_row(
+    state: &AppState,
+    id: SequenceId,
+) -> Result<SequenceRig, ApiError> {
     let row = sequence(state, id).await?;
     let calibration = state
         .store
         .calibration(row.calibration_id)
         .await?
         .ok_or_else(|| ApiError::internal("a sequence's calibration is missing"))?;
-    stored_cameras(&calibration)
+    let (cameras, splitter) = stored_rig(&calibration)?;
+    Ok(SequenceRig {
+        row,
+        cameras,
+        splitter,
+    })
 }
 
 /// Uploads one frame: multipart with a `frame` number and, per camera,
@@ -383,24 +475,34 @@ pub async fn upload_frame(
     ApiPath(id): ApiPath<SequenceId>,
     ApiMultipart(mut multipart): ApiMultipart,
 ) -> Result<Response, ApiError> {
-    let cameras = or_drain(sequence_cameras(&state, id).await, &mut multipart).await?;
+    let rig = or_drain(sequence_cameras_and_row(&state, id).await, &mut multipart).await?;
+    let SequenceRig {
+        cameras, splitter, ..
+    } = rig;
     let n = cameras.len();
 
-    let parts = read_parts(&state, id, n, &mut multipart).await;
+    let parts = read_parts(&state, id, n, splitter, &mut multipart).await;
     let UploadParts {
         frame,
         images,
+        whole,
         targets,
         width,
         height,
         bits,
     } = or_drain(parts, &mut multipart).await?;
     let frame = frame.ok_or_else(|| ApiError::bad_request("the `frame` part is missing"))?;
-    let image_count = images.iter().flatten().count();
+    // A splitter's one image stands for every camera's.
+    let image_count = if whole.is_some() {
+        n
+    } else {
+        images.iter().flatten().count()
+    };
     let target_count = targets.iter().flatten().count();
     if image_count > 0 && target_count > 0 {
         return Err(ApiError::bad_request(
-            "give either images (`camC`) or targets (`targetsC`) for a frame, not both",
+            "give either images (`camC`, or `image` with a splitter) or targets (`targetsC`) \
+             for a frame, not both",
         ));
     }
     let given = image_count.max(target_count);
@@ -450,10 +552,30 @@ pub async fn upload_frame(
         targets: Vec::new(),
     };
     let images: Vec<UploadedFile> = images.into_iter().flatten().collect();
-    if !images.is_empty() {
+    if let (Some(whole), Some(splitter)) = (&whole, splitter) {
+        // The whole sensor: the views' size times the layout's grid.
+        let view = cameras[0].sensor();
+        let (width, height) = splitter
+            .image_size(view.width, view.height)
+            .ok_or_else(|| ApiError::internal("a splitter's sensor overflows"))?;
+        let sensor = Sensor {
+            width,
+            height,
+            ..view.clone()
+        };
+        let layout = raw.as_ref().and_then(StoredRawLayout::layout);
+        let headers = check_images(std::slice::from_ref(whole), &[sensor], layout, |_| {
+            "part `image`".to_owned()
+        })
+        .await?;
+        check_background_depths(&state, id, &vec![headers[0].clone(); n]).await?;
+        new_frame.images = vec![(0, whole.sha256.clone(), whole.size as i64)];
+    } else if !images.is_empty() {
         let sensors: Vec<Sensor> = cameras.iter().map(|c| c.sensor().clone()).collect();
         let layout = raw.as_ref().and_then(StoredRawLayout::layout);
-        check_images(&images, &sensors, layout, |camera| format!("cam{camera}")).await?;
+        let headers =
+            check_images(&images, &sensors, layout, |camera| format!("cam{camera}")).await?;
+        check_background_depths(&state, id, &headers).await?;
         new_frame.images = images
             .iter()
             .enumerate()
@@ -463,8 +585,8 @@ pub async fn upload_frame(
         new_frame.targets = codec::encode_frame_targets(targets.iter().flatten());
     }
 
-    let job_id =
-        persist_and_commit(&state, images, || state.store.insert_frame(&new_frame)).await?;
+    let files = whole.into_iter().chain(images).collect();
+    let job_id = persist_and_commit(&state, files, || state.store.insert_frame(&new_frame)).await?;
     let body = FrameAccepted {
         frame,
         job_id,
@@ -472,6 +594,37 @@ pub async fn upload_frame(
         particles: links::frame_particles(id, frame),
     };
     Ok(accepted(&state, job_id, body))
+}
+
+/// Checks that a frame's images have the bit depth of the sequence's
+/// backgrounds, camera by camera (a 16-bit frame less an 8-bit background
+/// would be meaningless).
+async fn check_background_depths(
+    state: &AppState,
+    id: SequenceId,
+    headers: &[ImageHeader],
+) -> Result<(), ApiError> {
+    for background in state.store.sequence_images(id).await? {
+        if background.kind != SequenceImageKind::Background {
+            continue;
+        }
+        let Some(header) = usize::try_from(background.camera)
+            .ok()
+            .and_then(|c| headers.get(c))
+        else {
+            continue;
+        };
+        if i64::from(header.bit_depth.bits()) != background.bits {
+            return Err(ApiError::unprocessable(format!(
+                "cam{}: the image has {} bits per sample but the sequence's background of this \
+                 camera has {}; send images of the background's depth",
+                background.camera,
+                header.bit_depth.bits(),
+                background.bits
+            )));
+        }
+    }
+    Ok(())
 }
 
 /// How to write particles.

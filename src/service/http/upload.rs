@@ -30,7 +30,7 @@ use serde::Serialize;
 
 use super::links;
 use super::problem::ApiError;
-use crate::formats::image::{decode_image, read_header, RawLayout};
+use crate::formats::image::{decode_image, read_header, ImageHeader, RawLayout};
 use crate::photogrammetry::{Sensor, SensorMismatch};
 use crate::service::app::AppState;
 use crate::service::images::{ImageStore, UploadedFile};
@@ -91,13 +91,13 @@ pub async fn or_drain<T>(
 /// most one decoded image per request in memory), so that a truncated file
 /// or a TIFF whose strips point outside it is refused here. `source(camera)`
 /// names an image in messages. Unreadable kinds are 415, wrong sizes and
-/// files that do not decode 422.
+/// files that do not decode 422. Returns the headers, in the files' order.
 pub async fn check_images(
     files: &[UploadedFile],
     sensors: &[Sensor],
     raw: Option<RawLayout>,
-    source: fn(usize) -> String,
-) -> Result<(), ApiError> {
+    source: impl Fn(usize) -> String + Send + 'static,
+) -> Result<Vec<ImageHeader>, ApiError> {
     let checks: Vec<(PathBuf, Sensor)> = files
         .iter()
         .zip(sensors)
@@ -114,11 +114,13 @@ pub async fn check_images(
         .await
         .map_err(ApiError::internal)?;
     tokio::task::spawn_blocking(move || {
+        let mut headers = Vec::with_capacity(checks.len());
         for (camera, (path, sensor)) in checks.iter().enumerate() {
             let source = source(camera);
             let header = read_header(path, raw.as_ref(), &source)?;
             SensorMismatch::check(header.width, header.height, sensor)
                 .map_err(|e| ApiError::from(e).at(&source))?;
+            headers.push(header);
         }
         if raw.is_none() {
             for (camera, (path, _)) in checks.iter().enumerate() {
@@ -127,7 +129,7 @@ pub async fn check_images(
                 decode_image(&bytes, &source)?;
             }
         }
-        Ok::<(), ApiError>(())
+        Ok::<_, ApiError>(headers)
     })
     .await?
 }

@@ -160,12 +160,16 @@ pub struct JobFile {
 }
 
 impl Store {
-    /// Claims the oldest queued job for `worker`, in one statement.
+    /// Claims the oldest queued job for `worker` that is not deferred
+    /// ([`Store::defer`]), in one statement.
     pub async fn claim(&self, worker: &str) -> Result<Option<ClaimedJob>, sqlx::Error> {
         sqlx::query_as(
             "UPDATE jobs SET state = 'running', attempts = attempts + 1, locked_by = ?1, \
              started_at = strftime('%Y-%m-%dT%H:%M:%fZ', 'now') \
-             WHERE id = (SELECT id FROM jobs WHERE state = 'queued' ORDER BY id LIMIT 1) \
+             WHERE id = (SELECT id FROM jobs WHERE state = 'queued' \
+                         AND (not_before IS NULL \
+                              OR not_before <= strftime('%Y-%m-%dT%H:%M:%fZ', 'now')) \
+                         ORDER BY id LIMIT 1) \
              RETURNING id, kind, payload, attempts, locked_by",
         )
         .bind(worker)
@@ -221,6 +225,31 @@ impl Store {
              locked_by = NULL WHERE id = ? AND state = 'running' AND locked_by = ?",
         )
         .bind(error)
+        .bind(job.id)
+        .bind(&job.locked_by)
+        .execute(&self.writer)
+        .await?;
+        Ok(())
+    }
+
+    /// Returns a job the worker holds to the queue without counting the
+    /// claim, not to be claimed again for `delay_s` seconds: it waits for
+    /// something other work provides (a sequence's computed background),
+    /// and `note` says what. Other jobs are claimed meanwhile.
+    pub async fn defer(
+        &self,
+        job: &ClaimedJob,
+        note: &str,
+        delay_s: f64,
+    ) -> Result<(), sqlx::Error> {
+        sqlx::query(
+            "UPDATE jobs SET state = 'queued', attempts = max(attempts - 1, 0), error = ?, \
+             locked_by = NULL, \
+             not_before = strftime('%Y-%m-%dT%H:%M:%fZ', 'now', printf('+%.3f seconds', ?)) \
+             WHERE id = ? AND state = 'running' AND locked_by = ?",
+        )
+        .bind(note)
+        .bind(delay_s)
         .bind(job.id)
         .bind(&job.locked_by)
         .execute(&self.writer)

@@ -66,7 +66,10 @@ pub use self::ids::{CalibrationId, FrameNumber, JobId, SequenceId};
 pub use self::jobs::{
     enqueue, finish, ClaimedJob, JobFile, JobResult, JobRow, JobState, RetryOutcome, MAX_ATTEMPTS,
 };
-pub use self::sequences::{FrameCounts, FrameInput, FrameInputKind, NewFrame, SequenceRow};
+pub use self::sequences::{
+    FrameCounts, FrameInput, FrameInputKind, NewFrame, SequenceImage, SequenceImageKind,
+    SequenceImagesError, SequenceRow,
+};
 
 /// The database.
 #[derive(Clone, Debug)]
@@ -139,6 +142,11 @@ const MIGRATIONS: &[(i64, &str, &str)] = &[
         3,
         "job_results",
         include_str!("../../../migrations/0003_job_results.sql"),
+    ),
+    (
+        4,
+        "sequence_images",
+        include_str!("../../../migrations/0004_sequence_images.sql"),
     ),
 ];
 
@@ -389,7 +397,7 @@ impl Store {
         self.reader.close().await;
     }
 
-    /// Whether any frame or job refers to the file with this hash.
+    /// Whether any frame, job or sequence refers to the file with this hash.
     pub async fn image_in_use(&self, sha256: &str) -> Result<bool, sqlx::Error> {
         let mut conn = self.writer.acquire().await?;
         file_in_use(&mut conn, sha256).await
@@ -404,11 +412,13 @@ async fn apply_page_limit(conn: &mut SqliteConnection, pages: u32) -> Result<u32
     Ok(u32::try_from(limit).unwrap_or(u32::MAX))
 }
 
-/// Whether any frame's image or job's file is the file with this hash.
+/// Whether any frame's image, job's file or sequence's background or
+/// mask is the file with this hash.
 async fn file_in_use(conn: &mut sqlx::SqliteConnection, sha256: &str) -> Result<bool, sqlx::Error> {
     let (n,): (i64,) = sqlx::query_as(
         "SELECT (SELECT count(*) FROM images WHERE sha256 = ?1) + \
-                (SELECT count(*) FROM job_files WHERE sha256 = ?1)",
+                (SELECT count(*) FROM job_files WHERE sha256 = ?1) + \
+                (SELECT count(*) FROM sequence_images WHERE sha256 = ?1)",
     )
     .bind(sha256)
     .fetch_one(&mut *conn)

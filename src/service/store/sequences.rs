@@ -4,6 +4,7 @@
 use sqlx::sqlite::SqliteRow;
 use sqlx::{FromRow, Row, Sqlite, Transaction};
 
+use super::calibrations::{insert_calibration, CalibrationRow};
 use super::jobs::{enqueue, finish, ClaimedJob, JobState};
 use super::{
     decode_text, file_in_use, stored_as_text, text_column, CalibrationId, CompleteError,
@@ -86,6 +87,70 @@ pub struct FrameCounts {
     pub failed: i64,
 }
 
+/// What a sequence's per-camera image is for (`sequence_images.kind`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum SequenceImageKind {
+    /// Subtracted from every frame before the high-pass filter.
+    Background,
+    /// Non-zero pixels are used, zero ones never.
+    Mask,
+}
+
+stored_as_text!(SequenceImageKind, "sequence image kind", {
+    Background => "background",
+    Mask => "mask",
+});
+
+impl std::fmt::Display for SequenceImageKind {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.as_str())
+    }
+}
+
+/// A sequence's background or mask of one camera.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct SequenceImage {
+    /// Background or mask.
+    pub kind: SequenceImageKind,
+    /// The camera, from 0.
+    pub camera: i64,
+    /// The file's hash in the image store.
+    pub sha256: String,
+    /// Its size (bytes).
+    pub size: i64,
+    /// Bits per sample, 8 or 16.
+    pub bits: i64,
+}
+
+impl FromRow<'_, SqliteRow> for SequenceImage {
+    fn from_row(row: &SqliteRow) -> Result<Self, sqlx::Error> {
+        Ok(SequenceImage {
+            kind: text_column(row, "kind")?,
+            camera: row.try_get("camera")?,
+            sha256: row.try_get("sha256")?,
+            size: row.try_get("size")?,
+            bits: row.try_get("bits")?,
+        })
+    }
+}
+
+/// Why a sequence's backgrounds or masks were not stored.
+#[derive(Debug, thiserror::Error)]
+pub enum SequenceImagesError {
+    /// Frames were uploaded already: they would be processed differently.
+    #[error(
+        "sequence {0} has frames already; its {1} must come before its first frame, so that \
+         every frame is processed alike (create a new sequence)"
+    )]
+    HasFrames(SequenceId, SequenceImageKind),
+    /// The sequence has this kind of image already.
+    #[error("sequence {0} has its {1} already; create a new sequence to use another")]
+    Exists(SequenceId, SequenceImageKind),
+    /// The database failed.
+    #[error(transparent)]
+    Database(#[from] sqlx::Error),
+}
+
 impl FromRow<'_, SqliteRow> for SequenceRow {
     fn from_row(row: &SqliteRow) -> Result<Self, sqlx::Error> {
         Ok(SequenceRow {
@@ -132,6 +197,47 @@ impl Store {
         .fetch_optional(&self.writer)
         .await?;
         Ok(result)
+    }
+
+    /// Stores a calibration, a sequence on it and the sequence's masks
+    /// (camera, hash, size, bits), in one transaction: an imported
+    /// experiment (`POST /experiments/openptv`).
+    pub async fn insert_experiment(
+        &self,
+        model: &str,
+        cameras: i64,
+        name: &str,
+        parameters: &str,
+        keep_images: bool,
+        masks: &[(i64, String, i64, i64)],
+    ) -> Result<(CalibrationRow, SequenceRow), sqlx::Error> {
+        let mut tx = self.write_transaction().await?;
+        let calibration = insert_calibration(&mut tx, model, cameras, None, None).await?;
+        let sequence: SequenceRow = sqlx::query_as(
+            "INSERT INTO sequences (calibration_id, name, parameters, keep_images) \
+             VALUES (?, ?, ?, ?) \
+             RETURNING id, calibration_id, name, parameters, keep_images, created_at",
+        )
+        .bind(calibration.id)
+        .bind(name)
+        .bind(parameters)
+        .bind(keep_images)
+        .fetch_one(&mut *tx)
+        .await?;
+        for (camera, sha256, size, bits) in masks {
+            insert_sequence_image(
+                &mut tx,
+                sequence.id,
+                SequenceImageKind::Mask,
+                *camera,
+                sha256,
+                *size,
+                *bits,
+            )
+            .await?;
+        }
+        tx.commit().await?;
+        Ok((calibration, sequence))
     }
 
     /// A sequence by id.
@@ -351,6 +457,119 @@ impl Store {
         tx.commit().await?;
         Ok(orphans)
     }
+
+    /// A sequence's backgrounds and masks, by kind and camera.
+    pub async fn sequence_images(
+        &self,
+        sequence_id: SequenceId,
+    ) -> Result<Vec<SequenceImage>, sqlx::Error> {
+        sqlx::query_as(
+            "SELECT kind, camera, sha256, size, bits FROM sequence_images \
+             WHERE sequence_id = ? ORDER BY kind, camera",
+        )
+        .bind(sequence_id)
+        .fetch_all(&self.reader)
+        .await
+    }
+
+    /// Stores uploaded backgrounds or masks (camera, hash, size, bits) of a
+    /// sequence that has no frames and none of this kind yet, in one
+    /// transaction.
+    pub async fn insert_sequence_images(
+        &self,
+        sequence_id: SequenceId,
+        kind: SequenceImageKind,
+        images: &[(i64, String, i64, i64)],
+    ) -> Result<(), SequenceImagesError> {
+        let mut tx = self.write_transaction().await?;
+        let (frames,): (i64,) = sqlx::query_as("SELECT count(*) FROM frames WHERE sequence_id = ?")
+            .bind(sequence_id)
+            .fetch_one(&mut *tx)
+            .await?;
+        if frames > 0 {
+            return Err(SequenceImagesError::HasFrames(sequence_id, kind));
+        }
+        let (existing,): (i64,) = sqlx::query_as(
+            "SELECT count(*) FROM sequence_images WHERE sequence_id = ? AND kind = ?",
+        )
+        .bind(sequence_id)
+        .bind(kind.as_str())
+        .fetch_one(&mut *tx)
+        .await?;
+        if existing > 0 {
+            return Err(SequenceImagesError::Exists(sequence_id, kind));
+        }
+        for (camera, sha256, size, bits) in images {
+            insert_sequence_image(&mut tx, sequence_id, kind, *camera, sha256, *size, *bits)
+                .await?;
+        }
+        tx.commit().await?;
+        Ok(())
+    }
+
+    /// Stores a background the service computed (camera, hash, size, bits);
+    /// a background stored meanwhile (by another worker, from the same
+    /// frames) is kept. Returns the hashes of the files no row refers to
+    /// afterwards, whose files may go.
+    pub async fn insert_computed_background(
+        &self,
+        sequence_id: SequenceId,
+        images: &[(i64, String, i64, i64)],
+    ) -> Result<Vec<String>, sqlx::Error> {
+        let mut tx = self.write_transaction().await?;
+        let (existing,): (i64,) = sqlx::query_as(
+            "SELECT count(*) FROM sequence_images WHERE sequence_id = ? AND kind = 'background'",
+        )
+        .bind(sequence_id)
+        .fetch_one(&mut *tx)
+        .await?;
+        if existing == 0 {
+            for (camera, sha256, size, bits) in images {
+                insert_sequence_image(
+                    &mut tx,
+                    sequence_id,
+                    SequenceImageKind::Background,
+                    *camera,
+                    sha256,
+                    *size,
+                    *bits,
+                )
+                .await?;
+            }
+        }
+        let mut orphans = Vec::new();
+        for (_, hash, _, _) in images {
+            if !file_in_use(&mut tx, hash).await? {
+                orphans.push(hash.clone());
+            }
+        }
+        tx.commit().await?;
+        Ok(orphans)
+    }
+
+    /// The lowest-numbered frames of a sequence that have images (at most
+    /// `limit`), and how many such frames it has in all.
+    pub async fn image_frames(
+        &self,
+        sequence_id: SequenceId,
+        limit: u32,
+    ) -> Result<(Vec<FrameNumber>, i64), sqlx::Error> {
+        let frames: Vec<(FrameNumber,)> = sqlx::query_as(
+            "SELECT frame FROM frames WHERE sequence_id = ? AND input = 'images' \
+             ORDER BY frame LIMIT ?",
+        )
+        .bind(sequence_id)
+        .bind(limit)
+        .fetch_all(&self.reader)
+        .await?;
+        let (count,): (i64,) = sqlx::query_as(
+            "SELECT count(*) FROM frames WHERE sequence_id = ? AND input = 'images'",
+        )
+        .bind(sequence_id)
+        .fetch_one(&self.reader)
+        .await?;
+        Ok((frames.into_iter().map(|(f,)| f).collect(), count))
+    }
 }
 
 async fn insert_targets(
@@ -369,6 +588,30 @@ async fn insert_targets(
     .bind(camera)
     .bind(count)
     .bind(data)
+    .execute(&mut **tx)
+    .await?;
+    Ok(())
+}
+
+async fn insert_sequence_image(
+    tx: &mut Transaction<'_, Sqlite>,
+    sequence_id: SequenceId,
+    kind: SequenceImageKind,
+    camera: i64,
+    sha256: &str,
+    size: i64,
+    bits: i64,
+) -> Result<(), sqlx::Error> {
+    sqlx::query(
+        "INSERT INTO sequence_images (sequence_id, kind, camera, sha256, size, bits) \
+         VALUES (?, ?, ?, ?, ?, ?)",
+    )
+    .bind(sequence_id)
+    .bind(kind.as_str())
+    .bind(camera)
+    .bind(sha256)
+    .bind(size)
+    .bind(bits)
     .execute(&mut **tx)
     .await?;
     Ok(())

@@ -1,0 +1,356 @@
+//! `POST /experiments/openptv`: an OpenPTV or pyptv experiment in one call
+//! (issue 13). The request carries the experiment's files as multipart
+//! parts `file` whose file names are their paths inside the experiment
+//! directory (`parameters/ptv.par`, `parameters/criteria.par`, ...,
+//! `cal/cam1.tif.ori`, `cal/cam1.tif.addpar`, or a pyptv
+//! `parameters_Run1.yaml`, and masks where its masking is on: with curl,
+//! `-F 'file=@parameters/ptv.par;filename=parameters/ptv.par'`); they are
+//! written into a scratch directory and read by the same importer as
+//! `ptv experiment import` ([`crate::formats::experiment::read_experiment`]).
+//! The calibration (with its splitter), a sequence with every detection and
+//! matching setting the experiment has, and its masks are stored in one
+//! transaction. The answer lists the settings `ptv` does not use and the
+//! image names and frames the experiment records, for the uploader.
+
+use std::path::{Component, Path, PathBuf};
+use std::sync::Arc;
+
+use axum::extract::{Multipart, State};
+use axum::http::{header, StatusCode};
+use axum::response::{IntoResponse, Response};
+use axum::routing::post;
+use axum::{Json, Router};
+use serde::Serialize;
+use tokio::io::AsyncWriteExt;
+use utoipa::ToSchema;
+
+use super::links;
+use super::problem::{ApiError, ApiMultipart};
+use super::upload::{check_images, or_drain, persist_and_commit, text_part};
+use super::Shared;
+use crate::formats;
+use crate::formats::experiment::{read_experiment, Experiment, ExperimentError};
+use crate::photogrammetry::{Cancel, StopOnDrop};
+use crate::service::app::AppState;
+use crate::service::images::UploadedFile;
+use crate::service::jobs::prepare_pipeline;
+use crate::service::parameters::{experiment_settings, SequenceParameters};
+use crate::service::store::{CalibrationId, SequenceId};
+
+/// Files an experiment upload may have.
+const MAX_FILES: usize = 128;
+/// Directory levels of a file's path.
+const MAX_DEPTH: usize = 8;
+/// Longest path.
+const MAX_PATH: usize = 512;
+
+pub(super) fn router() -> Router<Arc<AppState>> {
+    Router::new().route("/experiments/openptv", post(import))
+}
+
+/// The calibration and sequence an experiment became.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct ImportedExperiment {
+    /// The calibration.
+    #[schema(value_type = i64)]
+    pub calibration_id: CalibrationId,
+    /// The sequence, processed with the experiment's settings.
+    #[schema(value_type = i64)]
+    pub sequence_id: SequenceId,
+    /// Where the calibration is.
+    pub calibration: String,
+    /// Where the sequence is; upload its frames to `{sequence}/frames`.
+    pub sequence: String,
+    /// The experiment's image names, per camera (one with a splitter), a
+    /// printf-style `%d` for the frame number, relative to its directory.
+    pub images: Vec<String>,
+    /// Its first frame.
+    pub first_frame: u64,
+    /// Its last frame.
+    pub last_frame: u64,
+    /// The settings `ptv` does not use, and why.
+    pub unmapped: Vec<UnmappedView>,
+}
+
+/// A setting read but not used.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct UnmappedView {
+    /// The file it is in.
+    pub file: String,
+    /// Its key (`criteria.cn`).
+    pub key: String,
+    /// Its value as written.
+    pub value: String,
+    /// Why `ptv` does not use it.
+    pub reason: String,
+}
+
+/// Creates a calibration and a sequence from an OpenPTV experiment's files.
+#[utoipa::path(
+    post, path = "/api/v1/experiments/openptv", tag = "experiments",
+    request_body(content_type = "multipart/form-data", description = "One part `file` per file of the experiment, its file name the path inside the experiment directory: `parameters/ptv.par`, `parameters/criteria.par`, `parameters/targ_rec.par`, `parameters/sequence.par`, `parameters/cal_ori.par`, ... (or one pyptv `parameters_NAME.yaml`), the `.ori` and `.addpar` files the calibration names (`cal/cam1.tif.ori`, ...), and the masks where masking is on. Optional text parts `name` (the sequence's) and `keep_images` (`true`/`false`)."),
+    responses(
+        (status = 201, body = ImportedExperiment),
+        (status = 400, description = "Malformed multipart, a path that leaves the directory, a file given twice", body = super::problem::Problem, content_type = "application/problem+json"),
+        (status = 422, description = "A file that does not parse (file, line and key named), a file the experiment names that was not sent, settings that do not work together", body = super::problem::Problem, content_type = "application/problem+json"),
+    )
+)]
+pub async fn import(
+    State(state): Shared,
+    ApiMultipart(mut multipart): ApiMultipart,
+) -> Result<Response, ApiError> {
+    let scratch = Scratch::new(&state).await?;
+    let read = read_files(&scratch.dir, &mut multipart).await;
+    let (name, keep_images) = or_drain(read, &mut multipart).await?;
+    let dir = scratch.dir.clone();
+    let experiment = tokio::task::spawn_blocking(move || read_experiment(&dir))
+        .await
+        .map_err(ApiError::internal)?
+        .map_err(|e| experiment_error(e, &scratch.dir))?;
+    let sequence_json = settings_json(&experiment)?;
+    let masks = mask_files(&state, &experiment, &scratch.dir).await?;
+
+    // The same checks as `POST /sequences`: the parameters must work with
+    // the cameras.
+    let model =
+        formats::calibration::to_json_with_splitter(&experiment.cameras, experiment.splitter);
+    let parameters: SequenceParameters = serde_json::from_str(&sequence_json)?;
+    let cancel = Cancel::new();
+    let _stop = StopOnDrop(cancel.clone());
+    let (pipeline, splitter) = prepare_pipeline(&state, &model, &parameters, &cancel).await?;
+
+    let name = name.unwrap_or_else(|| "openptv".to_owned());
+    let (files, rows): (Vec<UploadedFile>, Vec<_>) = masks.into_iter().unzip();
+    let cameras = experiment.cameras.len() as i64;
+    let (calibration, sequence) = persist_and_commit(&state, files, || {
+        state
+            .store
+            .insert_experiment(&model, cameras, &name, &sequence_json, keep_images, &rows)
+    })
+    .await?;
+    state
+        .pipelines
+        .insert(sequence.id, rows.len(), (Arc::new(pipeline), splitter));
+    drop(scratch);
+    let body = ImportedExperiment {
+        calibration_id: calibration.id,
+        sequence_id: sequence.id,
+        calibration: links::calibration(calibration.id),
+        sequence: links::sequence(sequence.id),
+        images: experiment.sequence.base_names.clone(),
+        first_frame: experiment.sequence.first,
+        last_frame: experiment.sequence.last,
+        unmapped: experiment
+            .unmapped
+            .into_iter()
+            .map(|u| UnmappedView {
+                file: strip(&u.file, &scratch_prefix(&experiment.root)),
+                key: u.key,
+                value: u.value,
+                reason: u.reason,
+            })
+            .collect(),
+    };
+    Ok((
+        StatusCode::CREATED,
+        [(header::LOCATION, links::sequence(sequence.id))],
+        Json(body),
+    )
+        .into_response())
+}
+
+/// A request's scratch directory under the image store's `tmp/` (emptied
+/// at every start), removed when dropped.
+struct Scratch {
+    dir: PathBuf,
+}
+
+impl Scratch {
+    async fn new(state: &AppState) -> Result<Scratch, ApiError> {
+        let nanos = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map(|d| d.as_nanos())
+            .unwrap_or_default();
+        let dir = state
+            .images
+            .temp_dir()
+            .join(format!("experiment-{}-{nanos}", std::process::id()));
+        tokio::fs::create_dir_all(&dir).await?;
+        Ok(Scratch { dir })
+    }
+}
+
+impl Drop for Scratch {
+    fn drop(&mut self) {
+        if let Err(error) = std::fs::remove_dir_all(&self.dir) {
+            tracing::warn!(%error, dir = %self.dir.display(), "cannot remove a scratch directory");
+        }
+    }
+}
+
+/// Writes the file parts into `dir` under their paths; the `name` and
+/// `keep_images` text parts.
+async fn read_files(
+    dir: &Path,
+    multipart: &mut Multipart,
+) -> Result<(Option<String>, bool), ApiError> {
+    let (mut name, mut keep_images, mut files) = (None, true, 0);
+    while let Some(mut field) = multipart.next_field().await? {
+        let part = field.name().unwrap_or("").to_owned();
+        match part.as_str() {
+            "name" => {
+                let text = text_part(&mut field, &part, 200).await?;
+                super::sequences::check_name(&text)?;
+                name = Some(text);
+            }
+            "keep_images" => {
+                let text = text_part(&mut field, &part, 16).await?;
+                keep_images = text.trim().parse().map_err(|_| {
+                    ApiError::unprocessable(format!(
+                        "part `keep_images` is `{}`; give true or false",
+                        text.escape_debug()
+                    ))
+                })?;
+            }
+            "file" => {
+                files += 1;
+                if files > MAX_FILES {
+                    return Err(ApiError::bad_request(format!(
+                        "more than {MAX_FILES} files; an experiment needs its parameter files, \
+                         the calibration's .ori/.addpar files and its masks"
+                    )));
+                }
+                let name = field.file_name().unwrap_or("").to_owned();
+                let path = dir.join(relative_path(&name)?);
+                if tokio::fs::try_exists(&path).await? {
+                    return Err(ApiError::bad_request(format!(
+                        "file `{name}` is given twice"
+                    )));
+                }
+                if let Some(parent) = path.parent() {
+                    tokio::fs::create_dir_all(parent).await?;
+                }
+                let mut file = tokio::fs::File::create(&path).await?;
+                while let Some(chunk) = field.chunk().await? {
+                    file.write_all(&chunk).await?;
+                }
+                file.flush().await?;
+            }
+            _ => {
+                return Err(ApiError::bad_request(format!(
+                    "unknown part `{}`; send the experiment's files as parts `file` (their file \
+                     names their paths inside the experiment), and optionally `name` and \
+                     `keep_images`",
+                    part.escape_debug()
+                )))
+            }
+        }
+    }
+    if files == 0 {
+        return Err(ApiError::bad_request(
+            "no files; send the experiment's files as parts `file` whose file names are \
+             their paths, e.g. `parameters/ptv.par` and `cal/cam1.tif.ori`",
+        ));
+    }
+    Ok((name, keep_images))
+}
+
+/// A part's name as a path inside the experiment directory: relative, of
+/// plain components, no `..`.
+fn relative_path(name: &str) -> Result<PathBuf, ApiError> {
+    let refuse = |why: &str| {
+        ApiError::bad_request(format!(
+            "file `{}`: {why}; give each `file` part its path inside the experiment \
+             directory as its file name, e.g. `parameters/ptv.par`",
+            name.escape_debug()
+        ))
+    };
+    if name.is_empty() || name.len() > MAX_PATH {
+        return Err(refuse("empty or too long a path"));
+    }
+    if name.chars().any(|c| c.is_control() || c == '\\') {
+        return Err(refuse("control characters or backslashes"));
+    }
+    let path = Path::new(name);
+    let mut depth = 0;
+    for component in path.components() {
+        match component {
+            Component::Normal(_) => depth += 1,
+            Component::CurDir => {}
+            _ => return Err(refuse("the path leaves the experiment directory")),
+        }
+    }
+    if depth == 0 || depth > MAX_DEPTH {
+        return Err(refuse("not a file path, or too deep"));
+    }
+    Ok(path.to_owned())
+}
+
+/// `text` with the scratch directory's prefix taken off, so that messages
+/// name files as the client sent them.
+fn strip(text: &str, prefix: &str) -> String {
+    text.replace(prefix, "")
+}
+
+fn scratch_prefix(dir: &Path) -> String {
+    format!("{}/", dir.display())
+}
+
+/// An importer's error as a 422 that names the file as sent.
+fn experiment_error(error: ExperimentError, dir: &Path) -> ApiError {
+    let text = crate::service::jobs::error_chain(&error);
+    ApiError::unprocessable(strip(&text, &scratch_prefix(dir)))
+}
+
+/// The sequence's parameters, defaults filled in, as stored JSON.
+fn settings_json(experiment: &Experiment) -> Result<String, ApiError> {
+    let (detection, matching) = experiment_settings(experiment);
+    let parameters = SequenceParameters::with_defaults(detection, matching);
+    Ok(serde_json::to_string(&parameters)?)
+}
+
+/// The experiment's masks as files for the image store, with their rows
+/// (camera, hash, size, bits), each checked against its camera's sensor.
+async fn mask_files(
+    state: &AppState,
+    experiment: &Experiment,
+    scratch: &Path,
+) -> Result<Vec<(UploadedFile, (i64, String, i64, i64))>, ApiError> {
+    let Some(masks) = &experiment.masks else {
+        return Ok(Vec::new());
+    };
+    let mut files = Vec::with_capacity(masks.len());
+    for path in masks {
+        let bytes = tokio::fs::read(path).await?;
+        let mut upload = state.images.create_upload().await?;
+        upload.write(&bytes).await?;
+        files.push(upload.finish().await?);
+    }
+    let sensors: Vec<_> = experiment
+        .cameras
+        .iter()
+        .map(|c| c.sensor().clone())
+        .collect();
+    let names: Vec<String> = masks
+        .iter()
+        .map(|p| strip(&p.display().to_string(), &scratch_prefix(scratch)))
+        .collect();
+    let headers = check_images(&files, &sensors, None, move |c| {
+        format!("mask `{}`", names[c])
+    })
+    .await?;
+    Ok(files
+        .into_iter()
+        .zip(headers)
+        .enumerate()
+        .map(|(camera, (file, header))| {
+            let row = (
+                camera as i64,
+                file.sha256.clone(),
+                file.size as i64,
+                i64::from(header.bit_depth.bits()),
+            );
+            (file, row)
+        })
+        .collect())
+}
