@@ -8,9 +8,12 @@
 //! written into a scratch directory and read by the same importer as
 //! `ptv experiment import` ([`crate::formats::experiment::read_experiment`]).
 //! The calibration (with its splitter), a sequence with every detection and
-//! matching setting the experiment has, and its masks are stored in one
-//! transaction. The answer lists the settings `ptv` does not use and the
-//! image names and frames the experiment records, for the uploader.
+//! matching setting the experiment has, and its masking images are stored
+//! in one transaction. pyptv subtracts its masking images from the frames
+//! (saturating), so they become the sequence's backgrounds, which are
+//! subtracted the same way (not its masks, whose zero pixels are dropped).
+//! The answer lists the settings `ptv` does not use and the image names
+//! and frames the experiment records, for the uploader.
 
 use std::path::{Component, Path, PathBuf};
 use std::sync::Arc;
@@ -88,7 +91,7 @@ pub struct UnmappedView {
 /// Creates a calibration and a sequence from an OpenPTV experiment's files.
 #[utoipa::path(
     post, path = "/api/v1/experiments/openptv", tag = "experiments",
-    request_body(content_type = "multipart/form-data", description = "One part `file` per file of the experiment, its file name the path inside the experiment directory: `parameters/ptv.par`, `parameters/criteria.par`, `parameters/targ_rec.par`, `parameters/sequence.par`, `parameters/cal_ori.par`, ... (or one pyptv `parameters_NAME.yaml`), the `.ori` and `.addpar` files the calibration names (`cal/cam1.tif.ori`, ...), and the masks where masking is on. Optional text parts `name` (the sequence's) and `keep_images` (`true`/`false`)."),
+    request_body(content_type = "multipart/form-data", description = "One part `file` per file of the experiment, its file name the path inside the experiment directory: `parameters/ptv.par`, `parameters/criteria.par`, `parameters/targ_rec.par`, `parameters/sequence.par`, `parameters/cal_ori.par`, ... (or one pyptv `parameters_NAME.yaml`), the `.ori` and `.addpar` files the calibration names (`cal/cam1.tif.ori`, ...), and the masking images where masking is on (they become the sequence's backgrounds: pyptv subtracts them). Optional text parts `name` (the sequence's) and `keep_images` (`true`/`false`)."),
     responses(
         (status = 201, body = ImportedExperiment),
         (status = 400, description = "Malformed multipart, a path that leaves the directory, a file given twice", body = super::problem::Problem, content_type = "application/problem+json"),
@@ -309,8 +312,9 @@ fn settings_json(experiment: &Experiment) -> Result<String, ApiError> {
     Ok(serde_json::to_string(&parameters)?)
 }
 
-/// The experiment's masks as files for the image store, with their rows
-/// (camera, hash, size, bits), each checked against its camera's sensor.
+/// The experiment's masking images as files for the image store, with their
+/// rows (camera, hash, size, bits), each checked against its camera's
+/// sensor: the sequence's backgrounds, as pyptv subtracts them.
 async fn mask_files(
     state: &AppState,
     experiment: &Experiment,

@@ -199,9 +199,9 @@ impl Store {
         Ok(result)
     }
 
-    /// Stores a calibration, a sequence on it and the sequence's masks
-    /// (camera, hash, size, bits), in one transaction: an imported
-    /// experiment (`POST /experiments/openptv`).
+    /// Stores a calibration, a sequence on it and the sequence's
+    /// backgrounds (camera, hash, size, bits), in one transaction: an
+    /// imported experiment (`POST /experiments/openptv`).
     pub async fn insert_experiment(
         &self,
         model: &str,
@@ -209,7 +209,7 @@ impl Store {
         name: &str,
         parameters: &str,
         keep_images: bool,
-        masks: &[(i64, String, i64, i64)],
+        backgrounds: &[(i64, String, i64, i64)],
     ) -> Result<(CalibrationRow, SequenceRow), sqlx::Error> {
         let mut tx = self.write_transaction().await?;
         let calibration = insert_calibration(&mut tx, model, cameras, None, None).await?;
@@ -224,11 +224,11 @@ impl Store {
         .bind(keep_images)
         .fetch_one(&mut *tx)
         .await?;
-        for (camera, sha256, size, bits) in masks {
+        for (camera, sha256, size, bits) in backgrounds {
             insert_sequence_image(
                 &mut tx,
                 sequence.id,
-                SequenceImageKind::Mask,
+                SequenceImageKind::Background,
                 *camera,
                 sha256,
                 *size,
