@@ -461,6 +461,53 @@ mod tests {
     }
 
     #[test]
+    fn backgrounds_are_applied_per_camera_and_checked_against_the_sensor() {
+        let (cameras, matching) = rig();
+        let volume = matching.volume.unwrap();
+        let points = simulate::particles(&volume, 100, &mut simulate::rng(21));
+        let frame = images(&cameras, &points, 22);
+        let pipeline =
+            FramePipeline::new(&cameras, &DetectionParameters::default().into(), &matching)
+                .unwrap();
+        // Camera 1's background is its frame: it finds nothing; the others
+        // find what they find without one.
+        let mut per_camera = vec![Preprocessing::default(); 4];
+        per_camera[1].background = Some(frame[1].clone());
+        let plain = pipeline.process(&frame).unwrap();
+        let pipeline = pipeline.with_preprocessing(per_camera.clone()).unwrap();
+        let result = pipeline.process(&frame).unwrap();
+        assert!(result.targets[1].is_empty());
+        assert!(!plain.targets[1].is_empty());
+        for camera in [0, 2, 3] {
+            assert_eq!(result.targets[camera], plain.targets[camera]);
+        }
+        assert_eq!(pipeline.detect_camera(1, &frame[1]), Ok(Vec::new()));
+        // Wrong count, wrong size.
+        let error = pipeline
+            .clone()
+            .with_preprocessing(per_camera[..3].to_vec());
+        assert!(matches!(
+            error,
+            Err(PipelineError::PreprocessingCount {
+                given: 3,
+                cameras: 4
+            })
+        ));
+        per_camera[2].background = Some(GreyImage::from_u8(3, 3, vec![0; 9]).unwrap());
+        let error = pipeline.with_preprocessing(per_camera).unwrap_err();
+        assert!(
+            matches!(
+                error,
+                PipelineError::Preprocess {
+                    camera: 2,
+                    source: PreprocessError::BackgroundSize { width: 3, .. }
+                }
+            ),
+            "{error:?}"
+        );
+    }
+
+    #[test]
     fn frames_that_do_not_fit_are_refused() {
         let (cameras, matching) = rig();
         let pipeline =
