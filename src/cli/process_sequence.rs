@@ -35,6 +35,7 @@ use serde::Serialize;
 
 use super::{write_stdout, CliError};
 use crate::formats::experiment::{read_experiment, Experiment};
+use crate::formats::frames::FrameRange;
 use crate::formats::{self, FormatError};
 use crate::photogrammetry::{
     BackgroundBuilder, BackgroundMode, FrameDetection, FramePipeline, GreyImage, GreyPixels,
@@ -66,8 +67,8 @@ pub struct ProcessSequenceArgs {
     pub output: Option<PathBuf>,
     /// The frames to process, FIRST..LAST inclusive [default: the
     /// experiment's sequence].
-    #[arg(long, value_name = "FIRST..LAST")]
-    pub frames: Option<String>,
+    #[arg(long, value_name = "FIRST..LAST", value_parser = FrameRange::parse)]
+    pub frames: Option<FrameRange>,
     /// A background per camera, computed from the processed frames and
     /// subtracted before detection.
     #[arg(long, value_enum, default_value_t = BackgroundChoice::None)]
@@ -250,35 +251,6 @@ struct Summary {
     median_residual_px: Option<f64>,
 }
 
-fn parse_frames(text: &str, experiment: &Experiment) -> Result<(u64, u64), CliError> {
-    let error = |reason: String| CliError::Flag {
-        flag: "--frames",
-        reason,
-    };
-    let (a, b) = text
-        .split_once("..")
-        .ok_or_else(|| error(format!("expected FIRST..LAST, got `{text}`")))?;
-    let number = |s: &str| {
-        s.trim()
-            .parse::<u64>()
-            .map_err(|_| error(format!("`{s}` is not a frame number in `{text}`")))
-    };
-    let (first, last) = (number(a)?, number(b)?);
-    if first > last {
-        return Err(error(format!(
-            "the first frame {first} is after the last {last}"
-        )));
-    }
-    let s = &experiment.sequence;
-    if first < s.first || last > s.last {
-        return Err(error(format!(
-            "{first}..{last} is outside the experiment's frames {}..{}",
-            s.first, s.last
-        )));
-    }
-    Ok((first, last))
-}
-
 fn process_frame(
     experiment: &Experiment,
     pipeline: &FramePipeline,
@@ -341,10 +313,18 @@ fn process_frame(
 /// Runs `ptv process-sequence`.
 pub(super) fn run(args: &ProcessSequenceArgs, stdout: &mut dyn Write) -> Result<(), CliError> {
     let experiment = read_experiment(&args.experiment)?;
-    let (first, last) = match &args.frames {
-        Some(text) => parse_frames(text, &experiment)?,
-        None => (experiment.sequence.first, experiment.sequence.last),
+    let sequence = FrameRange {
+        first: experiment.sequence.first,
+        last: experiment.sequence.last,
     };
+    let range = args.frames.unwrap_or(sequence);
+    range
+        .check_within(sequence)
+        .map_err(|reason| CliError::Flag {
+            flag: "--frames",
+            reason,
+        })?;
+    let FrameRange { first, last } = range;
     let output = args
         .output
         .clone()
