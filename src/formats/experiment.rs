@@ -1197,20 +1197,6 @@ mod tests {
     use super::*;
 
     #[test]
-    fn frame_patterns_as_printf_and_openptv_write_them() {
-        let format_frame = |pattern: &str, frame| {
-            FramePattern::parse(pattern, WithoutNumber::AppendAfterDot)
-                .unwrap()
-                .format(frame)
-        };
-        assert_eq!(format_frame("img/cam1.%d", 10001), "img/cam1.10001");
-        assert_eq!(format_frame("img/c%05d.tif", 42), "img/c00042.tif");
-        assert_eq!(format_frame("img/c%3d", 7), "img/c  7");
-        assert_eq!(format_frame("100%%_%d", 3), "100%_3");
-        assert_eq!(format_frame("img/cam1", 10001), "img/cam1.10001");
-    }
-
-    #[test]
     fn yaml_lines_are_found_inside_their_section() {
         let text = "ptv:\n  imx: 1\ntarg_rec:\n  disco: 100\n  nnmin: 4\nsequence:\n  first: 1\n";
         assert_eq!(yaml_line(text, "targ_rec", "nnmin"), Some(5));

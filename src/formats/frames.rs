@@ -188,6 +188,8 @@ mod tests {
         let openptv = FramePattern::parse("img/cam1", WithoutNumber::AppendAfterDot).unwrap();
         assert_eq!(openptv.format(10001), "img/cam1.10001");
         assert_eq!(openptv.as_str(), "img/cam1");
+        let openptv = FramePattern::parse("img/c%05d.tif", WithoutNumber::AppendAfterDot).unwrap();
+        assert_eq!(openptv.format(42), "img/c00042.tif");
     }
 
     #[test]
