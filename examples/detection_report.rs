@@ -40,8 +40,8 @@ use ptv::formats::image::read_image;
 use ptv::formats::{parse_targets, read_text};
 use ptv::photogrammetry::simulate::{self, BackgroundField, RenderSpec, StructuredBackground};
 use ptv::photogrammetry::{
-    detect, BackgroundBuilder, BackgroundMode, BitDepth, DetectionParameters, GreyImage,
-    GreyPixels, Target,
+    detect, detect_preprocessed, BackgroundBuilder, BackgroundMode, BitDepth, DetectionParameters,
+    GreyImage, Preprocessing, Target,
 };
 use rand::Rng;
 use target_match::{compare, score_truth, Agreement, TruthScore};
@@ -140,23 +140,6 @@ fn temporal_background(frames: &[GreyImage], mode: BackgroundMode) -> GreyImage 
     builder.finish().expect("frames were added")
 }
 
-fn eight(image: &GreyImage) -> &[u8] {
-    match image.pixels() {
-        GreyPixels::Eight(p) => p,
-        GreyPixels::Sixteen(_) => panic!("the report renders 8-bit frames"),
-    }
-}
-
-/// `frame - background`, saturating at 0.
-fn subtract(frame: &GreyImage, background: &GreyImage) -> GreyImage {
-    let out = eight(frame)
-        .iter()
-        .zip(eight(background))
-        .map(|(g, b)| g.saturating_sub(*b))
-        .collect();
-    GreyImage::from_u8(frame.width(), frame.height(), out).expect("same size")
-}
-
 fn rendered_table() {
     const WIDTH: u32 = 1280;
     const HEIGHT: u32 = 1024;
@@ -209,15 +192,16 @@ fn rendered_table() {
                 Some(temporal_background(&frames, BackgroundMode::Min)),
             ),
         ];
-        for (name, bg) in &backgrounds {
+        for (name, bg) in backgrounds {
+            let preprocessing = Preprocessing {
+                background: bg,
+                mask: None,
+            };
             let mut total = TruthScore::default();
             let mut sum2 = 0.0;
             for (frame, truth) in frames.iter().zip(&truths) {
-                let image = match bg {
-                    Some(bg) => subtract(frame, bg),
-                    None => frame.clone(),
-                };
-                let targets: Vec<Target> = detect(&image, &parameters);
+                let targets: Vec<Target> = detect_preprocessed(frame, &preprocessing, &parameters)
+                    .expect("the background is the frames' size and depth");
                 let s = score_truth(truth, &targets, 1.0, 5.0, WIDTH, HEIGHT);
                 total.particles += s.particles;
                 total.found += s.found;

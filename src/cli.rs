@@ -59,7 +59,7 @@ pub use self::match_targets::{MatchArgs, MatchingFlags};
 pub use self::process::ProcessArgs;
 pub use self::process_sequence::{BackgroundChoice, ProcessSequenceArgs};
 pub use self::simulate::SimulateArgs;
-pub use self::upload::{FrameRange, Pattern, UploadArgs};
+pub use self::upload::UploadArgs;
 use crate::formats::{self, FormatError};
 use crate::photogrammetry::camera::InvalidCamera;
 use crate::photogrammetry::correspond::MatchError;

@@ -65,7 +65,7 @@ struct SequenceBody {
 #[derive(Serialize)]
 struct ExperimentFile<'a> {
     root: String,
-    images: &'a [String],
+    images: Vec<&'a str>,
     first: u64,
     last: u64,
     masks: Option<Vec<String>>,
@@ -97,7 +97,12 @@ pub(super) fn import(args: &ImportExperimentArgs, stderr: &mut dyn Write) -> Res
     };
     let file = ExperimentFile {
         root: root.display().to_string(),
-        images: &experiment.sequence.base_names,
+        images: experiment
+            .sequence
+            .base_names
+            .iter()
+            .map(|p| p.as_str())
+            .collect(),
         first: experiment.sequence.first,
         last: experiment.sequence.last,
         masks: experiment

@@ -14,12 +14,15 @@
 //! particles by the number of cameras that see them, and the median
 //! residual.
 //!
-//! Before detection, per camera (per sensor image with a splitter), in this
-//! order: pyptv's masking images are subtracted, as pyptv's sequence loop
-//! does (`masking.mask_base_name`; clipped at 0), then, with `--background
+//! Before detection, per camera (per sensor image with a splitter), pyptv's
+//! masking images are subtracted, as pyptv's sequence loop does
+//! (`masking.mask_base_name`; clipped at 0), and, with `--background
 //! median|min`, the camera's background over the processed frames
-//! ([`BackgroundBuilder`], one streaming pass over the frames first) is
-//! subtracted (clipped at 0).
+//! ([`BackgroundBuilder`], one streaming pass over the frames first). Both
+//! go to the pipeline as one background per camera
+//! ([`FramePipeline::with_preprocessing`]): their saturating sum, since
+//! `max(max(g - m, 0) - b, 0) = max(g - (m + b), 0)`; with a splitter it is
+//! built at the sensor's size and cut into the views.
 
 use std::io::Write;
 use std::path::{Path, PathBuf};
@@ -32,10 +35,11 @@ use serde::Serialize;
 
 use super::{write_stdout, CliError};
 use crate::formats::experiment::{read_experiment, Experiment};
+use crate::formats::frames::FrameRange;
 use crate::formats::{self, FormatError};
 use crate::photogrammetry::{
     BackgroundBuilder, BackgroundMode, FrameDetection, FramePipeline, GreyImage, GreyPixels,
-    PipelineError, SplitterError,
+    PipelineError, Preprocessing, SplitterError,
 };
 
 /// The background subtracted before detection.
@@ -63,37 +67,32 @@ pub struct ProcessSequenceArgs {
     pub output: Option<PathBuf>,
     /// The frames to process, FIRST..LAST inclusive [default: the
     /// experiment's sequence].
-    #[arg(long, value_name = "FIRST..LAST")]
-    pub frames: Option<String>,
+    #[arg(long, value_name = "FIRST..LAST", value_parser = FrameRange::parse)]
+    pub frames: Option<FrameRange>,
     /// A background per camera, computed from the processed frames and
     /// subtracted before detection.
     #[arg(long, value_enum, default_value_t = BackgroundChoice::None)]
     pub background: BackgroundChoice,
 }
 
-/// Per sensor image (camera, or the one image of a splitter), what is
-/// subtracted from each frame before detection: pyptv's masking image, then
-/// the background.
-type Subtract = Vec<Vec<GreyImage>>;
-
-/// `image - subtrahend`, clipped at 0, pixel by pixel; `None` if the sizes
-/// or depths differ.
-fn subtract(image: &GreyImage, subtrahend: &GreyImage) -> Option<GreyImage> {
-    if (image.width(), image.height()) != (subtrahend.width(), subtrahend.height()) {
+/// `a + b`, saturating, pixel by pixel; `None` if the sizes or depths
+/// differ.
+fn saturating_sum(a: &GreyImage, b: &GreyImage) -> Option<GreyImage> {
+    if (a.width(), a.height()) != (b.width(), b.height()) {
         return None;
     }
-    let (w, h) = (image.width(), image.height());
-    match (image.pixels(), subtrahend.pixels()) {
+    let (w, h) = (a.width(), a.height());
+    match (a.pixels(), b.pixels()) {
         (GreyPixels::Eight(a), GreyPixels::Eight(b)) => GreyImage::from_u8(
             w,
             h,
-            a.iter().zip(b).map(|(a, b)| a.saturating_sub(*b)).collect(),
+            a.iter().zip(b).map(|(a, b)| a.saturating_add(*b)).collect(),
         )
         .ok(),
         (GreyPixels::Sixteen(a), GreyPixels::Sixteen(b)) => GreyImage::from_u16(
             w,
             h,
-            a.iter().zip(b).map(|(a, b)| a.saturating_sub(*b)).collect(),
+            a.iter().zip(b).map(|(a, b)| a.saturating_add(*b)).collect(),
         )
         .ok(),
         _ => None,
@@ -109,13 +108,14 @@ fn sensor_images(experiment: &Experiment) -> usize {
     }
 }
 
-/// What to subtract from each sensor image: pyptv's masking images (read
-/// and checked against the first frame), then the background of `frames`.
+/// What to subtract from each sensor image, if anything: the saturating sum
+/// of pyptv's masking image (read and checked against the first frame) and
+/// the background of `frames`.
 fn subtrahends(
     experiment: &Experiment,
     frames: &[u64],
     background: BackgroundChoice,
-) -> Result<Subtract, CliError> {
+) -> Result<Vec<Option<GreyImage>>, CliError> {
     let mode = match background {
         BackgroundChoice::Median => Some(BackgroundMode::Median),
         BackgroundChoice::Min => Some(BackgroundMode::Min),
@@ -124,7 +124,7 @@ fn subtrahends(
     (0..sensor_images(experiment))
         .into_par_iter()
         .map(|camera| {
-            let mut list = Vec::new();
+            let mut subtrahend = None;
             let first = experiment
                 .sequence
                 .image_path(&experiment.root, camera, frames[0]);
@@ -132,7 +132,7 @@ fn subtrahends(
             if let Some(masks) = &experiment.masks {
                 let path = &masks[camera.min(masks.len() - 1)];
                 let mask = formats::image::read_image(path, None)?;
-                if subtract(&reference, &mask).is_none() {
+                if saturating_sum(&reference, &mask).is_none() {
                     return Err(CliError::Flag {
                         flag: "masking.mask_base_name",
                         reason: format!(
@@ -149,7 +149,7 @@ fn subtrahends(
                         ),
                     });
                 }
-                list.push(mask);
+                subtrahend = Some(mask);
             }
             if let Some(mode) = mode {
                 let mut builder = BackgroundBuilder::new(
@@ -172,11 +172,52 @@ fn subtrahends(
                     image: first.clone(),
                     source,
                 })?;
-                list.push(background);
+                subtrahend = Some(match subtrahend {
+                    // Both were checked against the first frame.
+                    Some(mask) => saturating_sum(&mask, &background).expect(
+                        "the mask and the background have the first frame's size and depth",
+                    ),
+                    None => background,
+                });
             }
-            Ok(list)
+            Ok(subtrahend)
         })
         .collect()
+}
+
+/// Per camera, its [`Preprocessing`]: the sensor image's subtrahend
+/// ([`subtrahends`]) as the background, cut into the views with a splitter.
+fn preprocessing(
+    experiment: &Experiment,
+    frames: &[u64],
+    background: BackgroundChoice,
+) -> Result<Vec<Preprocessing>, CliError> {
+    let subtrahends = subtrahends(experiment, frames, background)?;
+    let backgrounds: Vec<Option<GreyImage>> = match (experiment.splitter, subtrahends.as_slice()) {
+        (Some(splitter), [Some(subtrahend)]) => {
+            let first = experiment
+                .sequence
+                .image_path(&experiment.root, 0, frames[0]);
+            splitter
+                .split(subtrahend)
+                .map_err(|source| CliError::Splitter {
+                    image: first,
+                    source,
+                })?
+                .into_iter()
+                .map(Some)
+                .collect()
+        }
+        (Some(_), _) => vec![None; experiment.cameras.len()],
+        (None, _) => subtrahends,
+    };
+    Ok(backgrounds
+        .into_iter()
+        .map(|background| Preprocessing {
+            background,
+            mask: None,
+        })
+        .collect())
 }
 
 /// Why one frame failed (sent back from the worker threads).
@@ -210,63 +251,9 @@ struct Summary {
     median_residual_px: Option<f64>,
 }
 
-fn parse_frames(text: &str, experiment: &Experiment) -> Result<(u64, u64), CliError> {
-    let error = |reason: String| CliError::Flag {
-        flag: "--frames",
-        reason,
-    };
-    let (a, b) = text
-        .split_once("..")
-        .ok_or_else(|| error(format!("expected FIRST..LAST, got `{text}`")))?;
-    let number = |s: &str| {
-        s.trim()
-            .parse::<u64>()
-            .map_err(|_| error(format!("`{s}` is not a frame number in `{text}`")))
-    };
-    let (first, last) = (number(a)?, number(b)?);
-    if first > last {
-        return Err(error(format!(
-            "the first frame {first} is after the last {last}"
-        )));
-    }
-    let s = &experiment.sequence;
-    if first < s.first || last > s.last {
-        return Err(error(format!(
-            "{first}..{last} is outside the experiment's frames {}..{}",
-            s.first, s.last
-        )));
-    }
-    Ok((first, last))
-}
-
-/// Reads a sensor image and subtracts what is to be subtracted from it.
-fn read_prepared(path: &Path, subtract_from: &[GreyImage]) -> Result<GreyImage, FrameFailure> {
-    let mut image = formats::image::read_image(path, None).map_err(FrameFailure::Format)?;
-    for subtrahend in subtract_from {
-        image = subtract(&image, subtrahend).ok_or_else(|| {
-            FrameFailure::Format(FormatError::invalid(
-                &path.display().to_string(),
-                "image",
-                format!(
-                    "is {}x{} at {} bits, unlike the sequence's first frame ({}x{} at {} \
-                     bits); give one size and depth per camera",
-                    image.width(),
-                    image.height(),
-                    image.bit_depth().bits(),
-                    subtrahend.width(),
-                    subtrahend.height(),
-                    subtrahend.bit_depth().bits()
-                ),
-            ))
-        })?;
-    }
-    Ok(image)
-}
-
 fn process_frame(
     experiment: &Experiment,
     pipeline: &FramePipeline,
-    subtract: &Subtract,
     frame: u64,
     output: &Path,
 ) -> Result<FrameCounts, FrameFailure> {
@@ -275,7 +262,7 @@ fn process_frame(
     let (paths, images) = match experiment.splitter {
         Some(splitter) => {
             let path = experiment.sequence.image_path(root, 0, frame);
-            let image = read_prepared(&path, &subtract[0])?;
+            let image = formats::image::read_image(&path, None).map_err(FrameFailure::Format)?;
             let views = splitter
                 .split(&image)
                 .map_err(|e| FrameFailure::Split(path.clone(), e))?;
@@ -287,8 +274,7 @@ fn process_frame(
                 .collect();
             let images = paths
                 .iter()
-                .zip(subtract)
-                .map(|(path, subtract)| read_prepared(path, subtract))
+                .map(|path| formats::image::read_image(path, None).map_err(FrameFailure::Format))
                 .collect::<Result<Vec<GreyImage>, _>>()?;
             (paths, images)
         }
@@ -327,10 +313,18 @@ fn process_frame(
 /// Runs `ptv process-sequence`.
 pub(super) fn run(args: &ProcessSequenceArgs, stdout: &mut dyn Write) -> Result<(), CliError> {
     let experiment = read_experiment(&args.experiment)?;
-    let (first, last) = match &args.frames {
-        Some(text) => parse_frames(text, &experiment)?,
-        None => (experiment.sequence.first, experiment.sequence.last),
+    let sequence = FrameRange {
+        first: experiment.sequence.first,
+        last: experiment.sequence.last,
     };
+    let range = args.frames.unwrap_or(sequence);
+    range
+        .check_within(sequence)
+        .map_err(|reason| CliError::Flag {
+            flag: "--frames",
+            reason,
+        })?;
+    let FrameRange { first, last } = range;
     let output = args
         .output
         .clone()
@@ -339,15 +333,15 @@ pub(super) fn run(args: &ProcessSequenceArgs, stdout: &mut dyn Write) -> Result<
         path: output.clone(),
         reason,
     })?;
+    let frames: Vec<u64> = (first..=last).collect();
+    let preprocessing = preprocessing(&experiment, &frames, args.background)?;
     let pipeline = FramePipeline::new(
         &experiment.cameras,
         &FrameDetection::PerCamera(experiment.detection.clone()),
         &experiment.matching,
     )
+    .and_then(|pipeline| pipeline.with_preprocessing(preprocessing))
     .map_err(CliError::Pipeline)?;
-
-    let frames: Vec<u64> = (first..=last).collect();
-    let subtract = subtrahends(&experiment, &frames, args.background)?;
     let done = AtomicU64::new(0);
     let bar = indicatif::ProgressBar::with_draw_target(
         Some(frames.len() as u64),
@@ -367,7 +361,7 @@ pub(super) fn run(args: &ProcessSequenceArgs, stdout: &mut dyn Write) -> Result<
             frames
                 .par_iter()
                 .map(|&frame| {
-                    let result = process_frame(&experiment, &pipeline, &subtract, frame, &output);
+                    let result = process_frame(&experiment, &pipeline, frame, &output);
                     done.fetch_add(1, Ordering::Relaxed);
                     (frame, result)
                 })

@@ -52,6 +52,7 @@ use serde_json::Value;
 
 use super::{write_stdout, CliError};
 use crate::formats::experiment::{read_experiment, Experiment};
+use crate::formats::frames::{FramePattern, FrameRange, WithoutNumber};
 
 /// Arguments of `ptv upload`.
 #[derive(Debug, Args)]
@@ -78,7 +79,7 @@ pub struct UploadArgs {
     /// The frames to upload, both ends included: `10001..10004`, or one
     /// frame `10001`; with --experiment, its first to last frame if not
     /// given.
-    #[arg(long, value_name = "FIRST..LAST", value_parser = parse_frames,
+    #[arg(long, value_name = "FIRST..LAST", value_parser = FrameRange::parse,
           required_unless_present = "experiment")]
     pub frames: Option<FrameRange>,
     /// How many frames are uploaded at once.
@@ -94,124 +95,10 @@ pub struct UploadArgs {
     pub follow: bool,
 }
 
-/// Frames `first..=last`.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct FrameRange {
-    /// The first frame.
-    pub first: u64,
-    /// The last frame (included).
-    pub last: u64,
-}
-
-/// The most frames one command uploads (a typo guard: `1..10000000`).
-const MAX_FRAMES: u64 = 10_000_000;
-
-fn parse_frames(text: &str) -> Result<FrameRange, String> {
-    let number = |s: &str| {
-        s.trim().parse::<u64>().map_err(|_| {
-            format!("`{s}` is not a frame number; give FIRST..LAST, e.g. 10001..10004")
-        })
-    };
-    let (first, last) = match text.split_once("..") {
-        Some((first, last)) => (number(first)?, number(last.trim_start_matches('='))?),
-        None => {
-            let frame = number(text)?;
-            (frame, frame)
-        }
-    };
-    if last < first {
-        return Err(format!(
-            "the last frame {last} comes before the first {first}"
-        ));
-    }
-    if last - first >= MAX_FRAMES {
-        return Err(format!(
-            "{} frames; upload at most {MAX_FRAMES} per command",
-            last - first + 1
-        ));
-    }
-    Ok(FrameRange { first, last })
-}
-
-/// A file name pattern with one printf-style frame number.
-#[derive(Clone, Debug, PartialEq, Eq)]
-pub struct Pattern {
-    prefix: String,
-    /// Minimum digits, and whether padded with zeros (else spaces).
-    width: usize,
-    zeros: bool,
-    suffix: String,
-}
-
-impl Pattern {
-    /// Parses `img/cam1.%d`, `%05d`, `%5d`; `%%` is a literal `%`.
-    pub fn parse(text: &str) -> Result<Pattern, String> {
-        let mut prefix: Option<String> = None;
-        let mut current = String::new();
-        let mut spec: Option<(usize, bool)> = None;
-        let mut chars = text.chars().peekable();
-        while let Some(c) = chars.next() {
-            if c != '%' {
-                current.push(c);
-                continue;
-            }
-            if chars.peek() == Some(&'%') {
-                chars.next();
-                current.push('%');
-                continue;
-            }
-            let mut digits = String::new();
-            while let Some(&d) = chars.peek().filter(|d| d.is_ascii_digit()) {
-                digits.push(d);
-                chars.next();
-            }
-            if chars.next() != Some('d') {
-                return Err(format!(
-                    "`{text}`: only %d, %0Nd or %Nd (the frame number) and %% may follow a %"
-                ));
-            }
-            if spec.is_some() {
-                return Err(format!(
-                    "`{text}` has two frame numbers; give one %d per pattern"
-                ));
-            }
-            let zeros = digits.starts_with('0');
-            let width = digits.parse::<usize>().unwrap_or(0);
-            if width > 20 {
-                return Err(format!("`{text}`: a frame number of {width} digits"));
-            }
-            spec = Some((width, zeros));
-            prefix = Some(std::mem::take(&mut current));
-        }
-        let Some((width, zeros)) = spec else {
-            return Err(format!(
-                "`{text}` has no frame number; put %d (or %05d) where the frame goes, \
-                 e.g. img/cam1.%d"
-            ));
-        };
-        Ok(Pattern {
-            prefix: prefix.unwrap_or_default(),
-            width,
-            zeros,
-            suffix: current,
-        })
-    }
-
-    /// The file of `frame`.
-    pub fn path(&self, frame: u64) -> PathBuf {
-        let number = if self.zeros {
-            format!("{frame:0width$}", width = self.width)
-        } else {
-            format!("{frame:width$}", width = self.width)
-        };
-        PathBuf::from(format!("{}{number}{}", self.prefix, self.suffix))
-    }
-}
-
 /// Where a frame's files are and which parts they go in.
 enum Recording {
     /// One pattern per camera: parts `cam0`.. .
-    Patterns(Vec<Pattern>),
+    Patterns(Vec<FramePattern>),
     /// An experiment's sequence: parts `cam0`.., or `image` with a
     /// splitter.
     Experiment(Box<Experiment>),
@@ -443,7 +330,7 @@ pub fn run(args: &UploadArgs, stdout: &mut dyn Write) -> Result<(), CliError> {
             let patterns = args
                 .images
                 .iter()
-                .map(|text| Pattern::parse(text))
+                .map(|text| FramePattern::parse(text, WithoutNumber::Refuse))
                 .collect::<Result<Vec<_>, _>>()
                 .map_err(|reason| CliError::Flag {
                     flag: "--images",
@@ -683,34 +570,6 @@ async fn follow(
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn patterns_put_the_frame_number_in_place() {
-        let path = |p: &str, f| Pattern::parse(p).unwrap().path(f);
-        assert_eq!(path("img/cam1.%d", 10001), PathBuf::from("img/cam1.10001"));
-        assert_eq!(path("c%05d.tif", 42), PathBuf::from("c00042.tif"));
-        assert_eq!(path("c%3d", 7), PathBuf::from("c  7"));
-        assert_eq!(path("100%%_%d.png", 3), PathBuf::from("100%_3.png"));
-        assert_eq!(path("%d", 123456), PathBuf::from("123456"));
-        for bad in ["img/cam1", "a%d%d", "a%s", "a%05x", "a%"] {
-            assert!(Pattern::parse(bad).is_err(), "{bad}");
-        }
-    }
-
-    #[test]
-    fn frame_ranges_include_both_ends() {
-        assert_eq!(
-            parse_frames("10001..10004"),
-            Ok(FrameRange {
-                first: 10001,
-                last: 10004
-            })
-        );
-        assert_eq!(parse_frames("7"), Ok(FrameRange { first: 7, last: 7 }));
-        assert!(parse_frames("5..3").unwrap_err().contains("comes before"));
-        assert!(parse_frames("a..3").is_err());
-        assert!(parse_frames("0..99999999").is_err());
-    }
 
     #[test]
     fn backoff_doubles_and_is_bounded() {

@@ -52,6 +52,7 @@ use std::path::{Path, PathBuf};
 use nalgebra::{Point2, Point3};
 use serde::Deserialize;
 
+use super::frames::{FramePattern, WithoutNumber};
 use super::{calibration, openptv, FormatError};
 use crate::photogrammetry::correspond::MatchingParameters;
 use crate::photogrammetry::{
@@ -92,8 +93,9 @@ pub struct Experiment {
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct SequenceFrames {
     /// Per camera (one with a splitter), the image name pattern relative to
-    /// the root, with a printf-style `%d` (or `%05d`, ...) for the frame.
-    pub base_names: Vec<String>,
+    /// the root, with a printf-style `%d` (or `%05d`, ...) for the frame;
+    /// without one, the frame is appended after a dot (OpenPTV's naming).
+    pub base_names: Vec<FramePattern>,
     /// The first frame.
     pub first: u64,
     /// The last frame (inclusive).
@@ -103,12 +105,10 @@ pub struct SequenceFrames {
 impl SequenceFrames {
     /// The image of `camera` (0-based) at `frame`.
     pub fn image_path(&self, root: &Path, camera: usize, frame: u64) -> PathBuf {
-        let pattern = self
-            .base_names
-            .get(camera)
-            .or(self.base_names.last())
-            .map_or("", String::as_str);
-        root.join(format_frame(pattern, frame))
+        match self.base_names.get(camera).or(self.base_names.last()) {
+            Some(pattern) => root.join(pattern.path(frame)),
+            None => root.to_owned(),
+        }
     }
 }
 
@@ -163,52 +163,6 @@ pub enum ExperimentError {
     /// camera the model refuses.
     #[error(transparent)]
     Format(#[from] FormatError),
-}
-
-/// Formats a printf-style frame pattern: `%d`, `%5d`, `%05d` take the frame;
-/// `%%` is a percent sign. A pattern without one gets the frame appended
-/// after a dot (OpenPTV's `base.frame` naming).
-pub fn format_frame(pattern: &str, frame: u64) -> String {
-    let mut out = String::new();
-    let mut chars = pattern.chars().peekable();
-    let mut used = false;
-    while let Some(c) = chars.next() {
-        if c != '%' {
-            out.push(c);
-            continue;
-        }
-        if chars.peek() == Some(&'%') {
-            chars.next();
-            out.push('%');
-            continue;
-        }
-        let mut spec = String::new();
-        while let Some(&d) = chars.peek() {
-            if d.is_ascii_digit() {
-                spec.push(d);
-                chars.next();
-            } else {
-                break;
-            }
-        }
-        if chars.peek() == Some(&'d') {
-            chars.next();
-            let width: usize = spec.parse().unwrap_or(0);
-            if spec.starts_with('0') {
-                out.push_str(&format!("{frame:0width$}"));
-            } else {
-                out.push_str(&format!("{frame:width$}"));
-            }
-            used = true;
-        } else {
-            out.push('%');
-            out.push_str(&spec);
-        }
-    }
-    if !used {
-        out.push_str(&format!(".{frame}"));
-    }
-    out
 }
 
 // --- The sections, as pyptv's YAML names them --------------------------------
@@ -1160,17 +1114,26 @@ fn map(
         ));
     }
     let base_names = if splitter.is_some() {
-        s.sequence.base_name[..1].to_vec()
+        &s.sequence.base_name[..1]
     } else {
-        s.sequence.base_name.clone()
+        &s.sequence.base_name[..]
     };
+    let base_names = base_names
+        .iter()
+        .map(|name| {
+            FramePattern::parse(name, WithoutNumber::AppendAfterDot)
+                .map_err(|reason| at.invalid("sequence.base_name", reason))
+        })
+        .collect::<Result<Vec<_>, _>>()?;
 
     // Masks: pyptv's `mask_base_name % (camera + 1)`.
     let masks = match &s.masking {
         Some(m) if m.mask_flag => {
+            let pattern = FramePattern::parse(&m.mask_base_name, WithoutNumber::AppendAfterDot)
+                .map_err(|reason| at.invalid("masking.mask_base_name", reason))?;
             let mut list = Vec::with_capacity(n);
             for camera in 0..n {
-                let path = root.join(format_frame(&m.mask_base_name, camera as u64 + 1));
+                let path = root.join(pattern.path(camera as u64 + 1));
                 if !path.is_file() {
                     return Err(ExperimentError::Missing {
                         file: at.file_of("masking.mask_base_name"),
@@ -1232,15 +1195,6 @@ fn seen_y_range(cameras: &[Camera], z_min: f64, z_max: f64) -> Option<(f64, f64)
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn frame_patterns_as_printf_and_openptv_write_them() {
-        assert_eq!(format_frame("img/cam1.%d", 10001), "img/cam1.10001");
-        assert_eq!(format_frame("img/c%05d.tif", 42), "img/c00042.tif");
-        assert_eq!(format_frame("img/c%3d", 7), "img/c  7");
-        assert_eq!(format_frame("100%%_%d", 3), "100%_3");
-        assert_eq!(format_frame("img/cam1", 10001), "img/cam1.10001");
-    }
 
     #[test]
     fn yaml_lines_are_found_inside_their_section() {

@@ -19,6 +19,7 @@ pub mod calibration;
 pub mod control;
 pub mod csv;
 pub mod experiment;
+pub mod frames;
 pub mod image;
 pub mod openptv;
 #[cfg(test)]

@@ -15,7 +15,8 @@
 use nalgebra::{Point2, Vector2};
 use ptv::photogrammetry::simulate::{self, BackgroundField, RenderSpec, StructuredBackground};
 use ptv::photogrammetry::{
-    detect, BackgroundBuilder, BackgroundMode, BitDepth, DetectionParameters, GreyImage, GreyPixels,
+    detect, detect_preprocessed, BackgroundBuilder, BackgroundMode, BitDepth, DetectionParameters,
+    GreyImage, GreyPixels, Preprocessing,
 };
 use rand::Rng;
 
@@ -181,16 +182,6 @@ fn median(frames: &[GreyImage]) -> GreyImage {
     builder.finish().expect("frames were added")
 }
 
-/// `frame - background`, saturating at 0.
-fn subtract(frame: &GreyImage, background: &GreyImage) -> GreyImage {
-    let pixels = eight(frame)
-        .iter()
-        .zip(eight(background))
-        .map(|(g, b)| g.saturating_sub(*b))
-        .collect();
-    GreyImage::from_u8(frame.width(), frame.height(), pixels).unwrap()
-}
-
 /// Detection over a sequence of `FRAMES` frames at `ppp` particles per
 /// pixel in front of `field`, without and with median subtraction.
 fn score_sequence(field: &BackgroundField, ppp: f64, seed: u64) -> [TruthScore; 2] {
@@ -206,15 +197,16 @@ fn score_sequence(field: &BackgroundField, ppp: f64, seed: u64) -> [TruthScore; 
         .unzip();
     let background = median(&frames);
     [false, true].map(|subtracted| {
+        let preprocessing = Preprocessing {
+            background: subtracted.then(|| background.clone()),
+            mask: None,
+        };
         let mut total = TruthScore::default();
         let mut sum2 = 0.0;
         for (frame, truth) in frames.iter().zip(&truths) {
-            let image = if subtracted {
-                subtract(frame, &background)
-            } else {
-                frame.clone()
-            };
-            let targets = detect(&image, &DetectionParameters::default());
+            let targets =
+                detect_preprocessed(frame, &preprocessing, &DetectionParameters::default())
+                    .expect("the background is the frames' size and depth");
             let s = score_truth(truth, &targets, 1.0, 5.0, WIDTH, HEIGHT);
             total.particles += s.particles;
             total.found += s.found;

@@ -140,7 +140,12 @@ pub async fn import(
         sequence_id: sequence.id,
         calibration: links::calibration(calibration.id),
         sequence: links::sequence(sequence.id),
-        images: experiment.sequence.base_names.clone(),
+        images: experiment
+            .sequence
+            .base_names
+            .iter()
+            .map(|p| p.as_str().to_owned())
+            .collect(),
         first_frame: experiment.sequence.first,
         last_frame: experiment.sequence.last,
         unmapped: experiment
