@@ -568,7 +568,7 @@ pub async fn upload_frame(
             "part `image`".to_owned()
         })
         .await?;
-        check_background_depths(&state, id, &vec![headers[0].clone(); n]).await?;
+        check_background_depths(&state, id, &vec![headers[0]; n]).await?;
         new_frame.images = vec![(0, whole.sha256.clone(), whole.size as i64)];
     } else if !images.is_empty() {
         let sensors: Vec<Sensor> = cameras.iter().map(|c| c.sensor().clone()).collect();
