@@ -53,7 +53,7 @@ fn single_frame(c: &mut Criterion) {
     let sixteen = frame(&RenderSpec::sixteen_bit(2.5), 1);
     let parameters16 = DetectionParameters {
         threshold: parameters.threshold * 257,
-        split_depth: parameters.split_depth * 257,
+        split_depth: parameters.split_depth.map(|d| d * 257),
         ..parameters.clone()
     };
     group.bench_function("16-bit", |b| {

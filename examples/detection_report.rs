@@ -64,7 +64,7 @@ fn experiment_parameters(k: usize) -> DetectionParameters {
         max_ny: 100,
         min_sumg: 150,
         split: true,
-        split_depth: 100,
+        split_depth: Some(100),
     }
 }
 

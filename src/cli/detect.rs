@@ -79,9 +79,12 @@ pub struct DetectionFlags {
     #[arg(long, value_name = "S", default_value_t = DetectionParameters::default().min_sumg)]
     pub min_sumg: u64,
     /// How far (grey levels) the fainter of two touching particles' maxima
-    /// must rise above the saddle between them to be split off.
-    #[arg(long, value_name = "D", default_value_t = DetectionParameters::default().split_depth)]
-    pub split_depth: u16,
+    /// must rise above the saddle between them to be split off (OpenPTV's
+    /// `discont`). Without it, the automatic rule: the rise must exceed a
+    /// third of the maximum's height above the threshold and 3 times the
+    /// image's noise level.
+    #[arg(long, value_name = "D")]
+    pub split_depth: Option<u16>,
     /// Do not split blobs of overlapping particles: one target per blob.
     #[arg(long)]
     pub no_split: bool,

@@ -1023,7 +1023,7 @@ fn map(
         max_ny: range("targ_rec.nymax", t.nymax, u32_max)? as u32,
         min_sumg: range("targ_rec.sumg_min", t.sumg_min, i64::MAX)? as u64,
         split: true,
-        split_depth: range("targ_rec.disco", t.disco, u16_max)? as u16,
+        split_depth: Some(range("targ_rec.disco", t.disco, u16_max)? as u16),
     };
     let mut detection = Vec::with_capacity(n);
     for (i, &threshold) in t.gvthres.iter().take(n).enumerate() {

@@ -57,7 +57,9 @@ pub struct DetectionSettings {
     pub split: Option<bool>,
     /// How far (grey levels) the fainter of two maxima must rise above the
     /// brightest path joining them for a blob to be split there; OpenPTV's
-    /// `discont` [default: as `ptv detect --split-depth`].
+    /// `discont`. Unset or `null`: the automatic rule of `ptv detect`
+    /// without `--split-depth` (relative to the maximum's height above the
+    /// threshold and to the image's noise level).
     #[serde(default)]
     pub split_depth: Option<u16>,
 }
@@ -79,7 +81,7 @@ impl DetectionSettings {
             max_ny: self.max_ny.unwrap_or(d.max_ny),
             min_sumg: self.min_sumg.unwrap_or(d.min_sumg),
             split: self.split.unwrap_or(d.split),
-            split_depth: self.split_depth.unwrap_or(d.split_depth),
+            split_depth: self.split_depth.or(d.split_depth),
         }
     }
 
@@ -127,7 +129,7 @@ impl DetectionSettings {
             max_ny: Some(p.max_ny),
             min_sumg: Some(p.min_sumg),
             split: Some(p.split),
-            split_depth: Some(p.split_depth),
+            split_depth: p.split_depth,
         }
     }
 }
@@ -331,7 +333,7 @@ pub fn experiment_settings(experiment: &Experiment) -> (DetectionSettings, Match
         max_ny: Some(first.max_ny),
         min_sumg: Some(first.min_sumg),
         split: Some(first.split),
-        split_depth: Some(first.split_depth),
+        split_depth: first.split_depth,
     };
     let m = &experiment.matching;
     let matching = MatchingSettings {
@@ -381,7 +383,7 @@ mod tests {
         );
         assert!(list
             .iter()
-            .all(|p| p.split_depth == 100 && p.min_nx == 2 && p.max_ny == 80 && p.split));
+            .all(|p| p.split_depth == Some(100) && p.min_nx == 2 && p.max_ny == 80 && p.split));
         let error = settings.frame_detection(4).unwrap_err();
         assert_eq!(error.field, "thresholds");
         assert!(error

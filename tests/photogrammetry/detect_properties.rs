@@ -108,7 +108,7 @@ proptest! {
         let p8 = DetectionParameters::default();
         let p16 = DetectionParameters {
             threshold: p8.threshold * 257,
-            split_depth: p8.split_depth * 257,
+            split_depth: p8.split_depth.map(|d| d * 257),
             min_sumg: p8.min_sumg * 257,
             ..p8.clone()
         };

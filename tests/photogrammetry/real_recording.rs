@@ -49,7 +49,7 @@ fn experiment_parameters(k: usize) -> DetectionParameters {
         max_ny: 100,
         min_sumg: 150,
         split: true,
-        split_depth: 100,
+        split_depth: Some(100),
     }
 }
 
@@ -151,13 +151,16 @@ fn experiment_parameters_reproduce_openptv_targets() {
 #[test]
 fn default_parameters_on_the_real_recording() {
     // Issue 13's goal with defaults only: at most 1.25x OpenPTV's count and
-    // 80% of theirs found. TODAY'S LEVEL, NOT THE GOAL: the default split
-    // depth of 4 grey levels cuts this recording's large particle images
-    // and glare into 4.3-4.8x OpenPTV's count; 63-73% of theirs have one
-    // of ours within 0.5 px, and 14-16% of ours one of theirs. Asserted is
-    // only what a better default rule keeps, with a margin of about 8
-    // points and 0.16x: no more than 5x their count, and at least 55% of
-    // theirs found.
+    // 80% of theirs found. NOT REACHED. With the automatic split rule
+    // (`split_depth: None`, detect.rs) ours are 3.9-4.64x OpenPTV's count
+    // (4.34x over the 16 images; the absolute depth 4 of before gave
+    // 4.3-4.8x, 4.50x), 63.7-74.5% of theirs have one of ours within
+    // 0.5 px (before 63-73%), and 15-17% of ours one of theirs. Most of the
+    // excess is small separate blobs, not split fragments: without
+    // splitting at all the count is still 3.0x. Asserted is today's level
+    // with a margin of about 0.15x and 3 points (the rule's noise estimate
+    // and the centroids may still move a little): no more than 4.8x their
+    // count, at least 60% of theirs found.
     for Row {
         camera,
         frame,
@@ -165,7 +168,7 @@ fn default_parameters_on_the_real_recording() {
         ..
     } in agreements(|_| DetectionParameters::default())
     {
-        assert!(a.count_ratio() <= 5.0, "cam{camera}.{frame}: {a:?}");
-        assert!(a.theirs_share() >= 0.55, "cam{camera}.{frame}: {a:?}");
+        assert!(a.count_ratio() <= 4.8, "cam{camera}.{frame}: {a:?}");
+        assert!(a.theirs_share() >= 0.6, "cam{camera}.{frame}: {a:?}");
     }
 }

@@ -158,7 +158,7 @@ fn glare_streaks_have_ripples_that_fragment_them() {
     let coarse = detect(
         &image,
         &DetectionParameters {
-            split_depth: 100,
+            split_depth: Some(100),
             ..DetectionParameters::default()
         },
     )

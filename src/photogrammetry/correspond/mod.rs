@@ -372,7 +372,7 @@ mod tests {
                 max_pixels: u32::MAX,
                 max_nx: u32::MAX,
                 max_ny: u32::MAX,
-                split_depth,
+                split_depth: Some(split_depth),
                 ..DetectionParameters::default()
             };
             let sensor = Sensor { width, height, pixel_size_x: 0.01, pixel_size_y: 0.01 };
