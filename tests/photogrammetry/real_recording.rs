@@ -36,21 +36,15 @@ use crate::common::target_match::{compare, Agreement};
 const DATA: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/data/openptv");
 const FRAMES: [&str; 4] = ["10001", "10002", "10003", "10004"];
 
-/// The experiment's `targ_rec.par` for camera `k` (1-based).
+/// The detection parameters of camera `k` (1-based) as `ptv experiment
+/// import` maps the recording's own `parameters/` folder (thresholds
+/// 9/9/9/11, discont 100, 4..500 px, nx/ny 2..100, sum of grey >= 150,
+/// high-pass radius 25): the importer is what a lab would use.
 fn experiment_parameters(k: usize) -> DetectionParameters {
-    DetectionParameters {
-        threshold: [9, 9, 9, 11][k - 1],
-        highpass_radius: 25,
-        min_pixels: 4,
-        max_pixels: 500,
-        min_nx: 2,
-        max_nx: 100,
-        min_ny: 2,
-        max_ny: 100,
-        min_sumg: 150,
-        split: true,
-        split_depth: Some(100),
-    }
+    let dir = Path::new(DATA).join("test_cavity_recording");
+    let experiment = ptv::formats::experiment::read_experiment(&dir)
+        .unwrap_or_else(|e| panic!("the recording's experiment does not read: {e}"));
+    experiment.detection[k - 1].clone()
 }
 
 fn image(k: usize, frame: &str) -> GreyImage {
