@@ -933,30 +933,7 @@ impl<'a, G: Grey> Detector<'a, G> {
             self.count_maxima(2)
         };
         if maxima == 1 {
-            let mut m = Moments::new();
-            for &k in &self.blob {
-                let p = key_index(k);
-                m.add(
-                    self.position(p),
-                    u32::from(self.levels[p]),
-                    corner,
-                    threshold,
-                );
-            }
-            if let Some(target) = self.target(&m, corner) {
-                found.0.push(target);
-                if PIXELS {
-                    found.1.push(
-                        self.blob
-                            .iter()
-                            .map(|&k| {
-                                let (x, y) = self.position(key_index(k));
-                                (x as u32, y as u32)
-                            })
-                            .collect(),
-                    );
-                }
-            }
+            self.measure_particle::<PIXELS>(0..self.blob.len(), corner, threshold, found);
             return;
         }
         let maxima = self.count_maxima(usize::MAX);
@@ -987,31 +964,45 @@ impl<'a, G: Grey> Detector<'a, G> {
                     .iter()
                     .position(|&k| k >> 32 != particle)
                     .unwrap_or(self.blob.len() - start);
-            let mut m = Moments::new();
-            for &k in &self.blob[start..end] {
-                let p = key_index(k);
-                m.add(
-                    self.position(p),
-                    u32::from(self.levels[p]),
-                    corner,
-                    threshold,
+            self.measure_particle::<PIXELS>(start..end, corner, threshold, found);
+            start = end;
+        }
+    }
+
+    /// Step 4 for one particle, the pixels `range` of `blob`: its moments,
+    /// and its target (with its pixels, when asked for) if it passes the
+    /// filters.
+    fn measure_particle<const PIXELS: bool>(
+        &self,
+        range: std::ops::Range<usize>,
+        corner: (usize, usize),
+        threshold: u32,
+        found: &mut Found,
+    ) {
+        let pixels = &self.blob[range];
+        let mut m = Moments::new();
+        for &k in pixels {
+            let p = key_index(k);
+            m.add(
+                self.position(p),
+                u32::from(self.levels[p]),
+                corner,
+                threshold,
+            );
+        }
+        if let Some(target) = self.target(&m, corner) {
+            found.0.push(target);
+            if PIXELS {
+                found.1.push(
+                    pixels
+                        .iter()
+                        .map(|&k| {
+                            let (x, y) = self.position(key_index(k));
+                            (x as u32, y as u32)
+                        })
+                        .collect(),
                 );
             }
-            if let Some(target) = self.target(&m, corner) {
-                found.0.push(target);
-                if PIXELS {
-                    found.1.push(
-                        self.blob[start..end]
-                            .iter()
-                            .map(|&k| {
-                                let (x, y) = self.position(key_index(k));
-                                (x as u32, y as u32)
-                            })
-                            .collect(),
-                    );
-                }
-            }
-            start = end;
         }
     }
 
