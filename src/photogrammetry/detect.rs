@@ -77,7 +77,12 @@
 //! The image's own samples are read as they are (`u8` stays `u8`); the
 //! filter makes one pass over them with running sums, and everything after
 //! it costs in proportion to the pixels above the threshold, so a frame
-//! takes time linear in its pixels (`benches/detect.rs`). Filtered values
+//! takes time linear in its pixels (`benches/detect.rs`). The filter runs a
+//! row at a time, and blobs are found a few rows behind it while those
+//! rows are still in cache; most of the filter's test runs 32 pixels at a
+//! time in 32-bit arithmetic, which the compiler vectorises, and the
+//! background is subtracted a row at a time in the samples' own type.
+//! Filtered values
 //! are kept in 16-bit grey levels (8-bit values times 257), so the fraction
 //! of the subtracted mean survives in the centroid weights, and an 8-bit
 //! image and its 16-bit copy give the same targets. All of it is integer
@@ -97,7 +102,8 @@
 //! the filtered levels (2 bytes a pixel); the blob being measured, each
 //! pixel packed with its level in one `u64` that is the flood's queue,
 //! then sorted into flooding order, then re-keyed by particle (8 bytes a
-//! pixel above the threshold, reserved once); for a blob that is split, its
+//! pixel above the threshold, reserved as the filter goes, never more than
+//! 8 bytes a pixel filtered); for a blob that is split, its
 //! bounding box's map of regions (4 bytes a cell) and a union-find node and
 //! a particle number per local maximum (12 bytes; maxima are never
 //! 8-neighbours, so there is at most one per 2x2 pixels: 3 bytes a pixel).
@@ -448,6 +454,10 @@ trait Grey: Copy + Send + Sync {
     /// an 8-bit image and its 16-bit copy (times 257) have the same levels,
     /// so they give the same targets.
     const LEVEL_SCALE: u64;
+    /// The largest grey value.
+    const MAX_VALUE: u64;
+    /// Black.
+    const ZERO: Self;
     /// The grey value.
     fn value(self) -> u32;
     /// The grey value less the background's, saturating at 0, if `BG`;
@@ -455,26 +465,41 @@ trait Grey: Copy + Send + Sync {
     #[inline(always)]
     fn less<const BG: bool>(self, background: Self) -> u32 {
         if BG {
-            self.value().saturating_sub(background.value())
+            self.saturating_less(background).value()
         } else {
             self.value()
         }
     }
+    /// `self - other`, saturating at 0, in the sample's own type (one
+    /// vector instruction for many samples: `psubusb`/`psubusw`).
+    fn saturating_less(self, other: Self) -> Self;
 }
 
 impl Grey for u8 {
     const LEVEL_SCALE: u64 = 257;
+    const MAX_VALUE: u64 = 255;
+    const ZERO: Self = 0;
     #[inline(always)]
     fn value(self) -> u32 {
         u32::from(self)
+    }
+    #[inline(always)]
+    fn saturating_less(self, other: Self) -> Self {
+        self.saturating_sub(other)
     }
 }
 
 impl Grey for u16 {
     const LEVEL_SCALE: u64 = 1;
+    const MAX_VALUE: u64 = 65535;
+    const ZERO: Self = 0;
     #[inline(always)]
     fn value(self) -> u32 {
         u32::from(self)
+    }
+    #[inline(always)]
+    fn saturating_less(self, other: Self) -> Self {
+        self.saturating_sub(other)
     }
 }
 
@@ -483,9 +508,8 @@ impl Grey for u16 {
 /// `rows * columns` pixels. Writes the level of every pixel above the
 /// threshold into `out` and counts them in `above`.
 #[allow(clippy::too_many_arguments)]
-fn filter_row<G: Grey, const BG: bool>(
+fn filter_row<G: Grey>(
     row: &[G],
-    background: &[G],
     column_sums: &[u32],
     r: usize,
     rows: u64,
@@ -516,7 +540,7 @@ fn filter_row<G: Grey, const BG: bool>(
             s += u64::from(column_sums[x + r]);
         }
         let c = rows * columns(x);
-        let gc = u64::from(G::less::<BG>(row[x], background[x])) * c;
+        let gc = u64::from(row[x].value()) * c;
         if gc > s + threshold * c {
             keep(x, gc - s, c);
         }
@@ -528,22 +552,19 @@ fn filter_row<G: Grey, const BG: bool>(
     if interior_end > left_end {
         let c = rows * (2 * r + 1) as u64;
         let tc = threshold * c;
-        let entering = &column_sums[left_end + r..interior_end + r];
-        let leaving = &column_sums[left_end - r - 1..interior_end - r - 1];
-        let pixels = &row[left_end..interior_end];
-        let behind = &background[left_end..interior_end];
-        for (k, (((&enter, &leave), &g), &b)) in entering
-            .iter()
-            .zip(leaving)
-            .zip(pixels)
-            .zip(behind)
-            .enumerate()
-        {
-            // One add on the running sum's dependency chain, not two.
-            s = s.wrapping_add_signed(i64::from(enter) - i64::from(leave));
-            let gc = u64::from(G::less::<BG>(g, b)) * c;
-            if gc > s + tc {
+        let n = interior_end - left_end;
+        // Equal lengths, so that indexing needs no bounds checks; the
+        // background is not read unless `BG`.
+        let entering = &column_sums[left_end + r..][..n];
+        let leaving = &column_sums[left_end - r - 1..][..n];
+        let pixels = &row[left_end..][..n];
+        let mut k = 0;
+        while k < n {
+            k = next_above(entering, leaving, pixels, c, tc, &mut s, k);
+            if k < n {
+                let gc = u64::from(pixels[k].value()) * c;
                 keep(left_end + k, gc - s, c);
+                k += 1;
             }
         }
     }
@@ -556,12 +577,152 @@ fn filter_row<G: Grey, const BG: bool>(
             s -= u64::from(column_sums[x - r - 1]);
         }
         let c = rows * columns(x);
-        let gc = u64::from(G::less::<BG>(row[x], background[x])) * c;
+        let gc = u64::from(row[x].value()) * c;
         if gc > s + threshold * c {
             keep(x, gc - s, c);
         }
     }
 }
+
+/// [`filter_row`] in 32-bit arithmetic, for when `c (max grey + t)` is
+/// below 2^31 for the largest window `c` (8-bit images up to a radius of
+/// about 90 at the default threshold, 16-bit ones up to 6). The row's
+/// window sums come from a prefix sum of `column_sums` (into `prefix`, one
+/// more than the row's columns): the sum over columns `lo..hi` is
+/// `prefix[hi] - prefix[lo]`. Wrapping adds are exact, as every true window
+/// sum fits. Away from the edges every window has the same size, and the
+/// test runs over runs of [`NARROW_RUN`] pixels at once with no dependency
+/// from one pixel to the next, which the compiler vectorises; a run with a
+/// pixel above the threshold is then taken one pixel at a time.
+#[allow(clippy::too_many_arguments)]
+fn filter_row_narrow<G: Grey>(
+    row: &[G],
+    column_sums: &[u32],
+    prefix: &mut [u32],
+    r: usize,
+    rows: u32,
+    threshold: u32,
+    out: &mut [u16],
+    above: &mut usize,
+) {
+    let width = row.len();
+    let mut total = 0u32;
+    prefix[0] = 0;
+    for (p, &sum) in prefix[1..=width].iter_mut().zip(column_sums) {
+        total = total.wrapping_add(sum);
+        *p = total;
+    }
+    let prefix = &prefix[..=width];
+    let scale = G::LEVEL_SCALE;
+    let t = u64::from(threshold);
+    let mut keep = |x: usize, d: u32, c: u32| {
+        let (d, c) = (u64::from(d), u64::from(c));
+        let level = (2 * d * scale + c) / (2 * c);
+        out[x] = level.max(t * scale + 1).min(u64::from(u16::MAX)) as u16;
+        *above += 1;
+    };
+    // Edges: the window is clipped, so its size varies.
+    let interior = r.min(width)..width.saturating_sub(r).max(r.min(width));
+    for x in (0..interior.start).chain(interior.end..width) {
+        let (lo, hi) = (x.saturating_sub(r), (x + r).min(width - 1) + 1);
+        let s = prefix[hi].wrapping_sub(prefix[lo]);
+        let c = rows * (hi - lo) as u32;
+        let gc = row[x].value() * c;
+        if gc > s + threshold * c {
+            keep(x, gc - s, c);
+        }
+    }
+    // Interior: windows of `rows x (2r + 1)`.
+    let n = interior.len();
+    if n == 0 {
+        return;
+    }
+    let c = rows * (2 * r + 1) as u32;
+    let tc = threshold * c;
+    let upper = &prefix[interior.start + r + 1..][..n];
+    let lower = &prefix[interior.start - r..][..n];
+    let pixels = &row[interior.start..][..n];
+    let test = |k: usize| {
+        let gc = pixels[k].value() * c;
+        let s = upper[k].wrapping_sub(lower[k]);
+        (gc > s + tc, gc.wrapping_sub(s))
+    };
+    let mut start = 0;
+    while start < n {
+        let end = (start + NARROW_RUN).min(n);
+        if run_has_above(
+            &pixels[start..end],
+            &upper[start..end],
+            &lower[start..end],
+            c,
+            tc,
+        ) {
+            for k in start..end {
+                if let (true, d) = test(k) {
+                    keep(interior.start + k, d, c);
+                }
+            }
+        }
+        start = end;
+    }
+}
+
+/// Whether any pixel of a run is above the threshold: `g c > s + t c`
+/// with `s = upper - lower`, all in 32 bits (see [`filter_row_narrow`]).
+/// No pixel depends on another, and the result is one OR over the run, so
+/// the compiler vectorises it.
+#[inline(always)]
+fn run_has_above<G: Grey>(pixels: &[G], upper: &[u32], lower: &[u32], c: u32, tc: u32) -> bool {
+    let n = pixels.len();
+    let (upper, lower) = (&upper[..n], &lower[..n]);
+    let mut any = 0u32;
+    for k in 0..n {
+        let gc = pixels[k].value() * c;
+        let s = upper[k].wrapping_sub(lower[k]);
+        any |= u32::from(gc > s + tc);
+    }
+    any != 0
+}
+
+/// Pixels [`filter_row_narrow`] tests at once.
+const NARROW_RUN: usize = 32;
+
+/// The hot loop of [`filter_row`]'s interior: from pixel `k` on, slides the
+/// window sum `s` one column at a time (column `k`'s window gains
+/// `entering[k]` and loses `leaving[k]`) until a pixel's `g c` exceeds
+/// `s + t c`, and returns that pixel (or the row's end). Apart from the
+/// caller, so that everything it needs stays in registers: one add on the
+/// running sum's dependency chain, a multiply and a compare per pixel.
+#[allow(clippy::too_many_arguments)]
+#[inline(never)]
+fn next_above<G: Grey>(
+    entering: &[u32],
+    leaving: &[u32],
+    pixels: &[G],
+    c: u64,
+    tc: u64,
+    s: &mut u64,
+    mut k: usize,
+) -> usize {
+    let n = pixels.len();
+    // Equal lengths, so that indexing needs no bounds checks.
+    let (entering, leaving) = (&entering[..n], &leaving[..n]);
+    let mut sum = *s;
+    while k < n {
+        sum = sum.wrapping_add_signed(i64::from(entering[k]) - i64::from(leaving[k]));
+        if u64::from(pixels[k].value()) * c > sum + tc {
+            break;
+        }
+        k += 1;
+    }
+    *s = sum;
+    k
+}
+
+/// Rows between the last row [`HighPass`] has filtered and the last row in
+/// which [`Detector::run`] looks for blobs' first pixels: room for a
+/// particle image to end before the filter's frontier.
+const TRAIL: usize = 8;
 
 /// "No region / not yet visited" in the splitting step.
 const NONE: u32 = u32::MAX;
@@ -688,13 +849,255 @@ fn noise_mad<G: Grey, const BG: bool>(pixels: &[G], background: &[G], width: usi
     *differences.select_nth_unstable(middle).1
 }
 
+/// Splits pixel indices `y * width + x` into column and row without an
+/// integer division (tens of cycles, and the blob steps need a pixel's
+/// position several times): the row is the index times `1 / width` in
+/// `f64`, corrected by one where rounding put it on the wrong side of a row
+/// start. Indices are below 2^32 (a [`GreyImage`]'s limit), exact in `f64`,
+/// and the product's relative error (2^-52) is far below one row, so one
+/// correction step is always enough.
+#[derive(Clone, Copy, Debug)]
+struct Rows {
+    width: usize,
+    inverse: f64,
+}
+
+impl Rows {
+    fn new(width: usize) -> Rows {
+        Rows {
+            width,
+            inverse: 1.0 / width as f64,
+        }
+    }
+
+    #[inline(always)]
+    fn position(self, p: usize) -> (usize, usize) {
+        let mut y = (p as f64 * self.inverse) as usize;
+        if y * self.width > p {
+            y -= 1;
+        } else if (y + 1) * self.width <= p {
+            y += 1;
+        }
+        (p - y * self.width, y)
+    }
+}
+
+/// Row `row` of an image `width` pixels wide, less the background's if
+/// any, saturating at 0: the image's own row, or the difference written
+/// into `scratch` (one row long).
+fn subtracted_row<'s, G: Grey>(
+    pixels: &'s [G],
+    background: Option<&[G]>,
+    width: usize,
+    row: usize,
+    scratch: &'s mut [G],
+) -> &'s [G] {
+    let samples = &pixels[row * width..(row + 1) * width];
+    match background {
+        Some(background) => {
+            let behind = &background[row * width..(row + 1) * width];
+            for ((out, &g), &b) in scratch.iter_mut().zip(samples).zip(behind) {
+                *out = g.saturating_less(b);
+            }
+            &scratch[..width]
+        }
+        None => samples,
+    }
+}
+
+/// Steps 1 and 2, one row at a time: the high-pass filtered value of every
+/// pixel above the threshold, as its level, for [`Detector::run`] to find
+/// blobs in the rows done while the rows are still in cache.
+///
+/// For pixel value `g`, window sum `s` and window size `c` the filtered
+/// value is `g - s / c`; the test `g - s/c > t` is done exactly as
+/// `g c > s + t c` in integers, and only pixels that pass are divided. The
+/// level is the filtered value in 16-bit grey levels, rounded and kept above
+/// the threshold, so every blob pixel has a weight of at least 1. The
+/// background, if any, is subtracted a row at a time (saturating at 0) into
+/// three rows of scratch (the rows entering and leaving the window and the
+/// row being filtered), one vector instruction for many samples; no copy of
+/// the image is made. Masked-out pixels are never above the threshold (they
+/// still count in their neighbours' background means).
+struct HighPass<'a, G: Grey> {
+    pixels: &'a [G],
+    background: Option<&'a [G]>,
+    mask: Option<&'a Mask>,
+    width: usize,
+    height: usize,
+    r: usize,
+    threshold: u64,
+    /// 32-bit arithmetic: every sum and product fits (see
+    /// [`filter_row_narrow`]).
+    narrow: bool,
+    /// Window sums of each column over the rows of the current window.
+    column_sums: Vec<u32>,
+    /// [`filter_row_narrow`]'s prefix sums (`width + 1`), if narrow.
+    prefix: Vec<u32>,
+    /// Rows less the background (empty without one).
+    entering: Vec<G>,
+    leaving: Vec<G>,
+    current: Vec<G>,
+    /// The next row to filter.
+    next: usize,
+}
+
+impl<'a, G: Grey> HighPass<'a, G> {
+    fn new(detector: &Detector<'a, G>) -> Self {
+        let (width, height) = (detector.width, detector.height);
+        let threshold = u64::from(detector.parameters.threshold);
+        let r = detector.parameters.highpass_radius.min(MAX_HIGHPASS_RADIUS) as usize;
+        let window = ((2 * r + 1).min(height) * (2 * r + 1).min(width)) as u64;
+        let narrow = r > 0
+            && window
+                .checked_mul(G::MAX_VALUE + threshold)
+                .is_some_and(|m| m < 1 << 31);
+        let scratch = if detector.background.is_some() {
+            width
+        } else {
+            0
+        };
+        let mut filter = HighPass {
+            pixels: detector.pixels,
+            background: detector.background,
+            mask: detector.mask,
+            width,
+            height,
+            r,
+            threshold,
+            narrow,
+            column_sums: vec![0; if r > 0 { width } else { 0 }],
+            prefix: vec![0; if narrow { width + 1 } else { 0 }],
+            entering: vec![G::ZERO; scratch],
+            leaving: vec![G::ZERO; scratch],
+            current: vec![G::ZERO; scratch],
+            next: 0,
+        };
+        if r > 0 {
+            for row in 0..r.min(height) {
+                let row = subtracted_row(
+                    filter.pixels,
+                    filter.background,
+                    width,
+                    row,
+                    &mut filter.entering,
+                );
+                for (sum, &g) in filter.column_sums.iter_mut().zip(row) {
+                    *sum += g.value();
+                }
+            }
+        }
+        filter
+    }
+
+    /// Row `row` less the background's, if any (then in `scratch`).
+    fn row(&mut self, row: usize, scratch: Scratch) -> &[G] {
+        let scratch = match scratch {
+            Scratch::Entering => &mut self.entering,
+            Scratch::Leaving => &mut self.leaving,
+            Scratch::Current => &mut self.current,
+        };
+        subtracted_row(self.pixels, self.background, self.width, row, scratch)
+    }
+
+    /// Filters the next row into its part of `levels` (the whole image's,
+    /// 0 where below the threshold), counts its pixels above the threshold
+    /// in `above`, and returns the row; `None` once all rows are done.
+    fn next_row(&mut self, levels: &mut [u16], above: &mut usize) -> Option<usize> {
+        let (y, width, height, r) = (self.next, self.width, self.height, self.r);
+        if y >= height {
+            return None;
+        }
+        self.next += 1;
+        let out = &mut levels[y * width..(y + 1) * width];
+        let before = *above;
+        if r == 0 {
+            let threshold = self.threshold;
+            let row = self.row(y, Scratch::Current);
+            for (level, &g) in out.iter_mut().zip(row) {
+                if u64::from(g.value()) > threshold {
+                    *level = (u64::from(g.value()) * G::LEVEL_SCALE) as u16;
+                    *above += 1;
+                }
+            }
+        } else {
+            // Row y + r enters the window and row y - r - 1 leaves it; one
+            // pass over the sums when both happen (the compiler vectorises
+            // these loops; the sums never go below 0, so wrapping is exact).
+            let mut sums = std::mem::take(&mut self.column_sums);
+            match (y + r < height, y > r) {
+                (true, true) => {
+                    // Two scratch rows at once: the fields, not `row`.
+                    let (pixels, background) = (self.pixels, self.background);
+                    let new = subtracted_row(pixels, background, width, y + r, &mut self.entering);
+                    let old =
+                        subtracted_row(pixels, background, width, y - r - 1, &mut self.leaving);
+                    for ((sum, &new), &old) in sums.iter_mut().zip(new).zip(old) {
+                        *sum = sum.wrapping_add(new.value()).wrapping_sub(old.value());
+                    }
+                }
+                (true, false) => {
+                    for (sum, &g) in sums.iter_mut().zip(self.row(y + r, Scratch::Entering)) {
+                        *sum += g.value();
+                    }
+                }
+                (false, true) => {
+                    for (sum, &g) in sums.iter_mut().zip(self.row(y - r - 1, Scratch::Leaving)) {
+                        *sum -= g.value();
+                    }
+                }
+                (false, false) => {}
+            }
+            let rows = ((y + r).min(height - 1) - y.saturating_sub(r) + 1) as u64;
+            let threshold = self.threshold;
+            let (narrow, mut prefix) = (self.narrow, std::mem::take(&mut self.prefix));
+            let row = self.row(y, Scratch::Current);
+            if narrow {
+                filter_row_narrow(
+                    row,
+                    &sums,
+                    &mut prefix,
+                    r,
+                    rows as u32,
+                    threshold as u32,
+                    out,
+                    above,
+                );
+            } else {
+                filter_row(row, &sums, r, rows, threshold, out, above);
+            }
+            self.prefix = prefix;
+            self.column_sums = sums;
+        }
+        if let Some(mask) = self.mask {
+            if *above > before {
+                for (x, level) in out.iter_mut().enumerate() {
+                    if *level != 0 && !mask.uses(y * width + x) {
+                        *level = 0;
+                        *above -= 1;
+                    }
+                }
+            }
+        }
+        Some(y)
+    }
+}
+
+/// Which of [`HighPass`]'s scratch rows a row is subtracted into.
+#[derive(Clone, Copy)]
+enum Scratch {
+    Entering,
+    Leaving,
+    Current,
+}
+
 /// Targets, and when asked for, each one's pixels (else no vectors at all).
 type Found = (Vec<Target>, Vec<Vec<(u32, u32)>>);
 
 /// One frame's detection, with the scratch space it reuses from blob to
 /// blob. Its memory is bounded per pixel of the image whatever the image
 /// holds (see the module's "Memory" section): `levels` (2 bytes a pixel),
-/// `blob` (8 bytes a pixel above the threshold, reserved once), `grid` (4
+/// `blob` (8 bytes a pixel above the threshold; see `reserve_blob`), `grid` (4
 /// bytes a cell of the largest split blob's bounding box), `regions` and
 /// `slot` (12 bytes a local maximum of the largest split blob; maxima are
 /// never 8-neighbours, so at most one per 2x2 cells of its bounding box).
@@ -702,6 +1105,8 @@ struct Detector<'a, G: Grey> {
     pixels: &'a [G],
     width: usize,
     height: usize,
+    /// Pixel index to column and row, without a division.
+    rows: Rows,
     parameters: &'a DetectionParameters,
     /// Subtracted from the pixels before the filter, if any.
     background: Option<&'a [G]>,
@@ -739,6 +1144,7 @@ impl<'a, G: Grey> Detector<'a, G> {
             pixels,
             width,
             height,
+            rows: Rows::new(width),
             parameters,
             background: None,
             mask: None,
@@ -752,121 +1158,130 @@ impl<'a, G: Grey> Detector<'a, G> {
         }
     }
 
+    /// Filters the image row by row ([`HighPass`]) and finds, splits and
+    /// measures the blobs in the rows filtered so far, [`TRAIL`] rows
+    /// behind the filter, while those rows are still in cache. A blob that
+    /// reaches the last filtered row may go on below it: the search pauses
+    /// there and tries that blob again once the filter has gone twice as far
+    /// below the blob's first row (so a tall blob is flooded at most a few
+    /// times, in total less than twice its size), and after the last row
+    /// every blob is complete. Blobs are independent of one another, so the
+    /// targets do not depend on when their blob is measured.
     fn run<const PIXELS: bool>(mut self) -> Found {
-        self.highpass_threshold();
-        // The blob never holds more than the pixels above the threshold:
-        // reserved once, exactly, it never grows.
-        self.blob.reserve_exact(self.above);
+        let (width, height) = (self.width, self.height);
+        self.levels = vec![0; width * height];
+        self.above = 0;
+        let mut filter = HighPass::new(&self);
         let mut found = (Vec::new(), Vec::new());
-        // Blobs in raster order of their first pixel.
-        for seed in 0..self.levels.len() {
-            if self.levels[seed] == 0 {
-                continue; // below the threshold, or part of an earlier blob
-            }
-            self.flood(seed);
-            self.measure_blob::<PIXELS>(&mut found);
-            for &k in &self.blob {
-                self.levels[key_index(k)] = 0;
+        // The next pixel that may be a blob's first, in raster order.
+        let mut scan = 0;
+        // The search waits until this row is filtered.
+        let mut resume = TRAIL;
+        while let Some(y) = filter.next_row(&mut self.levels, &mut self.above) {
+            if y + 1 < height && y >= resume {
+                let end = (y + 1 - TRAIL) * width;
+                if let Some(first_row) =
+                    self.find_blobs::<PIXELS>(&mut scan, end, Some(y), &mut found)
+                {
+                    resume = y + (y - first_row) + 1;
+                }
             }
         }
+        self.find_blobs::<PIXELS>(&mut scan, width * height, None, &mut found);
         found
     }
 
-    /// Steps 1 and 2: fills `levels` with the high-pass filtered value of
-    /// every pixel above the threshold and counts them in `above`.
-    ///
-    /// For pixel value `g`, window sum `s` and window size `c` the filtered
-    /// value is `g - s / c`; the test `g - s/c > t` is done exactly as
-    /// `g c > s + t c` in integers, and only pixels that pass are divided.
-    /// The level is the filtered value in 16-bit grey levels, rounded and
-    /// kept above the threshold, so every blob pixel has a weight of at
-    /// least 1.
-    fn highpass_threshold(&mut self) {
-        match self.background {
-            Some(background) => self.highpass_threshold_of::<true>(background),
-            None => self.highpass_threshold_of::<false>(self.pixels),
-        }
-        if let Some(mask) = self.mask {
-            // Masked-out pixels are never above the threshold (they still
-            // count in their neighbours' background means).
-            for (i, level) in self.levels.iter_mut().enumerate() {
-                if *level != 0 && !mask.uses(i) {
-                    *level = 0;
-                    self.above -= 1;
+    /// Finds the blobs whose first pixel (in raster order) is at `*scan`
+    /// or after and before `end`, and measures each; `*scan` follows. With
+    /// `frontier`, the last row filtered so far, a blob that reaches it is
+    /// left for later: the search stops at its first pixel and returns its
+    /// row.
+    fn find_blobs<const PIXELS: bool>(
+        &mut self,
+        scan: &mut usize,
+        end: usize,
+        frontier: Option<usize>,
+        found: &mut Found,
+    ) -> Option<usize> {
+        // Most of the image is below the threshold: runs of `CHUNK` levels
+        // are skipped at once when all are 0 (an OR the compiler
+        // vectorises).
+        const CHUNK: usize = 32;
+        while *scan < end {
+            let start = *scan;
+            let stop = (start + CHUNK).min(end);
+            if self.levels[start..stop].iter().fold(0, |any, &l| any | l) == 0 {
+                *scan = stop;
+                continue;
+            }
+            for seed in start..stop {
+                if self.levels[seed] == 0 {
+                    continue; // below the threshold, or part of an earlier blob
+                }
+                self.reserve_blob(frontier);
+                let last = self.flood(seed);
+                if let Some(frontier) = frontier {
+                    if last >= frontier * self.width {
+                        *scan = seed;
+                        return Some(self.position(seed).1);
+                    }
+                }
+                self.measure_blob::<PIXELS>(found);
+                for &k in &self.blob {
+                    self.levels[key_index(k)] = 0;
                 }
             }
+            *scan = stop;
         }
+        None
     }
 
-    /// [`Detector::highpass_threshold`] of the image less `background` if
-    /// `BG` (saturating at 0, as the samples are read: no copy of the image
-    /// is made), else of the image (`background` is then not read).
-    fn highpass_threshold_of<const BG: bool>(&mut self, background: &[G]) {
-        let (width, height) = (self.width, self.height);
-        let threshold = u64::from(self.parameters.threshold);
-        self.levels = vec![0; width * height];
-        self.above = 0;
-        let levels = &mut self.levels;
-        let above = &mut self.above;
-        let pixels = self.pixels;
-        let r = self.parameters.highpass_radius.min(MAX_HIGHPASS_RADIUS) as usize;
-        if r == 0 {
-            for (i, (&g, &b)) in pixels.iter().zip(background).enumerate() {
-                let g = G::less::<BG>(g, b);
-                if u64::from(g) > threshold {
-                    levels[i] = (u64::from(g) * G::LEVEL_SCALE) as u16;
-                    *above += 1;
-                }
-            }
+    /// Makes room in `blob` for every pixel above the threshold so far (a
+    /// blob never holds more), so that the flood never reallocates. While
+    /// rows are still being filtered (`frontier`, the last one) the room
+    /// doubles, but never beyond the pixels filtered; then it is exact. The
+    /// old room is freed before the new is taken: the blob is at most 8
+    /// bytes a pixel of the image, never twice that.
+    fn reserve_blob(&mut self, frontier: Option<usize>) {
+        if self.blob.capacity() >= self.above {
             return;
         }
-        // Window sums of each column over the rows of the current window.
-        let mut column_sums = vec![0u32; width];
-        let row_of = |row: usize| {
-            (
-                &pixels[row * width..(row + 1) * width],
-                &background[row * width..(row + 1) * width],
-            )
+        let room = match frontier {
+            Some(row) => (2 * self.blob.capacity())
+                .max(self.above)
+                .min((row + 1) * self.width),
+            None => self.above,
         };
-        let add_row = |sums: &mut [u32], row: usize| {
-            let (row, behind) = row_of(row);
-            for ((sum, &g), &b) in sums.iter_mut().zip(row).zip(behind) {
-                *sum += G::less::<BG>(g, b);
-            }
-        };
-        for row in 0..r.min(height) {
-            add_row(&mut column_sums, row);
-        }
-        for y in 0..height {
-            if y + r < height {
-                add_row(&mut column_sums, y + r);
-            }
-            if y > r {
-                let (row, behind) = row_of(y - r - 1);
-                for ((sum, &g), &b) in column_sums.iter_mut().zip(row).zip(behind) {
-                    *sum -= G::less::<BG>(g, b);
-                }
-            }
-            let rows = ((y + r).min(height - 1) - y.saturating_sub(r) + 1) as u64;
-            let (row, behind) = row_of(y);
-            let out = &mut levels[y * width..(y + 1) * width];
-            filter_row::<G, BG>(row, behind, &column_sums, r, rows, threshold, out, above);
-        }
+        self.blob = Vec::new();
+        self.blob.reserve_exact(room);
+    }
+
+    /// Steps 1 and 2 for the whole image at once: fills `levels` and
+    /// `above` (see [`HighPass`]).
+    #[cfg(test)]
+    fn highpass_threshold(&mut self) {
+        self.levels = vec![0; self.width * self.height];
+        self.above = 0;
+        let mut filter = HighPass::new(self);
+        while filter.next_row(&mut self.levels, &mut self.above).is_some() {}
     }
 
     /// Collects the 8-connected blob of `seed` into `blob`, breadth first
-    /// with `blob` itself as the queue. Pixels are taken out of `levels`
-    /// while it runs (so none is taken twice) and put back at the end, for
-    /// the measuring step to read.
-    fn flood(&mut self, seed: usize) {
+    /// with `blob` itself as the queue, and returns its last pixel (the
+    /// largest index). Pixels are taken out of `levels` while it runs (so
+    /// none is taken twice) and put back at the end, for the measuring step
+    /// to read.
+    fn flood(&mut self, seed: usize) -> usize {
         let (width, height) = (self.width, self.height);
         self.blob.clear();
         self.take(seed);
         let mut head = 0;
+        let mut last = seed;
         while head < self.blob.len() {
             let p = key_index(self.blob[head]);
             head += 1;
-            let (x, y) = (p % width, p / width);
+            last = last.max(p);
+            let (x, y) = self.position(p);
             if x > 0 && y > 0 && x + 1 < width && y + 1 < height {
                 // Away from the border: the eight neighbours by offset.
                 for q in [
@@ -892,6 +1307,7 @@ impl<'a, G: Grey> Detector<'a, G> {
         for &k in &self.blob {
             self.levels[key_index(k)] = key_level(k);
         }
+        last
     }
 
     /// Moves pixel `q` into the blob if it is above the threshold and not
@@ -906,10 +1322,10 @@ impl<'a, G: Grey> Detector<'a, G> {
         }
     }
 
-    /// Column and row of pixel index `p`.
+    /// Column and row of pixel index `p` (see [`Rows`]).
     #[inline(always)]
     fn position(&self, p: usize) -> (usize, usize) {
-        (p % self.width, p / self.width)
+        self.rows.position(p)
     }
 
     /// Steps 3 and 4 for the blob in `blob`: splits it, measures each
@@ -1291,6 +1707,82 @@ mod tests {
                 assert_eq!(got, expected, "{width}x{height}, r {r}, max {max}");
             }
         }
+    }
+
+    /// The 32-bit row filter is the 64-bit one wherever it is used: on
+    /// random rows and column sums within its range, both give the same
+    /// levels (`highpass_matches_its_definition` reaches the 64-bit one only
+    /// with windows too large to check pixel by pixel).
+    #[test]
+    fn the_narrow_row_filter_is_the_wide_one() {
+        let mut rng = rng(12);
+        for _ in 0..300 {
+            let width = rng.random_range(1..80usize);
+            let r = rng.random_range(1..12usize);
+            let rows = rng.random_range(1..=(2 * r + 1)) as u64;
+            let max: u16 = if rng.random_bool(0.5) { 255 } else { 4095 };
+            let threshold = u64::from(rng.random_range(0..max / 4));
+            let row: Vec<u16> = (0..width).map(|_| rng.random_range(0..=max)).collect();
+            let sums: Vec<u32> = (0..width)
+                .map(|_| rng.random_range(0..=rows as u32 * u32::from(max)))
+                .collect();
+            let mut wide = vec![0u16; width];
+            let mut narrow = vec![0u16; width];
+            let (mut above_wide, mut above_narrow) = (0, 0);
+            filter_row(&row, &sums, r, rows, threshold, &mut wide, &mut above_wide);
+            let mut prefix = vec![0u32; width + 1];
+            filter_row_narrow(
+                &row,
+                &sums,
+                &mut prefix,
+                r,
+                rows as u32,
+                threshold as u32,
+                &mut narrow,
+                &mut above_narrow,
+            );
+            assert_eq!(narrow, wide, "width {width}, r {r}, rows {rows}");
+            assert_eq!(above_narrow, above_wide);
+        }
+    }
+
+    /// Blobs are searched for while the filter is still running, a few
+    /// rows behind it: a blob far taller than that gap (here 300 rows, and
+    /// a second one beside it, and particles below) is still found whole,
+    /// and once.
+    #[test]
+    fn a_blob_taller_than_the_filter_lead_is_found_whole() {
+        let (width, height) = (40usize, 400usize);
+        let mut pixels = vec![0u8; width * height];
+        for y in 20..320 {
+            for x in 10..13 {
+                pixels[y * width + x] = 200;
+            }
+            // A second bar, starting lower and leaning right, then a spot.
+            if y >= 30 {
+                pixels[y * width + 25 + (y - 30) / 100] = 150;
+            }
+        }
+        for (x, y) in [(5, 350), (30, 380)] {
+            pixels[y * width + x] = 120;
+        }
+        let image = GreyImage::from_u8(width as u32, height as u32, pixels).unwrap();
+        let parameters = DetectionParameters {
+            highpass_radius: 0,
+            min_pixels: 1,
+            max_pixels: 10_000,
+            max_nx: 100,
+            max_ny: 1000,
+            split: false,
+            ..DetectionParameters::default()
+        };
+        let targets = detect(&image, &parameters);
+        let sizes: Vec<(u32, u32)> = targets.iter().map(|t| (t.n, t.ny)).collect();
+        assert_eq!(
+            sizes,
+            [(900, 300), (290, 290), (1, 1), (1, 1)],
+            "{targets:?}"
+        );
     }
 
     fn image(width: u32, rows: &[&[u8]]) -> GreyImage {
