@@ -80,7 +80,8 @@ pub struct DetectionFlags {
     pub min_sumg: u64,
     /// How far (grey levels) the fainter of two touching particles' maxima
     /// must rise above the saddle between them to be split off (OpenPTV's
-    /// `discont`). Without it, the automatic rule: the rise must exceed a
+    /// `discont`; with it, as in OpenPTV, pixels that touch only at a
+    /// corner are not joined). Without it, the automatic rule: the rise must exceed a
     /// third of the maximum's height above the threshold and 3 times the
     /// image's noise level.
     #[arg(long, value_name = "D")]

@@ -4,10 +4,12 @@
 //! 25-pixel high-pass (`golden/test_cavity_recording/`).
 //!
 //! **The experiment's parameters in our terms**: thresholds 9/9/9/11,
-//! `discont` 100 as `split_depth` 100 (both: the rise of a fainter maximum
+//! `discont` 100 as `split_depth` 100 (for us the rise of a fainter maximum
 //! above the saddle that joins it to a brighter one, in grey levels, below
-//! which the two stay one target), 4..500 pixels, extent 2..100 in x and y,
-//! sum of grey >= 150. OpenPTV's high-pass subtracts a box average of
+//! which the two stay one target; and, as in OpenPTV's `targ_rec`, blobs
+//! of pixels joined by an edge, not a corner: `detect.rs`, "OpenPTV's
+//! segmentation"), 4..500 pixels, extent 2..100 in x and y, sum of
+//! grey >= 150. OpenPTV's high-pass subtracts a box average of
 //! `dim_lp = 25` pixels on each side of the pixel (liboptv's
 //! `fast_box_blur`: a `(2·25+1)²` window), which is our `highpass_radius`
 //! 25.
@@ -21,6 +23,18 @@
 //! is found when the other has one within 0.5 px; targets whose bounding box
 //! may touch the border are left out (OpenPTV keeps border-touching
 //! targets, we drop them).
+//!
+//! **Agreement** (measured): counts within 3% of OpenPTV's on every image
+//! (0.971..1.016); 88.4% of OpenPTV's targets found within 0.5 px over the
+//! 16 images and 88.7% of ours, per image 85.0..93.4% both ways (camera 1
+//! 90.5-93.4%, 2 85.0-87.1%, 3 85.3-87.5%, 4 89.3-91.0%): issue 13's goal
+//! of 85% is reached on every image. With 8-connected blobs it was 82.7%
+//! (79-88% per image). What is left: most of the misses are targets of
+//! ours holding one of theirs and more pixels, which `targ_rec` parts by
+//! the raster order of its growth (see `detect.rs`); about 1% of theirs
+//! are targets whose sum of grey passes OpenPTV's 150 only on its
+//! filtered values, which truncate the subtracted mean (up to one grey
+//! level more per pixel).
 //!
 //! Run with `cargo test --test photogrammetry real_recording -- --nocapture`
 //! to see the figures; `examples/detection_report.rs` prints the full table.
@@ -116,30 +130,32 @@ fn experiment_parameters_reproduce_openptv_targets() {
     } in agreements(experiment_parameters)
     {
         // The pixel convention: a half-pixel difference would show here.
-        // Today |mean| <= 0.013 px; most pairs (83-92%) take part.
+        // Today |mean| <= 0.018 px; most pairs (88-95%) take part.
         assert!(
             one.mean_dx.abs() < 0.05 && one.mean_dy.abs() < 0.05 && one.theirs_share() > 0.75,
             "cam{camera}.{frame}: {one:?}"
         );
-        // Issue 13's goal, met on every image (today within 3.5%).
+        // Issue 13's goal, met on every image (today within 3%).
         assert!(
             (a.count_ratio() - 1.0).abs() <= 0.1,
             "cam{camera}.{frame}: {a:?}"
         );
-        // Issue 13's goal is 85% both ways. TODAY'S LEVEL, NOT THE GOAL:
-        // camera 1 reaches 86-88%, cameras 2-4 79-85% (lowest 78.7%). The
-        // floor of 75% keeps a margin for the detector's tuning in
-        // progress (which moves centroids by hundredths of a pixel, enough
-        // to carry a few percent across the 0.5 px radius) while a real
-        // regression (a half-pixel shift leaves about 1%) fails.
-        assert!(a.theirs_share() >= 0.75, "cam{camera}.{frame}: {a:?}");
-        assert!(a.ours_share() >= 0.75, "cam{camera}.{frame}: {a:?}");
+        // Issue 13's goal is 85% both ways, REACHED on every image: today
+        // 85.0-93.4% (lowest cam2.10001 and cam2.10004, 85.0%). Asserted
+        // with a margin of 2 points, 83%, for the detector's work in
+        // progress (centroid options, a faster flood), which moves
+        // centroids by hundredths of a pixel, enough to carry a few
+        // targets across the 0.5 px radius; the 8-connected blobs of before
+        // (79-88%) fail it, a half-pixel shift (about 1%) too.
+        assert!(a.theirs_share() >= 0.83, "cam{camera}.{frame}: {a:?}");
+        assert!(a.ours_share() >= 0.83, "cam{camera}.{frame}: {a:?}");
         found += a.theirs_found;
         scored += a.theirs_scored;
     }
-    // Today 82.7% over the 16 images.
+    // Today 88.4% over the 16 images (82.7% with 8-connected blobs); the
+    // same 2-point margin.
     let share = found as f64 / scored as f64;
-    assert!(share >= 0.8, "{share}");
+    assert!(share >= 0.864, "{share}");
 }
 
 #[test]
