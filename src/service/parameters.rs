@@ -413,6 +413,25 @@ mod tests {
     }
 
     #[test]
+    fn the_centroid_is_weighted_unless_asked_for_and_stored_once_filled_in() {
+        let unset: DetectionSettings = serde_json::from_str("{}").unwrap();
+        assert_eq!(unset.parameters().centroid, Centroid::Weighted);
+        assert_eq!(unset.with_defaults().centroid, Some(Centroid::Weighted));
+        let gaussian: DetectionSettings =
+            serde_json::from_str(r#"{"centroid": "gaussian"}"#).unwrap();
+        assert_eq!(gaussian.parameters().centroid, Centroid::Gaussian);
+        let json = serde_json::to_value(gaussian.with_defaults()).unwrap();
+        assert_eq!(json["centroid"], "gaussian");
+        let error = serde_json::from_str::<DetectionSettings>(r#"{"centroid": "fit"}"#)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            error.contains("unknown variant `fit`, expected `weighted` or `gaussian`"),
+            "{error}"
+        );
+    }
+
+    #[test]
     fn parameters_stored_before_the_new_fields_still_read() {
         // A sequence's stored JSON as it was written before the extent
         // bounds, the split rule and per-camera thresholds existed.
