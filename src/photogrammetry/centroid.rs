@@ -103,7 +103,7 @@
 //! instead of 0.026 (0.024 instead of 0.021 at 2.5 px, 6% of the axes);
 //! each neighbour's own window mean instead of the peak's changes nothing
 //! measurable. With the neighbours below the threshold, the fallback
-//! applies on 0.2% of the axes at 2 px and none from 3 px.
+//! applies on 0.2% of the axes at 2 px and on none from 2.5 px.
 //!
 //! Cost: one more pass over each particle's pixels for its peak, four
 //! samples and four logarithms; about 0.2 ms on a 1280x1024 8-bit frame of
