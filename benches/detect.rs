@@ -14,7 +14,8 @@ use criterion::{criterion_group, criterion_main, Criterion, Throughput};
 use nalgebra::Point2;
 use ptv::photogrammetry::simulate::{self, RenderSpec};
 use ptv::photogrammetry::{
-    detect, detect_cameras, detect_preprocessed, DetectionParameters, GreyImage, Preprocessing,
+    detect, detect_cameras, detect_preprocessed, Centroid, DetectionParameters, GreyImage,
+    Preprocessing,
 };
 use rand::Rng;
 
@@ -49,6 +50,13 @@ fn single_frame(c: &mut Criterion) {
     };
     group.bench_function("8-bit, no splitting", |b| {
         b.iter(|| black_box(detect(black_box(&eight), &plain)))
+    });
+    let gaussian = DetectionParameters {
+        centroid: Centroid::Gaussian,
+        ..parameters.clone()
+    };
+    group.bench_function("8-bit, gaussian centroid", |b| {
+        b.iter(|| black_box(detect(black_box(&eight), &gaussian)))
     });
     let sixteen = frame(&RenderSpec::sixteen_bit(2.5), 1);
     let parameters16 = DetectionParameters {

@@ -30,6 +30,8 @@
 //!   their check against a camera's sensor.
 //! - [`detect`](mod@photogrammetry::detect): the particle images (targets)
 //!   in one image (section 6.1).
+//! - [`centroid`](photogrammetry::centroid): a target's sub-pixel position,
+//!   the weighted centroid or a 3-point Gaussian fit per axis.
 //! - [`correspond`](photogrammetry::correspond): which targets in 2..N
 //!   cameras belong to one particle, by epipolar geometry through the walls
 //!   (section 6.2), and the particles' 3D positions.

@@ -17,7 +17,7 @@ use clap::{Args, ValueEnum};
 use super::{write_stderr_line, write_stdout, CliError};
 use crate::formats::{self, image::RawLayout};
 use crate::photogrammetry::{
-    detect_preprocessed, BitDepth, DetectionParameters, GreyImage, Mask, PreprocessError,
+    detect_preprocessed, BitDepth, Centroid, DetectionParameters, GreyImage, Mask, PreprocessError,
     Preprocessing,
 };
 
@@ -89,6 +89,30 @@ pub struct DetectionFlags {
     /// Do not split blobs of overlapping particles: one target per blob.
     #[arg(long)]
     pub no_split: bool,
+    /// How a target's position is estimated: `weighted`, the grey value
+    /// weighted centroid (OpenPTV's), or `gaussian`, a 3-point Gaussian fit
+    /// per axis around the brightest pixel (the weighted centroid on an
+    /// axis where it does not apply).
+    #[arg(long, value_name = "METHOD", value_enum, default_value_t = CentroidFlag::Weighted)]
+    pub centroid: CentroidFlag,
+}
+
+/// `--centroid`'s values, as [`Centroid`]'s.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum CentroidFlag {
+    /// The grey value weighted centroid.
+    Weighted,
+    /// The 3-point Gaussian fit per axis.
+    Gaussian,
+}
+
+impl From<CentroidFlag> for Centroid {
+    fn from(flag: CentroidFlag) -> Centroid {
+        match flag {
+            CentroidFlag::Weighted => Centroid::Weighted,
+            CentroidFlag::Gaussian => Centroid::Gaussian,
+        }
+    }
 }
 
 /// The layout of raw images, which have no header to say it; shared by
@@ -124,6 +148,7 @@ impl DetectionFlags {
             min_sumg: self.min_sumg,
             split: !self.no_split,
             split_depth: self.split_depth,
+            centroid: self.centroid.into(),
             ..defaults
         }
     }

@@ -56,8 +56,8 @@ use super::frames::{FramePattern, WithoutNumber};
 use super::{calibration, openptv, FormatError};
 use crate::photogrammetry::correspond::MatchingParameters;
 use crate::photogrammetry::{
-    Camera, CameraParameters, DetectionParameters, Distortion, Media, Sensor, Splitter, Volume,
-    Wall,
+    Camera, CameraParameters, Centroid, DetectionParameters, Distortion, Media, Sensor, Splitter,
+    Volume, Wall,
 };
 
 /// The high-pass radius `hp_flag` stands for: liboptv's
@@ -1024,6 +1024,8 @@ fn map(
         min_sumg: range("targ_rec.sumg_min", t.sumg_min, i64::MAX)? as u64,
         split: true,
         split_depth: Some(range("targ_rec.disco", t.disco, u16_max)? as u16),
+        // OpenPTV's targ_rec: the grey value weighted centroid.
+        centroid: Centroid::Weighted,
     };
     let mut detection = Vec::with_capacity(n);
     for (i, &threshold) in t.gvthres.iter().take(n).enumerate() {

@@ -102,7 +102,11 @@
 //!    crosses it moves the centroid continuously). Filters on pixel count,
 //!    extent and sum of grey values follow, and targets touching the image
 //!    border are dropped (their centroid is cut off). `sumg` is the sum of
-//!    the filtered grey values, in the image's grey levels.
+//!    the filtered grey values, in the image's grey levels. With
+//!    [`DetectionParameters::centroid`] [`Centroid::Gaussian`] the position
+//!    is instead a 3-point Gaussian fit per axis around the particle's
+//!    brightest pixel, falling back on the weighted centroid per axis where
+//!    it does not apply ([`super::centroid`]).
 //!
 //! Coordinates follow the camera model ([`super::camera`]): pixel (column
 //! `i`, row `j`) has its centre at (`i + 0.5`, `j + 0.5`). OpenPTV's
@@ -157,6 +161,7 @@
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
+use super::centroid::{self, Centroid, PeakSamples};
 use super::image::{GreyImage, GreyPixels, Mask};
 use super::target::Target;
 
@@ -219,6 +224,10 @@ pub struct DetectionParameters {
     /// threshold and [`AUTO_SPLIT_NOISE`] times the image's noise level
     /// (see the module documentation).
     pub split_depth: Option<u16>,
+    /// How a target's position is estimated from its pixels: the weighted
+    /// centroid (the default, OpenPTV's) or a Gaussian fit
+    /// ([`super::centroid`]).
+    pub centroid: Centroid,
 }
 
 impl Default for DetectionParameters {
@@ -235,6 +244,7 @@ impl Default for DetectionParameters {
             min_sumg: 0,
             split: true,
             split_depth: None,
+            centroid: Centroid::Weighted,
         }
     }
 }
@@ -1456,7 +1466,7 @@ impl<'a, G: Grey> Detector<'a, G> {
         threshold: u32,
         found: &mut Found,
     ) {
-        let pixels = &self.blob[range];
+        let pixels = &self.blob[range.clone()];
         let mut m = Moments::new();
         for &k in pixels {
             let p = key_index(k);
@@ -1467,7 +1477,11 @@ impl<'a, G: Grey> Detector<'a, G> {
                 threshold,
             );
         }
-        if let Some(target) = self.target(&m, corner) {
+        if let Some(mut target) = self.target(&m, corner) {
+            if self.parameters.centroid == Centroid::Gaussian {
+                let samples = self.peak_samples(pixels, range.len() == self.blob.len());
+                (target.x, target.y) = centroid::gaussian_centre(&samples, (target.x, target.y));
+            }
             found.0.push(target);
             if PIXELS {
                 found.1.push(
@@ -1690,6 +1704,46 @@ impl<'a, G: Grey> Detector<'a, G> {
             ny,
             sumg,
         })
+    }
+
+    /// The Gaussian centroid's samples ([`super::centroid`]) of the
+    /// particle whose keys are `pixels`: its brightest pixel (the first in
+    /// raster order of equal ones) and the four beside it, each relative to
+    /// the peak's window mean (its level less the difference of the raw
+    /// samples). A neighbour is usable if it is inside the image and the
+    /// mask, and is not another particle's: with `whole` the particle is
+    /// the whole blob, else its keys are sorted (`particle << 32 | index`).
+    fn peak_samples(&self, pixels: &[u64], whole: bool) -> PeakSamples {
+        let p = pixels
+            .iter()
+            .map(|&k| key_index(k))
+            .max_by_key(|&q| (self.levels[q], std::cmp::Reverse(q)))
+            .unwrap_or(0);
+        let (x, y) = self.position(p);
+        let sample = |q: usize| {
+            let g = self.pixels[q];
+            let s = self.background.map_or(g.value(), |b| g.less::<true>(b[q]));
+            i64::from(s) * G::LEVEL_SCALE as i64
+        };
+        let centre = i64::from(self.levels[p]);
+        let value = |q: usize| {
+            let own = if self.levels[q] != 0 {
+                whole
+                    || pixels
+                        .binary_search(&((pixels[0] & !0xffff_ffff) | q as u64))
+                        .is_ok()
+            } else {
+                self.mask.map_or(true, |mask| mask.uses(q))
+            };
+            own.then(|| (centre - sample(p) + sample(q)) as f64)
+        };
+        let (w, h) = (self.width, self.height);
+        PeakSamples {
+            peak: (x, y),
+            centre: centre as f64,
+            x: [(x > 0).then(|| p - 1), (x + 1 < w).then_some(p + 1)].map(|q| q.and_then(value)),
+            y: [(y > 0).then(|| p - w), (y + 1 < h).then_some(p + w)].map(|q| q.and_then(value)),
+        }
     }
 }
 

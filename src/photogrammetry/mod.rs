@@ -6,7 +6,8 @@
 //! ([`media`]), least-squares spatial intersection ([`mod@intersect`]), the
 //! particle images of a frame ([`target`]), and the simulator that provides
 //! ground truth ([`simulate`]); and section 6.1's particle detection in grey
-//! images ([`image`], [`mod@detect`]); correspondences ([`correspond`]); and
+//! images ([`image`], [`mod@detect`], with the sub-pixel estimators of
+//! [`centroid`]); correspondences ([`correspond`]); and
 //! the frame pipeline that runs detection and correspondences on the images
 //! of one time step ([`pipeline`]), and the image splitter that cuts one
 //! sensor's image into the views of several cameras ([`splitter`]);
@@ -21,6 +22,7 @@ pub mod background;
 pub mod calibrate;
 pub mod camera;
 pub mod cancel;
+pub mod centroid;
 pub mod correspond;
 pub mod detect;
 pub mod image;
@@ -38,6 +40,7 @@ pub use camera::{
     Ray, Sensor, MAX_CAMERA_NAME_LEN, MAX_SENSOR_PIXELS, MAX_SENSOR_SIDE,
 };
 pub use cancel::{Cancel, Cancelled, StopOnDrop};
+pub use centroid::Centroid;
 pub use detect::{
     detect, detect_cameras, detect_preprocessed, DetectionParameters, InvalidDetectionParameters,
     PreprocessError, Preprocessing,

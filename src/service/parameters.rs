@@ -13,7 +13,7 @@ use crate::photogrammetry::background::BackgroundMode;
 use crate::photogrammetry::calibrate::{mark_detection_parameters, CalibrationOptions, Parameter};
 use crate::photogrammetry::correspond::{MatchingParameters, DEFAULT_TOLERANCE_PX};
 use crate::photogrammetry::{
-    DetectionParameters, FrameDetection, InvalidDetectionParameters, Volume,
+    Centroid, DetectionParameters, FrameDetection, InvalidDetectionParameters, Volume,
 };
 
 /// How to find the targets in each camera's image (all optional; the
@@ -62,6 +62,14 @@ pub struct DetectionSettings {
     /// threshold and to the image's noise level).
     #[serde(default)]
     pub split_depth: Option<u16>,
+    /// How a target's position is estimated: `weighted` (the grey value
+    /// weighted centroid, OpenPTV's) or `gaussian` (a 3-point Gaussian fit
+    /// per axis around the brightest pixel, the weighted centroid where it
+    /// does not apply) [default: weighted; sequences stored without it are
+    /// weighted].
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schema(value_type = Option<String>, example = "weighted")]
+    pub centroid: Option<Centroid>,
 }
 
 impl DetectionSettings {
@@ -82,6 +90,7 @@ impl DetectionSettings {
             min_sumg: self.min_sumg.unwrap_or(d.min_sumg),
             split: self.split.unwrap_or(d.split),
             split_depth: self.split_depth.or(d.split_depth),
+            centroid: self.centroid.unwrap_or(d.centroid),
         }
     }
 
@@ -130,6 +139,7 @@ impl DetectionSettings {
             min_sumg: Some(p.min_sumg),
             split: Some(p.split),
             split_depth: p.split_depth,
+            centroid: Some(p.centroid),
         }
     }
 }
@@ -334,6 +344,7 @@ pub fn experiment_settings(experiment: &Experiment) -> (DetectionSettings, Match
         min_sumg: Some(first.min_sumg),
         split: Some(first.split),
         split_depth: first.split_depth,
+        centroid: Some(first.centroid),
     };
     let m = &experiment.matching;
     let matching = MatchingSettings {
@@ -398,6 +409,25 @@ mod tests {
         assert_eq!(
             filled.detection().clone(),
             filled.detection.frame_detection(3).unwrap()
+        );
+    }
+
+    #[test]
+    fn the_centroid_is_weighted_unless_asked_for_and_stored_once_filled_in() {
+        let unset: DetectionSettings = serde_json::from_str("{}").unwrap();
+        assert_eq!(unset.parameters().centroid, Centroid::Weighted);
+        assert_eq!(unset.with_defaults().centroid, Some(Centroid::Weighted));
+        let gaussian: DetectionSettings =
+            serde_json::from_str(r#"{"centroid": "gaussian"}"#).unwrap();
+        assert_eq!(gaussian.parameters().centroid, Centroid::Gaussian);
+        let json = serde_json::to_value(gaussian.with_defaults()).unwrap();
+        assert_eq!(json["centroid"], "gaussian");
+        let error = serde_json::from_str::<DetectionSettings>(r#"{"centroid": "fit"}"#)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            error.contains("unknown variant `fit`, expected `weighted` or `gaussian`"),
+            "{error}"
         );
     }
 

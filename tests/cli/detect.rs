@@ -15,8 +15,8 @@ use ptv::formats::image::{decode_image, decode_raw, RawLayout};
 use ptv::formats::{csv, openptv};
 use ptv::photogrammetry::simulate::{self, RenderSpec};
 use ptv::photogrammetry::{
-    detect, detect_preprocessed, DetectionParameters, GreyImage, GreyPixels, Mask, Preprocessing,
-    Sensor,
+    detect, detect_preprocessed, Centroid, DetectionParameters, GreyImage, GreyPixels, Mask,
+    Preprocessing, Sensor,
 };
 
 use crate::common::{fails, ptv, succeeds_silently, text};
@@ -216,6 +216,7 @@ fn detect_writes_the_library_targets_from_every_file_kind() {
         max_pixels: 40,
         min_sumg: 20_000,
         split: false,
+        centroid: Centroid::Gaussian,
         ..DetectionParameters::default()
     };
     let out = succeeds_silently(&ptv(
@@ -240,6 +241,8 @@ fn detect_writes_the_library_targets_from_every_file_kind() {
             "--min-sumg",
             "20000",
             "--no-split",
+            "--centroid",
+            "gaussian",
         ],
         dir.path(),
     ));
@@ -323,6 +326,7 @@ fn detect_failures_print_one_error_line() {
             "detect", "--image", "f.raw", "--width", "320", "--height", "240", "--bits", "12",
         ],
         vec!["detect", "--image", "f.png", "--format", "xml"],
+        vec!["detect", "--image", "f.png", "--centroid", "gauss"],
     ] {
         assert_eq!(ptv(&args, d).status.code(), Some(2), "{args:?}");
     }

@@ -11,7 +11,7 @@
 use std::path::{Path, PathBuf};
 
 use ptv::formats::{calibration, image::read_image, openptv};
-use ptv::photogrammetry::{GreyPixels, Splitter};
+use ptv::photogrammetry::{Centroid, GreyPixels, Splitter};
 use ptv::service::parameters::{DetectionSettings, MatchingSettings};
 use serde_json::Value;
 
@@ -227,6 +227,7 @@ fn a_yaml_written_here_maps_every_setting() {
             min_sumg: Some(40),
             split: Some(true),
             split_depth: Some(7),
+            centroid: Some(Centroid::Weighted),
         }
     );
     let matching: MatchingSettings = serde_json::from_value(sequence["matching"].clone()).unwrap();

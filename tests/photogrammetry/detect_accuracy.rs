@@ -359,3 +359,189 @@ fn splitting_recovers_overlapping_particles() {
         println!("{label:>13}  {}", cells.join("  "));
     }
 }
+
+/// The error function (Abramowitz and Stegun 7.1.26, absolute error below
+/// 1.5e-7), for the noise model below.
+fn erf(x: f64) -> f64 {
+    let t = 1.0 / (1.0 + 0.327_591_1 * x.abs());
+    let poly = t
+        * (0.254_829_592
+            + t * (-0.284_496_736
+                + t * (1.421_413_741 + t * (-1.453_152_027 + t * 1.061_405_429))));
+    (1.0 - poly * (-x * x).exp()).copysign(x)
+}
+
+/// What the renderer's noise alone should leave, per estimator: the RMS 2D
+/// error (px) of the weighted centroid and of the 3-point Gaussian fit on
+/// isolated particles of `spec`, detected with `parameters` (threshold,
+/// high-pass radius), by first-order propagation of the pixel noise.
+///
+/// The model is the renderer's: a pixel holds the background plus the
+/// Gaussian of peak `A` averaged over its area (`A` uniform over the
+/// spec's range, the centre uniform over the pixel: a 10x10 grid of
+/// phases, 13 peaks); its variance is the photon noise (signal over the
+/// gain, in grey levels squared), the read noise squared and the rounding's
+/// 1/12. The high-pass filter subtracts the window mean, which holds the
+/// particle's own light `A 2 pi sigma^2 / (2r+1)^2` (its noise is
+/// negligible: a mean over hundreds of pixels). The weighted centroid
+/// uses the pixels whose noise-free level exceeds the threshold, with
+/// weights `level - threshold`: its error is its bias (the truncated
+/// tails) and its propagated noise. The Gaussian fit uses the brightest
+/// pixel and its two neighbours per axis: its error is the noise
+/// propagated through the logarithms (its bias, below 0.006 px, is
+/// `ptv::photogrammetry::centroid`'s, and left out). Left out for both:
+/// pixels that noise moves across the threshold, the Gaussian fit's
+/// fallbacks, and second-order terms.
+fn predicted_rms(spec: &RenderSpec, parameters: &DetectionParameters) -> (f64, f64) {
+    let sigma = spec.sigma();
+    let t = f64::from(parameters.threshold);
+    let window = (2.0 * f64::from(parameters.highpass_radius) + 1.0).powi(2);
+    let variance = |signal: f64| {
+        (spec.background + signal).max(0.0) / spec.electrons_per_grey
+            + spec.read_noise.powi(2)
+            + 1.0 / 12.0
+    };
+    let profile = |i: i64, c: f64| {
+        let k = 1.0 / (sigma * std::f64::consts::SQRT_2);
+        sigma
+            * (std::f64::consts::PI / 2.0).sqrt()
+            * (erf((i as f64 + 1.0 - c) * k) - erf((i as f64 - c) * k))
+    };
+    let (mut weighted, mut gaussian, mut count) = (0.0, 0.0, 0.0);
+    for a in 0..13 {
+        let peak = spec.peak_min + (spec.peak_max - spec.peak_min) * f64::from(a) / 12.0;
+        let mean = peak * 2.0 * std::f64::consts::PI * sigma * sigma / window;
+        for phase in 0..100 {
+            // The centre in pixel 0: columns and rows -4..=4 hold the image.
+            let (cx, cy) = (
+                (f64::from(phase % 10) + 0.5) / 10.0,
+                (f64::from(phase / 10) + 0.5) / 10.0,
+            );
+            let signal = |i: i64, j: i64| peak * profile(i, cx) * profile(j, cy);
+            let level = |i: i64, j: i64| signal(i, j) - mean;
+            // Weighted: x = sum w x / sum w over pixel centres i + 0.5.
+            let (mut w, mut wx, mut wy) = (0.0, 0.0, 0.0);
+            for j in -4..=4 {
+                for i in -4..=4 {
+                    let weight = level(i, j) - t;
+                    if weight > 0.0 {
+                        w += weight;
+                        wx += weight * (i as f64 + 0.5);
+                        wy += weight * (j as f64 + 0.5);
+                    }
+                }
+            }
+            let (x, y) = (wx / w, wy / w);
+            let mut noise = 0.0;
+            for j in -4..=4 {
+                for i in -4..=4 {
+                    if level(i, j) - t > 0.0 {
+                        let lever = (i as f64 + 0.5 - x).powi(2) + (j as f64 + 0.5 - y).powi(2);
+                        noise += lever / (w * w) * variance(signal(i, j));
+                    }
+                }
+            }
+            weighted += (x - cx).powi(2) + (y - cy).powi(2) + noise;
+            // Gaussian, along x then y: offset (a - c) / 2D, D = a - 2b + c
+            // of the logarithms; d/da = (D - (a - c)) / 2D^2, d/db =
+            // (a - c) / D^2, d/dc = -(D + (a - c)) / 2D^2; var ln s = var s / s^2.
+            for (before, after) in [((-1, 0), (1, 0)), ((0, -1), (0, 1))] {
+                let s = [
+                    level(before.0, before.1),
+                    level(0, 0),
+                    level(after.0, after.1),
+                ];
+                let v = [
+                    variance(signal(before.0, before.1)),
+                    variance(signal(0, 0)),
+                    variance(signal(after.0, after.1)),
+                ];
+                let [la, lb, lc] = s.map(f64::ln);
+                let (d, e) = (la - 2.0 * lb + lc, la - lc);
+                let partial = [
+                    (d - e) / (2.0 * d * d),
+                    e / (d * d),
+                    -(d + e) / (2.0 * d * d),
+                ];
+                gaussian += (0..3)
+                    .map(|k| partial[k].powi(2) * v[k] / s[k].powi(2))
+                    .sum::<f64>();
+            }
+            count += 1.0;
+        }
+    }
+    ((weighted / count).sqrt(), (gaussian / count).sqrt())
+}
+
+/// Issue 13's "Centroids": the weighted centroid against the 3-point
+/// Gaussian fit (`ptv::photogrammetry::centroid`) on isolated rendered
+/// particles of 2..4 px, 8-bit with photon and read noise, default
+/// parameters otherwise; both on the same images. Run with `--nocapture`
+/// for the table. The "fallback" column is the share of axes where the
+/// Gaussian estimate is the weighted one (no fit: a neighbour of another
+/// particle, or a degenerate fit).
+///
+/// Bounds, from the renderer's noise ([`predicted_rms`]): each estimator's
+/// measured RMS must lie within 20% of (above or below) what first-order
+/// propagation of the noise predicts, plus 0.006 px (the Gaussian fit's
+/// largest bias on pixel-integrated images, not in the model; the
+/// weighted model includes its bias). 20%: the model leaves out second-order
+/// terms (at the faintest neighbours, 2 px images of peak 80, the relative
+/// noise of a sample reaches 20%, where the logarithm's curvature adds a
+/// few percent), and pixels that noise moves across the threshold. A
+/// measured RMS outside that band means the estimator does not do what the
+/// model says, in either direction.
+#[test]
+fn gaussian_and_weighted_centroids_on_isolated_particles() {
+    use ptv::photogrammetry::Centroid;
+    println!(
+        "isolated particles, 8-bit, read noise 1 grey level + photon noise, default parameters"
+    );
+    println!("diameter_px  particles  weighted_rms  (model)  gaussian_rms  (model)  fallback_axes  recall_w  recall_g");
+    for (k, diameter) in [2.0, 2.5, 3.0, 4.0].into_iter().enumerate() {
+        let mut rng = simulate::rng(500 + k as u64);
+        let truth = isolated_particles(&mut rng);
+        let spec = RenderSpec::eight_bit(diameter);
+        let image = render(&truth, &spec, 600 + k as u64);
+        let weighted_parameters = DetectionParameters::default();
+        let gaussian_parameters = DetectionParameters {
+            centroid: Centroid::Gaussian,
+            ..DetectionParameters::default()
+        };
+        let weighted = detect(&image, &weighted_parameters);
+        let gaussian = detect(&image, &gaussian_parameters);
+        // Same targets, in the same order (sorted by position, which the
+        // estimators move by less than the 16 px spacing).
+        assert_eq!(weighted.len(), gaussian.len());
+        let fallback = weighted
+            .iter()
+            .zip(&gaussian)
+            .map(|(w, g)| usize::from(w.x == g.x) + usize::from(w.y == g.y))
+            .sum::<usize>() as f64
+            / (2 * weighted.len()) as f64;
+        let (sw, _) = score(&truth, &weighted);
+        let (sg, _) = score(&truth, &gaussian);
+        let (model_w, model_g) = predicted_rms(&spec, &weighted_parameters);
+        println!(
+            "{diameter:11.1}  {:9}  {:12.4}  {model_w:7.4}  {:12.4}  {model_g:7.4}  {fallback:13.4}  {:8.4}  {:8.4}",
+            sw.particles,
+            sw.rms,
+            sg.rms,
+            sw.recall(),
+            sg.recall()
+        );
+        assert!(
+            sw.recall() >= 0.995 && sg.recall() >= 0.995,
+            "{diameter}: {sw:?} {sg:?}"
+        );
+        for (name, measured, model, bias) in [
+            ("weighted", sw.rms, model_w, 0.0),
+            ("gaussian", sg.rms, model_g, 0.006),
+        ] {
+            assert!(
+                measured <= 1.2 * model + bias && measured >= model / 1.2 - bias,
+                "{diameter} px, {name}: measured RMS {measured:.4} px, model {model:.4} px"
+            );
+        }
+    }
+}

@@ -18,13 +18,20 @@
 //!   neighbours differ by less than a grey level may change particle; the
 //!   exact copy isolates the detector from that loss of information.
 //!
+//! - Both hold for either sub-pixel estimator ([`Centroid`]): the Gaussian
+//!   fit reads the same grey values at the same relative positions.
+//! - The Gaussian estimator changes positions only: the same targets (pixel
+//!   counts, extents, sums of grey) as the weighted centroid, each finite
+//!   and inside its pixels' bounding box.
+//!
 //! The translated images keep the content at least `MARGIN` pixels from the
 //! border, so that no high-pass window is clipped differently.
 
 use nalgebra::Point2;
 use proptest::prelude::*;
+use ptv::photogrammetry::detect::detect_with_pixels;
 use ptv::photogrammetry::simulate::{self, RenderSpec};
-use ptv::photogrammetry::{detect, DetectionParameters, GreyImage, GreyPixels, Target};
+use ptv::photogrammetry::{detect, Centroid, DetectionParameters, GreyImage, GreyPixels, Target};
 
 /// The side of the rendered patch.
 const PATCH: u32 = 48;
@@ -74,9 +81,13 @@ proptest! {
         seed in any::<u64>(),
         dx in -8i64..=8,
         dy in -8i64..=8,
+        gaussian in any::<bool>(),
     ) {
         let patch = patch(&particles, diameter, seed);
-        let parameters = DetectionParameters::default();
+        let parameters = DetectionParameters {
+            centroid: if gaussian { Centroid::Gaussian } else { Centroid::Weighted },
+            ..DetectionParameters::default()
+        };
         let before = detect(&placed(&patch, MARGIN, MARGIN), &parameters);
         let moved = placed(&patch, (i64::from(MARGIN) + dx) as u32, (i64::from(MARGIN) + dy) as u32);
         let after = detect(&moved, &parameters);
@@ -96,6 +107,7 @@ proptest! {
         particles in particles(),
         diameter in 1.5..4.0f64,
         seed in any::<u64>(),
+        gaussian in any::<bool>(),
     ) {
         let eight = placed(&patch(&particles, diameter, seed), MARGIN, MARGIN);
         let GreyPixels::Eight(samples) = eight.pixels() else { unreachable!("8-bit") };
@@ -105,7 +117,10 @@ proptest! {
             samples.iter().map(|&g| u16::from(g) * 257).collect(),
         )
         .expect("same size");
-        let p8 = DetectionParameters::default();
+        let p8 = DetectionParameters {
+            centroid: if gaussian { Centroid::Gaussian } else { Centroid::Weighted },
+            ..DetectionParameters::default()
+        };
         let p16 = DetectionParameters {
             threshold: p8.threshold * 257,
             split_depth: p8.split_depth.map(|d| d * 257),
@@ -123,6 +138,37 @@ proptest! {
             // sumg scales too, up to the rounding of the 8-bit sum.
             let scaled = a.sumg as f64 * 257.0;
             prop_assert!((b.sumg as f64 - scaled).abs() <= 128.5, "{} vs {}", a.sumg, b.sumg);
+        }
+    }
+
+    #[test]
+    fn the_gaussian_estimator_moves_targets_within_their_pixels(
+        particles in particles(),
+        diameter in 1.5..4.0f64,
+        seed in any::<u64>(),
+    ) {
+        let image = placed(&patch(&particles, diameter, seed), MARGIN, MARGIN);
+        let weighted = detect_with_pixels(&image, &DetectionParameters::default());
+        let gaussian = detect_with_pixels(
+            &image,
+            &DetectionParameters {
+                centroid: Centroid::Gaussian,
+                ..DetectionParameters::default()
+            },
+        );
+        prop_assert_eq!(weighted.len(), gaussian.len());
+        for g in &gaussian {
+            // The same pixels as one weighted target (the order may differ:
+            // targets are sorted by position).
+            let w = weighted.iter().find(|w| w.pixels == g.pixels);
+            prop_assert!(w.is_some(), "{:?}", g.target);
+            let (w, t) = (w.unwrap().target, g.target);
+            prop_assert_eq!((w.n, w.nx, w.ny, w.sumg), (t.n, t.nx, t.ny, t.sumg));
+            let (x0, x1) = g.pixels.iter().fold((u32::MAX, 0), |(a, b), p| (a.min(p.0), b.max(p.0)));
+            let (y0, y1) = g.pixels.iter().fold((u32::MAX, 0), |(a, b), p| (a.min(p.1), b.max(p.1)));
+            prop_assert!(t.x.is_finite() && t.y.is_finite(), "{:?}", t);
+            prop_assert!(t.x >= f64::from(x0) && t.x <= f64::from(x1) + 1.0, "{:?}", t);
+            prop_assert!(t.y >= f64::from(y0) && t.y <= f64::from(y1) + 1.0, "{:?}", t);
         }
     }
 }
