@@ -62,6 +62,13 @@ pub struct DetectionSettings {
     /// threshold and to the image's noise level).
     #[serde(default)]
     pub split_depth: Option<u16>,
+    /// The smallest signal-to-noise ratio of a target: its sum of grey
+    /// over its `n` pixels must be at least `min_snr · sigma · sqrt(n)`,
+    /// `sigma` being the image's noise level after the high-pass filter,
+    /// estimated per frame; 0 turns the test off (as an imported OpenPTV
+    /// experiment does) [default: 12].
+    #[serde(default)]
+    pub min_snr: Option<u16>,
 }
 
 impl DetectionSettings {
@@ -82,6 +89,7 @@ impl DetectionSettings {
             min_sumg: self.min_sumg.unwrap_or(d.min_sumg),
             split: self.split.unwrap_or(d.split),
             split_depth: self.split_depth.or(d.split_depth),
+            min_snr: self.min_snr.unwrap_or(d.min_snr),
         }
     }
 
@@ -130,6 +138,7 @@ impl DetectionSettings {
             min_sumg: Some(p.min_sumg),
             split: Some(p.split),
             split_depth: p.split_depth,
+            min_snr: Some(p.min_snr),
         }
     }
 }
@@ -334,6 +343,7 @@ pub fn experiment_settings(experiment: &Experiment) -> (DetectionSettings, Match
         min_sumg: Some(first.min_sumg),
         split: Some(first.split),
         split_depth: first.split_depth,
+        min_snr: Some(first.min_snr),
     };
     let m = &experiment.matching;
     let matching = MatchingSettings {
