@@ -40,8 +40,8 @@
 //!    one target, the second keeps noise from splitting faint particles.
 //!    The noise level `sigma` is the image's after the high-pass filter,
 //!    estimated on every frame while the filter runs (only when a rule
-//!    needs it): the filtered value, signed, of a sparse subsample of about
-//!    2^16 pixels (every 8th row, every 4th pixel), and `sigma = 1.4826
+//!    needs it): the filtered value, signed, of a sparse subsample of at
+//!    most about 2^14 pixels (every 16th row, every 8th pixel), and `sigma = 1.4826
 //!    (median - q25)`, the robust standard deviation of the sample's lower
 //!    half (`noise_sigma`). Particles only add to the filtered values, so
 //!    the lower half is the background's: the pixel noise, and also the
@@ -97,16 +97,16 @@
 //! test_cavity frames 10001-10004, cameras 1-4, against OpenPTV 0.3.2 with
 //! the experiment's own parameters; `DetectionParameters::default()`
 //! only): before the noise level above and the significance test, 4.34x
-//! OpenPTV's count and 70.7% of theirs found within 0.5 px; now 2.66x
-//! (2.37-2.95x per image) and 72.9% (67-76%). Issue 13's goal (1.25x, 80%)
+//! OpenPTV's count and 70.7% of theirs found within 0.5 px; now 2.65x
+//! (2.39-2.95x per image) and 72.8% (67-77%). Issue 13's goal (1.25x, 80%)
 //! is not reached. What is left is the automatic split rule on real
 //! particle images, which are streaky and irregular, not round: with the
-//! same significance test and no splitting the count is 1.76x (73.7%
+//! same significance test and no splitting the count is about 1.76x (74%
 //! found), and with
-//! a high-pass radius of 25 (OpenPTV's) and OpenPTV's `discont` 100, 1.27x
-//! and 80.1% (the small faint blobs OpenPTV's experiment drops by its sum
+//! a high-pass radius of 25 (OpenPTV's) and OpenPTV's `discont` 100, about
+//! 1.27x and 80% (the small faint blobs OpenPTV's experiment drops by its sum
 //! of grey are what the significance test removes: 1.03x with its
-//! `min_sumg` 150 instead). A radius of 25 alone gives 1.97x and 76%, but
+//! `min_sumg` 150 instead). A radius of 25 alone gives about 1.97x and 76%, but
 //! costs recall on rendered frames with bright structure and no
 //! background subtraction (0.953 to 0.886 at 0.001 ppp), so the default
 //! stays 10.
@@ -150,8 +150,8 @@
 //! module counts the allocations of such an image and holds them to the
 //! bound. A particle image (a few percent of the pixels above the threshold,
 //! small blobs) needs little more than its 2 bytes a pixel of levels. The
-//! noise level's estimate adds about 0.25 MiB at most (its subsample of
-//! about 2^16 filtered values, 4 bytes each) and 8 bytes a column.
+//! noise level's estimate adds about 64 KiB at most (its subsample of
+//! about 2^14 filtered values, 4 bytes each) and 8 bytes a column.
 
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -712,15 +712,19 @@ enum SplitRule {
 }
 
 /// Where the noise level is sampled: every `row_step`-th row, every
-/// `column_step`-th pixel of it; every 8th row and 4th column, spread
-/// further on large images so that at most about 2^16 pixels are sampled.
+/// `column_step`-th pixel of it; every 16th row and 8th column (10,240
+/// pixels of a 1280x1024 frame), spread further on large images so that
+/// at most about 2^14 pixels are sampled. A quantile-based sigma of `N`
+/// samples has a relative standard error of about `1.2 / sqrt(N)`: 1.2%
+/// at 10,000, far below what the rules need, for a cost of one addition
+/// per pixel of the sampled rows and a selection over the samples.
 fn noise_steps(width: usize, height: usize) -> (usize, usize) {
-    let samples = (height / 8 + 1) * (width / 4 + 1);
+    let samples = (height / 16 + 1) * (width / 8 + 1);
     let mut stretch = 1;
-    while stretch * stretch <= samples / 65536 {
+    while stretch * stretch <= samples / 16384 {
         stretch += 1;
     }
-    (8 * stretch, 4 * stretch)
+    (16 * stretch, 8 * stretch)
 }
 
 /// Appends to `out` the high-pass filtered value, signed and in levels
@@ -1470,13 +1474,13 @@ mod tests {
     fn the_noise_level_is_estimated_after_the_filter() {
         // Gaussian noise of sigma around a constant: the filtered value
         // is the noise less its window mean, of standard deviation sigma
-        // sqrt(1 + 1/c) (c = 51² pixels: sigma within 0.02%). The estimate
-        // uses about 8,000 samples of a 512² frame; a quantile-based sigma
-        // from N samples has a relative standard error of about 1.2/sqrt(N)
+        // sqrt(1 + 1/c) (c = 21² pixels: sigma within 0.2%). The estimate
+        // uses 8,192 samples of a 1024² frame; a quantile-based sigma from
+        // N samples has a relative standard error of about 1.2/sqrt(N)
         // (1.3%), and rounding to whole grey levels adds 1/12 grey level²
         // of variance (at sigma 3, 0.5%): 6% is over 4 standard errors.
         for sigma in [3.0, 6.0, 20.0] {
-            let [eight, sixteen] = noise_frame(512, 512, 100.0, sigma, 5);
+            let [eight, sixteen] = noise_frame(1024, 1024, 100.0, sigma, 5);
             let parameters = DetectionParameters::default();
             let a = estimated_noise(&eight, &parameters);
             let b = estimated_noise(&sixteen, &parameters);
