@@ -106,10 +106,11 @@
 //! a high-pass radius of 25 (OpenPTV's) and OpenPTV's `discont` 100, about
 //! 1.27x and 80% (the small faint blobs OpenPTV's experiment drops by its sum
 //! of grey are what the significance test removes: 1.03x with its
-//! `min_sumg` 150 instead). A radius of 25 alone gives about 1.97x and 76%, but
-//! costs recall on rendered frames with bright structure and no
-//! background subtraction (0.953 to 0.886 at 0.001 ppp), so the default
-//! stays 10.
+//! `min_sumg` 150 instead). A radius of 25 alone gives about 1.97x and
+//! 76%, but costs recall on rendered frames with bright structure and no
+//! background subtraction (`examples/detection_report.rs`' table: 0.953
+//! to 0.886 at 0.001 ppp; `structured_background.rs`: 0.90 to 0.60), so
+//! the default stays 10.
 //!
 //! Coordinates follow the camera model ([`super::camera`]): pixel (column
 //! `i`, row `j`) has its centre at (`i + 0.5`, `j + 0.5`). OpenPTV's

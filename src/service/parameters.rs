@@ -379,6 +379,24 @@ mod tests {
     }
 
     #[test]
+    fn the_significance_test_reaches_the_core_and_is_stored() {
+        // Absent: the core's default, written out when stored.
+        let absent: DetectionSettings = serde_json::from_str("{}").unwrap();
+        assert_eq!(
+            absent.parameters().min_snr,
+            DetectionParameters::default().min_snr
+        );
+        assert_eq!(
+            absent.with_defaults().min_snr,
+            Some(DetectionParameters::default().min_snr)
+        );
+        // 0 turns it off, as an imported OpenPTV experiment does.
+        let off: DetectionSettings = serde_json::from_str(r#"{"min_snr": 0}"#).unwrap();
+        assert_eq!(off.parameters().min_snr, 0);
+        assert_eq!(off.with_defaults().min_snr, Some(0));
+    }
+
+    #[test]
     fn per_camera_thresholds_and_the_split_rule_reach_the_core() {
         let settings: DetectionSettings = serde_json::from_str(
             r#"{"thresholds": [9, 9, 11], "split_depth": 100, "min_nx": 2, "max_ny": 80}"#,
