@@ -58,6 +58,15 @@ fn single_frame(c: &mut Criterion) {
     group.bench_function("8-bit, gaussian centroid", |b| {
         b.iter(|| black_box(detect(black_box(&eight), &gaussian)))
     });
+    // Without the significance test nothing needs the noise level: the
+    // difference to the above is its estimate's cost (and the test's).
+    let no_noise = DetectionParameters {
+        min_snr: 0,
+        ..plain.clone()
+    };
+    group.bench_function("8-bit, no splitting, no noise estimate", |b| {
+        b.iter(|| black_box(detect(black_box(&eight), &no_noise)))
+    });
     let sixteen = frame(&RenderSpec::sixteen_bit(2.5), 1);
     let parameters16 = DetectionParameters {
         threshold: parameters.threshold * 257,

@@ -82,10 +82,16 @@ pub struct DetectionFlags {
     /// must rise above the saddle between them to be split off (OpenPTV's
     /// `discont`; with it, as in OpenPTV, pixels that touch only at a
     /// corner are not joined). Without it, the automatic rule: the rise must exceed a
-    /// third of the maximum's height above the threshold and 3 times the
+    /// fifth of the maximum's height above the threshold and 3 times the
     /// image's noise level.
     #[arg(long, value_name = "D")]
     pub split_depth: Option<u16>,
+    /// Smallest signal-to-noise ratio of a target: its sum of grey over its
+    /// n pixels must be at least K times the image's noise level (after the
+    /// high-pass filter, estimated on each image) times sqrt(n); 0 turns
+    /// the test off (OpenPTV has none: use --min-sumg).
+    #[arg(long, value_name = "K", default_value_t = DetectionParameters::default().min_snr)]
+    pub min_snr: u16,
     /// Do not split blobs of overlapping particles: one target per blob.
     #[arg(long)]
     pub no_split: bool,
@@ -149,6 +155,7 @@ impl DetectionFlags {
             split: !self.no_split,
             split_depth: self.split_depth,
             centroid: self.centroid.into(),
+            min_snr: self.min_snr,
             ..defaults
         }
     }

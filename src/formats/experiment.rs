@@ -26,6 +26,7 @@
 //! | `targ_rec.gvthres` | per camera `threshold` |
 //! | `disco` | `split_depth` (absolute grey levels, OpenPTV's meaning), `split` on |
 //! | `nnmin`/`nnmax`, `nxmin`/`nxmax`, `nymin`/`nymax`, `sumg_min` | `min_pixels`/`max_pixels`, `min_nx`/`max_nx`, `min_ny`/`max_ny`, `min_sumg` |
+//! | (none) | `min_snr` 0: OpenPTV has no noise-relative significance test |
 //! | `criteria.eps0` (mm on the image plane) | `tolerance` (px): eps0 divided by the mean pixel size |
 //! | `X_lay`, `Zmin_lay`, `Zmax_lay` | the observation [`Volume`], see below |
 //! | `sequence.base_name`, `first`, `last` | [`SequenceFrames`] |
@@ -1026,6 +1027,8 @@ fn map(
         split_depth: Some(range("targ_rec.disco", t.disco, u16_max)? as u16),
         // OpenPTV's targ_rec: the grey value weighted centroid.
         centroid: Centroid::Weighted,
+        // OpenPTV has no noise-relative test: its `sumg_min` decides.
+        min_snr: 0,
     };
     let mut detection = Vec::with_capacity(n);
     for (i, &threshold) in t.gvthres.iter().take(n).enumerate() {

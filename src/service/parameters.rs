@@ -70,6 +70,13 @@ pub struct DetectionSettings {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     #[schema(value_type = Option<String>, example = "weighted")]
     pub centroid: Option<Centroid>,
+    /// The smallest signal-to-noise ratio of a target: its sum of grey
+    /// over its `n` pixels must be at least `min_snr · sigma · sqrt(n)`,
+    /// `sigma` being the image's noise level after the high-pass filter,
+    /// estimated per frame; 0 turns the test off (as an imported OpenPTV
+    /// experiment does) [default: 12].
+    #[serde(default)]
+    pub min_snr: Option<u16>,
 }
 
 impl DetectionSettings {
@@ -91,6 +98,7 @@ impl DetectionSettings {
             split: self.split.unwrap_or(d.split),
             split_depth: self.split_depth.or(d.split_depth),
             centroid: self.centroid.unwrap_or(d.centroid),
+            min_snr: self.min_snr.unwrap_or(d.min_snr),
         }
     }
 
@@ -140,6 +148,7 @@ impl DetectionSettings {
             split: Some(p.split),
             split_depth: p.split_depth,
             centroid: Some(p.centroid),
+            min_snr: Some(p.min_snr),
         }
     }
 }
@@ -345,6 +354,7 @@ pub fn experiment_settings(experiment: &Experiment) -> (DetectionSettings, Match
         split: Some(first.split),
         split_depth: first.split_depth,
         centroid: Some(first.centroid),
+        min_snr: Some(first.min_snr),
     };
     let m = &experiment.matching;
     let matching = MatchingSettings {
@@ -377,6 +387,24 @@ mod tests {
             ),
             "{error}"
         );
+    }
+
+    #[test]
+    fn the_significance_test_reaches_the_core_and_is_stored() {
+        // Absent: the core's default, written out when stored.
+        let absent: DetectionSettings = serde_json::from_str("{}").unwrap();
+        assert_eq!(
+            absent.parameters().min_snr,
+            DetectionParameters::default().min_snr
+        );
+        assert_eq!(
+            absent.with_defaults().min_snr,
+            Some(DetectionParameters::default().min_snr)
+        );
+        // 0 turns it off, as an imported OpenPTV experiment does.
+        let off: DetectionSettings = serde_json::from_str(r#"{"min_snr": 0}"#).unwrap();
+        assert_eq!(off.parameters().min_snr, 0);
+        assert_eq!(off.with_defaults().min_snr, Some(0));
     }
 
     #[test]

@@ -76,6 +76,8 @@ fn the_legacy_folder_and_its_yaml_give_the_same_settings() {
         serde_json::from_value(sequence["detection"].clone()).unwrap();
     assert_eq!(detection.thresholds, Some(vec![9, 9, 9, 11]));
     assert_eq!(detection.split_depth, Some(100));
+    // OpenPTV has no noise-relative test; its sum-of-grey bound decides.
+    assert_eq!(detection.min_snr, Some(0));
     assert_eq!(detection.split, Some(true));
     assert_eq!(
         (detection.min_pixels, detection.max_pixels),
@@ -228,6 +230,7 @@ fn a_yaml_written_here_maps_every_setting() {
             split: Some(true),
             split_depth: Some(7),
             centroid: Some(Centroid::Weighted),
+            min_snr: Some(0),
         }
     );
     let matching: MatchingSettings = serde_json::from_value(sequence["matching"].clone()).unwrap();

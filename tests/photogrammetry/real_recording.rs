@@ -161,16 +161,19 @@ fn experiment_parameters_reproduce_openptv_targets() {
 #[test]
 fn default_parameters_on_the_real_recording() {
     // Issue 13's goal with defaults only: at most 1.25x OpenPTV's count and
-    // 80% of theirs found. NOT REACHED. With the automatic split rule
-    // (`split_depth: None`, detect.rs) ours are 3.9-4.64x OpenPTV's count
-    // (4.34x over the 16 images; the absolute depth 4 of before gave
-    // 4.3-4.8x, 4.50x), 63.7-74.5% of theirs have one of ours within
-    // 0.5 px (before 63-73%), and 15-17% of ours one of theirs. Most of the
-    // excess is small separate blobs, not split fragments: without
-    // splitting at all the count is still 3.0x. Asserted is today's level
-    // with a margin of about 0.15x and 3 points (the rule's noise estimate
-    // and the centroids may still move a little): no more than 4.8x their
-    // count, at least 60% of theirs found.
+    // 80% of theirs found. NOT REACHED. With the noise level measured after
+    // the high-pass filter and the significance test (`min_snr` 12,
+    // detect.rs) ours are 2.39-2.95x OpenPTV's count (2.65x over the 16
+    // images; before both, 3.9-4.64x and 4.34x) and 67.4-76.5% of theirs
+    // have one of ours within 0.5 px (72.8%; before 63.7-74.5%, 70.7%).
+    // What is left is mostly the automatic split rule on irregular real
+    // particle images (detect.rs, "Defaults on a real recording").
+    // Asserted is today's level with a margin of about 0.25x and 3 points
+    // per image (the estimate's subsample and the centroids may still move
+    // a little; a regression to the old level, 4x, fails): no more than
+    // 3.2x their count and at least 64% of theirs found per image, and over
+    // all 16 images no more than 2.9x and at least 70%.
+    let (mut ours, mut theirs, mut found, mut scored) = (0, 0, 0, 0);
     for Row {
         camera,
         frame,
@@ -178,7 +181,19 @@ fn default_parameters_on_the_real_recording() {
         ..
     } in agreements(|_| DetectionParameters::default())
     {
-        assert!(a.count_ratio() <= 4.8, "cam{camera}.{frame}: {a:?}");
-        assert!(a.theirs_share() >= 0.6, "cam{camera}.{frame}: {a:?}");
+        assert!(a.count_ratio() <= 3.2, "cam{camera}.{frame}: {a:?}");
+        assert!(a.theirs_share() >= 0.64, "cam{camera}.{frame}: {a:?}");
+        ours += a.ours;
+        theirs += a.theirs;
+        found += a.theirs_found;
+        scored += a.theirs_scored;
     }
+    let ratio = ours as f64 / theirs as f64;
+    let share = found as f64 / scored as f64;
+    println!(
+        "defaults, all 16 images: {ratio:.3}x OpenPTV's count, {:.1}% of theirs found",
+        100.0 * share
+    );
+    assert!(ratio <= 2.9, "{ratio}");
+    assert!(share >= 0.70, "{share}");
 }
