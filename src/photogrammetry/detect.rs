@@ -168,8 +168,9 @@
 //! filter makes one pass over them with running sums, and everything after
 //! it costs in proportion to the pixels above the threshold, so a frame
 //! takes time linear in its pixels (`benches/detect.rs`). The filter runs a
-//! row at a time, and blobs are found a few rows behind it while those
-//! rows are still in cache; most of the filter's test runs 32 pixels at a
+//! row at a time, and, unless a rule needs the frame's noise level (known
+//! only once every row is filtered), blobs are found a few rows behind it
+//! while those rows are still in cache; most of the filter's test runs 32 pixels at a
 //! time in 32-bit arithmetic, which the compiler vectorises, and the
 //! background is subtracted a row at a time in the samples' own type.
 //! Filtered values
