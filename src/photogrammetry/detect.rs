@@ -41,7 +41,7 @@
 //!    reflection streak, whose ripples are shallow next to its height) in
 //!    one target, the second keeps noise from splitting faint particles.
 //!    The noise level `sigma` is the image's after the high-pass filter,
-//!    estimated on every frame while the filter runs (only when a rule
+//!    estimated on every frame before the filter runs (only when a rule
 //!    needs it): the filtered value, signed, of a sparse subsample of at
 //!    most about 2^14 pixels (every 16th row, every 8th pixel), and `sigma = 1.4826
 //!    (median - q25)`, the robust standard deviation of the sample's lower
@@ -168,9 +168,9 @@
 //! filter makes one pass over them with running sums, and everything after
 //! it costs in proportion to the pixels above the threshold, so a frame
 //! takes time linear in its pixels (`benches/detect.rs`). The filter runs a
-//! row at a time, and, unless a rule needs the frame's noise level (known
-//! only once every row is filtered), blobs are found a few rows behind it
-//! while those rows are still in cache; most of the filter's test runs 32 pixels at a
+//! row at a time, and blobs are found a few rows behind it while those
+//! rows are still in cache (the noise level, when a rule needs it, is
+//! estimated before, on its sparse sample); most of the filter's test runs 32 pixels at a
 //! time in 32-bit arithmetic, which the compiler vectorises, and the
 //! background is subtracted a row at a time in the samples' own type.
 //! Filtered values
@@ -1092,11 +1092,6 @@ struct HighPass<'a, G: Grey> {
     current: Vec<G>,
     /// The next row to filter.
     next: usize,
-    /// Where the noise level is sampled ([`noise_steps`]), if a rule needs
-    /// it; the samples so far, and scratch for them.
-    noise_steps: Option<(usize, usize)>,
-    noise_samples: Vec<i32>,
-    noise_prefix: Vec<u64>,
 }
 
 impl<'a, G: Grey> HighPass<'a, G> {
@@ -1129,9 +1124,6 @@ impl<'a, G: Grey> HighPass<'a, G> {
             leaving: vec![G::ZERO; scratch],
             current: vec![G::ZERO; scratch],
             next: 0,
-            noise_steps: detector.wants_noise().then(|| noise_steps(width, height)),
-            noise_samples: Vec::new(),
-            noise_prefix: Vec::new(),
         };
         if r > 0 {
             for row in 0..r.min(height) {
@@ -1173,8 +1165,6 @@ impl<'a, G: Grey> HighPass<'a, G> {
         let before = *above;
         if r == 0 {
             let threshold = self.threshold;
-            let steps = self.noise_steps;
-            let mut samples = std::mem::take(&mut self.noise_samples);
             let row = self.row(y, Scratch::Current);
             for (level, &g) in out.iter_mut().zip(row) {
                 if u64::from(g.value()) > threshold {
@@ -1182,13 +1172,6 @@ impl<'a, G: Grey> HighPass<'a, G> {
                     *above += 1;
                 }
             }
-            if let Some((_, column_step)) = steps.filter(|&(step, _)| y % step == 0) {
-                // No filter: the filtered value is the value.
-                for &g in row.iter().step_by(column_step) {
-                    samples.push((u64::from(g.value()) * G::LEVEL_SCALE) as i32);
-                }
-            }
-            self.noise_samples = samples;
         } else {
             // Row y + r enters the window and row y - r - 1 leaves it; one
             // pass over the sums when both happen (the compiler vectorises
@@ -1220,9 +1203,6 @@ impl<'a, G: Grey> HighPass<'a, G> {
             let rows = ((y + r).min(height - 1) - y.saturating_sub(r) + 1) as u64;
             let threshold = self.threshold;
             let (narrow, mut prefix) = (self.narrow, std::mem::take(&mut self.prefix));
-            let steps = self.noise_steps;
-            let mut samples = std::mem::take(&mut self.noise_samples);
-            let mut sample_prefix = std::mem::take(&mut self.noise_prefix);
             let row = self.row(y, Scratch::Current);
             if narrow {
                 filter_row_narrow(
@@ -1238,19 +1218,6 @@ impl<'a, G: Grey> HighPass<'a, G> {
             } else {
                 filter_row(row, &sums, r, rows, threshold, out, above);
             }
-            if let Some((_, column_step)) = steps.filter(|&(step, _)| y % step == 0) {
-                sample_filtered_row(
-                    row,
-                    &sums,
-                    r,
-                    rows,
-                    column_step,
-                    &mut sample_prefix,
-                    &mut samples,
-                );
-            }
-            self.noise_samples = samples;
-            self.noise_prefix = sample_prefix;
             self.prefix = prefix;
             self.column_sums = sums;
         }
@@ -1265,14 +1232,6 @@ impl<'a, G: Grey> HighPass<'a, G> {
             }
         }
         Some(y)
-    }
-}
-
-impl<G: Grey> HighPass<'_, G> {
-    /// The image's noise level from the rows filtered so far (all of them,
-    /// once done); 0 if no rule needs it.
-    fn noise(&mut self) -> u32 {
-        noise_sigma(&mut self.noise_samples)
     }
 }
 
@@ -1323,8 +1282,8 @@ struct Detector<'a, G: Grey> {
     /// Measuring: per region root, its particle's number in the blob.
     slot: Vec<u32>,
     /// The image's noise level after the high-pass filter (levels, one
-    /// standard deviation), sampled while filtering when a rule needs it
-    /// ([`noise_sigma`]); 0 when not needed.
+    /// standard deviation), estimated before the filter when a rule needs
+    /// it ([`Detector::sample_noise`]); 0 when not needed.
     noise: u32,
     /// Whether blobs are 4-connected (pixels join by an edge, OpenPTV's
     /// `targ_rec`), as with an absolute split depth; else 8-connected.
@@ -1357,11 +1316,11 @@ impl<'a, G: Grey> Detector<'a, G> {
         }
     }
 
-    /// Filters the image row by row ([`HighPass`]) and finds, splits and
-    /// measures the blobs in the rows filtered so far, [`TRAIL`] rows
-    /// behind the filter, while those rows are still in cache (unless a rule
-    /// needs the image's noise level, which is known only once every row is
-    /// filtered: then the blobs are found after the filter). A blob that
+    /// Estimates the image's noise level if a rule needs it
+    /// ([`Detector::sample_noise`]), then filters the image row by row
+    /// ([`HighPass`]) and finds, splits and measures the blobs in the rows
+    /// filtered so far, [`TRAIL`] rows behind the filter, while those rows
+    /// are still in cache. A blob that
     /// reaches the last filtered row may go on below it: the search pauses
     /// there and tries that blob again once the filter has gone twice as far
     /// below the blob's first row (so a tall blob is flooded at most a few
@@ -1372,18 +1331,15 @@ impl<'a, G: Grey> Detector<'a, G> {
         let (width, height) = (self.width, self.height);
         self.levels = vec![0; width * height];
         self.above = 0;
+        if self.wants_noise() {
+            self.noise = self.sample_noise();
+        }
         let mut filter = HighPass::new(&self);
         let mut found = (Vec::new(), Vec::new());
         // The next pixel that may be a blob's first, in raster order.
         let mut scan = 0;
-        // The search waits until this row is filtered; if a rule needs the
-        // image's noise level, until the whole image is (the level is
-        // sampled over all of it).
-        let mut resume = if self.wants_noise() {
-            usize::MAX
-        } else {
-            TRAIL
-        };
+        // The search waits until this row is filtered.
+        let mut resume = TRAIL;
         while let Some(y) = filter.next_row(&mut self.levels, &mut self.above) {
             if y + 1 < height && y >= resume {
                 let end = (y + 1 - TRAIL) * width;
@@ -1394,9 +1350,62 @@ impl<'a, G: Grey> Detector<'a, G> {
                 }
             }
         }
-        self.noise = filter.noise();
         self.find_blobs::<PIXELS>(&mut scan, width * height, None, &mut found);
         found
+    }
+
+    /// The image's noise level after the high-pass filter: [`noise_sigma`]
+    /// of the filtered values on the sample grid of [`noise_steps`]. It is
+    /// computed ahead of the filter, so that blobs can be measured while the
+    /// filter runs: the window sums of the sampled rows come from column
+    /// sums carried from one sampled row's window to the next (rows between
+    /// windows are skipped), at most one pass of additions in and one out
+    /// over the image, and only the sampled pixels are divided.
+    fn sample_noise(&self) -> u32 {
+        let (width, height) = (self.width, self.height);
+        let r = self.parameters.highpass_radius.min(MAX_HIGHPASS_RADIUS) as usize;
+        let (row_step, column_step) = noise_steps(width, height);
+        let mut samples = Vec::new();
+        let mut scratch = vec![G::ZERO; if self.background.is_some() { width } else { 0 }];
+        let (pixels, background) = (self.pixels, self.background);
+        if r == 0 {
+            // No filter: the filtered value is the value.
+            for y in (0..height).step_by(row_step) {
+                let row = subtracted_row(pixels, background, width, y, &mut scratch);
+                for &g in row.iter().step_by(column_step) {
+                    samples.push((u64::from(g.value()) * G::LEVEL_SCALE) as i32);
+                }
+            }
+            return noise_sigma(&mut samples);
+        }
+        let mut sums = vec![0u32; width];
+        let mut prefix = Vec::new();
+        // The rows `low..high` are in `sums`.
+        let (mut low, mut high) = (0, 0);
+        for y in (0..height).step_by(row_step) {
+            let (want_low, want_high) = (y.saturating_sub(r), (y + r + 1).min(height));
+            if want_low >= high {
+                sums.fill(0);
+                (low, high) = (want_low, want_low);
+            }
+            for row in high..want_high {
+                let row = subtracted_row(pixels, background, width, row, &mut scratch);
+                for (sum, &g) in sums.iter_mut().zip(row) {
+                    *sum += g.value();
+                }
+            }
+            for row in low..want_low {
+                let row = subtracted_row(pixels, background, width, row, &mut scratch);
+                for (sum, &g) in sums.iter_mut().zip(row) {
+                    *sum -= g.value();
+                }
+            }
+            (low, high) = (want_low, want_high);
+            let rows = (want_high - want_low) as u64;
+            let row = subtracted_row(pixels, background, width, y, &mut scratch);
+            sample_filtered_row(row, &sums, r, rows, column_step, &mut prefix, &mut samples);
+        }
+        noise_sigma(&mut samples)
     }
 
     /// Whether a rule needs the image's noise level: the significance test
@@ -1479,7 +1488,9 @@ impl<'a, G: Grey> Detector<'a, G> {
         self.above = 0;
         let mut filter = HighPass::new(self);
         while filter.next_row(&mut self.levels, &mut self.above).is_some() {}
-        self.noise = filter.noise();
+        if self.wants_noise() {
+            self.noise = self.sample_noise();
+        }
     }
 
     /// Collects the blob of `seed` (8-connected, or 4-connected if
@@ -2058,9 +2069,6 @@ mod tests {
             max_nx: 100,
             max_ny: 1000,
             split: false,
-            // No rule needs the noise level: blobs are found behind the
-            // filter.
-            min_snr: 0,
             ..DetectionParameters::default()
         };
         let targets = detect(&image, &parameters);
