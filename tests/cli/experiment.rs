@@ -400,6 +400,17 @@ fn broken_experiments_are_named_by_file_line_and_key() {
         &ptv(&["experiment", "import", ".", "-o", "out"], dir.path()),
         &["targ_rec.par: line 5, targ_rec.disco: expected an integer, got `lots`"],
     );
+    // ptv.par goes through the same reader as the calibration import.
+    let ptv_par = dir.path().join("parameters/ptv.par");
+    let original = std::fs::read_to_string(&ptv_par).unwrap();
+    let mut par_lines: Vec<&str> = original.lines().collect();
+    par_lines[12] = "wide";
+    std::fs::write(&ptv_par, par_lines.join("\n")).unwrap();
+    fails(
+        &ptv(&["experiment", "import", "."], dir.path()),
+        &["ptv.par: line 13, ptv.imx: expected an integer, got `wide`"],
+    );
+    std::fs::write(&ptv_par, &original).unwrap();
     // A value out of range.
     lines[4] = "70000";
     std::fs::write(&targ_rec, lines.join("\n")).unwrap();
