@@ -9,8 +9,9 @@
 //!   paths in it are relative to the YAML's directory;
 //! - a directory with `parameters/ptv.par`: the legacy folder (`ptv.par`,
 //!   `cal_ori.par`, `targ_rec.par`, `criteria.par`, `sequence.par`, ...,
-//!   one value per line as liboptv's `parameters.c` reads them); paths are
-//!   relative to the directory;
+//!   one value per line as liboptv's `parameters.c` reads them, through
+//!   [`openptv`]'s one reader of `ptv.par` and its line reader for the
+//!   others); paths are relative to the directory;
 //! - a directory with exactly one `parameters_*.yaml` and no `parameters/`:
 //!   that YAML. With several, the error lists them: give the file's path.
 //!
