@@ -9,8 +9,9 @@
 //!   paths in it are relative to the YAML's directory;
 //! - a directory with `parameters/ptv.par`: the legacy folder (`ptv.par`,
 //!   `cal_ori.par`, `targ_rec.par`, `criteria.par`, `sequence.par`, ...,
-//!   one value per line as liboptv's `parameters.c` reads them); paths are
-//!   relative to the directory;
+//!   one value per line as liboptv's `parameters.c` reads them, through
+//!   [`openptv`]'s one reader of `ptv.par` and its line reader for the
+//!   others); paths are relative to the directory;
 //! - a directory with exactly one `parameters_*.yaml` and no `parameters/`:
 //!   that YAML. With several, the error lists them: give the file's path.
 //!
@@ -553,11 +554,12 @@ fn unmapped_reason(section: &str, key: &str) -> Option<&'static str> {
 
 // --- The legacy parameters/ folder ----------------------------------------
 
-/// One `.par` file's lines, read one value at a time.
+/// One `.par` file of the `parameters/` folder, read by OpenPTV's line
+/// reader ([`openptv::ParLines`]) under `section.key`, each key's line
+/// recorded for errors found later.
 struct ParFile<'a> {
     path: PathBuf,
-    lines: Vec<String>,
-    next: usize,
+    lines: openptv::ParLines,
     section: &'static str,
     places: &'a mut BTreeMap<String, (PathBuf, usize)>,
 }
@@ -570,84 +572,47 @@ impl<'a> ParFile<'a> {
         places: &'a mut BTreeMap<String, (PathBuf, usize)>,
     ) -> Result<Self, ExperimentError> {
         let path = dir.join("parameters").join(name);
-        let text = std::fs::read_to_string(&path).map_err(|reason| FormatError::Io {
-            path: path.clone(),
-            reason,
-        })?;
+        let text = super::read_text(&path)?;
+        let lines =
+            openptv::ParLines::new(&text, &path.display().to_string(), &format!("{section}."));
         Ok(ParFile {
             path,
-            lines: text.lines().map(|l| l.trim().to_owned()).collect(),
-            next: 0,
+            lines,
             section,
             places,
         })
     }
 
-    /// The next line's first token, recorded as `section.key`.
-    fn token(&mut self, key: &str) -> Result<(String, usize), ExperimentError> {
-        let index = self.next;
-        self.next += 1;
-        let full = format!("{}.{key}", self.section);
-        match self.lines.get(index) {
-            Some(line) if !line.is_empty() => {
-                self.places.insert(full, (self.path.clone(), index + 1));
-                Ok((
-                    line.split_whitespace().next().unwrap_or(line).to_owned(),
-                    index + 1,
-                ))
-            }
-            found => Err(ExperimentError::Invalid {
-                file: self.path.clone(),
-                location: format!("line {}, {full}", index + 1),
-                reason: format!(
-                    "expected {key}, found {}",
-                    if found.is_some() {
-                        "an empty line"
-                    } else {
-                        "the end of the file"
-                    }
-                ),
-            }),
+    /// Records where `key` was read.
+    fn record(&mut self, key: &str) {
+        if let Some(line) = self.lines.line_of(key) {
+            self.places
+                .insert(format!("{}.{key}", self.section), (self.path.clone(), line));
         }
     }
 
     fn text(&mut self, key: &str) -> Result<String, ExperimentError> {
-        Ok(self.token(key)?.0)
+        let value = self.lines.text(key)?;
+        self.record(key);
+        Ok(value)
     }
 
     fn number(&mut self, key: &str) -> Result<f64, ExperimentError> {
-        let (token, line) = self.token(key)?;
-        token
-            .parse::<f64>()
-            .ok()
-            .filter(|v| v.is_finite())
-            .ok_or_else(|| ExperimentError::Invalid {
-                file: self.path.clone(),
-                location: format!("line {line}, {}.{key}", self.section),
-                reason: format!("expected a number, got `{token}`"),
-            })
+        let value = self.lines.number(key)?;
+        self.record(key);
+        Ok(value)
     }
 
     fn integer(&mut self, key: &str) -> Result<i64, ExperimentError> {
-        let (token, line) = self.token(key)?;
-        token.parse::<i64>().map_err(|_| ExperimentError::Invalid {
-            file: self.path.clone(),
-            location: format!("line {line}, {}.{key}", self.section),
-            reason: format!("expected an integer, got `{token}`"),
-        })
+        let value = self.lines.integer(key)?;
+        self.record(key);
+        Ok(value)
     }
 
     fn unsigned(&mut self, key: &str) -> Result<u64, ExperimentError> {
-        let value = self.integer(key)?;
-        u64::try_from(value).map_err(|_| ExperimentError::Invalid {
-            file: self.path.clone(),
-            location: format!("line {}, {}.{key}", self.next, self.section),
-            reason: format!("expected a whole number >= 0, got {value}"),
-        })
-    }
-
-    fn flag(&mut self, key: &str) -> Result<bool, ExperimentError> {
-        Ok(self.integer(key)? != 0)
+        let value = self.lines.unsigned(key)?;
+        self.record(key);
+        Ok(value)
     }
 }
 
@@ -667,47 +632,34 @@ fn read_legacy(dir: &Path) -> Result<Experiment, ExperimentError> {
         section_files.insert(section.to_owned(), par(file));
     }
 
-    let mut f = ParFile::open(dir, "ptv.par", "ptv", &mut places)?;
-    let count = f.unsigned("n_img")?;
-    if !(1..=calibration::MAX_CAMERAS as u64).contains(&count) {
-        return Err(ExperimentError::Invalid {
-            file: f.path.clone(),
-            location: "line 1, ptv.n_img".into(),
-            reason: format!(
-                "the number of cameras must be 1..{}, got {count}",
-                calibration::MAX_CAMERAS
-            ),
-        });
+    // ptv.par: OpenPTV's one reader of it, keys as pyptv's YAML names them.
+    let ptv_path = par("ptv.par");
+    let ptv_par = openptv::read_ptv_par(
+        &super::read_text(&ptv_path)?,
+        &ptv_path.display().to_string(),
+        "ptv.",
+    )?;
+    for (key, line) in ptv_par.lines() {
+        places.insert(format!("ptv.{key}"), (ptv_path.clone(), line));
     }
-    let n = count as usize;
-    let mut img_name = Vec::new();
-    for i in 0..n {
-        img_name.push(f.text(&format!("img_name[{i}]"))?);
-        f.text(&format!("img_cal[{i}]"))?;
-    }
-    let hp_flag = f.flag("hp_flag")?;
-    let allcam_flag = f.flag("allcam_flag")?;
-    let tiff_flag = f.flag("tiff_flag")?;
-    let imx = f.unsigned("imx")?;
-    let imy = f.unsigned("imy")?;
+    let n = ptv_par.num_cams();
     let ptv = PtvSection {
         n_img: Some(n),
-        img_name,
-        hp_flag,
-        allcam_flag,
-        tiff_flag,
-        imx: u32::try_from(imx).unwrap_or(u32::MAX),
-        imy: u32::try_from(imy).unwrap_or(u32::MAX),
-        pix_x: f.number("pix_x")?,
-        pix_y: f.number("pix_y")?,
-        chfield: f.integer("chfield")?,
-        mmp_n1: f.number("mmp_n1")?,
-        mmp_n2: f.number("mmp_n2")?,
-        mmp_n3: f.number("mmp_n3")?,
-        mmp_d: f.number("mmp_d")?,
+        img_name: ptv_par.img_name,
+        hp_flag: ptv_par.hp_flag,
+        allcam_flag: ptv_par.allcam_flag,
+        tiff_flag: ptv_par.tiff_flag,
+        imx: ptv_par.imx,
+        imy: ptv_par.imy,
+        pix_x: ptv_par.pix_x,
+        pix_y: ptv_par.pix_y,
+        chfield: ptv_par.chfield,
+        mmp_n1: ptv_par.mmp_n1,
+        mmp_n2: ptv_par.mmp_n2,
+        mmp_n3: ptv_par.mmp_n3,
+        mmp_d: ptv_par.mmp_d,
         splitter: false,
     };
-    let ptv_path = f.path.clone();
     unmapped.push(UnmappedSetting {
         file: ptv_path.display().to_string(),
         key: "ptv.img_name".into(),

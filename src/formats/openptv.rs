@@ -5,10 +5,14 @@
 //!   the glass vector (mm). Whitespace-separated, blank lines between blocks.
 //! - `.addpar`: `k1 k2 k3 p1 p2 scx she` on one line; a missing file means
 //!   no distortion.
-//! - `ptv.par`: one value per line: number of cameras; per camera an image
-//!   name and a calibration image name; highpass flag; all-cameras flag;
-//!   TIFF flag; image width; image height; pixel size x; pixel size y; field
-//!   flag; n1 (air); n2 (wall); n3 (object); wall thickness (mm).
+//! - `ptv.par`: one value per line, in liboptv's `read_control_par` order
+//!   and under its names ([`PtvPar`]): `num_cams`; per camera `img_name`
+//!   and `img_cal`; `hp_flag`; `allcam_flag`; `tiff_flag`; `imx`, `imy`
+//!   (px); `pix_x`, `pix_y` (mm); `chfield`; `mmp_n1` (air), `mmp_n2`
+//!   (wall), `mmp_n3` (object); `mmp_d` (wall thickness, mm). This one
+//!   reader serves the calibration import and the experiment importer
+//!   ([`super::experiment`]), whose other `.par` files go through the same
+//!   line reader; errors name the file, the line and the key.
 //!
 //! - `_targets` (`cam1.10001_targets`): the count, then per target
 //!   `pnr x y n nx ny sumg tnr` (pixels; `pnr` numbers the targets 0..N-1 in
@@ -19,6 +23,7 @@
 //! Numbers are written in their shortest exact form, so an export and
 //! re-import returns the same calibration bit for bit.
 
+use std::collections::BTreeMap;
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
@@ -30,21 +35,172 @@ use crate::photogrammetry::{
     Camera, CameraParameters, Distortion, Exterior, Interior, Media, Sensor, Target, Wall,
 };
 
-/// The parts of OpenPTV's `ptv.par` that describe the cameras.
+/// OpenPTV's `ptv.par`, every field of it, named as liboptv's
+/// `read_control_par` and pyptv's YAML section `ptv` name them, in the
+/// file's order.
 #[derive(Clone, Debug, PartialEq)]
 pub struct PtvPar {
-    /// Per camera: image name and calibration image name.
-    pub image_names: Vec<(String, String)>,
-    /// The sensor shared by all cameras.
-    pub sensor: Sensor,
+    /// Per camera, the image of one frame (pyptv's single-frame preview).
+    pub img_name: Vec<String>,
+    /// Per camera, its calibration image.
+    pub img_cal: Vec<String>,
+    /// Whether images are high-pass filtered before detection.
+    pub hp_flag: bool,
+    /// Whether only particles seen by every camera are kept.
+    pub allcam_flag: bool,
+    /// Whether the images are TIFF files.
+    pub tiff_flag: bool,
+    /// Image width (px).
+    pub imx: u32,
+    /// Image height (px).
+    pub imy: u32,
+    /// Pixel size x (mm).
+    pub pix_x: f64,
+    /// Pixel size y (mm).
+    pub pix_y: f64,
+    /// 0 for full frames; 1 and 2 for the odd and even fields of
+    /// interlaced images.
+    pub chfield: i64,
     /// Refractive index of air (n1).
-    pub n_air: f64,
+    pub mmp_n1: f64,
     /// Refractive index of the wall (n2).
-    pub n_wall: f64,
+    pub mmp_n2: f64,
     /// Refractive index of the object medium (n3).
-    pub n_object: f64,
+    pub mmp_n3: f64,
     /// Wall thickness (mm).
-    pub thickness: f64,
+    pub mmp_d: f64,
+    /// The 1-based line of each key (`img_name[1]`, `imx`, ...).
+    lines: BTreeMap<String, usize>,
+}
+
+impl PtvPar {
+    /// The number of cameras (the first line).
+    pub fn num_cams(&self) -> usize {
+        self.img_name.len()
+    }
+
+    /// The sensor shared by all cameras.
+    pub fn sensor(&self) -> Sensor {
+        Sensor {
+            width: self.imx,
+            height: self.imy,
+            pixel_size_x: self.pix_x,
+            pixel_size_y: self.pix_y,
+        }
+    }
+
+    /// Where `key` was read: `line 12, imx` (the key alone if unknown).
+    pub fn location(&self, key: &str) -> String {
+        match self.lines.get(key) {
+            Some(line) => format!("line {line}, {key}"),
+            None => key.to_owned(),
+        }
+    }
+
+    /// Every key with the 1-based line it was read from, in key order.
+    pub fn lines(&self) -> impl Iterator<Item = (&str, usize)> {
+        self.lines.iter().map(|(key, &line)| (key.as_str(), line))
+    }
+}
+
+/// An OpenPTV `.par` file: one value per line in a fixed order, each read
+/// under its key (the first whitespace-separated token of the line, as
+/// liboptv's `fscanf` takes it). Errors name the source, the line and the
+/// key (`line 5, targ_rec.disco`, the key after a prefix naming the
+/// section where the file is one of an experiment's).
+pub(crate) struct ParLines {
+    source: String,
+    prefix: String,
+    lines: Vec<String>,
+    next: usize,
+    read: BTreeMap<String, usize>,
+}
+
+impl ParLines {
+    /// `prefix` goes before every key in errors: `targ_rec.` or empty.
+    pub(crate) fn new(text: &str, source: &str, prefix: &str) -> Self {
+        ParLines {
+            source: source.to_owned(),
+            prefix: prefix.to_owned(),
+            lines: text.lines().map(|l| l.trim().to_owned()).collect(),
+            next: 0,
+            read: BTreeMap::new(),
+        }
+    }
+
+    /// An error about `key`, placed at its line (or at the line last read).
+    pub(crate) fn invalid(&self, key: &str, reason: impl Into<String>) -> FormatError {
+        let line = self.line_of(key).unwrap_or(self.next.max(1));
+        FormatError::invalid(
+            &self.source,
+            format!("line {line}, {}{key}", self.prefix),
+            reason,
+        )
+    }
+
+    /// The next line's first token, read as `key`.
+    pub(crate) fn text(&mut self, key: &str) -> Result<String, FormatError> {
+        let index = self.next;
+        self.next += 1;
+        match self.lines.get(index) {
+            Some(line) if !line.is_empty() => {
+                self.read.insert(key.to_owned(), index + 1);
+                Ok(line.split_whitespace().next().unwrap_or(line).to_owned())
+            }
+            found => Err(FormatError::invalid(
+                &self.source,
+                format!("line {}, {}{key}", index + 1, self.prefix),
+                format!(
+                    "expected {key}, found {}",
+                    if found.is_some() {
+                        "an empty line"
+                    } else {
+                        "the end of the file"
+                    }
+                ),
+            )),
+        }
+    }
+
+    /// The next value as a finite number.
+    pub(crate) fn number(&mut self, key: &str) -> Result<f64, FormatError> {
+        let token = self.text(key)?;
+        token
+            .parse::<f64>()
+            .ok()
+            .filter(|v| v.is_finite())
+            .ok_or_else(|| self.invalid(key, format!("expected a number, got `{token}`")))
+    }
+
+    /// The next value as an integer (liboptv's `%d`).
+    pub(crate) fn integer(&mut self, key: &str) -> Result<i64, FormatError> {
+        let token = self.text(key)?;
+        token
+            .parse::<i64>()
+            .map_err(|_| self.invalid(key, format!("expected an integer, got `{token}`")))
+    }
+
+    /// The next value as a whole number >= 0.
+    pub(crate) fn unsigned(&mut self, key: &str) -> Result<u64, FormatError> {
+        let value = self.integer(key)?;
+        u64::try_from(value)
+            .map_err(|_| self.invalid(key, format!("expected a whole number >= 0, got {value}")))
+    }
+
+    /// The next value as a flag: an integer, non-zero for on.
+    pub(crate) fn flag(&mut self, key: &str) -> Result<bool, FormatError> {
+        Ok(self.integer(key)? != 0)
+    }
+
+    /// The 1-based line `key` was read from.
+    pub(crate) fn line_of(&self, key: &str) -> Option<usize> {
+        self.read.get(key).copied()
+    }
+
+    /// The keys read so far with their 1-based lines.
+    pub(crate) fn read(&self) -> impl Iterator<Item = (&str, usize)> {
+        self.read.iter().map(|(key, &line)| (key.as_str(), line))
+    }
 }
 
 /// A token as a finite number, or an error naming the source, the line and
@@ -264,42 +420,27 @@ pub fn format_targets(targets: &[Target]) -> String {
     text
 }
 
-/// Parses `ptv.par`.
+/// Parses `ptv.par` (the order of liboptv's `read_control_par`); errors
+/// name the line and the key: `ptv.par: line 3, img_name[1]: ...`.
 pub fn parse_ptv_par(text: &str, source: &str) -> Result<PtvPar, FormatError> {
-    let lines: Vec<&str> = text.lines().map(str::trim).collect();
-    let line = |index: usize, what: &str| -> Result<&str, FormatError> {
-        match lines.get(index) {
-            Some(l) if !l.is_empty() => Ok(l.split_whitespace().next().unwrap_or(l)),
-            _ => Err(FormatError::invalid(
-                source,
-                format!("line {}", index + 1),
-                format!(
-                    "expected {what}, found {}",
-                    if index < lines.len() {
-                        "an empty line"
-                    } else {
-                        "the end of the file"
-                    }
-                ),
-            )),
-        }
-    };
-    let parse = |index: usize, what: &str| -> Result<f64, FormatError> {
-        finite_number(line(index, what)?, source, index + 1, what)
-    };
-    let count = parse(0, "the number of cameras")?;
-    if count < 1.0 || count.fract() != 0.0 {
-        return Err(FormatError::invalid(
-            source,
-            "line 1",
-            format!("the number of cameras must be a positive integer, got {count}"),
+    read_ptv_par(text, source, "")
+}
+
+/// [`parse_ptv_par`] with `prefix` before every key in errors (`ptv.`,
+/// the section pyptv's YAML gives these keys, for an experiment's file).
+pub(crate) fn read_ptv_par(text: &str, source: &str, prefix: &str) -> Result<PtvPar, FormatError> {
+    let mut f = ParLines::new(text, source, prefix);
+    let count = f.integer("num_cams")?;
+    if count < 1 {
+        return Err(f.invalid(
+            "num_cams",
+            format!("the number of cameras must be at least 1, got {count}"),
         ));
     }
     // Before the per-camera lists are allocated.
-    if count > calibration::MAX_CAMERAS as f64 {
-        return Err(FormatError::invalid(
-            source,
-            "line 1",
+    if count > calibration::MAX_CAMERAS as i64 {
+        return Err(f.invalid(
+            "num_cams",
             format!(
                 "the number of cameras is {count}, more than the limit of {} (MAX_CAMERAS); \
                  give the rig's camera count",
@@ -308,55 +449,47 @@ pub fn parse_ptv_par(text: &str, source: &str) -> Result<PtvPar, FormatError> {
         ));
     }
     let count = count as usize;
-    let mut image_names = Vec::with_capacity(count);
+    let (mut img_name, mut img_cal) = (Vec::with_capacity(count), Vec::with_capacity(count));
     for k in 0..count {
-        image_names.push((
-            line(1 + 2 * k, &format!("the image name of camera {}", k + 1))?.to_owned(),
-            line(
-                2 + 2 * k,
-                &format!("the calibration image name of camera {}", k + 1),
-            )?
-            .to_owned(),
-        ));
+        img_name.push(f.text(&format!("img_name[{k}]"))?);
+        img_cal.push(f.text(&format!("img_cal[{k}]"))?);
     }
-    let base = 1 + 2 * count;
-    let size = |index: usize, what: &str| -> Result<u32, FormatError> {
-        let value = parse(index, what)?;
-        if value >= 1.0 && value.fract() == 0.0 && value <= f64::from(u32::MAX) {
-            Ok(value as u32)
-        } else {
-            Err(FormatError::invalid(
-                source,
-                format!("line {}", index + 1),
-                format!("{what} must be a positive integer, got {value}"),
-            ))
-        }
+    let hp_flag = f.flag("hp_flag")?;
+    let allcam_flag = f.flag("allcam_flag")?;
+    let tiff_flag = f.flag("tiff_flag")?;
+    let mut size = |key: &str| -> Result<u32, FormatError> {
+        let value = f.integer(key)?;
+        u32::try_from(value)
+            .ok()
+            .filter(|&v| v >= 1)
+            .ok_or_else(|| {
+                f.invalid(
+                    key,
+                    format!("the image size must be a positive integer (px), got {value}"),
+                )
+            })
     };
-    let width = size(base + 3, "the image width")?;
-    let height = size(base + 4, "the image height")?;
-    let pixel_size_x = parse(base + 5, "the pixel size x")?;
-    let pixel_size_y = parse(base + 6, "the pixel size y")?;
-    let field = parse(base + 7, "the field flag")?;
-    if field != 0.0 {
-        return Err(FormatError::invalid(
-            source,
-            format!("line {}", base + 8),
-            format!("field-interlaced images (field flag {field}) are not supported; set it to 0"),
-        ));
-    }
-    Ok(PtvPar {
-        image_names,
-        sensor: Sensor {
-            width,
-            height,
-            pixel_size_x,
-            pixel_size_y,
-        },
-        n_air: parse(base + 8, "n1 (air)")?,
-        n_wall: parse(base + 9, "n2 (wall)")?,
-        n_object: parse(base + 10, "n3 (object medium)")?,
-        thickness: parse(base + 11, "the wall thickness")?,
-    })
+    let imx = size("imx")?;
+    let imy = size("imy")?;
+    let mut par = PtvPar {
+        img_name,
+        img_cal,
+        hp_flag,
+        allcam_flag,
+        tiff_flag,
+        imx,
+        imy,
+        pix_x: f.number("pix_x")?,
+        pix_y: f.number("pix_y")?,
+        chfield: f.integer("chfield")?,
+        mmp_n1: f.number("mmp_n1")?,
+        mmp_n2: f.number("mmp_n2")?,
+        mmp_n3: f.number("mmp_n3")?,
+        mmp_d: f.number("mmp_d")?,
+        lines: BTreeMap::new(),
+    };
+    par.lines = f.read().map(|(key, line)| (key.to_owned(), line)).collect();
+    Ok(par)
 }
 
 /// The `.addpar` file beside a `.ori` file: `cam1.tif.ori` -> `cam1.tif.addpar`.
@@ -434,13 +567,23 @@ pub fn import_texts(
     cameras: &[OriTexts],
 ) -> Result<Vec<Camera>, FormatError> {
     let par = parse_ptv_par(ptv_par, par_source)?;
-    if par.image_names.len() != cameras.len() {
+    if par.chfield != 0 {
         return Err(FormatError::invalid(
             par_source,
-            "line 1",
+            par.location("chfield"),
+            format!(
+                "field-interlaced images (chfield {}) are not supported; set it to 0",
+                par.chfield
+            ),
+        ));
+    }
+    if par.num_cams() != cameras.len() {
+        return Err(FormatError::invalid(
+            par_source,
+            par.location("num_cams"),
             format!(
                 "describes {} cameras but {} .ori files were given; give one .ori per camera, in camera order",
-                par.image_names.len(),
+                par.num_cams(),
                 cameras.len()
             ),
         ));
@@ -454,17 +597,17 @@ pub fn import_texts(
         };
         parameters.push(CameraParameters {
             name: camera.name.clone(),
-            sensor: par.sensor.clone(),
+            sensor: par.sensor(),
             exterior,
             interior,
             distortion,
             media: Media {
-                n_air: par.n_air,
+                n_air: par.mmp_n1,
                 walls: vec![Wall {
-                    n: par.n_wall,
-                    thickness: par.thickness,
+                    n: par.mmp_n2,
+                    thickness: par.mmp_d,
                 }],
-                n_object: par.n_object,
+                n_object: par.mmp_n3,
                 glass_vector,
             },
         });
@@ -742,18 +885,12 @@ mod tests {
             }
             text + "1\n0\n1\n1280\n1024\n0.012\n0.012\n0\n1\n1.33\n1.46\n6\n"
         };
-        assert_eq!(
-            parse_ptv_par(&par(16), "ptv.par")
-                .unwrap()
-                .image_names
-                .len(),
-            16
-        );
+        assert_eq!(parse_ptv_par(&par(16), "ptv.par").unwrap().num_cams(), 16);
         let message = parse_ptv_par(&par(17), "ptv.par").unwrap_err().to_string();
         assert!(
             message.starts_with(
-                "ptv.par: line 1: the number of cameras is 17, more than the \
-                                 limit of 16 (MAX_CAMERAS)"
+                "ptv.par: line 1, num_cams: the number of cameras is 17, more \
+                 than the limit of 16 (MAX_CAMERAS)"
             ),
             "{message}"
         );
@@ -787,6 +924,108 @@ mod tests {
             .to_string();
         assert!(
             message.contains("cameras[0].name: the camera name"),
+            "{message}"
+        );
+    }
+
+    #[test]
+    fn ptv_par_keeps_every_field_with_its_line() {
+        let text = include_str!("../../tests/data/openptv/test_cavity/parameters/ptv.par");
+        let par = parse_ptv_par(text, "ptv.par").unwrap();
+        assert_eq!(par.num_cams(), 4);
+        assert_eq!(par.img_name[3], "img/cam4.10003");
+        assert_eq!(par.img_cal[1], "cal/cam2.tif");
+        assert_eq!(
+            (par.hp_flag, par.allcam_flag, par.tiff_flag),
+            (true, false, true)
+        );
+        assert_eq!(
+            (par.imx, par.imy, par.pix_x, par.pix_y),
+            (1280, 1024, 0.012, 0.012)
+        );
+        assert_eq!(par.chfield, 0);
+        assert_eq!(
+            (par.mmp_n1, par.mmp_n2, par.mmp_n3, par.mmp_d),
+            (1.0, 1.33, 1.46, 6.0)
+        );
+        // 4 cameras: names on lines 2..9, then hp_flag on 10 ... mmp_d on 21.
+        assert_eq!(par.location("img_cal[3]"), "line 9, img_cal[3]");
+        assert_eq!(par.location("hp_flag"), "line 10, hp_flag");
+        assert_eq!(par.location("mmp_d"), "line 21, mmp_d");
+        assert_eq!(par.lines().count(), 1 + 2 * 4 + 12);
+    }
+
+    #[test]
+    fn ptv_par_bad_values_name_the_line_and_the_key() {
+        let text = include_str!("../../tests/data/openptv/test_cavity/parameters/ptv.par");
+        let with_line = |line: usize, value: &str| {
+            let mut lines: Vec<&str> = text.lines().collect();
+            lines[line - 1] = value;
+            lines.join("\n")
+        };
+        for (line, value, expected) in [
+            (
+                3,
+                "",
+                "ptv.par: line 3, img_cal[0]: expected img_cal[0], found an empty line",
+            ),
+            (
+                11,
+                "all",
+                "ptv.par: line 11, allcam_flag: expected an integer, got `all`",
+            ),
+            (
+                13,
+                "1280.5",
+                "ptv.par: line 13, imx: expected an integer, got `1280.5`",
+            ),
+            (
+                14,
+                "0",
+                "ptv.par: line 14, imy: the image size must be a positive integer",
+            ),
+            (
+                16,
+                "NaN",
+                "ptv.par: line 16, pix_y: expected a number, got `NaN`",
+            ),
+            (
+                20,
+                "glass",
+                "ptv.par: line 20, mmp_n3: expected a number, got `glass`",
+            ),
+            (
+                1,
+                "0",
+                "ptv.par: line 1, num_cams: the number of cameras must be at least 1",
+            ),
+        ] {
+            let message = parse_ptv_par(&with_line(line, value), "ptv.par")
+                .unwrap_err()
+                .to_string();
+            assert!(message.starts_with(expected), "{value:?}: {message}");
+        }
+        // A field the import cannot use is refused there, at its line.
+        let ori = include_str!("../../tests/data/openptv/test_cavity/cal/cam1.tif.ori");
+        let texts: Vec<OriTexts> = (0..4)
+            .map(|k| OriTexts {
+                name: format!("cam{}", k + 1),
+                ori: (ori.to_owned(), "cam.ori".to_owned()),
+                addpar: None,
+            })
+            .collect();
+        let message = import_texts(&with_line(17, "1"), "ptv.par", &texts)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            message.starts_with("ptv.par: line 17, chfield: field-interlaced"),
+            "{message}"
+        );
+        let message = import_texts(text, "ptv.par", &texts[..3])
+            .unwrap_err()
+            .to_string();
+        assert!(
+            message.starts_with("ptv.par: line 1, num_cams: describes 4 cameras but 3 .ori"),
             "{message}"
         );
     }

@@ -387,22 +387,36 @@ fn a_splitter_experiment_cuts_one_image_into_the_four_cameras() {
     );
 }
 
+/// `file` with its line `number` (1-based) replaced by `value`; returns
+/// the text it had.
+fn replace_line(file: &Path, number: usize, value: &str) -> String {
+    let text = std::fs::read_to_string(file).unwrap();
+    let mut lines: Vec<&str> = text.lines().collect();
+    lines[number - 1] = value;
+    std::fs::write(file, lines.join("\n")).unwrap();
+    text
+}
+
 #[test]
 fn broken_experiments_are_named_by_file_line_and_key() {
     // A .par value that does not parse.
     let dir = copy_experiment();
     let targ_rec = dir.path().join("parameters/targ_rec.par");
-    let text = std::fs::read_to_string(&targ_rec).unwrap();
-    let mut lines: Vec<&str> = text.lines().collect();
-    lines[4] = "lots";
-    std::fs::write(&targ_rec, lines.join("\n")).unwrap();
+    replace_line(&targ_rec, 5, "lots");
     fails(
         &ptv(&["experiment", "import", ".", "-o", "out"], dir.path()),
         &["targ_rec.par: line 5, targ_rec.disco: expected an integer, got `lots`"],
     );
+    // ptv.par goes through the same reader as the calibration import.
+    let ptv_par = dir.path().join("parameters/ptv.par");
+    let original = replace_line(&ptv_par, 13, "wide");
+    fails(
+        &ptv(&["experiment", "import", "."], dir.path()),
+        &["ptv.par: line 13, ptv.imx: expected an integer, got `wide`"],
+    );
+    std::fs::write(&ptv_par, original).unwrap();
     // A value out of range.
-    lines[4] = "70000";
-    std::fs::write(&targ_rec, lines.join("\n")).unwrap();
+    replace_line(&targ_rec, 5, "70000");
     fails(
         &ptv(&["experiment", "import", "."], dir.path()),
         &["targ_rec.par: line 5, targ_rec.disco: must be 0..65535, got 70000"],
