@@ -68,6 +68,15 @@ async fn killed_service_processes_every_accepted_frame_exactly_once() {
         done_at_kill < CRASH_FRAMES,
         "all frames were done before the kill; the test saw no crash"
     );
+    // The job the status showed running may have finished between that
+    // poll and the kill; what the database says decides whether one was
+    // interrupted.
+    let interrupted = {
+        let db = open_database(data_dir.path()).await;
+        let n = count(&db, "SELECT count(*) FROM jobs WHERE state = 'running'").await;
+        db.close().await;
+        n
+    };
 
     let second = ServiceProcess::start(data_dir.path(), 2);
     let view = wait_for_sequence(&client, &second.address, sequence).await;
@@ -112,8 +121,10 @@ async fn killed_service_processes_every_accepted_frame_exactly_once() {
         count(&db, "SELECT count(*) FROM targets").await,
         4 * CRASH_FRAMES
     );
-    // The job the kill interrupted ran again.
-    assert!(count(&db, "SELECT max(attempts) FROM jobs").await >= 2);
+    // The job the kill interrupted, if it did, ran again.
+    if interrupted > 0 {
+        assert!(count(&db, "SELECT max(attempts) FROM jobs").await >= 2);
+    }
     // No image rows are left (the sequence keeps none), and no files.
     assert_eq!(count(&db, "SELECT count(*) FROM images").await, 0);
     assert!(crate::api::walk(&data_dir.path().join("images")).is_empty());
