@@ -617,7 +617,18 @@ impl Grey for u16 {
     }
 }
 
-/// One row of [`Detector::highpass_threshold`]: the window sum of column
+/// The level of a pixel whose filtered value `g - s/c` exceeds the
+/// threshold `t`, given `d = g c - s` and the window size `c`:
+/// `round(k d / c)` with `k = LEVEL_SCALE`, kept above `k t` (so its weight
+/// is at least 1). It is at most `k g`, which fits in 16 bits.
+#[inline]
+fn level_above<G: Grey>(d: u64, c: u64, threshold: u64) -> u16 {
+    let scale = G::LEVEL_SCALE;
+    let level = (2 * d * scale + c) / (2 * c);
+    level.max(threshold * scale + 1).min(u64::from(u16::MAX)) as u16
+}
+
+/// One row of [`HighPass`]'s filter: the window sum of column
 /// `x` is the sum of `column_sums` over columns `x-r ..= x+r` (clipped), of
 /// `rows * columns` pixels. Writes the level of every pixel above the
 /// threshold into `out` and counts them in `above`.
@@ -632,13 +643,8 @@ fn filter_row<G: Grey>(
     above: &mut usize,
 ) {
     let width = row.len();
-    // round(k (g c - s) / c) with k = LEVEL_SCALE, above k t: only called
-    // when g c > s + t c, i.e. when the filtered value exceeds the
-    // threshold. It is at most k g, which fits in 16 bits.
-    let scale = G::LEVEL_SCALE;
     let mut keep = |x: usize, d: u64, c: u64| {
-        let level = (2 * d * scale + c) / (2 * c);
-        out[x] = level.max(threshold * scale + 1).min(u64::from(u16::MAX)) as u16;
+        out[x] = level_above::<G>(d, c, threshold);
         *above += 1;
     };
     let columns = |x: usize| ((x + r).min(width - 1) - x.saturating_sub(r) + 1) as u64;
@@ -727,12 +733,8 @@ fn filter_row_narrow<G: Grey>(
         *p = total;
     }
     let prefix = &prefix[..=width];
-    let scale = G::LEVEL_SCALE;
-    let t = u64::from(threshold);
     let mut keep = |x: usize, d: u32, c: u32| {
-        let (d, c) = (u64::from(d), u64::from(c));
-        let level = (2 * d * scale + c) / (2 * c);
-        out[x] = level.max(t * scale + 1).min(u64::from(u16::MAX)) as u16;
+        out[x] = level_above::<G>(u64::from(d), u64::from(c), u64::from(threshold));
         *above += 1;
     };
     // Edges: the window is clipped, so its size varies.
