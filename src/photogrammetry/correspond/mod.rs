@@ -279,10 +279,15 @@ pub const MAX_TARGETS_PER_CAMERA: usize = 1 << 20;
 /// A particle image is at least one pixel, and two particle images are
 /// told apart only with a pixel between them: the detector's 8-connected
 /// blobs split at grey value minima, so two targets' brightest pixels are
-/// never neighbours, and each 2x2 block of pixels holds at most one. No
-/// detector separates more; a list with more targets is not one frame of
-/// this sensor. (Real frames are far sparser: 0.005..0.05 particles per
-/// pixel.)
+/// never neighbours, and each 2x2 block of pixels holds at most one. With
+/// an absolute split depth the detector's blobs are 4-connected, as
+/// OpenPTV's, and pixels touching at a corner can be separate targets: the
+/// bound then holds for targets of at least 4 pixels (OpenPTV experiments'
+/// usual `nnmin`), each blob being its own pixels; single-pixel targets of
+/// a noise checkerboard can exceed it, and such a frame is refused
+/// ([`MatchError::TooManyTargets`]) rather than matched. A list with more
+/// targets is not one frame of particles of this sensor. (Real frames are
+/// far sparser: 0.005..0.05 particles per pixel.)
 pub fn max_targets(sensor: &Sensor) -> usize {
     let half = |side: u32| side.div_ceil(2) as usize;
     (half(sensor.width) * half(sensor.height)).min(MAX_TARGETS_PER_CAMERA)
@@ -362,17 +367,26 @@ mod tests {
                 (Just(w), Just(h), prop::collection::vec(any::<u8>(), (w * h) as usize))
             }),
             split_depth in 0u16..3,
+            four_connected in any::<bool>(),
         ) {
             use crate::photogrammetry::{detect, DetectionParameters, GreyImage};
             let image = GreyImage::from_u8(width, height, pixels).unwrap();
+            // 8-connected blobs (the automatic split rule) from one pixel
+            // on; 4-connected ones (an absolute depth) from four.
+            let (split_depth, min_pixels) = if four_connected {
+                (Some(split_depth), 4)
+            } else {
+                (None, 1)
+            };
             let parameters = DetectionParameters {
                 threshold: 0,
                 highpass_radius: 0,
-                min_pixels: 1,
+                min_pixels,
                 max_pixels: u32::MAX,
                 max_nx: u32::MAX,
                 max_ny: u32::MAX,
-                split_depth: Some(split_depth),
+                min_snr: 0,
+                split_depth,
                 ..DetectionParameters::default()
             };
             let sensor = Sensor { width, height, pixel_size_x: 0.01, pixel_size_y: 0.01 };
