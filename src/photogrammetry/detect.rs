@@ -1144,21 +1144,12 @@ impl<'a, G: Grey> HighPass<'a, G> {
         filter
     }
 
-    /// Row `row` less the background's, if any (then in `scratch`).
-    fn row(&mut self, row: usize, scratch: Scratch) -> &[G] {
-        let scratch = match scratch {
-            Scratch::Entering => &mut self.entering,
-            Scratch::Leaving => &mut self.leaving,
-            Scratch::Current => &mut self.current,
-        };
-        subtracted_row(self.pixels, self.background, self.width, row, scratch)
-    }
-
     /// Filters the next row into its part of `levels` (the whole image's,
     /// 0 where below the threshold), counts its pixels above the threshold
     /// in `above`, and returns the row; `None` once all rows are done.
     fn next_row(&mut self, levels: &mut [u16], above: &mut usize) -> Option<usize> {
         let (y, width, height, r) = (self.next, self.width, self.height, self.r);
+        let (pixels, background) = (self.pixels, self.background);
         if y >= height {
             return None;
         }
@@ -1167,7 +1158,7 @@ impl<'a, G: Grey> HighPass<'a, G> {
         let before = *above;
         if r == 0 {
             let threshold = self.threshold;
-            let row = self.row(y, Scratch::Current);
+            let row = subtracted_row(pixels, background, width, y, &mut self.current);
             for (level, &g) in out.iter_mut().zip(row) {
                 if u64::from(g.value()) > threshold {
                     *level = (u64::from(g.value()) * G::LEVEL_SCALE) as u16;
@@ -1181,8 +1172,6 @@ impl<'a, G: Grey> HighPass<'a, G> {
             let mut sums = std::mem::take(&mut self.column_sums);
             match (y + r < height, y > r) {
                 (true, true) => {
-                    // Two scratch rows at once: the fields, not `row`.
-                    let (pixels, background) = (self.pixels, self.background);
                     let new = subtracted_row(pixels, background, width, y + r, &mut self.entering);
                     let old =
                         subtracted_row(pixels, background, width, y - r - 1, &mut self.leaving);
@@ -1191,12 +1180,15 @@ impl<'a, G: Grey> HighPass<'a, G> {
                     }
                 }
                 (true, false) => {
-                    for (sum, &g) in sums.iter_mut().zip(self.row(y + r, Scratch::Entering)) {
+                    let new = subtracted_row(pixels, background, width, y + r, &mut self.entering);
+                    for (sum, &g) in sums.iter_mut().zip(new) {
                         *sum += g.value();
                     }
                 }
                 (false, true) => {
-                    for (sum, &g) in sums.iter_mut().zip(self.row(y - r - 1, Scratch::Leaving)) {
+                    let old =
+                        subtracted_row(pixels, background, width, y - r - 1, &mut self.leaving);
+                    for (sum, &g) in sums.iter_mut().zip(old) {
                         *sum -= g.value();
                     }
                 }
@@ -1205,7 +1197,7 @@ impl<'a, G: Grey> HighPass<'a, G> {
             let rows = ((y + r).min(height - 1) - y.saturating_sub(r) + 1) as u64;
             let threshold = self.threshold;
             let (narrow, mut prefix) = (self.narrow, std::mem::take(&mut self.prefix));
-            let row = self.row(y, Scratch::Current);
+            let row = subtracted_row(pixels, background, width, y, &mut self.current);
             if narrow {
                 filter_row_narrow(
                     row,
@@ -1235,14 +1227,6 @@ impl<'a, G: Grey> HighPass<'a, G> {
         }
         Some(y)
     }
-}
-
-/// Which of [`HighPass`]'s scratch rows a row is subtracted into.
-#[derive(Clone, Copy)]
-enum Scratch {
-    Entering,
-    Leaving,
-    Current,
 }
 
 /// Targets, and when asked for, each one's pixels (else no vectors at all).
