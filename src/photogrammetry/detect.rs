@@ -43,7 +43,8 @@
 //!    The noise level `sigma` is the image's after the high-pass filter,
 //!    estimated on every frame before the filter runs (only when a rule
 //!    needs it): the filtered value, signed, of a sparse subsample of at
-//!    most about 2^14 pixels (every 16th row, every 8th pixel), and `sigma = 1.4826
+//!    most about 2^14 pixels (32 rows spread over the image, every 4th pixel
+//!    of a 1280-pixel row; `noise_steps`), and `sigma = 1.4826
 //!    (median - q25)`, the robust standard deviation of the sample's lower
 //!    half (`noise_sigma`). Particles only add to the filtered values, so
 //!    the lower half is the background's: the pixel noise, and also the
@@ -173,6 +174,10 @@
 //! estimated before, on its sparse sample); most of the filter's test runs 32 pixels at a
 //! time in 32-bit arithmetic, which the compiler vectorises, and the
 //! background is subtracted a row at a time in the samples' own type.
+//! On x86-64 CPUs with AVX2 the detection runs in a copy compiled for it
+//! (chosen at run time), whose vector loops take twice the pixels per
+//! instruction. The filter marks the blocks of 64 pixels that hold a pixel
+//! above the threshold, and only those are searched for blobs.
 //! Filtered values
 //! are kept in 16-bit grey levels (8-bit values times 257), so the fraction
 //! of the subtracted mean survives in the centroid weights, and an 8-bit
@@ -206,7 +211,11 @@
 //! bound. A particle image (a few percent of the pixels above the threshold,
 //! small blobs) needs little more than its 2 bytes a pixel of levels. The
 //! noise level's estimate adds about 64 KiB at most (its subsample of
-//! about 2^14 filtered values, 4 bytes each) and 8 bytes a column.
+//! about 2^14 filtered values, 4 bytes each) and 8 bytes a column; the
+//! blocks' marks one bit per 64 pixels. A detection leaves its levels
+//! cleared, and each thread keeps them for its next detection (up to
+//! `KEPT_LEVELS`, 2^24 pixels: 32 MiB), so frames of one size after the
+//! first need no allocation and no clearing of 2 bytes a pixel.
 
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -630,23 +639,18 @@ fn level_above<G: Grey>(d: u64, c: u64, threshold: u64) -> u16 {
 
 /// One row of [`HighPass`]'s filter: the window sum of column
 /// `x` is the sum of `column_sums` over columns `x-r ..= x+r` (clipped), of
-/// `rows * columns` pixels. Writes the level of every pixel above the
-/// threshold into `out` and counts them in `above`.
-#[allow(clippy::too_many_arguments)]
+/// `rows * columns` pixels. Keeps the level of every pixel above the
+/// threshold in `out`.
 fn filter_row<G: Grey>(
     row: &[G],
     column_sums: &[u32],
     r: usize,
     rows: u64,
     threshold: u64,
-    out: &mut [u16],
-    above: &mut usize,
+    out: &mut RowOut,
 ) {
     let width = row.len();
-    let mut keep = |x: usize, d: u64, c: u64| {
-        out[x] = level_above::<G>(d, c, threshold);
-        *above += 1;
-    };
+    let mut keep = |x: usize, d: u64, c: u64| out.keep(x, level_above::<G>(d, c, threshold));
     let columns = |x: usize| ((x + r).min(width - 1) - x.saturating_sub(r) + 1) as u64;
     // Columns 0 .. r-1; the loop adds column x + r before it looks at x.
     let mut s: u64 = column_sums[..r.min(width)]
@@ -712,9 +716,10 @@ fn filter_row<G: Grey>(
 /// `prefix[hi] - prefix[lo]`. Wrapping adds are exact, as every true window
 /// sum fits. Away from the edges every window has the same size, and the
 /// test runs over runs of [`NARROW_RUN`] pixels at once with no dependency
-/// from one pixel to the next, which the compiler vectorises; a run with a
-/// pixel above the threshold is then taken one pixel at a time.
+/// from one pixel to the next, which the compiler vectorises, into a bit
+/// per pixel ([`run_above`]); only the pixels above are then visited.
 #[allow(clippy::too_many_arguments)]
+#[inline(always)]
 fn filter_row_narrow<G: Grey>(
     row: &[G],
     column_sums: &[u32],
@@ -722,8 +727,7 @@ fn filter_row_narrow<G: Grey>(
     r: usize,
     rows: u32,
     threshold: u32,
-    out: &mut [u16],
-    above: &mut usize,
+    out: &mut RowOut,
 ) {
     let width = row.len();
     let mut total = 0u32;
@@ -734,8 +738,10 @@ fn filter_row_narrow<G: Grey>(
     }
     let prefix = &prefix[..=width];
     let mut keep = |x: usize, d: u32, c: u32| {
-        out[x] = level_above::<G>(u64::from(d), u64::from(c), u64::from(threshold));
-        *above += 1;
+        out.keep(
+            x,
+            level_above::<G>(u64::from(d), u64::from(c), u64::from(threshold)),
+        );
     };
     // Edges: the window is clipped, so its size varies.
     let interior = r.min(width)..width.saturating_sub(r).max(r.min(width));
@@ -758,46 +764,43 @@ fn filter_row_narrow<G: Grey>(
     let upper = &prefix[interior.start + r + 1..][..n];
     let lower = &prefix[interior.start - r..][..n];
     let pixels = &row[interior.start..][..n];
-    let test = |k: usize| {
-        let gc = pixels[k].value() * c;
-        let s = upper[k].wrapping_sub(lower[k]);
-        (gc > s + tc, gc.wrapping_sub(s))
-    };
     let mut start = 0;
     while start < n {
         let end = (start + NARROW_RUN).min(n);
-        if run_has_above(
+        let mut above = run_above(
             &pixels[start..end],
             &upper[start..end],
             &lower[start..end],
             c,
             tc,
-        ) {
-            for k in start..end {
-                if let (true, d) = test(k) {
-                    keep(interior.start + k, d, c);
-                }
-            }
+        );
+        // The pixels above, one bit each: only they are visited.
+        while above != 0 {
+            let k = start + above.trailing_zeros() as usize;
+            above &= above - 1;
+            let d = (pixels[k].value() * c).wrapping_sub(upper[k].wrapping_sub(lower[k]));
+            keep(interior.start + k, d, c);
         }
         start = end;
     }
 }
 
-/// Whether any pixel of a run is above the threshold: `g c > s + t c`
-/// with `s = upper - lower`, all in 32 bits (see [`filter_row_narrow`]).
-/// No pixel depends on another, and the result is one OR over the run, so
-/// the compiler vectorises it.
+/// Which pixels of a run (at most 32) are above the threshold, as bits
+/// (pixel `k` is bit `k`): `g c > s + t c` with `s = upper - lower`, all in
+/// 32 bits (see [`filter_row_narrow`]). No pixel depends on another, so
+/// the compiler vectorises it; the caller visits only the set bits, with
+/// no branch per pixel to mispredict.
 #[inline(always)]
-fn run_has_above<G: Grey>(pixels: &[G], upper: &[u32], lower: &[u32], c: u32, tc: u32) -> bool {
+fn run_above<G: Grey>(pixels: &[G], upper: &[u32], lower: &[u32], c: u32, tc: u32) -> u32 {
     let n = pixels.len();
     let (upper, lower) = (&upper[..n], &lower[..n]);
-    let mut any = 0u32;
+    let mut above = 0u32;
     for k in 0..n {
         let gc = pixels[k].value() * c;
         let s = upper[k].wrapping_sub(lower[k]);
-        any |= u32::from(gc > s + tc);
+        above |= u32::from(gc > s + tc) << k;
     }
-    any != 0
+    above
 }
 
 /// Pixels [`filter_row_narrow`] tests at once.
@@ -931,20 +934,32 @@ enum SplitRule {
     Auto { noise: u32, threshold: u32 },
 }
 
-/// Where the noise level is sampled: every `row_step`-th row, every
-/// `column_step`-th pixel of it; every 16th row and 8th column (10,240
-/// pixels of a 1280x1024 frame), spread further on large images so that
-/// at most about 2^14 pixels are sampled. A quantile-based sigma of `N`
-/// samples has a relative standard error of about `1.2 / sqrt(N)`: 1.2%
-/// at 10,000, far below what the rules need, for a cost of one addition
-/// per pixel of the sampled rows and a selection over the samples.
-fn noise_steps(width: usize, height: usize) -> (usize, usize) {
-    let samples = (height / 16 + 1) * (width / 8 + 1);
-    let mut stretch = 1;
-    while stretch * stretch <= samples / 16384 {
-        stretch += 1;
-    }
-    (16 * stretch, 8 * stretch)
+/// Rows on which the noise level is sampled (fewer on shorter images).
+const NOISE_ROWS: usize = 32;
+
+/// Samples of the noise level, at most: a quantile-based sigma of `N`
+/// samples has a relative standard error of about `1.2 / sqrt(N)`, 1.2% at
+/// 10,000, far below what the rules need.
+const NOISE_SAMPLES: usize = 1 << 14;
+
+/// Where the noise level is sampled: the first sampled row, the step from
+/// one to the next, and the step between sampled pixels of a row.
+/// [`NOISE_ROWS`] rows spread evenly over the image, each sampled every
+/// `column_step`-th pixel so that at most about [`NOISE_SAMPLES`] pixels
+/// are (every 4th pixel of 32 rows of a 1280x1024 frame: 10,240 samples).
+/// A sampled row's filtered values need its window's `2r + 1` rows summed,
+/// so rows far apart cost less than many close together: at the default
+/// radius, 32 windows of 21 rows are two thirds of a 1024-row image, where
+/// every 16th row (windows that overlap) took every row in and out once.
+/// Rows are what the sample is short of on real images, whose structure is
+/// correlated along a row: on the test_cavity recording (defaults,
+/// `tests/photogrammetry/real_recording.rs`) 16 rows gave 2.71x OpenPTV's
+/// count, 32 rows 2.62x, the 64 rows of before 2.65x.
+fn noise_steps(width: usize, height: usize) -> (usize, usize, usize) {
+    let rows = NOISE_ROWS.min(height);
+    let row_step = height / rows;
+    let column_step = (rows * width).div_ceil(NOISE_SAMPLES).max(1);
+    (row_step / 2, row_step, column_step)
 }
 
 /// Appends to `out` the high-pass filtered value, signed and in levels
@@ -955,6 +970,7 @@ fn noise_steps(width: usize, height: usize) -> (usize, usize) {
 /// is scratch (the running sums of `column_sums`). One pass of additions
 /// over the row, on a sampled row only.
 #[allow(clippy::too_many_arguments)]
+#[inline(always)]
 fn sample_filtered_row<G: Grey>(
     row: &[G],
     column_sums: &[u32],
@@ -1039,6 +1055,7 @@ impl Rows {
 /// Row `row` of an image `width` pixels wide, less the background's if
 /// any, saturating at 0: the image's own row, or the difference written
 /// into `scratch` (one row long).
+#[inline(always)]
 fn subtracted_row<'s, G: Grey>(
     pixels: &'s [G],
     background: Option<&[G]>,
@@ -1056,6 +1073,34 @@ fn subtracted_row<'s, G: Grey>(
             &scratch[..width]
         }
         None => samples,
+    }
+}
+
+/// Where [`HighPass`] keeps one row's pixels above the threshold: their
+/// levels in the row's part of the image's `levels`, their count in
+/// `above`, and their blocks in `marks`, one bit per block of 64 pixels in
+/// raster order (block `i` holds pixels `64 i .. 64 i + 63`, bit `i % 64`
+/// of word `i / 64`). [`Detector::find_blobs`] looks for blobs only in
+/// marked blocks; a block stays marked once its blobs are measured (and
+/// its levels cleared), so the marks are a superset of the blocks that
+/// hold levels, which is all the search needs.
+struct RowOut<'a> {
+    /// The row's levels.
+    levels: &'a mut [u16],
+    /// The row's first pixel (`y * width`).
+    start: usize,
+    marks: &'a mut [u64],
+    above: &'a mut usize,
+}
+
+impl RowOut<'_> {
+    /// Keeps pixel `x` of the row, above the threshold, at `level`.
+    #[inline(always)]
+    fn keep(&mut self, x: usize, level: u16) {
+        self.levels[x] = level;
+        *self.above += 1;
+        let block = (self.start + x) >> 6;
+        self.marks[block >> 6] |= 1 << (block & 63);
     }
 }
 
@@ -1146,23 +1191,34 @@ impl<'a, G: Grey> HighPass<'a, G> {
 
     /// Filters the next row into its part of `levels` (the whole image's,
     /// 0 where below the threshold), counts its pixels above the threshold
-    /// in `above`, and returns the row; `None` once all rows are done.
-    fn next_row(&mut self, levels: &mut [u16], above: &mut usize) -> Option<usize> {
+    /// in `above`, marks their blocks in `marks` (see [`RowOut`]), and
+    /// returns the row; `None` once all rows are done.
+    #[inline(always)]
+    fn next_row(
+        &mut self,
+        levels: &mut [u16],
+        marks: &mut [u64],
+        above: &mut usize,
+    ) -> Option<usize> {
         let (y, width, height, r) = (self.next, self.width, self.height, self.r);
         let (pixels, background) = (self.pixels, self.background);
         if y >= height {
             return None;
         }
         self.next += 1;
-        let out = &mut levels[y * width..(y + 1) * width];
         let before = *above;
+        let mut out = RowOut {
+            levels: &mut levels[y * width..(y + 1) * width],
+            start: y * width,
+            marks,
+            above,
+        };
         if r == 0 {
             let threshold = self.threshold;
             let row = subtracted_row(pixels, background, width, y, &mut self.current);
-            for (level, &g) in out.iter_mut().zip(row) {
+            for (x, &g) in row.iter().enumerate() {
                 if u64::from(g.value()) > threshold {
-                    *level = (u64::from(g.value()) * G::LEVEL_SCALE) as u16;
-                    *above += 1;
+                    out.keep(x, (u64::from(g.value()) * G::LEVEL_SCALE) as u16);
                 }
             }
         } else {
@@ -1206,26 +1262,54 @@ impl<'a, G: Grey> HighPass<'a, G> {
                     r,
                     rows as u32,
                     threshold as u32,
-                    out,
-                    above,
+                    &mut out,
                 );
             } else {
-                filter_row(row, &sums, r, rows, threshold, out, above);
+                filter_row(row, &sums, r, rows, threshold, &mut out);
             }
             self.prefix = prefix;
             self.column_sums = sums;
         }
         if let Some(mask) = self.mask {
-            if *above > before {
-                for (x, level) in out.iter_mut().enumerate() {
+            if *out.above > before {
+                for (x, level) in out.levels.iter_mut().enumerate() {
                     if *level != 0 && !mask.uses(y * width + x) {
                         *level = 0;
-                        *above -= 1;
+                        *out.above -= 1;
                     }
                 }
             }
         }
         Some(y)
+    }
+}
+
+/// The largest `levels` buffer a thread keeps for its next detection
+/// (pixels): 2^24, 32 MiB.
+const KEPT_LEVELS: usize = 1 << 24;
+
+thread_local! {
+    /// The `levels` of this thread's last detection, all 0 again when it
+    /// ended (every blob's levels are cleared once it is measured), so the
+    /// next detection on the thread need not allocate and clear 2 bytes a
+    /// pixel (about a tenth of a frame's time). Taken out while a
+    /// detection runs, so a detection that panics leaves none behind.
+    static ZEROED_LEVELS: std::cell::Cell<Vec<u16>> = const { std::cell::Cell::new(Vec::new()) };
+}
+
+/// `pixels` levels, all 0: this thread's kept buffer if there is one.
+fn zeroed_levels(pixels: usize) -> Vec<u16> {
+    let mut levels = ZEROED_LEVELS.take();
+    // Shorter: zeros are added; longer: cut (all of it is 0).
+    levels.resize(pixels, 0);
+    levels
+}
+
+/// Keeps `levels` (all 0) for this thread's next detection, if not too
+/// large.
+fn keep_zeroed_levels(levels: Vec<u16>) {
+    if levels.capacity() <= KEPT_LEVELS {
+        ZEROED_LEVELS.set(levels);
     }
 }
 
@@ -1255,6 +1339,8 @@ struct Detector<'a, G: Grey> {
     /// been measured (while a blob is flooded its pixels are 0, while it is
     /// measured they hold their levels again).
     levels: Vec<u16>,
+    /// The blocks of 64 pixels that hold levels (see [`RowOut`]).
+    marks: Vec<u64>,
     /// How many pixels are above the threshold.
     above: usize,
     /// The blob being measured, as [`key`]s: first the flood's queue (the
@@ -1292,6 +1378,7 @@ impl<'a, G: Grey> Detector<'a, G> {
             background: None,
             mask: None,
             levels: Vec::new(),
+            marks: Vec::new(),
             above: 0,
             blob: Vec::new(),
             grid: Vec::new(),
@@ -1313,9 +1400,33 @@ impl<'a, G: Grey> Detector<'a, G> {
     /// times, in total less than twice its size), and after the last row
     /// every blob is complete. Blobs are independent of one another, so the
     /// targets do not depend on when their blob is measured.
-    fn run<const PIXELS: bool>(mut self) -> Found {
+    fn run<const PIXELS: bool>(self) -> Found {
+        #[cfg(target_arch = "x86_64")]
+        if std::arch::is_x86_feature_detected!("avx2") {
+            // SAFETY: `run_avx2` needs AVX2, which this CPU has (just
+            // checked).
+            return unsafe { self.run_avx2::<PIXELS>() };
+        }
+        self.run_here::<PIXELS>()
+    }
+
+    /// [`Detector::run`] compiled for AVX2 (x86-64 CPUs since 2013): the
+    /// row filter's loops ([`HighPass::next_row`], [`subtracted_row`],
+    /// [`filter_row_narrow`]) are inlined here, so their vector code works
+    /// on 256-bit registers, twice the baseline's 128. The results are the
+    /// same: the arithmetic is integer and lane-wise.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    fn run_avx2<const PIXELS: bool>(self) -> Found {
+        self.run_here::<PIXELS>()
+    }
+
+    /// [`Detector::run`]'s body, inlined into each of its versions.
+    #[inline(always)]
+    fn run_here<const PIXELS: bool>(mut self) -> Found {
         let (width, height) = (self.width, self.height);
-        self.levels = vec![0; width * height];
+        self.levels = zeroed_levels(width * height);
+        self.marks = vec![0; (width * height).div_ceil(64 * 64)];
         self.above = 0;
         if self.wants_noise() {
             self.noise = self.sample_noise();
@@ -1326,7 +1437,7 @@ impl<'a, G: Grey> Detector<'a, G> {
         let mut scan = 0;
         // The search waits until this row is filtered.
         let mut resume = TRAIL;
-        while let Some(y) = filter.next_row(&mut self.levels, &mut self.above) {
+        while let Some(y) = filter.next_row(&mut self.levels, &mut self.marks, &mut self.above) {
             if y + 1 < height && y >= resume {
                 let end = (y + 1 - TRAIL) * width;
                 if let Some(first_row) =
@@ -1337,6 +1448,9 @@ impl<'a, G: Grey> Detector<'a, G> {
             }
         }
         self.find_blobs::<PIXELS>(&mut scan, width * height, None, &mut found);
+        // Every blob has been measured, and its levels set to 0 after.
+        debug_assert!(self.levels.iter().all(|&l| l == 0));
+        keep_zeroed_levels(std::mem::take(&mut self.levels));
         found
     }
 
@@ -1347,16 +1461,17 @@ impl<'a, G: Grey> Detector<'a, G> {
     /// sums carried from one sampled row's window to the next (rows between
     /// windows are skipped), at most one pass of additions in and one out
     /// over the image, and only the sampled pixels are divided.
+    #[inline(always)]
     fn sample_noise(&self) -> u32 {
         let (width, height) = (self.width, self.height);
         let r = self.parameters.highpass_radius.min(MAX_HIGHPASS_RADIUS) as usize;
-        let (row_step, column_step) = noise_steps(width, height);
+        let (first_row, row_step, column_step) = noise_steps(width, height);
         let mut samples = Vec::new();
         let mut scratch = vec![G::ZERO; if self.background.is_some() { width } else { 0 }];
         let (pixels, background) = (self.pixels, self.background);
         if r == 0 {
             // No filter: the filtered value is the value.
-            for y in (0..height).step_by(row_step) {
+            for y in (first_row..height).step_by(row_step) {
                 let row = subtracted_row(pixels, background, width, y, &mut scratch);
                 for &g in row.iter().step_by(column_step) {
                     samples.push((u64::from(g.value()) * G::LEVEL_SCALE) as i32);
@@ -1368,7 +1483,7 @@ impl<'a, G: Grey> Detector<'a, G> {
         let mut prefix = Vec::new();
         // The rows `low..high` are in `sums`.
         let (mut low, mut high) = (0, 0);
-        for y in (0..height).step_by(row_step) {
+        for y in (first_row..height).step_by(row_step) {
             let (want_low, want_high) = (y.saturating_sub(r), (y + r + 1).min(height));
             if want_low >= high {
                 sums.fill(0);
@@ -1413,32 +1528,41 @@ impl<'a, G: Grey> Detector<'a, G> {
         frontier: Option<usize>,
         found: &mut Found,
     ) -> Option<usize> {
-        // Most of the image is below the threshold: runs of `CHUNK` levels
-        // are skipped at once when all are 0 (an OR the compiler
-        // vectorises).
-        const CHUNK: usize = 32;
+        // Most of the image is below the threshold: only the blocks the
+        // filter marked are searched (see `RowOut`), a word of marks (4,096
+        // pixels) at a time; a marked block whose levels are all 0 (its
+        // blobs were measured from an earlier block) is passed by one OR,
+        // which the compiler vectorises.
         while *scan < end {
-            let start = *scan;
-            let stop = (start + CHUNK).min(end);
-            if self.levels[start..stop].iter().fold(0, |any, &l| any | l) == 0 {
-                *scan = stop;
+            let block = *scan >> 6;
+            let later = self.marks[block >> 6] >> (block & 63);
+            if later == 0 {
+                *scan = (((block >> 6) + 1) << 12).min(end);
                 continue;
             }
-            for seed in start..stop {
-                if self.levels[seed] == 0 {
-                    continue; // below the threshold, or part of an earlier blob
-                }
-                self.reserve_blob(frontier);
-                let last = self.flood(seed);
-                if let Some(frontier) = frontier {
-                    if last >= frontier * self.width {
-                        *scan = seed;
-                        return Some(self.position(seed).1);
+            let block = block + later.trailing_zeros() as usize;
+            let (start, stop) = ((block << 6).max(*scan), ((block + 1) << 6).min(end));
+            if start >= stop {
+                *scan = end;
+                break;
+            }
+            if self.levels[start..stop].iter().fold(0, |any, &l| any | l) != 0 {
+                for seed in start..stop {
+                    if self.levels[seed] == 0 {
+                        continue; // below the threshold, or part of an earlier blob
                     }
-                }
-                self.measure_blob::<PIXELS>(found);
-                for &k in &self.blob {
-                    self.levels[key_index(k)] = 0;
+                    self.reserve_blob(frontier);
+                    let last = self.flood(seed);
+                    if let Some(frontier) = frontier {
+                        if last >= frontier * self.width {
+                            *scan = seed;
+                            return Some(self.position(seed).1);
+                        }
+                    }
+                    self.measure_blob::<PIXELS>(found);
+                    for &k in &self.blob {
+                        self.levels[key_index(k)] = 0;
+                    }
                 }
             }
             *scan = stop;
@@ -1471,9 +1595,13 @@ impl<'a, G: Grey> Detector<'a, G> {
     #[cfg(test)]
     fn highpass_threshold(&mut self) {
         self.levels = vec![0; self.width * self.height];
+        self.marks = vec![0; (self.width * self.height).div_ceil(64 * 64)];
         self.above = 0;
         let mut filter = HighPass::new(self);
-        while filter.next_row(&mut self.levels, &mut self.above).is_some() {}
+        while filter
+            .next_row(&mut self.levels, &mut self.marks, &mut self.above)
+            .is_some()
+        {}
         if self.wants_noise() {
             self.noise = self.sample_noise();
         }
@@ -1660,8 +1788,11 @@ impl<'a, G: Grey> Detector<'a, G> {
     /// before them in flooding order (brighter, or as bright and earlier in
     /// raster order). Any neighbour above the threshold is in the blob (the
     /// blob is its 8-connected component); with 4-connected blobs only the
-    /// edge neighbours are compared (see below). Most blobs are single
-    /// particles, and counting to 2 spares them the sort.
+    /// edge neighbours are compared: a diagonal neighbour may be in another
+    /// blob, and left out, the count is at least the particles the split
+    /// starts (which compares all 8 neighbours within the blob), so a count
+    /// of 1 is still exact. Most blobs are single particles, and counting
+    /// to 2 spares them the sort.
     fn count_maxima(&self, limit: usize) -> usize {
         let (width, height) = (self.width, self.height);
         let mut maxima = 0;
@@ -1669,25 +1800,31 @@ impl<'a, G: Grey> Detector<'a, G> {
             let p = key_index(k);
             let level = self.levels[p];
             let (x, y) = self.position(p);
-            let mut first = true;
-            'neighbours: for ny in y.saturating_sub(1)..=(y + 1).min(height - 1) {
-                for nx in x.saturating_sub(1)..=(x + 1).min(width - 1) {
-                    if self.four_connected && nx != x && ny != y {
-                        // A diagonal neighbour may be in another blob. Left
-                        // out, the count is at least the particles the
-                        // split starts (which compares all 8 neighbours
-                        // within the blob), so a count of 1 is still exact.
-                        continue;
-                    }
-                    let q = ny * width + nx;
-                    let other = self.levels[q];
-                    // Raster order: rows above, or this row to the left.
-                    if other > level || (other == level && q < p) {
-                        first = false;
-                        break 'neighbours;
-                    }
+            let first = if x > 0 && y > 0 && x + 1 < width && y + 1 < height {
+                // Away from the border, by offset: the neighbours before
+                // `p` in raster order must be darker, those after it no
+                // brighter.
+                let levels = &self.levels;
+                let (w, before, after) = (
+                    width,
+                    |q: usize| levels[q] < level,
+                    |q: usize| levels[q] <= level,
+                );
+                if self.four_connected {
+                    before(p - w) && before(p - 1) && after(p + 1) && after(p + w)
+                } else {
+                    before(p - w - 1)
+                        && before(p - w)
+                        && before(p - w + 1)
+                        && before(p - 1)
+                        && after(p + 1)
+                        && after(p + w - 1)
+                        && after(p + w)
+                        && after(p + w + 1)
                 }
-            }
+            } else {
+                self.first_at_border(p, level, (x, y))
+            };
             if first {
                 maxima += 1;
                 if maxima >= limit {
@@ -1696,6 +1833,27 @@ impl<'a, G: Grey> Detector<'a, G> {
             }
         }
         maxima
+    }
+
+    /// [`Detector::count_maxima`]'s test at the image's border: whether no
+    /// neighbour of pixel `p` (at `level`, position `(x, y)`) comes before
+    /// it in flooding order.
+    fn first_at_border(&self, p: usize, level: u16, (x, y): (usize, usize)) -> bool {
+        let (width, height) = (self.width, self.height);
+        for ny in y.saturating_sub(1)..=(y + 1).min(height - 1) {
+            for nx in x.saturating_sub(1)..=(x + 1).min(width - 1) {
+                if self.four_connected && nx != x && ny != y {
+                    continue; // see `count_maxima`
+                }
+                let q = ny * width + nx;
+                let other = self.levels[q];
+                // Raster order: rows above, or this row to the left.
+                if other > level || (other == level && q < p) {
+                    return false;
+                }
+            }
+        }
+        true
     }
 
     /// Step 3: floods the blob (`maxima` local maxima, bounding box of
@@ -2007,11 +2165,27 @@ mod tests {
             let sums: Vec<u32> = (0..width)
                 .map(|_| rng.random_range(0..=rows as u32 * u32::from(max)))
                 .collect();
-            let mut wide = vec![0u16; width];
-            let mut narrow = vec![0u16; width];
+            // The row starts at pixel `start` of a larger image: its
+            // blocks' marks are the image's.
+            let start = rng.random_range(0..200usize);
+            let words = (start + width).div_ceil(64 * 64);
+            let (mut wide, mut narrow) = (vec![0u16; width], vec![0u16; width]);
+            let (mut marks_wide, mut marks_narrow) = (vec![0u64; words], vec![0u64; words]);
             let (mut above_wide, mut above_narrow) = (0, 0);
-            filter_row(&row, &sums, r, rows, threshold, &mut wide, &mut above_wide);
+            let mut out = RowOut {
+                levels: &mut wide,
+                start,
+                marks: &mut marks_wide,
+                above: &mut above_wide,
+            };
+            filter_row(&row, &sums, r, rows, threshold, &mut out);
             let mut prefix = vec![0u32; width + 1];
+            let mut out = RowOut {
+                levels: &mut narrow,
+                start,
+                marks: &mut marks_narrow,
+                above: &mut above_narrow,
+            };
             filter_row_narrow(
                 &row,
                 &sums,
@@ -2019,11 +2193,18 @@ mod tests {
                 r,
                 rows as u32,
                 threshold as u32,
-                &mut narrow,
-                &mut above_narrow,
+                &mut out,
             );
             assert_eq!(narrow, wide, "width {width}, r {r}, rows {rows}");
             assert_eq!(above_narrow, above_wide);
+            assert_eq!(marks_narrow, marks_wide);
+            // A block is marked exactly when it holds a level.
+            for block in 0..words * 64 {
+                let held = (block * 64..(block + 1) * 64)
+                    .any(|p| p >= start && p < start + width && wide[p - start] != 0);
+                let marked = marks_wide[block / 64] >> (block % 64) & 1 == 1;
+                assert_eq!(marked, held, "block {block}");
+            }
         }
     }
 
