@@ -7,8 +7,14 @@
 //! target/release/examples/match_once 10000 25          # particles, repetitions
 //! target/release/examples/match_once 10000 25 2        # ... and the band (px, default 0.5)
 //! valgrind --tool=callgrind --cache-sim=yes --LL=1048576,16,64 \
-//!     --toggle-collect='*Matcher::match_frame*' target/release/examples/match_once 10000 1
+//!     --toggle-collect='*Matcher::match_frame_until*' target/release/examples/match_once 10000 1 2
 //! ```
+//!
+//! (`*Matcher::match_frame*` would toggle twice, in `match_frame` and the
+//! `match_frame_until` it calls, and collect nothing.) Instructions of
+//! `match_frame_until` at 10,000 particles: 334 M at 0.5 px, 395 M at 2 px,
+//! 501 M at 4 px, 1,614 M at 10 px (before the band was narrowed to the
+//! frame's noise: 326 M, 2,311 M, 11,177 M, and about 14 s at 10 px).
 
 use std::time::{Duration, Instant};
 
