@@ -19,18 +19,32 @@
 //!    a tenth of the tolerance of the true curve) and widened by the
 //!    tolerance: the epipolar band. Its candidates come from an index of
 //!    camera j's targets in thin sectors along the curves (`pencil`).
+//!    The tolerance is the band's upper bound, not its width: a band wider
+//!    than [`NARROWEST_BAND_PX`] is first probed on about a hundred seed
+//!    targets spread over the image, whose best groups give the frame's
+//!    image noise, and the search then runs in the band that noise needs
+//!    (3.5 standard deviations of a true pair's epipolar distance, at
+//!    least [`NARROWEST_BAND_PX`]; `Search::first_stage`). A wider band
+//!    finds nothing true more, as no member may miss by more than 3 sigma,
+//!    but its candidates grow with its width and their completions with
+//!    its square. Where the frame's noise fills the band (a rough
+//!    calibration), the band stays.
 //! 3. **Completion.** Each candidate pair's rays meet (nearly) in a 3D
 //!    point; its image in every other camera (on the first target's
 //!    epipolar curve there) is searched within `COMPLETION_RADIUS` (3)
-//!    tolerances, and a target joins if its ray meets the pair's within the
-//!    tolerance. A camera with several such targets gives several candidate
-//!    groups; members that do not fit together are dropped worst first.
+//!    band half-widths, and a target joins if its ray meets the pair's
+//!    within the band. A camera with several such targets gives several
+//!    candidate groups; members that do not fit together are dropped worst
+//!    first.
 //! 4. **Selection**, best first: larger groups before smaller (a fourth
 //!    camera cuts the ambiguities the design paper's Table 2 counts by at
 //!    least an order of magnitude), then by the rays' spread in pixels; each
-//!    target is used at most once. The first stage's groups give the frame's
-//!    image noise, from which the acceptance thresholds follow
-//!    (`Search::estimate_noise`). Then targets are exchanged between
+//!    target is used at most once. The first stage's groups (each seed
+//!    target's best) give the frame's image noise, from which the
+//!    acceptance threshold follows (`Search::estimate_noise`, 2..3 sigma
+//!    whatever the band): a member that misses by more is dropped and its
+//!    group falls back to the smaller one (a quadruplet whose fourth ray
+//!    misses becomes the triplet). Then targets are exchanged between
 //!    accepted groups where that fits both better (near-coincident images).
 //! 5. **Pairs**, when two cameras suffice (`min_cameras = 2`): among the
 //!    targets still unused, a pair is accepted only when each target is the
@@ -66,7 +80,7 @@ use super::camera::{Camera, Ray, Sensor};
 use super::intersect::ray_midpoint;
 use super::volume::Volume;
 
-pub use matcher::Matcher;
+pub use matcher::{Matcher, NARROWEST_BAND_PX};
 
 /// The most cameras a rig may have: 16.
 ///
@@ -96,8 +110,11 @@ pub struct Similarity {
 /// How to match.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct MatchingParameters {
-    /// Half-width of the epipolar band, and the largest accepted residual
-    /// of a particle's intersection (px).
+    /// Half-width of the widest epipolar band, and the largest accepted
+    /// residual of a particle's intersection (px). An upper bound: members
+    /// are accepted only within 2..3 sigma of the image noise the frame
+    /// shows, and a band wider than that noise needs is narrowed to it
+    /// (see the module doc, step 2).
     pub tolerance: f64,
     /// The observation volume; `None` for the region all cameras look at
     /// (see [`default_volume`]).

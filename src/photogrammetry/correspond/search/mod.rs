@@ -59,6 +59,10 @@ pub(super) struct Search<'m, 'f> {
     pencil_grids: Vec<Option<PencilGrid>>,
     /// Per camera: the current target's epipolar curve in it.
     curves: Vec<EpipolarCurve>,
+    /// The epipolar band's half-width (px): the tolerance, or less once the
+    /// first seed pair's probe has shown the frame's noise needs less
+    /// ([`Search::first_stage`]).
+    band_px: f64,
     /// The largest miss (px) a group member may have, and the largest
     /// residual of a particle's intersection: the tolerance, or less once
     /// the frame's image noise is known (see [`Search::estimate_noise`]).
@@ -111,6 +115,7 @@ impl<'m, 'f> Search<'m, 'f> {
                 .flat_map(|_| frames.iter().map(|_| None))
                 .collect(),
             curves: frames.iter().map(|_| EpipolarCurve::default()).collect(),
+            band_px: matcher.tolerance,
             acceptance: matcher.tolerance,
             accepted: Vec::new(),
             owner: frames.iter().map(|f| vec![NONE; f.targets.len()]).collect(),
@@ -145,13 +150,13 @@ impl<'m, 'f> Search<'m, 'f> {
     }
 
     /// The epipolar band of target `a` of camera `i` in camera `j`: calls
-    /// `found` once for each unused target of camera j within the
-    /// tolerance of the curve.
+    /// `found` once for each unused target of camera j within the band's
+    /// half-width (`band_px`) of the curve.
     pub(super) fn band(&mut self, i: usize, a: usize, j: usize, mut found: impl FnMut(usize)) {
         if !self.trace(i, a, j) {
             return;
         }
-        let tolerance = self.matcher.tolerance;
+        let tolerance = self.band_px;
         let frame = &self.frames[j];
         let pair = i * self.frames.len() + j;
         let used = &self.used[j];
@@ -300,10 +305,13 @@ impl<'m, 'f> Search<'m, 'f> {
     pub(super) fn run(mut self) -> Result<Vec<Particle>, Cancelled> {
         if self.frames.len() >= 3 {
             for (stage, &seed) in self.matcher.seeds.iter().enumerate() {
-                let groups = self.candidate_groups(seed);
-                if stage == 0 {
+                let groups = if stage == 0 {
+                    let groups = self.first_stage(seed);
                     self.estimate_noise(&groups);
-                }
+                    groups
+                } else {
+                    self.candidate_groups(seed)
+                };
                 self.select(groups);
             }
         }
