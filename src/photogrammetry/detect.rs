@@ -185,7 +185,7 @@
 //! to 0.60), so the default stays 10. A larger noise multiple in the split
 //! rule helps too but costs touching rendered pairs: at 4.5 sigma 2.49x
 //! and 74.6%, with 51.0% of the merged pairs at 0.02 ppp recovered (3
-//! sigma: 52.7%); at 6 sigma 2.37x and 75.9%, and fewer than half are
+//! sigma: 52.3%); at 6 sigma 2.37x and 75.9%, and fewer than half are
 //! (`detect_accuracy.rs` asserts half), so it stays 3 (figures before
 //! the cap test).
 //!
