@@ -83,7 +83,8 @@ pub struct DetectionFlags {
     /// `discont`; with it, as in OpenPTV, pixels that touch only at a
     /// corner are not joined). Without it, the automatic rule: the rise must exceed a
     /// fifth of the maximum's height above the threshold and 3 times the
-    /// image's noise level.
+    /// image's noise level, and the maximum's pixels above the saddle must
+    /// hold a volume above it of more than 4 times the noise of their sum.
     #[arg(long, value_name = "D")]
     pub split_depth: Option<u16>,
     /// Smallest signal-to-noise ratio of a target: its sum of grey over its

@@ -162,17 +162,19 @@ fn experiment_parameters_reproduce_openptv_targets() {
 fn default_parameters_on_the_real_recording() {
     // Issue 13's goal with defaults only: at most 1.25x OpenPTV's count and
     // 80% of theirs found. NOT REACHED. With the noise level measured after
-    // the high-pass filter and the significance test (`min_snr` 12,
-    // detect.rs) ours are 2.39-2.95x OpenPTV's count (2.65x over the 16
-    // images; before both, 3.9-4.64x and 4.34x) and 67.4-76.5% of theirs
-    // have one of ours within 0.5 px (72.8%; before 63.7-74.5%, 70.7%).
-    // What is left is mostly the automatic split rule on irregular real
-    // particle images (detect.rs, "Defaults on a real recording").
+    // the high-pass filter, the significance test (`min_snr` 12) and the
+    // automatic split rule's cap test (detect.rs) ours are 2.33-2.88x
+    // OpenPTV's count (2.58x over the 16 images; before the cap test 2.65x,
+    // before all three 4.34x) and 68.4-77.7% of theirs have one of ours
+    // within 0.5 px (74.1%; before the cap test 72.8%, before all three
+    // 70.7%). What is left is the high-pass radius, not the split rule: at
+    // radius 10 no splitting at all gives 1.76x and 73.7% (detect.rs,
+    // "Defaults on a real recording").
     // Asserted is today's level with a margin of about 0.25x and 3 points
-    // per image (the estimate's subsample and the centroids may still move
-    // a little; a regression to the old level, 4x, fails): no more than
-    // 3.2x their count and at least 64% of theirs found per image, and over
-    // all 16 images no more than 2.9x and at least 70%.
+    // (the estimate's subsample and the centroids may still move a little;
+    // a regression to the old level, 4x, fails): no more than 3.1x their
+    // count and at least 65% of theirs found per image, and over all 16
+    // images no more than 2.8x and at least 71%.
     let (mut ours, mut theirs, mut found, mut scored) = (0, 0, 0, 0);
     for Row {
         camera,
@@ -181,8 +183,8 @@ fn default_parameters_on_the_real_recording() {
         ..
     } in agreements(|_| DetectionParameters::default())
     {
-        assert!(a.count_ratio() <= 3.2, "cam{camera}.{frame}: {a:?}");
-        assert!(a.theirs_share() >= 0.64, "cam{camera}.{frame}: {a:?}");
+        assert!(a.count_ratio() <= 3.1, "cam{camera}.{frame}: {a:?}");
+        assert!(a.theirs_share() >= 0.65, "cam{camera}.{frame}: {a:?}");
         ours += a.ours;
         theirs += a.theirs;
         found += a.theirs_found;
@@ -194,6 +196,6 @@ fn default_parameters_on_the_real_recording() {
         "defaults, all 16 images: {ratio:.3}x OpenPTV's count, {:.1}% of theirs found",
         100.0 * share
     );
-    assert!(ratio <= 2.9, "{ratio}");
-    assert!(share >= 0.70, "{share}");
+    assert!(ratio <= 2.8, "{ratio}");
+    assert!(share >= 0.71, "{share}");
 }
