@@ -158,8 +158,8 @@
 //! only): before the noise level above and the significance test, 4.34x
 //! OpenPTV's count and 70.7% of theirs found within 0.5 px; with them
 //! 2.65x and 72.8%; with the cap test of the automatic split rule
-//! 2.58x
-//! (2.33-2.88x per image) and 74.1% (68-78%). Issue 13's goal (1.25x, 80%) is not reached, and the split rule
+//! and the noise sampled on 32 rows (`noise_steps`) 2.55x (2.31-2.83x per
+//! image) and 74.1% (68-78%). Issue 13's goal (1.25x, 80%) is not reached, and the split rule
 //! cannot reach it at the default high-pass radius of 10. Measured
 //! (a throwaway classification of every target, 16 images): of the 36,000
 //! targets ours had beyond OpenPTV's (2.65x), about 17,500 are blobs of

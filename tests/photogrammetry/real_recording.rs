@@ -163,9 +163,9 @@ fn default_parameters_on_the_real_recording() {
     // Issue 13's goal with defaults only: at most 1.25x OpenPTV's count and
     // 80% of theirs found. NOT REACHED. With the noise level measured after
     // the high-pass filter, the significance test (`min_snr` 12) and the
-    // automatic split rule's cap test (detect.rs) ours are 2.33-2.88x
-    // OpenPTV's count (2.58x over the 16 images; before the cap test 2.65x,
-    // before all three 4.34x) and 68.4-77.7% of theirs have one of ours
+    // automatic split rule's cap test (detect.rs) ours are 2.31-2.83x
+    // OpenPTV's count (2.55x over the 16 images; before the cap test 2.65x,
+    // before all three 4.34x) and 68.5-78.1% of theirs have one of ours
     // within 0.5 px (74.1%; before the cap test 72.8%, before all three
     // 70.7%). What is left is the high-pass radius, not the split rule: at
     // radius 10 no splitting at all gives 1.76x and 73.7% (detect.rs,
