@@ -2576,9 +2576,12 @@ mod tests {
 
     #[test]
     fn the_automatic_rule_splits_only_at_a_cap_that_stands_out_of_the_noise() {
-        // Noise of 5 grey levels, which the estimate, sigma, puts at 5.93
-        // (8-bit samples: 1.4826 times a spread of 4 whole levels between
-        // the median and the lower quartile). On it a particle peaking at
+        // Noise of 5.93 grey levels: its lower quartile lies 0.6745 sigma =
+        // 4.0 levels below its median, a whole number, so the estimate
+        // (1.4826 times that spread) of 8-bit samples, whose quantiles are
+        // whole levels, is 5.93 whatever pixels it samples (with noise of
+        // 5 levels the spread, 3.37, rounds to 3 or 4 by the sample, an
+        // estimate of 4.45 or 5.93). On it a particle peaking at
         // 240 and, joined to it at a saddle of 190, a second maximum of 212
         // with four more pixels brighter than the saddle. Its peak rises 22
         // above the saddle: more than 3 sigma (17.8) and than a fifth of
@@ -2587,7 +2590,7 @@ mod tests {
         // saddle is 22 + 6 + 2 + 6 + 6 = 42, less than 4 sigma sqrt(5) =
         // 53: one target. A full bump (205, 192, 205, 205): 69, two.
         for (cap, expected) in [(196u8, 1), (205, 2)] {
-            for (image, scale) in noise_frame(512, 512, 100.0, 5.0, 7)
+            for (image, scale) in noise_frame(512, 512, 100.0, 5.93, 7)
                 .into_iter()
                 .zip([1, 257])
             {
