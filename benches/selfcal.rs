@@ -9,6 +9,9 @@
 //! (see `photogrammetry::selfcal`); targets with 0.1 px noise.
 //!
 //! `cargo bench --bench selfcal` (RAYON_NUM_THREADS=2 for 2 cores).
+//! Measured here: 1.9-2.2 s a run (release, 2 threads, 3 rounds), within
+//! the goal of 10 s; from disparities of several pixels (wide bands, the
+//! vote) it is not measured, since those do not yet converge on this scene.
 
 use std::time::Instant;
 

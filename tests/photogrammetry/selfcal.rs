@@ -240,3 +240,99 @@ fn too_few_particles_say_how_many_and_the_band() {
         "{message}"
     );
 }
+
+const DATA: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/data/openptv");
+
+/// The recording's OpenPTV targets of frames 10001-10004, per frame per
+/// camera.
+fn cavity_frames() -> Vec<Vec<Vec<Target>>> {
+    (10001..=10004)
+        .map(|frame| {
+            (1..=4)
+                .map(|k| {
+                    let path = std::path::Path::new(DATA).join(format!(
+                        "golden/test_cavity_recording/cam{k}.{frame}_targets"
+                    ));
+                    ptv::formats::parse_targets(
+                        &ptv::formats::read_text(&path).unwrap(),
+                        &path.display().to_string(),
+                    )
+                    .unwrap()
+                })
+                .collect()
+        })
+        .collect()
+}
+
+/// Per frame, 4-camera particles and the median RMS of all particles
+/// matched with `band`.
+fn cavity_counts(cameras: &[Camera], frames: &[Vec<Vec<Target>>], band: f64) -> Vec<(usize, f64)> {
+    use ptv::photogrammetry::correspond::{Matcher, MatchingParameters};
+    let matcher = Matcher::new(
+        cameras,
+        &MatchingParameters {
+            tolerance: band,
+            ..MatchingParameters::default()
+        },
+    )
+    .unwrap();
+    frames
+        .iter()
+        .map(|f| {
+            let particles = matcher.match_frame(f).unwrap();
+            let mut rms: Vec<f64> = particles.iter().map(|p| p.rms_px).collect();
+            rms.sort_by(f64::total_cmp);
+            let median = rms.get(rms.len() / 2).copied().unwrap_or(0.0);
+            (
+                particles.iter().filter(|p| p.camera_count() == 4).count(),
+                median,
+            )
+        })
+        .collect()
+}
+
+/// test_cavity_recording from OpenPTV's targets, starting at a 16.7 px band
+/// (OpenPTV's eps0 = 0.2 mm). Measured: per camera the final particles'
+/// disparity RMS 1.9-2.8 px before, 0.25-0.27 px after; 4-camera
+/// particles under a 1 px band 0..1 per frame before, 115-136 after
+/// (2 px: 11-20 before, 139-174 after). Issue 14's goal (350 per frame at
+/// 1 px, median RMS under 0.3 px) is NOT REACHED: the adjustment's sigma0
+/// stays at 0.24 px, twice the targets' usual noise, with the interior
+/// orientation, distortion and the media held (the media of this ptv.par,
+/// wall n = 1.33 and liquid n = 1.46, look swapped; freeing the wall's
+/// position and the indices is what would be tried next). Asserted: the
+/// levels reached, with a margin.
+#[test]
+fn test_cavity_recording_from_openptv_targets() {
+    let experiment = ptv::formats::experiment::read_experiment(
+        &std::path::Path::new(DATA).join("test_cavity_recording"),
+    )
+    .unwrap();
+    let start: Vec<CameraParameters> = experiment
+        .cameras
+        .iter()
+        .map(|c| c.parameters().clone())
+        .collect();
+    let frames = cavity_frames();
+    let result = run(&start, &frames, 16.7);
+    print("test_cavity", &result);
+    let refined: Vec<Camera> = result
+        .cameras
+        .iter()
+        .map(|p| Camera::new(p.clone()).unwrap())
+        .collect();
+    for band in [16.7, 2.0, 1.0] {
+        println!(
+            "test_cavity band {band}: before {:?}, after {:?}",
+            cavity_counts(&experiment.cameras, &frames, band),
+            cavity_counts(&refined, &frames, band)
+        );
+    }
+    assert_ne!(result.report.outcome, Outcome::Diverged);
+    for c in &result.report.cameras {
+        assert!(c.before.rms_px > 1.5 && c.after.rms_px < 0.35, "{c:?}");
+    }
+    for (four, _) in cavity_counts(&refined, &frames, 1.0) {
+        assert!(four >= 90, "{four}");
+    }
+}
