@@ -43,6 +43,7 @@ mod match_targets;
 mod process;
 mod process_sequence;
 mod project;
+mod selfcalibrate;
 mod simulate;
 mod upload;
 
@@ -58,6 +59,7 @@ pub use self::experiment::{ExperimentCommand, ImportExperimentArgs};
 pub use self::match_targets::{MatchArgs, MatchingFlags};
 pub use self::process::ProcessArgs;
 pub use self::process_sequence::{BackgroundChoice, ProcessSequenceArgs};
+pub use self::selfcalibrate::SelfCalibrateArgs;
 pub use self::simulate::SimulateArgs;
 pub use self::upload::UploadArgs;
 use crate::formats::{self, FormatError};
@@ -84,6 +86,12 @@ pub enum Command {
     /// parameters through the media, no starting values needed); writes the
     /// calibration JSON to --output and the report (JSON) to standard output.
     Calibrate(CalibrateArgs),
+    /// Refine a calibration from the particles of many frames (volume
+    /// self-calibration): the targets of every camera per frame; writes the
+    /// refined calibration JSON to --output and the report (JSON:
+    /// disparities before and after, maps over sub-volumes, parameter
+    /// changes, rounds, gauge) to standard output.
+    Selfcalibrate(SelfCalibrateArgs),
     /// Project 3D points (CSV x,y,z in mm) into every camera; writes the
     /// observations CSV point,camera,x,y (pixels) to standard output.
     Project(ProjectArgs),
@@ -254,6 +262,9 @@ pub enum CliError {
     /// The calibration could not be done.
     #[error("cannot calibrate")]
     Calibrate(#[from] crate::photogrammetry::calibrate::CalibrationError),
+    /// Self-calibration could not run.
+    #[error("cannot self-calibrate")]
+    SelfCalibrate(#[from] crate::photogrammetry::selfcal::SelfCalibrationError),
     /// The simulator built a camera that the camera model refuses.
     #[error("the simulated rig is invalid")]
     Simulation(#[from] InvalidCamera),
@@ -319,6 +330,7 @@ pub fn run(
             calibration::export_openptv(&args, stderr)
         }
         Command::Calibrate(args) => calibrate::run(&args, stdout, stderr),
+        Command::Selfcalibrate(args) => selfcalibrate::run(&args, stdout, stderr),
         Command::Project(args) => project::run(&args, stdout, stderr),
         Command::Intersect(args) => intersect::run(&args, stdout, stderr),
         Command::Detect(args) => detect::run(&args, stdout, stderr),

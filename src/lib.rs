@@ -45,6 +45,10 @@
 //!   resection on control points (section 5), from image coordinates or
 //!   detected marks, with held parameters, gross-error detection, check
 //!   points and a report.
+//! - [`selfcal`](photogrammetry::selfcal): volume self-calibration from
+//!   the particles (Wieneke 2008): wide-band matching, confident particles,
+//!   a robust bundle adjustment through the walls with the gauge fixed from
+//!   the input calibration, narrowing bands; disparity report.
 //! - [`simulate`](photogrammetry::simulate): synthetic rigs, particles,
 //!   targets and images, the ground truth of tests and benchmarks.
 //!

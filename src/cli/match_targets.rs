@@ -83,7 +83,7 @@ const VOLUME_BOUNDS: [&str; 6] = ["xmin", "xmax", "ymin", "ymax", "zmin", "zmax"
 
 /// Parses `xmin,xmax,ymin,ymax,zmin,zmax`: six numbers (`inf`, `-inf`
 /// allowed), each minimum below its maximum.
-fn parse_volume(text: &str) -> Result<Volume, CliError> {
+pub(super) fn parse_volume(text: &str) -> Result<Volume, CliError> {
     let error = |reason: String| CliError::Flag {
         flag: "--volume",
         reason,

@@ -29,6 +29,7 @@ pub mod image;
 pub mod intersect;
 pub mod media;
 pub mod pipeline;
+pub mod selfcal;
 pub mod simulate;
 pub mod splitter;
 pub mod target;

@@ -14,3 +14,4 @@ mod detect;
 mod experiment;
 mod matching;
 mod openptv_files;
+mod selfcalibrate;

@@ -16,4 +16,5 @@ mod detect_properties;
 mod openptv_frames;
 mod openptv_golden;
 mod real_recording;
+mod selfcal;
 mod structured_background;

@@ -117,7 +117,7 @@ pub fn projection_with_parameter_jacobian(
 
 /// A camera and its neighbours for the numerical derivatives, rebuilt once
 /// per iteration.
-struct ParameterModel {
+pub(crate) struct ParameterModel {
     camera: Camera,
     /// The free parameters: the Jacobian's columns.
     free: ParameterSet,
@@ -126,7 +126,7 @@ struct ParameterModel {
 }
 
 impl ParameterModel {
-    fn new(parameters: &CameraParameters, free: ParameterSet) -> Option<ParameterModel> {
+    pub(crate) fn new(parameters: &CameraParameters, free: ParameterSet) -> Option<ParameterModel> {
         let camera = Camera::new(parameters.clone()).ok()?;
         let v = to_vector(parameters);
         let h = steps(parameters);
@@ -148,7 +148,7 @@ impl ParameterModel {
     }
 
     /// The pixel and the Jacobian's columns of the free parameters.
-    fn project(&self, point: &Point3<f64>) -> Option<(Point2<f64>, DMatrix<f64>)> {
+    pub(crate) fn project(&self, point: &Point3<f64>) -> Option<(Point2<f64>, DMatrix<f64>)> {
         let direction = self.camera.air_direction(point).ok()?;
         let pixel = self.camera.pixel_of_air_direction(&direction).ok()?;
         let mut jacobian = DMatrix::zeros(2, self.free.len());
@@ -319,7 +319,7 @@ pub(crate) fn adjust(
 }
 
 /// Solves a symmetric positive (semi)definite system: Cholesky, else SVD.
-fn solve(n: DMatrix<f64>, g: &DVector<f64>) -> Option<DVector<f64>> {
+pub(crate) fn solve(n: DMatrix<f64>, g: &DVector<f64>) -> Option<DVector<f64>> {
     if let Some(chol) = n.clone().cholesky() {
         let x = chol.solve(g);
         if x.iter().all(|v| v.is_finite()) {

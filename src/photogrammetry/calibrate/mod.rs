@@ -47,7 +47,7 @@
 //! how a camera's is drawn from its adjustment; `check.rs`, the check
 //! points; `error.rs`, what can go wrong.
 
-mod adjustment;
+pub(crate) mod adjustment;
 mod check;
 mod dlt;
 mod error;
@@ -55,7 +55,7 @@ pub mod identify;
 mod parameter;
 mod prepare;
 mod report;
-mod resection;
+pub(crate) mod resection;
 
 use nalgebra::{Point2, Point3};
 use rayon::prelude::*;

@@ -379,7 +379,7 @@ impl Resection<'_> {
 /// `correlations`) the one to hold of the pair correlated most above
 /// `max_correlation`. `free` are the statistics' parameters; exterior
 /// parameters are never held.
-fn undeterminable(
+pub(crate) fn undeterminable(
     stats: &Statistics,
     free: ParameterSet,
     max_correlation: f64,
