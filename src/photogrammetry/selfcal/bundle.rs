@@ -298,26 +298,24 @@ impl Bundle<'_> {
         })
     }
 
-    /// The camera step: the reduced system bordered by the gauge's
-    /// constraints, columns scaled to unit diagonal.
-    fn solve(&self, normal: &Normal, reduced: &ReducedSystem) -> Option<DVector<f64>> {
+    /// The reduced system `s` bordered by the gauge's constraints, columns
+    /// scaled by `scale` (to unit diagonal): the bordered matrix and the
+    /// constraints' right-hand side.
+    fn bordered(
+        &self,
+        normal: &Normal,
+        s: &DMatrix<f64>,
+        scale: &DVector<f64>,
+    ) -> (DMatrix<f64>, DVector<f64>) {
         let n = normal.unknowns;
         let (c, h) = self
             .gauge
             .constraints(&self.cameras, &self.free, &normal.offsets);
         let m = c.nrows();
-        let scale = DVector::from_fn(n, |k, _| {
-            let d = normal.u[(k, k)];
-            if d > 0.0 {
-                1.0 / d.sqrt()
-            } else {
-                1.0
-            }
-        });
         let mut a = DMatrix::zeros(n + m, n + m);
         for i in 0..n {
             for j in 0..n {
-                a[(i, j)] = reduced.s[(i, j)] * scale[i] * scale[j];
+                a[(i, j)] = s[(i, j)] * scale[i] * scale[j];
             }
         }
         for r in 0..m {
@@ -327,6 +325,16 @@ impl Bundle<'_> {
                 a[(j, n + r)] = v;
             }
         }
+        (a, h)
+    }
+
+    /// The camera step: the reduced system bordered by the gauge's
+    /// constraints, columns scaled to unit diagonal.
+    fn solve(&self, normal: &Normal, reduced: &ReducedSystem) -> Option<DVector<f64>> {
+        let n = normal.unknowns;
+        let scale = unit_diagonal(n, |k| normal.u[(k, k)]);
+        let (a, h) = self.bordered(normal, &reduced.s, &scale);
+        let m = h.len();
         let mut rhs = DVector::zeros(n + m);
         for i in 0..n {
             rhs[i] = reduced.b[i] * scale[i];
@@ -394,36 +402,26 @@ impl Bundle<'_> {
     /// the top-left block of the bordered system's inverse.
     fn cofactor(&self, normal: &Normal, reduced: &ReducedSystem) -> Option<DMatrix<f64>> {
         let n = normal.unknowns;
-        let (c, _) = self
-            .gauge
-            .constraints(&self.cameras, &self.free, &normal.offsets);
-        let m = c.nrows();
-        let scale = DVector::from_fn(n, |k, _| {
-            let d = reduced.s[(k, k)];
-            if d > 0.0 {
-                1.0 / d.sqrt()
-            } else {
-                1.0
-            }
-        });
-        let mut a = DMatrix::zeros(n + m, n + m);
-        for i in 0..n {
-            for j in 0..n {
-                a[(i, j)] = reduced.s[(i, j)] * scale[i] * scale[j];
-            }
-        }
-        for r in 0..m {
-            for j in 0..n {
-                let v = c[(r, j)] * scale[j];
-                a[(n + r, j)] = v;
-                a[(j, n + r)] = v;
-            }
-        }
+        let scale = unit_diagonal(n, |k| reduced.s[(k, k)]);
+        let (a, _) = self.bordered(normal, &reduced.s, &scale);
         let inverse = a.try_inverse()?;
         let q = DMatrix::from_fn(n, n, |i, j| inverse[(i, j)] * scale[i] * scale[j]);
         // A regular system gives a positive diagonal.
         (q.diagonal().iter().all(|d| d.is_finite() && *d >= 0.0)).then_some(q)
     }
+}
+
+/// The column scales that give a matrix of diagonal `diagonal(k)` a unit
+/// diagonal (1 where it is not positive).
+fn unit_diagonal(n: usize, diagonal: impl Fn(usize) -> f64) -> DVector<f64> {
+    DVector::from_fn(n, |k, _| {
+        let d = diagonal(k);
+        if d > 0.0 {
+            1.0 / d.sqrt()
+        } else {
+            1.0
+        }
+    })
 }
 
 /// The reduced system at one damping.
