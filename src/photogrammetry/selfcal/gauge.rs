@@ -26,6 +26,7 @@
 
 use nalgebra::{DMatrix, DVector, Point3, Rotation3, Vector3};
 
+use crate::photogrammetry::calibrate::adjustment::to_vector;
 use crate::photogrammetry::calibrate::{Parameter, ParameterSet};
 use crate::photogrammetry::camera::{rotation_angles, rotation_matrix, CameraParameters};
 
@@ -42,16 +43,11 @@ pub(super) struct Gauge {
     pub length: f64,
 }
 
+/// The exterior orientation (X0, Y0, Z0, omega, phi, kappa): the first six
+/// of the calibration's parameter vector.
 fn exterior(p: &CameraParameters) -> [f64; 6] {
-    let e = &p.exterior;
-    [
-        e.position.x,
-        e.position.y,
-        e.position.z,
-        e.omega,
-        e.phi,
-        e.kappa,
-    ]
+    let v = to_vector(p);
+    std::array::from_fn(|k| v[k])
 }
 
 /// The difference of two angles in (-pi, pi].
@@ -162,17 +158,8 @@ impl Gauge {
         for (cam, (camera, set)) in current.iter().zip(free).enumerate() {
             let now = exterior(camera);
             for r in 0..m {
-                for (k, p) in [
-                    Parameter::X0,
-                    Parameter::Y0,
-                    Parameter::Z0,
-                    Parameter::Omega,
-                    Parameter::Phi,
-                    Parameter::Kappa,
-                ]
-                .into_iter()
-                .enumerate()
-                {
+                // The exterior is the first six of `Parameter::ALL`.
+                for (k, &p) in Parameter::ALL[..6].iter().enumerate() {
                     let g = self.rows[cam][r][k];
                     let change = if k < 3 {
                         now[k] - self.start[cam][k]
