@@ -26,7 +26,8 @@
 //! | `allcam_flag` | `min_cameras`: every camera, or 2 |
 //! | `targ_rec.gvthres` | per camera `threshold` |
 //! | `disco` | `split_depth` (absolute grey levels, OpenPTV's meaning), `split` on |
-//! | `nnmin`/`nnmax`, `nxmin`/`nxmax`, `nymin`/`nymax`, `sumg_min` | `min_pixels`/`max_pixels`, `min_nx`/`max_nx`, `min_ny`/`max_ny`, `min_sumg` |
+//! | `nnmin`/`nnmax`, `nxmin`/`nxmax`, `nymin`/`nymax` | `min_pixels`/`max_pixels`, `min_nx`/`max_nx`, `min_ny`/`max_ny` (inclusive in both) |
+//! | `sumg_min` | `min_sumg` = `sumg_min + 1`: liboptv's `targ_rec` keeps a target whose sum of grey is strictly above `sumg_min`, ours at or above `min_sumg` (integer sums) |
 //! | (none) | `min_snr` 0: OpenPTV has no noise-relative significance test |
 //! | `criteria.eps0` (mm on the image plane) | `tolerance` (px): eps0 divided by the mean pixel size |
 //! | `X_lay`, `Zmin_lay`, `Zmax_lay` | the observation [`Volume`], see below |
@@ -974,7 +975,8 @@ fn map(
         max_nx: range("targ_rec.nxmax", t.nxmax, u32_max)? as u32,
         min_ny: range("targ_rec.nymin", t.nymin, u32_max)? as u32,
         max_ny: range("targ_rec.nymax", t.nymax, u32_max)? as u32,
-        min_sumg: range("targ_rec.sumg_min", t.sumg_min, i64::MAX)? as u64,
+        // liboptv keeps `sumg > sumg_min`; ours keeps `sumg >= min_sumg`.
+        min_sumg: range("targ_rec.sumg_min", t.sumg_min, i64::MAX - 1)? as u64 + 1,
         split: true,
         split_depth: Some(range("targ_rec.disco", t.disco, u16_max)? as u16),
         // OpenPTV's targ_rec: the grey value weighted centroid.

@@ -85,7 +85,8 @@ fn the_legacy_folder_and_its_yaml_give_the_same_settings() {
     );
     assert_eq!((detection.min_nx, detection.max_nx), (Some(2), Some(100)));
     assert_eq!((detection.min_ny, detection.max_ny), (Some(2), Some(100)));
-    assert_eq!(detection.min_sumg, Some(150));
+    // OpenPTV keeps sumg > 150, ours sumg >= 151.
+    assert_eq!(detection.min_sumg, Some(151));
     assert_eq!(detection.highpass_radius, Some(25));
     let matching: MatchingSettings = serde_json::from_value(sequence["matching"].clone()).unwrap();
     // eps0 = 0.2 mm over 0.012 mm pixels.
@@ -226,7 +227,7 @@ fn a_yaml_written_here_maps_every_setting() {
             max_nx: Some(12),
             min_ny: Some(1),
             max_ny: Some(13),
-            min_sumg: Some(40),
+            min_sumg: Some(41),
             split: Some(true),
             split_depth: Some(7),
             centroid: Some(Centroid::Weighted),

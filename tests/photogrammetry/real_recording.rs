@@ -9,7 +9,7 @@
 //! which the two stay one target; and, as in OpenPTV's `targ_rec`, blobs
 //! of pixels joined by an edge, not a corner: `detect.rs`, "OpenPTV's
 //! segmentation"), 4..500 pixels, extent 2..100 in x and y, sum of
-//! grey >= 150. OpenPTV's high-pass subtracts a box average of
+//! grey above 150 (`min_sumg` 151). OpenPTV's high-pass subtracts a box average of
 //! `dim_lp = 25` pixels on each side of the pixel (liboptv's
 //! `fast_box_blur`: a `(2·25+1)²` window), which is our `highpass_radius`
 //! 25.

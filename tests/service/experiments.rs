@@ -116,7 +116,7 @@ async fn the_recording_imports_from_its_par_files_and_its_yaml_and_a_frame_proce
             detection["min_pixels"].as_u64(),
             detection["min_sumg"].as_u64()
         ),
-        (Some(4), Some(150))
+        (Some(4), Some(151))
     );
     // eps0 = 0.2 mm on 0.012 mm pixels.
     let band = a["parameters"]["matching"]["tolerance"].as_f64().unwrap();
