@@ -79,34 +79,33 @@ pub fn parse_targets(text: &str, source: &str) -> Result<Vec<Target>, FormatErro
         .filter(|(i, name)| *i < 2 || header.iter().any(|h| h == *name))
         .map(|(_, name)| *name)
         .collect();
-    let rows = read_table(text, source, &columns)?;
-    rows.iter()
-        .map(|row| {
-            let mut target = Target {
-                x: row.number(0)?,
-                y: row.number(1)?,
-                n: 0,
-                nx: 0,
-                ny: 0,
-                sumg: 0,
+    let mut targets = Vec::new();
+    read_table(text, source, &columns, |row| {
+        let mut target = Target {
+            x: row.number(0)?,
+            y: row.number(1)?,
+            n: 0,
+            nx: 0,
+            ny: 0,
+            sumg: 0,
+        };
+        for (i, name) in columns.iter().enumerate().skip(2) {
+            let value = row.integer(i)?;
+            let small = || {
+                u32::try_from(value)
+                    .map_err(|_| row.error(i, format!("{value} is too large for a pixel count")))
             };
-            for (i, name) in columns.iter().enumerate().skip(2) {
-                let value = row.integer(i)?;
-                let small = || {
-                    u32::try_from(value).map_err(|_| {
-                        row.error(i, format!("{value} is too large for a pixel count"))
-                    })
-                };
-                match *name {
-                    "n" => target.n = small()?,
-                    "nx" => target.nx = small()?,
-                    "ny" => target.ny = small()?,
-                    _ => target.sumg = value,
-                }
+            match *name {
+                "n" => target.n = small()?,
+                "nx" => target.nx = small()?,
+                "ny" => target.ny = small()?,
+                _ => target.sumg = value,
             }
-            Ok(target)
-        })
-        .collect()
+        }
+        targets.push(target);
+        Ok(())
+    })?;
+    Ok(targets)
 }
 
 /// Writes a targets table, `x,y,n,nx,ny,sumg`.
@@ -124,10 +123,12 @@ pub fn format_targets(targets: &[Target]) -> String {
 
 /// Reads a points table: one 3D point (mm) per data line, in file order.
 pub fn parse_points(text: &str, source: &str) -> Result<Vec<Point3<f64>>, FormatError> {
-    read_table(text, source, &POINT_COLUMNS)?
-        .iter()
-        .map(|row| Ok(Point3::new(row.number(0)?, row.number(1)?, row.number(2)?)))
-        .collect()
+    let mut points = Vec::new();
+    read_table(text, source, &POINT_COLUMNS, |row| {
+        points.push(Point3::new(row.number(0)?, row.number(1)?, row.number(2)?));
+        Ok(())
+    })?;
+    Ok(points)
 }
 
 /// Reads an observations table for a calibration of `cameras` cameras:
@@ -139,7 +140,7 @@ pub fn parse_observations(
 ) -> Result<Vec<ObservedPoint>, FormatError> {
     // Per point: its observations and the line each came from.
     let mut points: BTreeMap<u64, Vec<(Observation, u64)>> = BTreeMap::new();
-    for row in read_table(text, source, &OBSERVATION_COLUMNS)? {
+    read_table(text, source, &OBSERVATION_COLUMNS, |row| {
         let point = row.integer(0)?;
         let camera = row.integer(1)?;
         let camera = usize::try_from(camera)
@@ -166,7 +167,8 @@ pub fn parse_observations(
             ));
         }
         seen.push((Observation { camera, pixel }, row.line));
-    }
+        Ok(())
+    })?;
     Ok(points
         .into_iter()
         .map(|(point, seen)| ObservedPoint {
@@ -278,8 +280,10 @@ struct Row<'a> {
     line: u64,
     /// Names of the wanted columns.
     columns: &'a [&'a str],
-    /// The wanted columns' fields, trimmed, in the order of `columns`.
-    fields: Vec<String>,
+    /// The record's fields, untrimmed.
+    record: &'a csv::ByteRecord,
+    /// Per wanted column, its field in `record`.
+    indices: &'a [usize],
 }
 
 impl Row<'_> {
@@ -291,8 +295,24 @@ impl Row<'_> {
         )
     }
 
+    /// The field of wanted column `column`, trimmed. The table is `&str`
+    /// and fields split at ASCII bytes, so a field is UTF-8; were the reader
+    /// ever to split otherwise, that is an error here, not a panic.
+    fn field(&self, column: usize) -> Result<&str, FormatError> {
+        let bytes = &self.record[self.indices[column]];
+        std::str::from_utf8(bytes).map(str::trim).map_err(|_| {
+            self.error(
+                column,
+                format!(
+                    "is not UTF-8 text: {}",
+                    quote(&String::from_utf8_lossy(bytes))
+                ),
+            )
+        })
+    }
+
     fn number(&self, column: usize) -> Result<f64, FormatError> {
-        let field = &self.fields[column];
+        let field = self.field(column)?;
         match field.parse::<f64>() {
             Ok(value) if value.is_finite() => Ok(value),
             _ if field.is_empty() => {
@@ -306,7 +326,7 @@ impl Row<'_> {
     }
 
     fn integer(&self, column: usize) -> Result<u64, FormatError> {
-        let field = &self.fields[column];
+        let field = self.field(column)?;
         field.parse::<u64>().map_err(|_| {
             self.error(
                 column,
@@ -367,42 +387,55 @@ impl<'t> LineCounter<'t> {
     }
 }
 
-/// Splits a table into its data rows, keeping the fields of `columns`.
-fn read_table<'a>(
+/// Reads a table, calling `row` on each data line in file order (one
+/// record buffer, reused; only the wanted fields are trimmed and checked
+/// for UTF-8: no allocation per line).
+fn read_table(
     text: &str,
-    source: &'a str,
-    columns: &'a [&'a str],
-) -> Result<Vec<Row<'a>>, FormatError> {
+    source: &str,
+    columns: &[&str],
+    mut row: impl FnMut(&Row<'_>) -> Result<(), FormatError>,
+) -> Result<(), FormatError> {
     let expected = columns.join(",");
     let text = text.strip_prefix('\u{feff}').unwrap_or(text);
     let mut reader = csv::ReaderBuilder::new()
         .has_headers(false)
         .flexible(true)
-        .trim(csv::Trim::All)
         .from_reader(text.as_bytes());
     let mut lines = LineCounter::new(text);
-    let mut records = Vec::new();
-    for record in reader.records() {
-        let record = record.map_err(|error| {
-            let line = error.position().map_or(1, |p| lines.record_line(p.byte()));
-            FormatError::invalid(source, format!("line {line}"), error.to_string())
-        })?;
-        let line = record.position().map_or(1, |p| lines.record_line(p.byte()));
-        // A line of only whitespace reads as one empty field.
-        if !(record.len() == 1 && record[0].is_empty()) {
-            records.push((line, record));
+    // The next record that is not a blank line, and its line; a line of
+    // only whitespace reads as one empty field.
+    let mut next = |record: &mut csv::ByteRecord| -> Result<Option<u64>, FormatError> {
+        loop {
+            let more = reader.read_byte_record(record).map_err(|error| {
+                let line = error.position().map_or(1, |p| lines.record_line(p.byte()));
+                FormatError::invalid(source, format!("line {line}"), error.to_string())
+            })?;
+            if !more {
+                return Ok(None);
+            }
+            let blank = record.len() == 1
+                && std::str::from_utf8(&record[0]).is_ok_and(|f| f.trim().is_empty());
+            if !blank {
+                return Ok(Some(
+                    record.position().map_or(1, |p| lines.record_line(p.byte())),
+                ));
+            }
         }
-    }
-    let mut records = records.into_iter();
+    };
 
-    let Some(header) = records.next() else {
+    let mut header = csv::ByteRecord::new();
+    let Some(header_line) = next(&mut header)? else {
         return Err(FormatError::invalid(
             source,
             "line 1",
             format!("the table is empty; expected a header line naming the columns {expected}"),
         ));
     };
-    let (header_line, header) = header;
+    let header: Vec<String> = header
+        .iter()
+        .map(|name| String::from_utf8_lossy(name).trim().to_owned())
+        .collect();
     let mut indices = Vec::with_capacity(columns.len());
     for &column in columns {
         let mut found = header
@@ -410,14 +443,13 @@ fn read_table<'a>(
             .enumerate()
             .filter(|(_, name)| *name == column);
         let Some((index, _)) = found.next() else {
-            let names: Vec<&str> = header.iter().collect();
             return Err(FormatError::invalid(
                 source,
                 format!("line {header_line}, column {column}"),
                 format!(
                     "the header has no column `{column}`: the first line must name the columns \
                      {expected}, found {}",
-                    quote(&names.join(","))
+                    quote(&header.join(","))
                 ),
             ));
         };
@@ -435,8 +467,8 @@ fn read_table<'a>(
         indices.push(index);
     }
 
-    let mut rows = Vec::new();
-    for (line, record) in records {
+    let mut record = csv::ByteRecord::new();
+    while let Some(line) = next(&mut record)? {
         if record.len() != header.len() {
             return Err(FormatError::invalid(
                 source,
@@ -448,14 +480,15 @@ fn read_table<'a>(
                 ),
             ));
         }
-        rows.push(Row {
+        row(&Row {
             source,
             line,
             columns,
-            fields: indices.iter().map(|&i| record[i].to_owned()).collect(),
-        });
+            record: &record,
+            indices: &indices,
+        })?;
     }
-    Ok(rows)
+    Ok(())
 }
 
 #[cfg(test)]
