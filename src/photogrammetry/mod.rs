@@ -12,7 +12,9 @@
 //! of one time step ([`pipeline`]), and the image splitter that cuts one
 //! sensor's image into the views of several cameras ([`splitter`]);
 //! section 5's system calibration by resection on control points
-//! ([`mod@calibrate`]).
+//! ([`mod@calibrate`]); volume self-calibration from the particles
+//! ([`selfcal`]); and tracking in object space after the companion paper,
+//! Malik, Dracos and Papantoniou (1993), Part II ([`track`]).
 //!
 //! This module never imports the service's shell (no async runtime, web
 //! framework, SQL or OpenAPI crates; ARCHITECTURE.md's invariant greps for
@@ -33,6 +35,7 @@ pub mod selfcal;
 pub mod simulate;
 pub mod splitter;
 pub mod target;
+pub mod track;
 pub mod volume;
 
 pub use background::{BackgroundBuilder, BackgroundError, BackgroundMode};

@@ -1,0 +1,640 @@
+//! Tracking: the particles of consecutive frames linked into trajectories
+//! in object space, after Malik, Dracos and Papantoniou (1993), *Particle
+//! tracking velocimetry in three-dimensional flows, Part II: Particle
+//! tracking* (Exp. Fluids 15), section 3, with velocities and
+//! accelerations from local polynomial fits ([`kinematics`]).
+//!
+//! **Linking, frame `t` to `t+1`** (decided once frame `t+2` is in: the
+//! look-ahead):
+//!
+//! 1. Every trajectory predicts its next position: with two or more points
+//!    `x̂ = x_t + v Δ` (`v` its last velocity, `Δ` the frames since its last
+//!    point), searched within `max_acceleration Δ²` plus a noise floor; a
+//!    trajectory of one point (just started) searches within
+//!    `max_velocity Δ` around itself. Every link also keeps `|x_{t+1} -
+//!    x_t| ≤ max_velocity Δ`.
+//! 2. Each candidate `c` in `t+1` is judged by the look-ahead: from `c`
+//!    with the velocity the link implies, the particles of `t+2` near the
+//!    next prediction; the link's cost is the least change of acceleration
+//!    over the four positions `x_{t-1}, x_t, c, d` (Malik et al.'s
+//!    smoothest trajectory), or for a trajectory of one point the least
+//!    acceleration over `x_t, c, d`. Links without any `d` rank after all
+//!    links with one, by their own acceleration; a new trajectory's first
+//!    link needs a `d` (one unconfirmed step between two random particles
+//!    is no evidence), except at the sequence's last frame.
+//! 3. **Conflicts are resolved globally**: every candidate link of the
+//!    frame, of every trajectory, is ranked by cost, and taken best first
+//!    where neither its trajectory nor its particle is taken. No
+//!    trajectory is served first because of where it stands in a list.
+//! 4. A trajectory with no link keeps predicting for up to `max_gap`
+//!    frames (gaps of one or two frames, where the correspondences missed
+//!    the particle), then ends. Particles of `t+1` no trajectory took start
+//!    new ones.
+//!
+//! **Output, streamed.** A trajectory is reported once it has
+//! `min_length` points; from then on each point is handed out as soon as
+//! its fit window is complete (or the trajectory ended), with velocity and
+//! acceleration from the fit. The tracker keeps only the frames of the
+//! look-ahead and, per live trajectory, the points not yet handed out and
+//! the window behind them: memory is bounded by the live particles and the
+//! window, not by the sequence's length.
+//!
+//! Pure and deterministic: the same frames give the same trajectories
+//! (equal costs, which continuous positions make rare, are ranked by
+//! trajectory and then particle index).
+
+mod kinematics;
+
+use std::collections::{HashMap, VecDeque};
+
+use nalgebra::{Point3, Vector3};
+
+pub use kinematics::Derivatives;
+use kinematics::{fit, Sample};
+
+/// How to track.
+#[derive(Clone, Debug, PartialEq)]
+pub struct TrackingParameters {
+    /// The largest displacement of a particle between two frames (mm per
+    /// frame): the search radius of a trajectory's first link.
+    pub max_velocity: f64,
+    /// The largest change of velocity between two frames (mm per frame²):
+    /// the search radius around a prediction.
+    pub max_acceleration: f64,
+    /// Frames a trajectory may miss and still continue (0..=2).
+    pub max_gap: usize,
+    /// The fewest points of a trajectory that is reported.
+    pub min_length: usize,
+    /// Points on each side of a point in its polynomial fit (1..=5).
+    pub fit_half_window: usize,
+    /// The order of the fit (1..=3; lower where the window has fewer
+    /// points).
+    pub fit_order: usize,
+}
+
+impl TrackingParameters {
+    /// Parameters for particles moving at most `max_velocity` mm per
+    /// frame: velocity changes up to half of that per frame, gaps of one
+    /// frame bridged, trajectories of 3 points or more, a 5-point
+    /// quadratic fit.
+    pub fn new(max_velocity: f64) -> Self {
+        TrackingParameters {
+            max_velocity,
+            max_acceleration: max_velocity / 2.0,
+            max_gap: 1,
+            min_length: 3,
+            fit_half_window: 2,
+            fit_order: 2,
+        }
+    }
+
+    /// Checks every field; the error names it and its range.
+    pub fn validate(&self) -> Result<(), TrackError> {
+        let invalid = |what: String| Err(TrackError::InvalidParameter(what));
+        if !(self.max_velocity.is_finite() && self.max_velocity > 0.0) {
+            return invalid(format!(
+                "max_velocity must be a positive number of mm per frame, got {}",
+                self.max_velocity
+            ));
+        }
+        if !(self.max_acceleration.is_finite() && self.max_acceleration > 0.0) {
+            return invalid(format!(
+                "max_acceleration must be a positive number of mm per frame², got {}",
+                self.max_acceleration
+            ));
+        }
+        if self.max_gap > MAX_GAP {
+            return invalid(format!(
+                "max_gap must be 0..={MAX_GAP} frames (a prediction over a longer gap is a guess), got {}",
+                self.max_gap
+            ));
+        }
+        if self.min_length == 0 {
+            return invalid("min_length must be at least 1 point".into());
+        }
+        if !(1..=5).contains(&self.fit_half_window) {
+            return invalid(format!(
+                "fit_half_window must be 1..=5 points, got {}",
+                self.fit_half_window
+            ));
+        }
+        if !(1..=3).contains(&self.fit_order) {
+            return invalid(format!(
+                "fit_order must be 1, 2 or 3, got {}",
+                self.fit_order
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// The longest gap bridged.
+pub const MAX_GAP: usize = 2;
+
+/// One particle of a frame, as tracking takes it.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ParticlePosition {
+    /// Position (mm).
+    pub position: Point3<f64>,
+    /// Standard deviations of X, Y, Z (mm), each above zero: the
+    /// intersection's, or the lab's estimate where a file has none.
+    pub sigma: Vector3<f64>,
+}
+
+/// A point of a trajectory.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct TrackPoint {
+    /// The trajectory (numbered from 0 in the order trajectories reach
+    /// `min_length`).
+    pub trajectory: u64,
+    /// The frame number.
+    pub frame: i64,
+    /// The particle's index in that frame's input.
+    pub particle: usize,
+    /// Position (mm).
+    pub position: Point3<f64>,
+    /// Velocity and acceleration from the fit.
+    pub derivatives: Derivatives,
+}
+
+/// A whole trajectory: its points in frame order.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Trajectory {
+    /// Its number.
+    pub id: u64,
+    /// Its points.
+    pub points: Vec<TrackPoint>,
+}
+
+/// Why tracking cannot go on.
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+pub enum TrackError {
+    /// A parameter out of range.
+    #[error("invalid tracking parameter: {0}")]
+    InvalidParameter(String),
+    /// Frames must come in increasing order.
+    #[error("frame {frame} came after frame {last}; give the frames in increasing order")]
+    FrameOrder {
+        /// The frame given.
+        frame: i64,
+        /// The frame before it.
+        last: i64,
+    },
+    /// A particle that is not a position.
+    #[error("frame {frame}, particle {index}: {reason}")]
+    InvalidParticle {
+        /// The frame.
+        frame: i64,
+        /// The particle's index in it.
+        index: usize,
+        /// What is wrong.
+        reason: String,
+    },
+}
+
+/// A frame in the look-ahead.
+struct Frame {
+    number: i64,
+    particles: Vec<ParticlePosition>,
+    grid: Grid,
+}
+
+/// A trajectory being tracked.
+struct Live {
+    /// Its number, once it has `min_length` points.
+    id: Option<u64>,
+    /// Its recent points: those not yet handed out, and up to a fit
+    /// window of those before them.
+    nodes: VecDeque<Node>,
+    /// Points ever added.
+    length: usize,
+    /// Points handed out (the first `emitted` of the trajectory).
+    emitted: usize,
+}
+
+#[derive(Clone, Copy)]
+struct Node {
+    frame: i64,
+    particle: usize,
+    position: Point3<f64>,
+    sigma: Vector3<f64>,
+}
+
+impl Live {
+    fn last(&self) -> &Node {
+        self.nodes.back().expect("a trajectory has a point")
+    }
+
+    /// Velocity (mm per frame) from the last two points, if it has two.
+    fn velocity(&self) -> Option<Vector3<f64>> {
+        let n = self.nodes.len();
+        (n >= 2).then(|| {
+            let (a, b) = (&self.nodes[n - 2], &self.nodes[n - 1]);
+            (b.position - a.position) / (b.frame - a.frame) as f64
+        })
+    }
+
+    /// The index in `nodes` of the trajectory's point `k`.
+    fn local(&self, k: usize) -> usize {
+        k - (self.length - self.nodes.len())
+    }
+}
+
+/// A candidate link: its rank (without a look-ahead partner after all
+/// with one, then by cost), then its trajectory and particle.
+#[derive(Clone, Copy, PartialEq, PartialOrd)]
+struct Link {
+    unconfirmed: bool,
+    cost: f64,
+    live: usize,
+    particle: usize,
+}
+
+/// Links particles of consecutive frames into trajectories, frame by frame
+/// ([`Tracker::push`], then [`Tracker::finish`]).
+pub struct Tracker {
+    parameters: TrackingParameters,
+    /// Frames given but not yet linked to: at most two.
+    ahead: VecDeque<Frame>,
+    live: Vec<Live>,
+    next_id: u64,
+    last_frame: Option<i64>,
+}
+
+impl Tracker {
+    /// A tracker; the parameters are checked.
+    pub fn new(parameters: TrackingParameters) -> Result<Self, TrackError> {
+        parameters.validate()?;
+        Ok(Tracker {
+            parameters,
+            ahead: VecDeque::new(),
+            live: Vec::new(),
+            next_id: 0,
+            last_frame: None,
+        })
+    }
+
+    /// Takes the particles of frame `number` (numbers increasing; a number
+    /// skipped is a frame with no particles) and returns the trajectory
+    /// points that became final.
+    pub fn push(
+        &mut self,
+        number: i64,
+        particles: Vec<ParticlePosition>,
+    ) -> Result<Vec<TrackPoint>, TrackError> {
+        if let Some(last) = self.last_frame {
+            if number <= last {
+                return Err(TrackError::FrameOrder {
+                    frame: number,
+                    last,
+                });
+            }
+        }
+        for (index, p) in particles.iter().enumerate() {
+            let reason = if !p.position.iter().all(|v| v.is_finite()) {
+                "its position is not finite"
+            } else if !p.sigma.iter().all(|s| s.is_finite() && *s > 0.0) {
+                "its standard deviations must be finite and above zero"
+            } else {
+                continue;
+            };
+            return Err(TrackError::InvalidParticle {
+                frame: number,
+                index,
+                reason: reason.into(),
+            });
+        }
+        let mut out = Vec::new();
+        // Skipped frame numbers are empty frames, as far as they matter:
+        // beyond the longest gap every trajectory has ended anyway.
+        if let Some(last) = self.last_frame {
+            let skipped = (number - last - 1).min(MAX_GAP as i64 + 2);
+            for k in 0..skipped {
+                self.take(number - skipped + k, Vec::new(), &mut out);
+            }
+        }
+        self.take(number, particles, &mut out);
+        self.last_frame = Some(number);
+        Ok(out)
+    }
+
+    /// Ends the sequence: links what is left and returns the last points.
+    pub fn finish(mut self) -> Vec<TrackPoint> {
+        let mut out = Vec::new();
+        while let Some(next) = self.ahead.pop_front() {
+            let ahead = self.ahead.pop_front();
+            self.step(&next, ahead.as_ref(), &mut out);
+            self.ahead.extend(ahead);
+        }
+        for live in std::mem::take(&mut self.live) {
+            self.end(live, &mut out);
+        }
+        out
+    }
+
+    /// Points held (not yet handed out, or kept for their neighbours'
+    /// fits): for a test of the memory bound.
+    pub fn held_points(&self) -> usize {
+        self.live.iter().map(|l| l.nodes.len()).sum::<usize>()
+            + self.ahead.iter().map(|f| f.particles.len()).sum::<usize>()
+    }
+
+    fn take(&mut self, number: i64, particles: Vec<ParticlePosition>, out: &mut Vec<TrackPoint>) {
+        let cell = self
+            .parameters
+            .max_velocity
+            .max(self.parameters.max_acceleration)
+            / 2.0;
+        self.ahead.push_back(Frame {
+            number,
+            grid: Grid::new(&particles, cell),
+            particles,
+        });
+        if self.ahead.len() == 2 {
+            let next = self.ahead.pop_front().expect("two frames");
+            let ahead = self.ahead.pop_front();
+            self.step(&next, ahead.as_ref(), out);
+            self.ahead.extend(ahead);
+        }
+    }
+
+    /// Links the live trajectories to `next`, judged with `ahead`; starts
+    /// trajectories from what is left; hands out final points.
+    fn step(&mut self, next: &Frame, ahead: Option<&Frame>, out: &mut Vec<TrackPoint>) {
+        let p = &self.parameters;
+        let mut links = Vec::new();
+        let mut near = Vec::new();
+        let mut near_ahead = Vec::new();
+        for (l, live) in self.live.iter().enumerate() {
+            let last = *live.last();
+            let dt = (next.number - last.frame) as f64;
+            let velocity = live.velocity();
+            let floor = noise_floor(&last.sigma);
+            let (predicted, radius) = match velocity {
+                Some(v) => (last.position + v * dt, p.max_acceleration * dt * dt + floor),
+                None => (last.position, p.max_velocity * dt + floor),
+            };
+            near.clear();
+            next.grid
+                .within(&next.particles, &predicted, radius, &mut near);
+            for &c in &near {
+                let position = next.particles[c].position;
+                let step = (position - last.position) / dt;
+                if step.norm() > p.max_velocity + floor {
+                    continue;
+                }
+                // The acceleration this link implies (none known for a
+                // trajectory of one point).
+                let a1 = velocity.map(|v| (step - v) / dt);
+                let mut best: Option<f64> = None;
+                if let Some(ahead) = ahead {
+                    let dt2 = (ahead.number - next.number) as f64;
+                    let predicted2 = position + step * dt2;
+                    let floor2 = noise_floor(&next.particles[c].sigma);
+                    near_ahead.clear();
+                    ahead.grid.within(
+                        &ahead.particles,
+                        &predicted2,
+                        p.max_acceleration * dt2 * dt2 + floor2,
+                        &mut near_ahead,
+                    );
+                    for &d in &near_ahead {
+                        let step2 = (ahead.particles[d].position - position) / dt2;
+                        if step2.norm() > p.max_velocity + floor2 {
+                            continue;
+                        }
+                        let a2 = (step2 - step) / dt2;
+                        let cost = match a1 {
+                            Some(a1) => (a2 - a1).norm(),
+                            None => a2.norm(),
+                        };
+                        best = Some(best.map_or(cost, |b: f64| b.min(cost)));
+                    }
+                }
+                let link = match best {
+                    Some(cost) => Link {
+                        unconfirmed: false,
+                        cost,
+                        live: l,
+                        particle: c,
+                    },
+                    // A new trajectory's first link needs a look-ahead
+                    // partner, unless there is no frame to look ahead to.
+                    None if a1.is_none() && ahead.is_some() => continue,
+                    None => Link {
+                        unconfirmed: true,
+                        cost: a1.map_or((position - last.position).norm(), |a| a.norm()),
+                        live: l,
+                        particle: c,
+                    },
+                };
+                links.push(link);
+            }
+        }
+        // Global resolution: best first over the whole frame.
+        links.sort_by(|a, b| a.partial_cmp(b).expect("costs are finite"));
+        let mut taken_live = vec![false; self.live.len()];
+        let mut taken = vec![false; next.particles.len()];
+        for link in links {
+            if taken_live[link.live] || taken[link.particle] {
+                continue;
+            }
+            taken_live[link.live] = true;
+            taken[link.particle] = true;
+            let particle = &next.particles[link.particle];
+            let live = &mut self.live[link.live];
+            live.nodes.push_back(Node {
+                frame: next.number,
+                particle: link.particle,
+                position: particle.position,
+                sigma: particle.sigma,
+            });
+            live.length += 1;
+        }
+        // Trajectories that missed this frame: continue within the gap
+        // (only those with a velocity to predict with), or end.
+        let mut live = std::mem::take(&mut self.live);
+        let mut kept = Vec::with_capacity(live.len() + next.particles.len());
+        for (l, trajectory) in live.drain(..).enumerate() {
+            let missed = (next.number - trajectory.last().frame) as usize;
+            let continues =
+                taken_live[l] || (trajectory.length >= 2 && missed <= self.parameters.max_gap);
+            if continues {
+                kept.push(trajectory);
+            } else {
+                self.end(trajectory, out);
+            }
+        }
+        for (c, particle) in next.particles.iter().enumerate() {
+            if !taken[c] {
+                kept.push(Live {
+                    id: None,
+                    nodes: VecDeque::from([Node {
+                        frame: next.number,
+                        particle: c,
+                        position: particle.position,
+                        sigma: particle.sigma,
+                    }]),
+                    length: 1,
+                    emitted: 0,
+                });
+            }
+        }
+        self.live = kept;
+        let mut live = std::mem::take(&mut self.live);
+        for trajectory in &mut live {
+            self.hand_out(trajectory, false, out);
+        }
+        self.live = live;
+    }
+
+    fn end(&mut self, mut live: Live, out: &mut Vec<TrackPoint>) {
+        self.hand_out(&mut live, true, out);
+    }
+
+    /// Hands out the points of `live` whose fit windows are complete (all
+    /// of them if it `ended`), once it is long enough; drops what no fit
+    /// needs any more.
+    fn hand_out(&mut self, live: &mut Live, ended: bool, out: &mut Vec<TrackPoint>) {
+        let p = &self.parameters;
+        if live.length < p.min_length {
+            return;
+        }
+        let id = *live.id.get_or_insert_with(|| {
+            self.next_id += 1;
+            self.next_id - 1
+        });
+        let w = p.fit_half_window;
+        let last_frame = live.last().frame;
+        while live.emitted < live.length {
+            let k = live.emitted;
+            let node = live.nodes[live.local(k)];
+            // Final once the points after it cover the window, or none
+            // will come.
+            if !ended && last_frame < node.frame + w as i64 {
+                break;
+            }
+            let samples: Vec<Sample> = live
+                .nodes
+                .iter()
+                .filter(|n| (n.frame - node.frame).unsigned_abs() <= w as u64)
+                .map(|n| Sample {
+                    frame: n.frame,
+                    position: n.position.coords,
+                    sigma: n.sigma,
+                })
+                .collect();
+            let derivatives = fit(&samples, node.frame, p.fit_order).unwrap_or(Derivatives {
+                velocity: Vector3::repeat(f64::NAN),
+                velocity_sigma: Vector3::repeat(f64::NAN),
+                acceleration: None,
+                acceleration_sigma: None,
+            });
+            out.push(TrackPoint {
+                trajectory: id,
+                frame: node.frame,
+                particle: node.particle,
+                position: node.position,
+                derivatives,
+            });
+            live.emitted += 1;
+        }
+        // Keep what is not handed out, the fit window behind the first of
+        // it, and the last two points (for the prediction).
+        let first_out = if live.emitted < live.length {
+            live.nodes[live.local(live.emitted)].frame
+        } else {
+            last_frame + 1
+        };
+        while live.nodes.len() > 2
+            && live.length - live.nodes.len() < live.emitted
+            && live.nodes[0].frame + (w as i64) < first_out
+        {
+            live.nodes.pop_front();
+        }
+    }
+}
+
+/// A search radius's allowance for the positions' noise: the prediction
+/// from two points and the candidate carry about `sqrt(6)` times a
+/// position's sigma per axis; 3 of those over the three axes.
+fn noise_floor(sigma: &Vector3<f64>) -> f64 {
+    3.0 * 6f64.sqrt() * sigma.norm()
+}
+
+/// The particles of a frame in a uniform grid.
+struct Grid {
+    cell: f64,
+    cells: HashMap<[i64; 3], Vec<usize>>,
+}
+
+impl Grid {
+    fn new(particles: &[ParticlePosition], cell: f64) -> Grid {
+        let mut cells: HashMap<[i64; 3], Vec<usize>> = HashMap::new();
+        for (i, p) in particles.iter().enumerate() {
+            cells
+                .entry(Self::key(&p.position, cell))
+                .or_default()
+                .push(i);
+        }
+        Grid { cell, cells }
+    }
+
+    fn key(point: &Point3<f64>, cell: f64) -> [i64; 3] {
+        std::array::from_fn(|i| (point[i] / cell).floor() as i64)
+    }
+
+    /// The particles within `radius` of `centre`, appended to `out` in
+    /// index order.
+    fn within(
+        &self,
+        particles: &[ParticlePosition],
+        centre: &Point3<f64>,
+        radius: f64,
+        out: &mut Vec<usize>,
+    ) {
+        let start = out.len();
+        let low = Self::key(&(centre - Vector3::repeat(radius)), self.cell);
+        let high = Self::key(&(centre + Vector3::repeat(radius)), self.cell);
+        for i in low[0]..=high[0] {
+            for j in low[1]..=high[1] {
+                for k in low[2]..=high[2] {
+                    if let Some(cell) = self.cells.get(&[i, j, k]) {
+                        out.extend(cell.iter().filter(|&&c| {
+                            (particles[c].position - centre).norm_squared() <= radius * radius
+                        }));
+                    }
+                }
+            }
+        }
+        out[start..].sort_unstable();
+    }
+}
+
+/// Tracks a whole sequence and returns its trajectories, by number.
+pub fn track(
+    frames: impl IntoIterator<Item = (i64, Vec<ParticlePosition>)>,
+    parameters: TrackingParameters,
+) -> Result<Vec<Trajectory>, TrackError> {
+    let mut tracker = Tracker::new(parameters)?;
+    let mut points = Vec::new();
+    for (number, particles) in frames {
+        points.extend(tracker.push(number, particles)?);
+    }
+    points.extend(tracker.finish());
+    let mut trajectories: Vec<Trajectory> = Vec::new();
+    points.sort_by_key(|p| (p.trajectory, p.frame));
+    for point in points {
+        match trajectories.last_mut() {
+            Some(t) if t.id == point.trajectory => t.points.push(point),
+            _ => trajectories.push(Trajectory {
+                id: point.trajectory,
+                points: vec![point],
+            }),
+        }
+    }
+    Ok(trajectories)
+}
+
+#[cfg(test)]
+mod tests;

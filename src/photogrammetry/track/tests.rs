@@ -1,0 +1,355 @@
+//! Tracking against known motion: particles in a vortex (solid-body
+//! rotation about the z axis and a drift along it), their positions with
+//! Gaussian noise, their order shuffled in every frame.
+
+use nalgebra::{Point3, Rotation3, Vector3};
+use rand::seq::SliceRandom;
+use rand::Rng;
+use rand_distr::{Distribution, Normal};
+
+use super::*;
+use crate::photogrammetry::simulate;
+
+/// Rotation per frame (rad) and drift (mm per frame): at the cylinder's
+/// radius of 50 mm a particle moves 1 mm a frame, its centripetal
+/// acceleration is 0.02 mm per frame².
+const OMEGA: f64 = 0.02;
+const DRIFT: f64 = 0.3;
+const RADIUS: f64 = 50.0;
+
+struct Scene {
+    frames: Vec<(i64, Vec<ParticlePosition>)>,
+    /// Per frame, per particle index, the true particle (`None` for a
+    /// spurious one).
+    truth: Vec<Vec<Option<usize>>>,
+    starts: Vec<Point3<f64>>,
+}
+
+fn true_position(start: &Point3<f64>, frame: i64) -> Point3<f64> {
+    let t = frame as f64;
+    Rotation3::from_axis_angle(&Vector3::z_axis(), OMEGA * t) * start
+        + Vector3::new(0.0, 0.0, DRIFT * t)
+}
+
+fn true_velocity(position: &Point3<f64>) -> Vector3<f64> {
+    Vector3::new(-OMEGA * position.y, OMEGA * position.x, DRIFT)
+}
+
+fn true_acceleration(position: &Point3<f64>) -> Vector3<f64> {
+    Vector3::new(
+        -OMEGA * OMEGA * position.x,
+        -OMEGA * OMEGA * position.y,
+        0.0,
+    )
+}
+
+/// `count` particles in the cylinder of radius 50 mm, 0..100 mm high
+/// (mean spacing about 6 mm at 3,000), over `frames` frames, each kept
+/// with probability `1 - dropout`, plus `spurious` random points per frame.
+fn vortex(
+    count: usize,
+    frames: i64,
+    noise: f64,
+    dropout: f64,
+    spurious: usize,
+    seed: u64,
+) -> Scene {
+    let mut rng = simulate::rng(seed);
+    let starts: Vec<Point3<f64>> = (0..count)
+        .map(|_| loop {
+            let p = Point3::new(
+                rng.random_range(-RADIUS..RADIUS),
+                rng.random_range(-RADIUS..RADIUS),
+                rng.random_range(0.0..100.0),
+            );
+            if p.coords.xy().norm() <= RADIUS {
+                break p;
+            }
+        })
+        .collect();
+    let normal = Normal::new(0.0, noise).unwrap();
+    let mut scene = Scene {
+        frames: Vec::new(),
+        truth: Vec::new(),
+        starts: starts.clone(),
+    };
+    for frame in 0..frames {
+        let mut items: Vec<(Option<usize>, Point3<f64>)> = Vec::new();
+        for (i, start) in starts.iter().enumerate() {
+            if !rng.random_bool(dropout) {
+                let noise = Vector3::from_fn(|_, _| normal.sample(&mut rng));
+                items.push((Some(i), true_position(start, frame) + noise));
+            }
+        }
+        for _ in 0..spurious {
+            let p = Point3::new(
+                rng.random_range(-RADIUS..RADIUS),
+                rng.random_range(-RADIUS..RADIUS),
+                rng.random_range(0.0..100.0 + DRIFT * frames as f64),
+            );
+            items.push((None, p));
+        }
+        items.shuffle(&mut rng);
+        scene.truth.push(items.iter().map(|(t, _)| *t).collect());
+        scene.frames.push((
+            frame,
+            items
+                .iter()
+                .map(|(_, p)| ParticlePosition {
+                    position: *p,
+                    sigma: Vector3::repeat(noise),
+                })
+                .collect(),
+        ));
+    }
+    scene
+}
+
+/// Links (consecutive points of a trajectory) and how many join the same
+/// true particle.
+fn links(scene: &Scene, trajectories: &[Trajectory]) -> (usize, usize) {
+    let mut all = 0;
+    let mut correct = 0;
+    for t in trajectories {
+        for pair in t.points.windows(2) {
+            all += 1;
+            let a = scene.truth[pair[0].frame as usize][pair[0].particle];
+            let b = scene.truth[pair[1].frame as usize][pair[1].particle];
+            if a.is_some() && a == b {
+                correct += 1;
+            }
+        }
+    }
+    (all, correct)
+}
+
+fn parameters() -> TrackingParameters {
+    // 1 mm per frame at most (the cylinder's rim), with a margin.
+    TrackingParameters::new(1.5)
+}
+
+/// 3,000 particles over 30 frames with 10 um noise: spacing (about 6 mm)
+/// far above the displacement (up to 1 mm) and the prediction error
+/// (0.02 mm of centripetal acceleration), so every link is unambiguous and
+/// every particle one trajectory. Velocities and accelerations of interior
+/// points scatter about the truth by the sigmas the fit reports.
+#[test]
+fn a_vortex_is_tracked_whole_with_the_sigmas_it_reports() {
+    let noise = 0.01;
+    let scene = vortex(3000, 30, noise, 0.0, 0, 7);
+    let trajectories = track(scene.frames.clone(), parameters()).unwrap();
+    let (all, correct) = links(&scene, &trajectories);
+    println!(
+        "{} trajectories, {all} links, {correct} correct",
+        trajectories.len()
+    );
+    assert_eq!(correct, all, "every link joins one particle");
+    let whole = trajectories.iter().filter(|t| t.points.len() == 30).count();
+    assert_eq!(
+        whole, 3000,
+        "every particle is one trajectory of all 30 frames"
+    );
+
+    // Normalised errors of interior points (a full 5-point window). Their
+    // RMS is 1 if the sigmas are right: 3,000 x 26 points x 3 axes
+    // estimate it to about 0.3%; the quadratic fit's bias on a circle (the
+    // cubic term, omega³ r / 6 · 34/10 ~ 2e-4 mm per frame against a sigma
+    // of 3.2e-3) adds under 1%. So within 5%.
+    let (mut v2, mut a2, mut n) = (0.0, 0.0, 0usize);
+    for t in &trajectories {
+        let id = scene.truth[t.points[0].frame as usize][t.points[0].particle].unwrap();
+        for p in &t.points[2..t.points.len() - 2] {
+            let truth = true_position(&scene.starts[id], p.frame);
+            let d = &p.derivatives;
+            let ev = (d.velocity - true_velocity(&truth)).component_div(&d.velocity_sigma);
+            let ea = (d.acceleration.unwrap() - true_acceleration(&truth))
+                .component_div(&d.acceleration_sigma.unwrap());
+            v2 += ev.norm_squared();
+            a2 += ea.norm_squared();
+            n += 3;
+        }
+    }
+    let (v_rms, a_rms) = ((v2 / n as f64).sqrt(), (a2 / n as f64).sqrt());
+    println!("normalised velocity error RMS {v_rms:.4}, acceleration {a_rms:.4}");
+    assert!((0.95..1.05).contains(&v_rms), "{v_rms}");
+    assert!((0.95..1.05).contains(&a_rms), "{a_rms}");
+    // The sigma of a 5-point quadratic fit's velocity: noise / sqrt(10).
+    let sigma = trajectories[0].points[2].derivatives.velocity_sigma.x;
+    assert!((sigma - noise / 10f64.sqrt()).abs() < 1e-12, "{sigma}");
+}
+
+/// 5% of the particles lost at random in each frame: gaps of one frame
+/// are bridged, so trajectories stay long; without bridging they break
+/// at every loss. 5% spurious points per frame take no part in long
+/// trajectories.
+#[test]
+fn gaps_are_bridged_and_spurious_points_stay_out() {
+    let scene = vortex(2000, 30, 0.01, 0.05, 100, 11);
+    let mean_length = |trajectories: &[Trajectory]| {
+        trajectories.iter().map(|t| t.points.len()).sum::<usize>() as f64
+            / trajectories.len() as f64
+    };
+    let bridged = track(scene.frames.clone(), parameters()).unwrap();
+    let (all, correct) = links(&scene, &bridged);
+    let broken = track(
+        scene.frames.clone(),
+        TrackingParameters {
+            max_gap: 0,
+            ..parameters()
+        },
+    )
+    .unwrap();
+    println!(
+        "bridged: {} trajectories, mean length {:.1}, {correct} of {all} links correct; unbridged: {}, mean length {:.1}",
+        bridged.len(),
+        mean_length(&bridged),
+        broken.len(),
+        mean_length(&broken)
+    );
+    // A particle is lost twice in a row with probability 0.25% per frame
+    // pair, ending its trajectory: about 2000 x 28 x 0.0025 = 140 breaks
+    // besides the 2000 starts. Without bridging every loss (2000 x 30 x
+    // 0.05 = 3000) breaks one.
+    assert!(bridged.len() < 2000 + 300, "{}", bridged.len());
+    assert!(broken.len() > 2000 + 2000, "{}", broken.len());
+    // Spurious points are 5% of all and random: a link through one needs
+    // a random point within the look-ahead's radius of a smooth
+    // prediction, so very few are linked.
+    assert!(correct as f64 >= 0.999 * all as f64, "{correct} of {all}");
+}
+
+/// Two particles crossing within 0.3 mm at 1 mm a frame: the smoothest
+/// continuation keeps each on its straight line.
+#[test]
+fn crossing_particles_keep_their_lines() {
+    let frames: Vec<(i64, Vec<ParticlePosition>)> = (0..21)
+        .map(|f| {
+            let t = f as f64 - 10.0;
+            let sigma = Vector3::repeat(0.005);
+            let a = Point3::new(t, 0.0, 0.0);
+            let b = Point3::new(0.0, 0.3 + t * 0.8, t * 0.6);
+            // Swap their order every frame, so index order says nothing.
+            let pair = if f % 2 == 0 { [a, b] } else { [b, a] };
+            (
+                f,
+                pair.iter()
+                    .map(|&position| ParticlePosition { position, sigma })
+                    .collect(),
+            )
+        })
+        .collect();
+    let trajectories = track(frames, TrackingParameters::new(1.5)).unwrap();
+    assert_eq!(trajectories.len(), 2);
+    for t in &trajectories {
+        assert_eq!(t.points.len(), 21);
+        let first_is_a = t.points[0].position.y == 0.0 && t.points[0].position.z == 0.0;
+        for p in &t.points {
+            let on_a = p.position.y == 0.0 && p.position.z == 0.0;
+            assert_eq!(on_a, first_is_a, "frame {}", p.frame);
+        }
+    }
+}
+
+/// The tracker holds, per live trajectory, the points whose window is not
+/// complete (up to `w`) and the window behind them (`w`), plus the one
+/// frame of look-ahead: 50 particles with `w` = 2 hold at most 50 x (2w +
+/// 1) + 50 points, however long the sequence.
+#[test]
+fn memory_is_bounded_by_the_window_not_the_sequence() {
+    let p = parameters();
+    let bound = 50 * (2 * p.fit_half_window + 1) + 50;
+    let mut tracker = Tracker::new(p).unwrap();
+    let mut most = 0;
+    let mut out = 0;
+    for f in 0..2000i64 {
+        let particles = (0..50)
+            .map(|i| ParticlePosition {
+                position: Point3::new(f as f64 * 0.5, i as f64 * 10.0, 0.0),
+                sigma: Vector3::repeat(0.01),
+            })
+            .collect();
+        out += tracker.push(f, particles).unwrap().len();
+        most = most.max(tracker.held_points());
+    }
+    out += tracker.finish().len();
+    assert_eq!(out, 50 * 2000);
+    assert!(most <= bound, "{most} > {bound}");
+}
+
+#[test]
+fn bad_input_is_refused_with_what_is_wrong() {
+    for (p, field) in [
+        (TrackingParameters::new(0.0), "max_velocity"),
+        (TrackingParameters::new(f64::NAN), "max_velocity"),
+        (
+            TrackingParameters {
+                max_gap: 3,
+                ..parameters()
+            },
+            "max_gap",
+        ),
+        (
+            TrackingParameters {
+                fit_order: 4,
+                ..parameters()
+            },
+            "fit_order",
+        ),
+        (
+            TrackingParameters {
+                min_length: 0,
+                ..parameters()
+            },
+            "min_length",
+        ),
+    ] {
+        let error = Tracker::new(p).err().unwrap().to_string();
+        assert!(error.contains(field), "{error}");
+    }
+    let mut tracker = Tracker::new(parameters()).unwrap();
+    tracker.push(5, Vec::new()).unwrap();
+    assert_eq!(
+        tracker.push(5, Vec::new()).unwrap_err(),
+        TrackError::FrameOrder { frame: 5, last: 5 }
+    );
+    let nan = ParticlePosition {
+        position: Point3::new(f64::NAN, 0.0, 0.0),
+        sigma: Vector3::repeat(0.01),
+    };
+    let zero = ParticlePosition {
+        position: Point3::origin(),
+        sigma: Vector3::zeros(),
+    };
+    assert!(matches!(
+        tracker.push(6, vec![nan]).unwrap_err(),
+        TrackError::InvalidParticle {
+            frame: 6,
+            index: 0,
+            ..
+        }
+    ));
+    let error = tracker.push(7, vec![zero, zero]).unwrap_err().to_string();
+    assert!(error.contains("standard deviations"), "{error}");
+}
+
+/// A skipped frame number is an empty frame: a trajectory bridges it.
+#[test]
+fn a_skipped_frame_number_is_a_gap() {
+    let frames: Vec<(i64, Vec<ParticlePosition>)> = [0, 1, 2, 4, 5, 6]
+        .iter()
+        .map(|&f| {
+            (
+                f,
+                vec![ParticlePosition {
+                    position: Point3::new(f as f64, 0.0, 0.0),
+                    sigma: Vector3::repeat(0.01),
+                }],
+            )
+        })
+        .collect();
+    let trajectories = track(frames, parameters()).unwrap();
+    assert_eq!(trajectories.len(), 1);
+    assert_eq!(trajectories[0].points.len(), 6);
+    let v = trajectories[0].points[3].derivatives.velocity;
+    assert!((v - Vector3::x()).norm() < 1e-9, "{v}");
+}
