@@ -45,6 +45,7 @@ mod process_sequence;
 mod project;
 mod selfcalibrate;
 mod simulate;
+mod track;
 mod upload;
 
 use std::io::{self, Write};
@@ -61,6 +62,7 @@ pub use self::process::ProcessArgs;
 pub use self::process_sequence::{BackgroundChoice, ProcessSequenceArgs};
 pub use self::selfcalibrate::SelfCalibrateArgs;
 pub use self::simulate::SimulateArgs;
+pub use self::track::TrackArgs;
 pub use self::upload::UploadArgs;
 use crate::formats::{self, FormatError};
 use crate::photogrammetry::camera::InvalidCamera;
@@ -116,6 +118,12 @@ pub enum Command {
     /// with its own parameters; writes per frame particles.<frame>.csv,
     /// rt_is.<frame> and the targets, and a JSON summary to standard output.
     ProcessSequence(ProcessSequenceArgs),
+    /// Link the particles of a sequence into trajectories (Malik et al.
+    /// 1993), from `ptv match`'s particle files or from every camera's
+    /// targets; writes the CSV
+    /// trajectory,frame,x,y,z,u,v,w,ax,ay,az,su,sv,sw,cameras,t0,t1,... (mm,
+    /// mm per frame, mm per frame²) to standard output.
+    Track(TrackArgs),
     /// Write a synthetic experiment into a directory: calibration.json,
     /// per camera camN_targets.csv and camN.png, and truth.csv.
     Simulate(SimulateArgs),
@@ -240,6 +248,10 @@ pub enum CliError {
         /// What is wrong and what is expected.
         reason: String,
     },
+    /// The tracking parameters are invalid, or a particle is not a
+    /// position.
+    #[error("cannot track")]
+    Tracking(#[from] crate::photogrammetry::track::TrackError),
     /// The matching parameters are invalid, or matching failed.
     #[error("cannot match the targets")]
     Matching(#[from] MatchError),
@@ -339,6 +351,7 @@ pub fn run(
         Command::Experiment(ExperimentCommand::Import(args)) => experiment::import(&args, stderr),
         Command::ProcessSequence(args) => process_sequence::run(&args, stdout),
         Command::Simulate(args) => simulate::run(&args, stderr),
+        Command::Track(args) => track::run(&args, stdout, stderr),
         Command::Background(args) => background::run(&args, stderr),
         Command::Upload(args) => upload::run(&args, stdout),
         Command::Serve(args) => Ok(crate::service::run(args, stdout)?),

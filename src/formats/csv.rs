@@ -65,14 +65,7 @@ pub const TARGET_COLUMNS: [&str; 6] = ["x", "y", "n", "nx", "ny", "sumg"];
 /// absent), in file order.
 pub fn parse_targets(text: &str, source: &str) -> Result<Vec<Target>, FormatError> {
     // The optional columns this header has.
-    let header: Vec<String> = text
-        .trim_start_matches('\u{feff}')
-        .lines()
-        .find(|line| !line.trim().is_empty())
-        .unwrap_or("")
-        .split(',')
-        .map(|name| name.trim().trim_matches('"').to_owned())
-        .collect();
+    let header = header_names(text);
     let columns: Vec<&str> = TARGET_COLUMNS
         .iter()
         .enumerate()
@@ -106,6 +99,76 @@ pub fn parse_targets(text: &str, source: &str) -> Result<Vec<Target>, FormatErro
         Ok(())
     })?;
     Ok(targets)
+}
+
+/// A particle read from a particles table: its position, its standard
+/// deviations where the table has them, and its targets per camera where
+/// it has `t0,t1,...`.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ParticleRow {
+    /// Position (mm).
+    pub position: Point3<f64>,
+    /// `sx,sy,sz` (mm), if the table has them.
+    pub sigma: Option<nalgebra::Vector3<f64>>,
+    /// Per camera `C` of the table's `tC` columns, the target index (`None`
+    /// for -1).
+    pub targets: Vec<Option<usize>>,
+}
+
+/// Reads a particles table as `ptv match` writes it: `x,y,z` required;
+/// `sx,sy,sz` and `t0,t1,...` (consecutive from `t0`) where the header has
+/// them; other columns ignored.
+pub fn parse_particles(text: &str, source: &str) -> Result<Vec<ParticleRow>, FormatError> {
+    let header = header_names(text);
+    let has = |name: &str| header.iter().any(|h| h == name);
+    let sigmas = ["sx", "sy", "sz"].iter().all(|c| has(c));
+    let cameras = (0..).take_while(|c| has(&format!("t{c}"))).count();
+    let target_columns: Vec<String> = (0..cameras).map(|c| format!("t{c}")).collect();
+    let mut columns: Vec<&str> = vec!["x", "y", "z"];
+    if sigmas {
+        columns.extend(["sx", "sy", "sz"]);
+    }
+    let first_target = columns.len();
+    columns.extend(target_columns.iter().map(String::as_str));
+    let mut particles = Vec::new();
+    read_table(text, source, &columns, |row| {
+        let sigma = if sigmas {
+            Some(nalgebra::Vector3::new(
+                row.number(3)?,
+                row.number(4)?,
+                row.number(5)?,
+            ))
+        } else {
+            None
+        };
+        let targets = (first_target..columns.len())
+            .map(|i| match row.field(i)? {
+                "-1" => Ok(None),
+                _ => usize::try_from(row.integer(i)?)
+                    .map(Some)
+                    .map_err(|_| row.error(i, "is too large for a target index")),
+            })
+            .collect::<Result<Vec<_>, FormatError>>()?;
+        particles.push(ParticleRow {
+            position: Point3::new(row.number(0)?, row.number(1)?, row.number(2)?),
+            sigma,
+            targets,
+        });
+        Ok(())
+    })?;
+    Ok(particles)
+}
+
+/// The names in a table's header line (its first line that is not blank),
+/// trimmed and unquoted; empty for an empty table.
+fn header_names(text: &str) -> Vec<String> {
+    text.trim_start_matches('\u{feff}')
+        .lines()
+        .find(|line| !line.trim().is_empty())
+        .unwrap_or("")
+        .split(',')
+        .map(|name| name.trim().trim_matches('"').to_owned())
+        .collect()
 }
 
 /// Writes a targets table, `x,y,n,nx,ny,sumg`.
@@ -705,6 +768,32 @@ mod tests {
             format_particles(&[], 2),
             "x,y,z,sx,sy,sz,rms_px,cameras,t0,t1\n"
         );
+    }
+
+    #[test]
+    fn particles_read_back_with_and_without_sigmas_and_targets() {
+        let particle = Particle {
+            position: Point3::new(1.0, -2.5, 0.1),
+            sigma: Vector3::new(0.001, 0.002, 0.003),
+            rms_px: 0.05,
+            targets: vec![Some(7), None, Some(0)],
+        };
+        let read = parse_particles(&format_particles(std::slice::from_ref(&particle), 3), "p").unwrap();
+        assert_eq!(
+            read,
+            vec![ParticleRow {
+                position: particle.position,
+                sigma: Some(particle.sigma),
+                targets: particle.targets,
+            }]
+        );
+        let bare = parse_particles("x,y,z\n1,2,3\n", "p").unwrap();
+        assert_eq!(bare[0].sigma, None);
+        assert!(bare[0].targets.is_empty());
+        let error = parse_particles("x,y,z,t0\n1,2,3,-2\n", "p.csv")
+            .unwrap_err()
+            .to_string();
+        assert!(error.contains("line 2, column t0"), "{error}");
     }
 
     fn finite() -> impl Strategy<Value = f64> {

@@ -1,6 +1,6 @@
 //! The `ptv` command line, run as a real process in temporary directories,
 //! in one test binary: OpenPTV's files in and out, project and intersect,
-//! detect, match and process, calibrate, background, OpenPTV experiments.
+//! detect, match and process, calibrate, background, OpenPTV experiments, track.
 //!
 //! One binary rather than one per file: each test binary links the whole
 //! crate, service included, so fewer binaries make a cold CI run shorter.
@@ -15,3 +15,4 @@ mod experiment;
 mod matching;
 mod openptv_files;
 mod selfcalibrate;
+mod track;

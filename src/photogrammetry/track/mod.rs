@@ -43,7 +43,7 @@
 //! (equal costs, which continuous positions make rare, are ranked by
 //! trajectory and then particle index).
 
-mod kinematics;
+pub mod kinematics;
 
 use std::collections::{HashMap, VecDeque};
 

@@ -1,0 +1,380 @@
+//! `ptv track`: trajectories over a sequence of frames
+//! ([`crate::photogrammetry::track`]), from the particle files of `ptv
+//! match` (`--particles PATTERN`) or from the targets of every camera,
+//! matched frame by frame first (`--calibration` and `--targets PATTERN`
+//! per camera, with `ptv match`'s flags).
+//!
+//! The trajectory points go to standard output as the CSV
+//! `trajectory,frame,x,y,z,u,v,w,ax,ay,az,su,sv,sw,cameras,t0,t1,...` (mm,
+//! mm per frame, mm per frame²; `su,sv,sw` the velocity's standard
+//! deviations; `cameras` and `tC` as `ptv match` writes them, empty where
+//! the particle files have none; an acceleration is empty where the fit
+//! window has two points). Rows come as points become final (their fit
+//! window complete), so a long sequence streams; sort by
+//! `trajectory,frame` for one trajectory's rows together. A summary goes to
+//! standard error, with a progress bar where it is a terminal. A frame
+//! without its files is a gap, and the summary counts them.
+
+use std::collections::VecDeque;
+use std::fmt::Write as _;
+use std::io::{IsTerminal, Write};
+use std::path::PathBuf;
+
+use clap::Args;
+use nalgebra::Vector3;
+
+use super::match_targets::MatchingFlags;
+use super::{check_camera_count, read_calibration, write_stderr_line, write_stdout, CliError};
+use crate::formats;
+use crate::formats::csv::ParticleRow;
+use crate::formats::frames::{FramePattern, FrameRange, WithoutNumber};
+use crate::photogrammetry::correspond::Matcher;
+use crate::photogrammetry::track::{ParticlePosition, TrackPoint, Tracker, TrackingParameters};
+
+/// Arguments of `ptv track`.
+#[derive(Debug, Args)]
+pub struct TrackArgs {
+    /// The particles of each frame, as `ptv match` writes them, with a
+    /// printf-style frame number (`particles.%05d.csv`). Without
+    /// `sx,sy,sz` columns, give --sigma.
+    #[arg(long, value_name = "PATTERN", required_unless_present = "targets", conflicts_with_all = ["calibration", "targets"])]
+    pub particles: Option<String>,
+    /// The calibration JSON, to match --targets.
+    #[arg(long, value_name = "CALIBRATION_JSON", requires = "targets")]
+    pub calibration: Option<PathBuf>,
+    /// One camera's target files, with a printf-style frame number
+    /// (`cam1.%05d_targets`); once per camera, in camera order.
+    #[arg(long = "targets", value_name = "PATTERN", requires = "calibration")]
+    pub targets: Vec<String>,
+    /// The frames, FIRST..LAST (inclusive).
+    #[arg(long, value_name = "FIRST..LAST", value_parser = FrameRange::parse)]
+    pub frames: FrameRange,
+    /// The matching flags (with --targets).
+    #[command(flatten)]
+    pub matching: MatchingFlags,
+    /// The largest displacement of a particle between frames (mm per
+    /// frame).
+    #[arg(long, value_name = "MM_PER_FRAME")]
+    pub max_velocity: f64,
+    /// The largest change of velocity between frames (mm per frame²)
+    /// [default: half of --max-velocity].
+    #[arg(long, value_name = "MM_PER_FRAME2")]
+    pub max_acceleration: Option<f64>,
+    /// Frames a trajectory may miss and continue (0 to 2).
+    #[arg(long, value_name = "FRAMES", default_value_t = 1)]
+    pub max_gap: usize,
+    /// The fewest points of a trajectory written.
+    #[arg(long, value_name = "N", default_value_t = 3)]
+    pub min_length: usize,
+    /// The particles' position uncertainty (mm) where the particle files
+    /// have no sx,sy,sz columns.
+    #[arg(long, value_name = "MM", allow_negative_numbers = true)]
+    pub sigma: Option<f64>,
+}
+
+fn flag(flag: &'static str, reason: impl Into<String>) -> CliError {
+    CliError::Flag {
+        flag,
+        reason: reason.into(),
+    }
+}
+
+/// Where the particles come from.
+enum Source {
+    Particles(FramePattern),
+    Targets {
+        matcher: Matcher,
+        patterns: Vec<FramePattern>,
+    },
+}
+
+impl Source {
+    fn flag(&self) -> &'static str {
+        match self {
+            Source::Particles(_) => "--particles",
+            Source::Targets { .. } => "--targets",
+        }
+    }
+
+    fn patterns(&self) -> Vec<&FramePattern> {
+        match self {
+            Source::Particles(p) => vec![p],
+            Source::Targets { patterns, .. } => patterns.iter().collect(),
+        }
+    }
+
+    /// The particles of `frame`; `None` where a file is missing (a gap).
+    fn read(&self, frame: u64) -> Result<Option<Vec<ParticleRow>>, CliError> {
+        if self.patterns().iter().any(|p| !p.path(frame).is_file()) {
+            return Ok(None);
+        }
+        Ok(Some(match self {
+            Source::Particles(pattern) => {
+                let path = pattern.path(frame);
+                formats::csv::parse_particles(
+                    &formats::read_text(&path)?,
+                    &path.display().to_string(),
+                )?
+            }
+            Source::Targets { matcher, patterns } => {
+                let targets = patterns
+                    .iter()
+                    .map(|p| {
+                        let path = p.path(frame);
+                        formats::parse_targets(
+                            &formats::read_text(&path)?,
+                            &path.display().to_string(),
+                        )
+                    })
+                    .collect::<Result<Vec<_>, _>>()?;
+                matcher
+                    .match_frame(&targets)?
+                    .into_iter()
+                    .map(|p| ParticleRow {
+                        position: p.position,
+                        sigma: Some(p.sigma),
+                        targets: p.targets,
+                    })
+                    .collect()
+            }
+        }))
+    }
+}
+
+/// Tracks, writing the trajectory points to standard output.
+pub(super) fn run(
+    args: &TrackArgs,
+    stdout: &mut dyn Write,
+    stderr: &mut dyn Write,
+) -> Result<(), CliError> {
+    let parameters = TrackingParameters {
+        max_acceleration: args.max_acceleration.unwrap_or(args.max_velocity / 2.0),
+        max_gap: args.max_gap,
+        min_length: args.min_length,
+        ..TrackingParameters::new(args.max_velocity)
+    };
+    let mut tracker = Tracker::new(parameters.clone())?;
+    if let Some(sigma) = args.sigma {
+        if !(sigma.is_finite() && sigma > 0.0) {
+            return Err(flag(
+                "--sigma",
+                format!("must be a positive number of mm, got {sigma}"),
+            ));
+        }
+    }
+    let source = match (&args.particles, &args.calibration) {
+        (Some(pattern), _) => Source::Particles(
+            FramePattern::parse(pattern, WithoutNumber::Refuse)
+                .map_err(|e| flag("--particles", e))?,
+        ),
+        (None, Some(calibration)) => {
+            let cameras = read_calibration(calibration)?;
+            check_camera_count(
+                calibration,
+                cameras.len(),
+                args.targets.len(),
+                ("--targets", "target pattern"),
+            )?;
+            Source::Targets {
+                matcher: Matcher::new(&cameras, &args.matching.parameters()?)?,
+                patterns: args
+                    .targets
+                    .iter()
+                    .map(|t| {
+                        FramePattern::parse(t, WithoutNumber::Refuse)
+                            .map_err(|e| flag("--targets", e))
+                    })
+                    .collect::<Result<_, _>>()?,
+            }
+        }
+        (None, None) => {
+            return Err(flag(
+                "--particles",
+                "give --particles PATTERN, or --calibration and --targets PATTERN per camera",
+            ))
+        }
+    };
+    let range = args.frames;
+    for pattern in source.patterns() {
+        if !(range.first..=range.last).any(|f| pattern.path(f).is_file()) {
+            return Err(flag(
+                source.flag(),
+                format!(
+                    "the pattern `{}` matches no file for frames {}..{}; check the pattern and --frames",
+                    pattern.as_str(),
+                    range.first,
+                    range.last
+                ),
+            ));
+        }
+    }
+
+    let bar = indicatif::ProgressBar::with_draw_target(
+        Some(range.last - range.first + 1),
+        if std::io::stderr().is_terminal() {
+            indicatif::ProgressDrawTarget::stderr()
+        } else {
+            indicatif::ProgressDrawTarget::hidden()
+        },
+    );
+    // A frame's particles are needed until its points are handed out: at
+    // most `min_length` points spread over gaps, plus the fit window and
+    // the look-ahead, behind the newest frame.
+    let keep =
+        (parameters.min_length * (parameters.max_gap + 1) + parameters.fit_half_window + 4) as u64;
+    let mut window: VecDeque<(u64, Vec<ParticleRow>)> = VecDeque::new();
+    let mut writer = Rows::default();
+    let mut gaps = 0u64;
+    let mut particles = 0usize;
+    for frame in range.first..=range.last {
+        bar.set_position(frame - range.first);
+        let Some(rows) = source.read(frame)? else {
+            gaps += 1;
+            continue;
+        };
+        writer.cameras(&rows, source.flag())?;
+        let positions = rows
+            .iter()
+            .enumerate()
+            .map(|(i, row)| {
+                let sigma = match (row.sigma, args.sigma) {
+                    (Some(s), _) => s,
+                    (None, Some(s)) => Vector3::repeat(s),
+                    (None, None) => {
+                        return Err(flag(
+                            "--sigma",
+                            format!(
+                                "the particles of frame {frame} have no sx,sy,sz columns; give \
+                                 --sigma MM, their position uncertainty (particle {i})"
+                            ),
+                        ))
+                    }
+                };
+                Ok(ParticlePosition {
+                    position: row.position,
+                    sigma,
+                })
+            })
+            .collect::<Result<Vec<_>, _>>()?;
+        particles += rows.len();
+        window.push_back((frame, rows));
+        while window.front().is_some_and(|(f, _)| f + keep < frame) {
+            window.pop_front();
+        }
+        let points = tracker.push(frame as i64, positions)?;
+        writer.write(&points, &window, stdout)?;
+    }
+    let points = tracker.finish();
+    writer.write(&points, &window, stdout)?;
+    bar.finish_and_clear();
+    write_stderr_line(
+        stderr,
+        &format!(
+            "{} frames ({gaps} without files, tracked as gaps), {particles} particles; {} trajectories of at least {} points hold {} of them",
+            range.last - range.first + 1 - gaps,
+            writer.trajectories,
+            parameters.min_length,
+            writer.points
+        ),
+    )
+}
+
+/// The CSV writer and its counts.
+#[derive(Default)]
+struct Rows {
+    /// Cameras of the `tC` columns, from the first frame with particles.
+    camera_count: Option<usize>,
+    header_written: bool,
+    trajectories: u64,
+    points: usize,
+}
+
+impl Rows {
+    fn cameras(&mut self, rows: &[ParticleRow], source: &'static str) -> Result<(), CliError> {
+        for row in rows {
+            match self.camera_count {
+                None => self.camera_count = Some(row.targets.len()),
+                Some(n) if n != row.targets.len() => {
+                    return Err(flag(
+                        source,
+                        format!(
+                            "the particle files name targets of {n} cameras in one frame and of {} in another; give one recording",
+                            row.targets.len()
+                        ),
+                    ))
+                }
+                Some(_) => {}
+            }
+        }
+        Ok(())
+    }
+
+    fn write(
+        &mut self,
+        points: &[TrackPoint],
+        window: &VecDeque<(u64, Vec<ParticleRow>)>,
+        stdout: &mut dyn Write,
+    ) -> Result<(), CliError> {
+        let cameras = self.camera_count.unwrap_or(0);
+        let mut text = String::new();
+        if !self.header_written {
+            text.push_str("trajectory,frame,x,y,z,u,v,w,ax,ay,az,su,sv,sw,cameras");
+            for c in 0..cameras {
+                let _ = write!(text, ",t{c}");
+            }
+            text.push('\n');
+            self.header_written = true;
+        }
+        for p in points {
+            self.points += 1;
+            self.trajectories = self.trajectories.max(p.trajectory + 1);
+            let row = window
+                .iter()
+                .find(|(f, _)| *f as i64 == p.frame)
+                .and_then(|(_, rows)| rows.get(p.particle));
+            let d = &p.derivatives;
+            let _ = write!(
+                text,
+                "{},{},{:?},{:?},{:?},{:?},{:?},{:?}",
+                p.trajectory,
+                p.frame,
+                p.position.x,
+                p.position.y,
+                p.position.z,
+                d.velocity.x,
+                d.velocity.y,
+                d.velocity.z
+            );
+            match d.acceleration {
+                Some(a) => {
+                    let _ = write!(text, ",{:?},{:?},{:?}", a.x, a.y, a.z);
+                }
+                None => text.push_str(",,,"),
+            }
+            let s = d.velocity_sigma;
+            let _ = write!(text, ",{:?},{:?},{:?}", s.x, s.y, s.z);
+            match row {
+                Some(row) if cameras > 0 => {
+                    let seen = row.targets.iter().flatten().count();
+                    let _ = write!(text, ",{seen}");
+                    for t in &row.targets {
+                        match t {
+                            Some(t) => {
+                                let _ = write!(text, ",{t}");
+                            }
+                            None => text.push_str(",-1"),
+                        }
+                    }
+                }
+                _ => {
+                    text.push(',');
+                    for _ in 0..cameras {
+                        text.push(',');
+                    }
+                }
+            }
+            text.push('\n');
+        }
+        write_stdout(stdout, &text)
+    }
+}
