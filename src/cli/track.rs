@@ -14,6 +14,13 @@
 //! `trajectory,frame` for one trajectory's rows together. A summary goes to
 //! standard error, with a progress bar where it is a terminal. A frame
 //! without its files is a gap, and the summary counts them.
+//!
+//! `--ptv-is DIR` also writes OpenPTV's linkage files `DIR/ptv_is.<frame>`
+//! (as liboptv's tracker writes them: the particle count, then per
+//! particle of the frame, in its input order, `prev next x y z`, `prev`
+//! and `next` the linked particle's row in the previous and next frame's
+//! file, -1 and -2 for none). OpenPTV links adjacent frames only, so a
+//! link across a bridged gap appears there as none.
 
 use std::collections::VecDeque;
 use std::fmt::Write as _;
@@ -66,6 +73,10 @@ pub struct TrackArgs {
     /// The fewest points of a trajectory written.
     #[arg(long, value_name = "N", default_value_t = 3)]
     pub min_length: usize,
+    /// Also write OpenPTV's linkage files ptv_is.<frame> into this
+    /// directory (created if missing).
+    #[arg(long, value_name = "DIR")]
+    pub ptv_is: Option<PathBuf>,
     /// The particles' position uncertainty (mm) where the particle files
     /// have no sx,sy,sz columns.
     #[arg(long, value_name = "MM", allow_negative_numbers = true)]
@@ -222,7 +233,15 @@ pub(super) fn run(
     // the look-ahead, behind the newest frame.
     let keep =
         (parameters.min_length * (parameters.max_gap + 1) + parameters.fit_half_window + 4) as u64;
-    let mut window: VecDeque<(u64, Vec<ParticleRow>)> = VecDeque::new();
+    if let Some(dir) = &args.ptv_is {
+        std::fs::create_dir_all(dir).map_err(|e| {
+            flag(
+                "--ptv-is",
+                format!("cannot create the directory {}: {e}", dir.display()),
+            )
+        })?;
+    }
+    let mut window: VecDeque<Held> = VecDeque::new();
     let mut writer = Rows::default();
     let mut gaps = 0u64;
     let mut particles = 0usize;
@@ -257,15 +276,19 @@ pub(super) fn run(
             })
             .collect::<Result<Vec<_>, _>>()?;
         particles += rows.len();
-        window.push_back((frame, rows));
-        while window.front().is_some_and(|(f, _)| f + keep < frame) {
-            window.pop_front();
+        window.push_back(Held::new(frame, rows));
+        while window.front().is_some_and(|h| h.frame + keep < frame) {
+            let held = window.pop_front().expect("a frame");
+            held.write_ptv_is(args.ptv_is.as_deref())?;
         }
         let points = tracker.push(frame as i64, positions)?;
-        writer.write(&points, &window, stdout)?;
+        writer.write(&points, &mut window, stdout)?;
     }
     let points = tracker.finish();
-    writer.write(&points, &window, stdout)?;
+    writer.write(&points, &mut window, stdout)?;
+    for held in window {
+        held.write_ptv_is(args.ptv_is.as_deref())?;
+    }
     bar.finish_and_clear();
     write_stderr_line(
         stderr,
@@ -279,6 +302,45 @@ pub(super) fn run(
     )
 }
 
+/// A frame's particles while its points may still come, with the links
+/// to its neighbours for `ptv_is`.
+struct Held {
+    frame: u64,
+    rows: Vec<ParticleRow>,
+    /// Per particle, its row in the previous frame (-1 for none).
+    prev: Vec<i64>,
+    /// Per particle, its row in the next frame (-2 for none).
+    next: Vec<i64>,
+}
+
+impl Held {
+    fn new(frame: u64, rows: Vec<ParticleRow>) -> Held {
+        Held {
+            frame,
+            prev: vec![-1; rows.len()],
+            next: vec![-2; rows.len()],
+            rows,
+        }
+    }
+
+    fn write_ptv_is(&self, dir: Option<&std::path::Path>) -> Result<(), CliError> {
+        let Some(dir) = dir else {
+            return Ok(());
+        };
+        let mut text = format!("{}\n", self.rows.len());
+        for (i, row) in self.rows.iter().enumerate() {
+            let p = row.position;
+            let _ = writeln!(
+                text,
+                "{:4} {:4} {:10.3} {:10.3} {:10.3}",
+                self.prev[i], self.next[i], p.x, p.y, p.z
+            );
+        }
+        formats::write_text(&dir.join(format!("ptv_is.{}", self.frame)), &text)?;
+        Ok(())
+    }
+}
+
 /// The CSV writer and its counts.
 #[derive(Default)]
 struct Rows {
@@ -287,6 +349,8 @@ struct Rows {
     header_written: bool,
     trajectories: u64,
     points: usize,
+    /// Per trajectory, its last point written (frame, particle).
+    last: std::collections::HashMap<u64, (i64, usize)>,
 }
 
 impl Rows {
@@ -312,7 +376,7 @@ impl Rows {
     fn write(
         &mut self,
         points: &[TrackPoint],
-        window: &VecDeque<(u64, Vec<ParticleRow>)>,
+        window: &mut VecDeque<Held>,
         stdout: &mut dyn Write,
     ) -> Result<(), CliError> {
         let cameras = self.camera_count.unwrap_or(0);
@@ -328,10 +392,30 @@ impl Rows {
         for p in points {
             self.points += 1;
             self.trajectories = self.trajectories.max(p.trajectory + 1);
-            let row = window
+            // Adjacent-frame links for ptv_is.
+            if let Some((frame, particle)) = self.last.insert(p.trajectory, (p.frame, p.particle)) {
+                if frame + 1 == p.frame {
+                    if let Some(before) = window.iter_mut().find(|h| h.frame as i64 == frame) {
+                        before.next[particle] = p.particle as i64;
+                    }
+                    if let Some(this) = window.iter_mut().find(|h| h.frame as i64 == p.frame) {
+                        this.prev[p.particle] = particle as i64;
+                    }
+                }
+            }
+            let Some(row) = window
                 .iter()
-                .find(|(f, _)| *f as i64 == p.frame)
-                .and_then(|(_, rows)| rows.get(p.particle));
+                .find(|h| h.frame as i64 == p.frame)
+                .and_then(|h| h.rows.get(p.particle))
+            else {
+                return Err(flag(
+                    "--max-gap",
+                    format!(
+                        "internal: frame {}'s particles were let go before trajectory {} was written; please report this",
+                        p.frame, p.trajectory
+                    ),
+                ));
+            };
             let d = &p.derivatives;
             let _ = write!(
                 text,
@@ -353,7 +437,7 @@ impl Rows {
             }
             let s = d.velocity_sigma;
             let _ = write!(text, ",{:?},{:?},{:?}", s.x, s.y, s.z);
-            match row {
+            match Some(row) {
                 Some(row) if cameras > 0 => {
                     let seen = row.targets.iter().flatten().count();
                     let _ = write!(text, ",{seen}");

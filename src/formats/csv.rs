@@ -778,7 +778,8 @@ mod tests {
             rms_px: 0.05,
             targets: vec![Some(7), None, Some(0)],
         };
-        let read = parse_particles(&format_particles(std::slice::from_ref(&particle), 3), "p").unwrap();
+        let read =
+            parse_particles(&format_particles(std::slice::from_ref(&particle), 3), "p").unwrap();
         assert_eq!(
             read,
             vec![ParticleRow {

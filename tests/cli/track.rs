@@ -129,10 +129,37 @@ fn particle_files_become_trajectories() {
             "0..11",
             "--max-velocity",
             "1",
+            "--ptv-is",
+            "res",
         ],
         dir.path(),
     );
     assert!(out.status.success(), "{}", text(&out.stderr));
+    // OpenPTV's linkage files: every particle linked both ways between
+    // adjacent frames, to the row of the same particle (the files' rows
+    // follow each frame's input order, reversed every other frame, so the
+    // same particle is row 199 - i next door), none
+    // before the first frame (-1) or after the last (-2).
+    let linkage = |f: usize| -> Vec<(i64, i64, Point3<f64>)> {
+        let text = std::fs::read_to_string(dir.path().join(format!("res/ptv_is.{f}"))).unwrap();
+        let mut lines = text.lines();
+        assert_eq!(lines.next(), Some("200"));
+        lines
+            .map(|l| {
+                let v: Vec<f64> = l.split_whitespace().map(|x| x.parse().unwrap()).collect();
+                (v[0] as i64, v[1] as i64, Point3::new(v[2], v[3], v[4]))
+            })
+            .collect()
+    };
+    let files: Vec<_> = (0..12).map(linkage).collect();
+    for (f, rows) in files.iter().enumerate() {
+        for (i, &(prev, next, _)) in rows.iter().enumerate() {
+            // The order flips between adjacent frames: row 199 - i there.
+            let same = 199 - i as i64;
+            assert_eq!(prev, if f == 0 { -1 } else { same }, "frame {f} row {i}");
+            assert_eq!(next, if f == 11 { -2 } else { same }, "frame {f} row {i}");
+        }
+    }
     let stderr = text(&out.stderr);
     assert!(stderr.contains("200 trajectories"), "{stderr}");
     // Exact positions with a declared sigma: the errors are the fit's
