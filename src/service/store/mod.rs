@@ -36,12 +36,14 @@
 //! One file per table group, each with its own `impl Store`:
 //! [`calibrations`](self::calibrations), [`sequences`](self::sequences)
 //! (sequences and their frames' inputs and results) and [`jobs`](self::jobs)
-//! (the queue and the jobs' input files); here the pools, the migrations
+//! (the queue and the jobs' input files), [`selfcal`](self::selfcal)
+//! (refined calibrations, reprocessing); here the pools, the migrations
 //! and what they share.
 
 mod calibrations;
 mod ids;
 mod jobs;
+mod selfcal;
 mod sequences;
 
 use std::path::Path;
@@ -66,6 +68,7 @@ pub use self::ids::{CalibrationId, FrameNumber, JobId, SequenceId};
 pub use self::jobs::{
     enqueue, finish, ClaimedJob, JobFile, JobResult, JobRow, JobState, RetryOutcome, MAX_ATTEMPTS,
 };
+pub use self::selfcal::{reprocess_payload, RefinedCalibration, REPROCESS_SEQUENCE};
 pub use self::sequences::{
     FrameCounts, FrameInput, FrameInputKind, NewFrame, SequenceImage, SequenceImageKind,
     SequenceImagesError, SequenceRow,
@@ -147,6 +150,11 @@ const MIGRATIONS: &[(i64, &str, &str)] = &[
         4,
         "sequence_images",
         include_str!("../../../migrations/0004_sequence_images.sql"),
+    ),
+    (
+        5,
+        "self_calibration",
+        include_str!("../../../migrations/0005_self_calibration.sql"),
     ),
 ];
 
