@@ -604,4 +604,51 @@ mod tests {
         );
         store.close().await;
     }
+
+    /// Migration 5 names the calibration that made each stored particle
+    /// set: before it, the sequence's one calibration did.
+    #[tokio::test]
+    async fn particles_stored_before_migration_5_name_their_sequences_calibration() {
+        let dir = tempfile::tempdir().unwrap();
+        database_of_version_2(dir.path()).await;
+        let pool = SqlitePoolOptions::new()
+            .max_connections(1)
+            .connect_with(SqliteConnectOptions::new().filename(dir.path().join("ptv.sqlite")))
+            .await
+            .unwrap();
+        Migrator::new(Migrations(&MIGRATIONS[..4]))
+            .await
+            .unwrap()
+            .run(&pool)
+            .await
+            .unwrap();
+        sqlx::raw_sql(
+            "INSERT INTO sequences (id, calibration_id, name, parameters, keep_images)
+                 VALUES (2, 2, '', '{}', 1);
+             INSERT INTO jobs (id, kind, payload, state) VALUES (6, 'process_frame', '{}', 'succeeded');
+             INSERT INTO frames (sequence_id, frame, job_id, input) VALUES (2, 0, 6, 'targets');
+             INSERT INTO particles (sequence_id, frame, count, data) VALUES
+                 (1, 0, 0, x''), (2, 0, 0, x'');",
+        )
+        .execute(&pool)
+        .await
+        .unwrap();
+        pool.close().await;
+        let store = Store::open(dir.path(), 1).await.unwrap();
+        let made_by = |sequence| {
+            let store = store.clone();
+            async move {
+                store
+                    .frame_particles(SequenceId(sequence), FrameNumber(0))
+                    .await
+                    .unwrap()
+                    .map(|(_, _, calibration)| calibration)
+            }
+        };
+        assert_eq!(made_by(1).await, Some(CalibrationId(1)));
+        assert_eq!(made_by(2).await, Some(CalibrationId(2)));
+        let origin = store.calibration(CalibrationId(2)).await.unwrap().unwrap();
+        assert_eq!(origin.origin, None);
+        store.close().await;
+    }
 }
