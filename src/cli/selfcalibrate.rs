@@ -1,20 +1,29 @@
 //! `ptv selfcalibrate`: a calibration refined from the particles of many
 //! frames ([`crate::photogrammetry::selfcal`]): the targets of every camera
 //! per frame (one printf-style pattern per camera, CSV or OpenPTV
-//! `_targets`), the refined calibration JSON to `-o`, the report (JSON) to
-//! standard output, a progress bar on standard error when it is a terminal.
+//! `_targets`), or its images (`--images`, detected first as `ptv process`
+//! detects them: `ptv detect`'s flags, `--background`, `--mask`, through
+//! [`FramePipeline::detect_camera`]), the refined calibration JSON to
+//! `-o`, the report (JSON) to standard output, a progress bar on standard
+//! error when it is a terminal.
 
 use std::io::{IsTerminal, Write};
 use std::path::PathBuf;
 
 use clap::Args;
 
+use super::detect::{
+    preprocess_error, read_camera_preprocessing, DetectionFlags, PreprocessingFiles, RawImageFlags,
+};
 use super::{write_stderr_line, write_stdout, CliError};
 use crate::formats;
 use crate::formats::frames::{FramePattern, FrameRange, WithoutNumber};
 use crate::photogrammetry::calibrate::Parameter;
+use crate::photogrammetry::correspond::MatchingParameters;
 use crate::photogrammetry::selfcal::{self, Outcome, SelfCalibrationOptions};
-use crate::photogrammetry::{Cancel, Target};
+use crate::photogrammetry::{
+    Camera, Cancel, FrameDetection, FramePipeline, PipelineError, Splitter, Target,
+};
 
 /// Arguments of `ptv selfcalibrate`.
 #[derive(Debug, Args)]
@@ -25,8 +34,34 @@ pub struct SelfCalibrateArgs {
     /// One camera's target files, with a printf-style frame number
     /// (`cam1.%05d_targets`, `cam1.%d.csv`); once per camera, in camera
     /// order.
-    #[arg(long = "targets", value_name = "PATTERN", required = true)]
+    #[arg(
+        long = "targets",
+        value_name = "PATTERN",
+        required_unless_present = "images",
+        conflicts_with = "images"
+    )]
     pub targets: Vec<String>,
+    /// One camera's images instead of targets, with a printf-style frame
+    /// number (`cam1.%05d.tif`); once per camera, in camera order (once
+    /// with a splitter calibration: the whole sensor). Detected first with
+    /// `ptv detect`'s flags.
+    #[arg(long = "images", value_name = "PATTERN")]
+    pub images: Vec<String>,
+    /// How to find the targets in `--images`.
+    #[command(flatten)]
+    pub detection: DetectionFlags,
+    /// With `--images`: an image of a camera's view without particles,
+    /// subtracted before the high-pass filter; once per camera, in camera
+    /// order, or not at all.
+    #[arg(long = "background", value_name = "FILE", requires = "images")]
+    pub backgrounds: Vec<PathBuf>,
+    /// With `--images`: the pixels of a camera to use (non-zero = use);
+    /// once per camera, in camera order, or not at all.
+    #[arg(long = "mask", value_name = "FILE", requires = "images")]
+    pub masks: Vec<PathBuf>,
+    /// The layout of raw `--images`.
+    #[command(flatten)]
+    pub raw: RawImageFlags,
     /// The frames, FIRST..LAST (inclusive).
     #[arg(long, value_name = "FIRST..LAST", value_parser = FrameRange::parse)]
     pub frames: FrameRange,
@@ -101,23 +136,153 @@ fn read_frames(
     for frame in range.first..=range.last {
         let mut cameras = Vec::with_capacity(patterns.len());
         for pattern in patterns {
-            let path = pattern.path(frame);
-            if !path.is_file() {
-                return Err(flag(
-                    "--targets",
-                    format!(
-                        "no file {} for frame {frame} (pattern `{}`); give --frames within the recorded frames",
-                        path.display(),
-                        pattern.as_str()
-                    ),
-                ));
-            }
+            let path = frame_file(pattern, frame, "--targets")?;
             let text = formats::read_text(&path)?;
             cameras.push(formats::parse_targets(&text, &path.display().to_string())?);
         }
         frames.push(cameras);
     }
     Ok(frames)
+}
+
+/// The patterns of `flag_name`, each matching a file for some frame of
+/// `range`.
+fn parse_patterns(
+    given: &[String],
+    flag_name: &'static str,
+    range: FrameRange,
+) -> Result<Vec<FramePattern>, CliError> {
+    let patterns = given
+        .iter()
+        .map(|t| FramePattern::parse(t, WithoutNumber::Refuse).map_err(|e| flag(flag_name, e)))
+        .collect::<Result<Vec<_>, _>>()?;
+    for pattern in &patterns {
+        if !(range.first..=range.last).any(|f| pattern.path(f).is_file()) {
+            return Err(flag(
+                flag_name,
+                format!(
+                    "the pattern `{}` matches no file for frames {}..{}; check the pattern and --frames",
+                    pattern.as_str(),
+                    range.first,
+                    range.last
+                ),
+            ));
+        }
+    }
+    Ok(patterns)
+}
+
+/// The path of `pattern` for `frame`, which must be a file.
+fn frame_file(
+    pattern: &FramePattern,
+    frame: u64,
+    flag_name: &'static str,
+) -> Result<PathBuf, CliError> {
+    let path = pattern.path(frame);
+    if !path.is_file() {
+        return Err(flag(
+            flag_name,
+            format!(
+                "no file {} for frame {frame} (pattern `{}`); give --frames within the recorded frames",
+                path.display(),
+                pattern.as_str()
+            ),
+        ));
+    }
+    Ok(path)
+}
+
+/// Detects every frame's targets in its images, per frame and camera, as
+/// `ptv process` does (the same [`FramePipeline`], its backgrounds and
+/// masks); warnings for a threshold unsuited to an image's depth go to
+/// `stderr` (for the first frame).
+fn detect_frames(
+    args: &SelfCalibrateArgs,
+    cameras: &[Camera],
+    splitter: Option<Splitter>,
+    options: &SelfCalibrationOptions,
+    stderr: &mut dyn Write,
+) -> Result<Vec<Vec<Vec<Target>>>, CliError> {
+    let layout = args.raw.layout();
+    let preprocessing = read_camera_preprocessing(
+        &args.calibration,
+        cameras.len(),
+        &args.backgrounds,
+        &args.masks,
+        layout.as_ref(),
+    )?;
+    let matching = MatchingParameters {
+        tolerance: options.start_tolerance_px,
+        volume: options.volume,
+        ..MatchingParameters::default()
+    };
+    let detection = FrameDetection::AllCameras(args.detection.parameters());
+    let pipeline = FramePipeline::new(cameras, &detection, &matching)
+        .and_then(|pipeline| pipeline.with_preprocessing(preprocessing))
+        .map_err(|e| pipeline_error(args, e, &args.calibration))?;
+    let patterns = parse_patterns(&args.images, "--images", args.frames)?;
+    let mut frames = Vec::new();
+    for frame in args.frames.first..=args.frames.last {
+        let mut images = Vec::with_capacity(patterns.len());
+        for pattern in &patterns {
+            let path = frame_file(pattern, frame, "--images")?;
+            let image = formats::image::read_image(&path, layout.as_ref())?;
+            if frame == args.frames.first {
+                args.detection
+                    .warn_if_threshold_unsuited(&image, &path, stderr)?;
+            }
+            images.push((path, image));
+        }
+        let views = match splitter {
+            Some(splitter) => {
+                let (path, image) = &images[0];
+                let views = splitter.split(image).map_err(|source| CliError::Splitter {
+                    image: path.clone(),
+                    source,
+                })?;
+                views.into_iter().map(|v| (path.clone(), v)).collect()
+            }
+            None => images,
+        };
+        let targets = views
+            .iter()
+            .enumerate()
+            .map(|(camera, (path, image))| {
+                pipeline
+                    .detect_camera(camera, image)
+                    .map_err(|e| pipeline_error(args, e, path))
+            })
+            .collect::<Result<Vec<_>, _>>()?;
+        frames.push(targets);
+    }
+    Ok(frames)
+}
+
+/// Detection's errors in the command line's terms (as `ptv process`
+/// reports them): `file` is the image, or the calibration while preparing.
+fn pipeline_error(
+    args: &SelfCalibrateArgs,
+    error: PipelineError,
+    file: &std::path::Path,
+) -> CliError {
+    match error {
+        PipelineError::Detection { source, .. } => CliError::Detection(source),
+        PipelineError::Matching(source) => CliError::Matching(source),
+        PipelineError::Sensor { camera, source } => CliError::ImageSize {
+            image: file.to_path_buf(),
+            camera,
+            calibration: args.calibration.clone(),
+            source,
+        },
+        PipelineError::Preprocess { camera, source } => {
+            let files = PreprocessingFiles {
+                background: args.backgrounds.get(camera).map(PathBuf::as_path),
+                mask: args.masks.get(camera).map(PathBuf::as_path),
+            };
+            preprocess_error(source, file, &files)
+        }
+        other => CliError::Pipeline(other),
+    }
 }
 
 /// Self-calibrates, writes the refined calibration JSON to `--output` and
@@ -127,33 +292,37 @@ pub(super) fn run(
     stdout: &mut dyn Write,
     stderr: &mut dyn Write,
 ) -> Result<(), CliError> {
-    let cameras = super::read_calibration(&args.calibration)?;
-    super::check_camera_count(
-        &args.calibration,
-        cameras.len(),
-        args.targets.len(),
-        ("--targets", "target pattern"),
-    )?;
-    let patterns = args
-        .targets
-        .iter()
-        .map(|t| FramePattern::parse(t, WithoutNumber::Refuse).map_err(|e| flag("--targets", e)))
-        .collect::<Result<Vec<_>, _>>()?;
-    for pattern in &patterns {
-        if !(args.frames.first..=args.frames.last).any(|f| pattern.path(f).is_file()) {
+    let (cameras, splitter) = super::read_calibration_with_splitter(&args.calibration)?;
+    let options = options(args)?;
+    let frames = if args.images.is_empty() {
+        super::check_camera_count(
+            &args.calibration,
+            cameras.len(),
+            args.targets.len(),
+            ("--targets", "target pattern"),
+        )?;
+        let patterns = parse_patterns(&args.targets, "--targets", args.frames)?;
+        read_frames(&patterns, args.frames)?
+    } else {
+        let expected = if splitter.is_some() { 1 } else { cameras.len() };
+        if args.images.len() != expected {
             return Err(flag(
-                "--targets",
+                "--images",
                 format!(
-                    "the pattern `{}` matches no file for frames {}..{}; check the pattern and --frames",
-                    pattern.as_str(),
-                    args.frames.first,
-                    args.frames.last
+                    "{} has {} cameras{}: give --images {expected} times, in camera order, not {}",
+                    args.calibration.display(),
+                    cameras.len(),
+                    if splitter.is_some() {
+                        " (views of one sensor: one pattern of the whole sensor's images)"
+                    } else {
+                        ""
+                    },
+                    args.images.len()
                 ),
             ));
         }
-    }
-    let options = options(args)?;
-    let frames = read_frames(&patterns, args.frames)?;
+        detect_frames(args, &cameras, splitter, &options, stderr)?
+    };
     let parameters: Vec<_> = cameras.iter().map(|c| c.parameters().clone()).collect();
     selfcal::check_inputs(&parameters, &frames, &options)?;
     let bar = indicatif::ProgressBar::with_draw_target(
@@ -185,7 +354,10 @@ pub(super) fn run(
         .iter()
         .map(|p| crate::photogrammetry::Camera::new(p.clone()))
         .collect::<Result<Vec<_>, _>>()?;
-    formats::write_text(&args.output, &formats::calibration::to_json(&refined))?;
+    formats::write_text(
+        &args.output,
+        &formats::calibration::to_json_with_splitter(&refined, splitter),
+    )?;
     // The report holds only numbers, strings and enums: serialising it
     // cannot fail; should it, the message says so in the JSON.
     let json = serde_json::to_string_pretty(&result.report)

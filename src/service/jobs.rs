@@ -14,10 +14,13 @@
 //! ([`Store::reap`]) queues them again at the next start, and fails a job
 //! that was claimed [`MAX_ATTEMPTS`] times.
 //!
-//! Kinds today: [`PROCESS_FRAME`] ([`process_frame`]) and
+//! Kinds today: [`PROCESS_FRAME`] ([`process_frame`]),
 //! [`SOLVE_CALIBRATION`] ([`solve_calibration`]: calibration by resection
 //! from the files of a `/calibrations/solve` request, kept in the image
-//! store and listed in `job_files`).
+//! store and listed in `job_files`), and in [`super::selfcal`]
+//! `self_calibrate` (a sequence's calibration refined from its stored
+//! targets) and `reprocess_sequence` (its frames matched again with
+//! another calibration).
 
 use std::collections::HashMap;
 use std::future::Future;
@@ -148,6 +151,14 @@ impl JobKinds {
         let mut kinds = JobKinds::default();
         kinds.register(PROCESS_FRAME, process_frame);
         kinds.register(SOLVE_CALIBRATION, solve_calibration);
+        kinds.register(
+            super::selfcal::SELF_CALIBRATE,
+            super::selfcal::self_calibrate_job,
+        );
+        kinds.register(
+            super::selfcal::REPROCESS_SEQUENCE,
+            super::selfcal::reprocess_sequence,
+        );
         kinds
     }
 
@@ -275,10 +286,11 @@ impl CpuPool {
 /// matcher's refraction tables, far more work than a frame), each with the
 /// number of the sequence's stored backgrounds and masks it was made with:
 /// a sequence's images are only ever added, so a pipeline made with fewer
-/// than there are now is stale, whoever added them and when.
+/// than there are now is stale, whoever added them and when; and with the
+/// calibration it was made with (reprocessing switches a sequence's).
 #[derive(Debug, Default)]
 pub struct PipelineCache {
-    pipelines: Mutex<HashMap<SequenceId, (usize, Prepared)>>,
+    pipelines: Mutex<HashMap<SequenceId, (CalibrationId, usize, Prepared)>>,
 }
 
 /// A sequence's prepared frame pipeline and its calibration's splitter
@@ -289,22 +301,36 @@ pub type Prepared = (Arc<FramePipeline>, Option<Splitter>);
 const CACHED_PIPELINES: usize = 32;
 
 impl PipelineCache {
-    /// The sequence's pipeline, if prepared with `images` stored
-    /// backgrounds and masks.
-    pub fn get(&self, sequence_id: SequenceId, images: usize) -> Option<Prepared> {
+    /// The sequence's pipeline, if prepared with `calibration_id` and
+    /// `images` stored backgrounds and masks.
+    pub fn get(
+        &self,
+        sequence_id: SequenceId,
+        calibration_id: CalibrationId,
+        images: usize,
+    ) -> Option<Prepared> {
         let map = self.pipelines.lock().unwrap_or_else(|e| e.into_inner());
         map.get(&sequence_id)
-            .filter(|(made_with, _)| *made_with == images)
-            .map(|(_, prepared)| prepared.clone())
+            .filter(|(calibration, made_with, _)| {
+                *calibration == calibration_id && *made_with == images
+            })
+            .map(|(_, _, prepared)| prepared.clone())
     }
 
-    /// Keeps a pipeline prepared with `images` stored backgrounds and masks.
-    pub fn insert(&self, sequence_id: SequenceId, images: usize, prepared: Prepared) {
+    /// Keeps a pipeline prepared with `calibration_id` and `images` stored
+    /// backgrounds and masks.
+    pub fn insert(
+        &self,
+        sequence_id: SequenceId,
+        calibration_id: CalibrationId,
+        images: usize,
+        prepared: Prepared,
+    ) {
         let mut map = self.pipelines.lock().unwrap_or_else(|e| e.into_inner());
         if map.len() >= CACHED_PIPELINES {
             map.clear();
         }
-        map.insert(sequence_id, (images, prepared));
+        map.insert(sequence_id, (calibration_id, images, prepared));
     }
 }
 
@@ -507,7 +533,7 @@ impl StoredRawLayout {
 }
 
 /// A sequence's stored parameters.
-async fn sequence_parameters(
+pub(super) async fn sequence_parameters(
     state: &AppState,
     sequence_id: SequenceId,
 ) -> Result<SequenceParameters, JobError> {
@@ -522,13 +548,16 @@ async fn sequence_parameters(
 
 /// The sequence's pipeline, from the cache or prepared now, with its
 /// backgrounds and masks.
-async fn pipeline_of(
+pub(super) async fn pipeline_of(
     state: &AppState,
     sequence_id: SequenceId,
     calibration_id: CalibrationId,
 ) -> Result<Prepared, JobError> {
     let images = state.store.sequence_images(sequence_id).await?;
-    if let Some(prepared) = state.pipelines.get(sequence_id, images.len()) {
+    if let Some(prepared) = state
+        .pipelines
+        .get(sequence_id, calibration_id, images.len())
+    {
         return Ok(prepared);
     }
     let count = images.len();
@@ -545,7 +574,9 @@ async fn pipeline_of(
     let pipeline =
         Arc::new(super::preprocessing::with_stored_images(state, images, pipeline).await?);
     let prepared = (pipeline, splitter);
-    state.pipelines.insert(sequence_id, count, prepared.clone());
+    state
+        .pipelines
+        .insert(sequence_id, calibration_id, count, prepared.clone());
     Ok(prepared)
 }
 
@@ -581,6 +612,12 @@ impl TimeLimit {
     pub fn for_work(&self, pixels: u64, targets: u64) -> Duration {
         let expected = (pixels as f64 * NS_PER_PIXEL + targets as f64 * NS_PER_TARGET) * 1e-9;
         Duration::try_from_secs_f64(self.floor_secs + self.factor * expected)
+            .unwrap_or(Duration::MAX)
+    }
+
+    /// The limit for work expected to take `seconds` on one core.
+    pub fn for_expected(&self, seconds: f64) -> Duration {
+        Duration::try_from_secs_f64(self.floor_secs + self.factor * seconds.max(0.0))
             .unwrap_or(Duration::MAX)
     }
 
@@ -971,7 +1008,7 @@ pub async fn solve_calibration(state: Arc<AppState>, run: JobRun) -> Result<(), 
 }
 
 /// Deletes the files of images no frame refers to any more.
-async fn remove_unused_images(
+pub(super) async fn remove_unused_images(
     store: &Store,
     images: &super::images::ImageStore,
     hashes: &[String],

@@ -16,6 +16,8 @@
 //! - [`codec`]: the compact blobs in which targets and particles are stored.
 //! - [`parameters`]: a sequence's detection and matching parameters.
 //! - [`metrics`]: the counters behind `/metrics`.
+//! - [`selfcal`]: a sequence's calibration refined from its stored targets
+//!   (self-calibration), and its frames reprocessed with another one.
 //!
 //! The core ([`crate::photogrammetry`]) knows nothing of this module.
 
@@ -29,6 +31,7 @@ pub mod jobs;
 pub mod metrics;
 pub mod parameters;
 pub mod preprocessing;
+pub mod selfcal;
 pub mod store;
 
 use std::io::Write;

@@ -220,7 +220,7 @@ async fn synthetic_experiment_gives_the_true_particles() {
     let all = app
         .get_text(app.api(&format!("/sequences/{sequence}/particles?format=csv")))
         .await;
-    assert!(all.starts_with("frame,x,y,z,sx,sy,sz,rms_px,cameras,t0,t1,t2,t3\n"));
+    assert!(all.starts_with("frame,calibration_id,x,y,z,sx,sy,sz,rms_px,cameras,t0,t1,t2,t3\n"));
     assert_eq!(all.lines().count(), found + 1);
 
     // The sequence keeps no images: their files are gone once processed.

@@ -26,6 +26,10 @@
 //! - `recovery`: a full disk (SQLite's page limit as fault injection) is a
 //!   507 and the service recovers without a restart; a failed frame is
 //!   processed after `POST /jobs/{id}/retry`.
+//! - `selfcal`: a simulated sequence with a disturbed calibration
+//!   self-calibrated from its stored targets (the new calibration linked
+//!   to its origin and closer to the truth), its frames reprocessed and
+//!   their particles naming the calibration; bad requests' 4xx.
 //! - `upload`: `ptv upload` against the service and a flaky stand-in:
 //!   concurrent, resumable, retried uploads and their summary.
 
@@ -40,4 +44,5 @@ mod layers;
 mod preprocessing;
 mod recovery;
 mod reliability;
+mod selfcal;
 mod upload;

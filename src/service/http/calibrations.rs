@@ -91,9 +91,14 @@ pub struct CalibrationView {
     /// The calibration JSON (see `src/formats/calibration.rs`).
     #[schema(value_type = Object)]
     pub model: serde_json::Value,
-    /// The resection report, if the calibration was solved.
+    /// The report: the resection's if the calibration was solved, the
+    /// self-calibration's if it was refined from a sequence's particles.
     #[schema(value_type = Option<Object>)]
     pub report: Option<serde_json::Value>,
+    /// The calibration this one was refined from by self-calibration
+    /// (`POST /sequences/{id}/self-calibration`), if any.
+    #[schema(value_type = Option<i64>)]
+    pub origin_calibration: Option<CalibrationId>,
     /// When it was stored (UTC).
     pub created_at: String,
 }
@@ -109,6 +114,7 @@ impl CalibrationView {
                 .as_deref()
                 .map(serde_json::from_str)
                 .transpose()?,
+            origin_calibration: row.origin,
             created_at: row.created_at,
         })
     }

@@ -9,7 +9,7 @@ use utoipa::openapi::security::{HttpAuthScheme, HttpBuilder, SecurityScheme};
 use utoipa::{Modify, OpenApi};
 use utoipa_swagger_ui::SwaggerUi;
 
-use super::{calibrations, experiments, jobs, problem, sequence_images, sequences};
+use super::{calibrations, experiments, jobs, problem, selfcal, sequence_images, sequences};
 use crate::service::app::AppState;
 use crate::service::parameters;
 
@@ -38,6 +38,9 @@ use crate::service::parameters;
         sequences::frame_particles,
         sequences::frame_targets,
         sequences::all_particles,
+        selfcal::self_calibrate,
+        selfcal::reprocess,
+        selfcal::report,
         jobs::read,
         jobs::retry,
         super::healthz,
@@ -51,6 +54,8 @@ use crate::service::parameters;
         parameters::SequenceParameters,
         parameters::ComputedBackground,
         parameters::SolveOptions,
+        crate::service::selfcal::SelfCalibrationRequest,
+        crate::service::selfcal::FrameSpan,
     )),
     modifiers(&BearerToken),
     security(("bearer" = [])),

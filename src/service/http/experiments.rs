@@ -131,9 +131,12 @@ pub async fn import(
             .insert_experiment(&model, cameras, &name, &sequence_json, keep_images, &rows)
     })
     .await?;
-    state
-        .pipelines
-        .insert(sequence.id, rows.len(), (Arc::new(pipeline), splitter));
+    state.pipelines.insert(
+        sequence.id,
+        calibration.id,
+        rows.len(),
+        (Arc::new(pipeline), splitter),
+    );
     drop(scratch);
     let body = ImportedExperiment {
         calibration_id: calibration.id,

@@ -5,6 +5,9 @@
 //!   OpenPTV files, project and intersect.
 //! - [`sequences`]: create, read, upload frames, fetch particles and
 //!   targets.
+//! - [`selfcal`]: a sequence's calibration self-calibrated from its
+//!   targets, its frames reprocessed with another calibration, a
+//!   calibration's report.
 //! - [`jobs`]: a job's state.
 //! - [`problem`]: the one error type, its statuses by the errors' types,
 //!   and the extractors that use it.
@@ -23,6 +26,7 @@ pub mod jobs;
 pub mod layers;
 pub mod links;
 pub mod problem;
+pub mod selfcal;
 pub mod sequence_images;
 pub mod sequences;
 pub mod upload;
@@ -49,6 +53,7 @@ pub fn router(state: Arc<AppState>) -> Router {
         .merge(calibrations::router())
         .merge(sequences::router())
         .merge(sequence_images::router())
+        .merge(selfcal::router())
         .merge(experiments::router())
         .merge(jobs::router());
     let routes = Router::new()

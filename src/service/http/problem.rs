@@ -157,6 +157,14 @@ status_of!(|error| ApiError::unprocessable(error_chain(&error)) =>
     SensorMismatch,
 );
 
+impl From<crate::service::selfcal::SelfCalibrationRequestError> for ApiError {
+    /// Options, frames or a calibration that do not work for a
+    /// self-calibration or reprocessing: a 422 with the reason.
+    fn from(error: crate::service::selfcal::SelfCalibrationRequestError) -> Self {
+        ApiError::unprocessable(error_chain(&error))
+    }
+}
+
 impl From<sqlx::Error> for ApiError {
     /// A full disk is a 507; any other database error a 500.
     fn from(error: sqlx::Error) -> Self {

@@ -37,6 +37,10 @@ use crate::service::store::{
     SequenceImageKind, SequenceRow,
 };
 
+/// The response header that names the calibration that made a frame's
+/// particles (CSV and rt_is; JSON has `calibration_id`).
+pub const CALIBRATION_HEADER: &str = "ptv-calibration-id";
+
 /// Longest sequence name.
 const MAX_NAME: usize = 200;
 /// Largest targets part (bytes).
@@ -241,7 +245,7 @@ pub async fn create(
         .ok_or_else(|| ApiError::unprocessable("calibration_id: the calibration does not exist"))?;
     state
         .pipelines
-        .insert(row.id, 0, (Arc::new(pipeline), splitter));
+        .insert(row.id, calibration.id, 0, (Arc::new(pipeline), splitter));
     let location = links::sequence(row.id);
     Ok((
         StatusCode::CREATED,
@@ -676,16 +680,21 @@ pub struct FrameParticles {
     /// The frame.
     #[schema(value_type = i64)]
     pub frame: FrameNumber,
+    /// The calibration that made these particles (the sequence's, or the
+    /// one it had when the frame was processed, until reprocessed).
+    #[schema(value_type = i64)]
+    pub calibration_id: CalibrationId,
     /// The particles.
     pub particles: Vec<ParticleView>,
 }
 
-/// The frame's stored particles, or why there are none.
+/// The frame's stored particles and the calibration that made them, or
+/// why there are none.
 async fn load_particles(
     state: &AppState,
     id: SequenceId,
     frame: FrameNumber,
-) -> Result<(usize, Vec<Particle>), ApiError> {
+) -> Result<(usize, Vec<Particle>, CalibrationId), ApiError> {
     let row = sequence(state, id).await?;
     let cameras = state
         .store
@@ -693,7 +702,9 @@ async fn load_particles(
         .await?
         .map_or(0, |c| c.cameras as usize);
     match state.store.frame_particles(id, frame).await? {
-        Some((_, blob)) => Ok((cameras, codec::decode_particles(&blob, cameras)?)),
+        Some((_, blob, made_by)) => {
+            Ok((cameras, codec::decode_particles(&blob, cameras)?, made_by))
+        }
         None => Err(no_results(state, id, frame).await),
     }
 }
@@ -719,7 +730,8 @@ async fn no_results(state: &AppState, id: SequenceId, frame: FrameNumber) -> Api
         ParticleQuery,
     ),
     responses(
-        (status = 200, body = FrameParticles, description = "JSON; text/csv or text/plain (rt_is) by `format`"),
+        (status = 200, body = FrameParticles, description = "JSON; text/csv or text/plain (rt_is) by `format`, the calibration that made them in the `Ptv-Calibration-Id` header",
+            headers(("Ptv-Calibration-Id" = i64, description = "The calibration that made the particles"))),
         (status = 404, body = super::problem::Problem, content_type = "application/problem+json"),
         (status = 409, description = "Not processed yet", body = super::problem::Problem, content_type = "application/problem+json"),
     )
@@ -729,11 +741,13 @@ pub async fn frame_particles(
     ApiPath((id, frame)): ApiPath<(SequenceId, FrameNumber)>,
     ApiQuery(query): ApiQuery<ParticleQuery>,
 ) -> Result<Response, ApiError> {
-    let (cameras, particles) = load_particles(&state, id, frame).await?;
+    let (cameras, particles, made_by) = load_particles(&state, id, frame).await?;
+    let provenance = [(CALIBRATION_HEADER, made_by.to_string())];
     Ok(match query.format {
         ParticleFormat::Json => Json(FrameParticles {
             sequence_id: id,
             frame,
+            calibration_id: made_by,
             particles: particles
                 .iter()
                 .map(|p| ParticleView {
@@ -749,11 +763,13 @@ pub async fn frame_particles(
         .into_response(),
         ParticleFormat::Csv => (
             [(header::CONTENT_TYPE, "text/csv")],
+            provenance,
             formats::csv::format_particles(&particles, cameras),
         )
             .into_response(),
         ParticleFormat::RtIs => (
             [(header::CONTENT_TYPE, "text/plain; charset=utf-8")],
+            provenance,
             formats::openptv::format_rt_is(&particles, cameras),
         )
             .into_response(),
@@ -888,13 +904,14 @@ pub struct AllParticlesQuery {
     pub format: Option<String>,
 }
 
-/// All processed frames' particles as one CSV with a `frame` column,
-/// streamed frame by frame.
+/// All processed frames' particles as one CSV with a `frame` column and
+/// the calibration that made each frame's particles, streamed frame by
+/// frame.
 #[utoipa::path(
     get, path = "/api/v1/sequences/{id}/particles", tag = "sequences",
     params(("id" = i64, Path, description = "Sequence id"), AllParticlesQuery),
     responses(
-        (status = 200, content_type = "text/csv", body = String, description = "frame,x,y,z,sx,sy,sz,rms_px,cameras,t0,..."),
+        (status = 200, content_type = "text/csv", body = String, description = "frame,calibration_id,x,y,z,sx,sy,sz,rms_px,cameras,t0,...: calibration_id is the calibration that made the frame's particles"),
         (status = 400, body = super::problem::Problem, content_type = "application/problem+json"),
         (status = 404, body = super::problem::Problem, content_type = "application/problem+json"),
     )
@@ -917,7 +934,7 @@ pub async fn all_particles(
         .map_or(0, |c| c.cameras as usize);
     let frames = state.store.processed_frames(id).await?;
     let header_line = {
-        let mut line = String::from("frame,");
+        let mut line = String::from("frame,calibration_id,");
         line.push_str(formats::csv::format_particles(&[], cameras).trim_end());
         line.push('\n');
         line
@@ -928,8 +945,8 @@ pub async fn all_particles(
         move |(state, mut frames)| async move {
             let frame = frames.next()?;
             let chunk = match state.store.frame_particles(id, frame).await {
-                Ok(Some((_, blob))) => match codec::decode_particles(&blob, cameras) {
-                    Ok(particles) => Ok(frame_rows(frame, &particles, cameras)),
+                Ok(Some((_, blob, made_by))) => match codec::decode_particles(&blob, cameras) {
+                    Ok(particles) => Ok(frame_rows(frame, made_by, &particles, cameras)),
                     Err(e) => Err(std::io::Error::other(e)),
                 },
                 Ok(None) => Ok(String::new()),
@@ -946,12 +963,20 @@ pub async fn all_particles(
         .into_response())
 }
 
-/// A frame's particle rows with the frame number in front.
-fn frame_rows(frame: FrameNumber, particles: &[Particle], cameras: usize) -> String {
+/// A frame's particle rows with the frame number and the calibration that
+/// made them in front.
+fn frame_rows(
+    frame: FrameNumber,
+    made_by: CalibrationId,
+    particles: &[Particle],
+    cameras: usize,
+) -> String {
     let table = formats::csv::format_particles(particles, cameras);
-    let mut out = String::with_capacity(table.len() + particles.len() * 8);
+    let mut out = String::with_capacity(table.len() + particles.len() * 12);
     for line in table.lines().skip(1) {
         out.push_str(&frame.to_string());
+        out.push(',');
+        out.push_str(&made_by.to_string());
         out.push(',');
         out.push_str(line);
         out.push('\n');

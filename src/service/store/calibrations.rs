@@ -16,8 +16,11 @@ pub struct CalibrationRow {
     pub model: String,
     /// How many cameras.
     pub cameras: i64,
-    /// The resection report (JSON), if solved.
+    /// The report (JSON): the resection's if solved, the
+    /// self-calibration's if refined from particles.
     pub report: Option<String>,
+    /// The calibration it was refined from by self-calibration, if any.
+    pub origin: Option<CalibrationId>,
     /// When it was stored.
     pub created_at: String,
 }
@@ -29,6 +32,7 @@ impl FromRow<'_, SqliteRow> for CalibrationRow {
             model: row.try_get("model")?,
             cameras: row.try_get("cameras")?,
             report: row.try_get("report")?,
+            origin: row.try_get("origin_calibration")?,
             created_at: row.try_get("created_at")?,
         })
     }
@@ -54,7 +58,8 @@ impl Store {
         id: CalibrationId,
     ) -> Result<Option<CalibrationRow>, sqlx::Error> {
         sqlx::query_as(
-            "SELECT id, model, cameras, report, created_at FROM calibrations WHERE id = ?",
+            "SELECT id, model, cameras, report, origin_calibration, created_at FROM calibrations \
+             WHERE id = ?",
         )
         .bind(id)
         .fetch_optional(&self.reader)
@@ -108,7 +113,7 @@ pub async fn insert_calibration(
 ) -> Result<CalibrationRow, sqlx::Error> {
     sqlx::query_as(
         "INSERT INTO calibrations (model, cameras, report, job_id) VALUES (?, ?, ?, ?) \
-         RETURNING id, model, cameras, report, created_at",
+         RETURNING id, model, cameras, report, origin_calibration, created_at",
     )
     .bind(model)
     .bind(cameras)

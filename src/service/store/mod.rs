@@ -36,12 +36,14 @@
 //! One file per table group, each with its own `impl Store`:
 //! [`calibrations`](self::calibrations), [`sequences`](self::sequences)
 //! (sequences and their frames' inputs and results) and [`jobs`](self::jobs)
-//! (the queue and the jobs' input files); here the pools, the migrations
+//! (the queue and the jobs' input files), [`selfcal`](self::selfcal)
+//! (refined calibrations, reprocessing); here the pools, the migrations
 //! and what they share.
 
 mod calibrations;
 mod ids;
 mod jobs;
+mod selfcal;
 mod sequences;
 
 use std::path::Path;
@@ -66,6 +68,7 @@ pub use self::ids::{CalibrationId, FrameNumber, JobId, SequenceId};
 pub use self::jobs::{
     enqueue, finish, ClaimedJob, JobFile, JobResult, JobRow, JobState, RetryOutcome, MAX_ATTEMPTS,
 };
+pub use self::selfcal::{reprocess_payload, RefinedCalibration, REPROCESS_SEQUENCE};
 pub use self::sequences::{
     FrameCounts, FrameInput, FrameInputKind, NewFrame, SequenceImage, SequenceImageKind,
     SequenceImagesError, SequenceRow,
@@ -147,6 +150,11 @@ const MIGRATIONS: &[(i64, &str, &str)] = &[
         4,
         "sequence_images",
         include_str!("../../../migrations/0004_sequence_images.sql"),
+    ),
+    (
+        5,
+        "self_calibration",
+        include_str!("../../../migrations/0005_self_calibration.sql"),
     ),
 ];
 
@@ -594,6 +602,53 @@ mod tests {
                 (5, None)
             ]
         );
+        store.close().await;
+    }
+
+    /// Migration 5 names the calibration that made each stored particle
+    /// set: before it, the sequence's one calibration did.
+    #[tokio::test]
+    async fn particles_stored_before_migration_5_name_their_sequences_calibration() {
+        let dir = tempfile::tempdir().unwrap();
+        database_of_version_2(dir.path()).await;
+        let pool = SqlitePoolOptions::new()
+            .max_connections(1)
+            .connect_with(SqliteConnectOptions::new().filename(dir.path().join("ptv.sqlite")))
+            .await
+            .unwrap();
+        Migrator::new(Migrations(&MIGRATIONS[..4]))
+            .await
+            .unwrap()
+            .run(&pool)
+            .await
+            .unwrap();
+        sqlx::raw_sql(
+            "INSERT INTO sequences (id, calibration_id, name, parameters, keep_images)
+                 VALUES (2, 2, '', '{}', 1);
+             INSERT INTO jobs (id, kind, payload, state) VALUES (6, 'process_frame', '{}', 'succeeded');
+             INSERT INTO frames (sequence_id, frame, job_id, input) VALUES (2, 0, 6, 'targets');
+             INSERT INTO particles (sequence_id, frame, count, data) VALUES
+                 (1, 0, 0, x''), (2, 0, 0, x'');",
+        )
+        .execute(&pool)
+        .await
+        .unwrap();
+        pool.close().await;
+        let store = Store::open(dir.path(), 1).await.unwrap();
+        let made_by = |sequence| {
+            let store = store.clone();
+            async move {
+                store
+                    .frame_particles(SequenceId(sequence), FrameNumber(0))
+                    .await
+                    .unwrap()
+                    .map(|(_, _, calibration)| calibration)
+            }
+        };
+        assert_eq!(made_by(1).await, Some(CalibrationId(1)));
+        assert_eq!(made_by(2).await, Some(CalibrationId(2)));
+        let origin = store.calibration(CalibrationId(2)).await.unwrap().unwrap();
+        assert_eq!(origin.origin, None);
         store.close().await;
     }
 }

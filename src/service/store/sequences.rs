@@ -386,17 +386,20 @@ impl Store {
         Ok(row.is_some())
     }
 
-    /// A frame's particles (count and blob), if processed.
+    /// A frame's particles (count, blob and the calibration that made
+    /// them), if processed.
     pub async fn frame_particles(
         &self,
         sequence_id: SequenceId,
         frame: FrameNumber,
-    ) -> Result<Option<(i64, Vec<u8>)>, sqlx::Error> {
-        sqlx::query_as("SELECT count, data FROM particles WHERE sequence_id = ? AND frame = ?")
-            .bind(sequence_id)
-            .bind(frame)
-            .fetch_optional(&self.reader)
-            .await
+    ) -> Result<Option<(i64, Vec<u8>, CalibrationId)>, sqlx::Error> {
+        sqlx::query_as(
+            "SELECT count, data, calibration_id FROM particles WHERE sequence_id = ? AND frame = ?",
+        )
+        .bind(sequence_id)
+        .bind(frame)
+        .fetch_optional(&self.reader)
+        .await
     }
 
     /// The processed frames of a sequence, in order.
@@ -414,7 +417,7 @@ impl Store {
 
     /// Stores a processed frame's results and completes its job, in one
     /// transaction: `targets` (detected; empty when they were uploaded),
-    /// the particles, and, when the sequence does not keep images, the
+    /// the particles (naming `input.calibration_id`, which made them), and, when the sequence does not keep images, the
     /// removal of the frame's image rows. Returns the hashes of the images
     /// no frame refers to any more, whose files may go.
     pub async fn complete_frame(
@@ -432,13 +435,17 @@ impl Store {
         for (camera, count, data) in targets {
             insert_targets(&mut tx, sequence_id, frame, *camera, *count, data).await?;
         }
-        sqlx::query("INSERT INTO particles (sequence_id, frame, count, data) VALUES (?, ?, ?, ?)")
-            .bind(sequence_id)
-            .bind(frame)
-            .bind(particles.0)
-            .bind(particles.1)
-            .execute(&mut *tx)
-            .await?;
+        sqlx::query(
+            "INSERT INTO particles (sequence_id, frame, count, data, calibration_id) \
+             VALUES (?, ?, ?, ?, ?)",
+        )
+        .bind(sequence_id)
+        .bind(frame)
+        .bind(particles.0)
+        .bind(particles.1)
+        .bind(input.calibration_id)
+        .execute(&mut *tx)
+        .await?;
         let mut orphans = Vec::new();
         if drop_images {
             let hashes: Vec<(String,)> = sqlx::query_as(

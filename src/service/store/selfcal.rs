@@ -1,0 +1,163 @@
+//! Self-calibration from a sequence's particles and reprocessing
+//! (issue 14): a refined calibration stored with its origin and report,
+//! the sequence switched to a calibration with its reprocess job, and a
+//! frame's particles replaced by ones another calibration made.
+
+use super::calibrations::insert_calibration;
+use super::jobs::{enqueue, finish, ClaimedJob};
+use super::{CalibrationId, CompleteError, FrameNumber, JobId, SequenceId, Store};
+
+/// The kind of the job that re-matches a sequence's frames with a
+/// calibration (the name is the service's; the store only enqueues it).
+pub const REPROCESS_SEQUENCE: &str = "reprocess_sequence";
+
+/// A refined calibration to store when its self-calibration job completes.
+#[derive(Clone, Copy, Debug)]
+pub struct RefinedCalibration<'a> {
+    /// The calibration JSON.
+    pub model: &'a str,
+    /// Its cameras.
+    pub cameras: i64,
+    /// The self-calibration report (JSON).
+    pub report: &'a str,
+    /// The calibration it was refined from.
+    pub origin: CalibrationId,
+}
+
+/// The payload of a reprocess job.
+pub fn reprocess_payload(sequence_id: SequenceId, calibration_id: CalibrationId) -> String {
+    serde_json::json!({"sequence_id": sequence_id, "calibration_id": calibration_id}).to_string()
+}
+
+impl Store {
+    /// Stores a refined calibration naming its origin and its job, and
+    /// completes the job, in one transaction. With `reprocess`, the
+    /// sequence is switched to the new calibration and its reprocess job
+    /// enqueued in the same transaction. Returns the calibration's id and
+    /// the reprocess job's.
+    pub async fn complete_self_calibration(
+        &self,
+        job: &ClaimedJob,
+        refined: RefinedCalibration<'_>,
+        reprocess: Option<SequenceId>,
+        duration_s: f64,
+    ) -> Result<(CalibrationId, Option<JobId>), CompleteError> {
+        let mut tx = self.write_transaction().await?;
+        finish(&mut tx, job, None, duration_s).await?;
+        let row = insert_calibration(
+            &mut tx,
+            refined.model,
+            refined.cameras,
+            Some(refined.report),
+            Some(job.id),
+        )
+        .await?;
+        sqlx::query("UPDATE calibrations SET origin_calibration = ? WHERE id = ?")
+            .bind(refined.origin)
+            .bind(row.id)
+            .execute(&mut *tx)
+            .await?;
+        let mut reprocess_job = None;
+        if let Some(sequence_id) = reprocess {
+            sqlx::query("UPDATE sequences SET calibration_id = ? WHERE id = ?")
+                .bind(row.id)
+                .bind(sequence_id)
+                .execute(&mut *tx)
+                .await?;
+            let payload = reprocess_payload(sequence_id, row.id);
+            reprocess_job = Some(enqueue(&mut tx, REPROCESS_SEQUENCE, &payload).await?);
+        }
+        tx.commit().await?;
+        Ok((row.id, reprocess_job))
+    }
+
+    /// Switches the sequence to `calibration_id` (frames processed from now
+    /// on use it) and enqueues the job that re-matches its processed
+    /// frames, in one transaction; `None` if the sequence does not exist.
+    pub async fn start_reprocess(
+        &self,
+        sequence_id: SequenceId,
+        calibration_id: CalibrationId,
+    ) -> Result<Option<JobId>, sqlx::Error> {
+        let mut tx = self.write_transaction().await?;
+        let changed = sqlx::query("UPDATE sequences SET calibration_id = ? WHERE id = ?")
+            .bind(calibration_id)
+            .bind(sequence_id)
+            .execute(&mut *tx)
+            .await?
+            .rows_affected();
+        if changed == 0 {
+            return Ok(None);
+        }
+        let payload = reprocess_payload(sequence_id, calibration_id);
+        let job = enqueue(&mut tx, REPROCESS_SEQUENCE, &payload).await?;
+        tx.commit().await?;
+        Ok(Some(job))
+    }
+
+    /// The sequence's frames within `first..=last` that have targets for
+    /// `cameras` cameras, in order.
+    pub async fn frames_with_targets(
+        &self,
+        sequence_id: SequenceId,
+        (first, last): (FrameNumber, FrameNumber),
+        cameras: i64,
+    ) -> Result<Vec<FrameNumber>, sqlx::Error> {
+        let rows: Vec<(FrameNumber,)> = sqlx::query_as(
+            "SELECT frame FROM targets WHERE sequence_id = ? AND frame BETWEEN ? AND ? \
+             GROUP BY frame HAVING count(*) = ? ORDER BY frame",
+        )
+        .bind(sequence_id)
+        .bind(first)
+        .bind(last)
+        .bind(cameras)
+        .fetch_all(&self.reader)
+        .await?;
+        Ok(rows.into_iter().map(|(f,)| f).collect())
+    }
+
+    /// The sequence's processed frames whose particles another calibration
+    /// than `calibration_id` made, in order.
+    pub async fn frames_made_by_others(
+        &self,
+        sequence_id: SequenceId,
+        calibration_id: CalibrationId,
+    ) -> Result<Vec<FrameNumber>, sqlx::Error> {
+        let rows: Vec<(FrameNumber,)> = sqlx::query_as(
+            "SELECT frame FROM particles WHERE sequence_id = ? \
+             AND (calibration_id IS NULL OR calibration_id != ?) ORDER BY frame",
+        )
+        .bind(sequence_id)
+        .bind(calibration_id)
+        .fetch_all(&self.reader)
+        .await?;
+        Ok(rows.into_iter().map(|(f,)| f).collect())
+    }
+
+    /// Replaces a processed frame's particles with those `calibration_id`
+    /// made, in one statement (one transaction): the old ones stay until
+    /// the new ones are written. False if the frame has no particles.
+    pub async fn replace_particles(
+        &self,
+        sequence_id: SequenceId,
+        frame: FrameNumber,
+        calibration_id: CalibrationId,
+        particles: (i64, &[u8]),
+    ) -> Result<bool, sqlx::Error> {
+        let mut tx = self.write_transaction().await?;
+        let changed = sqlx::query(
+            "UPDATE particles SET count = ?, data = ?, calibration_id = ? \
+             WHERE sequence_id = ? AND frame = ?",
+        )
+        .bind(particles.0)
+        .bind(particles.1)
+        .bind(calibration_id)
+        .bind(sequence_id)
+        .bind(frame)
+        .execute(&mut *tx)
+        .await?
+        .rows_affected();
+        tx.commit().await?;
+        Ok(changed == 1)
+    }
+}
