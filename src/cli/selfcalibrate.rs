@@ -47,7 +47,8 @@ pub struct SelfCalibrateArgs {
     pub volume: Option<String>,
     /// Parameters to adjust besides the exterior orientation (interior and
     /// distortion are fixed by default), comma separated, OpenPTV's names:
-    /// xh,yh,c,k1,k2,k3,p1,p2,scx,she.
+    /// xh,yh,c,k1,k2,k3,p1,p2,scx,she; and the media: glass (each wall's
+    /// glass vector), n_wall, n_object, thickness.
     #[arg(long, value_name = "LIST", value_delimiter = ',')]
     pub free: Vec<String>,
     /// The fewest cameras a confident particle must be seen by.
@@ -67,12 +68,20 @@ fn flag(flag: &'static str, reason: impl Into<String>) -> CliError {
 
 fn options(args: &SelfCalibrateArgs) -> Result<SelfCalibrationOptions, CliError> {
     let mut fixed = selfcal::default_fixed();
+    let mut free_media = Vec::new();
     for name in &args.free {
+        if let Some(t) = selfcal::MediaTerm::from_name(name) {
+            if !free_media.contains(&t) {
+                free_media.push(t);
+            }
+            continue;
+        }
         let p = Parameter::from_name(name).ok_or_else(|| {
             flag(
                 "--free",
                 format!(
-                    "`{name}` is not a parameter; give names among xh,yh,c,k1,k2,k3,p1,p2,scx,she"
+                    "`{name}` is not a parameter; give names among xh,yh,c,k1,k2,k3,p1,p2,scx,she \
+                     or glass,n_wall,n_object,thickness"
                 ),
             )
         })?;
@@ -88,6 +97,7 @@ fn options(args: &SelfCalibrateArgs) -> Result<SelfCalibrationOptions, CliError>
             .transpose()?,
         min_cameras: args.min_cameras,
         fixed,
+        free_media,
         ..SelfCalibrationOptions::default()
     })
 }

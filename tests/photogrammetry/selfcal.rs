@@ -217,6 +217,93 @@ fn simulated_rig_moved_by_2_mm_and_3_mrad() {
     check("2 mm, 3 mrad", 2.0, 3e-3, 20.0, 0.5);
 }
 
+/// The glass vector as an unknown: the true rig's wall (one, shared by the
+/// 4 cameras, 100 mm from the centre) moved 1.5 mm towards the cameras and
+/// tilted by 3 mrad in the rough calibration, the cameras exact. With
+/// `free_media = [Glass]` the wall must come back and the rig with it.
+///
+/// Bounds: the glass vector within 4 sigma of the truth (sigma from the
+/// adjustment, 0.1 px noise) and within 0.1 mm (a fifteenth of the
+/// disturbance; the measured error is printed); true points through the
+/// refined rig within 0.05 px RMS as issue 14's goal for the cameras
+/// (the 0.1 px noise over 20,000 particles leaves ~0.002 px).
+#[test]
+fn simulated_glass_vector_is_recovered() {
+    use ptv::photogrammetry::selfcal::MediaTerm;
+    let (spec, truth) = true_rig();
+    let tilt = nalgebra::Rotation3::from_scaled_axis(Vector3::new(3e-3, 0.0, 0.0));
+    let rough: Vec<CameraParameters> = truth
+        .iter()
+        .map(|c| {
+            let mut p = c.parameters().clone();
+            let g = p.media.glass_vector;
+            let moved = g + g.normalize() * 1.5;
+            p.media.glass_vector = tilt * moved;
+            p
+        })
+        .collect();
+    let true_glass = truth[0].parameters().media.glass_vector;
+    assert!(
+        truth
+            .iter()
+            .all(|c| (c.parameters().media.glass_vector - true_glass).norm() < 1e-9),
+        "one wall for all cameras"
+    );
+    let frames = frames(&spec, &truth, 10, 2000);
+    let (before_px, _) = accuracy(&spec, &truth, &rough);
+    let options = SelfCalibrationOptions {
+        start_tolerance_px: 1.0_f64.max(2.0 * before_px),
+        free_media: vec![MediaTerm::Glass],
+        ..SelfCalibrationOptions::default()
+    };
+    let result = self_calibrate(&rough, &frames, &options, &Cancel::new(), &mut |_| {})
+        .expect("self-calibrates");
+    print("glass", &result);
+    for m in &result.report.media {
+        println!("glass: {m:?}");
+    }
+    let (after_px, after_mm) = accuracy(&spec, &truth, &result.cameras);
+    let glass = result.cameras[0].media.glass_vector;
+    println!(
+        "glass: true points through the rig {before_px:.4} -> {after_px:.4} px RMS, {:.2} um; glass \
+         vector {:?} -> {:?}, truth {:?}, error {:.4} mm",
+        after_mm * 1e3,
+        rough[0].media.glass_vector,
+        glass,
+        true_glass,
+        (glass - true_glass).norm()
+    );
+    assert_ne!(result.report.outcome, Outcome::Diverged);
+    assert_eq!(result.report.media.len(), 3, "one wall: x, y, z");
+    use ptv::photogrammetry::calibrate::ParameterStatus;
+    // The tilt (x, y: the wall's normal) is determined and recovered.
+    for (axis, m) in result.report.media.iter().enumerate().take(2) {
+        assert_eq!(m.status, ParameterStatus::Free, "{m:?}");
+        let sigma = m.sigma.expect("a sigma");
+        let error = (m.after - true_glass[axis]).abs();
+        assert!(error <= 4.0 * sigma && error < 0.1, "{m:?}: error {error}");
+    }
+    // The wall's distance (z) of this one-sided rig trades against the
+    // cameras' exterior (measured: correlation 0.999 with a camera's phi
+    // under the gauge), so the rule holds it, and says so; the cameras
+    // absorb it: true points still reproject within the goal.
+    let z = &result.report.media[2];
+    match z.status {
+        ParameterStatus::Free => {
+            let sigma = z.sigma.expect("a sigma");
+            assert!((z.after - true_glass[2]).abs() <= 4.0 * sigma, "{z:?}");
+        }
+        _ => assert!(
+            z.reason
+                .as_deref()
+                .is_some_and(|r| r.contains("correlation")),
+            "{z:?}"
+        ),
+    }
+    assert!(before_px > 0.3, "the disturbance: {before_px}");
+    assert!(after_px < 0.05, "{after_px}");
+}
+
 #[test]
 fn too_few_particles_say_how_many_and_the_band() {
     let (spec, truth) = true_rig();
@@ -291,17 +378,171 @@ fn cavity_counts(cameras: &[Camera], frames: &[Vec<Vec<Target>>], band: f64) -> 
         .collect()
 }
 
+/// Particles of all frames matched with `band`, 4-camera ones by their RMS
+/// (px): below 0.5, 0.5-1, 1-2, 2-4, above 4.
+fn cavity_rms_histogram(cameras: &[Camera], frames: &[Vec<Vec<Target>>], band: f64) -> [usize; 5] {
+    use ptv::photogrammetry::correspond::{Matcher, MatchingParameters};
+    let matcher = Matcher::new(
+        cameras,
+        &MatchingParameters {
+            tolerance: band,
+            ..MatchingParameters::default()
+        },
+    )
+    .unwrap();
+    let mut h = [0; 5];
+    for f in frames {
+        for p in matcher.match_frame(f).unwrap() {
+            if p.camera_count() == 4 {
+                let k = [0.5, 1.0, 2.0, 4.0]
+                    .iter()
+                    .position(|&e| p.rms_px < e)
+                    .unwrap_or(4);
+                h[k] += 1;
+            }
+        }
+    }
+    h
+}
+
+/// The 3-camera particles of all frames matched with `band`, projected
+/// into their missing camera: the distance to the nearest target there,
+/// counted below 0.5, 0.5-1, 1-2, 2-4, 4-8 px, beyond, and off the sensor.
+/// A rig right everywhere leaves the missing targets either near (a
+/// member the band refused: a model error) or absent (occluded, merged,
+/// too faint): then the distances follow the targets' random density.
+fn cavity_missing_member(cameras: &[Camera], frames: &[Vec<Vec<Target>>], band: f64) -> [usize; 7] {
+    use ptv::photogrammetry::correspond::{Matcher, MatchingParameters};
+    let matcher = Matcher::new(
+        cameras,
+        &MatchingParameters {
+            tolerance: band,
+            ..MatchingParameters::default()
+        },
+    )
+    .unwrap();
+    let mut h = [0; 7];
+    for f in frames {
+        for p in matcher.match_frame(f).unwrap() {
+            if p.camera_count() != 3 {
+                continue;
+            }
+            let Some(missing) = p.targets.iter().position(Option::is_none) else {
+                continue;
+            };
+            let Ok(pixel) = cameras[missing].project(&p.position) else {
+                h[6] += 1;
+                continue;
+            };
+            if !(0.0..1280.0).contains(&pixel.x) || !(0.0..1024.0).contains(&pixel.y) {
+                h[6] += 1;
+                continue;
+            }
+            let nearest = f[missing]
+                .iter()
+                .map(|t| (t.x - pixel.x).hypot(t.y - pixel.y))
+                .fold(f64::INFINITY, f64::min);
+            let k = [0.5, 1.0, 2.0, 4.0, 8.0]
+                .iter()
+                .position(|&e| nearest < e)
+                .unwrap_or(5);
+            h[k] += 1;
+        }
+    }
+    h
+}
+
+/// test_cavity_recording with the glass vectors (one per wall: cameras 1-2
+/// look through the wall at z = -125 mm, cameras 3-4 through the one at
+/// +125 mm) and the liquid's index free too. Run with `--nocapture` for the
+/// figures. Measured: the first wall's vector is adjusted (z moves 16.9 mm,
+/// sigma 2.1 mm; x, y by -0.22 and 0.87 mm, sigmas 0.08 and 0.11 mm); the
+/// second wall's components are held (correlations 0.997-0.9997 with the
+/// first's: the two walls trade against each other), and the liquid's
+/// index too (correlation 0.996 with camera 4's z0 under the gauge). No
+/// gain: 4-camera particles under a 1 px band 118-139 per frame (116-145
+/// with the media held), median RMS 0.24-0.25 px. Asserted: the same level
+/// as with the media held, and that every held term says why.
+#[test]
+fn test_cavity_recording_with_the_media_free() {
+    use ptv::photogrammetry::selfcal::MediaTerm;
+    let experiment = ptv::formats::experiment::read_experiment(
+        &std::path::Path::new(DATA).join("test_cavity_recording"),
+    )
+    .unwrap();
+    let start: Vec<CameraParameters> = experiment
+        .cameras
+        .iter()
+        .map(|c| c.parameters().clone())
+        .collect();
+    let frames = cavity_frames();
+    let options = SelfCalibrationOptions {
+        start_tolerance_px: 16.7,
+        free_media: vec![MediaTerm::Glass, MediaTerm::ObjectIndex],
+        ..SelfCalibrationOptions::default()
+    };
+    let result = self_calibrate(&start, &frames, &options, &Cancel::new(), &mut |_| {})
+        .expect("self-calibrates");
+    print("cavity media", &result);
+    for m in &result.report.media {
+        println!("cavity media: {m:?}");
+    }
+    let refined: Vec<Camera> = result
+        .cameras
+        .iter()
+        .map(|p| Camera::new(p.clone()).unwrap())
+        .collect();
+    for band in [16.7, 2.0, 1.0] {
+        println!(
+            "cavity media band {band}: after {:?}",
+            cavity_counts(&refined, &frames, band)
+        );
+    }
+    println!(
+        "cavity media: 4-camera particles at 4 px by RMS <0.5/0.5-1/1-2/2-4/>4 px: {:?}",
+        cavity_rms_histogram(&refined, &frames, 4.0)
+    );
+    assert_ne!(result.report.outcome, Outcome::Diverged);
+    assert_eq!(result.report.media.len(), 7, "2 walls x 3 + the index");
+    for m in &result.report.media {
+        use ptv::photogrammetry::calibrate::ParameterStatus;
+        match m.status {
+            ParameterStatus::Free => assert!(m.sigma.is_some_and(|s| s > 0.0), "{m:?}"),
+            _ => assert!(m.reason.is_some(), "{m:?}"),
+        }
+    }
+    for (four, rms) in cavity_counts(&refined, &frames, 1.0) {
+        assert!(four >= 90 && rms < 0.3, "{four} {rms}");
+    }
+}
+
 /// test_cavity_recording from OpenPTV's targets, starting at a 16.7 px band
 /// (OpenPTV's eps0 = 0.2 mm). Measured: per camera the final particles'
 /// disparity RMS 1.9-2.8 px before, 0.25-0.27 px after; 4-camera
 /// particles under a 1 px band 0..1 per frame before, 115-136 after
-/// (2 px: 11-20 before, 139-174 after). Issue 14's goal (350 per frame at
-/// 1 px, median RMS under 0.3 px) is NOT REACHED: the adjustment's sigma0
-/// stays at 0.24 px, twice the targets' usual noise, with the interior
-/// orientation, distortion and the media held (the media of this ptv.par,
-/// wall n = 1.33 and liquid n = 1.46, look swapped; freeing the wall's
-/// position and the indices is what would be tried next). Asserted: the
-/// levels reached, with a margin.
+/// (2 px: 11-20 before, 139-174 after), median RMS 0.24-0.26 px. Issue
+/// 14's count goal (350 per frame at 1 px) is NOT REACHED, and these
+/// targets do not hold that many 4-camera particles (measured, printed
+/// below):
+/// * with the refined rig at a 4 px band, 4-camera particles by RMS:
+///   381 under 0.5 px, 230 at 0.5-1, 143 at 1-2, 8 at 2-4, none beyond, over
+///   the 4 frames: about 190 a frame in all, 153 under 1 px, which the 1 px
+///   band nearly all finds (116-145);
+/// * the 3-camera particles at 1 px (704), projected into their missing
+///   camera: the nearest target is within 1 px for 3, 1-2 px for 52, 2-4
+///   px for 102, 4-8 px for 102, beyond 8 px for 444 (1 off the sensor).
+///   The targets' density (~1,300 a camera over 1280x1024 px) gives 1.2%
+///   within 2 px and 3.7% at 2-4 px by chance (9 and 26 of 704): about 120
+///   (30 a frame) have a candidate 1-4 px away (merged or biased images, or
+///   a local model error), the rest (63%) no image in that camera at all;
+/// * the disparity maps after show no field: cell means within 0.1 px
+///   where a cell holds 10 or more particles, against an RMS of 0.2-0.3 px.
+///
+/// So even all of those would make about 220 a frame. What remains is the
+/// targets' own scatter (sigma0 0.24 px per coordinate, random over the
+/// volume) and images missing in one camera. Freeing the media
+/// (`test_cavity_recording_with_the_media_free`) does not change it.
+/// Asserted: the levels reached, with a margin.
 #[test]
 fn test_cavity_recording_from_openptv_targets() {
     let experiment = ptv::formats::experiment::read_experiment(
@@ -327,6 +568,21 @@ fn test_cavity_recording_from_openptv_targets() {
             cavity_counts(&experiment.cameras, &frames, band),
             cavity_counts(&refined, &frames, band)
         );
+    }
+    println!(
+        "test_cavity: 4-camera particles at 4 px by RMS <0.5/0.5-1/1-2/2-4/>4 px: {:?}",
+        cavity_rms_histogram(&refined, &frames, 4.0)
+    );
+    println!(
+        "test_cavity: 3-camera particles at 1 px, nearest target in the missing camera \
+         <0.5/0.5-1/1-2/2-4/4-8/>8 px/off the sensor: {:?}",
+        cavity_missing_member(&refined, &frames, 1.0)
+    );
+    for c in &result.report.cameras {
+        println!("test_cavity: {} map after:", c.name);
+        for cell in &c.map_after.cells {
+            println!("  {cell:?}");
+        }
     }
     assert_ne!(result.report.outcome, Outcome::Diverged);
     for c in &result.report.cameras {
