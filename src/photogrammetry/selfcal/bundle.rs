@@ -440,9 +440,21 @@ impl Bundle<'_> {
         let mut lambda = 1e-4;
         let mut nu = 2.0;
         let mut iterations = 0;
+        // The state before the last accepted step: a step can leave a
+        // state that cannot be linearised (a wall moved past a particle,
+        // a point no longer imaged with its derivatives); then it is taken
+        // back and the damping raised.
+        let mut previous: Option<(Vec<CameraParameters>, Vec<Track>, f64)> = None;
         while iterations < max_iterations {
             iterations += 1;
-            let normal = self.linearise()?;
+            let Some(normal) = self.linearise() else {
+                let (cameras, tracks, cost) = previous.take()?;
+                self.cameras = cameras;
+                self.tracks = tracks;
+                current = cost;
+                lambda *= 10.0;
+                continue;
+            };
             let mut accepted = false;
             let mut small = false;
             for _ in 0..30 {
@@ -461,8 +473,11 @@ impl Bundle<'_> {
                     Some(c) if c <= current => {
                         let relative = (current - c) / current.max(1e-300);
                         small = relative < 1e-9;
-                        self.cameras = cameras;
-                        self.tracks = tracks;
+                        previous = Some((
+                            std::mem::replace(&mut self.cameras, cameras),
+                            std::mem::replace(&mut self.tracks, tracks),
+                            current,
+                        ));
                         current = c;
                         lambda = (lambda / 3.0).max(1e-12);
                         nu = 2.0;
@@ -481,7 +496,16 @@ impl Bundle<'_> {
                 break;
             }
         }
-        let normal = self.linearise()?;
+        let normal = match self.linearise() {
+            Some(normal) => normal,
+            None => {
+                let (cameras, tracks, cost) = previous.take()?;
+                self.cameras = cameras;
+                self.tracks = tracks;
+                current = cost;
+                self.linearise()?
+            }
+        };
         let reduced = Self::reduce(&normal, 0.0)?;
         let cofactor = self.cofactor(&normal, &reduced);
         let observations: usize = self.tracks.iter().map(|t| t.observations.len()).sum();
