@@ -522,8 +522,14 @@ fn cavity_missing_member(cameras: &[Camera], frames: &[Vec<Vec<Target>>], band: 
 /// first's: the two walls trade against each other), and the liquid's
 /// index too (correlation 0.996 with camera 4's z0 under the gauge). No
 /// gain: 4-camera particles under a 1 px band 118-139 per frame (116-145
-/// with the media held), median RMS 0.24-0.25 px. Asserted: the same level
-/// as with the media held, and that every held term says why.
+/// with the media held), median RMS 0.24-0.25 px. With all four media
+/// terms free (`ptv selfcalibrate --free glass,n_wall,n_object,thickness`,
+/// measured) sigma0 is 0.241 px against 0.24 held, and the terms wander
+/// within sigmas as large as their changes (the first wall 50 mm, sigma
+/// 6 mm; the liquid's index 1.46 -> 1.54, sigma 0.15; the thickness 6 -> 0
+/// mm, sigma 9 mm): the particles do not determine the media here, and
+/// no media model error is left to find. Asserted: the same level as with
+/// the media held, and that every held term says why.
 #[test]
 fn test_cavity_recording_with_the_media_free() {
     use ptv::photogrammetry::selfcal::MediaTerm;
