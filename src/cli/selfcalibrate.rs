@@ -18,7 +18,7 @@ use super::detect::{
 use super::{write_stderr_line, write_stdout, CliError};
 use crate::formats;
 use crate::formats::frames::{FramePattern, FrameRange, WithoutNumber};
-use crate::photogrammetry::calibrate::Parameter;
+
 use crate::photogrammetry::correspond::MatchingParameters;
 use crate::photogrammetry::selfcal::{self, Outcome, SelfCalibrationOptions};
 use crate::photogrammetry::{
@@ -82,7 +82,8 @@ pub struct SelfCalibrateArgs {
     pub volume: Option<String>,
     /// Parameters to adjust besides the exterior orientation (interior and
     /// distortion are fixed by default), comma separated, OpenPTV's names:
-    /// xh,yh,c,k1,k2,k3,p1,p2,scx,she.
+    /// xh,yh,c,k1,k2,k3,p1,p2,scx,she; and the media: glass (each wall's
+    /// glass vector), n_wall, n_object, thickness.
     #[arg(long, value_name = "LIST", value_delimiter = ',')]
     pub free: Vec<String>,
     /// The fewest cameras a confident particle must be seen by.
@@ -101,17 +102,9 @@ fn flag(flag: &'static str, reason: impl Into<String>) -> CliError {
 }
 
 fn options(args: &SelfCalibrateArgs) -> Result<SelfCalibrationOptions, CliError> {
-    let mut fixed = selfcal::default_fixed();
+    let mut options = SelfCalibrationOptions::default();
     for name in &args.free {
-        let p = Parameter::from_name(name).ok_or_else(|| {
-            flag(
-                "--free",
-                format!(
-                    "`{name}` is not a parameter; give names among xh,yh,c,k1,k2,k3,p1,p2,scx,she"
-                ),
-            )
-        })?;
-        fixed.retain(|q| *q != p);
+        options.free(name).map_err(|e| flag("--free", e))?;
     }
     Ok(SelfCalibrationOptions {
         start_tolerance_px: args.tolerance,
@@ -122,8 +115,7 @@ fn options(args: &SelfCalibrateArgs) -> Result<SelfCalibrationOptions, CliError>
             .map(super::match_targets::parse_volume)
             .transpose()?,
         min_cameras: args.min_cameras,
-        fixed,
-        ..SelfCalibrationOptions::default()
+        ..options
     })
 }
 

@@ -30,7 +30,7 @@ use super::codec;
 use super::jobs::{pipeline_of, sequence_parameters, JobError, JobRun, TimeLimit};
 use super::store::{CalibrationId, FrameNumber, RefinedCalibration, SequenceId};
 use crate::formats;
-use crate::photogrammetry::calibrate::{Parameter, ParameterSet};
+
 use crate::photogrammetry::selfcal::{self, Outcome, SelfCalibrationError, SelfCalibrationOptions};
 use crate::photogrammetry::{Camera, CameraParameters, Cancel, Target, Volume};
 
@@ -99,11 +99,9 @@ pub enum SelfCalibrationRequestError {
         /// The last frame.
         last: FrameNumber,
     },
-    /// A name in `free` is not a parameter the particles can adjust.
-    #[error(
-        "free: `{0}` is not an interior or distortion parameter; give names among \
-         xh,yh,c,k1,k2,k3,p1,p2,scx,she (the exterior orientation is always adjusted)"
-    )]
+    /// A name in `free` is not a parameter or media term the particles can
+    /// adjust (the message names the choices).
+    #[error("free: {0}")]
     UnknownParameter(String),
     /// The options do not pass the core's checks.
     #[error("options: {0}")]
@@ -159,22 +157,18 @@ impl SelfCalibrationRequest {
                 });
             }
         }
-        let adjustable = ParameterSet::interior() | ParameterSet::distortion();
-        let mut fixed = selfcal::default_fixed();
-        for name in self.free.iter().map(|n| n.trim()).filter(|n| !n.is_empty()) {
-            let p = Parameter::from_name(&name.to_ascii_lowercase())
-                .filter(|p| adjustable.iter().any(|q| q == *p))
-                .ok_or_else(|| SelfCalibrationRequestError::UnknownParameter(name.to_owned()))?;
-            fixed.retain(|q| *q != p);
+        let mut defaults = SelfCalibrationOptions::default();
+        for name in self.free.iter().filter(|n| !n.trim().is_empty()) {
+            defaults
+                .free(name)
+                .map_err(SelfCalibrationRequestError::UnknownParameter)?;
         }
-        let defaults = SelfCalibrationOptions::default();
         let options = SelfCalibrationOptions {
             start_tolerance_px: self.tolerance.unwrap_or(defaults.start_tolerance_px),
             final_tolerance_px: self.final_tolerance.unwrap_or(defaults.final_tolerance_px),
             min_cameras: self.min_cameras.unwrap_or(defaults.min_cameras),
             max_rounds: self.max_rounds.unwrap_or(defaults.max_rounds),
             volume,
-            fixed,
             ..defaults
         };
         // The core's checks, with one empty frame standing for the

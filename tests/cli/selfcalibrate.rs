@@ -241,3 +241,66 @@ fn images_are_detected_then_self_calibrated() {
     let out = ptv(&both, d);
     assert_eq!(out.status.code(), Some(2), "{out:?}");
 }
+
+#[test]
+fn a_free_name_that_is_no_parameter_lists_the_media_terms_too() {
+    let dir = tempfile::tempdir().unwrap();
+    calibration(dir.path());
+    let mut args = vec!["selfcalibrate", "--calibration", "cal.json"];
+    let p = patterns();
+    for t in &p {
+        args.extend(["--targets", t.as_str()]);
+    }
+    args.extend([
+        "--frames",
+        "10001..10004",
+        "--free",
+        "glas",
+        "-o",
+        "refined.json",
+    ]);
+    fails(
+        &ptv(&args, dir.path()),
+        &["--free", "`glas`", "glass,n_wall,n_object,thickness"],
+    );
+}
+
+/// `--free glass` on the recording: the report lists each wall's glass
+/// vector components (cameras 1-2 behind one wall, 3-4 behind the other),
+/// each adjusted with a sigma or held with the reason.
+#[test]
+fn free_glass_reports_each_walls_vector() {
+    let dir = tempfile::tempdir().unwrap();
+    calibration(dir.path());
+    let mut args = vec!["selfcalibrate", "--calibration", "cal.json"];
+    let p = patterns();
+    for t in &p {
+        args.extend(["--targets", t.as_str()]);
+    }
+    args.extend([
+        "--frames",
+        "10001..10004",
+        "--tolerance",
+        "16.7",
+        "--free",
+        "glass",
+        "-o",
+        "refined.json",
+    ]);
+    let out = ptv(&args, dir.path());
+    assert!(out.status.success(), "{out:?}");
+    let report: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let media = report["media"].as_array().expect("media in the report");
+    assert_eq!(media.len(), 6, "{media:?}");
+    for (k, m) in media.iter().enumerate() {
+        let axis = ["x", "y", "z"][k % 3];
+        assert_eq!(m["name"], format!("glass_{axis}"), "{m}");
+        let cameras = if k < 3 { [1, 2] } else { [3, 4] };
+        assert_eq!(m["cameras"], serde_json::json!(cameras), "{m}");
+        match m["status"].as_str() {
+            Some("free") => assert!(m["sigma"].as_f64().is_some_and(|s| s > 0.0), "{m}"),
+            _ => assert!(m["reason"].as_str().is_some_and(|r| !r.is_empty()), "{m}"),
+        }
+    }
+    assert!(dir.path().join("refined.json").exists());
+}

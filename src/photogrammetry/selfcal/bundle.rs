@@ -14,9 +14,20 @@
 //!   by 7 linear constraints on the cameras' exterior orientation
 //!   (`gauge.rs`), solved as a bordered system (Lagrange multipliers).
 //! * Each observation carries a weight (the robust loop's, `mod.rs`).
+//! * **Media terms** ([`MediaTerm`]): the glass vector (per wall: the
+//!   cameras that share one, OpenPTV's per-camera `.ori` vector grouped),
+//!   the walls' and the object medium's refractive indices and the walls'
+//!   thickness may be unknowns too, shared by the cameras they belong to
+//!   (the design paper's Eq. 6-12 with those quantities free). Their
+//!   Jacobian columns are central differences of the full projection
+//!   (refraction re-solved), appended after the cameras' columns; every
+//!   observation carries its non-zero columns only.
 
-use nalgebra::{DMatrix, DVector, Matrix2x3, Matrix3, Point2, Point3, Vector2, Vector3};
+use nalgebra::{
+    DMatrix, DVector, Matrix2x3, Matrix3, Point2, Point3, RowVector3, Vector2, Vector3,
+};
 use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
 
 use super::gauge::Gauge;
 use crate::photogrammetry::calibrate::adjustment::{from_vector, to_vector, ParameterModel};
@@ -42,13 +53,169 @@ pub(super) struct Bundle<'a> {
     pub tracks: Vec<Track>,
     /// The gauge's constraints (from the starting rig).
     pub gauge: &'a Gauge,
+    /// The media unknowns (after the cameras' columns).
+    pub media: Vec<MediaUnknown>,
 }
+
+/// A term of the optical media that self-calibration can adjust.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum MediaTerm {
+    /// The glass vector (3 components, mm) of each wall: the wall's
+    /// normal and distance.
+    Glass,
+    /// The walls' refractive index (one, shared by all walls).
+    WallIndex,
+    /// The object medium's refractive index.
+    ObjectIndex,
+    /// The walls' thickness (mm, shared by all walls).
+    WallThickness,
+}
+
+impl MediaTerm {
+    /// Every term.
+    pub const ALL: [MediaTerm; 4] = [
+        MediaTerm::Glass,
+        MediaTerm::WallIndex,
+        MediaTerm::ObjectIndex,
+        MediaTerm::WallThickness,
+    ];
+
+    /// The name on the command line (`--free glass,n_wall,n_object,thickness`).
+    pub fn name(self) -> &'static str {
+        match self {
+            MediaTerm::Glass => "glass",
+            MediaTerm::WallIndex => "n_wall",
+            MediaTerm::ObjectIndex => "n_object",
+            MediaTerm::WallThickness => "thickness",
+        }
+    }
+
+    /// The term of a command-line name.
+    pub fn from_name(name: &str) -> Option<MediaTerm> {
+        MediaTerm::ALL.into_iter().find(|t| t.name() == name)
+    }
+}
+
+/// One scalar media unknown and the cameras it acts on.
+#[derive(Clone, Debug, PartialEq)]
+pub(super) struct MediaUnknown {
+    pub term: MediaTerm,
+    /// For the glass vector: its component (0, 1, 2 = x, y, z).
+    pub axis: usize,
+    /// The cameras that share it (0-based).
+    pub cameras: Vec<usize>,
+}
+
+impl MediaUnknown {
+    /// Its name in the report: `glass_x` etc., or the term's name.
+    pub fn name(&self) -> String {
+        match self.term {
+            MediaTerm::Glass => format!("glass_{}", ["x", "y", "z"][self.axis.min(2)]),
+            t => t.name().into(),
+        }
+    }
+
+    /// Its value in camera `p`.
+    pub fn value(&self, p: &CameraParameters) -> f64 {
+        match self.term {
+            MediaTerm::Glass => p.media.glass_vector[self.axis],
+            MediaTerm::WallIndex => p.media.walls.first().map_or(0.0, |w| w.n),
+            MediaTerm::ObjectIndex => p.media.n_object,
+            MediaTerm::WallThickness => p.media.walls.first().map_or(0.0, |w| w.thickness),
+        }
+    }
+
+    /// Adds `delta` to it in camera `p`.
+    pub fn apply(&self, p: &mut CameraParameters, delta: f64) {
+        match self.term {
+            MediaTerm::Glass => p.media.glass_vector[self.axis] += delta,
+            MediaTerm::WallIndex => p.media.walls.iter_mut().for_each(|w| w.n += delta),
+            MediaTerm::ObjectIndex => p.media.n_object += delta,
+            MediaTerm::WallThickness => p.media.walls.iter_mut().for_each(|w| w.thickness += delta),
+        }
+    }
+
+    /// The central-difference step: 0.01 mm, or 1e-5 for an index (a
+    /// change of about 1e-3 px in the images, well above rounding).
+    fn step(&self) -> f64 {
+        match self.term {
+            MediaTerm::Glass | MediaTerm::WallThickness => 1e-2,
+            MediaTerm::WallIndex | MediaTerm::ObjectIndex => 1e-5,
+        }
+    }
+}
+
+/// The scalar unknowns of `terms` for the rig `cameras`: the glass vector
+/// per wall (cameras whose glass vectors agree to 1 um share one), the
+/// indices and thickness shared by every camera that refracts (walls'
+/// terms by those with walls).
+pub(super) fn media_unknowns(
+    cameras: &[CameraParameters],
+    terms: &[MediaTerm],
+) -> Vec<MediaUnknown> {
+    let refracting: Vec<usize> = (0..cameras.len())
+        .filter(|&c| !cameras[c].media.is_homogeneous())
+        .collect();
+    let walled: Vec<usize> = refracting
+        .iter()
+        .copied()
+        .filter(|&c| !cameras[c].media.walls.is_empty())
+        .collect();
+    let mut out = Vec::new();
+    for term in MediaTerm::ALL {
+        if !terms.contains(&term) {
+            continue;
+        }
+        match term {
+            MediaTerm::Glass => {
+                let mut groups: Vec<Vec<usize>> = Vec::new();
+                for &c in &refracting {
+                    let g = cameras[c].media.glass_vector;
+                    match groups
+                        .iter_mut()
+                        .find(|grp| (cameras[grp[0]].media.glass_vector - g).norm() < 1e-3)
+                    {
+                        Some(grp) => grp.push(c),
+                        None => groups.push(vec![c]),
+                    }
+                }
+                for grp in groups {
+                    for axis in 0..3 {
+                        out.push(MediaUnknown {
+                            term,
+                            axis,
+                            cameras: grp.clone(),
+                        });
+                    }
+                }
+            }
+            MediaTerm::WallIndex | MediaTerm::WallThickness if !walled.is_empty() => {
+                out.push(MediaUnknown {
+                    term,
+                    axis: 0,
+                    cameras: walled.clone(),
+                })
+            }
+            MediaTerm::ObjectIndex if !refracting.is_empty() => out.push(MediaUnknown {
+                term,
+                axis: 0,
+                cameras: refracting.clone(),
+            }),
+            _ => {}
+        }
+    }
+    out
+}
+
+/// A camera with one media unknown moved by `+step` and `-step`.
+type Shifted = (f64, Camera, Camera);
 
 /// One observation's linearisation.
 struct Linear {
-    camera: usize,
-    /// d pixel / d camera's free parameters (2 x u_c).
-    jc: DMatrix<f64>,
+    /// d pixel / d unknown, for the unknowns it depends on (column, 2-vector):
+    /// its camera's free parameters and the media terms of its camera.
+    cols: Vec<(usize, Vector2<f64>)>,
     /// d pixel / d point (2 x 3).
     jp: Matrix2x3<f64>,
     /// Observed minus computed (px).
@@ -63,6 +230,8 @@ pub(super) struct Normal {
     /// Column offset of each camera's parameters.
     pub offsets: Vec<usize>,
     /// Total camera unknowns.
+    pub camera_unknowns: usize,
+    /// Total unknowns: the cameras', then the media's.
     pub unknowns: usize,
     /// The camera block of the normal matrix (block diagonal, undamped).
     u: DMatrix<f64>,
@@ -80,6 +249,8 @@ pub(super) struct Solution {
     pub cofactor: Option<DMatrix<f64>>,
     /// Column offsets per camera.
     pub offsets: Vec<usize>,
+    /// Column of the first media unknown.
+    pub media_offset: usize,
     /// Weighted sum of squared residuals (px²).
     pub cost: f64,
     /// Redundancy: observations' coordinates minus unknowns plus
@@ -111,7 +282,29 @@ impl Bundle<'_> {
     /// Linearises every observation at the current state.
     fn linearise(&self) -> Option<Normal> {
         let models = self.models()?;
-        let (offsets, unknowns) = self.offsets();
+        let (offsets, camera_unknowns) = self.offsets();
+        let unknowns = camera_unknowns + self.media.len();
+        // Per media unknown, per camera: (step, camera +step, camera -step).
+        let shifted: Option<Vec<Vec<Option<Shifted>>>> = self
+            .media
+            .iter()
+            .map(|m| {
+                (0..self.cameras.len())
+                    .map(|c| {
+                        if !m.cameras.contains(&c) {
+                            return Some(None);
+                        }
+                        let h = m.step();
+                        let mut plus = self.cameras[c].clone();
+                        m.apply(&mut plus, h);
+                        let mut minus = self.cameras[c].clone();
+                        m.apply(&mut minus, -h);
+                        Some(Some((h, Camera::new(plus).ok()?, Camera::new(minus).ok()?)))
+                    })
+                    .collect()
+            })
+            .collect();
+        let shifted = shifted?;
         let lin: Option<Vec<Vec<Linear>>> = self
             .tracks
             .par_iter()
@@ -123,9 +316,19 @@ impl Bundle<'_> {
                         let (camera, model) = &models[c];
                         let (computed, jc) = model.project(&track.point)?;
                         let (_, jp) = camera.project_with_jacobian(&track.point).ok()?;
+                        let mut cols: Vec<(usize, Vector2<f64>)> = (0..jc.ncols())
+                            .map(|k| (offsets[c] + k, Vector2::new(jc[(0, k)], jc[(1, k)])))
+                            .collect();
+                        for (m, per_camera) in shifted.iter().enumerate() {
+                            if let Some((h, plus, minus)) = &per_camera[c] {
+                                let d = (plus.project(&track.point).ok()?
+                                    - minus.project(&track.point).ok()?)
+                                    / (2.0 * h);
+                                cols.push((camera_unknowns + m, d));
+                            }
+                        }
                         Some(Linear {
-                            camera: c,
-                            jc,
+                            cols,
                             jp,
                             r: pixel - computed,
                             w,
@@ -139,20 +342,18 @@ impl Bundle<'_> {
         let mut gc = DVector::zeros(unknowns);
         for track in &lin {
             for o in track {
-                let off = offsets[o.camera];
-                let n = o.jc.ncols();
-                let jt = o.jc.transpose();
-                let block = &jt * &o.jc * o.w;
-                let mut view = u.view_mut((off, off), (n, n));
-                view += block;
-                let g = &jt * o.r * o.w;
-                let mut gv = gc.rows_mut(off, n);
-                gv += g;
+                for &(i, di) in &o.cols {
+                    gc[i] += o.w * di.dot(&o.r);
+                    for &(j, dj) in &o.cols {
+                        u[(i, j)] += o.w * di.dot(&dj);
+                    }
+                }
             }
         }
         Some(Normal {
             lin,
             offsets,
+            camera_unknowns,
             unknowns,
             u,
             gc,
@@ -189,26 +390,24 @@ impl Bundle<'_> {
             .fold(
                 || (DMatrix::<f64>::zeros(n, n), DVector::<f64>::zeros(n)),
                 |(mut s, mut b), (track, (vinv, gp))| {
-                    // W_a = w Jcᵀ Jp (u_a x 3); S -= W_a V⁻¹ W_bᵀ.
-                    let ws: Vec<DMatrix<f64>> = track
-                        .iter()
-                        .map(|o| {
-                            let jp = DMatrix::from_column_slice(2, 3, o.jp.as_slice());
-                            o.jc.transpose() * jp * o.w
-                        })
-                        .collect();
-                    let vinv = DMatrix::from_column_slice(3, 3, vinv.as_slice());
-                    let gp = DVector::from_column_slice(gp.as_slice());
-                    for (a, oa) in track.iter().enumerate() {
-                        let ya = &ws[a] * &vinv;
-                        let offa = normal.offsets[oa.camera];
-                        let mut bv = b.rows_mut(offa, ws[a].nrows());
-                        bv -= &ya * &gp;
-                        for (bi, ob) in track.iter().enumerate() {
-                            let offb = normal.offsets[ob.camera];
-                            let block = &ya * ws[bi].transpose();
-                            let mut view = s.view_mut((offa, offb), (block.nrows(), block.ncols()));
-                            view -= block;
+                    // Per unknown the track touches: y_i = sum over its
+                    // observations of w d_iᵀ Jp (1 x 3); S -= y_i V⁻¹ y_jᵀ,
+                    // b -= y_i V⁻¹ g_p.
+                    let mut ys: Vec<(usize, RowVector3<f64>)> = Vec::new();
+                    for o in track {
+                        for &(i, d) in &o.cols {
+                            let y = d.transpose() * o.jp * o.w;
+                            match ys.iter_mut().find(|(k, _)| *k == i) {
+                                Some((_, acc)) => *acc += y,
+                                None => ys.push((i, y)),
+                            }
+                        }
+                    }
+                    for &(i, yi) in &ys {
+                        let ya = yi * vinv;
+                        b[i] -= (ya * gp)[0];
+                        for &(j, yj) in &ys {
+                            s[(i, j)] -= ya.dot(&yj);
                         }
                     }
                     (s, b)
@@ -241,9 +440,21 @@ impl Bundle<'_> {
         let mut lambda = 1e-4;
         let mut nu = 2.0;
         let mut iterations = 0;
+        // The state before the last accepted step: a step can leave a
+        // state that cannot be linearised (a wall moved past a particle,
+        // a point no longer imaged with its derivatives); then it is taken
+        // back and the damping raised.
+        let mut previous: Option<(Vec<CameraParameters>, Vec<Track>, f64)> = None;
         while iterations < max_iterations {
             iterations += 1;
-            let normal = self.linearise()?;
+            let Some(normal) = self.linearise() else {
+                let (cameras, tracks, cost) = previous.take()?;
+                self.cameras = cameras;
+                self.tracks = tracks;
+                current = cost;
+                lambda *= 10.0;
+                continue;
+            };
             let mut accepted = false;
             let mut small = false;
             for _ in 0..30 {
@@ -262,8 +473,11 @@ impl Bundle<'_> {
                     Some(c) if c <= current => {
                         let relative = (current - c) / current.max(1e-300);
                         small = relative < 1e-9;
-                        self.cameras = cameras;
-                        self.tracks = tracks;
+                        previous = Some((
+                            std::mem::replace(&mut self.cameras, cameras),
+                            std::mem::replace(&mut self.tracks, tracks),
+                            current,
+                        ));
                         current = c;
                         lambda = (lambda / 3.0).max(1e-12);
                         nu = 2.0;
@@ -282,7 +496,16 @@ impl Bundle<'_> {
                 break;
             }
         }
-        let normal = self.linearise()?;
+        let normal = match self.linearise() {
+            Some(normal) => normal,
+            None => {
+                let (cameras, tracks, cost) = previous.take()?;
+                self.cameras = cameras;
+                self.tracks = tracks;
+                current = cost;
+                self.linearise()?
+            }
+        };
         let reduced = Self::reduce(&normal, 0.0)?;
         let cofactor = self.cofactor(&normal, &reduced);
         let observations: usize = self.tracks.iter().map(|t| t.observations.len()).sum();
@@ -291,6 +514,7 @@ impl Bundle<'_> {
         Some(Solution {
             reduced: reduced.s,
             cofactor,
+            media_offset: normal.camera_unknowns,
             offsets: normal.offsets,
             cost: current,
             redundancy,
@@ -318,8 +542,9 @@ impl Bundle<'_> {
                 a[(i, j)] = s[(i, j)] * scale[i] * scale[j];
             }
         }
+        // The constraints act on the cameras' columns only.
         for r in 0..m {
-            for j in 0..n {
+            for j in 0..c.ncols().min(n) {
                 let v = c[(r, j)] * scale[j];
                 a[(n + r, j)] = v;
                 a[(j, n + r)] = v;
@@ -364,7 +589,7 @@ impl Bundle<'_> {
         reduced: &ReducedSystem,
         step: &DVector<f64>,
     ) -> (Vec<CameraParameters>, Vec<Track>) {
-        let cameras = self
+        let mut cameras: Vec<CameraParameters> = self
             .cameras
             .iter()
             .zip(&self.free)
@@ -377,6 +602,11 @@ impl Bundle<'_> {
                 from_vector(p, &v)
             })
             .collect();
+        for (k, m) in self.media.iter().enumerate() {
+            for &c in &m.cameras {
+                m.apply(&mut cameras[c], step[normal.camera_unknowns + k]);
+            }
+        }
         let tracks = self
             .tracks
             .iter()
@@ -385,10 +615,8 @@ impl Bundle<'_> {
             .map(|((track, lin), (vinv, gp))| {
                 let mut rhs = *gp;
                 for o in lin {
-                    let off = normal.offsets[o.camera];
-                    let d = step.rows(off, o.jc.ncols());
-                    let jd = &o.jc * d;
-                    rhs -= o.jp.transpose() * Vector2::new(jd[0], jd[1]) * o.w;
+                    let jd: Vector2<f64> = o.cols.iter().map(|&(i, d)| d * step[i]).sum();
+                    rhs -= o.jp.transpose() * jd * o.w;
                 }
                 let mut t = track.clone();
                 t.point += vinv * rhs;

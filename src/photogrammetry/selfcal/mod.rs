@@ -46,8 +46,13 @@
 //! determine (a singular normal matrix, or a correlation above the limit)
 //! are held, with the reason, the same rule deciding, judged on each
 //! camera's block of the reduced normal matrix (its parameters given the
-//! other cameras, the points eliminated). The glass vector is held (see
-//! [`report::CameraSelfCalibration::glass_vector_reason`]).
+//! other cameras, the points eliminated). The media ([`MediaTerm`]: the
+//! glass vector per wall, the indices, the walls' thickness) are held
+//! unless asked for (`free_media`); asked for, they are unknowns of the
+//! bundle shared by their cameras, held by the same rule judged on their
+//! block of the reduced normal matrix and, since a wall's distance trades
+//! against the cameras' positions, also on their correlation with any
+//! camera parameter under the gauge (the cofactor matrix).
 //!
 //! **Report** ([`SelfCalibrationReport`]): per camera the disparities
 //! (observed minus reprojected, after intersecting each particle with the
@@ -75,11 +80,12 @@ use crate::photogrammetry::correspond::{MatchError, Matcher, MatchingParameters,
 use crate::photogrammetry::intersect::{intersect, Observation};
 use crate::photogrammetry::target::Target;
 use crate::photogrammetry::volume::Volume;
-use bundle::{residuals, Bundle, Track};
+pub use bundle::MediaTerm;
+use bundle::{media_unknowns, residuals, Bundle, MediaUnknown, Track};
 use gauge::{baseline_scale, Gauge};
 pub use report::{
-    CameraSelfCalibration, DisparityCell, DisparityMap, DisparityStats, GaugeReport, Outcome,
-    ParameterChange, RoundReport, SelfCalibrationReport,
+    CameraSelfCalibration, DisparityCell, DisparityMap, DisparityStats, GaugeReport, MediaChange,
+    Outcome, ParameterChange, RoundReport, SelfCalibrationReport,
 };
 
 /// The fewest particles an adjustment takes: with 4 cameras of 16
@@ -110,10 +116,46 @@ pub struct SelfCalibrationOptions {
     pub isolation_px: f64,
     /// Parameters held at the input's values in every camera.
     pub fixed: Vec<Parameter>,
+    /// Media terms adjusted with the cameras (none by default: held at
+    /// the input's values).
+    pub free_media: Vec<MediaTerm>,
     /// Parameters correlated above this are held (one of the pair).
     pub max_correlation: f64,
     /// Most rounds (match, select, adjust).
     pub max_rounds: usize,
+}
+
+impl SelfCalibrationOptions {
+    /// The names [`SelfCalibrationOptions::free`] takes.
+    pub const FREEABLE: &'static str =
+        "xh,yh,c,k1,k2,k3,p1,p2,scx,she or glass,n_wall,n_object,thickness";
+
+    /// Frees the interior or distortion parameter, or the media term, of
+    /// `name` (OpenPTV's names, case-insensitive: `xh`, `yh`, `c`, `k1`,
+    /// `k2`, `k3`, `p1`, `p2`, `scx`, `she`; `glass`, `n_wall`,
+    /// `n_object`, `thickness`). The exterior orientation is always free.
+    /// An unknown name is an error naming the choices.
+    pub fn free(&mut self, name: &str) -> Result<(), String> {
+        let name = name.trim().to_ascii_lowercase();
+        if let Some(term) = MediaTerm::from_name(&name) {
+            if !self.free_media.contains(&term) {
+                self.free_media.push(term);
+            }
+            return Ok(());
+        }
+        let freeable = ParameterSet::interior() | ParameterSet::distortion();
+        match Parameter::from_name(&name).filter(|p| freeable.iter().any(|q| q == *p)) {
+            Some(p) => {
+                self.fixed.retain(|q| *q != p);
+                Ok(())
+            }
+            None => Err(format!(
+                "`{name}` is not a parameter the particles can adjust; give names among {} \
+                 (the exterior orientation is always adjusted)",
+                Self::FREEABLE
+            )),
+        }
+    }
 }
 
 impl Default for SelfCalibrationOptions {
@@ -127,6 +169,7 @@ impl Default for SelfCalibrationOptions {
             grid: [4, 4, 4],
             isolation_px: 1.5,
             fixed: default_fixed(),
+            free_media: Vec::new(),
             max_correlation: 0.99,
             max_rounds: 10,
         }
@@ -309,6 +352,17 @@ pub fn check_inputs(
     if o.max_rounds == 0 {
         return bad("at least one round is needed".into());
     }
+    if !o.free_media.is_empty() && cameras.iter().all(|c| c.media.is_homogeneous()) {
+        return bad(format!(
+            "media terms ({}) cannot be adjusted: no camera looks through refracting media \
+             (all indices equal); drop them from the free list",
+            o.free_media
+                .iter()
+                .map(|t| t.name())
+                .collect::<Vec<_>>()
+                .join(",")
+        ));
+    }
     Ok(())
 }
 
@@ -341,7 +395,10 @@ pub fn self_calibrate(
         cameras: start.clone(),
         free: vec![fixed.complement(); n],
         held: vec![Vec::new(); n],
+        media: media_unknowns(&start, &options.free_media),
+        media_held: Vec::new(),
     };
+    let media_all = state.media.clone();
     let mut band = options.start_tolerance_px;
     let mut rounds: Vec<RoundReport> = Vec::new();
     let mut last: Option<(Vec<Track>, bundle::Solution)> = None;
@@ -535,11 +592,12 @@ pub fn self_calibrate(
                 map_before: DisparityMap::of(&volume, options.grid, &points_before, &db),
                 map_after: DisparityMap::of(&volume, options.grid, &points, &da),
                 parameters: parameter_changes(c, &start[c], &state, fixed, &solution, sigma0),
-                glass_vector_mm: start[c].media.glass_vector.into(),
-                glass_vector_reason: GLASS_VECTOR_HELD.into(),
+                glass_vector_mm: state.cameras[c].media.glass_vector.into(),
+                glass_vector_reason: glass_vector_reason(c, &state),
             }
         })
         .collect();
+    let media = media_changes(&media_all, &start, &state, Some((&solution, sigma0)));
     let report = SelfCalibrationReport {
         outcome,
         message,
@@ -549,6 +607,7 @@ pub fn self_calibrate(
         sigma0_px: sigma0,
         rounds,
         cameras: cameras_report,
+        media,
         gauge: gauge_report(&gauge, &start, &state.cameras),
     };
     Ok(SelfCalibration {
@@ -557,10 +616,83 @@ pub fn self_calibrate(
     })
 }
 
-/// Why the glass vector is not adjusted.
-const GLASS_VECTOR_HELD: &str = "held: the wall's position is not among the adjusted \
-    parameters (its effect on the images is close to a change of the camera's position \
-    and principal distance, and the gauge constraints leave it undetermined)";
+/// Why the glass vector is not adjusted when not asked for.
+const GLASS_VECTOR_HELD: &str = "held at the input's value: not among the adjusted terms \
+    (`--free glass` adjusts it, per wall, where the particles determine it)";
+
+/// Whether camera `c`'s glass vector was adjusted, or why not.
+fn glass_vector_reason(c: usize, state: &State) -> String {
+    let glass = |m: &MediaUnknown| m.term == MediaTerm::Glass && m.cameras.contains(&c);
+    if state.media.iter().any(glass) {
+        let held: Vec<String> = state
+            .media_held
+            .iter()
+            .filter(|(m, _)| glass(m))
+            .map(|(m, r)| format!("{} held: {r}", m.name()))
+            .collect();
+        if held.is_empty() {
+            "adjusted (see the report's media)".into()
+        } else {
+            format!("adjusted, except: {}", held.join("; "))
+        }
+    } else if state.media_held.iter().any(|(m, _)| glass(m)) {
+        let reasons: Vec<String> = state
+            .media_held
+            .iter()
+            .filter(|(m, _)| glass(m))
+            .map(|(m, r)| format!("{} held: {r}", m.name()))
+            .collect();
+        reasons.join("; ")
+    } else {
+        GLASS_VECTOR_HELD.into()
+    }
+}
+
+/// Each media unknown asked for: its change, sigma and status.
+fn media_changes(
+    all: &[MediaUnknown],
+    start: &[CameraParameters],
+    state: &State,
+    solution: Option<(&bundle::Solution, f64)>,
+) -> Vec<MediaChange> {
+    all.iter()
+        .map(|m| {
+            let c0 = m.cameras[0];
+            let before = m.value(&start[c0]);
+            let after = m.value(&state.cameras[c0]);
+            let free = state.media.iter().position(|q| q == m);
+            let (status, sigma, reason) = match (free, solution) {
+                (Some(k), Some((solution, sigma0))) => {
+                    let i = solution.media_offset + k;
+                    let sigma = solution
+                        .cofactor
+                        .as_ref()
+                        .map(|q| sigma0 * q[(i, i)].max(0.0).sqrt());
+                    (ParameterStatus::Free, sigma, None)
+                }
+                _ => {
+                    let reason = state
+                        .media_held
+                        .iter()
+                        .find(|(h, _)| h == m)
+                        .map(|(_, r)| r.clone())
+                        .or_else(|| Some("the adjustment diverged: the input is kept".into()));
+                    (ParameterStatus::Held, None, reason)
+                }
+            };
+            MediaChange {
+                name: m.name(),
+                cameras: m.cameras.iter().map(|c| c + 1).collect(),
+                before,
+                after,
+                change: after - before,
+                sigma,
+                status,
+                reason,
+            }
+        })
+        .collect()
+}
 
 /// Bands wider than this (px) vote ([`vote`]) rather than match: in them
 /// the matcher's best-fitting groups are mostly ghosts.
@@ -641,6 +773,10 @@ struct State {
     cameras: Vec<CameraParameters>,
     free: Vec<ParameterSet>,
     held: Vec<Vec<(Parameter, String)>>,
+    /// The media unknowns being adjusted.
+    media: Vec<MediaUnknown>,
+    /// The media unknowns held, with the reason.
+    media_held: Vec<(MediaUnknown, String)>,
 }
 
 /// A matched particle of one frame.
@@ -789,6 +925,7 @@ fn robust_adjustment(
             free: state.free.clone(),
             tracks,
             gauge,
+            media: state.media.clone(),
         };
         let Some(mut solution) = bundle.adjust(30) else {
             return Ok(None);
@@ -844,6 +981,7 @@ fn robust_adjustment(
         free: state.free.clone(),
         tracks,
         gauge,
+        media: state.media.clone(),
     };
     let Some(mut solution) = bundle.adjust(30) else {
         return Ok(None);
@@ -902,7 +1040,87 @@ fn hold_undeterminable(
             any = true;
         }
     }
+    if let Some((k, reason)) = undeterminable_media(state, solution, max_correlation) {
+        let m = state.media.remove(k);
+        // Back to the input's value.
+        for &c in &m.cameras {
+            let delta = m.value(&start[c]) - m.value(&state.cameras[c]);
+            m.apply(&mut state.cameras[c], delta);
+        }
+        state.media_held.push((m, reason));
+        any = true;
+    }
     any
+}
+
+/// The media unknown the data determine least, by `calibrate`'s rule: a
+/// singular block of the reduced normal matrix (the media given the
+/// cameras), or a correlation above the limit within it; and, since a
+/// wall's position and the indices trade against the cameras' positions
+/// and principal distances, a correlation above the limit with any camera
+/// parameter under the gauge constraints (the cofactor matrix), or no
+/// regular cofactor matrix at all. The index and the reason.
+fn undeterminable_media(
+    state: &State,
+    solution: &bundle::Solution,
+    max_correlation: f64,
+) -> Option<(usize, String)> {
+    let m = state.media.len();
+    if m == 0 {
+        return None;
+    }
+    let off = solution.media_offset;
+    let block = solution.reduced.view((off, off), (m, m)).into_owned();
+    if let Some(k) =
+        (0..m).find(|&k| block[(k, k)].partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater))
+    {
+        return Some((k, "the particles do not constrain it (zero normal)".into()));
+    }
+    let d: Vec<f64> = (0..m).map(|k| 1.0 / block[(k, k)].sqrt()).collect();
+    let scaled = DMatrix::from_fn(m, m, |i, j| block[(i, j)] * d[i] * d[j]);
+    let Some(inverse) = scaled.cholesky().map(|ch| ch.inverse()) else {
+        return Some((
+            m - 1,
+            "singular normal matrix with the other media terms".into(),
+        ));
+    };
+    let mut worst: Option<(f64, usize, String)> = None;
+    for i in 0..m {
+        for j in 0..i {
+            let r = inverse[(i, j)] / (inverse[(i, i)] * inverse[(j, j)]).sqrt();
+            if r.abs() > max_correlation && worst.as_ref().map_or(true, |w| r.abs() > w.0) {
+                worst = Some((r.abs(), i, state.media[j].name()));
+            }
+        }
+    }
+    if let Some((r, i, other)) = worst {
+        return Some((
+            i,
+            format!("correlation {r:.4} with {other} (limit {max_correlation})"),
+        ));
+    }
+    let Some(q) = &solution.cofactor else {
+        return Some((m - 1, "the adjustment's cofactor matrix is singular".into()));
+    };
+    let mut worst: Option<(f64, usize, String)> = None;
+    for k in 0..m {
+        let i = off + k;
+        for (c, free) in state.free.iter().enumerate() {
+            for (col, p) in free.iter().enumerate() {
+                let j = solution.offsets[c] + col;
+                let r = q[(i, j)] / (q[(i, i)] * q[(j, j)]).sqrt();
+                if r.abs() > max_correlation && worst.as_ref().map_or(true, |w| r.abs() > w.0) {
+                    worst = Some((r.abs(), k, format!("camera {}'s {}", c + 1, p.name())));
+                }
+            }
+        }
+    }
+    worst.map(|(r, k, other)| {
+        (
+            k,
+            format!("correlation {r:.4} with {other} under the gauge (limit {max_correlation})"),
+        )
+    })
 }
 
 /// Per camera, each track's point (intersected with `models` from all its
@@ -1041,6 +1259,15 @@ fn diverged(
             }
         })
         .collect();
+    let all = media_unknowns(start, &options.free_media);
+    let state = State {
+        cameras: start.to_vec(),
+        free: Vec::new(),
+        held: Vec::new(),
+        media: Vec::new(),
+        media_held: Vec::new(),
+    };
+    let media = media_changes(&all, start, &state, None);
     SelfCalibration {
         cameras: start.to_vec(),
         report: SelfCalibrationReport {
@@ -1052,6 +1279,7 @@ fn diverged(
             sigma0_px: 0.0,
             rounds,
             cameras,
+            media,
             gauge: gauge_report(gauge, start, start),
         },
     }

@@ -46,8 +46,37 @@ pub struct SelfCalibrationReport {
     pub rounds: Vec<RoundReport>,
     /// Per camera.
     pub cameras: Vec<CameraSelfCalibration>,
+    /// The media terms asked to be adjusted (`--free glass,n_wall,...`):
+    /// each scalar unknown's change with its sigma, or why it was held.
+    /// Empty when none was asked for.
+    pub media: Vec<MediaChange>,
     /// How the gauge (7 dof) was fixed.
     pub gauge: GaugeReport,
+}
+
+/// One scalar media unknown (a glass vector's component, shared by the
+/// cameras behind one wall, an index, the thickness).
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct MediaChange {
+    /// `glass_x`, `glass_y`, `glass_z`, `n_wall`, `n_object`, `thickness`.
+    pub name: String,
+    /// The cameras that share it (1-based, as in OpenPTV's file names).
+    pub cameras: Vec<usize>,
+    /// Value in the input calibration (mm, or an index).
+    pub before: f64,
+    /// Value in the refined one.
+    pub after: f64,
+    /// After minus before.
+    pub change: f64,
+    /// Standard deviation (sigma0 times the root of its cofactor under the
+    /// gauge constraints), where adjusted.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub sigma: Option<f64>,
+    /// Free (adjusted) or held (with the reason).
+    pub status: ParameterStatus,
+    /// Why it was held.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub reason: Option<String>,
 }
 
 /// One round: match, select, adjust.
@@ -236,9 +265,10 @@ pub struct CameraSelfCalibration {
     pub map_after: DisparityMap,
     /// The 16 parameters.
     pub parameters: Vec<ParameterChange>,
-    /// The glass vector (mm): held, and why.
+    /// The glass vector (mm), after.
     pub glass_vector_mm: [f64; 3],
-    /// Why the glass vector was not adjusted.
+    /// Whether the glass vector was adjusted (see the report's `media`),
+    /// or why it was held.
     pub glass_vector_reason: String,
 }
 
