@@ -359,26 +359,14 @@ pub fn self_calibrate(
         };
         let (tracks, matched_by_cameras, candidate_count) = if band > VOTE_ABOVE_PX {
             let radius = (band / 8.0).clamp(0.5, 1.0);
-            // Wide bands give many candidates per target: a few frames
-            // (about 8,000 targets of the first camera) are enough for
-            // the peaks.
-            let per_frame = frames.iter().map(|f| f[0].len()).max().unwrap_or(1).max(1);
-            let take = if band > 2.0 {
-                8000usize.div_ceil(per_frame).clamp(1, frames.len())
-            } else {
-                frames.len()
-            };
             let vote = vote::vote(
-                &frames[..take],
+                frames,
                 &models,
                 &volume,
                 options.grid,
                 band,
                 radius,
-                // All cameras: a ghost group near the peaks in every
-                // camera is rare; with one camera fewer, ghosts that fit a
-                // wrong rig outvote the true groups (simulated).
-                n,
+                min_cameras.max(3.min(n)),
                 options.max_particles,
                 cancel,
             )?;
@@ -474,9 +462,14 @@ pub fn self_calibrate(
             outcome = Outcome::Converged;
             break;
         }
+        // After a vote the groups are clean and their residuals measure
+        // the rig's error: the band may drop to them at once. After a
+        // match, by at most 30% a round (a band that shrinks too fast
+        // loses the true groups before the rig has followed).
+        let shrink = if band > VOTE_ABOVE_PX { 1.0 } else { 0.7 };
         band = (4.0 * rms_after).clamp(
             options.final_tolerance_px,
-            (0.7 * band).max(options.final_tolerance_px),
+            (shrink * band).max(options.final_tolerance_px),
         );
     }
     let sigma0 = last
