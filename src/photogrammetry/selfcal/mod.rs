@@ -7,7 +7,20 @@
 //! The loop, per round:
 //!
 //! 1. **Match** every frame with the current rig and a band (the first
-//!    round's is wide: the user's tolerance) ([`Matcher`]).
+//!    round's is wide: the user's tolerance) ([`Matcher`]). In bands wider
+//!    than 1 px the best-fitting groups are mostly ghosts (2,000 particles
+//!    a frame, 8 px: 1 true group of 1,721), so those rounds **vote**
+//!    instead (`vote.rs`, after Wieneke 2008, section 3): per camera pair,
+//!    the peak of the signed distances of candidate targets to the
+//!    epipolar curves, per image region and depth; then the groups whose
+//!    every pair lies at its peak, unambiguous ones only. Simulated (4
+//!    cameras, 10 frames x 2,000 particles, 0.1 px noise): from a rig
+//!    moved by 0.7 mm and 1 mrad (4.7 px RMS) the vote keeps 863 groups
+//!    in an 8 px band, from 2 mm and 3 mrad (13.8 px) 777 in a 20 px band;
+//!    one adjustment of them leaves 0.10 px, and the next round matches
+//!    at the final band. After a vote the band drops to 4 times the
+//!    adjusted groups' RMS at once (they are clean); after a match by at
+//!    most 30% a round.
 //! 2. **Keep confident particles**: seen by at least `min_cameras` cameras
 //!    (3 by default, all if fewer), every target isolated in its image (no
 //!    other target within `isolation_px`: crowded targets are where wrong
