@@ -96,4 +96,5 @@
 pub mod cli;
 pub mod formats;
 pub mod photogrammetry;
+pub mod plot;
 pub mod service;

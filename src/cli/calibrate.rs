@@ -15,9 +15,10 @@ use crate::photogrammetry::calibrate::{self, CalibrationOptions, MarkObservation
 /// Arguments of `ptv calibrate`.
 #[derive(Debug, Args)]
 pub struct CalibrateArgs {
-    /// The setup: a calibration JSON with sensor and media of every camera;
-    /// its orientation values are only used for fixed parameters and, with
-    /// --image and no --reference, as starting values to identify marks.
+    /// The setup: a calibration JSON with sensor (image_size, pixel_size)
+    /// and media of every camera; its orientation (position, angles,
+    /// principal_distance) is optional, used only for fixed parameters and,
+    /// with --image and no --reference, as starting values to identify marks.
     #[arg(long, value_name = "SETUP_JSON")]
     pub calibration: PathBuf,
     /// The control points (OpenPTV calibration block: `id X Y Z` per line, mm).
@@ -115,7 +116,10 @@ pub(super) fn run(
     stdout: &mut dyn Write,
     stderr: &mut dyn Write,
 ) -> Result<(), CliError> {
-    let setup = formats::calibration::parameters_from_json(
+    let formats::calibration::Setup {
+        cameras: setup,
+        unknown,
+    } = formats::calibration::setup_from_json(
         &formats::read_text(&args.calibration)?,
         &args.calibration.display().to_string(),
     )?;
@@ -123,7 +127,10 @@ pub(super) fn run(
         &formats::read_text(&args.control)?,
         &args.control.display().to_string(),
     )?;
-    let options = options(args)?;
+    let options = CalibrationOptions {
+        unknown,
+        ..options(args)?
+    };
     let result = if args.image.is_empty() {
         super::check_camera_count(
             &args.calibration,
@@ -152,6 +159,17 @@ pub(super) fn run(
                 ("--reference", "reference file"),
             )?;
         }
+        let references = if args.reference.is_empty() {
+            vec![Vec::new(); setup.len()]
+        } else {
+            args.reference
+                .iter()
+                .map(|p| read_marks(p))
+                .collect::<Result<Vec<_>, _>>()?
+        };
+        // Before reading any image: can every camera's marks be identified?
+        let counts: Vec<usize> = references.iter().map(Vec::len).collect();
+        calibrate::check_mark_inputs(&setup, &control_points, &counts, &options)?;
         let parameters = calibrate::mark_detection_parameters(&args.detection.parameters())?;
         let preprocessing = super::detect::read_camera_preprocessing(
             &args.calibration,
@@ -188,14 +206,6 @@ pub(super) fn run(
             )?;
             marks.push(found);
         }
-        let references = if args.reference.is_empty() {
-            vec![Vec::new(); setup.len()]
-        } else {
-            args.reference
-                .iter()
-                .map(|p| read_marks(p))
-                .collect::<Result<Vec<_>, _>>()?
-        };
         calibrate::calibrate_from_marks(&setup, &control_points, &marks, &references, &options)?
     };
     let cameras = result.camera_models()?;

@@ -92,6 +92,10 @@ pub struct SelfCalibrateArgs {
     /// Where to write the refined calibration JSON.
     #[arg(short, long, value_name = "CALIBRATION_JSON")]
     pub output: PathBuf,
+    /// Also draw the report's disparity maps (per camera and sub-volume,
+    /// before and after) as a PNG picture to this file.
+    #[arg(long, value_name = "FILE")]
+    pub disparity_png: Option<PathBuf>,
 }
 
 fn flag(flag: &'static str, reason: impl Into<String>) -> CliError {
@@ -350,6 +354,14 @@ pub(super) fn run(
         &args.output,
         &formats::calibration::to_json_with_splitter(&refined, splitter),
     )?;
+    if let Some(path) = &args.disparity_png {
+        let png = crate::plot::disparity_png(&result.report)
+            .map_err(|e| flag("--disparity-png", e.to_string()))?;
+        std::fs::write(path, png).map_err(|reason| formats::FormatError::Io {
+            path: path.clone(),
+            reason,
+        })?;
+    }
     // The report holds only numbers, strings and enums: serialising it
     // cannot fail; should it, the message says so in the JSON.
     let json = serde_json::to_string_pretty(&result.report)

@@ -11,7 +11,13 @@
 //!
 //! Lengths in mm, angles in rad, pixel coordinates as in [`crate::photogrammetry::camera`].
 //! Walls are listed from the water outward, the first starting at the glass
-//! vector's plane. Optional fields and their defaults: `name` (`camN`),
+//! vector's plane. Every camera needs its sensor (`image_size`,
+//! `pixel_size`) and `media` (at least `n_object`). The orientation
+//! (`position`, `angles`, `principal_distance`) is required in a
+//! calibration ([`from_json`]) but may be left out of a setup
+//! ([`setup_from_json`]: `ptv calibrate --calibration`, the `setup` part of
+//! `/calibrations/solve`), whose orientation the calibration solves,
+//! starting from the DLT. Optional fields and their defaults: `name` (`camN`),
 //! `principal_point` (0, 0), `radial` (0, 0, 0), `decentering` (0, 0),
 //! `affine` (1, 0), `media.n_air` (1), `media.walls` (none),
 //! `media.glass_vector` (0, 0, 0; required when the media refract). Unknown
@@ -28,6 +34,7 @@ use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
 
 use super::FormatError;
+use crate::photogrammetry::calibrate::{setup_field, Parameter, ParameterSet};
 use crate::photogrammetry::{
     check_camera_name, Camera, CameraParameters, Distortion, Exterior, Interior, Media, Sensor,
     Splitter, Wall,
@@ -43,12 +50,24 @@ pub const MIN_CAMERAS: usize = 2;
 /// the 17th, without holding the rest.
 pub const MAX_CAMERAS: usize = crate::photogrammetry::correspond::MAX_CAMERAS;
 
-#[derive(Serialize, Deserialize)]
+/// The calibration JSON document (a calibration, or a calibration setup).
+/// Its schema (utoipa) documents the format for the service's OpenAPI
+/// document; the same structs parse it, so the two cannot disagree.
+#[derive(Serialize, Deserialize, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]
-struct CalibrationFile {
+#[schema(
+    as = CalibrationDocument,
+    description = "A rig's calibration JSON. As a calibration (POST /calibrations, stored calibrations) every camera gives its orientation (position, angles, principal_distance). As a setup (the `setup` part of POST /calibrations/solve, `ptv calibrate --calibration`) only the sensor (image_size, pixel_size) and media are needed: the orientation is solved from the control points, starting from the DLT; orientation values given are used for fixed parameters and, with images and no reference points, to identify the marks."
+)]
+pub struct CalibrationFile {
+    /// The cameras, 2 to 16, in camera order.
     #[serde(deserialize_with = "bounded_cameras")]
+    #[schema(min_items = 2, max_items = 16)]
     cameras: Vec<CameraJson>,
+    /// Optional: the cameras are views of one sensor through an image
+    /// splitter, `{"layout": "quadrants" | "left_right" | "top_bottom"}`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schema(value_type = Option<Object>)]
     splitter: Option<Splitter>,
 }
 
@@ -90,25 +109,59 @@ fn too_many_cameras(got: impl std::fmt::Display) -> String {
     )
 }
 
-#[derive(Serialize, Deserialize)]
+/// One camera of the calibration JSON.
+#[derive(Serialize, Deserialize, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]
-struct CameraJson {
+#[schema(as = CalibrationCamera)]
+pub struct CameraJson {
+    /// Optional: the camera's name, 1 to 64 characters usable in a file
+    /// name [default: camN, N from 1].
     #[serde(default)]
     name: Option<String>,
-    image_size: [u32; 2],
-    pixel_size: [f64; 2],
-    position: [f64; 3],
-    angles: [f64; 3],
-    principal_distance: f64,
+    // The sensor and the media are required; they are options here only so
+    // that a missing one gets a message saying what a camera needs.
+    /// Required: the sensor's size, [width, height] in pixels.
     #[serde(default)]
+    #[schema(required = true, value_type = Vec<u32>, min_items = 2, max_items = 2)]
+    image_size: Option<[u32; 2]>,
+    /// Required: the pixel pitch, [x, y] in mm.
+    #[serde(default)]
+    #[schema(required = true, value_type = Vec<f64>, min_items = 2, max_items = 2)]
+    pixel_size: Option<[f64; 2]>,
+    // The orientation: required in a calibration, optional in a setup.
+    /// Required in a calibration, optional in a setup: the projection
+    /// centre [X0, Y0, Z0] (mm).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schema(value_type = Option<Vec<f64>>, min_items = 3, max_items = 3)]
+    position: Option<[f64; 3]>,
+    /// Required in a calibration, optional in a setup: [omega, phi, kappa]
+    /// (rad).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schema(value_type = Option<Vec<f64>>, min_items = 3, max_items = 3)]
+    angles: Option<[f64; 3]>,
+    /// Required in a calibration, optional in a setup: c (mm, positive).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    principal_distance: Option<f64>,
+    /// Optional: [xh, yh] (mm) [default: 0, 0, the sensor's centre].
+    #[serde(default)]
+    #[schema(value_type = Vec<f64>, min_items = 2, max_items = 2)]
     principal_point: [f64; 2],
+    /// Optional: radial distortion [k1, k2, k3] [default: 0, 0, 0].
     #[serde(default)]
+    #[schema(value_type = Vec<f64>, min_items = 3, max_items = 3)]
     radial: [f64; 3],
+    /// Optional: decentering distortion [p1, p2] [default: 0, 0].
     #[serde(default)]
+    #[schema(value_type = Vec<f64>, min_items = 2, max_items = 2)]
     decentering: [f64; 2],
+    /// Optional: [scx, shear] [default: 1, 0].
     #[serde(default = "identity_affine")]
+    #[schema(value_type = Vec<f64>, min_items = 2, max_items = 2)]
     affine: [f64; 2],
-    media: MediaJson,
+    /// Required: the refracting media between the camera and the object.
+    #[serde(default)]
+    #[schema(required = true, value_type = MediaJson)]
+    media: Option<MediaJson>,
 }
 
 fn identity_affine() -> [f64; 2] {
@@ -119,43 +172,97 @@ fn one() -> f64 {
     1.0
 }
 
-#[derive(Serialize, Deserialize)]
+/// The media of a camera.
+#[derive(Serialize, Deserialize, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]
-struct MediaJson {
+#[schema(as = CalibrationMedia)]
+pub struct MediaJson {
+    /// Optional: the refractive index on the camera's side [default: 1].
     #[serde(default = "one")]
     n_air: f64,
+    /// Optional: the walls, from the object outward [default: none].
     #[serde(default)]
     walls: Vec<WallJson>,
+    /// Required: the refractive index of the object's medium (1 in air).
     n_object: f64,
+    /// Optional: the vector from the origin to the nearest wall's plane,
+    /// normal to it (mm) [default: 0, 0, 0; required when the media
+    /// refract].
     #[serde(default)]
+    #[schema(value_type = Vec<f64>, min_items = 3, max_items = 3)]
     glass_vector: [f64; 3],
 }
 
-#[derive(Serialize, Deserialize)]
+/// A wall of the media.
+#[derive(Serialize, Deserialize, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]
-struct WallJson {
+#[schema(as = CalibrationWall)]
+pub struct WallJson {
+    /// Required: its refractive index.
     n: f64,
+    /// Required: its thickness (mm).
     thickness: f64,
 }
 
 impl CameraJson {
-    fn into_parameters(self, index: usize) -> CameraParameters {
-        CameraParameters {
+    /// The camera's parameters, with placeholders (zeros) for the
+    /// orientation the document leaves out, and which parameters those are.
+    fn into_parameters(
+        self,
+        index: usize,
+        source: &str,
+    ) -> Result<(CameraParameters, ParameterSet), FormatError> {
+        let missing = |field: &str, what: &str| {
+            FormatError::invalid(
+                source,
+                format!("cameras[{index}].{field}"),
+                format!(
+                    "missing: every camera needs its sensor and media ({what}); the \
+                     orientation (position, angles, principal_distance) may be left out of a \
+                     setup"
+                ),
+            )
+        };
+        let image_size = self
+            .image_size
+            .ok_or_else(|| missing("image_size", "image_size: [width, height] in pixels"))?;
+        let pixel_size = self
+            .pixel_size
+            .ok_or_else(|| missing("pixel_size", "pixel_size: [x, y] in mm"))?;
+        let media = self.media.ok_or_else(|| {
+            missing(
+                "media",
+                "media: at least {\"n_object\": n}, with walls and glass_vector if they refract",
+            )
+        })?;
+        let mut unknown = ParameterSet::empty();
+        if self.position.is_none() {
+            unknown = unknown | ParameterSet::position();
+        }
+        if self.angles.is_none() {
+            unknown = unknown | ParameterSet::rotation();
+        }
+        if self.principal_distance.is_none() {
+            unknown.insert(Parameter::C);
+        }
+        let position = self.position.unwrap_or_default();
+        let angles = self.angles.unwrap_or_default();
+        let parameters = CameraParameters {
             name: self.name.unwrap_or_else(|| format!("cam{}", index + 1)),
             sensor: Sensor {
-                width: self.image_size[0],
-                height: self.image_size[1],
-                pixel_size_x: self.pixel_size[0],
-                pixel_size_y: self.pixel_size[1],
+                width: image_size[0],
+                height: image_size[1],
+                pixel_size_x: pixel_size[0],
+                pixel_size_y: pixel_size[1],
             },
             exterior: Exterior {
-                position: Vector3::from(self.position),
-                omega: self.angles[0],
-                phi: self.angles[1],
-                kappa: self.angles[2],
+                position: Vector3::from(position),
+                omega: angles[0],
+                phi: angles[1],
+                kappa: angles[2],
             },
             interior: Interior {
-                c: self.principal_distance,
+                c: self.principal_distance.unwrap_or_default(),
                 xh: self.principal_point[0],
                 yh: self.principal_point[1],
             },
@@ -169,9 +276,8 @@ impl CameraJson {
                 shear: self.affine[1],
             },
             media: Media {
-                n_air: self.media.n_air,
-                walls: self
-                    .media
+                n_air: media.n_air,
+                walls: media
                     .walls
                     .into_iter()
                     .map(|w| Wall {
@@ -179,25 +285,26 @@ impl CameraJson {
                         thickness: w.thickness,
                     })
                     .collect(),
-                n_object: self.media.n_object,
-                glass_vector: Vector3::from(self.media.glass_vector),
+                n_object: media.n_object,
+                glass_vector: Vector3::from(media.glass_vector),
             },
-        }
+        };
+        Ok((parameters, unknown))
     }
 
     fn from_parameters(p: &CameraParameters) -> CameraJson {
         CameraJson {
             name: Some(p.name.clone()),
-            image_size: [p.sensor.width, p.sensor.height],
-            pixel_size: [p.sensor.pixel_size_x, p.sensor.pixel_size_y],
-            position: p.exterior.position.into(),
-            angles: [p.exterior.omega, p.exterior.phi, p.exterior.kappa],
-            principal_distance: p.interior.c,
+            image_size: Some([p.sensor.width, p.sensor.height]),
+            pixel_size: Some([p.sensor.pixel_size_x, p.sensor.pixel_size_y]),
+            position: Some(p.exterior.position.into()),
+            angles: Some([p.exterior.omega, p.exterior.phi, p.exterior.kappa]),
+            principal_distance: Some(p.interior.c),
             principal_point: [p.interior.xh, p.interior.yh],
             radial: [p.distortion.k1, p.distortion.k2, p.distortion.k3],
             decentering: [p.distortion.p1, p.distortion.p2],
             affine: [p.distortion.scx, p.distortion.shear],
-            media: MediaJson {
+            media: Some(MediaJson {
                 n_air: p.media.n_air,
                 walls: p
                     .media
@@ -210,14 +317,45 @@ impl CameraJson {
                     .collect(),
                 n_object: p.media.n_object,
                 glass_vector: p.media.glass_vector.into(),
-            },
+            }),
         }
     }
 }
 
-/// Parses and validates a calibration JSON document.
+/// Parses and validates a calibration JSON document: every camera's
+/// orientation must be given.
 pub fn from_json(text: &str, source: &str) -> Result<Vec<Camera>, FormatError> {
-    from_parameters(parameters_from_json(text, source)?, source)
+    from_parameters(oriented(setup_from_json(text, source)?, source)?, source)
+}
+
+/// A calibration setup: the cameras' parameters, and per camera which of
+/// them the document leaves out (the orientation: `position`, `angles`,
+/// `principal_distance`), whose values are placeholders (zeros). Pass
+/// `unknown` as [`CalibrationOptions::unknown`](crate::photogrammetry::calibrate::CalibrationOptions::unknown).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Setup {
+    /// The cameras, in the document's order.
+    pub cameras: Vec<CameraParameters>,
+    /// Per camera, the parameters the document leaves out.
+    pub unknown: Vec<ParameterSet>,
+}
+
+/// The cameras of a setup whose orientation is complete; else an error
+/// naming the first missing field.
+fn oriented(setup: Setup, source: &str) -> Result<Vec<CameraParameters>, FormatError> {
+    for (i, unknown) in setup.unknown.iter().enumerate() {
+        if let Some(parameter) = unknown.iter().next() {
+            return Err(FormatError::invalid(
+                source,
+                format!("cameras[{i}].{}", setup_field(parameter)),
+                "missing: a calibration gives every camera's orientation (position, angles, \
+                 principal_distance); only a setup (`ptv calibrate --calibration`, the `setup` \
+                 part of /calibrations/solve) may leave it out, to be solved"
+                    .to_owned(),
+            ));
+        }
+    }
+    Ok(setup.cameras)
 }
 
 /// Parses and validates a calibration JSON document and its splitter, if
@@ -228,7 +366,7 @@ pub fn from_json_with_splitter(
 ) -> Result<(Vec<Camera>, Option<Splitter>), FormatError> {
     let file = parse_file(text, source)?;
     let splitter = file.splitter;
-    let cameras = from_parameters(camera_parameters(file, source)?, source)?;
+    let cameras = from_parameters(oriented(camera_parameters(file, source)?, source)?, source)?;
     if let Some(splitter) = splitter {
         if splitter.views() != cameras.len() {
             return Err(FormatError::invalid(
@@ -267,11 +405,18 @@ pub fn from_json_with_splitter(
 
 /// Parses a calibration JSON document into plain parameters without
 /// validating them as cameras: for a calibration setup, whose orientation
-/// values are only optional starting values.
+/// values are only optional starting values. Orientation the document
+/// leaves out is zeros: use [`setup_from_json`] to know which.
 pub fn parameters_from_json(
     text: &str,
     source: &str,
 ) -> Result<Vec<CameraParameters>, FormatError> {
+    Ok(setup_from_json(text, source)?.cameras)
+}
+
+/// Parses a calibration setup: sensor and media required, orientation
+/// optional (see [`Setup`]); not validated as cameras.
+pub fn setup_from_json(text: &str, source: &str) -> Result<Setup, FormatError> {
     camera_parameters(parse_file(text, source)?, source)
 }
 
@@ -289,16 +434,15 @@ fn parse_file(text: &str, source: &str) -> Result<CalibrationFile, FormatError> 
     Ok(file)
 }
 
-fn camera_parameters(
-    file: CalibrationFile,
-    source: &str,
-) -> Result<Vec<CameraParameters>, FormatError> {
-    let parameters: Vec<CameraParameters> = file
+fn camera_parameters(file: CalibrationFile, source: &str) -> Result<Setup, FormatError> {
+    let (parameters, unknown): (Vec<CameraParameters>, Vec<ParameterSet>) = file
         .cameras
         .into_iter()
         .enumerate()
-        .map(|(i, camera)| camera.into_parameters(i))
-        .collect();
+        .map(|(i, camera)| camera.into_parameters(i, source))
+        .collect::<Result<Vec<_>, _>>()?
+        .into_iter()
+        .unzip();
     // A setup's cameras are not validated as cameras (their orientation is
     // only a start), but their names become file names all the same.
     for (i, p) in parameters.iter().enumerate() {
@@ -306,7 +450,10 @@ fn camera_parameters(
             FormatError::invalid(source, format!("cameras[{i}].{}", e.field), e.reason)
         })?;
     }
-    Ok(parameters)
+    Ok(Setup {
+        cameras: parameters,
+        unknown,
+    })
 }
 
 /// Validates a list of camera parameters as a calibration:
@@ -539,6 +686,57 @@ mod tests {
             error.starts_with("cal.json: splitter.layout: the quadrants layout has 4 views")
                 && error.contains("has 2 cameras"),
             "{error}"
+        );
+    }
+
+    /// The schema's required fields of a camera are exactly those a setup
+    /// cannot leave out, and its optional ones can be left out of a setup.
+    #[test]
+    fn the_schema_says_which_setup_fields_are_required() {
+        let schema = serde_json::to_value(<CameraJson as utoipa::PartialSchema>::schema()).unwrap();
+        let required: Vec<&str> = schema["required"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|v| v.as_str().unwrap())
+            .collect();
+        assert_eq!(required, ["image_size", "pixel_size", "media"]);
+        let two: serde_json::Value = serde_json::from_str(TWO_CAMERAS).unwrap();
+        for field in schema["properties"].as_object().unwrap().keys() {
+            let mut setup = two.clone();
+            setup["cameras"][0].as_object_mut().unwrap().remove(field);
+            let parsed = setup_from_json(&setup.to_string(), "setup.json");
+            if required.contains(&field.as_str()) {
+                let message = parsed.unwrap_err().to_string();
+                assert!(
+                    message.starts_with(&format!("setup.json: cameras[0].{field}: missing")),
+                    "{message}"
+                );
+            } else {
+                let parsed = parsed.unwrap_or_else(|e| panic!("{field}: {e}"));
+                let orientation = ["position", "angles", "principal_distance"];
+                assert_eq!(
+                    parsed.unknown[0].is_empty(),
+                    !orientation.contains(&field.as_str()),
+                    "{field}"
+                );
+                assert!(parsed.unknown[1].is_empty());
+            }
+        }
+        // Without its orientation, a camera is a setup's, not a calibration's.
+        let mut bare = two.clone();
+        for field in ["position", "angles", "principal_distance"] {
+            bare["cameras"][1].as_object_mut().unwrap().remove(field);
+        }
+        let setup = setup_from_json(&bare.to_string(), "setup.json").unwrap();
+        assert_eq!(
+            setup.unknown[1],
+            ParameterSet::exterior() | ParameterSet::of(&[Parameter::C])
+        );
+        let message = error_of(&bare.to_string());
+        assert!(
+            message.starts_with("cal.json: cameras[1].position: missing: a calibration gives"),
+            "{message}"
         );
     }
 }

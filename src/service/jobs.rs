@@ -921,7 +921,7 @@ pub fn solve(
         match file.part.as_str() {
             "setup" => {
                 let text = part_text(bytes, &source)?;
-                setup = Some(formats::calibration::parameters_from_json(&text, &source)?);
+                setup = Some(formats::calibration::setup_from_json(&text, &source)?);
             }
             "control" => {
                 let text = part_text(bytes, &source)?;
@@ -940,9 +940,15 @@ pub fn solve(
             other => return Err(SolveError::UnknownPart(other.to_owned())),
         }
     }
-    let setup = setup.ok_or(SolveError::Missing("setup"))?;
+    let formats::calibration::Setup {
+        cameras: setup,
+        unknown,
+    } = setup.ok_or(SolveError::Missing("setup"))?;
     let control_points = control_points.ok_or(SolveError::Missing("control"))?;
-    let calibration_options = options.calibration_options()?;
+    let calibration_options = calibrate::CalibrationOptions {
+        unknown,
+        ..options.calibration_options()?
+    };
     let result = if images.is_empty() {
         calibrate::calibrate(&setup, &control_points, &observations, &calibration_options)
     } else {

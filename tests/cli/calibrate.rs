@@ -18,7 +18,9 @@ struct Files {
 
 /// A 3-camera rig in water with lens errors, a 3D target of 120 points,
 /// `setup.json` whose orientation is all zeros (no starting values),
-/// `block.txt` and `camN.txt` (0.05 px noise).
+/// `oriented.json` with the true orientation, `bare.json` without any
+/// (no `position`, `angles`, `principal_distance`, `principal_point`; all
+/// three with zero distortion), `block.txt` and `camN.txt` (0.05 px noise).
 fn files() -> Files {
     let mut rng = simulate::rng(21);
     let spec = RigSpec::calibration(3);
@@ -46,6 +48,27 @@ fn files() -> Files {
         camera["affine"] = serde_json::json!([1.0, 0.0]);
     }
     std::fs::write(dir.path().join("setup.json"), setup.to_string()).unwrap();
+    let mut oriented: serde_json::Value = setup.clone();
+    let mut bare: serde_json::Value = setup.clone();
+    for (k, truth) in truth.iter().enumerate() {
+        let p = truth.parameters();
+        let camera = &mut oriented["cameras"][k];
+        camera["position"] = serde_json::json!(p.exterior.position.as_slice());
+        camera["angles"] = serde_json::json!([p.exterior.omega, p.exterior.phi, p.exterior.kappa]);
+        camera["principal_distance"] = serde_json::json!(p.interior.c);
+        camera["principal_point"] = serde_json::json!([p.interior.xh, p.interior.yh]);
+        let camera = bare["cameras"][k].as_object_mut().unwrap();
+        for field in [
+            "position",
+            "angles",
+            "principal_distance",
+            "principal_point",
+        ] {
+            camera.remove(field);
+        }
+    }
+    std::fs::write(dir.path().join("oriented.json"), oriented.to_string()).unwrap();
+    std::fs::write(dir.path().join("bare.json"), bare.to_string()).unwrap();
     std::fs::write(dir.path().join("block.txt"), format_control_points(&target)).unwrap();
     for (k, marks) in observations.iter().enumerate() {
         std::fs::write(
@@ -149,10 +172,11 @@ fn calibrates_from_images_and_reference_points() {
     let mut rng = simulate::rng(22);
     let points: Vec<Point3<f64>> = f.target.iter().map(|p| p.position).collect();
     let rendered = simulate::render_frame(&f.truth, &points, &RenderSpec::eight_bit(8.0), &mut rng);
+    // A setup without orientation: the reference points start each camera.
     let mut args: Vec<String> = [
         "calibrate",
         "--calibration",
-        "setup.json",
+        "bare.json",
         "--control",
         "block.txt",
         "--max-pixels",
@@ -281,4 +305,152 @@ fn bad_calibration_input_fails_in_one_line() {
         f.dir.path(),
     );
     fails(&out, &["bad.txt: line 2", "x must be a finite number"]);
+}
+
+/// `ptv calibrate` on observation files, with `setup` as the setup.
+fn calibrate_with(f: &Files, setup: &str, output: &str) -> serde_json::Value {
+    let out = ptv(
+        &[
+            "calibrate",
+            "--calibration",
+            setup,
+            "--control",
+            "block.txt",
+            "--observations",
+            "cam1.txt",
+            "--observations",
+            "cam2.txt",
+            "--observations",
+            "cam3.txt",
+            "--fix",
+            "k3,scx",
+            "--check-every",
+            "3",
+            "-o",
+            output,
+        ],
+        f.dir.path(),
+    );
+    serde_json::from_str(&succeeds(&out)).unwrap()
+}
+
+/// A setup with sensor and media only calibrates as well as one with the
+/// true orientation: the start comes from the DLT on the observed points.
+#[test]
+fn calibrates_a_setup_without_orientation() {
+    let f = files();
+    let bare = calibrate_with(&f, "bare.json", "bare_cal.json");
+    let oriented = calibrate_with(&f, "oriented.json", "oriented_cal.json");
+    positions_close(&f.dir.path().join("bare_cal.json"), &f.truth, &bare);
+    positions_close(&f.dir.path().join("oriented_cal.json"), &f.truth, &oriented);
+    let rmse = |report: &serde_json::Value| report["check_points"]["rmse_mm"].as_f64().unwrap();
+    println!(
+        "check point RMSE: without orientation {:.5} mm, with the true one {:.5} mm",
+        rmse(&bare),
+        rmse(&oriented)
+    );
+    // The same accuracy: both adjustments converge to the same least-squares
+    // minimum, so the check points agree to the adjustment's convergence
+    // tolerance, far below the 0.05 px noise's effect on them (a few um).
+    assert!(
+        (rmse(&bare) - rmse(&oriented)).abs() < 1e-3 * rmse(&oriented),
+        "{} vs {}",
+        rmse(&bare),
+        rmse(&oriented)
+    );
+    for (a, b) in bare["cameras"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .zip(oriented["cameras"].as_array().unwrap())
+    {
+        let (a, b) = (
+            a["sigma0_px"].as_f64().unwrap(),
+            b["sigma0_px"].as_f64().unwrap(),
+        );
+        assert!((a - b).abs() < 1e-3 * b, "sigma0 {a} vs {b}");
+    }
+    // A calibration is not a setup: it must give the orientation.
+    let text = std::fs::read_to_string(f.dir.path().join("bare.json")).unwrap();
+    let error = calibration::from_json(&text, "bare.json")
+        .unwrap_err()
+        .to_string();
+    assert!(
+        error.starts_with("bare.json: cameras[0].position: missing")
+            && error.contains("only a setup"),
+        "{error}"
+    );
+}
+
+/// What a setup without orientation cannot do is refused with what to give
+/// instead; a camera without its sensor or media is named.
+#[test]
+fn bad_setups_say_what_they_need() {
+    let f = files();
+    let run = |setup: &str, extra: &[&str]| {
+        let mut args = vec![
+            "calibrate",
+            "--calibration",
+            setup,
+            "--control",
+            "block.txt",
+        ];
+        args.extend_from_slice(extra);
+        args.extend_from_slice(&["-o", "cal.json"]);
+        ptv(&args, f.dir.path())
+    };
+    let observations = [
+        "--observations",
+        "cam1.txt",
+        "--observations",
+        "cam2.txt",
+        "--observations",
+        "cam3.txt",
+    ];
+    // Fixing a parameter the setup gives no value for.
+    let mut fixed = observations.to_vec();
+    fixed.extend(["--fix", "c"]);
+    fails(
+        &run("bare.json", &fixed),
+        &[
+            "camera 0 (cam1): c is fixed, but the setup gives no principal_distance",
+            "do not fix it",
+        ],
+    );
+    // Images without reference points: nothing to project the control
+    // points with. Refused before any image is read (these do not exist).
+    fails(
+        &run(
+            "bare.json",
+            &[
+                "--image", "no1.png", "--image", "no2.png", "--image", "no3.png",
+            ],
+        ),
+        &[
+            "camera 0 (cam1): its marks must be identified in the image",
+            "no position, angles, principal_distance",
+            "give reference points",
+        ],
+    );
+    // Missing sensor or media.
+    let bare: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(f.dir.path().join("bare.json")).unwrap())
+            .unwrap();
+    for (field, needle) in [
+        ("image_size", "[width, height] in pixels"),
+        ("pixel_size", "[x, y] in mm"),
+        ("media", "n_object"),
+    ] {
+        let mut setup = bare.clone();
+        setup["cameras"][1].as_object_mut().unwrap().remove(field);
+        std::fs::write(f.dir.path().join("broken.json"), setup.to_string()).unwrap();
+        fails(
+            &run("broken.json", &observations),
+            &[
+                &format!("broken.json: cameras[1].{field}: missing"),
+                "every camera needs its sensor and media",
+                needle,
+            ],
+        );
+    }
 }

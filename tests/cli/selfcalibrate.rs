@@ -304,3 +304,133 @@ fn free_glass_reports_each_walls_vector() {
     }
     assert!(dir.path().join("refined.json").exists());
 }
+
+/// `--disparity-png` draws the report's disparity maps: a PNG of the
+/// layout's size with an arrow (the arrow colour) starting at the centre of
+/// every cell that has particles and reaching towards its mean disparity,
+/// and none in the cells without.
+#[test]
+fn draws_the_disparity_maps_as_a_png() {
+    use ptv::plot::disparity::{DisparityLayout, ARROW, EMPTY};
+    let dir = tempfile::tempdir().unwrap();
+    calibration(dir.path());
+    let mut args = vec!["selfcalibrate", "--calibration", "cal.json"];
+    let p = patterns();
+    for t in &p {
+        args.extend(["--targets", t.as_str()]);
+    }
+    // OpenPTV's band on this recording (eps0 = 0.2 mm, about 17 px): the
+    // input calibration is some px off.
+    args.extend([
+        "--frames",
+        "10001..10004",
+        "--tolerance",
+        "16.7",
+        "-o",
+        "refined.json",
+        "--disparity-png",
+        "maps.png",
+    ]);
+    let out = ptv(&args, dir.path());
+    assert!(out.status.success(), "{out:?}");
+    let report: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let image = image::open(dir.path().join("maps.png")).unwrap().to_rgb8();
+
+    let grid: Vec<usize> = report["grid"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v.as_u64().unwrap() as usize)
+        .collect();
+    let grid = [grid[0], grid[1], grid[2]];
+    let cameras = report["cameras"].as_array().unwrap();
+    let names: Vec<&str> = cameras
+        .iter()
+        .map(|c| c["name"].as_str().unwrap())
+        .collect();
+    let maps = |c: &serde_json::Value| {
+        [
+            (false, c["map_before"].clone()),
+            (true, c["map_after"].clone()),
+        ]
+    };
+    let vector = |cell: &serde_json::Value| {
+        (
+            cell["mean_dx_px"].as_f64().unwrap(),
+            cell["mean_dy_px"].as_f64().unwrap(),
+        )
+    };
+    let max = cameras
+        .iter()
+        .flat_map(maps)
+        .flat_map(|(_, m)| m["cells"].as_array().unwrap().clone())
+        .map(|cell| {
+            let (x, y) = vector(&cell);
+            x.hypot(y)
+        })
+        .fold(0.0, f64::max);
+    let layout = DisparityLayout::new(grid, &names, max).unwrap();
+    assert_eq!(image.dimensions(), (layout.width, layout.height));
+    // Arrow pixels within `r` of a point.
+    let arrow_near = |(x, y): (f64, f64), r: i64| {
+        (-r..=r).any(|dy| {
+            (-r..=r).any(|dx| {
+                image
+                    .get_pixel_checked((x as i64 + dx) as u32, (y as i64 + dy) as u32)
+                    .is_some_and(|p| *p == ARROW)
+            })
+        })
+    };
+    let (mut cells, mut long) = (0, 0);
+    for (c, camera) in cameras.iter().enumerate() {
+        for (after, map) in maps(camera) {
+            let mut filled = std::collections::HashSet::new();
+            for cell in map["cells"].as_array().unwrap() {
+                let index: Vec<usize> = cell["index"]
+                    .as_array()
+                    .unwrap()
+                    .iter()
+                    .map(|v| v.as_u64().unwrap() as usize)
+                    .collect();
+                let index = [index[0], index[1], index[2]];
+                filled.insert(index);
+                let centre = layout.cell_centre(c, after, index);
+                assert!(
+                    arrow_near(centre, 1),
+                    "camera {c} after {after} cell {index:?}"
+                );
+                cells += 1;
+                // Long arrows reach towards their vector: arrow pixels at
+                // two thirds of the way to the tip.
+                let tip = layout.arrow_tip(c, after, index, vector(cell));
+                if (tip.0 - centre.0).hypot(tip.1 - centre.1) > 6.0 {
+                    let on = (
+                        centre.0 + (tip.0 - centre.0) * 2.0 / 3.0,
+                        centre.1 + (tip.1 - centre.1) * 2.0 / 3.0,
+                    );
+                    assert!(
+                        arrow_near(on, 1),
+                        "camera {c} cell {index:?}: no shaft at {on:?}"
+                    );
+                    long += 1;
+                }
+            }
+            // Empty cells are drawn empty.
+            for k in 0..grid[2] {
+                for j in 0..grid[1] {
+                    for i in 0..grid[0] {
+                        if !filled.contains(&[i, j, k]) {
+                            let (x, y) = layout.cell_centre(c, after, [i, j, k]);
+                            assert_eq!(*image.get_pixel(x as u32, y as u32), EMPTY);
+                        }
+                    }
+                }
+            }
+        }
+    }
+    eprintln!(
+        "disparity picture {}x{}: {cells} cells with arrows, {long} long enough to trace",
+        layout.width, layout.height
+    );
+    assert!(cells > 100 && long > 5, "{cells} cells, {long} long arrows");
+}

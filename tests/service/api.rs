@@ -16,6 +16,64 @@ const CONTROL_POINTS: usize = 150;
 /// Noise of their measured images (px).
 const CONTROL_NOISE_PX: f64 = 0.05;
 
+/// `/calibrations/solve` from a setup without orientation fields at all
+/// (sensor and media only) reaches the accuracy of the same setup with
+/// orientation values: the start comes from the DLT on the observed points.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn solves_a_setup_without_orientation_fields() {
+    let app = spawn_app().await;
+    let rig = rig();
+    let input = rig.solve_input(CONTROL_POINTS, CONTROL_NOISE_PX, 7);
+    let mut reports = Vec::new();
+    for setup in [input.bare_setup(None), input.setup.clone()] {
+        let form = Form::new()
+            .text("setup", setup)
+            .text("control", input.control.clone())
+            .text("options", json!({"check_every": 5}).to_string());
+        let form = input
+            .observations
+            .iter()
+            .fold(form, |form, text| form.text("observations", text.clone()));
+        let (status, body) = app.solve(form).await;
+        assert_eq!(status, 202, "{body}");
+        let job = app.wait_for_job(body["job_id"].as_i64().unwrap()).await;
+        assert_eq!(job["state"], "succeeded", "{job}");
+        let (status, solved) = app
+            .get_json(
+                job["result"]
+                    .as_str()
+                    .unwrap()
+                    .strip_prefix("/api/v1")
+                    .unwrap(),
+            )
+            .await;
+        assert_eq!(status, 200, "{solved}");
+        reports.push(solved["report"].clone());
+    }
+    let rmse = |report: &Value| report["check_points"]["rmse_mm"].as_f64().unwrap();
+    let (bare, oriented) = (rmse(&reports[0]), rmse(&reports[1]));
+    eprintln!("check-point RMSE: setup without orientation {bare:.5} mm, with it {oriented:.5} mm");
+    // Both converge to the same least-squares minimum: equal to the
+    // adjustment's convergence tolerance, far below the effect of the
+    // 0.05 px noise (the RMSE itself, some um).
+    assert!(
+        (bare - oriented).abs() < 1e-3 * oriented,
+        "{bare} vs {oriented}"
+    );
+    for report in &reports {
+        for camera in report["cameras"].as_array().unwrap() {
+            let sigma0 = camera["sigma0_px"].as_f64().unwrap();
+            // 120 resection points, redundancy about 224: s/sigma scatters
+            // by about 5%.
+            assert!(
+                (sigma0 / CONTROL_NOISE_PX - 1.0).abs() < 0.25,
+                "sigma0 {sigma0}"
+            );
+        }
+    }
+    app.stop().await;
+}
+
 /// The synthetic experiment end to end: the rig calibrated through
 /// `/calibrations/solve` from a setup with no orientation, control points
 /// and their noisy images, then a sequence with that calibration, 20

@@ -326,7 +326,8 @@ async fn bad_solve_requests_get_their_4xx_and_store_nothing() {
         }
         form
     };
-    let cases: Vec<(&str, Form, u16, &str)> = vec![
+    let cases: Vec<(&str, Form, u16, &str)> =
+        vec![
         (
             "missing control",
             with(&input.setup, None, &input.observations),
@@ -413,6 +414,46 @@ async fn bad_solve_requests_get_their_4xx_and_store_nothing() {
             ),
             422,
             "5 control points given; a calibration needs at least 6",
+        ),
+        (
+            "a fixed parameter the setup gives no value for",
+            with(&input.bare_setup(None), Some(&input.control), &input.observations)
+                .text("options", json!({"fix": ["c"]}).to_string()),
+            422,
+            "camera 0 (cam1): c is fixed, but the setup gives no principal_distance",
+        ),
+        (
+            "images of cameras without orientation or reference points",
+            (0..4).fold(
+                Form::new()
+                    .text("setup", input.bare_setup(None))
+                    .text("control", input.control.clone()),
+                |form, _| form.part("image", Part::bytes(b"not looked at".to_vec())),
+            ),
+            422,
+            "its marks must be identified in the image, but the setup gives no position, \
+             angles, principal_distance to project the control points with, and no reference \
+             points were given; give reference points",
+        ),
+        (
+            "a setup camera without its sensor",
+            with(
+                &input.bare_setup(Some("image_size")),
+                Some(&input.control),
+                &input.observations,
+            ),
+            422,
+            "part `setup`: cameras[1].image_size: missing: every camera needs its sensor and media",
+        ),
+        (
+            "a setup camera without its media",
+            with(
+                &input.bare_setup(Some("media")),
+                Some(&input.control),
+                &input.observations,
+            ),
+            422,
+            "cameras[1].media: missing",
         ),
         (
             "unknown part",

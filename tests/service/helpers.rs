@@ -483,6 +483,30 @@ impl Rig {
 }
 
 impl SolveInput {
+    /// The setup with the orientation fields removed (`position`, `angles`,
+    /// `principal_distance`): sensor and media only. With `drop`, that
+    /// field of camera 1 goes too.
+    pub fn bare_setup(&self, drop: Option<&str>) -> String {
+        let mut setup: Value = serde_json::from_str(&self.setup).unwrap();
+        for (k, camera) in setup["cameras"]
+            .as_array_mut()
+            .unwrap()
+            .iter_mut()
+            .enumerate()
+        {
+            let camera = camera.as_object_mut().unwrap();
+            for field in ["position", "angles", "principal_distance"] {
+                camera.remove(field);
+            }
+            if k == 1 {
+                if let Some(field) = drop {
+                    camera.remove(field);
+                }
+            }
+        }
+        setup.to_string()
+    }
+
     /// The multipart form, with `options` if given.
     pub fn form(&self, options: Option<&Value>) -> Form {
         let mut form = Form::new()

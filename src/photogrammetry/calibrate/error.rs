@@ -139,7 +139,64 @@ pub enum CalibrationError {
         /// Reference points given.
         given: usize,
     },
+    /// A fixed parameter that the setup leaves out: there is no value to
+    /// hold it at.
+    #[error("camera {camera} ({name}): {} is fixed, but the setup gives no {}: give its value in the setup, or do not fix it (a setup without orientation needs only the sensor and media; the start comes from the DLT on the observed points)", parameter.name(), setup_field(*parameter))]
+    FixedWithoutValue {
+        /// The camera (0-based).
+        camera: usize,
+        /// Its name.
+        name: String,
+        /// The parameter.
+        parameter: Parameter,
+    },
+    /// Marks to identify from images, in a camera whose setup has no
+    /// orientation and with no reference points to start from.
+    #[error("camera {camera} ({name}): its marks must be identified in the image, but the setup gives no {} to project the control points with, and no reference points were given; give reference points (`id x y` of at least 6 identified marks not in one plane: --reference in `ptv calibrate`, `reference` parts in /calibrations/solve), or measured observations of the control points instead of images, or the camera's approximate orientation in the setup", setup_fields(missing))]
+    NoStartToIdentify {
+        /// The camera (0-based).
+        camera: usize,
+        /// Its name.
+        name: String,
+        /// The orientation parameters the setup leaves out.
+        missing: Vec<Parameter>,
+    },
+    /// Reference points in one plane, in a camera whose setup gives no
+    /// interior orientation for the plane's start.
+    #[error("camera {camera} ({name}): its {given} reference points lie in one plane, which needs the interior orientation from the setup, but the setup gives no {}; give at least 6 reference points not in one plane, or principal_distance and principal_point in the setup", setup_fields(missing))]
+    PlanarReferencesWithoutInterior {
+        /// The camera (0-based).
+        camera: usize,
+        /// Its name.
+        name: String,
+        /// Reference points given.
+        given: usize,
+        /// The interior parameters the setup leaves out.
+        missing: Vec<Parameter>,
+    },
     /// An option is out of range.
     #[error("invalid option: {0}")]
     InvalidOption(String),
+}
+
+/// The calibration JSON field that holds a parameter (for messages about
+/// setups).
+pub fn setup_field(parameter: Parameter) -> &'static str {
+    use Parameter::*;
+    match parameter {
+        X0 | Y0 | Z0 => "position",
+        Omega | Phi | Kappa => "angles",
+        C => "principal_distance",
+        Xh | Yh => "principal_point",
+        K1 | K2 | K3 => "radial",
+        P1 | P2 => "decentering",
+        Scx | She => "affine",
+    }
+}
+
+/// The calibration JSON fields that hold `parameters`, each once, in order.
+fn setup_fields(parameters: &[Parameter]) -> String {
+    let mut fields: Vec<&str> = parameters.iter().map(|p| setup_field(*p)).collect();
+    fields.dedup();
+    fields.join(", ")
 }

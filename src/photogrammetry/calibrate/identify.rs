@@ -121,8 +121,11 @@ pub fn calibrate_from_marks(
             });
         }
     }
+    let counts: Vec<usize> = references.iter().map(Vec::len).collect();
+    check_identification_start(setup, &counts, options)?;
     let mut identified = Vec::with_capacity(setup.len());
     for (k, camera) in setup.iter().enumerate() {
+        let unknown = options.unknown.get(k).copied().unwrap_or_default();
         let too_few = |found: usize| CalibrationError::TooFewIdentified {
             camera: k,
             name: camera.name.clone(),
@@ -131,7 +134,7 @@ pub fn calibrate_from_marks(
         let mut current = if references[k].is_empty() {
             camera.clone()
         } else {
-            start_from_references(k, camera, control, &references[k])?
+            start_from_references(k, camera, control, &references[k], unknown)?
         };
         let mut assigned = identify_marks(&current, control, &marks[k]);
         for _ in 0..MAX_ROUNDS {
@@ -144,6 +147,7 @@ pub fn calibrate_from_marks(
                 std::slice::from_ref(&assigned),
                 &CalibrationOptions {
                     check_points: super::CheckPoints::None,
+                    unknown: options.unknown.get(k).map(|u| vec![*u]).unwrap_or_default(),
                     ..options.clone()
                 },
             )?;
@@ -159,6 +163,31 @@ pub fn calibrate_from_marks(
     calibrate(setup, control, &identified, options)
 }
 
+/// Where a camera has no reference points, its marks are identified by
+/// projecting the control points with the setup's orientation: the setup
+/// must give it (`references[camera]` is the number of reference points).
+pub(super) fn check_identification_start(
+    setup: &[CameraParameters],
+    references: &[usize],
+    options: &CalibrationOptions,
+) -> Result<(), CalibrationError> {
+    for (k, (camera, &given)) in setup.iter().zip(references).enumerate() {
+        let unknown = options.unknown.get(k).copied().unwrap_or_default();
+        let missing: Vec<_> = (ParameterSet::exterior() | ParameterSet::interior())
+            .iter()
+            .filter(|p| unknown.contains(*p))
+            .collect();
+        if given == 0 && !missing.is_empty() {
+            return Err(CalibrationError::NoStartToIdentify {
+                camera: k,
+                name: camera.name.clone(),
+                missing,
+            });
+        }
+    }
+    Ok(())
+}
+
 /// The orientation from the user's reference points alone: the closed-form
 /// start, then the exterior orientation (with the setup's interior) through
 /// the strict model.
@@ -167,6 +196,7 @@ fn start_from_references(
     camera: &CameraParameters,
     control: &[ControlPoint],
     references: &[MarkObservation],
+    unknown: ParameterSet,
 ) -> Result<CameraParameters, CalibrationError> {
     let mut pairs = Vec::new();
     let mut equations = Vec::new();
@@ -202,6 +232,18 @@ fn start_from_references(
             camera: k,
             name: camera.name.clone(),
             given: references.len(),
+        });
+    }
+    let missing_interior: Vec<_> = ParameterSet::interior()
+        .iter()
+        .filter(|p| unknown.contains(*p))
+        .collect();
+    if flat && !missing_interior.is_empty() {
+        return Err(CalibrationError::PlanarReferencesWithoutInterior {
+            camera: k,
+            name: camera.name.clone(),
+            given: references.len(),
+            missing: missing_interior,
         });
     }
     let start = if !flat {

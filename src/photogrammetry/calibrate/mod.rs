@@ -64,7 +64,7 @@ use serde::{Deserialize, Serialize};
 use super::camera::{Camera, CameraParameters};
 pub use adjustment::projection_with_parameter_jacobian;
 use check::check_point_report;
-pub use error::CalibrationError;
+pub use error::{setup_field, CalibrationError};
 pub use identify::{calibrate_from_marks, detect_marks, identify_marks, mark_detection_parameters};
 pub use parameter::{Parameter, ParameterSet};
 use prepare::prepare;
@@ -123,6 +123,13 @@ pub struct CalibrationOptions {
     pub snooping_alpha: f64,
     /// Largest number of Levenberg-Marquardt iterations per adjustment.
     pub max_iterations: usize,
+    /// Per camera, in the setup's order, the parameters the setup leaves
+    /// out (a setup without orientation: sensor and media only). Their
+    /// values in the setup are placeholders: the closed-form start (the DLT)
+    /// replaces them, they cannot be fixed, and marks cannot be identified
+    /// by projecting the control points with them. Empty (the default): the
+    /// setup gives every parameter.
+    pub unknown: Vec<ParameterSet>,
 }
 
 impl Default for CalibrationOptions {
@@ -133,6 +140,7 @@ impl Default for CalibrationOptions {
             max_correlation: 0.99,
             snooping_alpha: 0.001,
             max_iterations: 500,
+            unknown: Vec::new(),
         }
     }
 }
@@ -210,6 +218,20 @@ pub fn check_inputs(
     options: &CalibrationOptions,
 ) -> Result<(), CalibrationError> {
     prepare(setup, control, given, options).map(|_| ())
+}
+
+/// Checks what [`calibrate_from_marks`] checks before any adjustment:
+/// [`check_inputs`], and that every camera has a start to identify its
+/// marks from (reference points, or a setup with the orientation).
+/// `references[camera]` is the number of reference points given.
+pub fn check_mark_inputs(
+    setup: &[CameraParameters],
+    control: &[ControlPoint],
+    references: &[usize],
+    options: &CalibrationOptions,
+) -> Result<(), CalibrationError> {
+    check_inputs(setup, control, references.len(), options)?;
+    identify::check_identification_start(setup, references, options)
 }
 
 /// The snooping critical value: the chi-square (2 dof) quantile `-2 ln(a)`

@@ -50,6 +50,22 @@ pub(super) fn prepare(
         )));
     }
     let fixed: ParameterSet = options.fixed.iter().copied().collect();
+    if !options.unknown.is_empty() && options.unknown.len() != setup.len() {
+        return Err(CalibrationError::InvalidOption(format!(
+            "the parameters the setup leaves out are given for {} cameras, but the setup has {}",
+            options.unknown.len(),
+            setup.len()
+        )));
+    }
+    for (camera, (parameters, unknown)) in setup.iter().zip(&options.unknown).enumerate() {
+        if let Some(parameter) = unknown.iter().find(|p| fixed.contains(*p)) {
+            return Err(CalibrationError::FixedWithoutValue {
+                camera,
+                name: parameters.name.clone(),
+                parameter,
+            });
+        }
+    }
     for (camera, parameters) in setup.iter().enumerate() {
         validate_setup(parameters, fixed)
             .map_err(|source| CalibrationError::InvalidSetup { camera, source })?;

@@ -572,8 +572,10 @@ fn check_solve_parts(parts: &SolveParts) -> Result<CheckedSolve, ApiError> {
             "the `control` part is missing: give the control points, `id X Y Z` per line (mm)",
         )
     })?;
-    let setup =
-        formats::calibration::parameters_from_json(&setup_text, &part_source("setup", None))?;
+    let formats::calibration::Setup {
+        cameras: setup,
+        unknown,
+    } = formats::calibration::setup_from_json(&setup_text, &part_source("setup", None))?;
     let n = setup.len();
     if n < formats::calibration::MIN_CAMERAS {
         return Err(ApiError::unprocessable(format!(
@@ -587,9 +589,12 @@ fn check_solve_parts(parts: &SolveParts) -> Result<CheckedSolve, ApiError> {
         None => SolveOptions::default(),
         Some(text) => parse_json(text).map_err(|e| e.at("part `options`"))?,
     };
-    let calibration_options = options
-        .calibration_options()
-        .map_err(|e| ApiError::from(e).at("part `options`"))?;
+    let calibration_options = calibrate::CalibrationOptions {
+        unknown,
+        ..options
+            .calibration_options()
+            .map_err(|e| ApiError::from(e).at("part `options`"))?
+    };
     // What the core checks before any adjustment, with its messages.
     calibrate::check_inputs(&setup, &control_points, n, &calibration_options)?;
 
@@ -621,10 +626,17 @@ fn check_solve_parts(parts: &SolveParts) -> Result<CheckedSolve, ApiError> {
             options
                 .mark_detection()
                 .map_err(|e| ApiError::from(e).at("part `options`: detection"))?;
+            let mut counts = vec![0; n];
             for (camera, text) in parts.references.iter().enumerate() {
-                control::parse_mark_observations(text, &part_source("reference", Some(camera)))?;
+                counts[camera] = control::parse_mark_observations(
+                    text,
+                    &part_source("reference", Some(camera)),
+                )?
+                .len();
                 texts.push(("reference", Some(camera), text.clone()));
             }
+            // A camera without orientation needs reference points.
+            calibrate::check_mark_inputs(&setup, &control_points, &counts, &calibration_options)?;
         }
         _ => {
             return Err(ApiError::bad_request(
@@ -640,8 +652,11 @@ fn check_solve_parts(parts: &SolveParts) -> Result<CheckedSolve, ApiError> {
 }
 
 /// Solves a calibration by resection on control points: multipart with
-/// `setup` (the calibration JSON: sensor and media of every camera;
-/// orientation values are optional starting values), `control` (OpenPTV
+/// `setup` (the calibration JSON, schema `CalibrationDocument`: sensor
+/// and media of every camera are required; the orientation, `position`,
+/// `angles` and `principal_distance`, is optional: left out, the DLT on
+/// the observed points starts the resection; with `image` parts, a camera
+/// without orientation needs `reference` points), `control` (OpenPTV
 /// calibration block, `id X Y Z` per line, mm), per camera in camera order
 /// an `observations` part (`id x y` per line, px) or an `image` part (with
 /// optional `reference` parts, `id x y` of 4..6 identified marks), and an
@@ -650,13 +665,13 @@ fn check_solve_parts(parts: &SolveParts) -> Result<CheckedSolve, ApiError> {
 /// with its report.
 #[utoipa::path(
     post, path = "/api/v1/calibrations/solve", tag = "calibrations",
-    request_body(content_type = "multipart/form-data", description = "Parts: `setup` (calibration JSON), `control` (`id X Y Z` per line, mm); per camera in camera order `observations` (`id x y` per line, px) or `image` (PNG/TIFF greyscale, with optional `reference` parts: `id x y` of identified marks); optional `options` (JSON, see SolveOptions)."),
+    request_body(content_type = "multipart/form-data", description = "Parts: `setup` (calibration JSON, schema CalibrationDocument: sensor and media required, orientation optional), `control` (`id X Y Z` per line, mm); per camera in camera order `observations` (`id x y` per line, px) or `image` (PNG/TIFF greyscale, with optional `reference` parts: `id x y` of identified marks); optional `options` (JSON, see SolveOptions)."),
     responses(
         (status = 202, body = SolveAccepted),
         (status = 400, description = "Malformed multipart, a missing, unknown or repeated part", body = super::problem::Problem, content_type = "application/problem+json"),
         (status = 413, description = "Larger than --max-upload-mb or a text part above 1 MiB", body = super::problem::Problem, content_type = "application/problem+json"),
         (status = 415, description = "Not multipart, or an image that is not PNG/TIFF", body = super::problem::Problem, content_type = "application/problem+json"),
-        (status = 422, description = "A file that does not parse, part counts that do not match the setup's cameras, invalid options", body = super::problem::Problem, content_type = "application/problem+json"),
+        (status = 422, description = "A file that does not parse (a setup camera without sensor or media), part counts that do not match the setup's cameras, invalid options, a fixed parameter the setup gives no value for, images of a camera with neither orientation nor reference points", body = super::problem::Problem, content_type = "application/problem+json"),
     )
 )]
 pub async fn solve(

@@ -1,0 +1,414 @@
+//! The self-calibration's disparity maps as a picture (issue 14's report;
+//! Wieneke 2008, *Volume self-calibration for 3D particle image
+//! velocimetry*, section 3 and its figures: the mean disparity vector of
+//! the particles in each sub-volume, per camera).
+//!
+//! One row per camera; per z layer of sub-volumes two panels, the maps
+//! before and after the self-calibration. A panel is the layer's x-y grid
+//! of cells (x to the right, y up); each cell with particles is coloured by
+//! the length of its mean disparity vector and holds that vector as an
+//! arrow from the cell's centre, in the camera's image axes (x right, y
+//! down), on one scale for the whole picture (the scale bar at the top).
+//! Cells without particles are light grey, without an arrow.
+
+use image::{Rgb, RgbImage};
+
+use super::{heat, text_height, text_width, Canvas, BLACK, GREY};
+use crate::photogrammetry::selfcal::{DisparityCell, SelfCalibrationReport};
+
+/// The colour of empty cells.
+pub const EMPTY: Rgb<u8> = Rgb([235, 235, 235]);
+
+/// The arrows' colour (nothing else inside a panel is black).
+pub const ARROW: Rgb<u8> = BLACK;
+
+/// The largest picture side (pixels): finer grids than fit are refused.
+pub const MAX_SIDE: u32 = 8000;
+
+const MARGIN: u32 = 20;
+const PANEL_GAP: u32 = 8;
+const LAYER_GAP: u32 = 24;
+const ROW_GAP: u32 = 28;
+
+/// Why there is no picture.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum DisparityPictureError {
+    /// The report has no cameras.
+    #[error("the report has no cameras: there are no disparity maps to draw")]
+    NoCameras,
+    /// The grid has an axis without cells.
+    #[error("the report's sub-volume grid {0:?} has an axis without cells")]
+    EmptyGrid([usize; 3]),
+    /// The picture would be too large.
+    #[error("a picture of the {grid:?} sub-volume grid for {cameras} cameras would be {width}x{height} pixels, more than {MAX_SIDE} on a side; use a coarser grid")]
+    TooLarge {
+        /// The grid.
+        grid: [usize; 3],
+        /// Cameras.
+        cameras: usize,
+        /// The picture's width.
+        width: u32,
+        /// The picture's height.
+        height: u32,
+    },
+    /// The PNG encoder failed.
+    #[error("the picture could not be encoded as PNG: {0}")]
+    Encode(String),
+}
+
+/// Where things are in the picture.
+#[derive(Clone, Debug, PartialEq)]
+pub struct DisparityLayout {
+    /// The picture's size (pixels).
+    pub width: u32,
+    /// The picture's height.
+    pub height: u32,
+    /// A cell's side (pixels).
+    pub cell_px: u32,
+    /// Drawing pixels per pixel of disparity.
+    pub arrow_scale: f64,
+    /// The longest mean disparity vector drawn (px), the colour scale's top.
+    pub max_disparity_px: f64,
+    grid: [usize; 3],
+    top: u32,
+    left: u32,
+    row_height: u32,
+}
+
+impl DisparityLayout {
+    /// The layout of a report's picture.
+    fn of(report: &SelfCalibrationReport) -> Result<DisparityLayout, DisparityPictureError> {
+        let names: Vec<&str> = report.cameras.iter().map(|c| c.name.as_str()).collect();
+        let max = report
+            .cameras
+            .iter()
+            .flat_map(|c| c.map_before.cells.iter().chain(&c.map_after.cells))
+            .map(mean_length)
+            .fold(0.0, f64::max);
+        DisparityLayout::new(report.grid, &names, max)
+    }
+
+    /// The layout of the picture of a report with this sub-volume grid,
+    /// these cameras, and `max_disparity_px` the longest mean disparity
+    /// vector of its maps (before and after).
+    pub fn new(
+        grid: [usize; 3],
+        names: &[&str],
+        max_disparity_px: f64,
+    ) -> Result<DisparityLayout, DisparityPictureError> {
+        if names.is_empty() {
+            return Err(DisparityPictureError::NoCameras);
+        }
+        if grid.contains(&0) {
+            return Err(DisparityPictureError::EmptyGrid(grid));
+        }
+        let cell_px = (160 / grid[0].max(grid[1]) as u32).clamp(6, 48);
+        let left = MARGIN
+            + names
+                .iter()
+                .map(|name| text_width(name, 2))
+                .max()
+                .unwrap_or(0)
+                .max(text_width("CAMERA", 1))
+            + 12;
+        let top = MARGIN + 2 * text_height(2) + 3 * text_height(1) + 60;
+        let panel_w = grid[0] as u64 * cell_px as u64;
+        let panel_h = grid[1] as u64 * cell_px as u64;
+        let width = left as u64
+            + grid[2] as u64 * (2 * panel_w + PANEL_GAP as u64 + LAYER_GAP as u64)
+            + MARGIN as u64;
+        let row_height = panel_h + text_height(1) as u64 + 6 + ROW_GAP as u64;
+        let height = top as u64 + names.len() as u64 * row_height + MARGIN as u64;
+        let width = width.max(720);
+        if width > MAX_SIDE as u64 || height > MAX_SIDE as u64 {
+            return Err(DisparityPictureError::TooLarge {
+                grid,
+                cameras: names.len(),
+                width: width.min(u32::MAX as u64) as u32,
+                height: height.min(u32::MAX as u64) as u32,
+            });
+        }
+        let max_disparity_px = if max_disparity_px.is_finite() && max_disparity_px > 0.0 {
+            max_disparity_px
+        } else {
+            1.0
+        };
+        Ok(DisparityLayout {
+            width: width as u32,
+            height: height as u32,
+            cell_px,
+            arrow_scale: 0.45 * cell_px as f64 / max_disparity_px,
+            max_disparity_px,
+            grid,
+            top,
+            left,
+            row_height: row_height as u32,
+        })
+    }
+
+    /// The top-left corner of a camera's panel of z layer `layer`, before
+    /// or after.
+    fn panel(&self, camera: usize, layer: usize, after: bool) -> (u32, u32) {
+        let panel_w = self.grid[0] as u32 * self.cell_px;
+        let x = self.left
+            + layer as u32 * (2 * panel_w + PANEL_GAP + LAYER_GAP)
+            + if after { panel_w + PANEL_GAP } else { 0 };
+        let y = self.top + camera as u32 * self.row_height + text_height(1) + 6;
+        (x, y)
+    }
+
+    /// The centre (pixels) of a cell of a camera's map, before or after:
+    /// where its arrow starts.
+    pub fn cell_centre(&self, camera: usize, after: bool, index: [usize; 3]) -> (f64, f64) {
+        let (x, y) = self.panel(camera, index[2], after);
+        let c = self.cell_px as f64;
+        let row = self.grid[1].saturating_sub(1 + index[1]);
+        (
+            x as f64 + (index[0] as f64 + 0.5) * c,
+            y as f64 + (row as f64 + 0.5) * c,
+        )
+    }
+
+    /// Where the arrow of a cell whose mean disparity vector is
+    /// (`dx`, `dy`) px ends.
+    pub fn arrow_tip(
+        &self,
+        camera: usize,
+        after: bool,
+        index: [usize; 3],
+        (dx, dy): (f64, f64),
+    ) -> (f64, f64) {
+        let (x, y) = self.cell_centre(camera, after, index);
+        (
+            x + self.arrow_scale * finite(dx),
+            y + self.arrow_scale * finite(dy),
+        )
+    }
+}
+
+fn finite(v: f64) -> f64 {
+    if v.is_finite() {
+        v
+    } else {
+        0.0
+    }
+}
+
+fn mean_length(cell: &DisparityCell) -> f64 {
+    finite(cell.mean_dx_px).hypot(finite(cell.mean_dy_px))
+}
+
+/// A round value for the scale bar: 1, 2 or 5 times a power of ten, at
+/// most `max`.
+fn nice(max: f64) -> f64 {
+    let power = 10f64.powf(max.log10().floor());
+    [5.0, 2.0, 1.0]
+        .into_iter()
+        .map(|m| m * power)
+        .find(|v| *v <= max)
+        .unwrap_or(power)
+}
+
+/// Draws the disparity maps of `report`; the picture and where its cells
+/// are.
+pub fn disparity_picture(
+    report: &SelfCalibrationReport,
+) -> Result<(RgbImage, DisparityLayout), DisparityPictureError> {
+    let layout = DisparityLayout::of(report)?;
+    let mut canvas = Canvas::new(layout.width, layout.height);
+    let (m, mut y) = (MARGIN as i64, MARGIN as i64);
+    canvas.text(
+        m,
+        y,
+        "DISPARITY MAPS, BEFORE AND AFTER SELF-CALIBRATION",
+        2,
+        BLACK,
+    );
+    y += text_height(2) as i64 + 8;
+    let stats: Vec<String> = report
+        .cameras
+        .iter()
+        .map(|c| {
+            format!(
+                "{}: RMS {:.2} -> {:.2} PX",
+                c.name, c.before.rms_px, c.after.rms_px
+            )
+        })
+        .collect();
+    canvas.text(m, y, &stats.join("   "), 1, BLACK);
+    y += text_height(1) as i64 + 6;
+    canvas.text(
+        m,
+        y,
+        "PER SUB-VOLUME: ARROW = MEAN DISPARITY VECTOR IN THE IMAGE (X RIGHT, Y DOWN), COLOUR = ITS LENGTH. CELLS: VOLUME X RIGHT, Y UP",
+        1,
+        BLACK,
+    );
+    y += text_height(1) as i64 + 14;
+    // Scale bar.
+    let bar = nice(layout.max_disparity_px);
+    let bar_px = bar * layout.arrow_scale;
+    canvas.text(m, y, "SCALE:", 1, BLACK);
+    let x0 = m as f64 + text_width("SCALE: ", 1) as f64;
+    let yc = y as f64 + 3.0;
+    canvas.arrow((x0, yc), (x0 + bar_px, yc), 2.0, 6.0, ARROW);
+    canvas.text(
+        (x0 + bar_px + 8.0) as i64,
+        y,
+        &format!("= {} PX", format_value(bar)),
+        1,
+        BLACK,
+    );
+    // Colour bar.
+    let cx = (x0 + bar_px + 8.0) as i64 + text_width("= 0000000 PX", 1) as i64 + 30;
+    canvas.text(cx, y, "LENGTH: 0", 1, BLACK);
+    let gx = cx + text_width("LENGTH: 0 ", 1) as i64;
+    let gw = 160;
+    for i in 0..gw {
+        canvas.fill_rect(gx + i, y - 2, 1, 11, heat(i as f64 / (gw - 1) as f64));
+    }
+    canvas.text(
+        gx + gw + 6,
+        y,
+        &format!("{} PX", format_value(layout.max_disparity_px)),
+        1,
+        BLACK,
+    );
+    // Column headers: the z layers.
+    let header_y = layout.top as i64 - text_height(1) as i64 - 16;
+    for k in 0..layout.grid[2] {
+        let (px, _) = layout.panel(0, k, false);
+        let z0 = report.volume.min.z
+            + k as f64 * (report.volume.max.z - report.volume.min.z) / layout.grid[2] as f64;
+        let z1 = z0 + (report.volume.max.z - report.volume.min.z) / layout.grid[2] as f64;
+        canvas.text(
+            px as i64,
+            header_y,
+            &format!("Z {:.0}..{:.0} MM", z0, z1),
+            1,
+            BLACK,
+        );
+    }
+    let panel_w = layout.grid[0] as i64 * layout.cell_px as i64;
+    let panel_h = layout.grid[1] as i64 * layout.cell_px as i64;
+    for (c, camera) in report.cameras.iter().enumerate() {
+        let (_, py) = layout.panel(c, 0, false);
+        canvas.text(
+            MARGIN as i64,
+            py as i64 + panel_h / 2 - text_height(2) as i64 / 2,
+            &camera.name,
+            2,
+            BLACK,
+        );
+        for (after, map) in [(false, &camera.map_before), (true, &camera.map_after)] {
+            for k in 0..layout.grid[2] {
+                let (px, py) = layout.panel(c, k, after);
+                canvas.text(
+                    px as i64,
+                    py as i64 - text_height(1) as i64 - 4,
+                    if after { "AFTER" } else { "BEFORE" },
+                    1,
+                    BLACK,
+                );
+                canvas.fill_rect(px as i64, py as i64, panel_w, panel_h, EMPTY);
+            }
+            let half = layout.cell_px as f64 / 2.0;
+            for cell in &map.cells {
+                if cell.index.iter().zip(layout.grid).any(|(i, g)| *i >= g) {
+                    continue;
+                }
+                let (x, y) = layout.cell_centre(c, after, cell.index);
+                canvas.fill_rect(
+                    (x - half) as i64,
+                    (y - half) as i64,
+                    layout.cell_px as i64,
+                    layout.cell_px as i64,
+                    heat(mean_length(cell) / layout.max_disparity_px),
+                );
+            }
+            for k in 0..layout.grid[2] {
+                let (px, py) = layout.panel(c, k, after);
+                for i in 0..=layout.grid[0] as i64 {
+                    canvas.fill_rect(
+                        px as i64 + (i * layout.cell_px as i64).min(panel_w - 1),
+                        py as i64,
+                        1,
+                        panel_h,
+                        GREY,
+                    );
+                }
+                for j in 0..=layout.grid[1] as i64 {
+                    canvas.fill_rect(
+                        px as i64,
+                        py as i64 + (j * layout.cell_px as i64).min(panel_h - 1),
+                        panel_w,
+                        1,
+                        GREY,
+                    );
+                }
+            }
+            let width = if layout.cell_px >= 20 { 2.0 } else { 1.0 };
+            let head = (layout.cell_px as f64 * 0.2).max(3.0);
+            for cell in &map.cells {
+                if cell.index.iter().zip(layout.grid).any(|(i, g)| *i >= g) {
+                    continue;
+                }
+                let from = layout.cell_centre(c, after, cell.index);
+                let tip =
+                    layout.arrow_tip(c, after, cell.index, (cell.mean_dx_px, cell.mean_dy_px));
+                canvas.arrow(from, tip, width, head, ARROW);
+            }
+        }
+    }
+    Ok((canvas.into_image(), layout))
+}
+
+/// A value for a label: short, without trailing zeros.
+fn format_value(v: f64) -> String {
+    let text = format!("{v:.3}");
+    let text = text.trim_end_matches('0').trim_end_matches('.');
+    text.to_owned()
+}
+
+/// The disparity maps of `report` as a PNG file's bytes.
+pub fn disparity_png(report: &SelfCalibrationReport) -> Result<Vec<u8>, DisparityPictureError> {
+    let (image, _) = disparity_picture(report)?;
+    super::to_png(&image).map_err(|e| DisparityPictureError::Encode(e.to_string()))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn bad_layouts_are_errors_not_panics() {
+        assert_eq!(
+            DisparityLayout::new([4, 4, 4], &[], 1.0),
+            Err(DisparityPictureError::NoCameras)
+        );
+        assert_eq!(
+            DisparityLayout::new([4, 0, 4], &["cam1"], 1.0),
+            Err(DisparityPictureError::EmptyGrid([4, 0, 4]))
+        );
+        let error = DisparityLayout::new([64, 64, 64], &["cam1"], 1.0).unwrap_err();
+        assert!(
+            error.to_string().contains("more than 8000 on a side"),
+            "{error}"
+        );
+        // No disparity at all, or not a number: a unit scale, not a NaN one.
+        for max in [0.0, f64::NAN] {
+            let layout = DisparityLayout::new([4, 4, 4], &["cam1", "cam2"], max).unwrap();
+            assert_eq!(layout.max_disparity_px, 1.0);
+            assert!(layout.arrow_scale.is_finite());
+        }
+    }
+
+    #[test]
+    fn scale_bar_values_are_round() {
+        assert_eq!(nice(9.4), 5.0);
+        assert_eq!(nice(0.27), 0.2);
+        assert_eq!(nice(1.0), 1.0);
+        assert_eq!(format_value(0.2), "0.2");
+        assert_eq!(format_value(5.0), "5");
+    }
+}
