@@ -9,7 +9,9 @@
 //! the rounds match), and by 0.7 mm and 1 mrad (about 5 px, an 8 px band:
 //! the first round votes, see `photogrammetry::selfcal`).
 //!
-//! `cargo bench --bench selfcal` (RAYON_NUM_THREADS=2 for 2 cores).
+//! `RAYON_NUM_THREADS=2 cargo bench --bench selfcal` (2 cores). Measured
+//! here (release, 3 rounds each): 1.50-1.61 s a run moved 0.1 mm, 2.39-2.70
+//! s moved 0.7 mm; the goal is 10 s.
 
 use std::time::Instant;
 
