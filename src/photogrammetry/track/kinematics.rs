@@ -123,6 +123,19 @@ mod tests {
     }
 
     #[test]
+    fn a_cubic_is_differentiated_exactly_by_order_3() {
+        let path = |t: f64| Vector3::new(t * t * t - 2.0 * t, 0.5 * t * t, 1.0);
+        for frames in [&[8, 9, 10, 11, 12][..], &[10, 11, 12, 13], &[7, 8, 10, 11]] {
+            let d = fit(&samples(frames, path, 0.01), 10, 3).unwrap();
+            assert!(
+                (d.velocity - Vector3::new(298.0, 10.0, 0.0)).norm() < 1e-6,
+                "{frames:?}: {}",
+                d.velocity
+            );
+        }
+    }
+
+    #[test]
     fn at_an_end_and_across_a_gap_the_window_is_what_there_is() {
         let path = |t: f64| Vector3::new(t * t, 0.0, 0.0);
         // One-sided at the start, with frame 2 missing.

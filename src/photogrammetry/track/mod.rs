@@ -339,7 +339,13 @@ impl Tracker {
             + self.ahead.iter().map(|f| f.particles.len()).sum::<usize>()
     }
 
-    fn take(&mut self, number: i64, particles: Vec<ParticlePosition>, out: &mut Vec<TrackPoint>) {
+    fn take(
+        &mut self,
+        number: i64,
+        mut particles: Vec<ParticlePosition>,
+        out: &mut Vec<TrackPoint>,
+    ) {
+        floor_sigmas(&mut particles);
         let cell = self
             .parameters
             .max_velocity
@@ -552,6 +558,30 @@ impl Tracker {
         {
             live.nodes.pop_front();
         }
+    }
+}
+
+/// Raises every sigma below the frame's median (per axis) to it. The
+/// intersection's sigmas are a posteriori, from the particle's own
+/// residuals: with few redundant observations they scatter widely (a
+/// 2-camera particle has one degree of freedom, and a near-zero residual
+/// gives a near-zero sigma), and such a point would pin its trajectory's
+/// fit and its search radius. The frame's median is a steadier estimate of
+/// the precision of the points that claim better.
+fn floor_sigmas(particles: &mut [ParticlePosition]) {
+    if particles.is_empty() {
+        return;
+    }
+    let mut median = Vector3::zeros();
+    let mut values = Vec::with_capacity(particles.len());
+    for axis in 0..3 {
+        values.clear();
+        values.extend(particles.iter().map(|p| p.sigma[axis]));
+        let mid = values.len() / 2;
+        median[axis] = *values.select_nth_unstable_by(mid, |a, b| a.total_cmp(b)).1;
+    }
+    for p in particles {
+        p.sigma = p.sigma.sup(&median);
     }
 }
 
