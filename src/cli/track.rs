@@ -459,6 +459,12 @@ impl Rows {
             }
             text.push('\n');
         }
+        // A trajectory whose last point is before every held frame (and
+        // not just before the oldest, whose point may still link back) has
+        // ended: its entry can go, so the map stays as small as the window.
+        if let Some(oldest) = window.front().map(|h| h.frame as i64) {
+            self.last.retain(|_, (frame, _)| *frame + 1 >= oldest);
+        }
         write_stdout(stdout, &text)
     }
 }
