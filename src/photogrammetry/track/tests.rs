@@ -353,3 +353,40 @@ fn a_skipped_frame_number_is_a_gap() {
     let v = trajectories[0].points[3].derivatives.velocity;
     assert!((v - Vector3::x()).norm() < 1e-9, "{v}");
 }
+
+/// A particle claiming a near-zero sigma (a 2-camera intersection with a
+/// near-zero residual) is weighed as the frame's median: the trajectory's
+/// velocity is what it is when that particle states the median itself.
+#[test]
+fn a_near_zero_sigma_does_not_pin_the_fit() {
+    let run = |claimed: f64| {
+        let frames: Vec<(i64, Vec<ParticlePosition>)> = (0..7)
+            .map(|f| {
+                // Particle 0 moves 1 mm a frame and is 0.05 mm off at frame 3;
+                // particles 1 and 2 stand still far away and set the median.
+                let off = if f == 3 { 0.05 } else { 0.0 };
+                let sigma0 = if f == 3 { claimed } else { 0.01 };
+                let p = |x: f64, y: f64, s: f64| ParticlePosition {
+                    position: Point3::new(x, y, 0.0),
+                    sigma: Vector3::repeat(s),
+                };
+                (
+                    f,
+                    vec![
+                        p(f as f64 + off, 0.0, sigma0),
+                        p(0.0, 50.0, 0.01),
+                        p(0.0, -50.0, 0.01),
+                    ],
+                )
+            })
+            .collect();
+        let trajectories = track(frames, parameters()).unwrap();
+        let moving = trajectories
+            .iter()
+            .find(|t| t.points[0].position.y == 0.0)
+            .unwrap();
+        // At frame 2 the offset point is one frame ahead: it moves the slope.
+        moving.points[2].derivatives.velocity.x
+    };
+    assert_eq!(run(1e-12), run(0.01));
+}
