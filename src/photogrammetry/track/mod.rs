@@ -44,6 +44,7 @@
 //! trajectory and then particle index).
 
 pub mod kinematics;
+pub mod recovery;
 
 use std::collections::{HashMap, VecDeque};
 

@@ -1,0 +1,531 @@
+//! Image-space recovery: a particle the correspondences missed, found
+//! again in the images where a trajectory says it must be (Willneff 2003,
+//! *A spatio-temporal matching algorithm for 3D particle tracking
+//! velocimetry*, ETH Zürich, ch. 6; OpenPTV's `trackcorr` "search in image
+//! space").
+//!
+//! A particle is lost to the correspondence search when one of its images
+//! is: overlapped, too faint in one camera, or ambiguous in the epipolar
+//! bands. A trajectory that reaches a frame with no particle near its
+//! prediction `x̂` (the tracker's Eq. of motion, `x̂ = x_t + v Δ`) still
+//! knows, within its search radius `R`, where the particle is; that
+//! knowledge replaces the epipolar constraint. In each camera `c`:
+//!
+//! 1. project `x̂` (the strict model, refraction included) to `p_c`, with the
+//!    Jacobian `J_c` (px per mm);
+//! 2. the sphere of radius `R` around `x̂` images within `R ‖J_c‖_F` of
+//!    `p_c` (the Frobenius norm bounds the spectral norm, the largest
+//!    stretch), widened by the image noise allowance `tolerance_px`;
+//! 3. the nearest target within that window that no particle of the frame
+//!    uses is the camera's candidate.
+//!
+//! With candidates in two or more cameras the point is intersected by
+//! least squares (design paper, Eq. 21-23, [`intersect`]) and accepted when
+//! its reprojection RMS is within `tolerance_px` (the images belong to one
+//! point) and it lies within `R` of `x̂` (it is where the trajectory goes).
+//! Otherwise the camera whose residual is the largest is left out and the
+//! rest tried again, down to two cameras: a wrong candidate in one camera
+//! (a neighbour's image, nearer to `p_c` than the particle's own) does not
+//! lose the particle's images in the others. An accepted point's targets
+//! are marked used, so no two recoveries, and no recovery and particle,
+//! share an image.
+//!
+//! Pure and deterministic; nothing is allocated per camera beyond the
+//! frame's index, which is built once per frame (linear in its targets).
+
+use nalgebra::{Point2, Point3, Vector3};
+
+use super::super::camera::Camera;
+use super::super::intersect::{intersect, Observation};
+use super::super::target::Target;
+
+/// The side of an index cell (px): about the windows searched.
+const CELL_PX: f64 = 16.0;
+
+/// One frame's targets, per camera, for the recovery: which of them the
+/// frame's particles already use, filed in square cells for searches
+/// around a point.
+#[derive(Clone, Debug)]
+pub struct FrameTargets {
+    cameras: Vec<CameraTargets>,
+}
+
+#[derive(Clone, Debug)]
+struct CameraTargets {
+    pixels: Vec<Point2<f64>>,
+    used: Vec<bool>,
+    /// Cells of [`CELL_PX`], row-major over the bounding box of the
+    /// targets: `starts[k]..starts[k + 1]` of `order` are cell `k`'s.
+    cell: f64,
+    columns: usize,
+    rows: usize,
+    origin: Point2<f64>,
+    starts: Vec<u32>,
+    order: Vec<u32>,
+}
+
+/// A particle's targets that do not exist.
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+pub enum FrameTargetsError {
+    /// A particle names more cameras than there are.
+    #[error("particle {particle} names {named} cameras, the frame has targets of {cameras}")]
+    Cameras {
+        /// The particle's index.
+        particle: usize,
+        /// Cameras it names.
+        named: usize,
+        /// Cameras with targets.
+        cameras: usize,
+    },
+    /// A particle names a target its camera does not have.
+    #[error("particle {particle} names target {target} of camera {camera}, which has {count}")]
+    Target {
+        /// The particle's index.
+        particle: usize,
+        /// The camera.
+        camera: usize,
+        /// The target named.
+        target: usize,
+        /// Targets the camera has.
+        count: usize,
+    },
+}
+
+impl FrameTargets {
+    /// The targets of each camera, and per particle of the frame the
+    /// index of its target in each camera (`None` where it has none), as
+    /// the correspondences give them ([`Particle::targets`]
+    /// (super::super::correspond::Particle::targets)).
+    pub fn new<'a>(
+        targets: &[Vec<Target>],
+        particles: impl IntoIterator<Item = &'a [Option<usize>]>,
+    ) -> Result<FrameTargets, FrameTargetsError> {
+        let mut cameras: Vec<CameraTargets> = targets
+            .iter()
+            .map(|t| CameraTargets::new(t.iter().map(|t| Point2::new(t.x, t.y)).collect()))
+            .collect();
+        for (particle, named) in particles.into_iter().enumerate() {
+            if named.len() > cameras.len() {
+                return Err(FrameTargetsError::Cameras {
+                    particle,
+                    named: named.len(),
+                    cameras: cameras.len(),
+                });
+            }
+            for (camera, target) in named.iter().enumerate() {
+                let Some(target) = *target else { continue };
+                let used = &mut cameras[camera].used;
+                let count = used.len();
+                *used.get_mut(target).ok_or(FrameTargetsError::Target {
+                    particle,
+                    camera,
+                    target,
+                    count,
+                })? = true;
+            }
+        }
+        Ok(FrameTargets { cameras })
+    }
+
+    /// Cameras with targets.
+    pub fn cameras(&self) -> usize {
+        self.cameras.len()
+    }
+
+    /// Targets of camera `camera` no particle or recovery uses.
+    pub fn unused(&self, camera: usize) -> usize {
+        self.cameras
+            .get(camera)
+            .map_or(0, |c| c.used.iter().filter(|u| !**u).count())
+    }
+}
+
+impl CameraTargets {
+    fn new(pixels: Vec<Point2<f64>>) -> CameraTargets {
+        let finite: Vec<&Point2<f64>> = pixels
+            .iter()
+            .filter(|p| p.x.is_finite() && p.y.is_finite())
+            .collect();
+        let (mut low, mut high) = (
+            Point2::new(f64::INFINITY, f64::INFINITY),
+            Point2::new(f64::NEG_INFINITY, f64::NEG_INFINITY),
+        );
+        for p in &finite {
+            low = low.inf(p);
+            high = high.sup(p);
+        }
+        if finite.is_empty() {
+            (low, high) = (Point2::origin(), Point2::origin());
+        }
+        // Cells of CELL_PX on a sensor; wider where a file's targets
+        // spread far beyond one, so that there are at most about 2^20.
+        let span = (high - low).amax();
+        let cell = CELL_PX.max(span / 1024.0);
+        let cells = |span: f64| (span / cell).floor() as usize + 1;
+        let (columns, rows) = (cells(high.x - low.x), cells(high.y - low.y));
+        let mut index = CameraTargets {
+            cell,
+            used: vec![false; pixels.len()],
+            columns,
+            rows,
+            origin: low,
+            starts: vec![0; columns * rows + 1],
+            order: Vec::with_capacity(pixels.len()),
+            pixels,
+        };
+        let keys: Vec<Option<usize>> = index.pixels.iter().map(|p| index.cell(p)).collect();
+        for key in keys.iter().flatten() {
+            index.starts[key + 1] += 1;
+        }
+        for k in 0..columns * rows {
+            index.starts[k + 1] += index.starts[k];
+        }
+        let mut fill = index.starts.clone();
+        index.order = vec![0; index.starts[columns * rows] as usize];
+        for (i, key) in keys.iter().enumerate() {
+            if let Some(key) = key {
+                index.order[fill[*key] as usize] = i as u32;
+                fill[*key] += 1;
+            }
+        }
+        index
+    }
+
+    /// The cell of a pixel (`None` if not finite).
+    fn cell(&self, p: &Point2<f64>) -> Option<usize> {
+        let (i, j) = self.cell_xy(p)?;
+        Some(j * self.columns + i)
+    }
+
+    fn cell_xy(&self, p: &Point2<f64>) -> Option<(usize, usize)> {
+        if !(p.x.is_finite() && p.y.is_finite()) {
+            return None;
+        }
+        let along = |v: f64, origin: f64, n: usize| {
+            (((v - origin) / self.cell).floor().max(0.0) as usize).min(n - 1)
+        };
+        Some((
+            along(p.x, self.origin.x, self.columns),
+            along(p.y, self.origin.y, self.rows),
+        ))
+    }
+
+    /// The unused target nearest to `centre` within `radius` (px), the
+    /// lower index on a tie.
+    fn nearest_unused(&self, centre: &Point2<f64>, radius: f64) -> Option<usize> {
+        let low = self.cell_xy(&Point2::new(centre.x - radius, centre.y - radius))?;
+        let high = self.cell_xy(&Point2::new(centre.x + radius, centre.y + radius))?;
+        let mut best: Option<(f64, usize)> = None;
+        for j in low.1..=high.1 {
+            let row = j * self.columns;
+            let (from, to) = (
+                self.starts[row + low.0] as usize,
+                self.starts[row + high.0 + 1] as usize,
+            );
+            for &t in &self.order[from..to] {
+                let t = t as usize;
+                if self.used[t] {
+                    continue;
+                }
+                let d = (self.pixels[t] - centre).norm_squared();
+                if d <= radius * radius && best.is_none_or(|(b, i)| (d, t) < (b, i)) {
+                    best = Some((d, t));
+                }
+            }
+        }
+        best.map(|(_, t)| t)
+    }
+}
+
+/// A particle found again in the images.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Recovered {
+    /// Position (mm).
+    pub position: Point3<f64>,
+    /// Standard deviations of X, Y, Z from the intersection (mm).
+    pub sigma: Vector3<f64>,
+    /// Root mean square reprojection residual (px).
+    pub rms_px: f64,
+    /// Per camera, the index of its target, `None` where it has none.
+    pub targets: Vec<Option<usize>>,
+}
+
+impl Recovered {
+    /// How many cameras see it.
+    pub fn camera_count(&self) -> usize {
+        self.targets.iter().filter(|t| t.is_some()).count()
+    }
+}
+
+/// The rig and the image noise allowance of the recovery.
+#[derive(Clone, Debug)]
+pub struct ImageSpaceRecovery {
+    cameras: Vec<Camera>,
+    tolerance_px: f64,
+}
+
+/// A recovery that cannot be set up.
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+pub enum RecoveryError {
+    /// Fewer than two cameras.
+    #[error("image-space recovery needs at least 2 cameras, the calibration has {0}")]
+    TooFewCameras(usize),
+    /// The tolerance is not a positive number of pixels.
+    #[error("the recovery's tolerance must be a positive number of pixels, got {0}")]
+    Tolerance(f64),
+}
+
+impl ImageSpaceRecovery {
+    /// Recovery with `cameras`, accepting points whose reprojection RMS is
+    /// within `tolerance_px` (the correspondence band is the natural
+    /// choice: the same images would have been accepted there).
+    pub fn new(cameras: Vec<Camera>, tolerance_px: f64) -> Result<Self, RecoveryError> {
+        if cameras.len() < 2 {
+            return Err(RecoveryError::TooFewCameras(cameras.len()));
+        }
+        if !(tolerance_px.is_finite() && tolerance_px > 0.0) {
+            return Err(RecoveryError::Tolerance(tolerance_px));
+        }
+        Ok(ImageSpaceRecovery {
+            cameras,
+            tolerance_px,
+        })
+    }
+
+    /// The cameras.
+    pub fn cameras(&self) -> &[Camera] {
+        &self.cameras
+    }
+
+    /// The particle near `predicted` (within `radius` mm) made of targets
+    /// of `frame` that nothing uses yet; its targets are then marked used.
+    /// `None` where fewer than two cameras have a fitting target.
+    pub fn recover(
+        &self,
+        frame: &mut FrameTargets,
+        predicted: &Point3<f64>,
+        radius: f64,
+    ) -> Option<Recovered> {
+        if !(radius.is_finite() && radius > 0.0) {
+            return None;
+        }
+        let mut candidates: Vec<(usize, usize, Point2<f64>)> = Vec::new();
+        for (c, camera) in self.cameras.iter().enumerate() {
+            let Some(targets) = frame.cameras.get(c) else {
+                break;
+            };
+            let Ok((pixel, jacobian)) = camera.project_with_jacobian(predicted) else {
+                continue;
+            };
+            let window = radius * jacobian.norm() + self.tolerance_px;
+            if let Some(t) = targets.nearest_unused(&pixel, window) {
+                candidates.push((c, t, targets.pixels[t]));
+            }
+        }
+        while candidates.len() >= 2 {
+            let observations: Vec<Observation> = candidates
+                .iter()
+                .map(|&(camera, _, pixel)| Observation { camera, pixel })
+                .collect();
+            let Ok(fit) = intersect(&self.cameras, &observations) else {
+                return None;
+            };
+            if fit.rms_px <= self.tolerance_px && (fit.point - predicted).norm() <= radius {
+                let mut targets = vec![None; self.cameras.len()];
+                for &(c, t, _) in &candidates {
+                    targets[c] = Some(t);
+                    frame.cameras[c].used[t] = true;
+                }
+                return Some(Recovered {
+                    position: fit.point,
+                    sigma: fit.sigma,
+                    rms_px: fit.rms_px,
+                    targets,
+                });
+            }
+            // Leave out the camera that fits worst and try the rest.
+            let worst = fit
+                .residuals_px
+                .iter()
+                .enumerate()
+                .max_by(|a, b| a.1.norm_squared().total_cmp(&b.1.norm_squared()))
+                .map(|(k, _)| k)?;
+            candidates.remove(worst);
+        }
+        None
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::photogrammetry::simulate::{self, RigSpec};
+    use rand::Rng;
+
+    fn rig() -> (RigSpec, Vec<Camera>) {
+        let spec = RigSpec::convergent(4);
+        let cameras = spec.build().expect("the simulated rig");
+        (spec, cameras)
+    }
+
+    fn target(p: Point2<f64>) -> Target {
+        Target {
+            x: p.x,
+            y: p.y,
+            n: 9,
+            nx: 3,
+            ny: 3,
+            sumg: 900,
+        }
+    }
+
+    #[test]
+    fn a_missed_particle_is_found_where_its_trajectory_predicts_it() {
+        // 500 particles imaged with 0.1 px noise; one of them (the last)
+        // lost by the correspondences. The prediction is 0.2 mm off (a
+        // trajectory's extrapolation error), the radius 0.5 mm.
+        let (spec, cameras) = rig();
+        let mut rng = simulate::rng(3);
+        let points = simulate::particles(&spec.volume, 500, &mut rng);
+        let frame = simulate::target_frame(&cameras, &points, 0.1, 0.0, &mut rng);
+        let lost = points.len() - 1;
+        // Every other point is a particle that uses its targets.
+        let particles: Vec<Vec<Option<usize>>> = (0..lost)
+            .map(|j| {
+                frame
+                    .truth
+                    .iter()
+                    .map(|truth| truth.iter().position(|&t| t == j))
+                    .collect()
+            })
+            .collect();
+        let mut targets =
+            FrameTargets::new(&frame.targets, particles.iter().map(Vec::as_slice)).unwrap();
+        for c in 0..4 {
+            assert_eq!(targets.unused(c), 1, "camera {c}");
+        }
+        let recovery = ImageSpaceRecovery::new(cameras.clone(), 0.5).unwrap();
+        let offset = Vector3::new(0.12, -0.1, 0.12);
+        let found = recovery
+            .recover(&mut targets, &(points[lost] + offset), 0.5)
+            .expect("recovered");
+        assert_eq!(found.camera_count(), 4);
+        for (c, t) in found.targets.iter().enumerate() {
+            assert_eq!(frame.truth[c][t.unwrap()], lost, "camera {c}");
+        }
+        // 0.1 px of noise is about 10 um in this rig (about 100 um a px
+        // at 600 mm): the point is the particle, not the prediction.
+        let error = (found.position - points[lost]).norm();
+        assert!(error < 0.03, "{error} mm");
+        assert!(found.rms_px < 0.3, "{}", found.rms_px);
+        // Its targets are taken now.
+        assert!(recovery
+            .recover(&mut targets, &(points[lost] + offset), 0.5)
+            .is_none());
+    }
+
+    #[test]
+    fn a_wrong_target_in_one_camera_is_left_out() {
+        // The particle's image in camera 2 is gone and a stray target sits
+        // 1.5 px from where it was: nearest in that camera, but 15 sigma
+        // off the other three's rays. The point comes from the other three.
+        let (spec, cameras) = rig();
+        let mut rng = simulate::rng(5);
+        let point = simulate::particles(&spec.volume, 1, &mut rng)[0];
+        let mut targets: Vec<Vec<Target>> = cameras
+            .iter()
+            .map(|c| {
+                let p = c.project(&point).unwrap();
+                vec![target(p + nalgebra::Vector2::new(rng.random_range(-0.1..0.1), 0.0))]
+            })
+            .collect();
+        targets[2][0].x += 1.5;
+        let mut frame = FrameTargets::new(&targets, std::iter::empty()).unwrap();
+        let recovery = ImageSpaceRecovery::new(cameras, 0.5).unwrap();
+        let found = recovery.recover(&mut frame, &point, 0.3).unwrap();
+        assert_eq!(found.targets, vec![Some(0), Some(0), None, Some(0)]);
+        assert!((found.position - point).norm() < 0.03);
+        assert_eq!(frame.unused(2), 1, "the stray target stays free");
+    }
+
+    #[test]
+    fn targets_that_do_not_meet_give_nothing() {
+        // One target per camera near the prediction's images, each moved
+        // 3 px in a random direction: no pair of them meets within 0.5 px.
+        let (spec, cameras) = rig();
+        let mut rng = simulate::rng(8);
+        let point = simulate::particles(&spec.volume, 1, &mut rng)[0];
+        let targets: Vec<Vec<Target>> = cameras
+            .iter()
+            .map(|c| {
+                let angle: f64 = rng.random_range(0.0..std::f64::consts::TAU);
+                let p = c.project(&point).unwrap();
+                vec![target(p + 3.0 * nalgebra::Vector2::new(angle.cos(), angle.sin()))]
+            })
+            .collect();
+        let mut frame = FrameTargets::new(&targets, std::iter::empty()).unwrap();
+        let recovery = ImageSpaceRecovery::new(cameras, 0.5).unwrap();
+        // A radius of 0.1 mm images to about 1 px: the targets, 3 px off,
+        // are outside every window.
+        assert!(recovery.recover(&mut frame, &point, 0.1).is_none());
+        // With a window wide enough to hold them (3 mm), they are
+        // candidates but do not intersect within the tolerance.
+        assert!(recovery.recover(&mut frame, &point, 3.0).is_none());
+        for c in 0..4 {
+            assert_eq!(frame.unused(c), 1);
+        }
+    }
+
+    #[test]
+    fn two_cameras_are_enough() {
+        let (spec, cameras) = rig();
+        let mut rng = simulate::rng(9);
+        let point = simulate::particles(&spec.volume, 1, &mut rng)[0];
+        let mut targets: Vec<Vec<Target>> = vec![Vec::new(); 4];
+        for c in [0, 3] {
+            targets[c].push(target(cameras[c].project(&point).unwrap()));
+        }
+        let mut frame = FrameTargets::new(&targets, std::iter::empty()).unwrap();
+        let recovery = ImageSpaceRecovery::new(cameras, 0.5).unwrap();
+        let found = recovery.recover(&mut frame, &point, 0.2).unwrap();
+        assert_eq!(found.targets, vec![Some(0), None, None, Some(0)]);
+        assert!((found.position - point).norm() < 1e-6);
+    }
+
+    #[test]
+    fn bad_input_is_refused() {
+        let (_, cameras) = rig();
+        assert_eq!(
+            ImageSpaceRecovery::new(cameras[..1].to_vec(), 0.5).unwrap_err(),
+            RecoveryError::TooFewCameras(1)
+        );
+        assert!(ImageSpaceRecovery::new(cameras.clone(), 0.0).is_err());
+        assert!(ImageSpaceRecovery::new(cameras, f64::NAN).is_err());
+        let targets = vec![vec![target(Point2::new(1.0, 1.0))]; 2];
+        let named = [Some(0), Some(1)];
+        assert_eq!(
+            FrameTargets::new(&targets, [&named[..]]).unwrap_err(),
+            FrameTargetsError::Target {
+                particle: 0,
+                camera: 1,
+                target: 1,
+                count: 1
+            }
+        );
+        let three = [None, None, Some(0)];
+        assert!(matches!(
+            FrameTargets::new(&targets, [&three[..]]),
+            Err(FrameTargetsError::Cameras { .. })
+        ));
+        // Non-finite targets are never candidates, and do not break the index.
+        let odd = vec![
+            vec![target(Point2::new(f64::NAN, 3.0)), target(Point2::new(2.0, 2.0))],
+            vec![],
+        ];
+        let frame = FrameTargets::new(&odd, std::iter::empty()).unwrap();
+        assert_eq!(
+            frame.cameras[0].nearest_unused(&Point2::new(2.5, 2.5), 1.0),
+            Some(1)
+        );
+    }
+}
