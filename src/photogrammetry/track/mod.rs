@@ -52,6 +52,7 @@ use nalgebra::{Point3, Vector3};
 
 pub use kinematics::Derivatives;
 use kinematics::{fit, Sample};
+pub use recovery::{FrameTargets, ImageSpaceRecovery, Recovered};
 
 /// How to track.
 #[derive(Clone, Debug, PartialEq)]
@@ -181,6 +182,17 @@ pub enum TrackError {
         /// The frame before it.
         last: i64,
     },
+    /// A frame's targets for the image-space recovery that do not fit
+    /// the recovery's cameras.
+    #[error("frame {frame}: targets of {given} cameras, the recovery's calibration has {cameras}")]
+    TargetCameras {
+        /// The frame.
+        frame: i64,
+        /// Cameras with targets given.
+        given: usize,
+        /// Cameras of the recovery.
+        cameras: usize,
+    },
     /// A particle that is not a position.
     #[error("frame {frame}, particle {index}: {reason}")]
     InvalidParticle {
@@ -198,6 +210,28 @@ struct Frame {
     number: i64,
     particles: Vec<ParticlePosition>,
     grid: Grid,
+    /// The frame's targets, where the image-space recovery runs.
+    targets: Option<FrameTargets>,
+    /// The particles given; those after them are recovered.
+    given: usize,
+    /// The particles found in the images, in `particles` after `given`.
+    recovered: Vec<Recovered>,
+    /// The median of the given particles' sigmas (per axis), the floor of
+    /// a recovered particle's ([`floor_sigmas`]).
+    median_sigma: Vector3<f64>,
+}
+
+/// The particles a frame gained from the image-space recovery
+/// ([`Tracker::take_recovered`]).
+#[derive(Clone, Debug, PartialEq)]
+pub struct RecoveredParticles {
+    /// The frame.
+    pub frame: i64,
+    /// The index in the frame of the first of them: the number of
+    /// particles given ([`TrackPoint::particle`] counts on from there).
+    pub first: usize,
+    /// The particles, in index order.
+    pub particles: Vec<Recovered>,
 }
 
 /// A trajectory being tracked.
@@ -255,6 +289,11 @@ struct Link {
 /// ([`Tracker::push`], then [`Tracker::finish`]).
 pub struct Tracker {
     parameters: TrackingParameters,
+    /// The image-space recovery, where frames come with their targets.
+    recovery: Option<ImageSpaceRecovery>,
+    /// Frames that left the look-ahead with recovered particles, not yet
+    /// taken.
+    recovered: Vec<RecoveredParticles>,
     /// Frames given but not yet linked to: at most two.
     ahead: VecDeque<Frame>,
     live: Vec<Live>,
@@ -268,11 +307,25 @@ impl Tracker {
         parameters.validate()?;
         Ok(Tracker {
             parameters,
+            recovery: None,
+            recovered: Vec::new(),
             ahead: VecDeque::new(),
             live: Vec::new(),
             next_id: 0,
             last_frame: None,
         })
+    }
+
+    /// A tracker that also looks in the images for the particles the
+    /// correspondences missed ([`recovery`]), in the frames given with
+    /// their targets ([`Tracker::push_with_targets`]).
+    pub fn with_recovery(
+        parameters: TrackingParameters,
+        recovery: ImageSpaceRecovery,
+    ) -> Result<Self, TrackError> {
+        let mut tracker = Tracker::new(parameters)?;
+        tracker.recovery = Some(recovery);
+        Ok(tracker)
     }
 
     /// Takes the particles of frame `number` (numbers increasing; a number
@@ -282,6 +335,48 @@ impl Tracker {
         &mut self,
         number: i64,
         particles: Vec<ParticlePosition>,
+    ) -> Result<Vec<TrackPoint>, TrackError> {
+        self.push_frame(number, particles, None)
+    }
+
+    /// [`Tracker::push`] with the frame's targets ([`FrameTargets`]: per
+    /// camera, and which of them the particles use), for the image-space
+    /// recovery of a tracker made [`Tracker::with_recovery`] (without one
+    /// the targets are not needed, and ignored). Particles recovered in
+    /// this frame are numbered after the ones given; which they are comes
+    /// from [`Tracker::take_recovered`], before or with their points.
+    pub fn push_with_targets(
+        &mut self,
+        number: i64,
+        particles: Vec<ParticlePosition>,
+        targets: FrameTargets,
+    ) -> Result<Vec<TrackPoint>, TrackError> {
+        if let Some(recovery) = &self.recovery {
+            if targets.cameras() != recovery.cameras().len() {
+                return Err(TrackError::TargetCameras {
+                    frame: number,
+                    given: targets.cameras(),
+                    cameras: recovery.cameras().len(),
+                });
+            }
+        }
+        self.push_frame(number, particles, Some(targets))
+    }
+
+    /// The particles recovered in the frames that have left the
+    /// look-ahead since the last call (no more are recovered in them), in
+    /// frame order. Call it after each push: a point of a recovered
+    /// particle is handed out no earlier than the push that makes its
+    /// frame's entry available here.
+    pub fn take_recovered(&mut self) -> Vec<RecoveredParticles> {
+        std::mem::take(&mut self.recovered)
+    }
+
+    fn push_frame(
+        &mut self,
+        number: i64,
+        particles: Vec<ParticlePosition>,
+        targets: Option<FrameTargets>,
     ) -> Result<Vec<TrackPoint>, TrackError> {
         if let Some(last) = self.last_frame {
             if number <= last {
@@ -311,26 +406,34 @@ impl Tracker {
         if let Some(last) = self.last_frame {
             let skipped = (number - last - 1).min(MAX_GAP as i64 + 2);
             for k in 0..skipped {
-                self.take(number - skipped + k, Vec::new(), &mut out);
+                self.take(number - skipped + k, Vec::new(), None, &mut out);
             }
         }
-        self.take(number, particles, &mut out);
+        let targets = targets.filter(|_| self.recovery.is_some());
+        self.take(number, particles, targets, &mut out);
         self.last_frame = Some(number);
         Ok(out)
     }
 
     /// Ends the sequence: links what is left and returns the last points.
-    pub fn finish(mut self) -> Vec<TrackPoint> {
+    pub fn finish(self) -> Vec<TrackPoint> {
+        self.finish_with_recovered().0
+    }
+
+    /// [`Tracker::finish`], with the particles recovered in the frames
+    /// linked last ([`Tracker::take_recovered`]).
+    pub fn finish_with_recovered(mut self) -> (Vec<TrackPoint>, Vec<RecoveredParticles>) {
         let mut out = Vec::new();
-        while let Some(next) = self.ahead.pop_front() {
+        while let Some(mut next) = self.ahead.pop_front() {
             let ahead = self.ahead.pop_front();
-            self.step(&next, ahead.as_ref(), &mut out);
+            self.step(&mut next, ahead.as_ref(), &mut out);
+            self.keep_recovered(next);
             self.ahead.extend(ahead);
         }
         for live in std::mem::take(&mut self.live) {
             self.end(live, &mut out);
         }
-        out
+        (out, self.recovered)
     }
 
     /// Points held (not yet handed out, or kept for their neighbours'
@@ -344,30 +447,103 @@ impl Tracker {
         &mut self,
         number: i64,
         mut particles: Vec<ParticlePosition>,
+        targets: Option<FrameTargets>,
         out: &mut Vec<TrackPoint>,
     ) {
-        floor_sigmas(&mut particles);
-        let cell = self
-            .parameters
-            .max_velocity
-            .max(self.parameters.max_acceleration)
-            / 2.0;
+        let median_sigma = floor_sigmas(&mut particles);
         self.ahead.push_back(Frame {
             number,
-            grid: Grid::new(&particles, cell),
+            grid: Grid::new(&particles, self.cell()),
+            given: particles.len(),
             particles,
+            targets,
+            recovered: Vec::new(),
+            median_sigma,
         });
         if self.ahead.len() == 2 {
-            let next = self.ahead.pop_front().expect("two frames");
+            let mut next = self.ahead.pop_front().expect("two frames");
             let ahead = self.ahead.pop_front();
-            self.step(&next, ahead.as_ref(), out);
+            self.step(&mut next, ahead.as_ref(), out);
+            self.keep_recovered(next);
             self.ahead.extend(ahead);
+        }
+    }
+
+    /// The side of the particle grid's cells (mm).
+    fn cell(&self) -> f64 {
+        self.parameters
+            .max_velocity
+            .max(self.parameters.max_acceleration)
+            / 2.0
+    }
+
+    /// Keeps what `frame` recovered for [`Tracker::take_recovered`].
+    fn keep_recovered(&mut self, frame: Frame) {
+        if !frame.recovered.is_empty() {
+            self.recovered.push(RecoveredParticles {
+                frame: frame.number,
+                first: frame.given,
+                particles: frame.recovered,
+            });
+        }
+    }
+
+    /// The image-space recovery ([`recovery`]) in `next`: for every
+    /// trajectory with a velocity whose prediction has no particle of
+    /// `next` within its search radius, a particle intersected from the
+    /// unused targets there, added to `next`.
+    fn recover(&self, next: &mut Frame) {
+        let (Some(recovery), Some(targets)) = (&self.recovery, next.targets.as_mut()) else {
+            return;
+        };
+        let mut near = Vec::new();
+        let before = next.particles.len();
+        for live in &self.live {
+            if live.velocity().is_none() {
+                continue;
+            }
+            let (predicted, radius) = self.prediction(live, next.number);
+            near.clear();
+            next.grid
+                .within(&next.particles, &predicted, radius, &mut near);
+            if !near.is_empty() {
+                continue;
+            }
+            if let Some(found) = recovery.recover(targets, &predicted, radius) {
+                // Floored as the given particles are, and never below the
+                // trajectory's last point (a frame may have no others).
+                next.particles.push(ParticlePosition {
+                    position: found.position,
+                    sigma: found.sigma.sup(&next.median_sigma).sup(&live.last().sigma),
+                });
+                next.recovered.push(found);
+            }
+        }
+        if next.particles.len() > before {
+            next.grid = Grid::new(&next.particles, self.cell());
+        }
+    }
+
+    /// Where `live` predicts its particle in frame `number`, and the
+    /// search radius around it (mm): with a velocity, `x_t + v Δ` within
+    /// `max_acceleration Δ²`; else its last position within `max_velocity
+    /// Δ`; each plus the noise floor.
+    fn prediction(&self, live: &Live, number: i64) -> (Point3<f64>, f64) {
+        let p = &self.parameters;
+        let last = live.last();
+        let dt = (number - last.frame) as f64;
+        let floor = noise_floor(&last.sigma);
+        match live.velocity() {
+            Some(v) => (last.position + v * dt, p.max_acceleration * dt * dt + floor),
+            None => (last.position, p.max_velocity * dt + floor),
         }
     }
 
     /// Links the live trajectories to `next`, judged with `ahead`; starts
     /// trajectories from what is left; hands out final points.
-    fn step(&mut self, next: &Frame, ahead: Option<&Frame>, out: &mut Vec<TrackPoint>) {
+    fn step(&mut self, next: &mut Frame, ahead: Option<&Frame>, out: &mut Vec<TrackPoint>) {
+        self.recover(next);
+        let next = &*next;
         let p = &self.parameters;
         let mut links = Vec::new();
         let mut near = Vec::new();
@@ -377,10 +553,7 @@ impl Tracker {
             let dt = (next.number - last.frame) as f64;
             let velocity = live.velocity();
             let floor = noise_floor(&last.sigma);
-            let (predicted, radius) = match velocity {
-                Some(v) => (last.position + v * dt, p.max_acceleration * dt * dt + floor),
-                None => (last.position, p.max_velocity * dt + floor),
-            };
+            let (predicted, radius) = self.prediction(live, next.number);
             near.clear();
             next.grid
                 .within(&next.particles, &predicted, radius, &mut near);
@@ -569,9 +742,9 @@ impl Tracker {
 /// gives a near-zero sigma), and such a point would pin its trajectory's
 /// fit and its search radius. The frame's median is a steadier estimate of
 /// the precision of the points that claim better.
-fn floor_sigmas(particles: &mut [ParticlePosition]) {
+fn floor_sigmas(particles: &mut [ParticlePosition]) -> Vector3<f64> {
     if particles.is_empty() {
-        return;
+        return Vector3::zeros();
     }
     let mut median = Vector3::zeros();
     let mut values = Vec::with_capacity(particles.len());
@@ -584,6 +757,7 @@ fn floor_sigmas(particles: &mut [ParticlePosition]) {
     for p in particles {
         p.sigma = p.sigma.sup(&median);
     }
+    median
 }
 
 /// A search radius's allowance for the positions' noise: the prediction
