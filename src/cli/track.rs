@@ -36,7 +36,11 @@ use crate::formats;
 use crate::formats::csv::ParticleRow;
 use crate::formats::frames::{FramePattern, FrameRange, WithoutNumber};
 use crate::photogrammetry::correspond::Matcher;
-use crate::photogrammetry::track::{ParticlePosition, TrackPoint, Tracker, TrackingParameters};
+use crate::photogrammetry::track::{
+    FrameTargets, ImageSpaceRecovery, ParticlePosition, RecoveredParticles, TrackPoint, Tracker,
+    TrackingParameters,
+};
+use crate::photogrammetry::Target;
 
 /// Arguments of `ptv track`.
 #[derive(Debug, Args)]
@@ -77,6 +81,12 @@ pub struct TrackArgs {
     /// directory (created if missing).
     #[arg(long, value_name = "DIR")]
     pub ptv_is: Option<PathBuf>,
+    /// Do not look in the images for the particles the correspondences
+    /// missed (with --targets, a trajectory whose prediction has no
+    /// particle is continued from unused targets near its image in 2 or
+    /// more cameras, intersected and accepted within --tolerance).
+    #[arg(long)]
+    pub no_recovery: bool,
     /// The particles' position uncertainty (mm) where the particle files
     /// have no sx,sy,sz columns.
     #[arg(long, value_name = "MM", allow_negative_numbers = true)]
@@ -114,18 +124,24 @@ impl Source {
         }
     }
 
-    /// The particles of `frame`; `None` where a file is missing (a gap).
-    fn read(&self, frame: u64) -> Result<Option<Vec<ParticleRow>>, CliError> {
+    /// The particles of `frame`, and with --targets the targets they were
+    /// matched from; `None` where a file is missing (a gap).
+    #[allow(clippy::type_complexity)]
+    fn read(
+        &self,
+        frame: u64,
+    ) -> Result<Option<(Vec<ParticleRow>, Option<Vec<Vec<Target>>>)>, CliError> {
         if self.patterns().iter().any(|p| !p.path(frame).is_file()) {
             return Ok(None);
         }
         Ok(Some(match self {
             Source::Particles(pattern) => {
                 let path = pattern.path(frame);
-                formats::csv::parse_particles(
+                let rows = formats::csv::parse_particles(
                     &formats::read_text(&path)?,
                     &path.display().to_string(),
-                )?
+                )?;
+                (rows, None)
             }
             Source::Targets { matcher, patterns } => {
                 let targets = patterns
@@ -138,7 +154,7 @@ impl Source {
                         )
                     })
                     .collect::<Result<Vec<_>, _>>()?;
-                matcher
+                let rows = matcher
                     .match_frame(&targets)?
                     .into_iter()
                     .map(|p| ParticleRow {
@@ -146,7 +162,8 @@ impl Source {
                         sigma: Some(p.sigma),
                         targets: p.targets,
                     })
-                    .collect()
+                    .collect();
+                (rows, Some(targets))
             }
         }))
     }
@@ -164,7 +181,6 @@ pub(super) fn run(
         min_length: args.min_length,
         ..TrackingParameters::new(args.max_velocity)
     };
-    let mut tracker = Tracker::new(parameters.clone())?;
     if let Some(sigma) = args.sigma {
         if !(sigma.is_finite() && sigma > 0.0) {
             return Err(flag(
@@ -173,6 +189,7 @@ pub(super) fn run(
             ));
         }
     }
+    let mut tracker = Tracker::new(parameters.clone())?;
     let source = match (&args.particles, &args.calibration) {
         (Some(pattern), _) => Source::Particles(
             FramePattern::parse(pattern, WithoutNumber::Refuse)
@@ -186,6 +203,11 @@ pub(super) fn run(
                 args.targets.len(),
                 ("--targets", "target pattern"),
             )?;
+            if !args.no_recovery {
+                let recovery = ImageSpaceRecovery::new(cameras.clone(), args.matching.tolerance)
+                    .map_err(|e| flag("--tolerance", e.to_string()))?;
+                tracker = Tracker::with_recovery(parameters.clone(), recovery)?;
+            }
             Source::Targets {
                 matcher: Matcher::new(&cameras, &args.matching.parameters()?)?,
                 patterns: args
@@ -245,9 +267,10 @@ pub(super) fn run(
     let mut writer = Rows::default();
     let mut gaps = 0u64;
     let mut particles = 0usize;
+    let mut recovered = 0usize;
     for frame in range.first..=range.last {
         bar.set_position(frame - range.first);
-        let Some(rows) = source.read(frame)? else {
+        let Some((rows, targets)) = source.read(frame)? else {
             gaps += 1;
             continue;
         };
@@ -275,16 +298,25 @@ pub(super) fn run(
                 })
             })
             .collect::<Result<Vec<_>, _>>()?;
+        let targets = targets
+            .map(|targets| FrameTargets::new(&targets, rows.iter().map(|r| &r.targets[..])))
+            .transpose()
+            .map_err(|e| flag("--targets", format!("frame {frame}: {e}")))?;
         particles += rows.len();
         window.push_back(Held::new(frame, rows));
         while window.front().is_some_and(|h| h.frame + keep < frame) {
             let held = window.pop_front().expect("a frame");
             held.write_ptv_is(args.ptv_is.as_deref())?;
         }
-        let points = tracker.push(frame as i64, positions)?;
+        let points = match targets {
+            Some(targets) => tracker.push_with_targets(frame as i64, positions, targets)?,
+            None => tracker.push(frame as i64, positions)?,
+        };
+        recovered += hold_recovered(tracker.take_recovered(), &mut window)?;
         writer.write(&points, &mut window, stdout)?;
     }
-    let points = tracker.finish();
+    let (points, last) = tracker.finish_with_recovered();
+    recovered += hold_recovered(last, &mut window)?;
     writer.write(&points, &mut window, stdout)?;
     for held in window {
         held.write_ptv_is(args.ptv_is.as_deref())?;
@@ -293,13 +325,49 @@ pub(super) fn run(
     write_stderr_line(
         stderr,
         &format!(
-            "{} frames ({gaps} without files, tracked as gaps), {particles} particles; {} trajectories of at least {} points hold {} of them",
+            "{} frames ({gaps} without files, tracked as gaps), {particles} particles and {recovered} recovered from the images; {} trajectories of at least {} points hold {} of them",
             range.last - range.first + 1 - gaps,
             writer.trajectories,
             parameters.min_length,
             writer.points
         ),
     )
+}
+
+/// Adds the particles the tracker recovered from the images to their
+/// frames' rows (they are numbered after the frame's own); returns how
+/// many.
+fn hold_recovered(
+    recovered: Vec<RecoveredParticles>,
+    window: &mut VecDeque<Held>,
+) -> Result<usize, CliError> {
+    let mut count = 0;
+    for frame in recovered {
+        let held = window
+            .iter_mut()
+            .find(|h| h.frame as i64 == frame.frame)
+            .filter(|h| h.rows.len() == frame.first)
+            .ok_or_else(|| {
+                flag(
+                    "--targets",
+                    format!(
+                        "internal: frame {}'s recovered particles came after the frame was let go; please report this",
+                        frame.frame
+                    ),
+                )
+            })?;
+        for particle in frame.particles {
+            held.rows.push(ParticleRow {
+                position: particle.position,
+                sigma: Some(particle.sigma),
+                targets: particle.targets,
+            });
+            held.prev.push(-1);
+            held.next.push(-2);
+            count += 1;
+        }
+    }
+    Ok(count)
 }
 
 /// A frame's particles while its points may still come, with the links
