@@ -61,7 +61,7 @@ pub use self::match_targets::{MatchArgs, MatchingFlags};
 pub use self::process::ProcessArgs;
 pub use self::process_sequence::{BackgroundChoice, ProcessSequenceArgs};
 pub use self::selfcalibrate::SelfCalibrateArgs;
-pub use self::simulate::SimulateArgs;
+pub use self::simulate::{FlowArg, SimulateArgs};
 pub use self::track::TrackArgs;
 pub use self::upload::UploadArgs;
 use crate::formats::{self, FormatError};

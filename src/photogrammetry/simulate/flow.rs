@@ -681,7 +681,10 @@ mod tests {
                 };
                 let columns = [gradient(0), gradient(1), gradient(2)];
                 let divergence = columns[0].x + columns[1].y + columns[2].z;
-                assert!(divergence.abs() < 1e-7 * rate, "{kind:?} at {p}: {divergence}");
+                assert!(
+                    divergence.abs() < 1e-7 * rate,
+                    "{kind:?} at {p}: {divergence}"
+                );
                 let u = flow.velocity(&p, t);
                 let dt = 1e-4;
                 let local = (flow.velocity(&p, t + dt) - flow.velocity(&p, t - dt)) / (2.0 * dt);
@@ -737,7 +740,9 @@ mod tests {
                 worst = worst.max((a - b).norm());
             }
             let in_px = worst / pixel;
-            println!("{kind:?}: {steps} steps a frame, halving moves {worst:.2e} mm = {in_px:.2e} px");
+            println!(
+                "{kind:?}: {steps} steps a frame, halving moves {worst:.2e} mm = {in_px:.2e} px"
+            );
             assert!(in_px < 1e-4, "{kind:?}: {in_px} px");
         }
     }
@@ -826,7 +831,10 @@ mod tests {
             .collect();
         let n = fast.len() as f64;
         // A uniform seeding puts half the particles in the fast layers.
-        assert!((n - 4_000.0).abs() < 5.0 * (8_000.0f64 * 0.25).sqrt(), "{n}");
+        assert!(
+            (n - 4_000.0).abs() < 5.0 * (8_000.0f64 * 0.25).sqrt(),
+            "{n}"
+        );
         let mut bins = [0usize; 8];
         for x in fast {
             let bin = ((x - volume.min.x) / (volume.max.x - volume.min.x) * 8.0) as usize;
