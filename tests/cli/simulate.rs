@@ -268,3 +268,51 @@ fn bad_sequence_flags_get_one_clear_line() {
         text(&out.stderr)
     );
 }
+
+/// With images: one PNG per camera and frame, of the sensor's size; the
+/// truth keeps the particle count, the ids of frame 0 or new ones.
+#[test]
+fn a_sequence_writes_images_and_keeps_its_ids() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let out = ptv(
+        &[
+            "simulate",
+            "--cameras",
+            "2",
+            "--particles",
+            "50",
+            "--out",
+            "s",
+            "--frames",
+            "3",
+            "--flow",
+            "shear",
+            "--displacement",
+            "8",
+        ],
+        d,
+    );
+    succeeds(&out);
+    for f in 0..3 {
+        for c in 1..=2 {
+            let image =
+                ptv::formats::image::read_image(&d.join(format!("s/cam{c}.{f:05}.png")), None)
+                    .unwrap();
+            assert_eq!((image.width(), image.height()), (1280, 1024));
+        }
+        let truth = read_truth(&d.join(format!("s/truth.{f:05}.csv")), 2);
+        assert_eq!(truth.velocity.len(), 50);
+        let new = truth.velocity.keys().filter(|&&id| id >= 50).count();
+        if f == 0 {
+            assert_eq!(new, 0);
+        }
+        // Shear: u = gamma (y - c_y), the rest zero.
+        for v in truth.velocity.values() {
+            assert!(v.x.abs() <= 8.0 && v.y == 0.0 && v.z == 0.0, "{v}");
+        }
+    }
+    // At 8 mm a frame at the y faces some of the 50 leave within 2 frames.
+    let last = read_truth(&d.join("s/truth.00002.csv"), 2);
+    assert!(last.velocity.keys().any(|&id| id >= 50), "no newcomer");
+}
