@@ -70,7 +70,7 @@ pub enum FlowArg {
     /// A Burgers vortex along z through the volume's centre (particles
     /// enter at the sides, leave through the z faces).
     Burgers,
-    /// The 3D Taylor-Green vortex, decaying over ten turnover times (no
+    /// The 3D Taylor-Green vortex, decaying over 33 turnover times (no
     /// particle leaves).
     TaylorGreen,
     /// Uniform shear along x, u = gamma (y - centre) (particles enter and
