@@ -25,7 +25,8 @@
 //! - `ptv upload` (`cli/upload.rs`): a recording's frames pushed to a
 //!   running `ptv serve`, several at once, retried, resumable.
 //! - `ptv simulate` (`cli/simulate.rs`): a synthetic experiment for the
-//!   commands above: calibration, targets, images and the truth.
+//!   commands above: calibration, targets, images and the truth, one frame
+//!   or a sequence of particles moving through an analytic flow.
 //!
 //! Results go to standard output or a file; warnings about points left out
 //! go to standard error, one line each. Reading and parsing files is
@@ -61,7 +62,7 @@ pub use self::match_targets::{MatchArgs, MatchingFlags};
 pub use self::process::ProcessArgs;
 pub use self::process_sequence::{BackgroundChoice, ProcessSequenceArgs};
 pub use self::selfcalibrate::SelfCalibrateArgs;
-pub use self::simulate::SimulateArgs;
+pub use self::simulate::{FlowArg, SimulateArgs};
 pub use self::track::TrackArgs;
 pub use self::upload::UploadArgs;
 use crate::formats::{self, FormatError};
@@ -125,7 +126,10 @@ pub enum Command {
     /// mm per frame, mm per frame²) to standard output.
     Track(TrackArgs),
     /// Write a synthetic experiment into a directory: calibration.json,
-    /// per camera camN_targets.csv and camN.png, and truth.csv.
+    /// per camera camN_targets.csv and camN.png, and truth.csv; with
+    /// --frames and --flow, a sequence of particles moving through an
+    /// analytic flow, per frame camN_targets.%05d.csv, camN.%05d.png and
+    /// truth.%05d.csv (ids, true velocities and accelerations).
     Simulate(SimulateArgs),
     /// Compute a camera's background image from its frames (the per-pixel
     /// median or minimum), streaming them one at a time; writes PNG or TIFF

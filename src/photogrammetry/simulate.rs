@@ -18,6 +18,11 @@
 //! `background` submodule): what real recordings add, and what the
 //! detector's high-pass filter (section 6.1) or a background subtraction
 //! must remove.
+//!
+//! For tracking, the `flow` submodule moves particles through analytic
+//! flows (a Burgers vortex, a Taylor-Green vortex, uniform shear) frame by
+//! frame, with their exact velocities and accelerations ([`Flow`],
+//! [`Seeding`]).
 
 use nalgebra::{Matrix3, Point2, Point3, Vector2, Vector3};
 use rand::rngs::StdRng;
@@ -36,7 +41,9 @@ use super::target::Target;
 use super::volume::Volume;
 
 mod background;
+pub mod flow;
 pub use background::{BackgroundField, StructuredBackground};
+pub use flow::{Flow, FlowError, FlowKind, Seeding, Tracer, TracerState};
 
 /// A box-shaped water tank centred on the origin.
 #[derive(Clone, Debug, PartialEq)]
