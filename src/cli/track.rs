@@ -36,6 +36,7 @@ use crate::formats;
 use crate::formats::csv::ParticleRow;
 use crate::formats::frames::{FramePattern, FrameRange, WithoutNumber};
 use crate::photogrammetry::correspond::Matcher;
+use crate::photogrammetry::track::recovery::frame_noise;
 use crate::photogrammetry::track::{
     FrameTargets, ImageSpaceRecovery, ParticlePosition, RecoveredParticles, TrackPoint, Tracker,
     TrackingParameters,
@@ -125,12 +126,13 @@ impl Source {
     }
 
     /// The particles of `frame`, and with --targets the targets they were
-    /// matched from; `None` where a file is missing (a gap).
+    /// matched from, with the image noise the particles show
+    /// ([`frame_noise`]); `None` where a file is missing (a gap).
     #[allow(clippy::type_complexity)]
     fn read(
         &self,
         frame: u64,
-    ) -> Result<Option<(Vec<ParticleRow>, Option<Vec<Vec<Target>>>)>, CliError> {
+    ) -> Result<Option<(Vec<ParticleRow>, Option<(Vec<Vec<Target>>, Option<f64>)>)>, CliError> {
         if self.patterns().iter().any(|p| !p.path(frame).is_file()) {
             return Ok(None);
         }
@@ -154,8 +156,9 @@ impl Source {
                         )
                     })
                     .collect::<Result<Vec<_>, _>>()?;
-                let rows = matcher
-                    .match_frame(&targets)?
+                let particles = matcher.match_frame(&targets)?;
+                let noise = frame_noise(particles.iter().map(|p| (p.rms_px, p.camera_count())));
+                let rows = particles
                     .into_iter()
                     .map(|p| ParticleRow {
                         position: p.position,
@@ -163,7 +166,7 @@ impl Source {
                         targets: p.targets,
                     })
                     .collect();
-                (rows, Some(targets))
+                (rows, Some((targets, noise)))
             }
         }))
     }
@@ -299,7 +302,10 @@ pub(super) fn run(
             })
             .collect::<Result<Vec<_>, _>>()?;
         let targets = targets
-            .map(|targets| FrameTargets::new(&targets, rows.iter().map(|r| &r.targets[..])))
+            .map(|(targets, noise)| {
+                FrameTargets::new(&targets, rows.iter().map(|r| &r.targets[..]))
+                    .map(|t| t.with_noise(noise.unwrap_or(f64::NAN)))
+            })
             .transpose()
             .map_err(|e| flag("--targets", format!("frame {frame}: {e}")))?;
         particles += rows.len();
