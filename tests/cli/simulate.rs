@@ -171,14 +171,15 @@ fn a_simulated_sequence_is_tracked_with_its_true_velocities() {
         let trajectory: u64 = f[0].parse().unwrap();
         let frame: usize = f[1].parse().unwrap();
         let truth = &truths[frame];
+        // The cameras that have a target (a particle recovered from the
+        // images may have 3 of them, or 2).
         let ids: Vec<Option<u64>> = (0..4)
-            .map(|c| {
-                truth.id_of_target[c]
-                    .get(&f[15 + c].parse::<i64>().unwrap())
-                    .copied()
+            .filter_map(|c| {
+                let t = f[15 + c].parse::<i64>().unwrap();
+                (t >= 0).then(|| truth.id_of_target[c].get(&t).copied())
             })
             .collect();
-        let id = ids[0].filter(|_| ids.iter().all(|i| *i == ids[0]));
+        let id = ids[0].filter(|_| ids.len() >= 2 && ids.iter().all(|i| *i == ids[0]));
         ids_of_trajectory.entry(trajectory).or_default().push(id);
         let Some(id) = id else { continue };
         let velocity = Vector3::new(n(5), n(6), n(7));
