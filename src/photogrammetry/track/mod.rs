@@ -88,6 +88,16 @@ impl TrackingParameters {
         }
     }
 
+    /// How many frames behind the newest frame given a point may still be
+    /// handed out: a trajectory waits for up to
+    /// `max(min_length, MAX_DECISION_LENGTH)` points (the test for ghosts)
+    /// spread over gaps, then for its fit window, plus the look-ahead. A
+    /// caller holding per-frame data for the points (the command line's
+    /// target indices) needs this many frames.
+    pub fn report_delay(&self) -> usize {
+        self.min_length.max(MAX_DECISION_LENGTH) * (self.max_gap + 1) + self.fit_half_window + 4
+    }
+
     /// Checks every field; the error names it and its range.
     pub fn validate(&self) -> Result<(), TrackError> {
         let invalid = |what: String| Err(TrackError::InvalidParameter(what));
@@ -139,6 +149,30 @@ pub struct ParticlePosition {
     /// Standard deviations of X, Y, Z (mm), each above zero: the
     /// intersection's, or the lab's estimate where a file has none.
     pub sigma: Vector3<f64>,
+    /// How many cameras saw it (the correspondences' group size); 0 where
+    /// that is unknown (particle files without target columns), which
+    /// counts as seen by all.
+    pub cameras: usize,
+}
+
+impl ParticlePosition {
+    /// A particle whose camera count is unknown (counted as seen by all).
+    pub fn new(position: Point3<f64>, sigma: Vector3<f64>) -> Self {
+        ParticlePosition {
+            position,
+            sigma,
+            cameras: 0,
+        }
+    }
+
+    /// A particle seen by `cameras` cameras.
+    pub fn seen_by(position: Point3<f64>, sigma: Vector3<f64>, cameras: usize) -> Self {
+        ParticlePosition {
+            position,
+            sigma,
+            cameras,
+        }
+    }
 }
 
 /// A point of a trajectory.
@@ -196,13 +230,26 @@ pub enum TrackError {
 struct Frame {
     number: i64,
     particles: Vec<ParticlePosition>,
+    /// Per particle, the cameras short of the rig's count that missed it
+    /// (0 where it was seen by all or the count is unknown).
+    missing: Vec<usize>,
+    /// The share of the frame's particles seen by all cameras.
+    full_share: f64,
     grid: Grid,
 }
 
 /// A trajectory being tracked.
 struct Live {
-    /// Its number, once it has `min_length` points.
+    /// Its number, once it has `min_length` points and passed the test
+    /// for ghosts ([`Live::decide`]).
     id: Option<u64>,
+    /// Failed the test for ghosts: never reported.
+    rejected: bool,
+    /// Its points seen by all cameras.
+    full: usize,
+    /// The sum, over its points, of their frames' share of particles seen
+    /// by all cameras: the `full` expected of a real particle.
+    expected_full: f64,
     /// Its recent points: those not yet handed out, and up to a fit
     /// window of those before them.
     nodes: VecDeque<Node>,
@@ -218,6 +265,8 @@ struct Node {
     particle: usize,
     position: Point3<f64>,
     sigma: Vector3<f64>,
+    /// Cameras short of the rig's that missed it.
+    missing: usize,
 }
 
 impl Live {
@@ -238,6 +287,76 @@ impl Live {
     fn local(&self, k: usize) -> usize {
         k - (self.length - self.nodes.len())
     }
+
+    fn add(&mut self, node: Node, full_share: f64) {
+        self.full += usize::from(node.missing == 0);
+        self.nodes.push_back(node);
+        self.length += 1;
+        self.expected_full += full_share;
+    }
+
+    /// The test for ghosts, once it has `decision_length(share)` points or
+    /// ended: `Some(true)` for a particle's trajectory, `Some(false)` for a
+    /// ghost's, `None` while undecided.
+    ///
+    /// A real particle is seen by all cameras in a frame with about the
+    /// probability `f` that the frame's particles are (its images are
+    /// lost at random, independently from frame to frame), so its count
+    /// of full points over `n` is about binomial `(n, f)`. A ghost borrows
+    /// its images from other particles, and the more cameras, the less
+    /// likely their rays meet by chance: it is rarely seen by all. A
+    /// trajectory is a ghost's where most of its points are not full and
+    /// so few are that a real particle would show as few with probability
+    /// under [`GHOST_TEST_LEVEL`]. The frames' shares include the ghosts,
+    /// so `f` is underestimated: the test errs towards keeping. Where
+    /// every particle is seen by all cameras (a 2-camera rig, or counts
+    /// unknown) nothing is rejected.
+    fn decide(&self, min_length: usize, ended: bool) -> Option<bool> {
+        let n = self.length;
+        let share = self.expected_full / n as f64;
+        if n < min_length {
+            return ended.then_some(false);
+        }
+        if !ended && n < decision_length(share, min_length) {
+            return None;
+        }
+        let weak_majority = 2 * self.full < n;
+        Some(!(weak_majority && binomial_cdf(self.full, n, share) < GHOST_TEST_LEVEL))
+    }
+}
+
+/// The test for ghosts rejects a real particle's trajectory with at most
+/// this probability.
+pub const GHOST_TEST_LEVEL: f64 = 0.01;
+
+/// The most points a trajectory waits for before the test for ghosts
+/// decides (where few particles are seen by all cameras, the test needs
+/// more points; beyond this it decides on what it has).
+pub const MAX_DECISION_LENGTH: usize = 10;
+
+/// The points the test for ghosts waits for: enough that a trajectory of
+/// none seen by all cameras is improbable for a real particle (`(1 -
+/// share)^n < GHOST_TEST_LEVEL`), at least `min_length`, at most
+/// [`MAX_DECISION_LENGTH`].
+fn decision_length(share: f64, min_length: usize) -> usize {
+    let mut n = min_length;
+    while n < MAX_DECISION_LENGTH && (1.0 - share).powi(n as i32) >= GHOST_TEST_LEVEL {
+        n += 1;
+    }
+    n
+}
+
+/// `P(X <= k)` for `X` binomial `(n, p)`.
+fn binomial_cdf(k: usize, n: usize, p: f64) -> f64 {
+    let p = p.clamp(0.0, 1.0);
+    let mut term = (1.0 - p).powi(n as i32); // P(X = 0)
+    let mut sum = term;
+    for i in 0..k.min(n) {
+        // P(X = i + 1) from P(X = i).
+        term *= (n - i) as f64 / (i + 1) as f64 * p / (1.0 - p).max(f64::MIN_POSITIVE);
+        sum += term;
+    }
+    sum.min(1.0)
 }
 
 /// A candidate link: its rank (without a look-ahead partner after all
@@ -259,6 +378,8 @@ pub struct Tracker {
     live: Vec<Live>,
     next_id: u64,
     last_frame: Option<i64>,
+    /// The most cameras any particle so far was seen by: the rig's count.
+    rig_cameras: usize,
 }
 
 impl Tracker {
@@ -271,6 +392,7 @@ impl Tracker {
             live: Vec::new(),
             next_id: 0,
             last_frame: None,
+            rig_cameras: 0,
         })
     }
 
@@ -346,6 +468,22 @@ impl Tracker {
         out: &mut Vec<TrackPoint>,
     ) {
         floor_sigmas(&mut particles);
+        self.rig_cameras = particles
+            .iter()
+            .map(|p| p.cameras)
+            .fold(self.rig_cameras, usize::max);
+        let missing: Vec<usize> = particles
+            .iter()
+            .map(|p| match p.cameras {
+                0 => 0,
+                c => self.rig_cameras - c,
+            })
+            .collect();
+        let full_share = if particles.is_empty() {
+            1.0
+        } else {
+            missing.iter().filter(|&&m| m == 0).count() as f64 / particles.len() as f64
+        };
         let cell = self
             .parameters
             .max_velocity
@@ -355,6 +493,8 @@ impl Tracker {
             number,
             grid: Grid::new(&particles, cell),
             particles,
+            missing,
+            full_share,
         });
         if self.ahead.len() == 2 {
             let next = self.ahead.pop_front().expect("two frames");
@@ -417,10 +557,16 @@ impl Tracker {
                         best = Some(best.map_or(cost, |b: f64| b.min(cost)));
                     }
                 }
+                // A candidate, or a trajectory's last point, missed by some
+                // cameras may be a ghost: the link ranks after one between
+                // points seen by all whose cost is within the noise's.
+                let penalty = (next.missing[c] + last.missing) as f64
+                    * WEAK_PENALTY
+                    * cost_noise(&next.particles[c].sigma);
                 let link = match best {
                     Some(cost) => Link {
                         unconfirmed: false,
-                        cost,
+                        cost: cost + penalty,
                         live: l,
                         particle: c,
                     },
@@ -429,7 +575,7 @@ impl Tracker {
                     None if a1.is_none() && ahead.is_some() => continue,
                     None => Link {
                         unconfirmed: true,
-                        cost: a1.map_or((position - last.position).norm(), |a| a.norm()),
+                        cost: a1.map_or((position - last.position).norm(), |a| a.norm()) + penalty,
                         live: l,
                         particle: c,
                     },
@@ -448,14 +594,16 @@ impl Tracker {
             taken_live[link.live] = true;
             taken[link.particle] = true;
             let particle = &next.particles[link.particle];
-            let live = &mut self.live[link.live];
-            live.nodes.push_back(Node {
-                frame: next.number,
-                particle: link.particle,
-                position: particle.position,
-                sigma: particle.sigma,
-            });
-            live.length += 1;
+            self.live[link.live].add(
+                Node {
+                    frame: next.number,
+                    particle: link.particle,
+                    position: particle.position,
+                    sigma: particle.sigma,
+                    missing: next.missing[link.particle],
+                },
+                next.full_share,
+            );
         }
         // Trajectories that missed this frame: continue within the gap
         // (only those with a velocity to predict with), or end.
@@ -473,17 +621,26 @@ impl Tracker {
         }
         for (c, particle) in next.particles.iter().enumerate() {
             if !taken[c] {
-                kept.push(Live {
+                let mut live = Live {
                     id: None,
-                    nodes: VecDeque::from([Node {
+                    rejected: false,
+                    full: 0,
+                    expected_full: 0.0,
+                    nodes: VecDeque::new(),
+                    length: 0,
+                    emitted: 0,
+                };
+                live.add(
+                    Node {
                         frame: next.number,
                         particle: c,
                         position: particle.position,
                         sigma: particle.sigma,
-                    }]),
-                    length: 1,
-                    emitted: 0,
-                });
+                        missing: next.missing[c],
+                    },
+                    next.full_share,
+                );
+                kept.push(live);
             }
         }
         self.live = kept;
@@ -503,14 +660,24 @@ impl Tracker {
     /// needs any more.
     fn hand_out(&mut self, live: &mut Live, ended: bool, out: &mut Vec<TrackPoint>) {
         let p = &self.parameters;
-        if live.length < p.min_length {
-            return;
-        }
-        let id = *live.id.get_or_insert_with(|| {
-            self.next_id += 1;
-            self.next_id - 1
-        });
         let w = p.fit_half_window;
+        if live.id.is_none() && !live.rejected {
+            match live.decide(p.min_length, ended) {
+                Some(true) => {
+                    live.id = Some(self.next_id);
+                    self.next_id += 1;
+                }
+                Some(false) => live.rejected = true,
+                None => return,
+            }
+        }
+        let Some(id) = live.id else {
+            // Rejected: keep the last two points, for the prediction.
+            while live.nodes.len() > 2 {
+                live.nodes.pop_front();
+            }
+            return;
+        };
         let last_frame = live.last().frame;
         while live.emitted < live.length {
             let k = live.emitted;
@@ -583,6 +750,19 @@ fn floor_sigmas(particles: &mut [ParticlePosition]) {
     for p in particles {
         p.sigma = p.sigma.sup(&median);
     }
+}
+
+/// The ranking's penalty for each camera that missed a candidate, in
+/// units of [`cost_noise`]: a candidate seen by all cameras wins unless
+/// its cost is worse by more than this many times the noise's.
+pub const WEAK_PENALTY: f64 = 2.0;
+
+/// The RMS of a link's cost (the change of acceleration over four
+/// positions, `x_{t+2} - 3 x_{t+1} + 3 x_t - x_{t-1}`) from the positions'
+/// noise alone, each position with the candidate's `sigma`: `sqrt(1 + 9 +
+/// 9 + 1) |sigma|`.
+fn cost_noise(sigma: &Vector3<f64>) -> f64 {
+    20f64.sqrt() * sigma.norm()
 }
 
 /// A search radius's allowance for the positions' noise: the prediction
