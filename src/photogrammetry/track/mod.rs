@@ -557,10 +557,13 @@ impl Tracker {
                         best = Some(best.map_or(cost, |b: f64| b.min(cost)));
                     }
                 }
-                // A candidate, or a trajectory's last point, missed by some
-                // cameras may be a ghost: the link ranks after one between
-                // points seen by all whose cost is within the noise's.
-                let penalty = (next.missing[c] + last.missing) as f64
+                // A candidate missed by some cameras may be a ghost, and so
+                // may a trajectory of one such point (one with more points
+                // has its history as evidence): the link ranks after one
+                // between points seen by all whose cost is within the
+                // noise's.
+                let source = if live.length == 1 { last.missing } else { 0 };
+                let penalty = (next.missing[c] + source) as f64
                     * WEAK_PENALTY
                     * cost_noise(&next.particles[c].sigma);
                 let link = match best {
