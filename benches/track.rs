@@ -10,7 +10,8 @@
 //! less any lost at 5% each (so the ghost test's bookkeeping runs as on a
 //! real rig). Each iteration tracks the whole sequence of `FRAMES` frames
 //! (`track`, the fits included); the time per frame is that over
-//! `FRAMES`, printed for each size.
+//! `FRAMES`, printed for each size (with the thread's CPU time, steadier
+//! than the wall clock on a shared machine).
 //!
 //! `taskset -c 0 cargo bench --bench track` (one core).
 
@@ -85,6 +86,17 @@ fn sequence(particles: usize) -> (Vec<(i64, Vec<ParticlePosition>)>, f64) {
     (frames, peak)
 }
 
+/// This thread's time on a CPU (ns), from Linux's schedstat: on a shared
+/// machine steadier than the wall clock. `None` elsewhere.
+fn cpu_ns() -> Option<u64> {
+    std::fs::read_to_string("/proc/thread-self/schedstat")
+        .ok()?
+        .split_whitespace()
+        .next()?
+        .parse()
+        .ok()
+}
+
 fn bench(c: &mut Criterion) {
     let mut group = c.benchmark_group("track");
     group.sample_size(10);
@@ -96,12 +108,15 @@ fn bench(c: &mut Criterion) {
         };
         // One run outside criterion for the per-frame figure and a sanity
         // check that the flow is tracked.
-        let start = Instant::now();
+        let (start, cpu) = (Instant::now(), cpu_ns());
         let trajectories = track(frames.clone(), parameters.clone()).expect("tracking runs");
         let per_frame = start.elapsed().as_secs_f64() * 1e3 / FRAMES as f64;
+        let cpu_per_frame = cpu_ns()
+            .zip(cpu)
+            .map_or(f64::NAN, |(b, a)| (b - a) as f64 * 1e-6 / FRAMES as f64);
         let points: usize = trajectories.iter().map(|t| t.points.len()).sum();
         println!(
-            "{particles} particles: {per_frame:.2} ms a frame ({} trajectories, mean length {:.1} of {FRAMES})",
+            "{particles} particles: {per_frame:.2} ms a frame, {cpu_per_frame:.2} ms of CPU ({} trajectories, mean length {:.1} of {FRAMES})",
             trajectories.len(),
             points as f64 / trajectories.len().max(1) as f64
         );

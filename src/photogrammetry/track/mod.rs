@@ -45,7 +45,7 @@
 
 pub mod kinematics;
 
-use std::collections::{HashMap, VecDeque};
+use std::collections::VecDeque;
 
 use nalgebra::{Point3, Vector3};
 
@@ -521,8 +521,7 @@ impl Tracker {
                 None => (last.position, p.max_velocity * dt + floor),
             };
             near.clear();
-            next.grid
-                .within(&next.particles, &predicted, radius, &mut near);
+            next.grid.within(&predicted, radius, &mut near);
             for &c in &near {
                 let position = next.particles[c].position;
                 let step = (position - last.position) / dt;
@@ -539,7 +538,6 @@ impl Tracker {
                     let floor2 = noise_floor(&next.particles[c].sigma);
                     near_ahead.clear();
                     ahead.grid.within(
-                        &ahead.particles,
                         &predicted2,
                         p.max_acceleration * dt2 * dt2 + floor2,
                         &mut near_ahead,
@@ -690,22 +688,32 @@ impl Tracker {
             if !ended && last_frame < node.frame + w as i64 {
                 break;
             }
-            let samples: Vec<Sample> = live
+            // The window's points: at most 2 w + 1 (w <= 5), on the stack.
+            let mut samples = [Sample {
+                frame: 0,
+                position: Vector3::zeros(),
+                sigma: Vector3::zeros(),
+            }; 11];
+            let mut count = 0;
+            for n in live
                 .nodes
                 .iter()
                 .filter(|n| (n.frame - node.frame).unsigned_abs() <= w as u64)
-                .map(|n| Sample {
+            {
+                samples[count] = Sample {
                     frame: n.frame,
                     position: n.position.coords,
                     sigma: n.sigma,
-                })
-                .collect();
-            let derivatives = fit(&samples, node.frame, p.fit_order).unwrap_or(Derivatives {
-                velocity: Vector3::repeat(f64::NAN),
-                velocity_sigma: Vector3::repeat(f64::NAN),
-                acceleration: None,
-                acceleration_sigma: None,
-            });
+                };
+                count += 1;
+            }
+            let derivatives =
+                fit(&samples[..count], node.frame, p.fit_order).unwrap_or(Derivatives {
+                    velocity: Vector3::repeat(f64::NAN),
+                    velocity_sigma: Vector3::repeat(f64::NAN),
+                    acceleration: None,
+                    acceleration_sigma: None,
+                });
             out.push(TrackPoint {
                 trajectory: id,
                 frame: node.frame,
@@ -775,52 +783,113 @@ fn noise_floor(sigma: &Vector3<f64>) -> f64 {
     3.0 * 6f64.sqrt() * sigma.norm()
 }
 
-/// The particles of a frame in a uniform grid.
+/// The particles of a frame filed by cell of a uniform grid over their
+/// bounding box: their indices sorted by cell (x, then y, then z fastest)
+/// with their positions alongside, and per cell where its run starts. A
+/// search visits, per (x, y) column of its box, one contiguous run of
+/// cells.
 struct Grid {
     cell: f64,
-    cells: HashMap<[i64; 3], Vec<usize>>,
+    origin: Point3<f64>,
+    dims: [usize; 3],
+    /// Per cell, the first entry of its run in `order` (and one past the
+    /// end).
+    starts: Vec<u32>,
+    /// Particle indices by cell.
+    order: Vec<u32>,
+    /// Their positions, in the same order.
+    points: Vec<Point3<f64>>,
 }
 
 impl Grid {
+    /// Cells of side `cell`, or larger where the particles spread so far
+    /// that cells of that side would outnumber them eightfold (outliers):
+    /// a search's answer is the same, only slower.
     fn new(particles: &[ParticlePosition], cell: f64) -> Grid {
-        let mut cells: HashMap<[i64; 3], Vec<usize>> = HashMap::new();
-        for (i, p) in particles.iter().enumerate() {
-            cells
-                .entry(Self::key(&p.position, cell))
-                .or_default()
-                .push(i);
+        let mut low = Point3::origin();
+        let mut high = Point3::origin();
+        if let Some(first) = particles.first() {
+            (low, high) = (first.position, first.position);
+            for p in particles {
+                low = low.inf(&p.position);
+                high = high.sup(&p.position);
+            }
         }
-        Grid { cell, cells }
+        let extent = high - low;
+        let limit = (8 * particles.len()).max(64) as f64;
+        let mut cell = cell;
+        let dims = loop {
+            let dims: [f64; 3] = std::array::from_fn(|i| (extent[i] / cell).floor() + 1.0);
+            let cells = dims[0] * dims[1] * dims[2];
+            if cells <= limit {
+                break dims.map(|d| d as usize);
+            }
+            cell *= (cells / limit).cbrt().max(1.01);
+        };
+        let mut grid = Grid {
+            cell,
+            origin: low,
+            dims,
+            starts: vec![0; dims[0] * dims[1] * dims[2] + 1],
+            order: Vec::new(),
+            points: Vec::new(),
+        };
+        // Counting sort by cell.
+        let keys: Vec<usize> = particles
+            .iter()
+            .map(|p| grid.key(&grid.cell_of(&p.position)))
+            .collect();
+        for &k in &keys {
+            grid.starts[k + 1] += 1;
+        }
+        for k in 1..grid.starts.len() {
+            grid.starts[k] += grid.starts[k - 1];
+        }
+        let mut next: Vec<u32> = grid.starts[..grid.starts.len() - 1].to_vec();
+        grid.order = vec![0; particles.len()];
+        for (i, &k) in keys.iter().enumerate() {
+            grid.order[next[k] as usize] = i as u32;
+            next[k] += 1;
+        }
+        grid.points = grid
+            .order
+            .iter()
+            .map(|&i| particles[i as usize].position)
+            .collect();
+        grid
     }
 
-    fn key(point: &Point3<f64>, cell: f64) -> [i64; 3] {
-        std::array::from_fn(|i| (point[i] / cell).floor() as i64)
+    /// The cell of a point, clamped into the grid.
+    fn cell_of(&self, point: &Point3<f64>) -> [usize; 3] {
+        std::array::from_fn(|i| {
+            let c = ((point[i] - self.origin[i]) / self.cell).floor();
+            c.clamp(0.0, (self.dims[i] - 1) as f64) as usize
+        })
     }
 
-    /// The particles within `radius` of `centre`, appended to `out` in
-    /// index order.
-    fn within(
-        &self,
-        particles: &[ParticlePosition],
-        centre: &Point3<f64>,
-        radius: f64,
-        out: &mut Vec<usize>,
-    ) {
-        let start = out.len();
-        let low = Self::key(&(centre - Vector3::repeat(radius)), self.cell);
-        let high = Self::key(&(centre + Vector3::repeat(radius)), self.cell);
+    fn key(&self, c: &[usize; 3]) -> usize {
+        (c[0] * self.dims[1] + c[1]) * self.dims[2] + c[2]
+    }
+
+    /// The particles within `radius` of `centre`, appended to `out` (in no
+    /// particular order).
+    fn within(&self, centre: &Point3<f64>, radius: f64, out: &mut Vec<usize>) {
+        // Cells are clamped into the grid: a box beyond it reaches its
+        // border cells, whose particles the distance test then rejects.
+        let low = self.cell_of(&(centre - Vector3::repeat(radius)));
+        let high = self.cell_of(&(centre + Vector3::repeat(radius)));
+        let r2 = radius * radius;
         for i in low[0]..=high[0] {
             for j in low[1]..=high[1] {
-                for k in low[2]..=high[2] {
-                    if let Some(cell) = self.cells.get(&[i, j, k]) {
-                        out.extend(cell.iter().filter(|&&c| {
-                            (particles[c].position - centre).norm_squared() <= radius * radius
-                        }));
+                let from = self.starts[self.key(&[i, j, low[2]])] as usize;
+                let to = self.starts[self.key(&[i, j, high[2]]) + 1] as usize;
+                for e in from..to {
+                    if (self.points[e] - centre).norm_squared() <= r2 {
+                        out.push(self.order[e] as usize);
                     }
                 }
             }
         }
-        out[start..].sort_unstable();
     }
 }
 
