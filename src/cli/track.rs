@@ -253,11 +253,8 @@ pub(super) fn run(
             indicatif::ProgressDrawTarget::hidden()
         },
     );
-    // A frame's particles are needed until its points are handed out: at
-    // most `min_length` points spread over gaps, plus the fit window and
-    // the look-ahead, behind the newest frame.
-    let keep =
-        (parameters.min_length * (parameters.max_gap + 1) + parameters.fit_half_window + 4) as u64;
+    // A frame's particles are needed until its points are handed out.
+    let keep = parameters.report_delay() as u64;
     if let Some(dir) = &args.ptv_is {
         std::fs::create_dir_all(dir).map_err(|e| {
             flag(
@@ -295,10 +292,13 @@ pub(super) fn run(
                         ))
                     }
                 };
-                Ok(ParticlePosition {
-                    position: row.position,
+                // The files' target columns say how many cameras saw
+                // it; without them it is unknown (0).
+                Ok(ParticlePosition::seen_by(
+                    row.position,
                     sigma,
-                })
+                    row.targets.iter().flatten().count(),
+                ))
             })
             .collect::<Result<Vec<_>, _>>()?;
         let targets = targets

@@ -22,7 +22,7 @@
 //! `2 sigma / sqrt(14)`; raw central differences would give `sigma /
 //! sqrt(2)` and `sigma sqrt(6)`.
 
-use nalgebra::{DMatrix, DVector, Vector3};
+use nalgebra::{SMatrix, SVector, Vector3};
 
 /// One point of a trajectory for the fit.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -57,34 +57,23 @@ pub(super) fn fit(samples: &[Sample], at: i64, order: usize) -> Option<Derivativ
         return None;
     }
     let order = order.clamp(1, 3).min(samples.len() - 1);
-    let terms = order + 1;
     let mut velocity = Vector3::zeros();
     let mut velocity_sigma = Vector3::zeros();
     let mut acceleration = Vector3::zeros();
     let mut acceleration_sigma = Vector3::zeros();
     for axis in 0..3 {
         // Normal equations of the weighted least squares, per axis (the
-        // weights differ per axis).
-        let mut normal = DMatrix::<f64>::zeros(terms, terms);
-        let mut rhs = DVector::<f64>::zeros(terms);
-        for s in samples {
-            let t = (s.frame - at) as f64;
-            let w = s.sigma[axis].powi(-2);
-            let powers: Vec<f64> = (0..terms).map(|k| t.powi(k as i32)).collect();
-            for r in 0..terms {
-                rhs[r] += w * powers[r] * s.position[axis];
-                for c in 0..terms {
-                    normal[(r, c)] += w * powers[r] * powers[c];
-                }
-            }
-        }
-        let inverse = normal.try_inverse()?;
-        let b = &inverse * rhs;
-        velocity[axis] = b[1];
-        velocity_sigma[axis] = inverse[(1, 1)].max(0.0).sqrt();
+        // weights differ per axis), in fixed-size matrices: no allocation.
+        let (b1, var1, b2, var2) = match order {
+            1 => solve::<2>(samples, at, axis)?,
+            2 => solve::<3>(samples, at, axis)?,
+            _ => solve::<4>(samples, at, axis)?,
+        };
+        velocity[axis] = b1;
+        velocity_sigma[axis] = var1.max(0.0).sqrt();
         if order >= 2 {
-            acceleration[axis] = 2.0 * b[2];
-            acceleration_sigma[axis] = 2.0 * inverse[(2, 2)].max(0.0).sqrt();
+            acceleration[axis] = 2.0 * b2;
+            acceleration_sigma[axis] = 2.0 * var2.max(0.0).sqrt();
         }
     }
     Some(Derivatives {
@@ -92,6 +81,34 @@ pub(super) fn fit(samples: &[Sample], at: i64, order: usize) -> Option<Derivativ
         velocity_sigma,
         acceleration: (order >= 2).then_some(acceleration),
         acceleration_sigma: (order >= 2).then_some(acceleration_sigma),
+    })
+}
+
+/// One axis's fit with `D` terms: the first- and second-order coefficients
+/// and their variances (the second's 0 for a line).
+fn solve<const D: usize>(samples: &[Sample], at: i64, axis: usize) -> Option<(f64, f64, f64, f64)> {
+    let mut normal = SMatrix::<f64, D, D>::zeros();
+    let mut rhs = SVector::<f64, D>::zeros();
+    for s in samples {
+        let t = (s.frame - at) as f64;
+        let w = s.sigma[axis].powi(-2);
+        let mut powers = [1.0; D];
+        for k in 1..D {
+            powers[k] = powers[k - 1] * t;
+        }
+        for r in 0..D {
+            rhs[r] += w * powers[r] * s.position[axis];
+            for c in 0..D {
+                normal[(r, c)] += w * powers[r] * powers[c];
+            }
+        }
+    }
+    let inverse = normal.try_inverse()?;
+    let b = inverse * rhs;
+    Some(if D > 2 {
+        (b[1], inverse[(1, 1)], b[2], inverse[(2, 2)])
+    } else {
+        (b[1], inverse[(1, 1)], 0.0, 0.0)
     })
 }
 

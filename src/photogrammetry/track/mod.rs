@@ -46,7 +46,7 @@
 pub mod kinematics;
 pub mod recovery;
 
-use std::collections::{HashMap, VecDeque};
+use std::collections::VecDeque;
 
 use nalgebra::{Point3, Vector3};
 
@@ -88,6 +88,16 @@ impl TrackingParameters {
             fit_half_window: 2,
             fit_order: 2,
         }
+    }
+
+    /// How many frames behind the newest frame given a point may still be
+    /// handed out: a trajectory waits for up to
+    /// `max(min_length, MAX_DECISION_LENGTH)` points (the test for ghosts)
+    /// spread over gaps, then for its fit window, plus the look-ahead. A
+    /// caller holding per-frame data for the points (the command line's
+    /// target indices) needs this many frames.
+    pub fn report_delay(&self) -> usize {
+        self.min_length.max(MAX_DECISION_LENGTH) * (self.max_gap + 1) + self.fit_half_window + 4
     }
 
     /// Checks every field; the error names it and its range.
@@ -141,6 +151,30 @@ pub struct ParticlePosition {
     /// Standard deviations of X, Y, Z (mm), each above zero: the
     /// intersection's, or the lab's estimate where a file has none.
     pub sigma: Vector3<f64>,
+    /// How many cameras saw it (the correspondences' group size); 0 where
+    /// that is unknown (particle files without target columns), which
+    /// counts as seen by all.
+    pub cameras: usize,
+}
+
+impl ParticlePosition {
+    /// A particle whose camera count is unknown (counted as seen by all).
+    pub fn new(position: Point3<f64>, sigma: Vector3<f64>) -> Self {
+        ParticlePosition {
+            position,
+            sigma,
+            cameras: 0,
+        }
+    }
+
+    /// A particle seen by `cameras` cameras.
+    pub fn seen_by(position: Point3<f64>, sigma: Vector3<f64>, cameras: usize) -> Self {
+        ParticlePosition {
+            position,
+            sigma,
+            cameras,
+        }
+    }
 }
 
 /// A point of a trajectory.
@@ -209,6 +243,11 @@ pub enum TrackError {
 struct Frame {
     number: i64,
     particles: Vec<ParticlePosition>,
+    /// Per particle, the cameras short of the rig's count that missed it
+    /// (0 where it was seen by all or the count is unknown).
+    missing: Vec<usize>,
+    /// The share of the frame's particles seen by all cameras.
+    full_share: f64,
     grid: Grid,
     /// The frame's targets, where the image-space recovery runs.
     targets: Option<FrameTargets>,
@@ -236,8 +275,16 @@ pub struct RecoveredParticles {
 
 /// A trajectory being tracked.
 struct Live {
-    /// Its number, once it has `min_length` points.
+    /// Its number, once it has `min_length` points and passed the test
+    /// for ghosts ([`Live::decide`]).
     id: Option<u64>,
+    /// Failed the test for ghosts: never reported.
+    rejected: bool,
+    /// Its points seen by all cameras.
+    full: usize,
+    /// The sum, over its points, of their frames' share of particles seen
+    /// by all cameras: the `full` expected of a real particle.
+    expected_full: f64,
     /// Its recent points: those not yet handed out, and up to a fit
     /// window of those before them.
     nodes: VecDeque<Node>,
@@ -253,6 +300,8 @@ struct Node {
     particle: usize,
     position: Point3<f64>,
     sigma: Vector3<f64>,
+    /// Cameras short of the rig's that missed it.
+    missing: usize,
 }
 
 impl Live {
@@ -273,6 +322,76 @@ impl Live {
     fn local(&self, k: usize) -> usize {
         k - (self.length - self.nodes.len())
     }
+
+    fn add(&mut self, node: Node, full_share: f64) {
+        self.full += usize::from(node.missing == 0);
+        self.nodes.push_back(node);
+        self.length += 1;
+        self.expected_full += full_share;
+    }
+
+    /// The test for ghosts, once it has `decision_length(share)` points or
+    /// ended: `Some(true)` for a particle's trajectory, `Some(false)` for a
+    /// ghost's, `None` while undecided.
+    ///
+    /// A real particle is seen by all cameras in a frame with about the
+    /// probability `f` that the frame's particles are (its images are
+    /// lost at random, independently from frame to frame), so its count
+    /// of full points over `n` is about binomial `(n, f)`. A ghost borrows
+    /// its images from other particles, and the more cameras, the less
+    /// likely their rays meet by chance: it is rarely seen by all. A
+    /// trajectory is a ghost's where most of its points are not full and
+    /// so few are that a real particle would show as few with probability
+    /// under [`GHOST_TEST_LEVEL`]. The frames' shares include the ghosts,
+    /// so `f` is underestimated: the test errs towards keeping. Where
+    /// every particle is seen by all cameras (a 2-camera rig, or counts
+    /// unknown) nothing is rejected.
+    fn decide(&self, min_length: usize, ended: bool) -> Option<bool> {
+        let n = self.length;
+        let share = self.expected_full / n as f64;
+        if n < min_length {
+            return ended.then_some(false);
+        }
+        if !ended && n < decision_length(share, min_length) {
+            return None;
+        }
+        let weak_majority = 2 * self.full < n;
+        Some(!(weak_majority && binomial_cdf(self.full, n, share) < GHOST_TEST_LEVEL))
+    }
+}
+
+/// The test for ghosts rejects a real particle's trajectory with at most
+/// this probability.
+pub const GHOST_TEST_LEVEL: f64 = 0.01;
+
+/// The most points a trajectory waits for before the test for ghosts
+/// decides (where few particles are seen by all cameras, the test needs
+/// more points; beyond this it decides on what it has).
+pub const MAX_DECISION_LENGTH: usize = 10;
+
+/// The points the test for ghosts waits for: enough that a trajectory of
+/// none seen by all cameras is improbable for a real particle (`(1 -
+/// share)^n < GHOST_TEST_LEVEL`), at least `min_length`, at most
+/// [`MAX_DECISION_LENGTH`].
+fn decision_length(share: f64, min_length: usize) -> usize {
+    let mut n = min_length;
+    while n < MAX_DECISION_LENGTH && (1.0 - share).powi(n as i32) >= GHOST_TEST_LEVEL {
+        n += 1;
+    }
+    n
+}
+
+/// `P(X <= k)` for `X` binomial `(n, p)`.
+fn binomial_cdf(k: usize, n: usize, p: f64) -> f64 {
+    let p = p.clamp(0.0, 1.0);
+    let mut term = (1.0 - p).powi(n as i32); // P(X = 0)
+    let mut sum = term;
+    for i in 0..k.min(n) {
+        // P(X = i + 1) from P(X = i).
+        term *= (n - i) as f64 / (i + 1) as f64 * p / (1.0 - p).max(f64::MIN_POSITIVE);
+        sum += term;
+    }
+    sum.min(1.0)
 }
 
 /// A candidate link: its rank (without a look-ahead partner after all
@@ -299,6 +418,8 @@ pub struct Tracker {
     live: Vec<Live>,
     next_id: u64,
     last_frame: Option<i64>,
+    /// The most cameras any particle so far was seen by: the rig's count.
+    rig_cameras: usize,
 }
 
 impl Tracker {
@@ -313,6 +434,7 @@ impl Tracker {
             live: Vec::new(),
             next_id: 0,
             last_frame: None,
+            rig_cameras: 0,
         })
     }
 
@@ -451,6 +573,22 @@ impl Tracker {
         out: &mut Vec<TrackPoint>,
     ) {
         let median_sigma = floor_sigmas(&mut particles);
+        self.rig_cameras = particles
+            .iter()
+            .map(|p| p.cameras)
+            .fold(self.rig_cameras, usize::max);
+        let missing: Vec<usize> = particles
+            .iter()
+            .map(|p| match p.cameras {
+                0 => 0,
+                c => self.rig_cameras - c,
+            })
+            .collect();
+        let full_share = if particles.is_empty() {
+            1.0
+        } else {
+            missing.iter().filter(|&&m| m == 0).count() as f64 / particles.len() as f64
+        };
         self.ahead.push_back(Frame {
             number,
             grid: Grid::new(&particles, self.cell()),
@@ -459,6 +597,8 @@ impl Tracker {
             targets,
             recovered: Vec::new(),
             median_sigma,
+            missing,
+            full_share,
         });
         if self.ahead.len() == 2 {
             let mut next = self.ahead.pop_front().expect("two frames");
@@ -504,18 +644,20 @@ impl Tracker {
             }
             let (predicted, radius) = self.prediction(live, next.number);
             near.clear();
-            next.grid
-                .within(&next.particles, &predicted, radius, &mut near);
+            next.grid.within(&predicted, radius, &mut near);
             if !near.is_empty() {
                 continue;
             }
             if let Some(found) = recovery.recover(targets, &predicted, radius) {
                 // Floored as the given particles are, and never below the
                 // trajectory's last point (a frame may have no others).
-                next.particles.push(ParticlePosition {
-                    position: found.position,
-                    sigma: found.sigma.sup(&next.median_sigma).sup(&live.last().sigma),
-                });
+                let cameras = found.camera_count();
+                next.particles.push(ParticlePosition::seen_by(
+                    found.position,
+                    found.sigma.sup(&next.median_sigma).sup(&live.last().sigma),
+                    cameras,
+                ));
+                next.missing.push(self.rig_cameras.saturating_sub(cameras));
                 next.recovered.push(found);
             }
         }
@@ -555,8 +697,7 @@ impl Tracker {
             let floor = noise_floor(&last.sigma);
             let (predicted, radius) = self.prediction(live, next.number);
             near.clear();
-            next.grid
-                .within(&next.particles, &predicted, radius, &mut near);
+            next.grid.within(&predicted, radius, &mut near);
             for &c in &near {
                 let position = next.particles[c].position;
                 let step = (position - last.position) / dt;
@@ -573,7 +714,6 @@ impl Tracker {
                     let floor2 = noise_floor(&next.particles[c].sigma);
                     near_ahead.clear();
                     ahead.grid.within(
-                        &ahead.particles,
                         &predicted2,
                         p.max_acceleration * dt2 * dt2 + floor2,
                         &mut near_ahead,
@@ -591,10 +731,19 @@ impl Tracker {
                         best = Some(best.map_or(cost, |b: f64| b.min(cost)));
                     }
                 }
+                // A candidate missed by some cameras may be a ghost, and so
+                // may a trajectory of one such point (one with more points
+                // has its history as evidence): the link ranks after one
+                // between points seen by all whose cost is within the
+                // noise's.
+                let source = if live.length == 1 { last.missing } else { 0 };
+                let penalty = (next.missing[c] + source) as f64
+                    * WEAK_PENALTY
+                    * cost_noise(&next.particles[c].sigma);
                 let link = match best {
                     Some(cost) => Link {
                         unconfirmed: false,
-                        cost,
+                        cost: cost + penalty,
                         live: l,
                         particle: c,
                     },
@@ -603,7 +752,7 @@ impl Tracker {
                     None if a1.is_none() && ahead.is_some() => continue,
                     None => Link {
                         unconfirmed: true,
-                        cost: a1.map_or((position - last.position).norm(), |a| a.norm()),
+                        cost: a1.map_or((position - last.position).norm(), |a| a.norm()) + penalty,
                         live: l,
                         particle: c,
                     },
@@ -622,14 +771,16 @@ impl Tracker {
             taken_live[link.live] = true;
             taken[link.particle] = true;
             let particle = &next.particles[link.particle];
-            let live = &mut self.live[link.live];
-            live.nodes.push_back(Node {
-                frame: next.number,
-                particle: link.particle,
-                position: particle.position,
-                sigma: particle.sigma,
-            });
-            live.length += 1;
+            self.live[link.live].add(
+                Node {
+                    frame: next.number,
+                    particle: link.particle,
+                    position: particle.position,
+                    sigma: particle.sigma,
+                    missing: next.missing[link.particle],
+                },
+                next.full_share,
+            );
         }
         // Trajectories that missed this frame: continue within the gap
         // (only those with a velocity to predict with), or end.
@@ -647,17 +798,26 @@ impl Tracker {
         }
         for (c, particle) in next.particles.iter().enumerate() {
             if !taken[c] {
-                kept.push(Live {
+                let mut live = Live {
                     id: None,
-                    nodes: VecDeque::from([Node {
+                    rejected: false,
+                    full: 0,
+                    expected_full: 0.0,
+                    nodes: VecDeque::new(),
+                    length: 0,
+                    emitted: 0,
+                };
+                live.add(
+                    Node {
                         frame: next.number,
                         particle: c,
                         position: particle.position,
                         sigma: particle.sigma,
-                    }]),
-                    length: 1,
-                    emitted: 0,
-                });
+                        missing: next.missing[c],
+                    },
+                    next.full_share,
+                );
+                kept.push(live);
             }
         }
         self.live = kept;
@@ -677,14 +837,24 @@ impl Tracker {
     /// needs any more.
     fn hand_out(&mut self, live: &mut Live, ended: bool, out: &mut Vec<TrackPoint>) {
         let p = &self.parameters;
-        if live.length < p.min_length {
-            return;
-        }
-        let id = *live.id.get_or_insert_with(|| {
-            self.next_id += 1;
-            self.next_id - 1
-        });
         let w = p.fit_half_window;
+        if live.id.is_none() && !live.rejected {
+            match live.decide(p.min_length, ended) {
+                Some(true) => {
+                    live.id = Some(self.next_id);
+                    self.next_id += 1;
+                }
+                Some(false) => live.rejected = true,
+                None => return,
+            }
+        }
+        let Some(id) = live.id else {
+            // Rejected: keep the last two points, for the prediction.
+            while live.nodes.len() > 2 {
+                live.nodes.pop_front();
+            }
+            return;
+        };
         let last_frame = live.last().frame;
         while live.emitted < live.length {
             let k = live.emitted;
@@ -694,22 +864,32 @@ impl Tracker {
             if !ended && last_frame < node.frame + w as i64 {
                 break;
             }
-            let samples: Vec<Sample> = live
+            // The window's points: at most 2 w + 1 (w <= 5), on the stack.
+            let mut samples = [Sample {
+                frame: 0,
+                position: Vector3::zeros(),
+                sigma: Vector3::zeros(),
+            }; 11];
+            let mut count = 0;
+            for n in live
                 .nodes
                 .iter()
                 .filter(|n| (n.frame - node.frame).unsigned_abs() <= w as u64)
-                .map(|n| Sample {
+            {
+                samples[count] = Sample {
                     frame: n.frame,
                     position: n.position.coords,
                     sigma: n.sigma,
-                })
-                .collect();
-            let derivatives = fit(&samples, node.frame, p.fit_order).unwrap_or(Derivatives {
-                velocity: Vector3::repeat(f64::NAN),
-                velocity_sigma: Vector3::repeat(f64::NAN),
-                acceleration: None,
-                acceleration_sigma: None,
-            });
+                };
+                count += 1;
+            }
+            let derivatives =
+                fit(&samples[..count], node.frame, p.fit_order).unwrap_or(Derivatives {
+                    velocity: Vector3::repeat(f64::NAN),
+                    velocity_sigma: Vector3::repeat(f64::NAN),
+                    acceleration: None,
+                    acceleration_sigma: None,
+                });
             out.push(TrackPoint {
                 trajectory: id,
                 frame: node.frame,
@@ -760,6 +940,19 @@ fn floor_sigmas(particles: &mut [ParticlePosition]) -> Vector3<f64> {
     median
 }
 
+/// The ranking's penalty for each camera that missed a candidate, in
+/// units of [`cost_noise`]: a candidate seen by all cameras wins unless
+/// its cost is worse by more than this many times the noise's.
+pub const WEAK_PENALTY: f64 = 2.0;
+
+/// The RMS of a link's cost (the change of acceleration over four
+/// positions, `x_{t+2} - 3 x_{t+1} + 3 x_t - x_{t-1}`) from the positions'
+/// noise alone, each position with the candidate's `sigma`: `sqrt(1 + 9 +
+/// 9 + 1) |sigma|`.
+fn cost_noise(sigma: &Vector3<f64>) -> f64 {
+    20f64.sqrt() * sigma.norm()
+}
+
 /// A search radius's allowance for the positions' noise: the prediction
 /// from two points and the candidate carry about `sqrt(6)` times a
 /// position's sigma per axis; 3 of those over the three axes.
@@ -767,52 +960,113 @@ fn noise_floor(sigma: &Vector3<f64>) -> f64 {
     3.0 * 6f64.sqrt() * sigma.norm()
 }
 
-/// The particles of a frame in a uniform grid.
+/// The particles of a frame filed by cell of a uniform grid over their
+/// bounding box: their indices sorted by cell (x, then y, then z fastest)
+/// with their positions alongside, and per cell where its run starts. A
+/// search visits, per (x, y) column of its box, one contiguous run of
+/// cells.
 struct Grid {
     cell: f64,
-    cells: HashMap<[i64; 3], Vec<usize>>,
+    origin: Point3<f64>,
+    dims: [usize; 3],
+    /// Per cell, the first entry of its run in `order` (and one past the
+    /// end).
+    starts: Vec<u32>,
+    /// Particle indices by cell.
+    order: Vec<u32>,
+    /// Their positions, in the same order.
+    points: Vec<Point3<f64>>,
 }
 
 impl Grid {
+    /// Cells of side `cell`, or larger where the particles spread so far
+    /// that cells of that side would outnumber them eightfold (outliers):
+    /// a search's answer is the same, only slower.
     fn new(particles: &[ParticlePosition], cell: f64) -> Grid {
-        let mut cells: HashMap<[i64; 3], Vec<usize>> = HashMap::new();
-        for (i, p) in particles.iter().enumerate() {
-            cells
-                .entry(Self::key(&p.position, cell))
-                .or_default()
-                .push(i);
+        let mut low = Point3::origin();
+        let mut high = Point3::origin();
+        if let Some(first) = particles.first() {
+            (low, high) = (first.position, first.position);
+            for p in particles {
+                low = low.inf(&p.position);
+                high = high.sup(&p.position);
+            }
         }
-        Grid { cell, cells }
+        let extent = high - low;
+        let limit = (8 * particles.len()).max(64) as f64;
+        let mut cell = cell;
+        let dims = loop {
+            let dims: [f64; 3] = std::array::from_fn(|i| (extent[i] / cell).floor() + 1.0);
+            let cells = dims[0] * dims[1] * dims[2];
+            if cells <= limit {
+                break dims.map(|d| d as usize);
+            }
+            cell *= (cells / limit).cbrt().max(1.01);
+        };
+        let mut grid = Grid {
+            cell,
+            origin: low,
+            dims,
+            starts: vec![0; dims[0] * dims[1] * dims[2] + 1],
+            order: Vec::new(),
+            points: Vec::new(),
+        };
+        // Counting sort by cell.
+        let keys: Vec<usize> = particles
+            .iter()
+            .map(|p| grid.key(&grid.cell_of(&p.position)))
+            .collect();
+        for &k in &keys {
+            grid.starts[k + 1] += 1;
+        }
+        for k in 1..grid.starts.len() {
+            grid.starts[k] += grid.starts[k - 1];
+        }
+        let mut next: Vec<u32> = grid.starts[..grid.starts.len() - 1].to_vec();
+        grid.order = vec![0; particles.len()];
+        for (i, &k) in keys.iter().enumerate() {
+            grid.order[next[k] as usize] = i as u32;
+            next[k] += 1;
+        }
+        grid.points = grid
+            .order
+            .iter()
+            .map(|&i| particles[i as usize].position)
+            .collect();
+        grid
     }
 
-    fn key(point: &Point3<f64>, cell: f64) -> [i64; 3] {
-        std::array::from_fn(|i| (point[i] / cell).floor() as i64)
+    /// The cell of a point, clamped into the grid.
+    fn cell_of(&self, point: &Point3<f64>) -> [usize; 3] {
+        std::array::from_fn(|i| {
+            let c = ((point[i] - self.origin[i]) / self.cell).floor();
+            c.clamp(0.0, (self.dims[i] - 1) as f64) as usize
+        })
     }
 
-    /// The particles within `radius` of `centre`, appended to `out` in
-    /// index order.
-    fn within(
-        &self,
-        particles: &[ParticlePosition],
-        centre: &Point3<f64>,
-        radius: f64,
-        out: &mut Vec<usize>,
-    ) {
-        let start = out.len();
-        let low = Self::key(&(centre - Vector3::repeat(radius)), self.cell);
-        let high = Self::key(&(centre + Vector3::repeat(radius)), self.cell);
+    fn key(&self, c: &[usize; 3]) -> usize {
+        (c[0] * self.dims[1] + c[1]) * self.dims[2] + c[2]
+    }
+
+    /// The particles within `radius` of `centre`, appended to `out` (in no
+    /// particular order).
+    fn within(&self, centre: &Point3<f64>, radius: f64, out: &mut Vec<usize>) {
+        // Cells are clamped into the grid: a box beyond it reaches its
+        // border cells, whose particles the distance test then rejects.
+        let low = self.cell_of(&(centre - Vector3::repeat(radius)));
+        let high = self.cell_of(&(centre + Vector3::repeat(radius)));
+        let r2 = radius * radius;
         for i in low[0]..=high[0] {
             for j in low[1]..=high[1] {
-                for k in low[2]..=high[2] {
-                    if let Some(cell) = self.cells.get(&[i, j, k]) {
-                        out.extend(cell.iter().filter(|&&c| {
-                            (particles[c].position - centre).norm_squared() <= radius * radius
-                        }));
+                let from = self.starts[self.key(&[i, j, low[2]])] as usize;
+                let to = self.starts[self.key(&[i, j, high[2]]) + 1] as usize;
+                for e in from..to {
+                    if (self.points[e] - centre).norm_squared() <= r2 {
+                        out.push(self.order[e] as usize);
                     }
                 }
             }
         }
-        out[start..].sort_unstable();
     }
 }
 

@@ -649,10 +649,11 @@ mod tests {
                 let Ok(fit) = intersect(&cameras, &observations) else {
                     continue;
                 };
-                particles.push(ParticlePosition {
-                    position: fit.point,
-                    sigma: fit.sigma.add_scalar(1e-6),
-                });
+                particles.push(ParticlePosition::seen_by(
+                    fit.point,
+                    fit.sigma.add_scalar(1e-6),
+                    observations.len(),
+                ));
                 named.push(targets);
                 who.push(j);
             }

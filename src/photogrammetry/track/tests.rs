@@ -95,10 +95,7 @@ fn vortex(
             frame,
             items
                 .iter()
-                .map(|(_, p)| ParticlePosition {
-                    position: *p,
-                    sigma: Vector3::repeat(noise),
-                })
+                .map(|(_, p)| ParticlePosition::new(*p, Vector3::repeat(noise)))
                 .collect(),
         ));
     }
@@ -233,7 +230,7 @@ fn crossing_particles_keep_their_lines() {
             (
                 f,
                 pair.iter()
-                    .map(|&position| ParticlePosition { position, sigma })
+                    .map(|&position| ParticlePosition::new(position, sigma))
                     .collect(),
             )
         })
@@ -263,9 +260,11 @@ fn memory_is_bounded_by_the_window_not_the_sequence() {
     let mut out = 0;
     for f in 0..2000i64 {
         let particles = (0..50)
-            .map(|i| ParticlePosition {
-                position: Point3::new(f as f64 * 0.5, i as f64 * 10.0, 0.0),
-                sigma: Vector3::repeat(0.01),
+            .map(|i| {
+                ParticlePosition::new(
+                    Point3::new(f as f64 * 0.5, i as f64 * 10.0, 0.0),
+                    Vector3::repeat(0.01),
+                )
             })
             .collect();
         out += tracker.push(f, particles).unwrap().len();
@@ -312,14 +311,8 @@ fn bad_input_is_refused_with_what_is_wrong() {
         tracker.push(5, Vec::new()).unwrap_err(),
         TrackError::FrameOrder { frame: 5, last: 5 }
     );
-    let nan = ParticlePosition {
-        position: Point3::new(f64::NAN, 0.0, 0.0),
-        sigma: Vector3::repeat(0.01),
-    };
-    let zero = ParticlePosition {
-        position: Point3::origin(),
-        sigma: Vector3::zeros(),
-    };
+    let nan = ParticlePosition::new(Point3::new(f64::NAN, 0.0, 0.0), Vector3::repeat(0.01));
+    let zero = ParticlePosition::new(Point3::origin(), Vector3::zeros());
     assert!(matches!(
         tracker.push(6, vec![nan]).unwrap_err(),
         TrackError::InvalidParticle {
@@ -340,10 +333,10 @@ fn a_skipped_frame_number_is_a_gap() {
         .map(|&f| {
             (
                 f,
-                vec![ParticlePosition {
-                    position: Point3::new(f as f64, 0.0, 0.0),
-                    sigma: Vector3::repeat(0.01),
-                }],
+                vec![ParticlePosition::new(
+                    Point3::new(f as f64, 0.0, 0.0),
+                    Vector3::repeat(0.01),
+                )],
             )
         })
         .collect();
@@ -366,9 +359,8 @@ fn a_near_zero_sigma_does_not_pin_the_fit() {
                 // particles 1 and 2 stand still far away and set the median.
                 let off = if f == 3 { 0.05 } else { 0.0 };
                 let sigma0 = if f == 3 { claimed } else { 0.01 };
-                let p = |x: f64, y: f64, s: f64| ParticlePosition {
-                    position: Point3::new(x, y, 0.0),
-                    sigma: Vector3::repeat(s),
+                let p = |x: f64, y: f64, s: f64| {
+                    ParticlePosition::new(Point3::new(x, y, 0.0), Vector3::repeat(s))
                 };
                 (
                     f,
@@ -389,4 +381,117 @@ fn a_near_zero_sigma_does_not_pin_the_fit() {
         moving.points[2].derivatives.velocity.x
     };
     assert_eq!(run(1e-12), run(0.01));
+}
+
+/// A particle seen by all 4 cameras moves along x at 1 mm a frame; at
+/// frame 5 it is 0.02 mm off its line (2 sigma) and a particle seen by 2
+/// cameras (a ghost's profile) sits exactly on the line. The 4-camera
+/// point's extra cost (about 3 x 0.02 mm of change of acceleration) is
+/// within the penalty of the ghost's two missing cameras (2 x 2 x
+/// sqrt(20) |sigma| = 0.15 mm): the trajectory takes it, not the ghost.
+/// Without the penalty it takes the ghost.
+#[test]
+fn a_candidate_seen_by_all_cameras_beats_a_weaker_one_of_similar_cost() {
+    let sigma = Vector3::repeat(0.01);
+    let frames: Vec<(i64, Vec<ParticlePosition>)> = (0..11)
+        .map(|f| {
+            let x = f as f64;
+            let mut particles = vec![ParticlePosition::seen_by(
+                Point3::new(x, if f == 5 { 0.02 } else { 0.0 }, 0.0),
+                sigma,
+                4,
+            )];
+            if f == 5 {
+                particles.insert(
+                    0,
+                    ParticlePosition::seen_by(Point3::new(x, 0.0, 0.0), sigma, 2),
+                );
+            }
+            (f, particles)
+        })
+        .collect();
+    let trajectories = track(frames, parameters()).unwrap();
+    assert_eq!(trajectories.len(), 1);
+    let points = &trajectories[0].points;
+    assert_eq!(points.len(), 11);
+    let at5 = points.iter().find(|p| p.frame == 5).unwrap();
+    assert_eq!(at5.particle, 1, "the 4-camera point, not the ghost");
+}
+
+/// Straight-line particles and ghost-like tracks in a 3-camera rig, 2,000
+/// frames' worth of evidence in miniature: 100 particles seen by 3
+/// cameras with 10% of their points seen by 2 (an image lost at random),
+/// and 30 equally smooth tracks seen by 2 cameras only. The ghosts'
+/// tracks are dropped, every particle's kept. In a 2-camera rig (all
+/// seen by 2) and with unknown camera counts, nothing is dropped: the
+/// rule is relative to the rig.
+#[test]
+fn tracks_of_weak_particles_are_dropped_relative_to_the_rig() {
+    let mut rng = simulate::rng(21);
+    let lines: Vec<(Point3<f64>, Vector3<f64>)> = (0..130)
+        .map(|_| {
+            (
+                Point3::new(
+                    rng.random_range(0.0..100.0),
+                    rng.random_range(0.0..100.0),
+                    rng.random_range(0.0..100.0),
+                ),
+                Vector3::new(
+                    rng.random_range(-0.5..0.5),
+                    rng.random_range(-0.5..0.5),
+                    rng.random_range(-0.5..0.5),
+                ),
+            )
+        })
+        .collect();
+    // Per frame, per line, whether an image was lost (drawn once, so the
+    // three rigs see the same losses).
+    let lost: Vec<Vec<bool>> = (0..20)
+        .map(|_| (0..130).map(|_| rng.random_bool(0.1)).collect())
+        .collect();
+    let run = |rig: usize| {
+        let frames: Vec<(i64, Vec<ParticlePosition>)> = (0..20)
+            .map(|f| {
+                let particles = lines
+                    .iter()
+                    .enumerate()
+                    .map(|(i, (start, v))| {
+                        let cameras = match rig {
+                            0 => 0,
+                            _ if i >= 100 => 2,
+                            _ => rig - usize::from(lost[f as usize][i] && rig > 2),
+                        };
+                        ParticlePosition::seen_by(
+                            start + v * f as f64,
+                            Vector3::repeat(0.005),
+                            cameras,
+                        )
+                    })
+                    .collect();
+                (f, particles)
+            })
+            .collect();
+        let trajectories = track(frames, parameters()).unwrap();
+        let ghosts = trajectories
+            .iter()
+            .filter(|t| t.points[0].particle >= 100)
+            .count();
+        (trajectories.len(), ghosts)
+    };
+    assert_eq!(run(3), (100, 0), "3 cameras: the ghosts' tracks dropped");
+    assert_eq!(run(2), (130, 30), "2 cameras: nothing to tell them apart");
+    assert_eq!(run(0), (130, 30), "counts unknown: nothing dropped");
+}
+
+#[test]
+fn the_binomial_tail_and_the_decision_length() {
+    // P(X <= 1) for (3, 0.8): 0.2³ + 3 x 0.8 x 0.2² = 0.104.
+    assert!((binomial_cdf(1, 3, 0.8) - 0.104).abs() < 1e-12);
+    assert!((binomial_cdf(3, 3, 0.8) - 1.0).abs() < 1e-12);
+    assert_eq!(binomial_cdf(0, 4, 1.0), 0.0);
+    // 0.2³ = 0.008 < 1%: 3 points; 0.5⁷ < 1% <= 0.5⁶: 7 points.
+    assert_eq!(decision_length(0.8, 3), 3);
+    assert_eq!(decision_length(0.5, 3), 7);
+    assert_eq!(decision_length(1.0, 5), 5);
+    assert_eq!(decision_length(0.0, 3), MAX_DECISION_LENGTH);
 }

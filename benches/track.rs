@@ -1,0 +1,140 @@
+//! Tracking speed (issue 15's goal: 10,000 particles a frame in 10 ms or
+//! less a frame on one core, the cost linear in the particle count).
+//!
+//! The frames are generated here, no matching: particles in a 100 mm cube
+//! advected by a steady cellular flow (two counter-rotating cells across
+//! x, one across y, an up- and down-welling in z; the flow of
+//! `examples/track_report.rs`), scaled so the RMS displacement is about
+//! 0.35 of the mean particle spacing, positions with 10 um of noise, 5% of
+//! the particles lost in each frame, and each particle seen by 4 cameras
+//! less any lost at 5% each (so the ghost test's bookkeeping runs as on a
+//! real rig). Each iteration tracks the whole sequence of `FRAMES` frames
+//! (`track`, the fits included); the time per frame is that over
+//! `FRAMES`, printed for each size (with the thread's CPU time, steadier
+//! than the wall clock on a shared machine).
+//!
+//! `taskset -c 0 cargo bench --bench track` (one core).
+
+use std::hint::black_box;
+use std::time::Instant;
+
+use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, Throughput};
+use nalgebra::{Point3, Vector3};
+use rand::Rng;
+use rand_distr::{Distribution, Normal};
+
+use ptv::photogrammetry::simulate;
+use ptv::photogrammetry::track::{track, ParticlePosition, TrackingParameters};
+
+const FRAMES: usize = 16;
+const SIDE: f64 = 100.0;
+const NOISE: f64 = 0.01;
+
+/// The cellular flow, its largest speed `peak` (mm per frame).
+fn velocity(p: &Point3<f64>, peak: f64) -> Vector3<f64> {
+    let s = |i: usize, cells: f64| std::f64::consts::PI * cells * p[i] / SIDE;
+    let (x, y, z) = (s(0, 2.0), s(1, 1.0), s(2, 1.0));
+    Vector3::new(
+        x.sin() * y.cos(),
+        -0.5 * x.cos() * y.sin(),
+        0.3 * z.sin() * x.cos(),
+    ) * peak
+}
+
+/// One frame's step by RK4 in 4 sub-steps.
+fn advance(p: &Point3<f64>, peak: f64) -> Point3<f64> {
+    let h = 0.25;
+    let mut q = *p;
+    for _ in 0..4 {
+        let k1 = velocity(&q, peak);
+        let k2 = velocity(&(q + k1 * h / 2.0), peak);
+        let k3 = velocity(&(q + k2 * h / 2.0), peak);
+        let k4 = velocity(&(q + k3 * h), peak);
+        q += (k1 + k2 * 2.0 + k3 * 2.0 + k4) * h / 6.0;
+    }
+    q
+}
+
+/// The frames and the largest speed.
+fn sequence(particles: usize) -> (Vec<(i64, Vec<ParticlePosition>)>, f64) {
+    let spacing = SIDE / (particles as f64).cbrt();
+    // The flow's RMS speed over the box is about 0.55 of its peak.
+    let peak = 0.35 * spacing / 0.55;
+    let mut rng = simulate::rng(particles as u64);
+    let mut positions: Vec<Point3<f64>> = (0..particles)
+        .map(|_| Point3::from(Vector3::from_fn(|_, _| rng.random_range(0.0..SIDE))))
+        .collect();
+    let noise = Normal::new(0.0, NOISE).expect("a positive sigma");
+    let mut frames = Vec::with_capacity(FRAMES);
+    for f in 0..FRAMES {
+        let mut particles = Vec::with_capacity(positions.len());
+        for p in &positions {
+            if rng.random_bool(0.05) {
+                continue;
+            }
+            let cameras = 4 - (0..4).filter(|_| rng.random_bool(0.05)).count();
+            let noisy = p + Vector3::from_fn(|_, _| noise.sample(&mut rng));
+            particles.push(ParticlePosition::seen_by(
+                noisy,
+                Vector3::repeat(NOISE),
+                cameras.max(2),
+            ));
+        }
+        frames.push((f as i64, particles));
+        positions = positions.iter().map(|p| advance(p, peak)).collect();
+    }
+    (frames, peak)
+}
+
+/// This thread's time on a CPU (ns), from Linux's schedstat: on a shared
+/// machine steadier than the wall clock. `None` elsewhere.
+fn cpu_ns() -> Option<u64> {
+    std::fs::read_to_string("/proc/thread-self/schedstat")
+        .ok()?
+        .split_whitespace()
+        .next()?
+        .parse()
+        .ok()
+}
+
+fn bench(c: &mut Criterion) {
+    let mut group = c.benchmark_group("track");
+    group.sample_size(10);
+    for particles in [2_500, 10_000, 20_000] {
+        let (frames, peak) = sequence(particles);
+        let parameters = TrackingParameters {
+            max_acceleration: 0.5 * peak,
+            ..TrackingParameters::new(1.2 * peak)
+        };
+        // One run outside criterion for the per-frame figure and a sanity
+        // check that the flow is tracked.
+        let (start, cpu) = (Instant::now(), cpu_ns());
+        let trajectories = track(frames.clone(), parameters.clone()).expect("tracking runs");
+        let per_frame = start.elapsed().as_secs_f64() * 1e3 / FRAMES as f64;
+        let cpu_per_frame = cpu_ns()
+            .zip(cpu)
+            .map_or(f64::NAN, |(b, a)| (b - a) as f64 * 1e-6 / FRAMES as f64);
+        let points: usize = trajectories.iter().map(|t| t.points.len()).sum();
+        println!(
+            "{particles} particles: {per_frame:.2} ms a frame, {cpu_per_frame:.2} ms of CPU ({} trajectories, mean length {:.1} of {FRAMES})",
+            trajectories.len(),
+            points as f64 / trajectories.len().max(1) as f64
+        );
+        group.throughput(Throughput::Elements(FRAMES as u64));
+        group.bench_with_input(
+            BenchmarkId::new("frames", particles),
+            &frames,
+            |b, frames| {
+                b.iter_batched(
+                    || frames.clone(),
+                    |frames| black_box(track(frames, parameters.clone()).expect("tracking runs")),
+                    criterion::BatchSize::LargeInput,
+                )
+            },
+        );
+    }
+    group.finish();
+}
+
+criterion_group!(benches, bench);
+criterion_main!(benches);
