@@ -323,7 +323,9 @@ impl Trackers {
         slots.entry(id).or_default().clone()
     }
 
-    fn forget(&self, id: TrackingRunId) {
+    /// Drops a run's tracker (a run superseded or ended); an advance still
+    /// holding it finds the run's state changed when it stores.
+    pub fn forget(&self, id: TrackingRunId) {
         let mut slots = self.slots.lock().unwrap_or_else(|e| e.into_inner());
         slots.remove(&id);
     }

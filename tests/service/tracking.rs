@@ -625,3 +625,82 @@ async fn a_kill_during_tracking_then_a_restart_gives_the_same_trajectories() {
         .await;
     assert_same_trajectories(&csv, &expected, &particles);
 }
+
+#[tokio::test]
+async fn a_failed_frame_is_a_gap_the_trajectories_bridge() {
+    // Frames past 0.2 s fail: the test's 400-particle frames take
+    // milliseconds, a frame of 4 x 40,000 targets far longer (as in
+    // `job_bounds`).
+    let app = crate::helpers::spawn_app_configured(|args| {
+        args.job_limits = ptv::service::JobLimits {
+            floor_secs: 0.2,
+            factor: 0.0,
+        };
+    })
+    .await;
+    let api = Api {
+        address: app.address.clone(),
+        client: reqwest::Client::new(),
+    };
+    let rig = rig();
+    const GAP_FRAMES: usize = 30;
+    const GAP: i64 = 12;
+    let frames = moving_frames(&rig, GAP_FRAMES, 41);
+    let crowded = rig.targets(40_000, 42);
+    let sequence = api
+        .tracked_sequence(&rig, json!({"max_velocity": MAX_VELOCITY}))
+        .await;
+    let order: Vec<(i64, &TargetFrame)> = frames
+        .iter()
+        .enumerate()
+        .map(|(f, t)| (f as i64, if f as i64 == GAP { &crowded } else { t }))
+        .rev()
+        .collect();
+    api.upload_concurrently(sequence, &order, 3).await;
+    let run = api.finish(sequence).await;
+    assert_eq!(run["tracked_through"], GAP_FRAMES as i64 - 1, "{run}");
+    let (status, body) = api.get(&format!("/sequences/{sequence}")).await;
+    assert_eq!(status, 200);
+    assert_eq!(body["frames"]["failed"], 1, "{body}");
+
+    // The core over the same frames, the failed one empty.
+    let mut particles = Vec::new();
+    for frame in 0..GAP_FRAMES as i64 {
+        let response = api
+            .client
+            .get(api.url(&format!(
+                "/sequences/{sequence}/frames/{frame}/particles?format=csv"
+            )))
+            .send()
+            .await
+            .unwrap();
+        let status = response.status().as_u16();
+        let text = response.text().await.unwrap();
+        if frame == GAP {
+            assert_eq!(status, 409, "{text}");
+            particles.push(Vec::new());
+        } else {
+            assert_eq!(status, 200, "{text}");
+            particles.push(formats::csv::parse_particles(&text, "particles").unwrap());
+        }
+    }
+    let expected = core_trajectories(&particles, TrackingParameters::new(MAX_VELOCITY));
+    let csv = api
+        .text(&format!("/sequences/{sequence}/trajectories?format=csv"))
+        .await;
+    assert_same_trajectories(&csv, &expected, &particles);
+    // Most trajectories across the gap are bridged, not cut.
+    let across = expected
+        .iter()
+        .filter(|t| {
+            let frames: Vec<i64> = t.points.iter().map(|p| p.frame).collect();
+            frames.contains(&(GAP - 1)) && frames.contains(&(GAP + 1))
+        })
+        .count();
+    let at_gap = particles[GAP as usize - 1].len();
+    assert!(
+        across as f64 > 0.7 * at_gap as f64,
+        "{across} of {at_gap} trajectories bridge the gap"
+    );
+    app.stop().await;
+}

@@ -117,11 +117,15 @@ pub async fn start(
 ) -> Result<Response, ApiError> {
     sequence(&state, id).await?;
     let settings = settings.with_defaults()?;
+    let previous = state.store.current_tracking_run(id).await?;
     let row = state
         .store
         .insert_tracking_run(id, &serde_json::to_string(&settings)?)
         .await?
         .ok_or_else(|| ApiError::not_found(format!("sequence {id} does not exist")))?;
+    if let Some(previous) = previous {
+        state.trackers.forget(previous.id);
+    }
     kick(&state, id);
     Ok((StatusCode::CREATED, Json(run_view(&state, row).await?)).into_response())
 }
