@@ -162,14 +162,23 @@ impl Api {
 
     /// The stored particles of every frame, as the CSV route gives them.
     async fn particles(&self, sequence: i64, frames: i64) -> Vec<Vec<formats::csv::ParticleRow>> {
+        self.particle_tables(sequence, frames)
+            .await
+            .iter()
+            .map(|text| formats::csv::parse_particles(text, "particles").unwrap())
+            .collect()
+    }
+
+    /// Every frame's particle CSV.
+    async fn particle_tables(&self, sequence: i64, frames: i64) -> Vec<String> {
         let mut all = Vec::new();
         for frame in 0..frames {
-            let text = self
-                .text(&format!(
+            all.push(
+                self.text(&format!(
                     "/sequences/{sequence}/frames/{frame}/particles?format=csv"
                 ))
-                .await;
-            all.push(formats::csv::parse_particles(&text, "particles").unwrap());
+                .await,
+            );
         }
         all
     }
@@ -192,6 +201,42 @@ fn core_trajectories(
         )
     });
     track::track(frames, parameters).unwrap()
+}
+
+/// `ptv track --particles` over the frames' particle tables (frames 0..),
+/// with `--max-velocity`: its CSV rows sorted by trajectory and frame,
+/// after its header.
+fn ptv_track(tables: &[String], max_velocity: f64) -> Vec<String> {
+    let dir = tempfile::tempdir().unwrap();
+    for (frame, text) in tables.iter().enumerate() {
+        std::fs::write(dir.path().join(format!("p.{frame}.csv")), text).unwrap();
+    }
+    let output = std::process::Command::new(env!("CARGO_BIN_EXE_ptv"))
+        .arg("track")
+        .arg("--particles")
+        .arg(dir.path().join("p.%d.csv"))
+        .args(["--frames", &format!("0..{}", tables.len() - 1)])
+        .args(["--max-velocity", &max_velocity.to_string()])
+        .output()
+        .unwrap();
+    assert!(
+        output.status.success(),
+        "{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    let text = String::from_utf8(output.stdout).unwrap();
+    let mut lines: Vec<String> = text.lines().map(str::to_owned).collect();
+    let header = lines.remove(0);
+    let key = |line: &String| -> (u64, i64) {
+        let mut fields = line.split(',');
+        (
+            fields.next().unwrap().parse().unwrap(),
+            fields.next().unwrap().parse().unwrap(),
+        )
+    };
+    lines.sort_by_key(key);
+    lines.insert(0, header);
+    lines
 }
 
 /// A CSV number, NaN as written by `{:?}`, an empty field as `None`.
@@ -314,7 +359,11 @@ async fn a_sequence_uploaded_out_of_order_by_four_clients_is_tracked_as_the_core
     let run = api.finish(sequence).await;
     assert_eq!(run["tracked_through"], FRAMES as i64 - 1, "{run}");
 
-    let particles = api.particles(sequence, FRAMES as i64).await;
+    let tables = api.particle_tables(sequence, FRAMES as i64).await;
+    let particles: Vec<_> = tables
+        .iter()
+        .map(|text| formats::csv::parse_particles(text, "particles").unwrap())
+        .collect();
     let expected = core_trajectories(&particles, TrackingParameters::new(MAX_VELOCITY));
     assert_plausible(&expected, FRAMES);
     assert_eq!(run["trajectories"], expected.len(), "{run}");
@@ -322,6 +371,12 @@ async fn a_sequence_uploaded_out_of_order_by_four_clients_is_tracked_as_the_core
         .text(&format!("/sequences/{sequence}/trajectories?format=csv"))
         .await;
     assert_same_trajectories(&csv, &expected, &particles);
+    // And `ptv track` on the same particles writes the same CSV, row for
+    // row once its rows (written as they become final) are sorted.
+    assert_eq!(
+        csv.lines().collect::<Vec<_>>(),
+        ptv_track(&tables, MAX_VELOCITY)
+    );
 
     // One trajectory, and the per-particle ids of a frame, agree.
     let longest = expected.iter().max_by_key(|t| t.points.len()).unwrap();
