@@ -536,3 +536,68 @@ async fn load_particles(
         .ok_or_else(|| TrackingError::Internal(format!("frame {frame}'s particles are gone")))?;
     Ok(codec::decode_particles(&blob, cameras)?)
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn settings(json: &str) -> TrackingSettings {
+        serde_json::from_str(json).unwrap()
+    }
+
+    #[test]
+    fn defaults_are_ptv_tracks_and_are_stored_filled_in() {
+        let filled = settings(r#"{"max_velocity": 2.0}"#)
+            .with_defaults()
+            .unwrap();
+        // `ptv track --max-velocity 2` without other flags.
+        assert_eq!(filled.parameters(), TrackingParameters::new(2.0));
+        assert_eq!(filled.first_frame, Some(FrameNumber(0)));
+        assert!(filled.max_acceleration.is_some() && filled.fit_order.is_some());
+        // Filling in again changes nothing.
+        assert_eq!(filled.with_defaults().unwrap(), filled);
+        let given = settings(
+            r#"{"max_velocity": 2.0, "max_gap": 2, "min_length": 5, "first_frame": 10001}"#,
+        )
+        .with_defaults()
+        .unwrap();
+        assert_eq!(given.parameters().max_gap, 2);
+        assert_eq!(given.parameters().min_length, 5);
+        assert_eq!(given.first_frame(), FrameNumber(10001));
+    }
+
+    #[test]
+    fn settings_the_tracker_refuses_name_the_field() {
+        for (json, says) in [
+            (r#"{"max_velocity": 0}"#, "max_velocity must be a positive"),
+            (
+                r#"{"max_velocity": -1.5}"#,
+                "max_velocity must be a positive",
+            ),
+            (
+                r#"{"max_velocity": 1, "max_acceleration": 0}"#,
+                "max_acceleration",
+            ),
+            (r#"{"max_velocity": 1, "min_length": 0}"#, "min_length"),
+            (r#"{"max_velocity": 1, "fit_order": 4}"#, "fit_order"),
+            (
+                r#"{"max_velocity": 1, "fit_half_window": 0}"#,
+                "fit_half_window",
+            ),
+            (r#"{"max_velocity": 1, "first_frame": -3}"#, "first_frame"),
+        ] {
+            let error = settings(json).with_defaults().unwrap_err().to_string();
+            assert!(error.starts_with("tracking: "), "{json}: {error}");
+            assert!(error.contains(says), "{json}: {error}");
+        }
+        assert!(
+            serde_json::from_str::<TrackingSettings>(r#"{"max_velocity": 1, "v": 2}"#).is_err()
+        );
+    }
+
+    #[test]
+    fn targets_are_written_as_the_csv_columns() {
+        assert_eq!(targets_text(&[Some(3), None, Some(0)]), "3,-1,0");
+        assert_eq!(targets_text(&[]), "");
+    }
+}
