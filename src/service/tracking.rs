@@ -295,12 +295,25 @@ pub enum TrackingError {
     /// A broken invariant (the run fails).
     #[error("internal: {0}; please report this")]
     Internal(String),
+    /// A frame's store did not run to its end (a shutdown; the next
+    /// advance finds what was stored).
+    #[error("storing a frame was interrupted: {0}")]
+    Interrupted(String),
+    /// Another advance moved the run meanwhile (nothing to do).
+    #[error("the run was advanced elsewhere")]
+    Moved,
 }
 
 impl TrackingError {
     /// Whether the run cannot go on (rather than a passing failure).
     fn is_fatal(&self) -> bool {
-        !matches!(self, TrackingError::Database(_) | TrackingError::Cpu(_))
+        !matches!(
+            self,
+            TrackingError::Database(_)
+                | TrackingError::Cpu(_)
+                | TrackingError::Interrupted(_)
+                | TrackingError::Moved
+        )
     }
 }
 
@@ -399,51 +412,27 @@ pub async fn advance(state: &Arc<AppState>, id: TrackingRunId) -> Result<(), Tra
     }
     let live = guard.as_mut().expect("a tracker was put in");
     let cameras = cameras_of(state, run.sequence_id).await?;
-    let mut next = live
-        .through
-        .map_or(settings.first_frame(), |f| FrameNumber(f.0 + 1));
-    let at_end = loop {
-        let frames = state
-            .store
-            .frames_to_track(run.sequence_id, next, FRAMES_PER_QUERY)
-            .await?;
-        let count = frames.len();
-        for (frame, readiness) in frames {
-            if frame != next && !run.finish_requested {
-                // Frame `next` is not uploaded yet.
-                return Ok(());
-            }
-            let (particles, recorded) = match readiness {
-                FrameReadiness::Pending => return Ok(()),
-                FrameReadiness::Failed => (Vec::new(), None),
-                FrameReadiness::Processed => {
-                    let particles = load_particles(state, run.sequence_id, frame, cameras).await?;
-                    let n = particles.len() as i64;
-                    (particles, Some(n))
-                }
-            };
-            let previous = live.through;
-            let points = match live.push(state, frame, particles).await {
-                Ok(points) => points,
-                Err(error) => {
-                    *guard = None;
-                    return Err(error);
-                }
-            };
-            let rows = live.rows(&points)?;
-            if !state
-                .store
-                .store_tracked_frame(id, previous, frame, recorded, &rows)
-                .await?
-            {
-                // Someone else moved the run: the next advance rebuilds.
-                *guard = None;
-                return Ok(());
-            }
-            next = FrameNumber(frame.0 + 1);
+    // A frame's points are stored while the tracker takes the next frame;
+    // every way out waits for that store first, so that the tracker in
+    // memory and the stored progress agree whenever the lock is free.
+    let mut storing = None;
+    let taken = take_frames(state, &run, &settings, live, cameras, &mut storing).await;
+    let stored = settle(&mut storing).await;
+    let at_end = match (taken, stored) {
+        (Ok(Taken::AtEnd), Ok(true)) => true,
+        (Ok(Taken::Waiting), Ok(true)) => false,
+        (Ok(_), Ok(false)) => {
+            // Someone else moved the run: the next advance rebuilds.
+            *guard = None;
+            return Ok(());
         }
-        if count < FRAMES_PER_QUERY as usize {
-            break true;
+        (Err(TrackingError::Moved), _) => {
+            *guard = None;
+            return Ok(());
+        }
+        (Err(error), _) | (Ok(_), Err(error)) => {
+            *guard = None;
+            return Err(error);
         }
     };
     if at_end && run.finish_requested {
@@ -464,6 +453,81 @@ pub async fn advance(state: &Arc<AppState>, id: TrackingRunId) -> Result<(), Tra
         state.trackers.forget(id);
     }
     Ok(())
+}
+
+/// How taking frames ended.
+enum Taken {
+    /// At a frame not yet done or not yet uploaded.
+    Waiting,
+    /// After the last uploaded frame.
+    AtEnd,
+}
+
+/// A frame's store, running.
+type Storing = Option<tokio::task::JoinHandle<Result<bool, sqlx::Error>>>;
+
+/// Waits for the frame being stored: false if the run had moved (nothing
+/// was stored).
+async fn settle(storing: &mut Storing) -> Result<bool, TrackingError> {
+    match storing.take() {
+        None => Ok(true),
+        Some(handle) => Ok(handle
+            .await
+            .map_err(|e| TrackingError::Interrupted(e.to_string()))??),
+    }
+}
+
+/// Gives the tracker the run's next frames while each is done, storing
+/// each frame's points (the last one's store may still run in `storing`).
+async fn take_frames(
+    state: &AppState,
+    run: &TrackingRunRow,
+    settings: &TrackingSettings,
+    live: &mut Live,
+    cameras: usize,
+    storing: &mut Storing,
+) -> Result<Taken, TrackingError> {
+    let mut next = live
+        .through
+        .map_or(settings.first_frame(), |f| FrameNumber(f.0 + 1));
+    loop {
+        let frames = state
+            .store
+            .frames_to_track(run.sequence_id, next, FRAMES_PER_QUERY)
+            .await?;
+        let count = frames.len();
+        for (frame, readiness) in frames {
+            if frame != next && !run.finish_requested {
+                // Frame `next` is not uploaded yet.
+                return Ok(Taken::Waiting);
+            }
+            let (particles, recorded) = match readiness {
+                FrameReadiness::Pending => return Ok(Taken::Waiting),
+                FrameReadiness::Failed => (Vec::new(), None),
+                FrameReadiness::Processed => {
+                    let particles = load_particles(state, run.sequence_id, frame, cameras).await?;
+                    let n = particles.len() as i64;
+                    (particles, Some(n))
+                }
+            };
+            let previous = live.through;
+            let points = live.push(state, frame, particles).await?;
+            let rows = live.rows(&points)?;
+            if !settle(storing).await? {
+                return Err(TrackingError::Moved);
+            }
+            let (store, id) = (state.store.clone(), run.id);
+            *storing = Some(tokio::spawn(async move {
+                store
+                    .store_tracked_frame(id, previous, frame, recorded, &rows)
+                    .await
+            }));
+            next = FrameNumber(frame.0 + 1);
+        }
+        if count < FRAMES_PER_QUERY as usize {
+            return Ok(Taken::AtEnd);
+        }
+    }
 }
 
 /// A run's tracker as it was after its last stored frame: a fresh tracker
