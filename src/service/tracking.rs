@@ -29,7 +29,10 @@
 //! that frame made final, the frame recorded in `tracking_frames` (with its
 //! particle count, or as a gap), and `tracked_through` advanced, fenced on
 //! its old value so that a repeat writes nothing. A crash leaves the frame
-//! tracked or not, never half. The tracker itself is kept in memory
+//! tracked or not, never half. (A frame's store runs while the tracker
+//! takes the next frame; every way out of an advance waits for it, so the
+//! tracker in memory and the stored progress agree whenever the run's
+//! lock is free.) The tracker itself is kept in memory
 //! between frames; after a restart (or when the memory copy does not match
 //! the stored progress) it is rebuilt by giving a fresh tracker the
 //! recorded frames again, from their stored particles, and discarding what
