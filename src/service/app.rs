@@ -42,6 +42,8 @@ pub struct AppState {
     pub wake: Notify,
     /// This process's name in job claims.
     pub instance: String,
+    /// The tracking runs' trackers.
+    pub trackers: super::tracking::Trackers,
 }
 
 /// The built service, bound and ready to run.
@@ -119,6 +121,7 @@ impl Application {
             metrics,
             wake: Notify::new(),
             instance: format!("{}-{nanos}", std::process::id()),
+            trackers: Default::default(),
         });
         Ok(Application {
             listener,
@@ -161,6 +164,9 @@ impl Application {
         let (stop_workers, stopped) = watch::channel(false);
         let mut workers =
             jobs::spawn_workers(state.clone(), kinds, state.config.worker_count(), stopped);
+        // Runs a stopped process left tracking go on from their stored
+        // progress.
+        super::tracking::resume_all(&state);
         let router = http::router(state.clone());
         let settings = connections::Settings::new(&state.config);
         connections::serve(listener, router, connections, settings, shutdown).await;

@@ -501,6 +501,13 @@ async fn execute(state: &Arc<AppState>, kinds: &JobKinds, job: ClaimedJob) {
         }
     };
     state.metrics.job(&kind, label, seconds);
+    if kind == PROCESS_FRAME {
+        // A frame done (or failed: a gap) may let its sequence's tracking
+        // advance.
+        if let Ok(payload) = serde_json::from_str::<FramePayload>(&job.payload) {
+            super::tracking::kick(state, payload.sequence_id);
+        }
+    }
 }
 
 /// A process_frame job's payload.

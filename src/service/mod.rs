@@ -18,6 +18,9 @@
 //! - [`metrics`]: the counters behind `/metrics`.
 //! - [`selfcal`]: a sequence's calibration refined from its stored targets
 //!   (self-calibration), and its frames reprocessed with another one.
+//! - [`tracking`]: a sequence's frames linked into trajectories as they
+//!   complete, in frame order; the tracker rebuilt by replay after a
+//!   restart.
 //!
 //! The core ([`crate::photogrammetry`]) knows nothing of this module.
 
@@ -33,6 +36,7 @@ pub mod parameters;
 pub mod preprocessing;
 pub mod selfcal;
 pub mod store;
+pub mod tracking;
 
 use std::io::Write;
 use std::net::SocketAddr;

@@ -30,6 +30,11 @@
 //!   self-calibrated from its stored targets (the new calibration linked
 //!   to its origin and closer to the truth), its frames reprocessed and
 //!   their particles naming the calibration; bad requests' 4xx.
+//! - `tracking`: a simulated sequence of moving particles uploaded out of
+//!   order by 4 clients is tracked exactly as the core's tracker tracks
+//!   its particles in order, also across a kill -9 and a restart; a re-run
+//!   with other settings is a new run next to the old one; bad settings
+//!   and queries refused.
 //! - `upload`: `ptv upload` against the service and a flaky stand-in:
 //!   concurrent, resumable, retried uploads and their summary.
 
@@ -45,4 +50,5 @@ mod preprocessing;
 mod recovery;
 mod reliability;
 mod selfcal;
+mod tracking;
 mod upload;

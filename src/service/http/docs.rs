@@ -9,7 +9,9 @@ use utoipa::openapi::security::{HttpAuthScheme, HttpBuilder, SecurityScheme};
 use utoipa::{Modify, OpenApi};
 use utoipa_swagger_ui::SwaggerUi;
 
-use super::{calibrations, experiments, jobs, problem, selfcal, sequence_images, sequences};
+use super::{
+    calibrations, experiments, jobs, problem, selfcal, sequence_images, sequences, tracking,
+};
 use crate::service::app::AppState;
 use crate::service::parameters;
 
@@ -38,6 +40,11 @@ use crate::service::parameters;
         sequences::frame_particles,
         sequences::frame_targets,
         sequences::all_particles,
+        tracking::start,
+        tracking::runs,
+        tracking::finish,
+        tracking::trajectories,
+        tracking::trajectory,
         selfcal::self_calibrate,
         selfcal::reprocess,
         selfcal::report,
@@ -56,6 +63,7 @@ use crate::service::parameters;
         parameters::SolveOptions,
         crate::service::selfcal::SelfCalibrationRequest,
         crate::service::selfcal::FrameSpan,
+        crate::service::tracking::TrackingSettings,
         crate::formats::calibration::CalibrationFile,
         crate::formats::calibration::CameraJson,
         crate::formats::calibration::MediaJson,

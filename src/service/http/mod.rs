@@ -8,6 +8,8 @@
 //! - [`selfcal`]: a sequence's calibration self-calibrated from its
 //!   targets, its frames reprocessed with another calibration, a
 //!   calibration's report.
+//! - [`tracking`]: a sequence's tracking runs, a new run, the finish
+//!   request, its trajectories (CSV or JSON, streamed) and one trajectory.
 //! - [`jobs`]: a job's state.
 //! - [`problem`]: the one error type, its statuses by the errors' types,
 //!   and the extractors that use it.
@@ -29,6 +31,7 @@ pub mod problem;
 pub mod selfcal;
 pub mod sequence_images;
 pub mod sequences;
+pub mod tracking;
 pub mod upload;
 
 use std::sync::Arc;
@@ -55,6 +58,7 @@ pub fn router(state: Arc<AppState>) -> Router {
         .merge(sequence_images::router())
         .merge(selfcal::router())
         .merge(experiments::router())
+        .merge(tracking::router())
         .merge(jobs::router());
     let routes = Router::new()
         .nest("/api/v1", api)

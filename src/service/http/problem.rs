@@ -165,6 +165,14 @@ impl From<crate::service::selfcal::SelfCalibrationRequestError> for ApiError {
     }
 }
 
+impl From<crate::service::tracking::InvalidTrackingSettings> for ApiError {
+    /// Tracking settings the tracker refuses (a velocity limit that is not
+    /// positive, ...): a 422 naming the field and its range.
+    fn from(error: crate::service::tracking::InvalidTrackingSettings) -> Self {
+        ApiError::unprocessable(error_chain(&error))
+    }
+}
+
 impl From<sqlx::Error> for ApiError {
     /// A full disk is a 507; any other database error a 500.
     fn from(error: sqlx::Error) -> Self {

@@ -19,6 +19,7 @@ use utoipa::{IntoParams, ToSchema};
 use super::calibrations::stored_rig;
 use super::links;
 use super::problem::{ApiError, ApiJson, ApiMultipart, ApiPath, ApiQuery};
+use super::tracking::{frame_trajectories, run_view, TrackingRunView};
 use super::upload::{accepted, check_images, or_drain, persist_and_commit, stream_part, text_part};
 use super::Shared;
 use crate::formats;
@@ -34,8 +35,9 @@ use crate::service::parameters::{
 };
 use crate::service::store::{
     CalibrationId, FrameInputKind, FrameNumber, InsertFrameError, JobId, NewFrame, SequenceId,
-    SequenceImageKind, SequenceRow,
+    SequenceImageKind, SequenceRow, TrackingRunId,
 };
+use crate::service::tracking::TrackingSettings;
 
 /// The response header that names the calibration that made a frame's
 /// particles (CSV and rt_is; JSON has `calibration_id`).
@@ -83,6 +85,11 @@ pub struct CreateSequence {
     /// `POST /sequences/{id}/background`].
     #[serde(default)]
     pub background: Option<ComputedBackground>,
+    /// Track the frames' particles into trajectories as the frames
+    /// complete, with these settings [default: off; `POST
+    /// /sequences/{id}/tracking` starts tracking later].
+    #[serde(default)]
+    pub tracking: Option<TrackingSettings>,
 }
 
 /// Frames of a sequence by state.
@@ -137,6 +144,9 @@ pub struct SequenceView {
     pub created_at: String,
     /// Its frames by state.
     pub frames: FrameCountsView,
+    /// Its current tracking run (null: not tracked), with how far it has
+    /// got (`tracked_through`).
+    pub tracking: Option<TrackingRunView>,
 }
 
 pub(super) async fn view(state: &AppState, row: SequenceRow) -> Result<SequenceView, ApiError> {
@@ -151,6 +161,10 @@ pub(super) async fn view(state: &AppState, row: SequenceRow) -> Result<SequenceV
             .collect::<Vec<_>>()
     };
     let background_cameras = cameras_of(SequenceImageKind::Background);
+    let tracking = match state.store.current_tracking_run(row.id).await? {
+        Some(run) => Some(run_view(state, run).await?),
+        None => None,
+    };
     let background = match (&parameters.background, background_cameras.is_empty()) {
         (None, true) => BackgroundStatus::None,
         (None, false) => BackgroundStatus::Uploaded,
@@ -173,6 +187,7 @@ pub(super) async fn view(state: &AppState, row: SequenceRow) -> Result<SequenceV
             done: counts.done,
             failed: counts.failed,
         },
+        tracking,
     })
 }
 
@@ -226,6 +241,10 @@ pub async fn create(
         background.validate().map_err(ApiError::unprocessable)?;
     }
     parameters.background = request.background;
+    let tracking = match &request.tracking {
+        Some(settings) => Some(serde_json::to_string(&settings.with_defaults()?)?),
+        None => None,
+    };
     // Dropped with this handler (client gone, request timeout): the
     // preparation does not start if it still waits for a CPU thread.
     let cancel = Cancel::new();
@@ -240,6 +259,7 @@ pub async fn create(
             &name,
             &stored,
             request.keep_images.unwrap_or(true),
+            tracking.as_deref(),
         )
         .await?
         .ok_or_else(|| ApiError::unprocessable("calibration_id: the calibration does not exist"))?;
@@ -669,6 +689,9 @@ pub struct ParticleView {
     /// Per camera, the index of its target in the frame's targets of that
     /// camera, or null.
     pub targets: Vec<Option<usize>>,
+    /// Its trajectory in the sequence's current tracking run (null: none
+    /// yet, or the sequence is not tracked).
+    pub trajectory: Option<i64>,
 }
 
 /// A frame's particles.
@@ -684,6 +707,10 @@ pub struct FrameParticles {
     /// one it had when the frame was processed, until reprocessed).
     #[schema(value_type = i64)]
     pub calibration_id: CalibrationId,
+    /// The tracking run that `trajectory` refers to (null: the sequence is
+    /// not tracked).
+    #[schema(value_type = Option<i64>)]
+    pub tracking_run: Option<TrackingRunId>,
     /// The particles.
     pub particles: Vec<ParticleView>,
 }
@@ -744,23 +771,30 @@ pub async fn frame_particles(
     let (cameras, particles, made_by) = load_particles(&state, id, frame).await?;
     let provenance = [(CALIBRATION_HEADER, made_by.to_string())];
     Ok(match query.format {
-        ParticleFormat::Json => Json(FrameParticles {
-            sequence_id: id,
-            frame,
-            calibration_id: made_by,
-            particles: particles
-                .iter()
-                .map(|p| ParticleView {
-                    x: p.position.x,
-                    y: p.position.y,
-                    z: p.position.z,
-                    sigma: [p.sigma.x, p.sigma.y, p.sigma.z],
-                    rms_px: p.rms_px,
-                    targets: p.targets.clone(),
-                })
-                .collect(),
-        })
-        .into_response(),
+        ParticleFormat::Json => {
+            let (tracking_run, trajectories) =
+                frame_trajectories(&state, id, frame, particles.len()).await?;
+            Json(FrameParticles {
+                sequence_id: id,
+                frame,
+                calibration_id: made_by,
+                tracking_run,
+                particles: particles
+                    .iter()
+                    .zip(trajectories)
+                    .map(|(p, trajectory)| ParticleView {
+                        x: p.position.x,
+                        y: p.position.y,
+                        z: p.position.z,
+                        sigma: [p.sigma.x, p.sigma.y, p.sigma.z],
+                        rms_px: p.rms_px,
+                        targets: p.targets.clone(),
+                        trajectory,
+                    })
+                    .collect(),
+            })
+            .into_response()
+        }
         ParticleFormat::Csv => (
             [(header::CONTENT_TYPE, "text/csv")],
             provenance,

@@ -77,3 +77,7 @@ id!(
     /// A frame's number within its sequence (from 0).
     FrameNumber
 );
+id!(
+    /// A tracking run's id.
+    TrackingRunId
+);

@@ -37,7 +37,8 @@
 //! [`calibrations`](self::calibrations), [`sequences`](self::sequences)
 //! (sequences and their frames' inputs and results) and [`jobs`](self::jobs)
 //! (the queue and the jobs' input files), [`selfcal`](self::selfcal)
-//! (refined calibrations, reprocessing); here the pools, the migrations
+//! (refined calibrations, reprocessing), [`tracking`](self::tracking)
+//! (tracking runs, the frames they took, trajectory points); here the pools, the migrations
 //! and what they share.
 
 mod calibrations;
@@ -45,6 +46,7 @@ mod ids;
 mod jobs;
 mod selfcal;
 mod sequences;
+mod tracking;
 
 use std::path::Path;
 use std::str::FromStr;
@@ -64,7 +66,7 @@ use sqlx::sqlite::{
 use sqlx::{Database, Executor, Row, Sqlite, TransactionManager};
 
 pub use self::calibrations::{insert_calibration, CalibrationRow};
-pub use self::ids::{CalibrationId, FrameNumber, JobId, SequenceId};
+pub use self::ids::{CalibrationId, FrameNumber, JobId, SequenceId, TrackingRunId};
 pub use self::jobs::{
     enqueue, finish, ClaimedJob, JobFile, JobResult, JobRow, JobState, RetryOutcome, MAX_ATTEMPTS,
 };
@@ -73,6 +75,7 @@ pub use self::sequences::{
     FrameCounts, FrameInput, FrameInputKind, NewFrame, SequenceImage, SequenceImageKind,
     SequenceImagesError, SequenceRow,
 };
+pub use self::tracking::{FrameReadiness, PointRow, TrackingRunRow, TrackingState, TrajectoryRow};
 
 /// The database.
 #[derive(Clone, Debug)]
@@ -155,6 +158,11 @@ const MIGRATIONS: &[(i64, &str, &str)] = &[
         5,
         "self_calibration",
         include_str!("../../../migrations/0005_self_calibration.sql"),
+    ),
+    (
+        6,
+        "tracking",
+        include_str!("../../../migrations/0006_tracking.sql"),
     ),
 ];
 

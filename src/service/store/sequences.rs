@@ -177,15 +177,19 @@ impl FromRow<'_, SqliteRow> for FrameInput {
 }
 
 impl Store {
-    /// Stores a sequence; `None` if its calibration does not exist.
+    /// Stores a sequence and, with `tracking` settings (JSON), its first
+    /// tracking run, in one transaction; `None` if its calibration does not
+    /// exist.
     pub async fn insert_sequence(
         &self,
         calibration_id: CalibrationId,
         name: &str,
         parameters: &str,
         keep_images: bool,
+        tracking: Option<&str>,
     ) -> Result<Option<SequenceRow>, sqlx::Error> {
-        let result = sqlx::query_as(
+        let mut tx = self.write_transaction().await?;
+        let result: Option<SequenceRow> = sqlx::query_as(
             "INSERT INTO sequences (calibration_id, name, parameters, keep_images) \
              SELECT id, ?, ?, ? FROM calibrations WHERE id = ? \
              RETURNING id, calibration_id, name, parameters, keep_images, created_at",
@@ -194,8 +198,12 @@ impl Store {
         .bind(parameters)
         .bind(keep_images)
         .bind(calibration_id)
-        .fetch_optional(&self.writer)
+        .fetch_optional(&mut *tx)
         .await?;
+        if let (Some(row), Some(tracking)) = (&result, tracking) {
+            super::tracking::insert_run(&mut tx, row.id, tracking, false).await?;
+        }
+        tx.commit().await?;
         Ok(result)
     }
 

@@ -1,0 +1,297 @@
+//! Tracking in the service, end to end: a sequence of moving particles
+//! (targets of 4 cameras, 0.05 px noise, 5% of images lost, a uniform
+//! motion of 0.3 mean spacings a frame) uploaded out of order by several
+//! clients to a tracked sequence; reports how fast frames are processed
+//! and tracked, how far tracking lags behind the processing, and how long
+//! a restarted service takes to rebuild the tracker by replay and finish.
+//!
+//! ```sh
+//! cargo bench --bench service_tracking
+//! cargo bench --bench service_tracking -- --frames 200 --particles 2000 --clients 4 --workers 2
+//! ```
+//!
+//! The service runs in this process on a temporary data directory; the
+//! uploads are open loop (every client sends its frames as fast as the
+//! service takes them).
+
+use std::time::{Duration, Instant};
+
+use nalgebra::{Point3, Vector3};
+use ptv::formats;
+use ptv::photogrammetry::simulate::{self, RigSpec};
+use ptv::service::{Application, ServeArgs, Timeouts};
+use rand::seq::SliceRandom;
+use reqwest::multipart::{Form, Part};
+use serde_json::{json, Value};
+
+struct Options {
+    frames: usize,
+    particles: usize,
+    clients: usize,
+    workers: Option<usize>,
+}
+
+fn options() -> Options {
+    let mut options = Options {
+        frames: 200,
+        particles: 2000,
+        clients: 4,
+        workers: None,
+    };
+    let mut args = std::env::args().skip(1);
+    while let Some(arg) = args.next() {
+        let mut number = |name: &str| -> usize {
+            args.next()
+                .and_then(|v| v.parse().ok())
+                .unwrap_or_else(|| panic!("{name} needs a number"))
+        };
+        match arg.as_str() {
+            "--frames" => options.frames = number("--frames").max(3),
+            "--particles" => options.particles = number("--particles"),
+            "--clients" => options.clients = number("--clients").max(1),
+            "--workers" => options.workers = Some(number("--workers")),
+            _ => {}
+        }
+    }
+    options
+}
+
+fn main() {
+    let options = options();
+    tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .unwrap()
+        .block_on(run(options));
+}
+
+/// Starts the service on `data_dir`; its address and stop switch.
+async fn start(
+    data_dir: &std::path::Path,
+    workers: Option<usize>,
+) -> (
+    String,
+    tokio::sync::oneshot::Sender<()>,
+    tokio::task::JoinHandle<()>,
+) {
+    let args = ServeArgs {
+        bind: "127.0.0.1:0".parse().unwrap(),
+        data_dir: data_dir.to_owned(),
+        workers,
+        max_upload_mb: 256,
+        api_token: None,
+        max_cpu_requests: None,
+        max_connections: None,
+        timeouts: Timeouts::default(),
+        job_limits: Default::default(),
+    };
+    let app = Application::build(args).await.unwrap();
+    let address = format!("http://{}", app.local_addr().unwrap());
+    let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
+    let server = tokio::spawn(async move {
+        app.run_until(async {
+            let _ = stopped.await;
+        })
+        .await
+        .unwrap();
+    });
+    (address, stop, server)
+}
+
+async fn view(client: &reqwest::Client, address: &str, sequence: i64) -> Value {
+    client
+        .get(format!("{address}/api/v1/sequences/{sequence}"))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap()
+}
+
+async fn run(options: Options) {
+    let spec = RigSpec::convergent(4);
+    let cameras = spec.build().unwrap();
+    let volume = spec.volume;
+    let size = volume.max - volume.min;
+    let spacing = (size.x * size.y * size.z / options.particles as f64).cbrt();
+    let velocity = Vector3::new(2.0, 1.0, 0.5).normalize() * 0.3 * spacing;
+    eprintln!(
+        "simulating {} frames of {} particles (spacing {spacing:.2} mm, {:.2} mm a frame)...",
+        options.frames,
+        options.particles,
+        velocity.norm()
+    );
+    let mut rng = simulate::rng(2024);
+    let first = simulate::particles(&volume, options.particles, &mut rng);
+    let mut forms: Vec<(usize, Vec<String>)> = (0..options.frames)
+        .map(|f| {
+            let points: Vec<Point3<f64>> = first
+                .iter()
+                .map(|p| {
+                    let moved = p - volume.min + velocity * f as f64;
+                    volume.min + Vector3::from_fn(|i, _| moved[i].rem_euclid(size[i]))
+                })
+                .collect();
+            let frame = simulate::target_frame(&cameras, &points, 0.05, 0.05, &mut rng);
+            (
+                f,
+                frame
+                    .targets
+                    .iter()
+                    .map(|t| formats::csv::format_targets(t))
+                    .collect(),
+            )
+        })
+        .collect();
+    forms.shuffle(&mut rng);
+
+    let data_dir = tempfile::tempdir().unwrap();
+    let (address, stop, server) = start(data_dir.path(), options.workers).await;
+    let client = reqwest::Client::new();
+    let api = |address: &str, path: &str| format!("{address}/api/v1{path}");
+    let calibration: Value = client
+        .post(api(&address, "/calibrations"))
+        .body(formats::calibration::to_json(&cameras))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    let v = &volume;
+    let sequence: Value = client
+        .post(api(&address, "/sequences"))
+        .json(&json!({
+            "calibration_id": calibration["id"],
+            "matching": {"volume": [v.min.x, v.max.x, v.min.y, v.max.y, v.min.z, v.max.z]},
+            "tracking": {"max_velocity": 1.5 * velocity.norm()},
+        }))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    let sequence = sequence["id"].as_i64().unwrap();
+
+    let started = Instant::now();
+    let forms = std::sync::Arc::new(forms);
+    let mut tasks = tokio::task::JoinSet::new();
+    for c in 0..options.clients {
+        let (forms, address, clients) = (forms.clone(), address.clone(), options.clients);
+        tasks.spawn(async move {
+            let client = reqwest::Client::new();
+            for (frame, tables) in forms.iter().skip(c).step_by(clients) {
+                let mut form = Form::new().text("frame", frame.to_string());
+                for (camera, text) in tables.iter().enumerate() {
+                    form = form.part(
+                        format!("targets{camera}"),
+                        Part::text(text.clone()).file_name("t.csv"),
+                    );
+                }
+                let response = client
+                    .post(format!("{address}/api/v1/sequences/{sequence}/frames"))
+                    .multipart(form)
+                    .send()
+                    .await
+                    .unwrap();
+                assert_eq!(response.status().as_u16(), 202);
+            }
+        });
+    }
+    while tasks.join_next().await.is_some() {}
+    let uploaded = started.elapsed();
+    let last = options.frames as i64 - 1;
+    let (mut processed, mut tracked) = (None, None);
+    while tracked.is_none() {
+        let body = view(&client, &address, sequence).await;
+        if processed.is_none() && body["frames"]["done"] == options.frames as i64 {
+            processed = Some(started.elapsed());
+        }
+        if body["tracking"]["tracked_through"] == last {
+            tracked = Some(started.elapsed());
+        }
+        assert_eq!(body["frames"]["failed"], 0, "{body}");
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
+    let processed = processed.unwrap_or(tracked.unwrap());
+    let tracked = tracked.unwrap();
+    // Stop before finishing: the restarted service rebuilds the tracker.
+    let _ = stop.send(());
+    server.await.unwrap();
+
+    let (address, stop, server) = start(data_dir.path(), options.workers).await;
+    let restarted = Instant::now();
+    let response = client
+        .post(api(
+            &address,
+            &format!("/sequences/{sequence}/tracking/finish"),
+        ))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(response.status().as_u16(), 202);
+    let finished = loop {
+        let body = view(&client, &address, sequence).await;
+        if body["tracking"]["state"] == "finished" {
+            break (
+                restarted.elapsed(),
+                body["tracking"]["trajectories"].clone(),
+            );
+        }
+        assert_eq!(body["tracking"]["state"], "tracking", "{body}");
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    };
+    let csv_started = Instant::now();
+    let csv = client
+        .get(api(
+            &address,
+            &format!("/sequences/{sequence}/trajectories?format=csv"),
+        ))
+        .send()
+        .await
+        .unwrap()
+        .text()
+        .await
+        .unwrap();
+    let csv_time = csv_started.elapsed();
+    let _ = stop.send(());
+    server.await.unwrap();
+
+    let n = options.frames as f64;
+    println!(
+        "{} frames of {} particles, {} clients, {} workers",
+        options.frames,
+        options.particles,
+        options.clients,
+        options
+            .workers
+            .map_or_else(|| "default".to_owned(), |w| w.to_string())
+    );
+    println!("uploaded in {:.2} s", uploaded.as_secs_f64());
+    println!(
+        "all processed after {:.2} s ({:.1} frames/s)",
+        processed.as_secs_f64(),
+        n / processed.as_secs_f64()
+    );
+    println!(
+        "all tracked after {:.2} s ({:.1} frames/s); tracking ended {:.0} ms after the last frame was processed",
+        tracked.as_secs_f64(),
+        n / tracked.as_secs_f64(),
+        (tracked.saturating_sub(processed)).as_secs_f64() * 1e3
+    );
+    println!(
+        "after a restart: replay of {} frames and finish in {:.2} s ({:.1} ms a frame); {} trajectories",
+        options.frames,
+        finished.0.as_secs_f64(),
+        finished.0.as_secs_f64() * 1e3 / n,
+        finished.1
+    );
+    println!(
+        "trajectory CSV: {} rows, {:.1} MB in {:.2} s",
+        csv.lines().count() - 1,
+        csv.len() as f64 / 1e6,
+        csv_time.as_secs_f64()
+    );
+}

@@ -1,0 +1,567 @@
+//! Tracking runs and their trajectories (issue 15): a run's settings and
+//! how far it has got, the frames its tracker took, and the trajectory
+//! points, stored frame by frame in one transaction with the run's
+//! progress, so that a crash leaves either the frame tracked (its points
+//! and `tracked_through`) or not at all, and a repeated frame writes
+//! nothing twice (the progress is the fence).
+
+use sqlx::sqlite::SqliteRow;
+use sqlx::{FromRow, QueryBuilder, Row, Sqlite, Transaction};
+
+use super::{stored_as_text, text_column, FrameNumber, SequenceId, Store, TrackingRunId};
+
+/// Where a tracking run stands (`tracking_runs.state`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum TrackingState {
+    /// Following the frames as they complete.
+    Tracking,
+    /// Ended after the last frame (finish requested); every point stored.
+    Finished,
+    /// The tracker refused a frame's particles; `error` says why.
+    Failed,
+    /// A newer run of the sequence took over before this one finished; its
+    /// points so far stay.
+    Superseded,
+}
+
+stored_as_text!(TrackingState, "tracking state", {
+    Tracking => "tracking",
+    Finished => "finished",
+    Failed => "failed",
+    Superseded => "superseded",
+});
+
+/// A stored tracking run.
+#[derive(Clone, Debug)]
+pub struct TrackingRunRow {
+    /// Its id.
+    pub id: TrackingRunId,
+    /// Its sequence.
+    pub sequence_id: SequenceId,
+    /// Its settings (JSON).
+    pub parameters: String,
+    /// The last frame its tracker took.
+    pub tracked_through: Option<FrameNumber>,
+    /// Whether the client said the sequence has all its frames.
+    pub finish_requested: bool,
+    /// Where it stands.
+    pub state: TrackingState,
+    /// Why it failed.
+    pub error: Option<String>,
+    /// When it was created.
+    pub created_at: String,
+}
+
+const RUN_COLUMNS: &str =
+    "id, sequence_id, parameters, tracked_through, finish_requested, state, error, created_at";
+
+impl FromRow<'_, SqliteRow> for TrackingRunRow {
+    fn from_row(row: &SqliteRow) -> Result<Self, sqlx::Error> {
+        Ok(TrackingRunRow {
+            id: row.try_get("id")?,
+            sequence_id: row.try_get("sequence_id")?,
+            parameters: row.try_get("parameters")?,
+            tracked_through: row.try_get("tracked_through")?,
+            finish_requested: row.try_get("finish_requested")?,
+            state: text_column(row, "state")?,
+            error: row.try_get("error")?,
+            created_at: row.try_get("created_at")?,
+        })
+    }
+}
+
+/// One stored trajectory point.
+#[derive(Clone, Debug, PartialEq)]
+pub struct PointRow {
+    /// The trajectory.
+    pub trajectory: i64,
+    /// The frame.
+    pub frame: FrameNumber,
+    /// The particle's index in the frame's particles.
+    pub particle: i64,
+    /// Position (mm).
+    pub position: [f64; 3],
+    /// Velocity (mm per frame), where the fit gives one.
+    pub velocity: Option<[f64; 3]>,
+    /// Acceleration (mm per frame²), where the fit gives one.
+    pub acceleration: Option<[f64; 3]>,
+    /// The velocity's standard deviations.
+    pub velocity_sigma: Option<[f64; 3]>,
+    /// The particle's target per camera, comma-separated, -1 for none.
+    pub targets: String,
+}
+
+impl FromRow<'_, SqliteRow> for PointRow {
+    fn from_row(row: &SqliteRow) -> Result<Self, sqlx::Error> {
+        let triple = |names: [&str; 3]| -> Result<Option<[f64; 3]>, sqlx::Error> {
+            let values = [
+                row.try_get::<Option<f64>, _>(names[0])?,
+                row.try_get::<Option<f64>, _>(names[1])?,
+                row.try_get::<Option<f64>, _>(names[2])?,
+            ];
+            Ok(match values {
+                [Some(a), Some(b), Some(c)] => Some([a, b, c]),
+                _ => None,
+            })
+        };
+        Ok(PointRow {
+            trajectory: row.try_get("trajectory")?,
+            frame: row.try_get("frame")?,
+            particle: row.try_get("particle")?,
+            position: [row.try_get("x")?, row.try_get("y")?, row.try_get("z")?],
+            velocity: triple(["u", "v", "w"])?,
+            acceleration: triple(["ax", "ay", "az"])?,
+            velocity_sigma: triple(["su", "sv", "sw"])?,
+            targets: row.try_get("targets")?,
+        })
+    }
+}
+
+const POINT_COLUMNS: &str =
+    "trajectory, frame, particle, x, y, z, u, v, w, ax, ay, az, su, sv, sw, targets";
+
+/// A trajectory's extent.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct TrajectoryRow {
+    /// Its number within the run.
+    pub id: i64,
+    /// Its first frame.
+    pub first_frame: FrameNumber,
+    /// Its last frame.
+    pub last_frame: FrameNumber,
+    /// Its points.
+    pub length: i64,
+}
+
+impl FromRow<'_, SqliteRow> for TrajectoryRow {
+    fn from_row(row: &SqliteRow) -> Result<Self, sqlx::Error> {
+        Ok(TrajectoryRow {
+            id: row.try_get("id")?,
+            first_frame: row.try_get("first_frame")?,
+            last_frame: row.try_get("last_frame")?,
+            length: row.try_get("length")?,
+        })
+    }
+}
+
+/// A frame of the sequence, as tracking sees it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum FrameReadiness {
+    /// Processed: its particles are stored.
+    Processed,
+    /// Its job failed: a gap.
+    Failed,
+    /// Queued or running.
+    Pending,
+}
+
+/// Points written per statement (16 values each, within SQLite's limit of
+/// 32,766 bound values).
+const POINTS_PER_STATEMENT: usize = 1000;
+
+impl Store {
+    /// A tracking run by id.
+    pub async fn tracking_run(
+        &self,
+        id: TrackingRunId,
+    ) -> Result<Option<TrackingRunRow>, sqlx::Error> {
+        sqlx::query_as(&format!(
+            "SELECT {RUN_COLUMNS} FROM tracking_runs WHERE id = ?"
+        ))
+        .bind(id)
+        .fetch_optional(&self.reader)
+        .await
+    }
+
+    /// A sequence's tracking runs, oldest first (the last is its current
+    /// one).
+    pub async fn tracking_runs(
+        &self,
+        sequence_id: SequenceId,
+    ) -> Result<Vec<TrackingRunRow>, sqlx::Error> {
+        sqlx::query_as(&format!(
+            "SELECT {RUN_COLUMNS} FROM tracking_runs WHERE sequence_id = ? ORDER BY id"
+        ))
+        .bind(sequence_id)
+        .fetch_all(&self.reader)
+        .await
+    }
+
+    /// A sequence's current (newest) tracking run.
+    pub async fn current_tracking_run(
+        &self,
+        sequence_id: SequenceId,
+    ) -> Result<Option<TrackingRunRow>, sqlx::Error> {
+        sqlx::query_as(&format!(
+            "SELECT {RUN_COLUMNS} FROM tracking_runs WHERE sequence_id = ? \
+             ORDER BY id DESC LIMIT 1"
+        ))
+        .bind(sequence_id)
+        .fetch_optional(&self.reader)
+        .await
+    }
+
+    /// Runs still tracking (to resume at start-up).
+    pub async fn unfinished_tracking_runs(&self) -> Result<Vec<TrackingRunId>, sqlx::Error> {
+        let rows: Vec<(TrackingRunId,)> =
+            sqlx::query_as("SELECT id FROM tracking_runs WHERE state = 'tracking' ORDER BY id")
+                .fetch_all(&self.reader)
+                .await?;
+        Ok(rows.into_iter().map(|(id,)| id).collect())
+    }
+
+    /// A new tracking run of the sequence with `parameters`, in one
+    /// transaction with the end of its current run if that one is still
+    /// tracking (superseded); it keeps the current run's finish request
+    /// (the sequence's frames are all there or not, whatever the
+    /// settings). `None` if the sequence does not exist.
+    pub async fn insert_tracking_run(
+        &self,
+        sequence_id: SequenceId,
+        parameters: &str,
+    ) -> Result<Option<TrackingRunRow>, sqlx::Error> {
+        let mut tx = self.write_transaction().await?;
+        let exists: Option<(i64,)> = sqlx::query_as("SELECT 1 FROM sequences WHERE id = ?")
+            .bind(sequence_id)
+            .fetch_optional(&mut *tx)
+            .await?;
+        if exists.is_none() {
+            return Ok(None);
+        }
+        let (finish,): (bool,) = sqlx::query_as(
+            "SELECT coalesce((SELECT finish_requested FROM tracking_runs WHERE sequence_id = ? \
+             ORDER BY id DESC LIMIT 1), 0)",
+        )
+        .bind(sequence_id)
+        .fetch_one(&mut *tx)
+        .await?;
+        sqlx::query(
+            "UPDATE tracking_runs SET state = 'superseded' \
+             WHERE sequence_id = ? AND state = 'tracking'",
+        )
+        .bind(sequence_id)
+        .execute(&mut *tx)
+        .await?;
+        let row = insert_run(&mut tx, sequence_id, parameters, finish).await?;
+        tx.commit().await?;
+        Ok(Some(row))
+    }
+
+    /// Records that the run's sequence has all its frames; the run's row
+    /// after, `None` if there is no such run.
+    pub async fn request_tracking_finish(
+        &self,
+        id: TrackingRunId,
+    ) -> Result<Option<TrackingRunRow>, sqlx::Error> {
+        sqlx::query_as(&format!(
+            "UPDATE tracking_runs SET finish_requested = 1 WHERE id = ? RETURNING {RUN_COLUMNS}"
+        ))
+        .bind(id)
+        .fetch_optional(&self.writer)
+        .await
+    }
+
+    /// The sequence's frames from `from` on (at most `limit`), in order,
+    /// with whether each is processed, failed or pending.
+    pub async fn frames_to_track(
+        &self,
+        sequence_id: SequenceId,
+        from: FrameNumber,
+        limit: u32,
+    ) -> Result<Vec<(FrameNumber, FrameReadiness)>, sqlx::Error> {
+        let rows: Vec<(FrameNumber, String, bool)> = sqlx::query_as(
+            "SELECT f.frame, j.state, p.frame IS NOT NULL FROM frames f \
+             JOIN jobs j ON j.id = f.job_id \
+             LEFT JOIN particles p ON p.sequence_id = f.sequence_id AND p.frame = f.frame \
+             WHERE f.sequence_id = ? AND f.frame >= ? ORDER BY f.frame LIMIT ?",
+        )
+        .bind(sequence_id)
+        .bind(from)
+        .bind(limit)
+        .fetch_all(&self.reader)
+        .await?;
+        rows.into_iter()
+            .map(|(frame, state, processed)| {
+                let readiness = if processed {
+                    FrameReadiness::Processed
+                } else if super::decode_text::<super::JobState>("state", &state)?
+                    == super::JobState::Failed
+                {
+                    FrameReadiness::Failed
+                } else {
+                    FrameReadiness::Pending
+                };
+                Ok((frame, readiness))
+            })
+            .collect()
+    }
+
+    /// The frames the run's tracker took, in order: each with the count of
+    /// particles it was given, or `None` for a gap.
+    pub async fn tracked_frames(
+        &self,
+        id: TrackingRunId,
+    ) -> Result<Vec<(FrameNumber, Option<i64>)>, sqlx::Error> {
+        sqlx::query_as(
+            "SELECT frame, particles FROM tracking_frames WHERE run_id = ? ORDER BY frame",
+        )
+        .bind(id)
+        .fetch_all(&self.reader)
+        .await
+    }
+
+    /// Stores what tracking `frame` gave (`particles`: how many the tracker
+    /// was given, `None` for a gap) and advances the run to it, in one
+    /// transaction, if the run is still tracking and still at `previous`.
+    /// False (nothing written) otherwise: someone else advanced it.
+    pub async fn store_tracked_frame(
+        &self,
+        id: TrackingRunId,
+        previous: Option<FrameNumber>,
+        frame: FrameNumber,
+        particles: Option<i64>,
+        points: &[PointRow],
+    ) -> Result<bool, sqlx::Error> {
+        let mut tx = self.write_transaction().await?;
+        let advanced = sqlx::query(
+            "UPDATE tracking_runs SET tracked_through = ? \
+             WHERE id = ? AND state = 'tracking' AND tracked_through IS ?",
+        )
+        .bind(frame)
+        .bind(id)
+        .bind(previous)
+        .execute(&mut *tx)
+        .await?
+        .rows_affected();
+        if advanced == 0 {
+            return Ok(false);
+        }
+        sqlx::query("INSERT INTO tracking_frames (run_id, frame, particles) VALUES (?, ?, ?)")
+            .bind(id)
+            .bind(frame)
+            .bind(particles)
+            .execute(&mut *tx)
+            .await?;
+        insert_points(&mut tx, id, points).await?;
+        tx.commit().await?;
+        Ok(true)
+    }
+
+    /// Ends a run tracked through `through` with its last points, in one
+    /// transaction; false (nothing written) if it moved meanwhile.
+    pub async fn finish_tracking_run(
+        &self,
+        id: TrackingRunId,
+        through: Option<FrameNumber>,
+        points: &[PointRow],
+    ) -> Result<bool, sqlx::Error> {
+        let mut tx = self.write_transaction().await?;
+        let done = sqlx::query(
+            "UPDATE tracking_runs SET state = 'finished' \
+             WHERE id = ? AND state = 'tracking' AND tracked_through IS ?",
+        )
+        .bind(id)
+        .bind(through)
+        .execute(&mut *tx)
+        .await?
+        .rows_affected();
+        if done == 0 {
+            return Ok(false);
+        }
+        insert_points(&mut tx, id, points).await?;
+        tx.commit().await?;
+        Ok(true)
+    }
+
+    /// Fails a run that is still tracking, with the reason.
+    pub async fn fail_tracking_run(
+        &self,
+        id: TrackingRunId,
+        error: &str,
+    ) -> Result<(), sqlx::Error> {
+        sqlx::query(
+            "UPDATE tracking_runs SET state = 'failed', error = ? \
+             WHERE id = ? AND state = 'tracking'",
+        )
+        .bind(error)
+        .bind(id)
+        .execute(&self.writer)
+        .await?;
+        Ok(())
+    }
+
+    /// How many trajectories the run has stored.
+    pub async fn trajectory_count(&self, id: TrackingRunId) -> Result<i64, sqlx::Error> {
+        let (n,): (i64,) = sqlx::query_as("SELECT count(*) FROM trajectories WHERE run_id = ?")
+            .bind(id)
+            .fetch_one(&self.reader)
+            .await?;
+        Ok(n)
+    }
+
+    /// The run's trajectories of at least `min_length` points that have a
+    /// point within `frames`, numbered above `after`, in order (at most
+    /// `limit`).
+    pub async fn trajectories(
+        &self,
+        id: TrackingRunId,
+        min_length: i64,
+        frames: (FrameNumber, FrameNumber),
+        after: i64,
+        limit: u32,
+    ) -> Result<Vec<TrajectoryRow>, sqlx::Error> {
+        sqlx::query_as(
+            "SELECT id, first_frame, last_frame, length FROM trajectories \
+             WHERE run_id = ? AND length >= ? AND last_frame >= ? AND first_frame <= ? AND id > ? \
+             ORDER BY id LIMIT ?",
+        )
+        .bind(id)
+        .bind(min_length)
+        .bind(frames.0)
+        .bind(frames.1)
+        .bind(after)
+        .bind(limit)
+        .fetch_all(&self.reader)
+        .await
+    }
+
+    /// One trajectory's extent.
+    pub async fn trajectory(
+        &self,
+        id: TrackingRunId,
+        trajectory: i64,
+    ) -> Result<Option<TrajectoryRow>, sqlx::Error> {
+        sqlx::query_as(
+            "SELECT id, first_frame, last_frame, length FROM trajectories \
+             WHERE run_id = ? AND id = ?",
+        )
+        .bind(id)
+        .bind(trajectory)
+        .fetch_optional(&self.reader)
+        .await
+    }
+
+    /// The points of the run's trajectories numbered `ids.0..=ids.1` within
+    /// `frames`, by trajectory and frame.
+    pub async fn trajectory_points(
+        &self,
+        id: TrackingRunId,
+        ids: (i64, i64),
+        frames: (FrameNumber, FrameNumber),
+    ) -> Result<Vec<PointRow>, sqlx::Error> {
+        sqlx::query_as(&format!(
+            "SELECT {POINT_COLUMNS} FROM trajectory_points \
+             WHERE run_id = ? AND trajectory BETWEEN ? AND ? AND frame BETWEEN ? AND ? \
+             ORDER BY trajectory, frame"
+        ))
+        .bind(id)
+        .bind(ids.0)
+        .bind(ids.1)
+        .bind(frames.0)
+        .bind(frames.1)
+        .fetch_all(&self.reader)
+        .await
+    }
+
+    /// The trajectory of each particle of a frame that has one: (particle,
+    /// trajectory).
+    pub async fn frame_trajectories(
+        &self,
+        id: TrackingRunId,
+        frame: FrameNumber,
+    ) -> Result<Vec<(i64, i64)>, sqlx::Error> {
+        sqlx::query_as(
+            "SELECT particle, trajectory FROM trajectory_points WHERE run_id = ? AND frame = ? \
+             ORDER BY particle",
+        )
+        .bind(id)
+        .bind(frame)
+        .fetch_all(&self.reader)
+        .await
+    }
+}
+
+/// Inserts a tracking run inside the caller's transaction.
+pub(super) async fn insert_run(
+    tx: &mut Transaction<'_, Sqlite>,
+    sequence_id: SequenceId,
+    parameters: &str,
+    finish_requested: bool,
+) -> Result<TrackingRunRow, sqlx::Error> {
+    sqlx::query_as(&format!(
+        "INSERT INTO tracking_runs (sequence_id, parameters, finish_requested) VALUES (?, ?, ?) \
+         RETURNING {RUN_COLUMNS}"
+    ))
+    .bind(sequence_id)
+    .bind(parameters)
+    .bind(finish_requested)
+    .fetch_one(&mut **tx)
+    .await
+}
+
+/// Inserts trajectory points and brings their trajectories' extents up to
+/// date, inside the caller's transaction.
+async fn insert_points(
+    tx: &mut Transaction<'_, Sqlite>,
+    id: TrackingRunId,
+    points: &[PointRow],
+) -> Result<(), sqlx::Error> {
+    for chunk in points.chunks(POINTS_PER_STATEMENT) {
+        let mut insert: QueryBuilder<Sqlite> = QueryBuilder::new(format!(
+            "INSERT INTO trajectory_points (run_id, {POINT_COLUMNS}) "
+        ));
+        insert.push_values(chunk, |mut row, p| {
+            let [u, v, w] = p.velocity.map_or([None; 3], |v| v.map(Some));
+            let [ax, ay, az] = p.acceleration.map_or([None; 3], |a| a.map(Some));
+            let [su, sv, sw] = p.velocity_sigma.map_or([None; 3], |s| s.map(Some));
+            row.push_bind(id)
+                .push_bind(p.trajectory)
+                .push_bind(p.frame)
+                .push_bind(p.particle)
+                .push_bind(p.position[0])
+                .push_bind(p.position[1])
+                .push_bind(p.position[2])
+                .push_bind(u)
+                .push_bind(v)
+                .push_bind(w)
+                .push_bind(ax)
+                .push_bind(ay)
+                .push_bind(az)
+                .push_bind(su)
+                .push_bind(sv)
+                .push_bind(sw)
+                .push_bind(p.targets.clone());
+        });
+        insert.build().execute(&mut **tx).await?;
+    }
+    // Per trajectory: its frames and points among these.
+    let mut extents: std::collections::BTreeMap<i64, (FrameNumber, FrameNumber, i64)> =
+        std::collections::BTreeMap::new();
+    for p in points {
+        let e = extents.entry(p.trajectory).or_insert((p.frame, p.frame, 0));
+        e.0 = e.0.min(p.frame);
+        e.1 = e.1.max(p.frame);
+        e.2 += 1;
+    }
+    let extents: Vec<_> = extents.into_iter().collect();
+    for chunk in extents.chunks(POINTS_PER_STATEMENT) {
+        let mut upsert: QueryBuilder<Sqlite> = QueryBuilder::new(
+            "INSERT INTO trajectories (run_id, id, first_frame, last_frame, length) ",
+        );
+        upsert.push_values(chunk, |mut row, (trajectory, (first, last, length))| {
+            row.push_bind(id)
+                .push_bind(*trajectory)
+                .push_bind(*first)
+                .push_bind(*last)
+                .push_bind(*length);
+        });
+        upsert.push(
+            " ON CONFLICT (run_id, id) DO UPDATE SET \
+             first_frame = min(first_frame, excluded.first_frame), \
+             last_frame = max(last_frame, excluded.last_frame), \
+             length = length + excluded.length",
+        );
+        upsert.build().execute(&mut **tx).await?;
+    }
+    Ok(())
+}
