@@ -200,10 +200,7 @@ impl Live {
         }
         let positions: Vec<ParticlePosition> = particles
             .iter()
-            .map(|p| ParticlePosition {
-                position: p.position,
-                sigma: p.sigma,
-            })
+            .map(|p| ParticlePosition::seen_by(p.position, p.sigma, p.camera_count()))
             .collect();
         let tracker = self
             .tracker

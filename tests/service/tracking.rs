@@ -193,9 +193,12 @@ fn core_trajectories(
         (
             f as i64,
             rows.iter()
-                .map(|r| ParticlePosition {
-                    position: r.position,
-                    sigma: r.sigma.expect("the service's CSV has sigmas"),
+                .map(|r| {
+                    ParticlePosition::seen_by(
+                        r.position,
+                        r.sigma.expect("the service's CSV has sigmas"),
+                        r.targets.iter().flatten().count(),
+                    )
                 })
                 .collect(),
         )
