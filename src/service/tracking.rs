@@ -46,7 +46,12 @@
 //! run after a restart, not per frame. A frame's particles replaced since
 //! they were tracked (reprocessing with another calibration) make the
 //! replay diverge: the count recorded per frame detects a changed count,
-//! and the run then fails, saying to start a new run.
+//! and the run then fails, saying to start a new run. The replay also
+//! assumes the same tracker: a run resumed by a build whose tracker links
+//! differently (an upgrade between the crash and the restart) goes on with
+//! that tracker's links from the frames it replays, which the stored
+//! points do not show; after an upgrade, start a new run for sequences
+//! still being tracked.
 //!
 //! **Runs.** A new run (other settings) supersedes the current one, whose
 //! points so far stay readable (`?run=`); frames of a finished run
