@@ -176,12 +176,8 @@ impl Live {
             tracker: Some(Tracker::new(parameters.clone())?),
             targets: VecDeque::new(),
             // A point becomes final at most this many frames after its own
-            // (as `ptv track` holds frames): its trajectory's first
-            // `min_length` points across gaps, the fit window and the
-            // look-ahead.
-            keep: (parameters.min_length * (parameters.max_gap + 1)
-                + parameters.fit_half_window
-                + 4) as i64,
+            // (as `ptv track` holds frames).
+            keep: parameters.report_delay() as i64,
         })
     }
 
