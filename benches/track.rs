@@ -108,8 +108,9 @@ fn bench(c: &mut Criterion) {
         };
         // One run outside criterion for the per-frame figure and a sanity
         // check that the flow is tracked.
+        let input = frames.clone();
         let (start, cpu) = (Instant::now(), cpu_ns());
-        let trajectories = track(frames.clone(), parameters.clone()).expect("tracking runs");
+        let trajectories = track(input, parameters.clone()).expect("tracking runs");
         let per_frame = start.elapsed().as_secs_f64() * 1e3 / FRAMES as f64;
         let cpu_per_frame = cpu_ns()
             .zip(cpu)

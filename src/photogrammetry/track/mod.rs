@@ -488,7 +488,7 @@ impl Tracker {
             .parameters
             .max_velocity
             .max(self.parameters.max_acceleration)
-            / 2.0;
+            / 1.0;
         self.ahead.push_back(Frame {
             number,
             grid: Grid::new(&particles, cell),
@@ -585,7 +585,9 @@ impl Tracker {
             }
         }
         // Global resolution: best first over the whole frame.
-        links.sort_by(|a, b| a.partial_cmp(b).expect("costs are finite"));
+        // (Unstable is enough: no two links share a trajectory and a
+        // particle, so the order is total.)
+        links.sort_unstable_by(|a, b| a.partial_cmp(b).expect("costs are finite"));
         let mut taken_live = vec![false; self.live.len()];
         let mut taken = vec![false; next.particles.len()];
         for link in links {
