@@ -124,7 +124,12 @@ impl TrackingParameters {
     /// caller holding per-frame data for the points (the command line's
     /// target indices) needs this many frames.
     pub fn report_delay(&self) -> usize {
-        self.min_length.max(MAX_DECISION_LENGTH) * (self.max_gap + 1) + self.fit_half_window + 4
+        self.min_length
+            .max(MAX_DECISION_LENGTH)
+            .max(2 * self.fit_half_window + 1)
+            * (self.max_gap + 1)
+            + self.fit_half_window
+            + 4
     }
 
     /// Checks every field; the error names it and its range.
@@ -710,36 +715,40 @@ impl Tracker {
             }
             return;
         };
-        let last_frame = live.last().frame;
+        let span = 2 * w + 1;
         while live.emitted < live.length {
             let k = live.emitted;
             let node = live.nodes[live.local(k)];
-            // Final once the points after it cover the window, or none
+            // The window: the 2 w + 1 points centred on it, shifted inward
+            // at the trajectory's ends so that it keeps 2 w + 1 points
+            // where the trajectory has them (a one-sided window of w + 1
+            // points differentiates the noise several times over).
+            let mut first = k.saturating_sub(w);
+            if ended {
+                first = first.min(live.length.saturating_sub(span));
+            }
+            let last = (first + span).min(live.length);
+            // Final once the points after it fill the window, or none
             // will come.
-            if !ended && last_frame < node.frame + w as i64 {
+            if !ended && last < first + span {
                 break;
             }
-            // The window's points: at most 2 w + 1 (w <= 5), on the stack.
+            // At most 2 w + 1 (w <= 5) points, on the stack.
             let mut samples = [Sample {
                 frame: 0,
                 position: Vector3::zeros(),
                 sigma: Vector3::zeros(),
             }; 11];
-            let mut count = 0;
-            for n in live
-                .nodes
-                .iter()
-                .filter(|n| (n.frame - node.frame).unsigned_abs() <= w as u64)
-            {
-                samples[count] = Sample {
+            for (slot, i) in samples.iter_mut().zip(first..last) {
+                let n = &live.nodes[live.local(i)];
+                *slot = Sample {
                     frame: n.frame,
                     position: n.position.coords,
                     sigma: n.sigma,
                 };
-                count += 1;
             }
             let derivatives =
-                fit(&samples[..count], node.frame, p.fit_order).unwrap_or(Derivatives {
+                fit(&samples[..last - first], node.frame, p.fit_order).unwrap_or(Derivatives {
                     velocity: Vector3::repeat(f64::NAN),
                     velocity_sigma: Vector3::repeat(f64::NAN),
                     acceleration: None,
@@ -754,17 +763,10 @@ impl Tracker {
             });
             live.emitted += 1;
         }
-        // Keep what is not handed out, the fit window behind the first of
-        // it, and the last two points (for the prediction).
-        let first_out = if live.emitted < live.length {
-            live.nodes[live.local(live.emitted)].frame
-        } else {
-            last_frame + 1
-        };
-        while live.nodes.len() > 2
-            && live.length - live.nodes.len() < live.emitted
-            && live.nodes[0].frame + (w as i64) < first_out
-        {
+        // Keep what is not handed out, the 2 w points before the first of
+        // it (its window, shifted back at the trajectory's end), and the
+        // last two points (for the prediction).
+        while live.nodes.len() > 2 && live.length - live.nodes.len() + 2 * w < live.emitted {
             live.nodes.pop_front();
         }
     }
