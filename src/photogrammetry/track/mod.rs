@@ -45,8 +45,8 @@
 //! a ghost rarely is. A trajectory whose points are mostly not seen by
 //! all, with fewer such points than a real particle would show with
 //! probability [`GHOST_TEST_LEVEL`] (binomial with the frames' `f`), is
-//! never reported (it goes on claiming its points, so they start no new
-//! trajectory). It is decided after enough points for the test to have
+//! never reported, and ends (a real particle's next point would start a
+//! new trajectory, losing only the points rejected). It is decided after enough points for the test to have
 //! power (`(1 - f)^n` under the level; at least `min_length`, at most
 //! [`MAX_DECISION_LENGTH`]) or at its end. Relative to the rig: where
 //! every particle is seen by all cameras (2 cameras, or counts unknown)
@@ -686,6 +686,10 @@ impl Tracker {
         for trajectory in &mut live {
             self.hand_out(trajectory, false, out);
         }
+        // A rejected trajectory ends: if it was a real particle's after all
+        // (a 1% chance), its next point starts a new one, which loses only
+        // the points already rejected.
+        live.retain(|l| !l.rejected);
         self.live = live;
     }
 
@@ -710,10 +714,7 @@ impl Tracker {
             }
         }
         let Some(id) = live.id else {
-            // Rejected: keep the last two points, for the prediction.
-            while live.nodes.len() > 2 {
-                live.nodes.pop_front();
-            }
+            // Rejected: it ends after this frame, and nothing is handed out.
             return;
         };
         let span = 2 * w + 1;
