@@ -12,8 +12,9 @@
 //! window has two points). Rows come as points become final (their fit
 //! window complete), so a long sequence streams; sort by
 //! `trajectory,frame` for one trajectory's rows together. A summary goes to
-//! standard error, with a progress bar where it is a terminal. A frame
-//! without its files is a gap, and the summary counts them.
+//! standard error, with a progress bar where it is a terminal. A range
+//! with frames whose files are missing is refused, naming them, unless
+//! `--allow-gaps`: then such a frame is a gap, and the summary names them.
 //!
 //! `--ptv-is DIR` also writes OpenPTV's linkage files `DIR/ptv_is.<frame>`
 //! (as liboptv's tracker writes them: the particle count, then per
@@ -88,6 +89,11 @@ pub struct TrackArgs {
     /// more cameras, intersected and accepted within --tolerance).
     #[arg(long)]
     pub no_recovery: bool,
+    /// Track across frames whose files are missing (as gaps: a trajectory
+    /// bridges up to --max-gap of them) instead of refusing the range; the
+    /// summary names the files.
+    #[arg(long)]
+    pub allow_gaps: bool,
     /// The particles' position uncertainty (mm) where the particle files
     /// have no sx,sy,sz columns.
     #[arg(long, value_name = "MM", allow_negative_numbers = true)]
@@ -245,6 +251,28 @@ pub(super) fn run(
         }
     }
 
+    // Frames missing a file: refused unless --allow-gaps, and named.
+    let mut missing: Vec<(u64, PathBuf)> = Vec::new();
+    for frame in range.first..=range.last {
+        for pattern in source.patterns() {
+            let path = pattern.path(frame);
+            if !path.is_file() {
+                missing.push((frame, path));
+            }
+        }
+    }
+    if !missing.is_empty() && !args.allow_gaps {
+        return Err(flag(
+            "--frames",
+            format!(
+                "the range {}..{} is not contiguous: {}; give a range whose files all exist, or --allow-gaps to track across the missing frames as gaps",
+                range.first,
+                range.last,
+                describe_missing(&missing)
+            ),
+        ));
+    }
+
     let bar = indicatif::ProgressBar::with_draw_target(
         Some(range.last - range.first + 1),
         if std::io::stderr().is_terminal() {
@@ -328,10 +356,15 @@ pub(super) fn run(
         held.write_ptv_is(args.ptv_is.as_deref())?;
     }
     bar.finish_and_clear();
+    let gaps_named = if missing.is_empty() {
+        String::new()
+    } else {
+        format!(" ({})", describe_missing(&missing))
+    };
     write_stderr_line(
         stderr,
         &format!(
-            "{} frames ({gaps} without files, tracked as gaps), {particles} particles and {recovered} recovered from the images; {} trajectories of at least {} points hold {} of them",
+            "{} frames ({gaps} without files, tracked as gaps{gaps_named}), {particles} particles and {recovered} recovered from the images; {} trajectories of at least {} points hold {} of them",
             range.last - range.first + 1 - gaps,
             writer.trajectories,
             parameters.min_length,
@@ -374,6 +407,45 @@ fn hold_recovered(
         }
     }
     Ok(count)
+}
+
+/// The frames that miss files, as runs (`5, 9..11`), and the first few
+/// files missing, with how many in all.
+fn describe_missing(missing: &[(u64, PathBuf)]) -> String {
+    const NAMED: usize = 5;
+    let mut frames: Vec<u64> = missing.iter().map(|(f, _)| *f).collect();
+    frames.dedup();
+    let mut runs: Vec<String> = Vec::new();
+    let mut i = 0;
+    while i < frames.len() {
+        let mut j = i;
+        while j + 1 < frames.len() && frames[j + 1] == frames[j] + 1 {
+            j += 1;
+        }
+        runs.push(if i == j {
+            frames[i].to_string()
+        } else {
+            format!("{}..{}", frames[i], frames[j])
+        });
+        i = j + 1;
+    }
+    let named: Vec<String> = missing
+        .iter()
+        .take(NAMED)
+        .map(|(_, p)| p.display().to_string())
+        .collect();
+    let more = if missing.len() > NAMED {
+        format!(" and {} more", missing.len() - NAMED)
+    } else {
+        String::new()
+    };
+    format!(
+        "frame{} {} miss{} {}{more}",
+        if frames.len() == 1 { "" } else { "s" },
+        runs.join(", "),
+        if frames.len() == 1 { "es" } else { "" },
+        named.join(", ")
+    )
 }
 
 /// A frame's particles while its points may still come, with the links

@@ -230,6 +230,36 @@ fn targets_are_matched_then_tracked() {
     // degrees of freedom, whose RMS is sqrt(5/3) = 1.29 (the fit's
     // averaging over 5 points brings it nearer 1).
     check(csv, 10, 200, 40, 5f64.sqrt() / 3f64.sqrt());
+
+    // One camera's file of frame 4 gone: the range is refused, naming the
+    // file; with --allow-gaps frame 4 is a gap the trajectories bridge.
+    std::fs::remove_file(dir.path().join("cam3.4.csv")).unwrap();
+    fails(
+        &ptv(&args, dir.path()),
+        &[
+            "--frames",
+            "0..9",
+            "frame 4 misses",
+            "cam3.4.csv",
+            "--allow-gaps",
+        ],
+    );
+    args.push("--allow-gaps");
+    let out = ptv(&args, dir.path());
+    assert!(out.status.success(), "{}", text(&out.stderr));
+    let stderr = text(&out.stderr);
+    assert!(
+        stderr.contains("1 without files") && stderr.contains("cam3.4.csv"),
+        "{stderr}"
+    );
+    let rows = rows(text(&out.stdout));
+    assert!(rows.iter().all(|r| r.frame != 4));
+    // The gap is bridged: a particle breaks only where matching also lost
+    // it next to the gap (frame 3 or 5, a gap of 2 frames over
+    // --max-gap 1). With up to 2% of points lost (above), that is about
+    // 200 x 2 x 2% = 8 breaks; twice that at most.
+    let trajectories = rows.iter().map(|r| r.trajectory).max().unwrap() + 1;
+    assert!((200..=216).contains(&trajectories), "{trajectories}");
 }
 
 /// Writes the calibration and each frame's targets of `motion(frames)`,
@@ -334,6 +364,25 @@ fn bad_input_gets_one_clear_line() {
         &["--particles", "none.%d.csv", "matches no file"],
     );
     std::fs::write(dir.path().join("p.0.csv"), "x,y,z\n1,2,3\n").unwrap();
+    // Frames 1..3 missing: named, and --allow-gaps offered.
+    fails(
+        &with(&["--particles", "p.%d.csv", "--sigma", "0.01"]),
+        &[
+            "not contiguous",
+            "frames 1..3 miss",
+            "p.1.csv",
+            "p.3.csv",
+            "--allow-gaps",
+        ],
+    );
+    for f in [1, 3] {
+        std::fs::write(dir.path().join(format!("p.{f}.csv")), "x,y,z\n1,2,3\n").unwrap();
+    }
+    fails(
+        &with(&["--particles", "p.%d.csv", "--sigma", "0.01"]),
+        &["frame 2 misses", "p.2.csv"],
+    );
+    std::fs::write(dir.path().join("p.2.csv"), "x,y,z\n1,2,3\n").unwrap();
     fails(
         &with(&["--particles", "p.%d.csv"]),
         &["--sigma", "no sx,sy,sz"],

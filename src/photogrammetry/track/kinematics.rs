@@ -2,9 +2,10 @@
 //! fit (Lüthi, Tsinober and Kinzelbach 2005, J. Fluid Mech. 528, section
 //! 2.3), not from raw differences, which amplify the position noise.
 //!
-//! Around a point at frame `f0`, the trajectory's points at frames
-//! `f0 - w ..= f0 + w` (those it has: near its ends and across gaps the
-//! window is one-sided or holed) are fitted per axis by
+//! Around a point at frame `f0`, the trajectory's `2w + 1` points centred
+//! on it (`w` before, `w` after; near its ends the window shifts inward
+//! to keep `2w + 1` points, and across a gap it spans more frames) are
+//! fitted per axis by
 //!
 //! ```text
 //! x(t) = b0 + b1 t + b2 t² (+ b3 t³),   t = f - f0,

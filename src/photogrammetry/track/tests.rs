@@ -248,13 +248,14 @@ fn crossing_particles_keep_their_lines() {
 }
 
 /// The tracker holds, per live trajectory, the points whose window is not
-/// complete (up to `w`) and the window behind them (`w`), plus the one
-/// frame of look-ahead: 50 particles with `w` = 2 hold at most 50 x (2w +
-/// 1) + 50 points, however long the sequence.
+/// complete (up to `w`, and the newest) and the `2w` behind them (the
+/// window of the last, shifted back when the trajectory ends), plus the
+/// one frame of look-ahead: 50 particles with `w` = 2 hold at most 50 x
+/// (3w + 1) + 50 points, however long the sequence.
 #[test]
 fn memory_is_bounded_by_the_window_not_the_sequence() {
     let p = parameters();
-    let bound = 50 * (2 * p.fit_half_window + 1) + 50;
+    let bound = 50 * (3 * p.fit_half_window + 1) + 50;
     let mut tracker = Tracker::new(p).unwrap();
     let mut most = 0;
     let mut out = 0;
@@ -494,4 +495,31 @@ fn the_binomial_tail_and_the_decision_length() {
     assert_eq!(decision_length(0.5, 3), 7);
     assert_eq!(decision_length(1.0, 5), 5);
     assert_eq!(decision_length(0.0, 3), MAX_DECISION_LENGTH);
+}
+
+/// At a trajectory's ends the fit window shifts inward and keeps 2w + 1
+/// points: the first point's velocity comes from frames 0..=4 (its
+/// standard deviation 1.115 sigma for a quadratic, from `(AᵀA)⁻¹` with
+/// `t = 0..4`), not from the one-sided 0..=2 (2.550 sigma).
+#[test]
+fn the_window_keeps_its_points_at_the_ends() {
+    let sigma = 0.01;
+    let frames: Vec<(i64, Vec<ParticlePosition>)> = (0..10)
+        .map(|f| {
+            (
+                f,
+                vec![ParticlePosition::new(
+                    Point3::new(f as f64, 0.0, 0.0),
+                    Vector3::repeat(sigma),
+                )],
+            )
+        })
+        .collect();
+    let trajectories = track(frames, parameters()).unwrap();
+    let points = &trajectories[0].points;
+    for p in [&points[0], &points[9]] {
+        let s = p.derivatives.velocity_sigma.x / sigma;
+        assert!((s - 1.114835).abs() < 1e-5, "frame {}: {s}", p.frame);
+        assert!((p.derivatives.velocity.x - 1.0).abs() < 1e-9);
+    }
 }
