@@ -28,7 +28,15 @@
 //! ```text
 //! cargo run --release --example track_report                 # 2,000, 8,000, 20,000 particles
 //! cargo run --release --example track_report -- 8000 34 0.35  # particles, frames, displacement / spacing
+//! cargo run --release --example track_report -- --recovery 8000  # with the image-space recovery
 //! ```
+//!
+//! With `--recovery` the tracker also looks in the images for the
+//! particles the matching missed (`track::recovery`). At 8,000 it finds
+//! 398 and changes little here, where 5% of the images are lost and the
+//! matching takes 2-camera particles: wrong links 0.17%, velocity RMS
+//! 2.16% as without; tracking 11.6 ms a frame instead of 9.8 (one run
+//! each on the idle machine).
 //!
 //! Measured here (34 frames, RMS displacement 0.31-0.33 of the spacing;
 //! tracking time on the shared 2-core machine):
@@ -57,7 +65,10 @@ use nalgebra::{Point3, Vector3};
 
 use ptv::photogrammetry::correspond::{Matcher, MatchingParameters};
 use ptv::photogrammetry::simulate::{self, RigSpec};
-use ptv::photogrammetry::track::{track, ParticlePosition, TrackingParameters};
+use ptv::photogrammetry::track::recovery::frame_noise;
+use ptv::photogrammetry::track::{
+    FrameTargets, ImageSpaceRecovery, ParticlePosition, Tracker, TrackingParameters, Trajectory,
+};
 use ptv::photogrammetry::Volume;
 
 /// A steady cellular flow in the box: two counter-rotating cells across x,
@@ -105,7 +116,7 @@ impl Cells {
     }
 }
 
-fn run(particles: usize, frames: usize, displacement_share: f64) {
+fn run(particles: usize, frames: usize, displacement_share: f64, recover: bool) {
     let spec = RigSpec::convergent(4);
     let cameras = spec.build().expect("the simulator's rig");
     let volume = spec.volume;
@@ -135,6 +146,8 @@ fn run(particles: usize, frames: usize, displacement_share: f64) {
     // Per camera count, particles matched and how many of them are ghosts.
     let mut by_cameras = [(0usize, 0usize, 0usize); 9];
     let mut pure: Vec<Vec<bool>> = Vec::with_capacity(frames);
+    // Per frame: its targets, their true particles, the frame's noise.
+    let mut images = Vec::with_capacity(frames);
     for f in 0..frames {
         let frame = simulate::target_frame(&cameras, &positions, 0.1, 0.05, &mut rng);
         let found = matcher.match_frame(&frame.targets).expect("matching runs");
@@ -176,6 +189,9 @@ fn run(particles: usize, frames: usize, displacement_share: f64) {
         ));
         truth_positions.push(positions.clone());
         positions = positions.iter().map(|p| flow.advance(p)).collect();
+        let named: Vec<Vec<Option<usize>>> = found.iter().map(|p| p.targets.clone()).collect();
+        let noise = frame_noise(found.iter().map(|p| (p.rms_px, p.camera_count())));
+        images.push((frame, named, noise));
     }
     let peak = flow.peak;
     let parameters = TrackingParameters {
@@ -183,9 +199,71 @@ fn run(particles: usize, frames: usize, displacement_share: f64) {
         max_acceleration: 0.5 * peak,
         ..TrackingParameters::new(1.2 * peak)
     };
+    // The recovery's targets per frame, prepared outside the timed run.
+    let targets: Vec<FrameTargets> = images
+        .iter()
+        .map(|(frame, named, noise)| {
+            FrameTargets::new(&frame.targets, named.iter().map(Vec::as_slice))
+                .expect("the matcher's target indices")
+                .with_noise(noise.unwrap_or(f64::NAN))
+        })
+        .collect();
     let start = Instant::now();
-    let trajectories = track(input, parameters).expect("tracking runs");
+    let mut tracker = if recover {
+        let recovery = ImageSpaceRecovery::new(cameras.clone(), 0.5).expect("a rig");
+        Tracker::with_recovery(parameters, recovery).expect("tracking parameters")
+    } else {
+        Tracker::new(parameters).expect("tracking parameters")
+    };
+    let mut points = Vec::new();
+    let mut recovered = Vec::new();
+    for ((number, particles), targets) in input.into_iter().zip(targets) {
+        let out = tracker
+            .push_with_targets(number, particles, targets)
+            .expect("tracking runs");
+        points.extend(out);
+        recovered.extend(tracker.take_recovered());
+    }
+    let (last, last_recovered) = tracker.finish_with_recovered();
+    points.extend(last);
+    recovered.extend(last_recovered);
     let per_frame_ms = start.elapsed().as_secs_f64() * 1e3 / frames as f64;
+    // The recovered particles' labels, as the matched ones'.
+    let mut recovered_count = 0usize;
+    for r in &recovered {
+        let f = r.frame as usize;
+        assert_eq!(
+            truth[f].len(),
+            r.first,
+            "recovered particles follow the frame's"
+        );
+        for particle in &r.particles {
+            let ids: Vec<usize> = particle
+                .targets
+                .iter()
+                .enumerate()
+                .filter_map(|(c, t)| t.map(|t| images[f].0.truth[c][t]))
+                .collect();
+            let majority = ids
+                .iter()
+                .find(|&&i| 2 * ids.iter().filter(|&&j| j == i).count() > ids.len())
+                .copied();
+            truth[f].push(majority);
+            pure[f].push(ids.iter().all(|&i| i == ids[0]));
+            recovered_count += 1;
+        }
+    }
+    points.sort_by_key(|p| (p.trajectory, p.frame));
+    let mut trajectories: Vec<Trajectory> = Vec::new();
+    for point in points {
+        match trajectories.last_mut() {
+            Some(t) if t.id == point.trajectory => t.points.push(point),
+            _ => trajectories.push(Trajectory {
+                id: point.trajectory,
+                points: vec![point],
+            }),
+        }
+    }
 
     // Links.
     let (mut links, mut wrong, mut right, mut through_ghosts) = (0usize, 0usize, 0usize, 0usize);
@@ -279,6 +357,9 @@ fn run(particles: usize, frames: usize, displacement_share: f64) {
         })
         .collect();
     println!("  matched: {}", counts.join(", "));
+    if recover {
+        println!("  image-space recovery: {recovered_count} particles recovered");
+    }
     println!(
         "  link recall {:.4}, wrong links {:.2}% of {links} ({through_ghosts} of them to or from a ghost; {through_mixed} links in all through a mixed particle), mean length {mean_length:.1} of {frames} frames ({:.2}), {} trajectories",
         right as f64 / available as f64,
@@ -297,12 +378,14 @@ fn run(particles: usize, frames: usize, displacement_share: f64) {
 }
 
 fn main() {
-    let args: Vec<String> = std::env::args().skip(1).collect();
+    let mut args: Vec<String> = std::env::args().skip(1).collect();
+    let recover = args.iter().any(|a| a == "--recovery");
+    args.retain(|a| a != "--recovery" && a != "--bench");
     let number = |i: usize, default: f64| {
         args.get(i)
             .map(|s| {
                 s.parse::<f64>().unwrap_or_else(|e| {
-                    eprintln!("usage: track_report [PARTICLES] [FRAMES] [DISPLACEMENT_SHARE]: {e}");
+                    eprintln!("usage: track_report [--recovery] [PARTICLES] [FRAMES] [DISPLACEMENT_SHARE]: {e}");
                     std::process::exit(2)
                 })
             })
@@ -311,10 +394,10 @@ fn main() {
     let frames = number(1, 34.0) as usize;
     let share = number(2, 0.35);
     match args.first() {
-        Some(_) => run(number(0, 8000.0) as usize, frames, share),
+        Some(_) => run(number(0, 8000.0) as usize, frames, share, recover),
         None => {
             for particles in [2000, 8000, 20000] {
-                run(particles, frames, share);
+                run(particles, frames, share, recover);
             }
         }
     }
