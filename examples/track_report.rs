@@ -67,7 +67,7 @@ use ptv::photogrammetry::correspond::{Matcher, MatchingParameters};
 use ptv::photogrammetry::simulate::{self, RigSpec};
 use ptv::photogrammetry::track::recovery::frame_noise;
 use ptv::photogrammetry::track::{
-    FrameTargets, ImageSpaceRecovery, ParticlePosition, Tracker, TrackingParameters, Trajectory,
+    trajectories, FrameTargets, ImageSpaceRecovery, ParticlePosition, Tracker, TrackingParameters,
 };
 use ptv::photogrammetry::Volume;
 
@@ -253,17 +253,7 @@ fn run(particles: usize, frames: usize, displacement_share: f64, recover: bool) 
             recovered_count += 1;
         }
     }
-    points.sort_by_key(|p| (p.trajectory, p.frame));
-    let mut trajectories: Vec<Trajectory> = Vec::new();
-    for point in points {
-        match trajectories.last_mut() {
-            Some(t) if t.id == point.trajectory => t.points.push(point),
-            _ => trajectories.push(Trajectory {
-                id: point.trajectory,
-                points: vec![point],
-            }),
-        }
-    }
+    let trajectories = trajectories(points);
 
     // Links.
     let (mut links, mut wrong, mut right, mut through_ghosts) = (0usize, 0usize, 0usize, 0usize);

@@ -82,7 +82,9 @@ use nalgebra::{Point3, Vector3};
 
 pub use kinematics::Derivatives;
 use kinematics::{fit, Sample};
-pub use recovery::{FrameTargets, ImageSpaceRecovery, Recovered};
+pub use recovery::{FrameTargets, ImageSpaceRecovery};
+
+use super::correspond::Particle;
 
 /// How to track.
 #[derive(Clone, Debug, PartialEq)]
@@ -289,7 +291,7 @@ struct Frame {
     /// The particles given; those after them are recovered.
     given: usize,
     /// The particles found in the images, in `particles` after `given`.
-    recovered: Vec<Recovered>,
+    recovered: Vec<Particle>,
     /// The median of the given particles' sigmas (per axis), the floor of
     /// a recovered particle's ([`floor_sigmas`]).
     median_sigma: Vector3<f64>,
@@ -305,7 +307,7 @@ pub struct RecoveredParticles {
     /// particles given ([`TrackPoint::particle`] counts on from there).
     pub first: usize,
     /// The particles, in index order.
-    pub particles: Vec<Recovered>,
+    pub particles: Vec<Particle>,
 }
 
 /// A trajectory being tracked.
@@ -1117,6 +1119,12 @@ pub fn track(
         points.extend(tracker.push(number, particles)?);
     }
     points.extend(tracker.finish());
+    Ok(trajectories(points))
+}
+
+/// Trajectory points, in any order, gathered into trajectories by number,
+/// each in frame order.
+pub fn trajectories(mut points: Vec<TrackPoint>) -> Vec<Trajectory> {
     let mut trajectories: Vec<Trajectory> = Vec::new();
     points.sort_by_key(|p| (p.trajectory, p.frame));
     for point in points {
@@ -1128,7 +1136,7 @@ pub fn track(
             }),
         }
     }
-    Ok(trajectories)
+    trajectories
 }
 
 #[cfg(test)]

@@ -43,9 +43,10 @@
 //! Pure and deterministic; nothing is allocated per camera beyond the
 //! frame's index, which is built once per frame (linear in its targets).
 
-use nalgebra::{Point2, Point3, Vector3};
+use nalgebra::{Point2, Point3};
 
 use super::super::camera::Camera;
+use super::super::correspond::Particle;
 use super::super::intersect::{intersect, Observation};
 use super::super::target::Target;
 
@@ -317,26 +318,6 @@ fn chi_square_99(dof: usize) -> f64 {
     }
 }
 
-/// A particle found again in the images.
-#[derive(Clone, Debug, PartialEq)]
-pub struct Recovered {
-    /// Position (mm).
-    pub position: Point3<f64>,
-    /// Standard deviations of X, Y, Z from the intersection (mm).
-    pub sigma: Vector3<f64>,
-    /// Root mean square reprojection residual (px).
-    pub rms_px: f64,
-    /// Per camera, the index of its target, `None` where it has none.
-    pub targets: Vec<Option<usize>>,
-}
-
-impl Recovered {
-    /// How many cameras see it.
-    pub fn camera_count(&self) -> usize {
-        self.targets.iter().filter(|t| t.is_some()).count()
-    }
-}
-
 /// The rig and the image noise allowance of the recovery.
 #[derive(Clone, Debug)]
 pub struct ImageSpaceRecovery {
@@ -378,14 +359,15 @@ impl ImageSpaceRecovery {
     }
 
     /// The particle near `predicted` (within `radius` mm) made of targets
-    /// of `frame` that nothing uses yet; its targets are then marked used.
+    /// of `frame` that nothing uses yet, as the correspondences would have
+    /// given it; its targets are then marked used.
     /// `None` where fewer than two cameras have a fitting target.
     pub fn recover(
         &self,
         frame: &mut FrameTargets,
         predicted: &Point3<f64>,
         radius: f64,
-    ) -> Option<Recovered> {
+    ) -> Option<Particle> {
         if !(radius.is_finite() && radius > 0.0) {
             return None;
         }
@@ -423,7 +405,7 @@ impl ImageSpaceRecovery {
                     targets[c] = Some(t);
                     frame.cameras[c].used[t] = true;
                 }
-                return Some(Recovered {
+                return Some(Particle {
                     position: fit.point,
                     sigma: fit.sigma,
                     rms_px: fit.rms_px,
@@ -447,6 +429,7 @@ impl ImageSpaceRecovery {
 mod tests {
     use super::*;
     use crate::photogrammetry::simulate::{self, RigSpec};
+    use nalgebra::Vector3;
     use rand::Rng;
 
     fn rig() -> (RigSpec, Vec<Camera>) {
