@@ -107,6 +107,10 @@ fn flag(flag: &'static str, reason: impl Into<String>) -> CliError {
     }
 }
 
+/// A frame's targets per camera, as matched, and the image noise its
+/// particles show ([`frame_noise`]).
+type Matched = (Vec<Vec<Target>>, Option<f64>);
+
 /// Where the particles come from.
 enum Source {
     Particles(FramePattern),
@@ -132,13 +136,8 @@ impl Source {
     }
 
     /// The particles of `frame`, and with --targets the targets they were
-    /// matched from, with the image noise the particles show
-    /// ([`frame_noise`]); `None` where a file is missing (a gap).
-    #[allow(clippy::type_complexity)]
-    fn read(
-        &self,
-        frame: u64,
-    ) -> Result<Option<(Vec<ParticleRow>, Option<(Vec<Vec<Target>>, Option<f64>)>)>, CliError> {
+    /// matched from; `None` where a file is missing (a gap).
+    fn read(&self, frame: u64) -> Result<Option<(Vec<ParticleRow>, Option<Matched>)>, CliError> {
         if self.patterns().iter().any(|p| !p.path(frame).is_file()) {
             return Ok(None);
         }
