@@ -107,9 +107,14 @@ fn flag(flag: &'static str, reason: impl Into<String>) -> CliError {
     }
 }
 
-/// A frame's targets per camera, as matched, and the image noise its
-/// particles show ([`frame_noise`]).
-type Matched = (Vec<Vec<Target>>, Option<f64>);
+/// A frame as read.
+struct FrameInput {
+    /// Its particles.
+    rows: Vec<ParticleRow>,
+    /// With --targets, the targets per camera they were matched from, and
+    /// the image noise the particles show ([`frame_noise`]).
+    matched: Option<(Vec<Vec<Target>>, Option<f64>)>,
+}
 
 /// Where the particles come from.
 enum Source {
@@ -135,9 +140,8 @@ impl Source {
         }
     }
 
-    /// The particles of `frame`, and with --targets the targets they were
-    /// matched from; `None` where a file is missing (a gap).
-    fn read(&self, frame: u64) -> Result<Option<(Vec<ParticleRow>, Option<Matched>)>, CliError> {
+    /// Frame `frame`; `None` where a file is missing (a gap).
+    fn read(&self, frame: u64) -> Result<Option<FrameInput>, CliError> {
         if self.patterns().iter().any(|p| !p.path(frame).is_file()) {
             return Ok(None);
         }
@@ -148,7 +152,10 @@ impl Source {
                     &formats::read_text(&path)?,
                     &path.display().to_string(),
                 )?;
-                (rows, None)
+                FrameInput {
+                    rows,
+                    matched: None,
+                }
             }
             Source::Targets { matcher, patterns } => {
                 let targets = patterns
@@ -171,7 +178,10 @@ impl Source {
                         targets: p.targets,
                     })
                     .collect();
-                (rows, Some((targets, noise)))
+                FrameInput {
+                    rows,
+                    matched: Some((targets, noise)),
+                }
             }
         }))
     }
@@ -297,7 +307,11 @@ pub(super) fn run(
     let mut recovered = 0usize;
     for frame in range.first..=range.last {
         bar.set_position(frame - range.first);
-        let Some((rows, targets)) = source.read(frame)? else {
+        let Some(FrameInput {
+            rows,
+            matched: targets,
+        }) = source.read(frame)?
+        else {
             gaps += 1;
             continue;
         };
