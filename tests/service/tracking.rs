@@ -64,6 +64,15 @@ struct Api {
 }
 
 impl Api {
+    /// The API of the server at `address` (an in-process app's, or a
+    /// child process's for the crash test: hence not `TestApp`'s helpers).
+    fn at(address: &str) -> Api {
+        Api {
+            address: address.to_owned(),
+            client: reqwest::Client::new(),
+        }
+    }
+
     fn url(&self, path: &str) -> String {
         format!("{}/api/v1{path}", self.address)
     }
@@ -343,10 +352,7 @@ const FRAMES: usize = 200;
 #[tokio::test]
 async fn a_sequence_uploaded_out_of_order_by_four_clients_is_tracked_as_the_core_tracks_it() {
     let app = crate::helpers::spawn_app().await;
-    let api = Api {
-        address: app.address.clone(),
-        client: reqwest::Client::new(),
-    };
+    let api = Api::at(&app.address);
     let rig = rig();
     let frames = moving_frames(&rig, FRAMES, 15);
     let sequence = api
@@ -452,10 +458,7 @@ async fn a_sequence_uploaded_out_of_order_by_four_clients_is_tracked_as_the_core
 #[tokio::test]
 async fn a_rerun_with_other_settings_is_a_new_run_and_the_old_one_stays() {
     let app = crate::helpers::spawn_app().await;
-    let api = Api {
-        address: app.address.clone(),
-        client: reqwest::Client::new(),
-    };
+    let api = Api::at(&app.address);
     let rig = rig();
     let frames = moving_frames(&rig, 30, 21);
     let sequence = api
@@ -518,10 +521,7 @@ async fn a_rerun_with_other_settings_is_a_new_run_and_the_old_one_stays() {
 #[tokio::test]
 async fn bad_tracking_settings_and_queries_are_refused_saying_why() {
     let app = crate::helpers::spawn_app().await;
-    let api = Api {
-        address: app.address.clone(),
-        client: reqwest::Client::new(),
-    };
+    let api = Api::at(&app.address);
     let rig = rig();
     let calibration = app.create_calibration(&rig.cameras).await;
     for (tracking, says) in [
@@ -650,10 +650,7 @@ async fn a_kill_during_tracking_then_a_restart_gives_the_same_trajectories() {
     after.shuffle(&mut simulate::rng(33));
 
     let first = ServiceProcess::start(data_dir.path(), 2);
-    let api = Api {
-        address: first.address.clone(),
-        client: reqwest::Client::new(),
-    };
+    let api = Api::at(&first.address);
     let sequence = api
         .tracked_sequence(&rig, json!({"max_velocity": MAX_VELOCITY}))
         .await;
@@ -672,10 +669,7 @@ async fn a_kill_during_tracking_then_a_restart_gives_the_same_trajectories() {
     first.kill();
 
     let second = ServiceProcess::start(data_dir.path(), 2);
-    let api = Api {
-        address: second.address.clone(),
-        client: reqwest::Client::new(),
-    };
+    let api = Api::at(&second.address);
     api.upload_concurrently(sequence, after, 4).await;
     let run = api.finish(sequence).await;
     assert_eq!(run["tracked_through"], CRASH_FRAMES as i64 - 1, "{run}");
@@ -699,10 +693,7 @@ async fn a_failed_frame_is_a_gap_the_trajectories_bridge() {
         };
     })
     .await;
-    let api = Api {
-        address: app.address.clone(),
-        client: reqwest::Client::new(),
-    };
+    let api = Api::at(&app.address);
     let rig = rig();
     const GAP_FRAMES: usize = 30;
     const GAP: i64 = 12;
