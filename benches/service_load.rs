@@ -23,9 +23,12 @@ use image::{ExtendedColorType, ImageEncoder};
 use ptv::formats;
 use ptv::photogrammetry::simulate::{self, RenderSpec, RigSpec};
 use ptv::photogrammetry::GreyPixels;
-use ptv::service::{Application, ServeArgs, Timeouts};
+
+#[path = "common/server.rs"]
+mod server;
 use reqwest::multipart::{Form, Part};
 use serde_json::{json, Value};
+use server::Server;
 
 struct Options {
     frames: usize,
@@ -112,24 +115,8 @@ async fn run(options: Options) {
         .collect();
 
     let data_dir = tempfile::tempdir().unwrap();
-    let args = ServeArgs {
-        bind: "127.0.0.1:0".parse().unwrap(),
-        data_dir: data_dir.path().to_owned(),
-        workers: options.workers,
-        max_upload_mb: 256,
-        api_token: None,
-        max_cpu_requests: None,
-        max_connections: None,
-        timeouts: Timeouts::default(),
-        job_limits: Default::default(),
-    };
-    let workers = args.worker_count();
-    let app = Application::build(args).await.unwrap();
-    let address = format!("http://{}", app.local_addr().unwrap());
-    let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
-    let server = tokio::spawn(app.run_until(async {
-        let _ = stopped.await;
-    }));
+    let server = Server::start(data_dir.path(), options.workers).await;
+    let (address, workers) = (server.address.clone(), server.workers);
 
     let client = reqwest::Client::new();
     let api = |path: &str| format!("{address}/api/v1{path}");
@@ -269,6 +256,5 @@ async fn run(options: Options) {
         1e3 * mean_job,
         particles as f64 / latencies.len() as f64,
     );
-    let _ = stop.send(());
-    server.await.unwrap().unwrap();
+    server.stop().await;
 }

@@ -19,10 +19,13 @@ use std::time::{Duration, Instant};
 use nalgebra::{Point3, Vector3};
 use ptv::formats;
 use ptv::photogrammetry::simulate::{self, RigSpec};
-use ptv::service::{Application, ServeArgs, Timeouts};
+
+#[path = "common/server.rs"]
+mod server;
 use rand::seq::SliceRandom;
 use reqwest::multipart::{Form, Part};
 use serde_json::{json, Value};
+use server::Server;
 
 struct Options {
     frames: usize,
@@ -63,39 +66,6 @@ fn main() {
         .build()
         .unwrap()
         .block_on(run(options));
-}
-
-/// Starts the service on `data_dir`; its address and stop switch.
-async fn start(
-    data_dir: &std::path::Path,
-    workers: Option<usize>,
-) -> (
-    String,
-    tokio::sync::oneshot::Sender<()>,
-    tokio::task::JoinHandle<()>,
-) {
-    let args = ServeArgs {
-        bind: "127.0.0.1:0".parse().unwrap(),
-        data_dir: data_dir.to_owned(),
-        workers,
-        max_upload_mb: 256,
-        api_token: None,
-        max_cpu_requests: None,
-        max_connections: None,
-        timeouts: Timeouts::default(),
-        job_limits: Default::default(),
-    };
-    let app = Application::build(args).await.unwrap();
-    let address = format!("http://{}", app.local_addr().unwrap());
-    let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
-    let server = tokio::spawn(async move {
-        app.run_until(async {
-            let _ = stopped.await;
-        })
-        .await
-        .unwrap();
-    });
-    (address, stop, server)
 }
 
 async fn view(client: &reqwest::Client, address: &str, sequence: i64) -> Value {
@@ -147,7 +117,8 @@ async fn run(options: Options) {
     forms.shuffle(&mut rng);
 
     let data_dir = tempfile::tempdir().unwrap();
-    let (address, stop, server) = start(data_dir.path(), options.workers).await;
+    let server = Server::start(data_dir.path(), options.workers).await;
+    let address = server.address.clone();
     let client = reqwest::Client::new();
     let api = |address: &str, path: &str| format!("{address}/api/v1{path}");
     let calibration: Value = client
@@ -218,10 +189,10 @@ async fn run(options: Options) {
     let processed = processed.unwrap_or(tracked.unwrap());
     let tracked = tracked.unwrap();
     // Stop before finishing: the restarted service rebuilds the tracker.
-    let _ = stop.send(());
-    server.await.unwrap();
+    server.stop().await;
 
-    let (address, stop, server) = start(data_dir.path(), options.workers).await;
+    let server = Server::start(data_dir.path(), options.workers).await;
+    let address = server.address.clone();
     let restarted = Instant::now();
     let response = client
         .post(api(
@@ -256,18 +227,13 @@ async fn run(options: Options) {
         .await
         .unwrap();
     let csv_time = csv_started.elapsed();
-    let _ = stop.send(());
-    server.await.unwrap();
+    let workers = server.workers;
+    server.stop().await;
 
     let n = options.frames as f64;
     println!(
         "{} frames of {} particles, {} clients, {} workers",
-        options.frames,
-        options.particles,
-        options.clients,
-        options
-            .workers
-            .map_or_else(|| "default".to_owned(), |w| w.to_string())
+        options.frames, options.particles, options.clients, workers
     );
     println!("uploaded in {:.2} s", uploaded.as_secs_f64());
     println!(

@@ -1,0 +1,56 @@
+//! The service started in this process for the load benches
+//! (`service_load`, `service_tracking`), on a temporary data directory,
+//! with the serving defaults but for the upload limit.
+
+use std::path::Path;
+
+use ptv::service::{Application, ServeArgs, Timeouts};
+
+/// A running service: its address and worker count; `stop` ends it.
+pub struct Server {
+    pub address: String,
+    pub workers: usize,
+    stop: tokio::sync::oneshot::Sender<()>,
+    task: tokio::task::JoinHandle<()>,
+}
+
+impl Server {
+    /// Starts the service on `data_dir` with `workers` (default: the
+    /// cores), listening on a free loopback port.
+    pub async fn start(data_dir: &Path, workers: Option<usize>) -> Server {
+        let args = ServeArgs {
+            bind: "127.0.0.1:0".parse().unwrap(),
+            data_dir: data_dir.to_owned(),
+            workers,
+            max_upload_mb: 256,
+            api_token: None,
+            max_cpu_requests: None,
+            max_connections: None,
+            timeouts: Timeouts::default(),
+            job_limits: Default::default(),
+        };
+        let workers = args.worker_count();
+        let app = Application::build(args).await.unwrap();
+        let address = format!("http://{}", app.local_addr().unwrap());
+        let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
+        let task = tokio::spawn(async move {
+            app.run_until(async {
+                let _ = stopped.await;
+            })
+            .await
+            .unwrap();
+        });
+        Server {
+            address,
+            workers,
+            stop,
+            task,
+        }
+    }
+
+    /// Stops the service and waits for it to end.
+    pub async fn stop(self) {
+        let _ = self.stop.send(());
+        self.task.await.unwrap();
+    }
+}
