@@ -81,7 +81,7 @@ use std::collections::VecDeque;
 use nalgebra::{Point3, Vector3};
 
 pub use kinematics::Derivatives;
-use kinematics::{fit, Sample};
+use kinematics::{derivatives_at, end_is_intruder, Sample, MAX_SAMPLES};
 pub use recovery::{FrameTargets, ImageSpaceRecovery};
 
 use super::correspond::Particle;
@@ -133,7 +133,7 @@ impl TrackingParameters {
             .max(MAX_DECISION_LENGTH)
             .max(2 * self.fit_half_window + 1)
             * (self.max_gap + 1)
-            + self.fit_half_window
+            + 2 * self.fit_half_window
             + 4
     }
 
@@ -896,30 +896,24 @@ impl Tracker {
             // Rejected: it ends after this frame, and nothing is handed out.
             return;
         };
-        let span = 2 * w + 1;
         while live.emitted < live.length {
             let k = live.emitted;
             let node = live.nodes[live.local(k)];
-            // The window: the 2 w + 1 points centred on it, shifted inward
-            // at the trajectory's ends so that it keeps 2 w + 1 points
-            // where the trajectory has them (a one-sided window of w + 1
-            // points differentiates the noise several times over).
-            let mut first = k.saturating_sub(w);
-            if ended {
-                first = first.min(live.length.saturating_sub(span));
-            }
-            let last = (first + span).min(live.length);
-            // Final once the points after it fill the window, or none
-            // will come.
-            if !ended && last < first + span {
+            // Its fit takes a window of 2 w + 1 points from those within
+            // 2 w of it on each side (centred where that is consistent,
+            // `kinematics::derivatives_at`): final once those after it are
+            // there, or none will come.
+            if !ended && live.length < k + 2 * w + 1 {
                 break;
             }
-            // At most 2 w + 1 (w <= 5) points, on the stack.
+            let first = k.saturating_sub(2 * w);
+            let last = (k + 2 * w + 1).min(live.length);
+            // At most 4 w + 1 (w <= 5) points, on the stack.
             let mut samples = [Sample {
                 frame: 0,
                 position: Vector3::zeros(),
                 sigma: Vector3::zeros(),
-            }; 11];
+            }; 2 * MAX_SAMPLES - 1];
             for (slot, i) in samples.iter_mut().zip(first..last) {
                 let n = &live.nodes[live.local(i)];
                 *slot = Sample {
@@ -928,8 +922,22 @@ impl Tracker {
                     sigma: n.sigma,
                 };
             }
+            let track = &samples[..last - first];
+            // An intruder at an end (another particle's point, taken by
+            // the unconfirmed first or last link) leaves the trajectory,
+            // which keeps its reported length.
+            let at_start = k == 0;
+            if (at_start || (ended && k + 1 == live.length))
+                && live.length > p.min_length
+                && end_is_intruder(track, at_start, w, p.fit_order)
+            {
+                let local = live.local(k);
+                live.nodes.remove(local);
+                live.length -= 1;
+                continue;
+            }
             let derivatives =
-                fit(&samples[..last - first], node.frame, p.fit_order).unwrap_or(Derivatives {
+                derivatives_at(track, k - first, w, p.fit_order).unwrap_or(Derivatives {
                     velocity: Vector3::repeat(f64::NAN),
                     velocity_sigma: Vector3::repeat(f64::NAN),
                     acceleration: None,
@@ -945,8 +953,8 @@ impl Tracker {
             live.emitted += 1;
         }
         // Keep what is not handed out, the 2 w points before the first of
-        // it (its window, shifted back at the trajectory's end), and the
-        // last two points (for the prediction).
+        // it (the reach of its window), and the last two points (for the
+        // prediction).
         while live.nodes.len() > 2 && live.length - live.nodes.len() + 2 * w < live.emitted {
             live.nodes.pop_front();
         }

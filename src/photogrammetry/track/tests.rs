@@ -247,15 +247,15 @@ fn crossing_particles_keep_their_lines() {
     }
 }
 
-/// The tracker holds, per live trajectory, the points whose window is not
-/// complete (up to `w`, and the newest) and the `2w` behind them (the
-/// window of the last, shifted back when the trajectory ends), plus the
+/// The tracker holds, per live trajectory, the points whose fit is not
+/// final (up to `2w`, and the newest: `kinematics::derivatives_at` may
+/// take a window reaching `2w` ahead) and the `2w` behind them, plus the
 /// one frame of look-ahead: 50 particles with `w` = 2 hold at most 50 x
-/// (3w + 1) + 50 points, however long the sequence.
+/// (4w + 1) + 50 points, however long the sequence.
 #[test]
 fn memory_is_bounded_by_the_window_not_the_sequence() {
     let p = parameters();
-    let bound = 50 * (3 * p.fit_half_window + 1) + 50;
+    let bound = 50 * (4 * p.fit_half_window + 1) + 50;
     let mut tracker = Tracker::new(p).unwrap();
     let mut most = 0;
     let mut out = 0;
