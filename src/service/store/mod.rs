@@ -164,6 +164,11 @@ const MIGRATIONS: &[(i64, &str, &str)] = &[
         "tracking",
         include_str!("../../../migrations/0006_tracking.sql"),
     ),
+    (
+        7,
+        "tracking_recovery",
+        include_str!("../../../migrations/0007_tracking_recovery.sql"),
+    ),
 ];
 
 impl<'s> MigrationSource<'s> for Migrations {
