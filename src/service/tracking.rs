@@ -86,16 +86,16 @@ use utoipa::ToSchema;
 use super::app::AppState;
 use super::codec::{self, DamagedBlob};
 use super::jobs::{error_chain, CpuError};
+use super::parameters::SequenceParameters;
 use super::store::{
     FrameNumber, FrameReadiness, PointRow, SequenceId, TrackingRunId, TrackingRunRow, TrackingState,
 };
-use super::parameters::SequenceParameters;
 use crate::formats;
 use crate::photogrammetry::correspond::Particle;
 use crate::photogrammetry::track::recovery::FrameTargetsError;
 use crate::photogrammetry::track::{
-    FrameTargets, ImageSpaceRecovery, ParticlePosition, RecoveredParticles, TrackError,
-    TrackPoint, Tracker, TrackingParameters,
+    FrameTargets, ImageSpaceRecovery, ParticlePosition, RecoveredParticles, TrackError, TrackPoint,
+    Tracker, TrackingParameters,
 };
 use crate::photogrammetry::Target;
 
@@ -567,7 +567,10 @@ pub async fn advance(state: &Arc<AppState>, id: TrackingRunId) -> Result<(), Tra
                 "the tracker was lost to a panic".to_owned(),
             ));
         };
-        let (points, recovered) = state.cpu.run(move || tracker.finish_with_recovered()).await?;
+        let (points, recovered) = state
+            .cpu
+            .run(move || tracker.finish_with_recovered())
+            .await?;
         let mut held = live.targets;
         hold_recovered(&mut held, recovered)?;
         let rows = rows(&held, &points)?;
@@ -726,11 +729,9 @@ async fn recovery(
         .calibration(calibration_id)
         .await?
         .ok_or_else(|| TrackingError::Internal(format!("calibration {calibration_id} is gone")))?;
-    let (cameras, _) = formats::calibration::from_json_with_splitter(
-        &calibration.model,
-        "the stored calibration",
-    )
-    .map_err(|e| TrackingError::Recovery(e.to_string()))?;
+    let (cameras, _) =
+        formats::calibration::from_json_with_splitter(&calibration.model, "the stored calibration")
+            .map_err(|e| TrackingError::Recovery(e.to_string()))?;
     let sequence = state
         .store
         .sequence(run.sequence_id)

@@ -859,8 +859,9 @@ mod tests {
         let none = FrameTargets::of_particles(&targets, &[]).unwrap();
         assert_eq!((none.unused(0), none.noise_px()), (2, None));
         // A particle naming a target that is not there is refused.
-        assert!(FrameTargets::of_particles(&targets, &[particle(0.1, vec![None, Some(3)])])
-            .is_err());
+        assert!(
+            FrameTargets::of_particles(&targets, &[particle(0.1, vec![None, Some(3)])]).is_err()
+        );
     }
 
     #[test]

@@ -20,7 +20,8 @@ use super::Shared;
 use crate::formats::frames::FrameRange;
 use crate::service::app::AppState;
 use crate::service::store::{
-    CalibrationId, FrameNumber, PointRow, SequenceId, TrackingRunId, TrackingRunRow, TrackingState, TrajectoryRow,
+    CalibrationId, FrameNumber, PointRow, SequenceId, TrackingRunId, TrackingRunRow, TrackingState,
+    TrajectoryRow,
 };
 use crate::service::tracking::{kick, TrackingSettings};
 
