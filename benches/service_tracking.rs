@@ -8,7 +8,11 @@
 //! ```sh
 //! cargo bench --bench service_tracking
 //! cargo bench --bench service_tracking -- --frames 200 --particles 2000 --clients 4 --workers 2
+//! cargo bench --bench service_tracking -- --no-recovery
 //! ```
+//!
+//! The run tracks with the image-space recovery (the service's default),
+//! or without it with `--no-recovery` (`"recovery": false`).
 //!
 //! The service runs in this process on a temporary data directory; the
 //! uploads are open loop (every client sends its frames as fast as the
@@ -32,6 +36,7 @@ struct Options {
     particles: usize,
     clients: usize,
     workers: Option<usize>,
+    recovery: bool,
 }
 
 fn options() -> Options {
@@ -40,6 +45,7 @@ fn options() -> Options {
         particles: 2000,
         clients: 4,
         workers: None,
+        recovery: true,
     };
     let mut args = std::env::args().skip(1);
     while let Some(arg) = args.next() {
@@ -53,6 +59,7 @@ fn options() -> Options {
             "--particles" => options.particles = number("--particles"),
             "--clients" => options.clients = number("--clients").max(1),
             "--workers" => options.workers = Some(number("--workers")),
+            "--no-recovery" => options.recovery = false,
             _ => {}
         }
     }
@@ -136,7 +143,7 @@ async fn run(options: Options) {
         .json(&json!({
             "calibration_id": calibration["id"],
             "matching": {"volume": [v.min.x, v.max.x, v.min.y, v.max.y, v.min.z, v.max.z]},
-            "tracking": {"max_velocity": 1.5 * velocity.norm()},
+            "tracking": {"max_velocity": 1.5 * velocity.norm(), "recovery": options.recovery},
         }))
         .send()
         .await
@@ -232,8 +239,16 @@ async fn run(options: Options) {
 
     let n = options.frames as f64;
     println!(
-        "{} frames of {} particles, {} clients, {} workers",
-        options.frames, options.particles, options.clients, workers
+        "{} frames of {} particles, {} clients, {} workers, {}",
+        options.frames,
+        options.particles,
+        options.clients,
+        workers,
+        if options.recovery {
+            "with the image-space recovery"
+        } else {
+            "without the image-space recovery"
+        }
     );
     println!("uploaded in {:.2} s", uploaded.as_secs_f64());
     println!(

@@ -37,12 +37,10 @@ use crate::formats;
 use crate::formats::csv::ParticleRow;
 use crate::formats::frames::{FramePattern, FrameRange, WithoutNumber};
 use crate::photogrammetry::correspond::Matcher;
-use crate::photogrammetry::track::recovery::frame_noise;
 use crate::photogrammetry::track::{
     FrameTargets, ImageSpaceRecovery, ParticlePosition, RecoveredParticles, TrackPoint, Tracker,
     TrackingParameters,
 };
-use crate::photogrammetry::Target;
 
 /// Arguments of `ptv track`.
 #[derive(Debug, Args)]
@@ -111,9 +109,9 @@ fn flag(flag: &'static str, reason: impl Into<String>) -> CliError {
 struct FrameInput {
     /// Its particles.
     rows: Vec<ParticleRow>,
-    /// With --targets, the targets per camera they were matched from, and
-    /// the image noise the particles show ([`frame_noise`]).
-    matched: Option<(Vec<Vec<Target>>, Option<f64>)>,
+    /// With --targets, the targets per camera they were matched from, for
+    /// the recovery ([`FrameTargets::of_particles`]).
+    targets: Option<FrameTargets>,
 }
 
 /// Where the particles come from.
@@ -154,7 +152,7 @@ impl Source {
                 )?;
                 FrameInput {
                     rows,
-                    matched: None,
+                    targets: None,
                 }
             }
             Source::Targets { matcher, patterns } => {
@@ -169,7 +167,8 @@ impl Source {
                     })
                     .collect::<Result<Vec<_>, _>>()?;
                 let particles = matcher.match_frame(&targets)?;
-                let noise = frame_noise(particles.iter().map(|p| (p.rms_px, p.camera_count())));
+                let targets = FrameTargets::of_particles(&targets, &particles)
+                    .map_err(|e| flag("--targets", format!("frame {frame}: {e}")))?;
                 let rows = particles
                     .into_iter()
                     .map(|p| ParticleRow {
@@ -180,7 +179,7 @@ impl Source {
                     .collect();
                 FrameInput {
                     rows,
-                    matched: Some((targets, noise)),
+                    targets: Some(targets),
                 }
             }
         }))
@@ -307,11 +306,7 @@ pub(super) fn run(
     let mut recovered = 0usize;
     for frame in range.first..=range.last {
         bar.set_position(frame - range.first);
-        let Some(FrameInput {
-            rows,
-            matched: targets,
-        }) = source.read(frame)?
-        else {
+        let Some(FrameInput { rows, targets }) = source.read(frame)? else {
             gaps += 1;
             continue;
         };
@@ -342,13 +337,6 @@ pub(super) fn run(
                 ))
             })
             .collect::<Result<Vec<_>, _>>()?;
-        let targets = targets
-            .map(|(targets, noise)| {
-                FrameTargets::new(&targets, rows.iter().map(|r| &r.targets[..]))
-                    .map(|t| t.with_noise(noise.unwrap_or(f64::NAN)))
-            })
-            .transpose()
-            .map_err(|e| flag("--targets", format!("frame {frame}: {e}")))?;
         particles += rows.len();
         window.push_back(Held::new(frame, rows));
         while window.front().is_some_and(|h| h.frame + keep < frame) {

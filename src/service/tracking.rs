@@ -12,6 +12,24 @@
 //! [`TrackingSettings`] map onto [`TrackingParameters`], checked by the
 //! core's own validation (a 422 naming the field).
 //!
+//! **Image-space recovery, as `ptv track`.** A run recovers the particles
+//! the correspondences missed (Willneff 2003; see
+//! [`crate::photogrammetry::track::recovery`]): each processed frame is
+//! given to the tracker with its stored targets per camera
+//! ([`Tracker::push_with_targets`]), built by the one function `ptv track`
+//! uses too ([`FrameTargets::of_particles`]: the targets the particles
+//! use, the frame's noise by `frame_noise`), and the recovery projects
+//! with the calibration recorded with the run (the sequence's when the run
+//! started) within the sequence's matching tolerance, as `ptv track
+//! --targets` uses its `--tolerance` for both. So a run gives `ptv track`'s
+//! trajectories on the same targets. A recovered particle is numbered
+//! after its frame's particles (as the tracker numbers it) and stored only
+//! as a trajectory point, with its targets; the frame's particle list (and
+//! its per-particle trajectory ids) does not include it. `"recovery":
+//! false` switches it off (`ptv track --no-recovery`). Settings stored
+//! before the setting existed have no `recovery`, and such runs were
+//! tracked without it: they go on without it ([`TrackingSettings::recovers`]).
+//!
 //! **In frame order.** Frames complete out of order and in parallel. After
 //! every frame job (succeeded or failed) [`kick`] advances the sequence's
 //! current run: from the frame after `tracked_through` (or `first_frame`),
@@ -35,8 +53,10 @@
 //! lock is free.) The tracker itself is kept in memory
 //! between frames; after a restart (or when the memory copy does not match
 //! the stored progress) it is rebuilt by giving a fresh tracker the
-//! recorded frames again, from their stored particles, and discarding what
-//! it hands out (already stored). The tracker is deterministic, so the
+//! recorded frames again, from their stored particles and targets (a
+//! frame's targets are never replaced), and discarding what it hands out
+//! (already stored). The tracker, its recovery included, is deterministic,
+//! and the recovery's calibration is the run's, so the
 //! rebuilt one is the one that crashed, and the run goes on with no link
 //! lost or repeated. We chose replay over a serialized checkpoint because
 //! it needs nothing of the tracker but its public API (its internals are
@@ -66,13 +86,18 @@ use utoipa::ToSchema;
 use super::app::AppState;
 use super::codec::{self, DamagedBlob};
 use super::jobs::{error_chain, CpuError};
+use super::parameters::SequenceParameters;
 use super::store::{
     FrameNumber, FrameReadiness, PointRow, SequenceId, TrackingRunId, TrackingRunRow, TrackingState,
 };
+use crate::formats;
 use crate::photogrammetry::correspond::Particle;
+use crate::photogrammetry::track::recovery::FrameTargetsError;
 use crate::photogrammetry::track::{
-    ParticlePosition, TrackError, TrackPoint, Tracker, TrackingParameters,
+    FrameTargets, ImageSpaceRecovery, ParticlePosition, RecoveredParticles, TrackError, TrackPoint,
+    Tracker, TrackingParameters,
 };
+use crate::photogrammetry::Target;
 
 /// How to track a sequence (all but `max_velocity` optional; the defaults
 /// are `ptv track`'s).
@@ -104,6 +129,16 @@ pub struct TrackingSettings {
     #[serde(default)]
     #[schema(value_type = Option<i64>)]
     pub first_frame: Option<FrameNumber>,
+    /// Look in each frame's targets for the particles the correspondences
+    /// missed, where a trajectory's prediction has none (Willneff's
+    /// image-space recovery, as `ptv track` does unless `--no-recovery`;
+    /// within the sequence's matching `tolerance`, with the calibration
+    /// the sequence has when the run starts) [default: true]. A recovered
+    /// particle is a point of its trajectory whose `particle` index is at
+    /// or above its frame's particle count. Runs stored before this
+    /// setting existed show false: they were tracked without.
+    #[serde(default)]
+    pub recovery: Option<bool>,
 }
 
 /// Settings the tracker refuses.
@@ -147,11 +182,31 @@ impl TrackingSettings {
             fit_half_window: Some(p.fit_half_window),
             fit_order: Some(p.fit_order),
             first_frame: Some(first_frame),
+            recovery: Some(self.recovery.unwrap_or(true)),
         })
     }
 
     fn first_frame(&self) -> FrameNumber {
         self.first_frame.unwrap_or(FrameNumber(0))
+    }
+
+    /// Whether a stored run recovers particles from the images. Every run
+    /// is stored with its settings filled in ([`TrackingSettings::with_defaults`]:
+    /// true unless switched off), so `recovery` is absent only from runs
+    /// stored before the setting existed, which were tracked without it:
+    /// those go on without it (a replay with it would not give what they
+    /// stored).
+    pub fn recovers(&self) -> bool {
+        self.recovery.unwrap_or(false)
+    }
+
+    /// The settings of a stored run as the API shows them (`recovery`
+    /// as [`TrackingSettings::recovers`] reads it).
+    pub fn as_stored(self) -> TrackingSettings {
+        TrackingSettings {
+            recovery: Some(self.recovers()),
+            ..self
+        }
     }
 }
 
@@ -162,32 +217,55 @@ struct Live {
     /// Out of its slot while it works on the CPU pool (gone if that
     /// panicked).
     tracker: Option<Tracker>,
-    /// The recent frames' particles' targets (`t0,t1,...` per particle),
-    /// for the points that become final later.
+    /// Whether it recovers particles from the images: frames are then
+    /// given with their targets.
+    recovers: bool,
+    /// The recent frames' particles' targets (`t0,t1,...` per particle,
+    /// those recovered after the frame's own), for the points that become
+    /// final later.
     targets: VecDeque<(FrameNumber, Vec<String>)>,
     /// Frames kept in `targets`.
     keep: i64,
 }
 
+/// A frame as the tracker takes it: its particles (none for a gap) and,
+/// for a tracker that recovers, its targets per camera.
+struct FrameInput {
+    particles: Vec<Particle>,
+    targets: Option<Vec<Vec<Target>>>,
+}
+
 impl Live {
-    fn new(parameters: &TrackingParameters) -> Result<Live, TrackError> {
+    fn new(
+        parameters: &TrackingParameters,
+        recovery: Option<ImageSpaceRecovery>,
+    ) -> Result<Live, TrackError> {
+        let recovers = recovery.is_some();
+        let tracker = match recovery {
+            Some(recovery) => Tracker::with_recovery(parameters.clone(), recovery)?,
+            None => Tracker::new(parameters.clone())?,
+        };
         Ok(Live {
             through: None,
-            tracker: Some(Tracker::new(parameters.clone())?),
+            tracker: Some(tracker),
+            recovers,
             targets: VecDeque::new(),
             // A point becomes final at most this many frames after its own
-            // (as `ptv track` holds frames).
+            // (as `ptv track` holds frames); a frame's recovered particles
+            // come sooner, when it leaves the tracker's look-ahead.
             keep: parameters.report_delay() as i64,
         })
     }
 
-    /// Takes the particles of `frame`: the tracker's new final points.
+    /// Takes `frame`: the tracker's new final points. Particles it
+    /// recovered meanwhile are added to their frames' targets.
     async fn push(
         &mut self,
         state: &AppState,
         frame: FrameNumber,
-        particles: Vec<Particle>,
+        input: FrameInput,
     ) -> Result<Vec<TrackPoint>, TrackingError> {
+        let FrameInput { particles, targets } = input;
         self.targets.push_back((
             frame,
             particles.iter().map(|p| targets_text(&p.targets)).collect(),
@@ -199,31 +277,63 @@ impl Live {
         {
             self.targets.pop_front();
         }
-        let positions: Vec<ParticlePosition> = particles
-            .iter()
-            .map(|p| ParticlePosition::seen_by(p.position, p.sigma, p.camera_count()))
-            .collect();
         let tracker = self
             .tracker
             .take()
             .ok_or_else(|| TrackingError::Internal("the tracker was lost to a panic".to_owned()))?;
-        let (tracker, points) = state
+        let (tracker, pushed) = state
             .cpu
             .run(move || {
                 let mut tracker = tracker;
-                let points = tracker.push(frame.0, positions);
-                (tracker, points)
+                let positions: Vec<ParticlePosition> = particles
+                    .iter()
+                    .map(|p| ParticlePosition::seen_by(p.position, p.sigma, p.camera_count()))
+                    .collect();
+                let pushed = match targets {
+                    // The same frame targets and noise as `ptv track`.
+                    Some(targets) => FrameTargets::of_particles(&targets, &particles)
+                        .map_err(|error| TrackingError::Targets { frame, error })
+                        .and_then(|targets| {
+                            Ok(tracker.push_with_targets(frame.0, positions, targets)?)
+                        }),
+                    None => tracker.push(frame.0, positions).map_err(Into::into),
+                };
+                let recovered = tracker.take_recovered();
+                (tracker, pushed.map(|points| (points, recovered)))
             })
             .await?;
         self.tracker = Some(tracker);
         self.through = Some(frame);
-        Ok(points?)
+        let (points, recovered) = pushed?;
+        hold_recovered(&mut self.targets, recovered)?;
+        Ok(points)
     }
 
     /// The points as rows, with their particles' targets.
     fn rows(&self, points: &[TrackPoint]) -> Result<Vec<PointRow>, TrackingError> {
         rows(&self.targets, points)
     }
+}
+
+/// Adds the particles the tracker recovered to their frames' targets in
+/// `held` (numbered after the frame's own, as the tracker numbers them).
+fn hold_recovered(
+    held: &mut VecDeque<(FrameNumber, Vec<String>)>,
+    recovered: Vec<RecoveredParticles>,
+) -> Result<(), TrackingError> {
+    for frame in recovered {
+        let (_, targets) = held
+            .iter_mut()
+            .find(|(f, t)| f.0 == frame.frame && t.len() == frame.first)
+            .ok_or_else(|| {
+                TrackingError::Internal(format!(
+                    "frame {}'s recovered particles came after the frame was let go",
+                    frame.frame
+                ))
+            })?;
+        targets.extend(frame.particles.iter().map(|p| targets_text(&p.targets)));
+    }
+    Ok(())
 }
 
 /// Points as rows, with their particles' targets from `held`.
@@ -293,6 +403,19 @@ pub enum TrackingError {
     /// The stored frames no longer give what was tracked (the run fails).
     #[error("{0}")]
     Diverged(String),
+    /// A frame's stored particles name targets it does not have (the run
+    /// fails).
+    #[error("frame {frame}'s particles do not fit its stored targets: {error}")]
+    Targets {
+        /// The frame.
+        frame: FrameNumber,
+        /// What does not fit.
+        error: FrameTargetsError,
+    },
+    /// The image-space recovery cannot be set up with the run's
+    /// calibration and the sequence's tolerance (the run fails).
+    #[error("the image-space recovery: {0}; start a new run with \"recovery\": false")]
+    Recovery(String),
     /// A broken invariant (the run fails).
     #[error("internal: {0}; please report this")]
     Internal(String),
@@ -406,10 +529,9 @@ pub async fn advance(state: &Arc<AppState>, id: TrackingRunId) -> Result<(), Tra
         return Ok(());
     }
     let settings: TrackingSettings = serde_json::from_str(&run.parameters)?;
-    let parameters = settings.parameters();
     if guard.as_ref().map(|l| l.through) != Some(run.tracked_through) {
         *guard = None;
-        *guard = Some(rebuild(state, &run, &parameters).await?);
+        *guard = Some(rebuild(state, &run, &settings).await?);
     }
     let live = guard.as_mut().expect("a tracker was put in");
     let cameras = cameras_of(state, run.sequence_id).await?;
@@ -445,8 +567,13 @@ pub async fn advance(state: &Arc<AppState>, id: TrackingRunId) -> Result<(), Tra
                 "the tracker was lost to a panic".to_owned(),
             ));
         };
-        let points = state.cpu.run(move || tracker.finish()).await?;
-        let rows = rows(&live.targets, &points)?;
+        let (points, recovered) = state
+            .cpu
+            .run(move || tracker.finish_with_recovered())
+            .await?;
+        let mut held = live.targets;
+        hold_recovered(&mut held, recovered)?;
+        let rows = rows(&held, &points)?;
         state
             .store
             .finish_tracking_run(id, live.through, &rows)
@@ -502,17 +629,18 @@ async fn take_frames(
                 // Frame `next` is not uploaded yet.
                 return Ok(Taken::Waiting);
             }
-            let (particles, recorded) = match readiness {
+            let (input, recorded) = match readiness {
                 FrameReadiness::Pending => return Ok(Taken::Waiting),
-                FrameReadiness::Failed => (Vec::new(), None),
+                FrameReadiness::Failed => (FrameInput::gap(), None),
                 FrameReadiness::Processed => {
-                    let particles = load_particles(state, run.sequence_id, frame, cameras).await?;
-                    let n = particles.len() as i64;
-                    (particles, Some(n))
+                    let input =
+                        load_frame(state, run.sequence_id, frame, cameras, live.recovers).await?;
+                    let n = input.particles.len() as i64;
+                    (input, Some(n))
                 }
             };
             let previous = live.through;
-            let points = live.push(state, frame, particles).await?;
+            let points = live.push(state, frame, input).await?;
             let rows = live.rows(&points)?;
             if !settle(storing).await? {
                 return Err(TrackingError::Moved);
@@ -532,14 +660,16 @@ async fn take_frames(
 }
 
 /// A run's tracker as it was after its last stored frame: a fresh tracker
-/// given the frames it took again, from their stored particles, its output
-/// discarded (stored already).
+/// given the frames it took again, from their stored particles (and
+/// targets, where it recovers: the recovery is as deterministic as the
+/// linking), its output discarded (stored already).
 async fn rebuild(
     state: &AppState,
     run: &TrackingRunRow,
-    parameters: &TrackingParameters,
+    settings: &TrackingSettings,
 ) -> Result<Live, TrackingError> {
-    let mut live = Live::new(parameters)?;
+    let recovery = recovery(state, run, settings).await?;
+    let mut live = Live::new(&settings.parameters(), recovery)?;
     let frames = state.store.tracked_frames(run.id).await?;
     if frames.last().map(|(f, _)| *f) != run.tracked_through {
         return Err(TrackingError::Internal(format!(
@@ -554,25 +684,63 @@ async fn rebuild(
     }
     let cameras = cameras_of(state, run.sequence_id).await?;
     for (frame, recorded) in frames {
-        let particles = match recorded {
-            None => Vec::new(),
+        let input = match recorded {
+            None => FrameInput::gap(),
             Some(count) => {
-                let particles = load_particles(state, run.sequence_id, frame, cameras).await?;
-                if particles.len() as i64 != count {
+                let input =
+                    load_frame(state, run.sequence_id, frame, cameras, live.recovers).await?;
+                if input.particles.len() as i64 != count {
                     return Err(TrackingError::Diverged(format!(
                         "frame {frame} had {count} particles when it was tracked and has {} now \
                          (reprocessed?); start a new tracking run (POST \
                          /sequences/{}/tracking)",
-                        particles.len(),
+                        input.particles.len(),
                         run.sequence_id
                     )));
                 }
-                particles
+                input
             }
         };
-        live.push(state, frame, particles).await?;
+        live.push(state, frame, input).await?;
     }
     Ok(live)
+}
+
+/// The run's image-space recovery: `None` where its settings switch it
+/// off; else the calibration recorded with the run (the sequence's when it
+/// started) and the sequence's matching tolerance, as `ptv track
+/// --targets` takes `--tolerance` for both.
+async fn recovery(
+    state: &AppState,
+    run: &TrackingRunRow,
+    settings: &TrackingSettings,
+) -> Result<Option<ImageSpaceRecovery>, TrackingError> {
+    if !settings.recovers() {
+        return Ok(None);
+    }
+    let calibration_id = run.calibration_id.ok_or_else(|| {
+        TrackingError::Internal(format!(
+            "run {} recovers but has no calibration recorded",
+            run.id
+        ))
+    })?;
+    let calibration = state
+        .store
+        .calibration(calibration_id)
+        .await?
+        .ok_or_else(|| TrackingError::Internal(format!("calibration {calibration_id} is gone")))?;
+    let (cameras, _) =
+        formats::calibration::from_json_with_splitter(&calibration.model, "the stored calibration")
+            .map_err(|e| TrackingError::Recovery(e.to_string()))?;
+    let sequence = state
+        .store
+        .sequence(run.sequence_id)
+        .await?
+        .ok_or_else(|| TrackingError::Internal(format!("sequence {} is gone", run.sequence_id)))?;
+    let parameters: SequenceParameters = serde_json::from_str(&sequence.parameters)?;
+    let recovery = ImageSpaceRecovery::new(cameras, parameters.matching().tolerance)
+        .map_err(|e| TrackingError::Recovery(e.to_string()))?;
+    Ok(Some(recovery))
 }
 
 async fn cameras_of(state: &AppState, sequence_id: SequenceId) -> Result<usize, TrackingError> {
@@ -588,18 +756,50 @@ async fn cameras_of(state: &AppState, sequence_id: SequenceId) -> Result<usize, 
         .map_or(0, |c| c.cameras as usize))
 }
 
-async fn load_particles(
+impl FrameInput {
+    /// A frame that failed.
+    fn gap() -> FrameInput {
+        FrameInput {
+            particles: Vec::new(),
+            targets: None,
+        }
+    }
+}
+
+/// A processed frame's stored particles, and with `targets` its stored
+/// targets per camera (a camera without a row has none).
+async fn load_frame(
     state: &AppState,
     sequence_id: SequenceId,
     frame: FrameNumber,
     cameras: usize,
-) -> Result<Vec<Particle>, TrackingError> {
+    targets: bool,
+) -> Result<FrameInput, TrackingError> {
     let (_, blob, _) = state
         .store
         .frame_particles(sequence_id, frame)
         .await?
         .ok_or_else(|| TrackingError::Internal(format!("frame {frame}'s particles are gone")))?;
-    Ok(codec::decode_particles(&blob, cameras)?)
+    let particles = codec::decode_particles(&blob, cameras)?;
+    let targets = if targets {
+        let mut per_camera = vec![Vec::new(); cameras];
+        for (camera, _, blob) in state.store.frame_targets(sequence_id, frame).await? {
+            let slot = usize::try_from(camera)
+                .ok()
+                .and_then(|c| per_camera.get_mut(c))
+                .ok_or_else(|| {
+                    TrackingError::Internal(format!(
+                        "frame {frame} has targets of camera {camera}, the calibration {cameras} \
+                         cameras"
+                    ))
+                })?;
+            *slot = codec::decode_targets(&blob)?;
+        }
+        Some(per_camera)
+    } else {
+        None
+    };
+    Ok(FrameInput { particles, targets })
 }
 
 #[cfg(test)]
@@ -629,6 +829,25 @@ mod tests {
         assert_eq!(given.parameters().max_gap, 2);
         assert_eq!(given.parameters().min_length, 5);
         assert_eq!(given.first_frame(), FrameNumber(10001));
+        // Recovery: on unless switched off, and stored filled in.
+        assert_eq!(filled.recovery, Some(true));
+        assert!(filled.recovers());
+        let off = settings(r#"{"max_velocity": 2.0, "recovery": false}"#)
+            .with_defaults()
+            .unwrap();
+        assert_eq!(off.recovery, Some(false));
+        assert!(!off.recovers());
+        // A run stored before the setting existed was tracked without it,
+        // and is shown and resumed so.
+        let old = settings(r#"{"max_velocity": 2.0, "max_acceleration": 1.0, "max_gap": 1}"#);
+        assert!(!old.recovers());
+        assert_eq!(old.as_stored().recovery, Some(false));
+        assert!(serde_json::from_str::<TrackingSettings>(
+            r#"{"max_velocity": 1, "recovery": "yes"}"#
+        )
+        .unwrap_err()
+        .to_string()
+        .contains("expected a boolean"));
     }
 
     #[test]

@@ -1,14 +1,19 @@
 //! Tracking in the service (issue 15): a simulated sequence of moving
 //! particles, uploaded out of order by concurrent clients, is tracked as
-//! its frames complete and gives exactly the trajectories of the core's
-//! tracker run over the same particles in frame order; the same after a
-//! kill -9 mid-tracking and a restart; a re-run with other settings is a
-//! new run next to the old one; bad settings and queries are refused.
+//! its frames complete and gives exactly the trajectories of `ptv track`
+//! on the same targets, the image-space recovery included (particles the
+//! correspondences missed, found again in the stored targets); the same
+//! after a kill -9 mid-tracking and a restart (the replay recovers
+//! identically), and across a failed frame (a gap in both); a re-run with
+//! other settings is a new run next to the old one, and without the
+//! recovery gives the core's tracker's trajectories over the stored
+//! particles; bad settings and queries are refused.
 //!
-//! The comparison is exact (no tolerance): the service runs the core's
-//! deterministic tracker on the particles it stored, and the test reads
-//! those particles back as CSV (shortest round-trip float text) and runs
-//! the same tracker on them.
+//! The comparisons are exact (no tolerance): the service runs the core's
+//! deterministic tracker on the particles and targets it stored, and `ptv
+//! track` matches the same target files (the uploads' CSV, shortest
+//! round-trip float text) with the same parameters and tracks them, or the
+//! test reads the stored particles back as CSV and runs the same tracker.
 
 use std::collections::HashMap;
 use std::time::{Duration, Instant};
@@ -216,9 +221,9 @@ fn core_trajectories(
 }
 
 /// `ptv track --particles` over the frames' particle tables (frames 0..),
-/// with `--max-velocity`: its CSV rows sorted by trajectory and frame,
-/// after its header.
-fn ptv_track(tables: &[String], max_velocity: f64) -> Vec<String> {
+/// with `--max-velocity` and `extra` flags: its CSV rows sorted by
+/// trajectory and frame, after its header.
+fn ptv_track(tables: &[String], max_velocity: f64, extra: &[&str]) -> Vec<String> {
     let dir = tempfile::tempdir().unwrap();
     for (frame, text) in tables.iter().enumerate() {
         std::fs::write(dir.path().join(format!("p.{frame}.csv")), text).unwrap();
@@ -229,6 +234,7 @@ fn ptv_track(tables: &[String], max_velocity: f64) -> Vec<String> {
         .arg(dir.path().join("p.%d.csv"))
         .args(["--frames", &format!("0..{}", tables.len() - 1)])
         .args(["--max-velocity", &max_velocity.to_string()])
+        .args(extra)
         .output()
         .unwrap();
     assert!(
@@ -236,19 +242,114 @@ fn ptv_track(tables: &[String], max_velocity: f64) -> Vec<String> {
         "{}",
         String::from_utf8_lossy(&output.stderr)
     );
-    let text = String::from_utf8(output.stdout).unwrap();
+    sorted_rows(&String::from_utf8(output.stdout).unwrap())
+}
+
+/// `ptv track --calibration --targets` (with the image-space recovery, its
+/// default) over the frames' targets as the test uploads them (frames 0..;
+/// `None`: no files, a gap, with `--allow-gaps`), matched with the
+/// sequence's volume and `--max-velocity`, plus `extra` flags: its CSV rows
+/// sorted by trajectory and frame after its header, and how many particles
+/// it recovered (its summary on stderr).
+fn ptv_track_targets(
+    rig: &Rig,
+    frames: &[Option<&TargetFrame>],
+    max_velocity: f64,
+    extra: &[&str],
+) -> (Vec<String>, usize) {
+    let dir = tempfile::tempdir().unwrap();
+    let calibration = dir.path().join("calibration.json");
+    std::fs::write(&calibration, formats::calibration::to_json(&rig.cameras)).unwrap();
+    for (frame, targets) in frames.iter().enumerate() {
+        let Some(targets) = targets else { continue };
+        for (camera, targets) in targets.targets.iter().enumerate() {
+            std::fs::write(
+                dir.path().join(format!("cam{camera}.{frame}.csv")),
+                formats::csv::format_targets(targets),
+            )
+            .unwrap();
+        }
+    }
+    let v = &rig.volume;
+    let mut command = std::process::Command::new(env!("CARGO_BIN_EXE_ptv"));
+    command.arg("track").arg("--calibration").arg(&calibration);
+    for camera in 0..rig.cameras.len() {
+        command
+            .arg("--targets")
+            .arg(dir.path().join(format!("cam{camera}.%d.csv")));
+    }
+    let output = command
+        .args(["--frames", &format!("0..{}", frames.len() - 1)])
+        .args(["--max-velocity", &max_velocity.to_string()])
+        .arg(format!(
+            "--volume={},{},{},{},{},{}",
+            v.min.x, v.max.x, v.min.y, v.max.y, v.min.z, v.max.z
+        ))
+        .args(extra)
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(output.status.success(), "{stderr}");
+    // "... N particles and M recovered from the images; ..."
+    let recovered = stderr
+        .split(" recovered from the images")
+        .next()
+        .and_then(|head| head.rsplit(' ').next())
+        .and_then(|n| n.parse().ok())
+        .unwrap_or_else(|| panic!("no recovered count in {stderr}"));
+    (
+        sorted_rows(&String::from_utf8(output.stdout).unwrap()),
+        recovered,
+    )
+}
+
+/// A trajectory CSV's lines, its rows sorted by trajectory and frame after
+/// its header.
+fn sorted_rows(text: &str) -> Vec<String> {
     let mut lines: Vec<String> = text.lines().map(str::to_owned).collect();
     let header = lines.remove(0);
-    let key = |line: &String| -> (u64, i64) {
+    lines.sort_by_key(|line| {
         let mut fields = line.split(',');
         (
-            fields.next().unwrap().parse().unwrap(),
-            fields.next().unwrap().parse().unwrap(),
+            fields.next().unwrap().parse::<u64>().unwrap(),
+            fields.next().unwrap().parse::<i64>().unwrap(),
         )
-    };
-    lines.sort_by_key(key);
+    });
     lines.insert(0, header);
     lines
+}
+
+/// A trajectory CSV row: trajectory, frame, u and the targets `t0,...`.
+struct CsvPoint {
+    trajectory: u64,
+    frame: i64,
+    u: f64,
+    targets: String,
+}
+
+/// The rows of a trajectory CSV (after its header).
+fn csv_points(lines: &[String]) -> Vec<CsvPoint> {
+    lines[1..]
+        .iter()
+        .map(|line| {
+            let fields: Vec<&str> = line.split(',').collect();
+            CsvPoint {
+                trajectory: fields[0].parse().unwrap(),
+                frame: fields[1].parse().unwrap(),
+                u: fields[5].parse().unwrap(),
+                targets: fields[15..].join(","),
+            }
+        })
+        .collect()
+}
+
+/// A particle's targets as the CSV's `t0,t1,...` columns.
+fn targets_columns(targets: &[Option<usize>]) -> String {
+    targets
+        .iter()
+        .map(|t| t.map_or("-1".to_owned(), |t| t.to_string()))
+        .collect::<Vec<_>>()
+        .join(",")
 }
 
 /// A CSV number, NaN as written by `{:?}`, an empty field as `None`.
@@ -314,25 +415,26 @@ fn assert_same_trajectories(
     }
 }
 
-/// Sanity of the simulated flow's trajectories: most particles are in
-/// long trajectories, and the median velocity is the true one within a
-/// few of its reported standard deviations.
-fn assert_plausible(expected: &[Trajectory], frames: usize) {
-    let points: usize = expected.iter().map(|t| t.points.len()).sum();
+/// Sanity of the simulated flow's trajectories (CSV rows): most particles
+/// are in long trajectories, and the median velocity is the true one
+/// within a few of its reported standard deviations.
+fn assert_plausible(points: &[CsvPoint], frames: usize) {
     // Particles found per frame are about PARTICLES (4 cameras, 5% of
     // images lost: nearly all are seen in 3 or more); a particle re-enters
     // the volume every 40 frames or so (80 mm at 2 mm per frame), so most
     // trajectories are long.
     assert!(
-        points as f64 > 0.8 * (PARTICLES * frames) as f64,
-        "{points} points in trajectories"
+        points.len() as f64 > 0.8 * (PARTICLES * frames) as f64,
+        "{} points in trajectories",
+        points.len()
     );
-    let mean_length = points as f64 / expected.len() as f64;
+    let trajectories: std::collections::HashSet<u64> =
+        points.iter().map(|p| p.trajectory).collect();
+    let mean_length = points.len() as f64 / trajectories.len() as f64;
     assert!(mean_length > 10.0, "mean trajectory length {mean_length}");
-    let mut u: Vec<f64> = expected
+    let mut u: Vec<f64> = points
         .iter()
-        .flat_map(|t| &t.points)
-        .map(|p| p.derivatives.velocity.x)
+        .map(|p| p.u)
         .filter(|u| u.is_finite())
         .collect();
     u.sort_by(f64::total_cmp);
@@ -350,7 +452,7 @@ fn assert_plausible(expected: &[Trajectory], frames: usize) {
 const FRAMES: usize = 200;
 
 #[tokio::test]
-async fn a_sequence_uploaded_out_of_order_by_four_clients_is_tracked_as_the_core_tracks_it() {
+async fn a_sequence_uploaded_out_of_order_by_four_clients_is_tracked_as_ptv_track_tracks_it() {
     let app = crate::helpers::spawn_app().await;
     let api = Api::at(&app.address);
     let rig = rig();
@@ -367,64 +469,123 @@ async fn a_sequence_uploaded_out_of_order_by_four_clients_is_tracked_as_the_core
     api.upload_concurrently(sequence, &order, 4).await;
     let run = api.finish(sequence).await;
     assert_eq!(run["tracked_through"], FRAMES as i64 - 1, "{run}");
+    assert_eq!(run["settings"]["recovery"], true, "{run}");
 
+    // `ptv track` on the same targets, with its default image-space
+    // recovery, writes the same CSV, row for row once its rows (written as
+    // they become final) are sorted: the same particles matched, the same
+    // particles recovered, the same links, the same numbers to the bit.
+    let csv = api
+        .text(&format!("/sequences/{sequence}/trajectories?format=csv"))
+        .await;
+    let lines: Vec<String> = csv.lines().map(str::to_owned).collect();
+    let all: Vec<Option<&TargetFrame>> = frames.iter().map(Some).collect();
+    let (expected, recovered) = ptv_track_targets(&rig, &all, MAX_VELOCITY, &[]);
+    assert_eq!(
+        lines.len(),
+        expected.len(),
+        "rows: service against ptv track"
+    );
+    for (k, (service, cli)) in lines.iter().zip(&expected).enumerate() {
+        assert_eq!(service, cli, "row {k}");
+    }
+    let points = csv_points(&lines);
+    let trajectories = points.iter().map(|p| p.trajectory).max().unwrap() + 1;
+    assert_eq!(run["trajectories"], trajectories, "{run}");
+    assert_plausible(&points, FRAMES);
+
+    // The recovery ran: `ptv track` recovered particles, and the service's
+    // trajectories hold recovered points (numbered from their frame's
+    // particle count on), each with its targets, 2 or more, none of them
+    // a target of the frame's particles.
     let tables = api.particle_tables(sequence, FRAMES as i64).await;
     let particles: Vec<_> = tables
         .iter()
         .map(|text| formats::csv::parse_particles(text, "particles").unwrap())
         .collect();
-    let expected = core_trajectories(&particles, TrackingParameters::new(MAX_VELOCITY));
-    assert_plausible(&expected, FRAMES);
-    assert_eq!(run["trajectories"], expected.len(), "{run}");
-    let csv = api
-        .text(&format!("/sequences/{sequence}/trajectories?format=csv"))
+    let (status, body) = api
+        .get(&format!("/sequences/{sequence}/trajectories"))
         .await;
-    assert_same_trajectories(&csv, &expected, &particles);
-    // And `ptv track` on the same particles writes the same CSV, row for
-    // row once its rows (written as they become final) are sorted.
-    assert_eq!(
-        csv.lines().collect::<Vec<_>>(),
-        ptv_track(&tables, MAX_VELOCITY)
+    assert_eq!(status, 200, "{body}");
+    let mut recovered_points = 0;
+    for point in body["trajectories"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .flat_map(|t| t["points"].as_array().unwrap())
+    {
+        let frame = &particles[point["frame"].as_u64().unwrap() as usize];
+        let index = point["particle"].as_u64().unwrap() as usize;
+        if index < frame.len() {
+            continue;
+        }
+        recovered_points += 1;
+        let targets: Vec<Option<usize>> = point["targets"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|t| t.as_u64().map(|t| t as usize))
+            .collect();
+        assert!(targets.iter().flatten().count() >= 2, "{point}");
+        for (c, t) in targets.iter().enumerate() {
+            assert!(
+                t.is_none() || frame.iter().all(|p| p.targets[c] != *t),
+                "{point} reuses a particle's target"
+            );
+        }
+    }
+    eprintln!("ptv track recovered {recovered} particles; {recovered_points} recovered points in the service's trajectories");
+    assert!(recovered > 0, "nothing to recover: the test shows nothing");
+    assert!(
+        recovered_points > 0 && recovered_points <= recovered,
+        "{recovered_points} recovered points, {recovered} recovered"
     );
 
     // One trajectory, and the per-particle ids of a frame, agree.
-    let longest = expected.iter().max_by_key(|t| t.points.len()).unwrap();
+    let mut lengths: HashMap<u64, Vec<i64>> = HashMap::new();
+    for p in &points {
+        lengths.entry(p.trajectory).or_default().push(p.frame);
+    }
+    let (longest, its_frames) = lengths.iter().max_by_key(|(id, f)| (f.len(), *id)).unwrap();
     let (status, body) = api
-        .get(&format!(
-            "/sequences/{sequence}/trajectories/{}",
-            longest.id
-        ))
+        .get(&format!("/sequences/{sequence}/trajectories/{longest}"))
         .await;
     assert_eq!(status, 200, "{body}");
-    assert_eq!(body["length"], longest.points.len(), "{body}");
+    assert_eq!(body["length"], its_frames.len(), "{body}");
     let frames_of: Vec<i64> = body["points"]
         .as_array()
         .unwrap()
         .iter()
         .map(|p| p["frame"].as_i64().unwrap())
         .collect();
-    assert_eq!(
-        frames_of,
-        longest.points.iter().map(|p| p.frame).collect::<Vec<_>>()
-    );
+    assert_eq!(&frames_of, its_frames);
+    // A frame's particles name their trajectories (by their targets, which
+    // identify a particle within its frame); recovered particles are not
+    // the frame's particles, and not listed.
     let frame = 100;
     let (status, body) = api
         .get(&format!("/sequences/{sequence}/frames/{frame}/particles"))
         .await;
     assert_eq!(status, 200, "{body}");
-    let mut by_particle: HashMap<usize, u64> = HashMap::new();
-    for p in expected.iter().flat_map(|t| &t.points) {
-        if p.frame == frame {
-            by_particle.insert(p.particle, p.trajectory);
-        }
+    let by_targets: HashMap<&str, u64> = points
+        .iter()
+        .filter(|p| p.frame == frame)
+        .map(|p| (p.targets.as_str(), p.trajectory))
+        .collect();
+    let listed = body["particles"].as_array().unwrap();
+    assert_eq!(listed.len(), particles[frame as usize].len());
+    let mut named = 0;
+    for (i, p) in listed.iter().enumerate() {
+        let targets = targets_columns(&particles[frame as usize][i].targets);
+        let expected = by_targets.get(targets.as_str()).copied();
+        assert_eq!(p["trajectory"].as_u64(), expected, "particle {i}");
+        named += usize::from(expected.is_some());
     }
-    for (i, p) in body["particles"].as_array().unwrap().iter().enumerate() {
-        assert_eq!(
-            p["trajectory"].as_u64(),
-            by_particle.get(&i).copied(),
-            "particle {i}"
-        );
-    }
+    assert!(
+        named as f64 > 0.8 * listed.len() as f64,
+        "{named} of {}",
+        listed.len()
+    );
 
     // The filters: long trajectories in a window of frames.
     let csv = api
@@ -432,11 +593,9 @@ async fn a_sequence_uploaded_out_of_order_by_four_clients_is_tracked_as_the_core
             "/sequences/{sequence}/trajectories?format=csv&min_length=20&frames=50..59"
         ))
         .await;
-    let filtered: Vec<_> = expected
+    let filtered: Vec<_> = points
         .iter()
-        .filter(|t| t.points.len() >= 20)
-        .flat_map(|t| &t.points)
-        .filter(|p| (50..=59).contains(&p.frame))
+        .filter(|p| lengths[&p.trajectory].len() >= 20 && (50..=59).contains(&p.frame))
         .collect();
     assert_eq!(csv.lines().count() - 1, filtered.len());
     assert!(!filtered.is_empty());
@@ -446,11 +605,12 @@ async fn a_sequence_uploaded_out_of_order_by_four_clients_is_tracked_as_the_core
         .await;
     assert_eq!(status, 200, "{body}");
     let listed = body["trajectories"].as_array().unwrap();
-    let long: Vec<_> = expected.iter().filter(|t| t.points.len() >= 20).collect();
+    let mut long: Vec<(&u64, &Vec<i64>)> = lengths.iter().filter(|(_, f)| f.len() >= 20).collect();
+    long.sort();
     assert_eq!(listed.len(), long.len());
-    for (view, t) in listed.iter().zip(long) {
-        assert_eq!(view["id"], t.id);
-        assert_eq!(view["points"].as_array().unwrap().len(), t.points.len());
+    for (view, (id, its_frames)) in listed.iter().zip(long) {
+        assert_eq!(view["id"], *id);
+        assert_eq!(view["points"].as_array().unwrap().len(), its_frames.len());
     }
     app.stop().await;
 }
@@ -471,6 +631,7 @@ async fn a_rerun_with_other_settings_is_a_new_run_and_the_old_one_stays() {
         .collect();
     api.upload_concurrently(sequence, &order, 2).await;
     let first = api.finish(sequence).await;
+    assert_eq!(first["settings"]["recovery"], true, "{first}");
     let old_csv = api
         .text(&format!("/sequences/{sequence}/trajectories?format=csv"))
         .await;
@@ -478,12 +639,13 @@ async fn a_rerun_with_other_settings_is_a_new_run_and_the_old_one_stays() {
     let (status, second) = api
         .post(
             &format!("/sequences/{sequence}/tracking"),
-            &json!({"max_velocity": MAX_VELOCITY, "min_length": 10}),
+            &json!({"max_velocity": MAX_VELOCITY, "min_length": 10, "recovery": false}),
         )
         .await;
     assert_eq!(status, 201, "{second}");
     assert_ne!(second["run_id"], first["run_id"]);
     assert_eq!(second["settings"]["min_length"], 10);
+    assert_eq!(second["settings"]["recovery"], false);
     // The finish request carries over: the new run ends by itself.
     let second = api.finish(sequence).await;
     let particles = api.particles(sequence, 30).await;
@@ -497,7 +659,14 @@ async fn a_rerun_with_other_settings_is_a_new_run_and_the_old_one_stays() {
     let csv = api
         .text(&format!("/sequences/{sequence}/trajectories?format=csv"))
         .await;
+    // Without recovery: the core's tracker over the stored particles, and
+    // `ptv track --particles` (which has no targets to recover from).
     assert_same_trajectories(&csv, &expected, &particles);
+    let tables = api.particle_tables(sequence, 30).await;
+    assert_eq!(
+        csv.lines().collect::<Vec<_>>(),
+        ptv_track(&tables, MAX_VELOCITY, &["--min-length", "10"])
+    );
     // The old run is still there, unchanged.
     let old_again = api
         .text(&format!(
@@ -544,6 +713,10 @@ async fn bad_tracking_settings_and_queries_are_refused_saying_why() {
         (json!({"max_velocity": "fast"}), "tracking.max_velocity"),
         (json!({}), "max_velocity"),
         (json!({"max_velocity": 1.0, "speed": 2}), "speed"),
+        (
+            json!({"max_velocity": 1.0, "recovery": "yes"}),
+            "tracking.recovery",
+        ),
     ] {
         let mut request = sequence_body(calibration, &rig.volume, false);
         request["tracking"] = tracking.clone();
@@ -591,6 +764,17 @@ async fn bad_tracking_settings_and_queries_are_refused_saying_why() {
         )
         .await;
     assert_eq!(status, 422, "{body}");
+    let (status, body) = api
+        .post(
+            &format!("/sequences/{sequence}/tracking"),
+            &json!({"max_velocity": 1.0, "recovery": 1}),
+        )
+        .await;
+    assert_eq!(status, 422, "{body}");
+    assert!(
+        body["detail"].as_str().unwrap().contains("recovery"),
+        "{body}"
+    );
     let response = api
         .client
         .post(api.url(&format!("/sequences/{sequence}/tracking")))
@@ -673,12 +857,27 @@ async fn a_kill_during_tracking_then_a_restart_gives_the_same_trajectories() {
     api.upload_concurrently(sequence, after, 4).await;
     let run = api.finish(sequence).await;
     assert_eq!(run["tracked_through"], CRASH_FRAMES as i64 - 1, "{run}");
-    let particles = api.particles(sequence, CRASH_FRAMES as i64).await;
-    let expected = core_trajectories(&particles, TrackingParameters::new(MAX_VELOCITY));
+    assert_eq!(run["settings"]["recovery"], true, "{run}");
+    // The tracker rebuilt by replay recovered what the one killed had, so
+    // the trajectories are `ptv track`'s on the same targets, row for row.
     let csv = api
         .text(&format!("/sequences/{sequence}/trajectories?format=csv"))
         .await;
-    assert_same_trajectories(&csv, &expected, &particles);
+    let lines: Vec<&str> = csv.lines().collect();
+    let all: Vec<Option<&TargetFrame>> = frames.iter().map(Some).collect();
+    let (expected, recovered) = ptv_track_targets(&rig, &all, MAX_VELOCITY, &[]);
+    assert!(
+        recovered > 0,
+        "nothing recovered: the replay's recovery is not tested"
+    );
+    assert_eq!(
+        lines.len(),
+        expected.len(),
+        "rows: service against ptv track"
+    );
+    for (k, (service, cli)) in lines.iter().zip(&expected).enumerate() {
+        assert_eq!(service, cli, "row {k}");
+    }
 }
 
 #[tokio::test]
@@ -757,18 +956,27 @@ async fn a_failed_frame_is_a_gap_the_trajectories_bridge() {
             particles.push(formats::csv::parse_particles(&text, "particles").unwrap());
         }
     }
-    let expected = core_trajectories(&particles, TrackingParameters::new(MAX_VELOCITY));
+    // `ptv track` over the same targets, the failed frame's missing (a gap
+    // there too), with the recovery.
     let csv = api
         .text(&format!("/sequences/{sequence}/trajectories?format=csv"))
         .await;
-    assert_same_trajectories(&csv, &expected, &particles);
-    // Most trajectories across the gap are bridged, not cut.
-    let across = expected
+    let lines: Vec<String> = csv.lines().map(str::to_owned).collect();
+    let inputs: Vec<Option<&TargetFrame>> = frames
         .iter()
-        .filter(|t| {
-            let frames: Vec<i64> = t.points.iter().map(|p| p.frame).collect();
-            frames.contains(&(GAP - 1)) && frames.contains(&(GAP + 1))
-        })
+        .enumerate()
+        .map(|(f, t)| (f as i64 != GAP).then_some(t))
+        .collect();
+    let (expected, _) = ptv_track_targets(&rig, &inputs, MAX_VELOCITY, &["--allow-gaps"]);
+    assert_eq!(lines, expected);
+    // Most trajectories across the gap are bridged, not cut.
+    let mut by_trajectory: HashMap<u64, Vec<i64>> = HashMap::new();
+    for p in csv_points(&lines) {
+        by_trajectory.entry(p.trajectory).or_default().push(p.frame);
+    }
+    let across = by_trajectory
+        .values()
+        .filter(|frames| frames.contains(&(GAP - 1)) && frames.contains(&(GAP + 1)))
         .count();
     let at_gap = particles[GAP as usize - 1].len();
     assert!(

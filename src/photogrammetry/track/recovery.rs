@@ -155,6 +155,29 @@ impl FrameTargets {
         self
     }
 
+    /// A frame's targets and the particles matched from them, as the
+    /// tracker's recovery takes them: which targets the particles use
+    /// ([`FrameTargets::new`]) and the frame's noise from the particles'
+    /// reprojection RMS ([`frame_noise`], [`FrameTargets::with_noise`]).
+    /// The one way `ptv track` and the service build a frame's targets, so
+    /// that both recover the same particles.
+    pub fn of_particles(
+        targets: &[Vec<Target>],
+        particles: &[Particle],
+    ) -> Result<FrameTargets, FrameTargetsError> {
+        let noise = frame_noise(particles.iter().map(|p| (p.rms_px, p.camera_count())));
+        Ok(
+            FrameTargets::new(targets, particles.iter().map(|p| &p.targets[..]))?
+                .with_noise(noise.unwrap_or(f64::NAN)),
+        )
+    }
+
+    /// The frame's image noise (px) the recovery tests against, where
+    /// known ([`FrameTargets::with_noise`]).
+    pub fn noise_px(&self) -> Option<f64> {
+        self.noise_px
+    }
+
     /// Cameras with targets.
     pub fn cameras(&self) -> usize {
         self.cameras.len()
@@ -805,6 +828,40 @@ mod tests {
         let k = 13.0f64;
         let h = 2.0 / (9.0 * k);
         assert!((k * (1.0 - h + 2.326 * h.sqrt()).powi(3) - chi_square_99(13)).abs() < 0.05);
+    }
+
+    #[test]
+    fn a_frames_targets_of_its_particles_mark_their_targets_and_carry_their_noise() {
+        let targets = vec![
+            vec![target(Point2::new(1.0, 1.0)), target(Point2::new(5.0, 5.0))],
+            vec![target(Point2::new(2.0, 2.0))],
+        ];
+        let particle = |rms_px: f64, targets: Vec<Option<usize>>| Particle {
+            position: Point3::origin(),
+            sigma: Vector3::repeat(0.01),
+            rms_px,
+            targets,
+        };
+        let particles = [
+            particle(0.1, vec![Some(1), Some(0)]),
+            particle(0.3, vec![Some(0), None]),
+        ];
+        let frame = FrameTargets::of_particles(&targets, &particles).unwrap();
+        assert_eq!((frame.unused(0), frame.unused(1)), (0, 0));
+        // The noise is frame_noise's over the same particles: only the
+        // 2-camera one counts (the other has one camera).
+        assert_eq!(
+            frame.noise_px(),
+            frame_noise([(0.1, 2), (0.3, 1)]),
+            "{frame:?}"
+        );
+        assert!(frame.noise_px().is_some());
+        let none = FrameTargets::of_particles(&targets, &[]).unwrap();
+        assert_eq!((none.unused(0), none.noise_px()), (2, None));
+        // A particle naming a target that is not there is refused.
+        assert!(
+            FrameTargets::of_particles(&targets, &[particle(0.1, vec![None, Some(3)])]).is_err()
+        );
     }
 
     #[test]

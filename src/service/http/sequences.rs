@@ -711,7 +711,11 @@ pub struct FrameParticles {
     /// not tracked).
     #[schema(value_type = Option<i64>)]
     pub tracking_run: Option<TrackingRunId>,
-    /// The particles.
+    /// The particles the frame's correspondences gave. Particles a tracking
+    /// run recovered from the frame's targets (image-space recovery) are
+    /// not among them: they exist only as points of their trajectories
+    /// (`GET /sequences/{id}/trajectories`), whose `particle` index is at or
+    /// above this list's length.
     pub particles: Vec<ParticleView>,
 }
 

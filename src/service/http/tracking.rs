@@ -20,7 +20,8 @@ use super::Shared;
 use crate::formats::frames::FrameRange;
 use crate::service::app::AppState;
 use crate::service::store::{
-    FrameNumber, PointRow, SequenceId, TrackingRunId, TrackingRunRow, TrackingState, TrajectoryRow,
+    CalibrationId, FrameNumber, PointRow, SequenceId, TrackingRunId, TrackingRunRow, TrackingState,
+    TrajectoryRow,
 };
 use crate::service::tracking::{kick, TrackingSettings};
 
@@ -54,6 +55,11 @@ pub struct TrackingRunView {
     pub run_id: TrackingRunId,
     /// Its settings, defaults filled in.
     pub settings: TrackingSettings,
+    /// The calibration its image-space recovery projects with: the
+    /// sequence's when the run started (null for runs stored before
+    /// recovery existed).
+    #[schema(value_type = Option<i64>)]
+    pub calibration_id: Option<CalibrationId>,
     /// Where it stands.
     pub state: TrackingStateView,
     /// The last frame tracked: trajectories are final up to a few frames
@@ -80,7 +86,8 @@ pub(super) async fn run_view(
     let trajectories = state.store.trajectory_count(row.id).await?;
     Ok(TrackingRunView {
         run_id: row.id,
-        settings: serde_json::from_str(&row.parameters)?,
+        settings: serde_json::from_str::<TrackingSettings>(&row.parameters)?.as_stored(),
+        calibration_id: row.calibration_id,
         state: match row.state {
             TrackingState::Tracking => TrackingStateView::Tracking,
             TrackingState::Finished => TrackingStateView::Finished,
@@ -254,7 +261,9 @@ pub struct TrajectoryPointView {
     /// The frame.
     #[schema(value_type = i64)]
     pub frame: FrameNumber,
-    /// The particle's index in the frame's particles.
+    /// The particle's index in the frame's particles; at or above their
+    /// count, a particle the tracker recovered from the frame's targets
+    /// (image-space recovery), which is not among the frame's particles.
     pub particle: i64,
     /// Position (mm).
     pub position: [f64; 3],
@@ -543,7 +552,9 @@ pub async fn trajectory(
 
 /// The trajectory of each particle of a frame in the sequence's current
 /// run (`None` where a particle has none, or the sequence is not tracked),
-/// and the run.
+/// and the run. Points of particles the run recovered from the images
+/// (indices from `particles` on) are left out: they are not the frame's
+/// particles.
 pub(super) async fn frame_trajectories(
     state: &AppState,
     id: SequenceId,

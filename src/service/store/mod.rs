@@ -164,6 +164,11 @@ const MIGRATIONS: &[(i64, &str, &str)] = &[
         "tracking",
         include_str!("../../../migrations/0006_tracking.sql"),
     ),
+    (
+        7,
+        "tracking_recovery",
+        include_str!("../../../migrations/0007_tracking_recovery.sql"),
+    ),
 ];
 
 impl<'s> MigrationSource<'s> for Migrations {
@@ -657,6 +662,46 @@ mod tests {
         assert_eq!(made_by(2).await, Some(CalibrationId(2)));
         let origin = store.calibration(CalibrationId(2)).await.unwrap().unwrap();
         assert_eq!(origin.origin, None);
+        store.close().await;
+    }
+
+    /// Migration 7 records the calibration a tracking run's recovery
+    /// projects with: a run stored before has none (and its settings no
+    /// `recovery`: it goes on without), a new run gets its sequence's.
+    #[tokio::test]
+    async fn tracking_runs_before_migration_7_have_no_calibration_and_new_ones_their_sequences() {
+        let dir = tempfile::tempdir().unwrap();
+        database_of_version_2(dir.path()).await;
+        let pool = SqlitePoolOptions::new()
+            .max_connections(1)
+            .connect_with(SqliteConnectOptions::new().filename(dir.path().join("ptv.sqlite")))
+            .await
+            .unwrap();
+        Migrator::new(Migrations(&MIGRATIONS[..6]))
+            .await
+            .unwrap()
+            .run(&pool)
+            .await
+            .unwrap();
+        let old_settings = r#"{"max_velocity":2.0,"max_acceleration":1.0,"max_gap":1,"min_length":3,"fit_half_window":2,"fit_order":2,"first_frame":0}"#;
+        sqlx::query("INSERT INTO tracking_runs (id, sequence_id, parameters) VALUES (1, 1, ?)")
+            .bind(old_settings)
+            .execute(&pool)
+            .await
+            .unwrap();
+        pool.close().await;
+        let store = Store::open(dir.path(), 1).await.unwrap();
+        let old = store.tracking_run(TrackingRunId(1)).await.unwrap().unwrap();
+        assert_eq!(old.calibration_id, None);
+        let settings: crate::service::tracking::TrackingSettings =
+            serde_json::from_str(&old.parameters).unwrap();
+        assert!(!settings.recovers());
+        let new = store
+            .insert_tracking_run(SequenceId(1), old_settings)
+            .await
+            .unwrap()
+            .unwrap();
+        assert_eq!(new.calibration_id, Some(CalibrationId(1)));
         store.close().await;
     }
 }

@@ -8,7 +8,9 @@
 use sqlx::sqlite::SqliteRow;
 use sqlx::{FromRow, QueryBuilder, Row, Sqlite, Transaction};
 
-use super::{stored_as_text, text_column, FrameNumber, SequenceId, Store, TrackingRunId};
+use super::{
+    stored_as_text, text_column, CalibrationId, FrameNumber, SequenceId, Store, TrackingRunId,
+};
 
 /// Where a tracking run stands (`tracking_runs.state`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -50,10 +52,14 @@ pub struct TrackingRunRow {
     pub error: Option<String>,
     /// When it was created.
     pub created_at: String,
+    /// The calibration its image-space recovery projects with: the
+    /// sequence's when the run was created (`None` for runs stored before
+    /// migration 0007, which track without recovery).
+    pub calibration_id: Option<CalibrationId>,
 }
 
-const RUN_COLUMNS: &str =
-    "id, sequence_id, parameters, tracked_through, finish_requested, state, error, created_at";
+const RUN_COLUMNS: &str = "id, sequence_id, parameters, tracked_through, finish_requested, state, \
+     error, created_at, calibration_id";
 
 impl FromRow<'_, SqliteRow> for TrackingRunRow {
     fn from_row(row: &SqliteRow) -> Result<Self, sqlx::Error> {
@@ -66,6 +72,7 @@ impl FromRow<'_, SqliteRow> for TrackingRunRow {
             state: text_column(row, "state")?,
             error: row.try_get("error")?,
             created_at: row.try_get("created_at")?,
+            calibration_id: row.try_get("calibration_id")?,
         })
     }
 }
@@ -77,7 +84,8 @@ pub struct PointRow {
     pub trajectory: i64,
     /// The frame.
     pub frame: FrameNumber,
-    /// The particle's index in the frame's particles.
+    /// The particle's index in the frame's particles; at or above their
+    /// count, a particle the tracker recovered from the frame's targets.
     pub particle: i64,
     /// Position (mm).
     pub position: [f64; 3],
@@ -481,7 +489,8 @@ impl Store {
     }
 }
 
-/// Inserts a tracking run inside the caller's transaction.
+/// Inserts a tracking run inside the caller's transaction, with the
+/// sequence's calibration as the one its recovery projects with.
 pub(super) async fn insert_run(
     tx: &mut Transaction<'_, Sqlite>,
     sequence_id: SequenceId,
@@ -489,12 +498,14 @@ pub(super) async fn insert_run(
     finish_requested: bool,
 ) -> Result<TrackingRunRow, sqlx::Error> {
     sqlx::query_as(&format!(
-        "INSERT INTO tracking_runs (sequence_id, parameters, finish_requested) VALUES (?, ?, ?) \
+        "INSERT INTO tracking_runs (sequence_id, parameters, finish_requested, calibration_id) \
+         VALUES (?, ?, ?, (SELECT calibration_id FROM sequences WHERE id = ?)) \
          RETURNING {RUN_COLUMNS}"
     ))
     .bind(sequence_id)
     .bind(parameters)
     .bind(finish_requested)
+    .bind(sequence_id)
     .fetch_one(&mut **tx)
     .await
 }
