@@ -291,7 +291,7 @@ def main() -> None:
     parser.add_argument(
         "--volume",
         default="-40,40,-40,40,-20,20",
-        help="the volume `ptv simulate` printed (xmin,xmax,ymin,ymax,zmin,zmax, mm)",
+        help="the volume `ptv simulate` printed, as --volume=xmin,xmax,ymin,ymax,zmin,zmax (mm)",
     )
     parser.add_argument(
         "--ptv-depth-only",
@@ -320,6 +320,16 @@ def main() -> None:
         return
     if not args.scene:
         sys.exit("--scene DIR is required (the output of `ptv simulate`)")
+    try:
+        import optv  # noqa: F401
+    except ImportError:
+        sys.exit(
+            f"{sys.executable} has no optv: run this script with a Python that has "
+            "optv 0.3.2 and numpy (python3 -m venv /tmp/optv-venv && "
+            "/tmp/optv-venv/bin/pip install optv==0.3.2 numpy)"
+        )
+    if not Path(args.ptv).is_file():
+        sys.exit(f"--ptv {args.ptv}: no such file (cargo build --release)")
 
     bands = [float(b) for b in args.bands.split(",")]
     work, targets_dir, cameras = prepare(args)
