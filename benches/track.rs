@@ -29,13 +29,15 @@
 use std::hint::black_box;
 use std::time::Instant;
 
-use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, Throughput};
+use criterion::measurement::{Measurement, ValueFormatter};
+use criterion::{criterion_group, BenchmarkId, Criterion, Throughput};
 use nalgebra::{Point3, Vector3};
 use rand::Rng;
 use rand_distr::{Distribution, Normal};
+use rustix::time::{clock_gettime, ClockId};
 
 use ptv::photogrammetry::simulate;
-use ptv::photogrammetry::track::{track, ParticlePosition, TrackingParameters};
+use ptv::photogrammetry::track::{track, ParticlePosition, TrackingParameters, Trajectory};
 
 const FRAMES: usize = 16;
 const SIDE: f64 = 100.0;
@@ -97,35 +99,97 @@ fn sequence(particles: usize) -> (Vec<(i64, Vec<ParticlePosition>)>, f64) {
     (frames, peak)
 }
 
-/// This thread's time on a CPU (ns), from Linux's schedstat: on a shared
-/// machine steadier than the wall clock. `None` elsewhere.
-fn cpu_ns() -> Option<u64> {
-    std::fs::read_to_string("/proc/thread-self/schedstat")
-        .ok()?
-        .split_whitespace()
-        .next()?
-        .parse()
-        .ok()
+/// This thread's time on a CPU (ns): on a shared machine steadier than
+/// the wall clock (another process's time slices are not counted, only
+/// what it does to the caches).
+fn cpu_ns() -> u64 {
+    let t = clock_gettime(ClockId::ThreadCPUTime);
+    t.tv_sec as u64 * 1_000_000_000 + t.tv_nsec as u64
 }
 
-fn bench(c: &mut Criterion) {
+/// Criterion's measurement: the thread's CPU time ([`cpu_ns`]).
+struct ThreadCpu;
+
+impl Measurement for ThreadCpu {
+    type Intermediate = u64;
+    type Value = u64;
+
+    fn start(&self) -> u64 {
+        cpu_ns()
+    }
+
+    fn end(&self, start: u64) -> u64 {
+        cpu_ns() - start
+    }
+
+    fn add(&self, a: &u64, b: &u64) -> u64 {
+        a + b
+    }
+
+    fn zero(&self) -> u64 {
+        0
+    }
+
+    fn to_f64(&self, value: &u64) -> f64 {
+        *value as f64
+    }
+
+    fn formatter(&self) -> &dyn ValueFormatter {
+        &CpuFormatter
+    }
+}
+
+/// CPU nanoseconds shown in ms (the times here are 10-1000 ms), element
+/// throughputs per CPU second.
+struct CpuFormatter;
+
+impl ValueFormatter for CpuFormatter {
+    fn scale_values(&self, _typical: f64, values: &mut [f64]) -> &'static str {
+        values.iter_mut().for_each(|v| *v *= 1e-6);
+        "ms (CPU)"
+    }
+
+    fn scale_throughputs(
+        &self,
+        _typical: f64,
+        throughput: &Throughput,
+        values: &mut [f64],
+    ) -> &'static str {
+        let per = match *throughput {
+            Throughput::Elements(n) | Throughput::ElementsAndBytes { elements: n, .. } => n,
+            Throughput::Bytes(n) | Throughput::BytesDecimal(n) | Throughput::Bits(n) => n,
+        } as f64;
+        values.iter_mut().for_each(|v| *v = per * 1e9 / *v);
+        "/s (CPU)"
+    }
+
+    fn scale_for_machines(&self, _values: &mut [f64]) -> &'static str {
+        "ns"
+    }
+}
+
+/// The frames of `particles` and the parameters they are tracked with.
+fn scene(particles: usize) -> (Vec<(i64, Vec<ParticlePosition>)>, TrackingParameters) {
+    let (frames, peak) = sequence(particles);
+    let parameters = TrackingParameters {
+        max_acceleration: 0.5 * peak,
+        ..TrackingParameters::new(1.2 * peak)
+    };
+    (frames, parameters)
+}
+
+fn bench(c: &mut Criterion<ThreadCpu>) {
     let mut group = c.benchmark_group("track");
     group.sample_size(10);
-    for particles in [2_500, 10_000, 20_000] {
-        let (frames, peak) = sequence(particles);
-        let parameters = TrackingParameters {
-            max_acceleration: 0.5 * peak,
-            ..TrackingParameters::new(1.2 * peak)
-        };
+    for particles in [2_500, 10_000, 20_000, 40_000] {
+        let (frames, parameters) = scene(particles);
         // One run outside criterion for the per-frame figure and a sanity
         // check that the flow is tracked.
         let input = frames.clone();
         let (start, cpu) = (Instant::now(), cpu_ns());
         let trajectories = track(input, parameters.clone()).expect("tracking runs");
         let per_frame = start.elapsed().as_secs_f64() * 1e3 / FRAMES as f64;
-        let cpu_per_frame = cpu_ns()
-            .zip(cpu)
-            .map_or(f64::NAN, |(b, a)| (b - a) as f64 * 1e-6 / FRAMES as f64);
+        let cpu_per_frame = (cpu_ns() - cpu) as f64 * 1e-6 / FRAMES as f64;
         let points: usize = trajectories.iter().map(|t| t.points.len()).sum();
         println!(
             "{particles} particles: {per_frame:.2} ms a frame, {cpu_per_frame:.2} ms of CPU ({} trajectories, mean length {:.1} of {FRAMES})",
@@ -148,5 +212,63 @@ fn bench(c: &mut Criterion) {
     group.finish();
 }
 
-criterion_group!(benches, bench);
-criterion_main!(benches);
+/// One tracking of the sequence, not inlined: the function that
+/// `valgrind --tool=callgrind --toggle-collect='*track_once*'` counts.
+#[inline(never)]
+fn track_once(
+    frames: Vec<(i64, Vec<ParticlePosition>)>,
+    parameters: TrackingParameters,
+) -> Vec<Trajectory> {
+    track(frames, parameters).expect("tracking runs")
+}
+
+/// A digest of trajectories (numbers, frames, particles, velocities'
+/// bits; FNV-1a): equal before and after a change that must not change
+/// the results.
+fn digest(trajectories: &[Trajectory]) -> u64 {
+    let mut hash = 0xcbf2_9ce4_8422_2325_u64;
+    let mut add = |v: u64| {
+        for byte in v.to_le_bytes() {
+            hash = (hash ^ u64::from(byte)).wrapping_mul(0x100_0000_01b3);
+        }
+    };
+    for t in trajectories {
+        for p in &t.points {
+            add(p.trajectory);
+            add(p.frame as u64);
+            add(p.particle as u64);
+            p.derivatives.velocity.iter().for_each(|v| add(v.to_bits()));
+        }
+    }
+    hash
+}
+
+criterion_group! {
+    name = benches;
+    config = Criterion::default().with_measurement(ThreadCpu);
+    targets = bench
+}
+
+fn main() {
+    // `PTV_TRACK_ONCE=N`: one tracking of N particles' sequence and no
+    // criterion, for counting instructions under callgrind.
+    if let Ok(particles) = std::env::var("PTV_TRACK_ONCE") {
+        let particles: usize = particles
+            .parse()
+            .expect("PTV_TRACK_ONCE is a number of particles");
+        let (frames, parameters) = scene(particles);
+        let trajectories = track_once(frames, parameters);
+        let points: usize = trajectories.iter().map(|t| t.points.len()).sum();
+        println!(
+            "{particles} particles: {} trajectories, {points} points over {FRAMES} frames, digest {:016x}",
+            trajectories.len(),
+            digest(&trajectories)
+        );
+        return;
+    }
+    benches();
+    Criterion::default()
+        .with_measurement(ThreadCpu)
+        .configure_from_args()
+        .final_summary();
+}

@@ -76,7 +76,7 @@
 pub mod kinematics;
 pub mod recovery;
 
-use std::collections::VecDeque;
+use std::collections::{HashMap, VecDeque};
 
 use nalgebra::{Point3, Vector3};
 
@@ -431,14 +431,28 @@ fn binomial_cdf(k: usize, n: usize, p: f64) -> f64 {
     sum.min(1.0)
 }
 
-/// A candidate link: its rank (without a look-ahead partner after all
-/// with one, then by cost), then its trajectory and particle.
-#[derive(Clone, Copy, PartialEq, PartialOrd)]
+/// A candidate link, ordered by its rank (without a look-ahead partner
+/// after all with one, then by cost), then its trajectory and particle.
+#[derive(Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
 struct Link {
-    unconfirmed: bool,
-    cost: f64,
+    /// [`Link::rank`].
+    rank: u64,
     live: usize,
     particle: usize,
+}
+
+impl Link {
+    /// The rank as one integer: a cost's bits (for a cost of zero or
+    /// above, its IEEE 754 bits order as the cost does), with the top (the
+    /// sign) bit set for a link without a look-ahead partner. Sorting
+    /// integers is cheaper than comparing floats, and an infinite or NaN
+    /// cost (which finite positions never give) ranks last instead of
+    /// stopping the sort.
+    fn rank(unconfirmed: bool, cost: f64) -> u64 {
+        debug_assert!(cost >= 0.0, "a cost is a norm plus a penalty");
+        // `+ 0.0` turns a -0.0 into 0.0.
+        (cost + 0.0).to_bits() | u64::from(unconfirmed) << 63
+    }
 }
 
 /// Links particles of consecutive frames into trajectories, frame by frame
@@ -780,8 +794,7 @@ impl Tracker {
                     * cost_noise(&next.particles[c].sigma);
                 let link = match best {
                     Some(cost) => Link {
-                        unconfirmed: false,
-                        cost: cost + penalty,
+                        rank: Link::rank(false, cost + penalty),
                         live: l,
                         particle: c,
                     },
@@ -789,8 +802,10 @@ impl Tracker {
                     // partner, unless there is no frame to look ahead to.
                     None if a1.is_none() && ahead.is_some() => continue,
                     None => Link {
-                        unconfirmed: true,
-                        cost: a1.map_or((position - last.position).norm(), |a| a.norm()) + penalty,
+                        rank: Link::rank(
+                            true,
+                            a1.map_or((position - last.position).norm(), |a| a.norm()) + penalty,
+                        ),
                         live: l,
                         particle: c,
                     },
@@ -801,7 +816,7 @@ impl Tracker {
         // Global resolution: best first over the whole frame.
         // (Unstable is enough: no two links share a trajectory and a
         // particle, so the order is total.)
-        links.sort_unstable_by(|a, b| a.partial_cmp(b).expect("costs are finite"));
+        links.sort_unstable();
         let mut taken_live = vec![false; self.live.len()];
         let mut taken = vec![false; next.particles.len()];
         for link in links {
@@ -1074,11 +1089,13 @@ impl Grid {
         grid
     }
 
-    /// The cell of a point, clamped into the grid.
+    /// The cell of a point, clamped into the grid. (The cast truncates,
+    /// saturating below at 0: the floor for the offsets at or above zero,
+    /// and 0, as the clamp needs, for those below. `floor` itself is a
+    /// library call on x86-64 without SSE 4.1.)
     fn cell_of(&self, point: &Point3<f64>) -> [usize; 3] {
         std::array::from_fn(|i| {
-            let c = ((point[i] - self.origin[i]) / self.cell).floor();
-            c.clamp(0.0, (self.dims[i] - 1) as f64) as usize
+            (((point[i] - self.origin[i]) / self.cell) as usize).min(self.dims[i] - 1)
         })
     }
 
@@ -1114,29 +1131,59 @@ pub fn track(
     parameters: TrackingParameters,
 ) -> Result<Vec<Trajectory>, TrackError> {
     let mut tracker = Tracker::new(parameters)?;
-    let mut points = Vec::new();
+    let mut gathered = Gathered::default();
     for (number, particles) in frames {
-        points.extend(tracker.push(number, particles)?);
+        gathered.extend(tracker.push(number, particles)?);
     }
-    points.extend(tracker.finish());
-    Ok(trajectories(points))
+    gathered.extend(tracker.finish());
+    Ok(gathered.finish())
 }
 
 /// Trajectory points, in any order, gathered into trajectories by number,
 /// each in frame order.
-pub fn trajectories(mut points: Vec<TrackPoint>) -> Vec<Trajectory> {
-    let mut trajectories: Vec<Trajectory> = Vec::new();
-    points.sort_by_key(|p| (p.trajectory, p.frame));
-    for point in points {
-        match trajectories.last_mut() {
-            Some(t) if t.id == point.trajectory => t.points.push(point),
-            _ => trajectories.push(Trajectory {
-                id: point.trajectory,
-                points: vec![point],
-            }),
+pub fn trajectories(points: impl IntoIterator<Item = TrackPoint>) -> Vec<Trajectory> {
+    let mut gathered = Gathered::default();
+    gathered.extend(points);
+    gathered.finish()
+}
+
+/// Points gathered by trajectory as they come: each moved once, into its
+/// trajectory, in linear time (not sorted as one list: at 20,000 particles
+/// over 16 frames that list is 50 MB of 160-byte points, beyond the
+/// cache, and its sort was a fifth of `track`'s instructions).
+#[derive(Default)]
+struct Gathered {
+    trajectories: Vec<Trajectory>,
+    /// Where each number's trajectory is in `trajectories`.
+    slots: HashMap<u64, usize>,
+}
+
+impl Gathered {
+    fn extend(&mut self, points: impl IntoIterator<Item = TrackPoint>) {
+        for point in points {
+            let slot = *self.slots.entry(point.trajectory).or_insert_with(|| {
+                self.trajectories.push(Trajectory {
+                    id: point.trajectory,
+                    points: Vec::new(),
+                });
+                self.trajectories.len() - 1
+            });
+            self.trajectories[slot].points.push(point);
         }
     }
-    trajectories
+
+    /// The trajectories by number, each in frame order (points of one
+    /// frame in the order given). A tracker hands out each trajectory's
+    /// points in frame order, so only the trajectories are sorted.
+    fn finish(mut self) -> Vec<Trajectory> {
+        self.trajectories.sort_unstable_by_key(|t| t.id);
+        for t in &mut self.trajectories {
+            if !t.points.windows(2).all(|w| w[0].frame <= w[1].frame) {
+                t.points.sort_by_key(|p| p.frame);
+            }
+        }
+        self.trajectories
+    }
 }
 
 #[cfg(test)]
