@@ -642,7 +642,7 @@ impl Tracker {
         };
         self.ahead.push_back(Frame {
             number,
-            grid: Grid::new(&particles, self.cell()),
+            grid: Grid::new(&particles, &missing, self.cell()),
             given: particles.len(),
             particles,
             targets,
@@ -714,7 +714,7 @@ impl Tracker {
             }
         }
         if next.particles.len() > before {
-            next.grid = Grid::new(&next.particles, self.cell());
+            next.grid = Grid::new(&next.particles, &next.missing, self.cell());
         }
     }
 
@@ -750,8 +750,14 @@ impl Tracker {
             let (predicted, radius) = self.prediction(live, next.number);
             near.clear();
             next.grid.within(&predicted, radius, &mut near);
-            for &c in &near {
-                let position = next.particles[c].position;
+            // Entries of the grids: each candidate's data is read there, in
+            // cell order next to its neighbours', not from the frame's
+            // arrays in input order (at 10,000+ particles a cache miss
+            // for each).
+            for &e in &near {
+                let c = next.grid.order[e] as usize;
+                let position = next.grid.points[e];
+                let sigma = next.grid.sigma[e];
                 let step = (position - last.position) / dt;
                 if step.norm() > p.max_velocity + floor {
                     continue;
@@ -763,7 +769,7 @@ impl Tracker {
                 if let Some(ahead) = ahead {
                     let dt2 = (ahead.number - next.number) as f64;
                     let predicted2 = position + step * dt2;
-                    let floor2 = noise_floor(&next.particles[c].sigma);
+                    let floor2 = noise_floor(&sigma);
                     near_ahead.clear();
                     ahead.grid.within(
                         &predicted2,
@@ -771,7 +777,7 @@ impl Tracker {
                         &mut near_ahead,
                     );
                     for &d in &near_ahead {
-                        let step2 = (ahead.particles[d].position - position) / dt2;
+                        let step2 = (ahead.grid.points[d] - position) / dt2;
                         if step2.norm() > p.max_velocity + floor2 {
                             continue;
                         }
@@ -789,9 +795,8 @@ impl Tracker {
                 // between points seen by all whose cost is within the
                 // noise's.
                 let source = if live.length == 1 { last.missing } else { 0 };
-                let penalty = (next.missing[c] + source) as f64
-                    * WEAK_PENALTY
-                    * cost_noise(&next.particles[c].sigma);
+                let penalty =
+                    (next.grid.missing[e] + source) as f64 * WEAK_PENALTY * cost_noise(&sigma);
                 let link = match best {
                     Some(cost) => Link {
                         rank: Link::rank(false, cost + penalty),
@@ -1015,9 +1020,10 @@ fn noise_floor(sigma: &Vector3<f64>) -> f64 {
 
 /// The particles of a frame filed by cell of a uniform grid over their
 /// bounding box: their indices sorted by cell (x, then y, then z fastest)
-/// with their positions alongside, and per cell where its run starts. A
-/// search visits, per (x, y) column of its box, one contiguous run of
-/// cells.
+/// with what a link's cost reads of them alongside (position, sigmas,
+/// cameras missed), and per cell where its run starts. A search visits,
+/// per (x, y) column of its box, one contiguous run of cells, and gives
+/// entries: neighbours in space are neighbours in memory.
 struct Grid {
     cell: f64,
     origin: Point3<f64>,
@@ -1025,17 +1031,22 @@ struct Grid {
     /// Per cell, the first entry of its run in `order` (and one past the
     /// end).
     starts: Vec<u32>,
-    /// Particle indices by cell.
+    /// Particle indices by cell: entry `e` is particle `order[e]`.
     order: Vec<u32>,
     /// Their positions, in the same order.
     points: Vec<Point3<f64>>,
+    /// Their standard deviations, in the same order.
+    sigma: Vec<Vector3<f64>>,
+    /// The cameras that missed them ([`Frame::missing`]), in the same
+    /// order.
+    missing: Vec<usize>,
 }
 
 impl Grid {
     /// Cells of side `cell`, or larger where the particles spread so far
     /// that cells of that side would outnumber them eightfold (outliers):
     /// a search's answer is the same, only slower.
-    fn new(particles: &[ParticlePosition], cell: f64) -> Grid {
+    fn new(particles: &[ParticlePosition], missing: &[usize], cell: f64) -> Grid {
         let mut low = Point3::origin();
         let mut high = Point3::origin();
         if let Some(first) = particles.first() {
@@ -1063,6 +1074,8 @@ impl Grid {
             starts: vec![0; dims[0] * dims[1] * dims[2] + 1],
             order: Vec::new(),
             points: Vec::new(),
+            sigma: Vec::new(),
+            missing: Vec::new(),
         };
         // Counting sort by cell.
         let keys: Vec<usize> = particles
@@ -1086,6 +1099,12 @@ impl Grid {
             .iter()
             .map(|&i| particles[i as usize].position)
             .collect();
+        grid.sigma = grid
+            .order
+            .iter()
+            .map(|&i| particles[i as usize].sigma)
+            .collect();
+        grid.missing = grid.order.iter().map(|&i| missing[i as usize]).collect();
         grid
     }
 
@@ -1103,8 +1122,8 @@ impl Grid {
         (c[0] * self.dims[1] + c[1]) * self.dims[2] + c[2]
     }
 
-    /// The particles within `radius` of `centre`, appended to `out` (in no
-    /// particular order).
+    /// The entries of the particles within `radius` of `centre`, appended
+    /// to `out` (in no particular order).
     fn within(&self, centre: &Point3<f64>, radius: f64, out: &mut Vec<usize>) {
         // Cells are clamped into the grid: a box beyond it reaches its
         // border cells, whose particles the distance test then rejects.
@@ -1117,7 +1136,7 @@ impl Grid {
                 let to = self.starts[self.key(&[i, j, high[2]]) + 1] as usize;
                 for e in from..to {
                     if (self.points[e] - centre).norm_squared() <= r2 {
-                        out.push(self.order[e] as usize);
+                        out.push(e);
                     }
                 }
             }
