@@ -13,18 +13,51 @@
 //! `FRAMES`, printed for each size (with the thread's CPU time, steadier
 //! than the wall clock on a shared machine).
 //!
-//! `taskset -c 0 cargo bench --bench track` (one core). Measured on the
-//! shared 2-core development machine (load about 5 from other builds):
-//! criterion 27.3 / 127 / 396 ms a 16-frame sequence, so 1.7 / 8.0 / 24.7
-//! ms a frame at 2,500 / 10,000 / 20,000 particles (one-shot CPU time
-//! 2.3 / 9.0 / 20.0 ms). The goal (10 ms at 10,000) is met; growth is
-//! linear from 2,500 to 10,000 (x4.7 for x4) but not beyond (x3.1 for x2
-//! to 20,000: the frames' and trajectories' data then outgrow the cache,
-//! and trajectories are visited in no spatial order). On the idle machine
-//! after the image-space recovery was merged (not used here): criterion
-//! 26.3 / 103.7 / 294.2 ms, 1.64 / 6.48 / 18.4 ms a frame (one-shot CPU
-//! time 2.00 / 8.25 / 18.50 ms): x3.9 for x4, then x2.8 (x2.2 one-shot)
-//! for x2.
+//! `taskset -c 0 cargo bench --bench track` (one core). Criterion
+//! measures the thread's CPU time (`ThreadCpu`), not the wall clock: on
+//! the shared 2-core development machine the wall clock doubled the
+//! times under a load of 6 while the CPU time moved by 10-25%.
+//!
+//! **What linear means here.** The volume is fixed and the displacement
+//! scales with the mean spacing (0.35 of it), and with it the search
+//! radii (`1.2` and `0.5` times the peak speed) and the grid's cells: a
+//! search finds as many candidates at every size, so the work per
+//! particle and frame is constant by construction (were the displacement
+//! fixed while the count doubles, the candidates per search would double,
+//! O(N²/V) by the physics). Linear is a constant cost per particle and
+//! frame.
+//!
+//! **Instructions** (the primary evidence: the machine's other users do
+//! not change them), `PTV_TRACK_ONCE=N valgrind --tool=callgrind
+//! --toggle-collect='*track_once*' target/release/deps/track-<hash>`, per
+//! particle and frame at 2,500 / 10,000 / 20,000 / 40,000: before this
+//! change 6,534 / 6,624 / 6,498 / 6,710, after 4,647 / 4,689 / 4,576 /
+//! 4,558. Flat both times: the old growth was never algorithmic. With
+//! `--cache-sim=yes --LL=1048576,16,64` (the 1 MB L2 of a core as the
+//! last level), misses per particle and frame at 2,500 / 10,000 / 20,000:
+//! before 51 / 84 / 105, after 36 / 50 / 59. That was the cause: the same
+//! instructions waiting longer on memory as the data outgrew the caches.
+//! Three things did it: `track()` sorted all its points at the end (50 MB
+//! of 160-byte points at 20,000, a fifth of the instructions, and beyond
+//! the L3 cache), now gathered by counting; the trajectories searched in
+//! the order they were made (random in space, so each search missed the
+//! cache), now in the order of their predictions' cells (the searches'
+//! misses fell eightfold); and a candidate's data read from the frame in
+//! input order, now from the grid in cell order.
+//!
+//! **Time**, criterion medians (CPU) of a 16-frame sequence at 2,500 /
+//! 10,000 / 20,000 / 40,000 particles, run alternately on the shared
+//! machine (load average 2.9-3.2): before 24.9 / 126.9 / 314.9 / 727.5
+//! ms; after 18.2 / 115.7 / 263.9 / 580.3 and 18.6 / 103.7 / 242.0 /
+//! 560.9 ms, so 1.16 / 6.5 / 15.1 / 35.1 ms a frame (the goal, 10 ms at
+//! 10,000, is met). Growth after: x5.6 for x4, then x2.3 and x2.3 for x2
+//! (before: x5.1, x2.5, x2.3). The step from 2,500 to 10,000 is still
+//! steeper than the count: at 2,500 most of the working set (two frames,
+//! the live trajectories' recent points) fits a core's 1 MB L2, at 10,000
+//! it does not; above that the cost per particle grows by about 15% per
+//! doubling. Not done: the trajectories' recent points (a `VecDeque` each,
+//! read by the fits in `hand_out`) stay where the allocator put them,
+//! now the largest single share of the misses (11% at 20,000).
 
 use std::hint::black_box;
 use std::time::Instant;
