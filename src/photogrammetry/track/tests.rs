@@ -523,3 +523,115 @@ fn the_window_keeps_its_points_at_the_ends() {
         assert!((p.derivatives.velocity.x - 1.0).abs() < 1e-9);
     }
 }
+
+/// Points in any order, with numbers far apart, are gathered as a stable
+/// sort by (trajectory, frame) would gather them.
+#[test]
+fn points_are_gathered_by_trajectory_in_frame_order() {
+    let mut rng = simulate::rng(15);
+    let ids = [7u64, 1 << 40, 3, 0, 12];
+    let mut points = Vec::new();
+    for (k, &id) in ids.iter().enumerate() {
+        for frame in 0..(3 + k as i64) {
+            points.push(TrackPoint {
+                trajectory: id,
+                frame: 100 - 2 * frame,
+                particle: rng.random_range(0..1000),
+                position: Point3::new(k as f64, frame as f64, 0.0),
+                derivatives: Derivatives {
+                    velocity: Vector3::zeros(),
+                    velocity_sigma: Vector3::zeros(),
+                    acceleration: None,
+                    acceleration_sigma: None,
+                },
+            });
+        }
+    }
+    points.shuffle(&mut rng);
+    let mut sorted = points.clone();
+    sorted.sort_by_key(|p| (p.trajectory, p.frame));
+    let gathered = trajectories(points);
+    assert_eq!(
+        gathered.iter().map(|t| t.id).collect::<Vec<_>>(),
+        vec![0, 3, 7, 12, 1 << 40]
+    );
+    for t in &gathered {
+        assert!(t.points.iter().all(|p| p.trajectory == t.id));
+    }
+    let flat: Vec<TrackPoint> = gathered.into_iter().flat_map(|t| t.points).collect();
+    assert_eq!(flat, sorted);
+}
+
+/// A link's integer rank orders links as (without a look-ahead partner,
+/// cost) does, zero and equal costs included.
+#[test]
+fn links_rank_as_their_confirmation_and_cost() {
+    let mut rng = simulate::rng(16);
+    let mut keys: Vec<(bool, f64)> = (0..2000)
+        .map(|_| {
+            let cost = match rng.random_range(0..4) {
+                0 => 0.0,
+                1 => 1.0,
+                2 => rng.random_range(0.0..1e-300),
+                _ => rng.random_range(0.0..1e3),
+            };
+            (rng.random_bool(0.3), cost)
+        })
+        .collect();
+    keys.sort_by(|a, b| a.partial_cmp(b).expect("finite"));
+    for pair in keys.windows(2) {
+        let (a, b) = (
+            Link::rank(pair[0].0, pair[0].1),
+            Link::rank(pair[1].0, pair[1].1),
+        );
+        assert_eq!(a.cmp(&b), pair[0].partial_cmp(&pair[1]).expect("finite"));
+    }
+}
+
+/// The grid's search finds exactly the particles within the radius (brute
+/// force), and `cell_order` is a permutation in the order of the cells.
+#[test]
+fn the_grid_finds_what_brute_force_finds_and_orders_by_cell() {
+    let mut rng = simulate::rng(17);
+    let particles: Vec<ParticlePosition> = (0..3000)
+        .map(|_| {
+            ParticlePosition::new(
+                Point3::from(Vector3::from_fn(|_, _| rng.random_range(-20.0..30.0))),
+                Vector3::repeat(0.01),
+            )
+        })
+        .collect();
+    let missing: Vec<usize> = (0..particles.len()).map(|i| i % 3).collect();
+    let grid = Grid::new(&particles, &missing, 2.5);
+    let mut near = Vec::new();
+    for _ in 0..300 {
+        // Centres also beyond the particles' box, radii across cells.
+        let centre = Point3::from(Vector3::from_fn(|_, _| rng.random_range(-30.0..40.0)));
+        let radius = rng.random_range(0.1..8.0);
+        near.clear();
+        grid.within(&centre, radius, &mut near);
+        let mut found: Vec<usize> = near.iter().map(|&e| grid.order[e] as usize).collect();
+        for &e in &near {
+            let i = grid.order[e] as usize;
+            assert_eq!(grid.points[e], particles[i].position);
+            assert_eq!(grid.missing[e], missing[i]);
+        }
+        found.sort_unstable();
+        let expected: Vec<usize> = (0..particles.len())
+            .filter(|&i| (particles[i].position - centre).norm_squared() <= radius * radius)
+            .collect();
+        assert_eq!(found, expected);
+    }
+    let queries: Vec<Point3<f64>> = (0..500)
+        .map(|_| Point3::from(Vector3::from_fn(|_, _| rng.random_range(-30.0..40.0))))
+        .collect();
+    let order = grid.cell_order(queries.iter().copied());
+    let mut seen = order.clone();
+    seen.sort_unstable();
+    assert_eq!(seen, (0..queries.len() as u32).collect::<Vec<_>>());
+    let keys: Vec<usize> = order
+        .iter()
+        .map(|&i| grid.key(&grid.cell_of(&queries[i as usize])))
+        .collect();
+    assert!(keys.windows(2).all(|k| k[0] <= k[1]));
+}
