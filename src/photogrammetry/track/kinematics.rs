@@ -106,7 +106,7 @@ pub(super) fn derivatives_at(
     }
     let latest = track.len() - span;
     let centred = k.saturating_sub(half_window).min(latest);
-    let fit = fit_once(&track[centred..centred + span], at, order)?;
+    let fit = fit_once(&track[centred..centred + span], at, order, false)?;
     if fit.consistent() {
         return Some(fit.derivatives);
     }
@@ -118,7 +118,7 @@ pub(super) fn derivatives_at(
             .flatten()
             .filter(|s| (low..=high).contains(s))
         {
-            if let Some(other) = fit_once(&track[start..start + span], at, order) {
+            if let Some(other) = fit_once(&track[start..start + span], at, order, false) {
                 if other.consistent() {
                     return Some(other.derivatives);
                 }
@@ -172,11 +172,11 @@ pub(super) fn end_is_intruder(
         let window = &track[track.len() - span..];
         (window, window[span - 1], &window[..span - 1])
     };
-    match fit_once(window, point.frame, order) {
+    match fit_once(window, point.frame, order, false) {
         Some(f) if f.chi2 > f.quantile(Z_GROSS) => {}
         _ => return false,
     }
-    let Some(cubic) = fit_once(others, point.frame, 3) else {
+    let Some(cubic) = fit_once(others, point.frame, 3, false) else {
         return false;
     };
     let d2: f64 = (0..3)
@@ -202,7 +202,7 @@ pub(super) fn end_is_intruder(
 /// window stays over-determined without that sample, the fit is repeated
 /// without it.
 pub(super) fn robust_fit(samples: &[Sample], at: i64, order: usize) -> Option<Derivatives> {
-    let first = fit_once(samples, at, order)?;
+    let first = fit_once(samples, at, order, true)?;
     let Some((worst, chi2)) = first.worst else {
         return Some(first.derivatives);
     };
@@ -220,7 +220,7 @@ pub(super) fn robust_fit(samples: &[Sample], at: i64, order: usize) -> Option<De
         }
     }
     Some(
-        fit_once(&rest[..n], at, order)
+        fit_once(&rest[..n], at, order, false)
             .map(|f| f.derivatives)
             .unwrap_or(first.derivatives),
     )
@@ -287,7 +287,10 @@ impl Fit {
     }
 }
 
-fn fit_once(samples: &[Sample], at: i64, order: usize) -> Option<Fit> {
+/// The weighted least-squares fit of `samples` at `at`; with `standardize`
+/// also each sample's standardized residual (its leverage costs a
+/// quadratic form per sample and axis), for [`Fit::worst`].
+fn fit_once(samples: &[Sample], at: i64, order: usize, standardize: bool) -> Option<Fit> {
     if samples.len() < 2 || samples.len() > MAX_SAMPLES {
         return None;
     }
@@ -304,9 +307,27 @@ fn fit_once(samples: &[Sample], at: i64, order: usize) -> Option<Fit> {
         // Normal equations of the weighted least squares, per axis (the
         // weights differ per axis), in fixed-size matrices: no allocation.
         let ([b0, b1, b2], [var0, var1, var2]) = match order {
-            1 => solve::<2>(samples, at, axis, &mut standardized, &mut chi2)?,
-            2 => solve::<3>(samples, at, axis, &mut standardized, &mut chi2)?,
-            _ => solve::<4>(samples, at, axis, &mut standardized, &mut chi2)?,
+            1 => solve::<2>(
+                samples,
+                at,
+                axis,
+                standardize.then_some(&mut standardized),
+                &mut chi2,
+            )?,
+            2 => solve::<3>(
+                samples,
+                at,
+                axis,
+                standardize.then_some(&mut standardized),
+                &mut chi2,
+            )?,
+            _ => solve::<4>(
+                samples,
+                at,
+                axis,
+                standardize.then_some(&mut standardized),
+                &mut chi2,
+            )?,
         };
         position[axis] = b0;
         position_variance[axis] = var0.max(0.0);
@@ -318,7 +339,7 @@ fn fit_once(samples: &[Sample], at: i64, order: usize) -> Option<Fit> {
         }
     }
     let dof = 3 * (samples.len() - order - 1);
-    let worst = (dof > 0)
+    let worst = (standardize && dof > 0)
         .then(|| {
             standardized[..samples.len()]
                 .iter()
@@ -351,7 +372,7 @@ fn solve<const D: usize>(
     samples: &[Sample],
     at: i64,
     axis: usize,
-    standardized: &mut [f64; MAX_SAMPLES],
+    mut standardized: Option<&mut [f64; MAX_SAMPLES]>,
     chi2: &mut f64,
 ) -> Option<([f64; 3], [f64; 3])> {
     let powers = |s: &Sample| {
@@ -372,15 +393,17 @@ fn solve<const D: usize>(
     }
     let inverse = normal.try_inverse()?;
     let b = inverse * rhs;
-    for (s, c) in samples.iter().zip(standardized.iter_mut()) {
+    for (i, s) in samples.iter().enumerate() {
         let w = s.sigma[axis].powi(-2);
         let a = powers(s);
         let residual = s.position[axis] - a.dot(&b);
         *chi2 += residual * residual * w;
-        let leverage = w * (a.transpose() * inverse * a)[0];
-        let free = 1.0 - leverage;
-        if free > 1e-9 {
-            *c += residual * residual * w / free;
+        if let Some(standardized) = standardized.as_deref_mut() {
+            let leverage = w * (a.transpose() * inverse * a)[0];
+            let free = 1.0 - leverage;
+            if free > 1e-9 {
+                standardized[i] += residual * residual * w / free;
+            }
         }
     }
     Some(if D > 2 {
