@@ -353,6 +353,14 @@ fn targets_columns(targets: &[Option<usize>]) -> String {
 }
 
 /// A CSV number, NaN as written by `{:?}`, an empty field as `None`.
+/// The service's CSV rows are `ptv track`'s, one for one.
+fn assert_same_rows(service: &[impl AsRef<str>], cli: &[String]) {
+    assert_eq!(service.len(), cli.len(), "rows: service against ptv track");
+    for (k, (service, cli)) in service.iter().zip(cli).enumerate() {
+        assert_eq!(service.as_ref(), cli, "row {k}");
+    }
+}
+
 fn number(field: &str) -> Option<f64> {
     (!field.is_empty()).then(|| field.parse::<f64>().unwrap())
 }
@@ -481,14 +489,7 @@ async fn a_sequence_uploaded_out_of_order_by_four_clients_is_tracked_as_ptv_trac
     let lines: Vec<String> = csv.lines().map(str::to_owned).collect();
     let all: Vec<Option<&TargetFrame>> = frames.iter().map(Some).collect();
     let (expected, recovered) = ptv_track_targets(&rig, &all, MAX_VELOCITY, &[]);
-    assert_eq!(
-        lines.len(),
-        expected.len(),
-        "rows: service against ptv track"
-    );
-    for (k, (service, cli)) in lines.iter().zip(&expected).enumerate() {
-        assert_eq!(service, cli, "row {k}");
-    }
+    assert_same_rows(&lines, &expected);
     let points = csv_points(&lines);
     let trajectories = points.iter().map(|p| p.trajectory).max().unwrap() + 1;
     assert_eq!(run["trajectories"], trajectories, "{run}");
@@ -870,14 +871,7 @@ async fn a_kill_during_tracking_then_a_restart_gives_the_same_trajectories() {
         recovered > 0,
         "nothing recovered: the replay's recovery is not tested"
     );
-    assert_eq!(
-        lines.len(),
-        expected.len(),
-        "rows: service against ptv track"
-    );
-    for (k, (service, cli)) in lines.iter().zip(&expected).enumerate() {
-        assert_eq!(service, cli, "row {k}");
-    }
+    assert_same_rows(&lines, &expected);
 }
 
 #[tokio::test]

@@ -306,28 +306,11 @@ fn fit_once(samples: &[Sample], at: i64, order: usize, standardize: bool) -> Opt
     for axis in 0..3 {
         // Normal equations of the weighted least squares, per axis (the
         // weights differ per axis), in fixed-size matrices: no allocation.
+        let residuals = standardize.then_some(&mut standardized);
         let ([b0, b1, b2], [var0, var1, var2]) = match order {
-            1 => solve::<2>(
-                samples,
-                at,
-                axis,
-                standardize.then_some(&mut standardized),
-                &mut chi2,
-            )?,
-            2 => solve::<3>(
-                samples,
-                at,
-                axis,
-                standardize.then_some(&mut standardized),
-                &mut chi2,
-            )?,
-            _ => solve::<4>(
-                samples,
-                at,
-                axis,
-                standardize.then_some(&mut standardized),
-                &mut chi2,
-            )?,
+            1 => solve::<2>(samples, at, axis, residuals, &mut chi2)?,
+            2 => solve::<3>(samples, at, axis, residuals, &mut chi2)?,
+            _ => solve::<4>(samples, at, axis, residuals, &mut chi2)?,
         };
         position[axis] = b0;
         position_variance[axis] = var0.max(0.0);

@@ -451,11 +451,9 @@ async fn file_in_use(conn: &mut sqlx::SqliteConnection, sha256: &str) -> Result<
 mod tests {
     use super::*;
 
-    /// A database as the version before migration 3 left it: a calibration
-    /// stored from the API, one solved by a job, a processed frame and one
-    /// still queued, a job of a plug-in kind; the results as they stored
-    /// them, as paths.
-    async fn database_of_version_2(data_dir: &Path) {
+    /// The database in `data_dir` (created where missing) with its first
+    /// `version` migrations run, on one connection.
+    async fn migrated_to(data_dir: &Path, version: usize) -> sqlx::SqlitePool {
         let pool = SqlitePoolOptions::new()
             .max_connections(1)
             .connect_with(
@@ -465,12 +463,21 @@ mod tests {
             )
             .await
             .unwrap();
-        Migrator::new(Migrations(&MIGRATIONS[..2]))
+        Migrator::new(Migrations(&MIGRATIONS[..version]))
             .await
             .unwrap()
             .run(&pool)
             .await
             .unwrap();
+        pool
+    }
+
+    /// A database as the version before migration 3 left it: a calibration
+    /// stored from the API, one solved by a job, a processed frame and one
+    /// still queued, a job of a plug-in kind; the results as they stored
+    /// them, as paths.
+    async fn database_of_version_2(data_dir: &Path) {
+        let pool = migrated_to(data_dir, 2).await;
         sqlx::raw_sql(
             "INSERT INTO calibrations (id, model, cameras) VALUES (1, '{}', 2), (2, '{}', 2);
              INSERT INTO jobs (id, kind, payload, state, result) VALUES
@@ -624,17 +631,7 @@ mod tests {
     async fn particles_stored_before_migration_5_name_their_sequences_calibration() {
         let dir = tempfile::tempdir().unwrap();
         database_of_version_2(dir.path()).await;
-        let pool = SqlitePoolOptions::new()
-            .max_connections(1)
-            .connect_with(SqliteConnectOptions::new().filename(dir.path().join("ptv.sqlite")))
-            .await
-            .unwrap();
-        Migrator::new(Migrations(&MIGRATIONS[..4]))
-            .await
-            .unwrap()
-            .run(&pool)
-            .await
-            .unwrap();
+        let pool = migrated_to(dir.path(), 4).await;
         sqlx::raw_sql(
             "INSERT INTO sequences (id, calibration_id, name, parameters, keep_images)
                  VALUES (2, 2, '', '{}', 1);
@@ -672,17 +669,7 @@ mod tests {
     async fn tracking_runs_before_migration_7_have_no_calibration_and_new_ones_their_sequences() {
         let dir = tempfile::tempdir().unwrap();
         database_of_version_2(dir.path()).await;
-        let pool = SqlitePoolOptions::new()
-            .max_connections(1)
-            .connect_with(SqliteConnectOptions::new().filename(dir.path().join("ptv.sqlite")))
-            .await
-            .unwrap();
-        Migrator::new(Migrations(&MIGRATIONS[..6]))
-            .await
-            .unwrap()
-            .run(&pool)
-            .await
-            .unwrap();
+        let pool = migrated_to(dir.path(), 6).await;
         let old_settings = r#"{"max_velocity":2.0,"max_acceleration":1.0,"max_gap":1,"min_length":3,"fit_half_window":2,"fit_order":2,"first_frame":0}"#;
         sqlx::query("INSERT INTO tracking_runs (id, sequence_id, parameters) VALUES (1, 1, ?)")
             .bind(old_settings)
