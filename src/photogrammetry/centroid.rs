@@ -3,7 +3,7 @@
 //!
 //! The design paper (section 6.1) takes the grey value weighted centre of
 //! gravity of a particle's pixels; that is [`Centroid::Weighted`], the
-//! default, computed in [`super::detect`] (step 4) as OpenPTV's `targ_rec`
+//! default, computed in [`super::detect`](mod@super::detect) (step 4) as OpenPTV's `targ_rec`
 //! does. [`Centroid::Gaussian`] fits a Gaussian instead, by the 3-point
 //! estimator per axis that PIV uses for correlation peaks (Willert &
 //! Gharib 1991, Exp. Fluids 10) and that Ouellette, Xu & Bodenschatz

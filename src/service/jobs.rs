@@ -241,7 +241,7 @@ impl CpuPool {
 
     /// [`CpuPool::run`] for work that checks `cancel` (a deadline, or a
     /// waiter that may go away): the token's deadline is its own to notice;
-    /// [`STOP_GRACE`] after it the token is stopped from here, and if the
+    /// `STOP_GRACE` after it the token is stopped from here, and if the
     /// work has still not returned after another grace, the wait ends with
     /// [`CpuError::Overran`] (the thread stays busy until the work's next
     /// check; every loop of the core checks within milliseconds).

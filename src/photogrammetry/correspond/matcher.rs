@@ -49,7 +49,7 @@ pub struct Matcher {
 /// The narrowest band (px) to which a search narrows a wider tolerance
 /// once the frame shows its noise: 0.5 px, 5 sigma of a pair's epipolar
 /// distance at 0.1 px image noise, about the best subpixel centroids.
-/// The epipolar curves are sampled to within [`PARABOLA_SHARE`] of it, so
+/// The epipolar curves are sampled to within `PARABOLA_SHARE` of it, so
 /// a narrowed band is as exact as one given.
 pub const NARROWEST_BAND_PX: f64 = 0.5;
 

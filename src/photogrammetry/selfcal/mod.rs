@@ -26,7 +26,7 @@
 //!    other target within `isolation_px`: crowded targets are where wrong
 //!    members come from), spread over the volume with a cap per
 //!    sub-volume (the best-fitting first), so that no region dominates.
-//! 3. **Adjust** ([`bundle`]): a bundle adjustment with the cameras' free
+//! 3. **Adjust** (`bundle`): a bundle adjustment with the cameras' free
 //!    parameters and the particles' 3D positions as unknowns and the
 //!    refraction inside the model (the calibration's observation equations,
 //!    section 4.3/5 of the design paper, Eq. 1-12). Robust to the

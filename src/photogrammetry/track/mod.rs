@@ -1058,7 +1058,7 @@ fn floor_sigmas(particles: &mut [ParticlePosition]) -> Vector3<f64> {
 }
 
 /// The ranking's penalty for each camera that missed a candidate, in
-/// units of [`cost_noise`]: a candidate seen by all cameras wins unless
+/// units of `cost_noise`: a candidate seen by all cameras wins unless
 /// its cost is worse by more than this many times the noise's.
 pub const WEAK_PENALTY: f64 = 2.0;
 

@@ -18,7 +18,7 @@
 //! IMMEDIATE` on the one writer fails ("attempted to call begin_with at
 //! non-zero transaction depth") until the process restarts. The writer
 //! pool therefore checks every connection it gets back
-//! (`after_release`, [`left_clean`]): the queued rollback has run by then
+//! (`after_release`, `left_clean`): the queued rollback has run by then
 //! (the connection's worker runs its commands in order), and a connection
 //! that sqlx or SQLite still thinks inside a transaction is closed, not
 //! returned (closing rolls back whatever SQLite still holds). The next
@@ -34,10 +34,10 @@
 //! (SQLite's page limit), for tests.
 //!
 //! One file per table group, each with its own `impl Store`:
-//! [`calibrations`](self::calibrations), [`sequences`](self::sequences)
-//! (sequences and their frames' inputs and results) and [`jobs`](self::jobs)
-//! (the queue and the jobs' input files), [`selfcal`](self::selfcal)
-//! (refined calibrations, reprocessing), [`tracking`](self::tracking)
+//! `calibrations`, `sequences`
+//! (sequences and their frames' inputs and results) and `jobs`
+//! (the queue and the jobs' input files), `selfcal`
+//! (refined calibrations, reprocessing), `tracking`
 //! (tracking runs, the frames they took, trajectory points); here the pools, the migrations
 //! and what they share.
 
