@@ -564,6 +564,20 @@ pub struct TargetFrame {
     pub truth: Vec<Vec<usize>>,
 }
 
+/// A target at `p` with the shape of a small particle image (9 pixels,
+/// 3x3, sum of grey 900): what `target_frame` and tests give the
+/// correspondences, which read only the position.
+pub fn ideal_target(p: Point2<f64>) -> Target {
+    Target {
+        x: p.x,
+        y: p.y,
+        n: 9,
+        nx: 3,
+        ny: 3,
+        sumg: 900,
+    }
+}
+
 /// The targets of `points` in every camera: exact images plus Gaussian
 /// noise of `noise_px`, each image lost with probability `drop_fraction`
 /// (mimicking overlaps and weak particles), shuffled per camera so that the
@@ -588,18 +602,7 @@ pub fn target_frame(
             .collect();
         kept.shuffle(rng);
         truth.push(kept.iter().map(|(j, _)| *j).collect());
-        targets.push(
-            kept.iter()
-                .map(|(_, p)| Target {
-                    x: p.x,
-                    y: p.y,
-                    n: 9,
-                    nx: 3,
-                    ny: 3,
-                    sumg: 900,
-                })
-                .collect(),
-        );
+        targets.push(kept.iter().map(|(_, p)| ideal_target(*p)).collect());
     }
     TargetFrame { targets, truth }
 }

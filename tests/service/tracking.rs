@@ -151,6 +151,25 @@ impl Api {
 
     /// Says the sequence is complete and waits for its run to finish; the
     /// run's view.
+    /// The sequence's trajectories as CSV rows, asserted to be `ptv track
+    /// --targets`'s on all of `frames` (recovery on), row for row; and
+    /// how many particles `ptv track` recovered.
+    async fn tracked_as_ptv_track(
+        &self,
+        sequence: i64,
+        rig: &Rig,
+        frames: &[TargetFrame],
+    ) -> (Vec<String>, usize) {
+        let csv = self
+            .text(&format!("/sequences/{sequence}/trajectories?format=csv"))
+            .await;
+        let lines: Vec<String> = csv.lines().map(str::to_owned).collect();
+        let all: Vec<Option<&TargetFrame>> = frames.iter().map(Some).collect();
+        let (expected, recovered) = ptv_track_targets(rig, &all, MAX_VELOCITY, &[]);
+        assert_same_rows(&lines, &expected);
+        (lines, recovered)
+    }
+
     async fn finish(&self, sequence: i64) -> Value {
         wait_for_sequence(&self.client, &self.address, sequence).await;
         let (status, body) = self
@@ -483,13 +502,7 @@ async fn a_sequence_uploaded_out_of_order_by_four_clients_is_tracked_as_ptv_trac
     // recovery, writes the same CSV, row for row once its rows (written as
     // they become final) are sorted: the same particles matched, the same
     // particles recovered, the same links, the same numbers to the bit.
-    let csv = api
-        .text(&format!("/sequences/{sequence}/trajectories?format=csv"))
-        .await;
-    let lines: Vec<String> = csv.lines().map(str::to_owned).collect();
-    let all: Vec<Option<&TargetFrame>> = frames.iter().map(Some).collect();
-    let (expected, recovered) = ptv_track_targets(&rig, &all, MAX_VELOCITY, &[]);
-    assert_same_rows(&lines, &expected);
+    let (lines, recovered) = api.tracked_as_ptv_track(sequence, &rig, &frames).await;
     let points = csv_points(&lines);
     let trajectories = points.iter().map(|p| p.trajectory).max().unwrap() + 1;
     assert_eq!(run["trajectories"], trajectories, "{run}");
@@ -861,17 +874,11 @@ async fn a_kill_during_tracking_then_a_restart_gives_the_same_trajectories() {
     assert_eq!(run["settings"]["recovery"], true, "{run}");
     // The tracker rebuilt by replay recovered what the one killed had, so
     // the trajectories are `ptv track`'s on the same targets, row for row.
-    let csv = api
-        .text(&format!("/sequences/{sequence}/trajectories?format=csv"))
-        .await;
-    let lines: Vec<&str> = csv.lines().collect();
-    let all: Vec<Option<&TargetFrame>> = frames.iter().map(Some).collect();
-    let (expected, recovered) = ptv_track_targets(&rig, &all, MAX_VELOCITY, &[]);
+    let (_, recovered) = api.tracked_as_ptv_track(sequence, &rig, &frames).await;
     assert!(
         recovered > 0,
         "nothing recovered: the replay's recovery is not tested"
     );
-    assert_same_rows(&lines, &expected);
 }
 
 #[tokio::test]

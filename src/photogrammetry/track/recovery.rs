@@ -461,16 +461,7 @@ mod tests {
         (spec, cameras)
     }
 
-    fn target(p: Point2<f64>) -> Target {
-        Target {
-            x: p.x,
-            y: p.y,
-            n: 9,
-            nx: 3,
-            ny: 3,
-            sumg: 900,
-        }
-    }
+    use crate::photogrammetry::simulate::ideal_target as target;
 
     #[test]
     fn a_missed_particle_is_found_where_its_trajectory_predicts_it() {
