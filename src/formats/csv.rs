@@ -20,6 +20,9 @@
 //!   of its target in that camera's list (`-1` where it has none).
 //! - targets, written by `ptv detect` and read by `ptv match`:
 //!   `x,y,n,nx,ny,sumg`.
+//! - trajectories, written by `ptv track` and read by `ptv plot
+//!   trajectories`: `trajectory,frame,x,y,z,u,v,w,...`, the velocity `NaN`
+//!   (or empty) where the fit gives none; other columns are ignored.
 //!
 //! Readers match header names exactly after trimming surrounding
 //! whitespace, trim every field, skip a UTF-8 byte order mark and blank
@@ -158,6 +161,60 @@ pub fn parse_particles(text: &str, source: &str) -> Result<Vec<ParticleRow>, For
         Ok(())
     })?;
     Ok(particles)
+}
+
+/// A point of a trajectory read from `ptv track`'s table.
+#[derive(Clone, Debug, PartialEq)]
+pub struct TrajectoryPointRow {
+    /// The trajectory's number.
+    pub trajectory: u64,
+    /// The frame.
+    pub frame: u64,
+    /// Position (mm).
+    pub position: Point3<f64>,
+    /// Velocity (mm per frame), where the fit gives one.
+    pub velocity: Option<nalgebra::Vector3<f64>>,
+}
+
+/// Reads a trajectories table as `ptv track` writes it:
+/// `trajectory,frame,x,y,z` required, `u,v,w` where the header has them
+/// (`NaN` or empty for none); other columns ignored. In file order.
+pub fn parse_trajectories(
+    text: &str,
+    source: &str,
+) -> Result<Vec<TrajectoryPointRow>, FormatError> {
+    let header = header_names(text);
+    let velocities = ["u", "v", "w"]
+        .iter()
+        .all(|c| header.iter().any(|h| h == c));
+    let mut columns = vec!["trajectory", "frame", "x", "y", "z"];
+    if velocities {
+        columns.extend(["u", "v", "w"]);
+    }
+    let mut points = Vec::new();
+    read_table(text, source, &columns, |row| {
+        let velocity = if velocities {
+            let mut v = [0.0; 3];
+            let mut known = true;
+            for (k, value) in v.iter_mut().enumerate() {
+                match row.field(5 + k)? {
+                    "" | "NaN" | "nan" => known = false,
+                    _ => *value = row.number(5 + k)?,
+                }
+            }
+            known.then(|| nalgebra::Vector3::from(v))
+        } else {
+            None
+        };
+        points.push(TrajectoryPointRow {
+            trajectory: row.integer(0)?,
+            frame: row.integer(1)?,
+            position: Point3::new(row.number(2)?, row.number(3)?, row.number(4)?),
+            velocity,
+        });
+        Ok(())
+    })?;
+    Ok(points)
 }
 
 /// The names in a table's header line (its first line that is not blank),
@@ -610,6 +667,34 @@ mod tests {
         assert_eq!(
             points,
             vec![Point3::new(1.0, 2.0, 3.0), Point3::new(4.25, -1.0, -5.0)]
+        );
+    }
+
+    #[test]
+    fn trajectories_read_as_ptv_track_writes_them() {
+        let text = "trajectory,frame,x,y,z,u,v,w,ax,ay,az,su,sv,sw,cameras,t0,t1\n\
+                    0,10,1.5,2,3,0.5,-1,0,,,,0.1,0.1,0.1,2,4,7\n\
+                    0,11,2,1,3,NaN,NaN,NaN,,,,NaN,NaN,NaN,2,5,-1\n";
+        let points = parse_trajectories(text, "t.csv").unwrap();
+        assert_eq!(points.len(), 2);
+        assert_eq!(points[0].trajectory, 0);
+        assert_eq!(points[0].frame, 10);
+        assert_eq!(points[0].position, Point3::new(1.5, 2.0, 3.0));
+        assert_eq!(points[0].velocity, Some(Vector3::new(0.5, -1.0, 0.0)));
+        assert_eq!(points[1].velocity, None);
+        // Without velocities; errors name the file, line and column.
+        let points = parse_trajectories("trajectory,frame,x,y,z\n3,1,0,0,0\n", "t").unwrap();
+        assert_eq!(points[0].velocity, None);
+        let error = parse_trajectories("trajectory,frame,x,y\n", "t.csv").unwrap_err();
+        assert!(
+            error.to_string().contains("t.csv: line 1, column z"),
+            "{error}"
+        );
+        let error =
+            parse_trajectories("trajectory,frame,x,y,z\n-1,0,0,0,0\n", "t.csv").unwrap_err();
+        assert!(
+            error.to_string().contains("line 2, column trajectory"),
+            "{error}"
         );
     }
 

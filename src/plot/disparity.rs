@@ -10,11 +10,113 @@
 //! arrow from the cell's centre, in the camera's image axes (x right, y
 //! down), on one scale for the whole picture (the scale bar at the top).
 //! Cells without particles are light grey, without an arrow.
+//!
+//! Drawn from [`DisparityMaps`], the part of the report's JSON the picture
+//! needs, read from a stored or written report (`ptv plot disparity`, the
+//! service's `disparity.png`) or taken from a report in memory (`ptv
+//! selfcalibrate --disparity-png`) through the same JSON.
 
-use image::{Rgb, RgbImage};
+use image::Rgb;
+use serde::Deserialize;
 
-use super::{heat, text_height, text_width, Canvas, BLACK, GREY};
-use crate::photogrammetry::selfcal::{DisparityCell, SelfCalibrationReport};
+use super::{
+    format_value, heat, lenient_f64, nice, render, text_height, text_width, Draw, PlotError,
+    PlotFormat, BLACK, GREY,
+};
+use crate::photogrammetry::selfcal::SelfCalibrationReport;
+use crate::photogrammetry::volume::Volume;
+
+/// The disparity maps of a self-calibration report: the fields of its
+/// JSON ([`SelfCalibrationReport`]) the picture draws.
+#[derive(Clone, Debug, Deserialize)]
+pub struct DisparityMaps {
+    /// The observation volume.
+    pub volume: Volume,
+    /// Sub-volumes per axis.
+    pub grid: [usize; 3],
+    /// Per camera.
+    pub cameras: Vec<CameraMaps>,
+}
+
+/// One camera's maps.
+#[derive(Clone, Debug, Deserialize)]
+pub struct CameraMaps {
+    /// The camera's name.
+    pub name: String,
+    /// Disparities before.
+    pub before: Rms,
+    /// Disparities after.
+    pub after: Rms,
+    /// The map before.
+    pub map_before: Map,
+    /// The map after.
+    pub map_after: Map,
+}
+
+/// An RMS disparity (px; NaN where the report has none).
+#[derive(Clone, Debug, Deserialize)]
+pub struct Rms {
+    /// RMS length (px).
+    #[serde(deserialize_with = "lenient_f64")]
+    pub rms_px: f64,
+}
+
+/// A map's cells with particles.
+#[derive(Clone, Debug, Deserialize)]
+pub struct Map {
+    /// The cells.
+    pub cells: Vec<Cell>,
+}
+
+/// One cell: its index and mean disparity vector (px).
+#[derive(Clone, Debug, Deserialize)]
+pub struct Cell {
+    /// Index along x, y, z.
+    pub index: [usize; 3],
+    /// Mean disparity, x (px).
+    #[serde(deserialize_with = "lenient_f64")]
+    pub mean_dx_px: f64,
+    /// Mean disparity, y (px).
+    #[serde(deserialize_with = "lenient_f64")]
+    pub mean_dy_px: f64,
+}
+
+impl DisparityMaps {
+    /// The maps of a report in memory (through its JSON, as a stored one
+    /// is read).
+    pub fn from_report(report: &SelfCalibrationReport) -> Result<DisparityMaps, PlotError> {
+        let value = serde_json::to_value(report).map_err(|e| PlotError::Input {
+            input: "the self-calibration report".to_owned(),
+            reason: e.to_string(),
+        })?;
+        DisparityMaps::from_value(value, "the self-calibration report")
+    }
+
+    /// The maps of a report's JSON text; a calibration's (resection)
+    /// report has none, which the error says.
+    pub fn from_json(text: &str, source: &str) -> Result<DisparityMaps, PlotError> {
+        let value: serde_json::Value =
+            serde_json::from_str(text).map_err(|e| PlotError::Input {
+                input: source.to_owned(),
+                reason: format!("not JSON: {e}"),
+            })?;
+        DisparityMaps::from_value(value, source)
+    }
+
+    fn from_value(value: serde_json::Value, source: &str) -> Result<DisparityMaps, PlotError> {
+        if value.get("outcome").is_none() {
+            return Err(PlotError::Missing(format!(
+                "{source} is not a self-calibration's report (`ptv selfcalibrate`, or a \
+                 calibration refined by POST /sequences/{{id}}/self-calibration): only those \
+                 have disparity maps"
+            )));
+        }
+        serde_path_to_error::deserialize(value).map_err(|e| PlotError::Input {
+            input: source.to_owned(),
+            reason: e.to_string(),
+        })
+    }
+}
 
 /// The colour of empty cells.
 pub const EMPTY: Rgb<u8> = Rgb([235, 235, 235]);
@@ -23,7 +125,7 @@ pub const EMPTY: Rgb<u8> = Rgb([235, 235, 235]);
 pub const ARROW: Rgb<u8> = BLACK;
 
 /// The largest picture side (pixels): finer grids than fit are refused.
-pub const MAX_SIDE: u32 = 8000;
+pub const MAX_SIDE: u32 = super::MAX_SIDE;
 
 const MARGIN: u32 = 20;
 const PANEL_GAP: u32 = 8;
@@ -51,9 +153,6 @@ pub enum DisparityPictureError {
         /// The picture's height.
         height: u32,
     },
-    /// The PNG encoder failed.
-    #[error("the picture could not be encoded as PNG: {0}")]
-    Encode(String),
 }
 
 /// Where things are in the picture.
@@ -77,7 +176,7 @@ pub struct DisparityLayout {
 
 impl DisparityLayout {
     /// The layout of a report's picture.
-    fn of(report: &SelfCalibrationReport) -> Result<DisparityLayout, DisparityPictureError> {
+    pub fn of(report: &DisparityMaps) -> Result<DisparityLayout, DisparityPictureError> {
         let names: Vec<&str> = report.cameras.iter().map(|c| c.name.as_str()).collect();
         let max = report
             .cameras
@@ -194,28 +293,13 @@ fn finite(v: f64) -> f64 {
     }
 }
 
-fn mean_length(cell: &DisparityCell) -> f64 {
+fn mean_length(cell: &Cell) -> f64 {
     finite(cell.mean_dx_px).hypot(finite(cell.mean_dy_px))
 }
 
-/// A round value for the scale bar: 1, 2 or 5 times a power of ten, at
-/// most `max`.
-fn nice(max: f64) -> f64 {
-    let power = 10f64.powf(max.log10().floor());
-    [5.0, 2.0, 1.0]
-        .into_iter()
-        .map(|m| m * power)
-        .find(|v| *v <= max)
-        .unwrap_or(power)
-}
-
-/// Draws the disparity maps of `report`; the picture and where its cells
-/// are.
-pub fn disparity_picture(
-    report: &SelfCalibrationReport,
-) -> Result<(RgbImage, DisparityLayout), DisparityPictureError> {
-    let layout = DisparityLayout::of(report)?;
-    let mut canvas = Canvas::new(layout.width, layout.height);
+/// Draws the disparity maps of `report` on `canvas`, laid out by
+/// `layout` ([`DisparityLayout::of`] the same maps).
+pub fn draw_disparity(canvas: &mut dyn Draw, report: &DisparityMaps, layout: &DisparityLayout) {
     let (m, mut y) = (MARGIN as i64, MARGIN as i64);
     canvas.text(
         m,
@@ -360,20 +444,20 @@ pub fn disparity_picture(
             }
         }
     }
-    Ok((canvas.into_image(), layout))
 }
 
-/// A value for a label: short, without trailing zeros.
-fn format_value(v: f64) -> String {
-    let text = format!("{v:.3}");
-    let text = text.trim_end_matches('0').trim_end_matches('.');
-    text.to_owned()
+/// The disparity maps of `report` as a picture's bytes.
+pub fn disparity_plot(report: &DisparityMaps, format: PlotFormat) -> Result<Vec<u8>, PlotError> {
+    let layout = DisparityLayout::of(report)?;
+    render(format, (layout.width, layout.height), |d| {
+        draw_disparity(d, report, &layout)
+    })
 }
 
-/// The disparity maps of `report` as a PNG file's bytes.
-pub fn disparity_png(report: &SelfCalibrationReport) -> Result<Vec<u8>, DisparityPictureError> {
-    let (image, _) = disparity_picture(report)?;
-    super::to_png(&image).map_err(|e| DisparityPictureError::Encode(e.to_string()))
+/// The disparity maps of a report in memory as a PNG file's bytes (`ptv
+/// selfcalibrate --disparity-png`).
+pub fn disparity_png(report: &SelfCalibrationReport) -> Result<Vec<u8>, PlotError> {
+    disparity_plot(&DisparityMaps::from_report(report)?, PlotFormat::Png)
 }
 
 #[cfg(test)]
@@ -401,14 +485,5 @@ mod tests {
             assert_eq!(layout.max_disparity_px, 1.0);
             assert!(layout.arrow_scale.is_finite());
         }
-    }
-
-    #[test]
-    fn scale_bar_values_are_round() {
-        assert_eq!(nice(9.4), 5.0);
-        assert_eq!(nice(0.27), 0.2);
-        assert_eq!(nice(1.0), 1.0);
-        assert_eq!(format_value(0.2), "0.2");
-        assert_eq!(format_value(5.0), "5");
     }
 }

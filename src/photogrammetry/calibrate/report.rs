@@ -67,6 +67,9 @@ pub struct PointResidual {
     pub x_px: f64,
     /// Residual in y (px).
     pub y_px: f64,
+    /// Where the point was measured in the image (px): the residual's
+    /// place on the sensor, for plots of the residuals over it.
+    pub image_px: [f64; 2],
     /// The data-snooping statistic `vᵀQvv⁻¹v / sigma0²` (chi-square, 2
     /// degrees of freedom), for excluded points from the last adjustment
     /// that included them; `None` where the point cannot be tested.
@@ -241,10 +244,11 @@ pub(super) fn camera_report(
         .iter()
         .zip(&stats.residuals)
         .zip(&stats.test)
-        .map(|(((id, _), r), t)| PointResidual {
+        .map(|(((id, equation), r), t)| PointResidual {
             id: *id,
             x_px: r.x,
             y_px: r.y,
+            image_px: [equation.pixel.x, equation.pixel.y],
             test: *t,
         })
         .collect();

@@ -341,11 +341,12 @@ impl Resection<'_> {
             .max_by(|a, b| a.1.total_cmp(&b.1));
         match worst {
             Some((i, t)) if t > critical && self.active.len() > points_needed(self.free.len()) => {
-                let (id, _) = self.active.remove(i);
+                let (id, equation) = self.active.remove(i);
                 self.excluded.push(PointResidual {
                     id,
                     x_px: stats.residuals[i].x,
                     y_px: stats.residuals[i].y,
+                    image_px: [equation.pixel.x, equation.pixel.y],
                     test: Some(t),
                 });
                 true
