@@ -22,6 +22,9 @@
 //!   OpenPTV experiment, in parallel, to particles and OpenPTV's `rt_is`.
 //! - `ptv background` (`cli/background.rs`): a camera's background image,
 //!   the per-pixel median or minimum over its frames, streamed.
+//! - `ptv plot` (`cli/plot.rs`): pictures of results as PNG or SVG, the
+//!   same the service serves: residuals, disparity maps, a frame overlay,
+//!   particles and trajectories in three views.
 //! - `ptv upload` (`cli/upload.rs`): a recording's frames pushed to a
 //!   running `ptv serve`, several at once, retried, resumable.
 //! - `ptv simulate` (`cli/simulate.rs`): a synthetic experiment for the
@@ -41,6 +44,7 @@ mod detect;
 mod experiment;
 mod intersect;
 mod match_targets;
+mod plot;
 mod process;
 mod process_sequence;
 mod project;
@@ -59,6 +63,7 @@ pub use self::calibrate::CalibrateArgs;
 pub use self::detect::{DetectArgs, DetectionFlags, RawImageFlags, TargetFormat};
 pub use self::experiment::{ExperimentCommand, ImportExperimentArgs};
 pub use self::match_targets::{MatchArgs, MatchingFlags};
+pub use self::plot::PlotCommand;
 pub use self::process::ProcessArgs;
 pub use self::process_sequence::{BackgroundChoice, ProcessSequenceArgs};
 pub use self::selfcalibrate::SelfCalibrateArgs;
@@ -131,6 +136,13 @@ pub enum Command {
     /// analytic flow, per frame camN_targets.%05d.csv, camN.%05d.png and
     /// truth.%05d.csv (ids, true velocities and accelerations).
     Simulate(SimulateArgs),
+    /// Draw a picture of a result as PNG or SVG (by the output's
+    /// extension): a calibration's residuals, a self-calibration's
+    /// disparity maps, a camera image with its targets and reprojections,
+    /// particles or trajectories in three views. The service serves the
+    /// same pictures.
+    #[command(subcommand)]
+    Plot(PlotCommand),
     /// Compute a camera's background image from its frames (the per-pixel
     /// median or minimum), streaming them one at a time; writes PNG or TIFF
     /// at the frames' bit depth.
@@ -314,6 +326,9 @@ pub enum CliError {
         #[source]
         source: crate::photogrammetry::BackgroundError,
     },
+    /// A picture that cannot be drawn (its message names the input).
+    #[error(transparent)]
+    Plot(#[from] crate::plot::PlotError),
     /// `ptv upload` could not reach the sequence, or frames failed.
     #[error("upload: {0}")]
     Upload(String),
@@ -357,6 +372,7 @@ pub fn run(
         Command::Simulate(args) => simulate::run(&args, stderr),
         Command::Track(args) => track::run(&args, stdout, stderr),
         Command::Background(args) => background::run(&args, stderr),
+        Command::Plot(command) => plot::run(&command),
         Command::Upload(args) => upload::run(&args, stdout),
         Command::Serve(args) => Ok(crate::service::run(args, stdout)?),
     }

@@ -357,10 +357,7 @@ pub(super) fn run(
     if let Some(path) = &args.disparity_png {
         let png = crate::plot::disparity_png(&result.report)
             .map_err(|e| flag("--disparity-png", e.to_string()))?;
-        std::fs::write(path, png).map_err(|reason| formats::FormatError::Io {
-            path: path.clone(),
-            reason,
-        })?;
+        formats::write_file(path, &png)?;
     }
     // The report holds only numbers, strings and enums: serialising it
     // cannot fail; should it, the message says so in the JSON.

@@ -104,7 +104,12 @@ pub fn read_text(path: &Path) -> Result<String, FormatError> {
 
 /// Writes a whole text file, naming it in the error.
 pub fn write_text(path: &Path, text: &str) -> Result<(), FormatError> {
-    std::fs::write(path, text).map_err(|reason| FormatError::Io {
+    write_file(path, text.as_bytes())
+}
+
+/// Writes a whole file, naming it in the error.
+pub fn write_file(path: &Path, bytes: &[u8]) -> Result<(), FormatError> {
+    std::fs::write(path, bytes).map_err(|reason| FormatError::Io {
         path: path.to_owned(),
         reason,
     })

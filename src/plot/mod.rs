@@ -687,7 +687,7 @@ pub fn cameras_colour(cameras: usize) -> Colour {
     match cameras {
         0 | 1 => Rgb([150, 150, 150]),
         2 => Rgb([255, 140, 0]),
-        3 => Rgb([230, 210, 0]),
+        3 => Rgb([225, 190, 0]),
         4 => Rgb([0, 200, 0]),
         _ => Rgb([0, 190, 230]),
     }

@@ -278,7 +278,7 @@ pub fn draw_residuals(
         m,
         y,
         &format!(
-            "{} POINTS USED, SIGMA0 {} PX, RMS {} PX; {} LEFT OUT AS GROSS ERRORS (RED, RINGED)",
+            "{} POINTS USED, SIGMA0 {} PX, RMS {} PX, {} LEFT OUT AS GROSS ERRORS (RED, RINGED)",
             camera.residuals.len(),
             format_value(camera.sigma0_px),
             format_value(rms),

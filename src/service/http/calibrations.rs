@@ -216,7 +216,10 @@ pub async fn create_openptv(
 }
 
 /// A stored calibration, or a 404.
-async fn calibration(state: &AppState, id: CalibrationId) -> Result<CalibrationRow, ApiError> {
+pub(super) async fn calibration(
+    state: &AppState,
+    id: CalibrationId,
+) -> Result<CalibrationRow, ApiError> {
     state
         .store
         .calibration(id)

@@ -10,7 +10,7 @@ use utoipa::{Modify, OpenApi};
 use utoipa_swagger_ui::SwaggerUi;
 
 use super::{
-    calibrations, experiments, jobs, problem, selfcal, sequence_images, sequences, tracking,
+    calibrations, experiments, jobs, plots, problem, selfcal, sequence_images, sequences, tracking,
 };
 use crate::service::app::AppState;
 use crate::service::parameters;
@@ -48,6 +48,11 @@ use crate::service::parameters;
         selfcal::self_calibrate,
         selfcal::reprocess,
         selfcal::report,
+        plots::residuals,
+        plots::disparity,
+        plots::overlay,
+        plots::particles,
+        plots::trajectories,
         jobs::read,
         jobs::retry,
         super::healthz,

@@ -34,7 +34,8 @@
 //!     answered within `--request-timeout-secs` gets 408 if its body was
 //!     still arriving, else 503.
 //! 13. `shed_cpu_routes`: on the routes that run CPU work inside the
-//!     request (creating a sequence builds its matcher, projecting points),
+//!     request (creating a sequence builds its matcher, projecting points,
+//!     drawing a plot),
 //!     `load_shed` over a `GlobalConcurrencyLimitLayer` of
 //!     `--max-cpu-requests`: one more is answered 503 with `Retry-After`
 //!     at once rather than queued on the rayon pool ahead of the frames.
@@ -496,7 +497,9 @@ async fn shed_cpu_routes(
         .map(MatchedPath::as_str);
     let heavy = CPU_ROUTES
         .iter()
-        .any(|(method, path)| request.method() == method && route == Some(*path));
+        .any(|(method, path)| request.method() == method && route == Some(*path))
+        || (request.method() == Method::GET
+            && route.is_some_and(|r| super::plots::PLOT_ROUTES.contains(&r)));
     if !heavy {
         return next.run(request).await;
     }

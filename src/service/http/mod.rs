@@ -10,6 +10,9 @@
 //!   calibration's report.
 //! - [`tracking`]: a sequence's tracking runs, a new run, the finish
 //!   request, its trajectories (CSV or JSON, streamed) and one trajectory.
+//! - [`plots`]: pictures (PNG or SVG) of a calibration's residuals and
+//!   disparity maps, a frame's image with targets and reprojections, a
+//!   frame's particles and a sequence's trajectories.
 //! - [`jobs`]: a job's state.
 //! - [`problem`]: the one error type, its statuses by the errors' types,
 //!   and the extractors that use it.
@@ -27,6 +30,7 @@ pub mod experiments;
 pub mod jobs;
 pub mod layers;
 pub mod links;
+pub mod plots;
 pub mod problem;
 pub mod selfcal;
 pub mod sequence_images;
@@ -59,6 +63,7 @@ pub fn router(state: Arc<AppState>) -> Router {
         .merge(selfcal::router())
         .merge(experiments::router())
         .merge(tracking::router())
+        .merge(plots::router())
         .merge(jobs::router());
     let routes = Router::new()
         .nest("/api/v1", api)

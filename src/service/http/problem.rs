@@ -173,6 +173,24 @@ impl From<crate::service::tracking::InvalidTrackingSettings> for ApiError {
     }
 }
 
+impl From<crate::plot::PlotError> for ApiError {
+    /// A picture of something that lacks what it needs (a report of the
+    /// other kind, ...) is a 409 saying what; a camera that does not exist
+    /// a 404; a picture too large to draw a 422; a stored report that does
+    /// not read, or the encoder's failure, the service's (500).
+    fn from(error: crate::plot::PlotError) -> Self {
+        use crate::plot::PlotError;
+        match error {
+            PlotError::Missing(_) => ApiError::conflict(error.to_string()),
+            PlotError::Camera { .. } => ApiError::not_found(error.to_string()),
+            PlotError::TooLarge { .. } | PlotError::Disparity(_) | PlotError::Extension(_) => {
+                ApiError::unprocessable(error.to_string())
+            }
+            PlotError::Input { .. } | PlotError::Encode(_) => ApiError::internal(error),
+        }
+    }
+}
+
 impl From<sqlx::Error> for ApiError {
     /// A full disk is a 507; any other database error a 500.
     fn from(error: sqlx::Error) -> Self {

@@ -721,7 +721,7 @@ pub struct FrameParticles {
 
 /// The frame's stored particles and the calibration that made them, or
 /// why there are none.
-async fn load_particles(
+pub(super) async fn load_particles(
     state: &AppState,
     id: SequenceId,
     frame: FrameNumber,
@@ -742,7 +742,7 @@ async fn load_particles(
 
 /// Why a frame has no results: it is not processed yet (409), or it does
 /// not exist (404).
-async fn no_results(state: &AppState, id: SequenceId, frame: FrameNumber) -> ApiError {
+pub(super) async fn no_results(state: &AppState, id: SequenceId, frame: FrameNumber) -> ApiError {
     match state.store.frame_exists(id, frame).await {
         Ok(true) => {
             ApiError::conflict(format!("frame {frame} is not processed (yet); see its job"))

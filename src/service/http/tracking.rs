@@ -186,7 +186,7 @@ pub async fn finish(
 }
 
 /// The run `run` of the sequence, or its current one.
-async fn current_run(
+pub(super) async fn current_run(
     state: &AppState,
     id: SequenceId,
     run: Option<TrackingRunId>,
