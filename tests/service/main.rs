@@ -20,6 +20,10 @@
 //!   from its `.par` files and from its YAML, a frame of it processed;
 //!   bad experiments refused by file and line; a splitter's one image cut
 //!   into its cameras' views.
+//! - `plots`: the pictures: marks where the data are (target rings on
+//!   the targets, particles in their views, residual arrows from where
+//!   their points were measured; disparity and trajectory pictures checked
+//!   from the `selfcal` and `tracking` tests), and their 404, 400 and 409.
 //! - `preprocessing`: a sequence's uploaded or computed background
 //!   removes static structure, a mask keeps targets out, and bad
 //!   backgrounds and masks change nothing.
@@ -46,6 +50,7 @@ mod fuzz;
 mod helpers;
 mod job_bounds;
 mod layers;
+mod plots;
 mod preprocessing;
 mod recovery;
 mod reliability;

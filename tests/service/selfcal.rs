@@ -154,6 +154,7 @@ async fn a_disturbed_calibration_is_self_calibrated_linked_and_the_frames_reproc
     assert_eq!(report, view["report"]);
     assert_ne!(report["outcome"], "diverged", "{report}");
     assert_eq!(report["cameras"].as_array().unwrap().len(), 4, "{report}");
+    crate::plots::check_disparity_picture(&app, refined_id, &report).await;
     let (_, original) = cameras_of(&app, rough_id).await;
     assert_eq!(original.len(), 4);
 

@@ -689,6 +689,8 @@ async fn a_rerun_with_other_settings_is_a_new_run_and_the_old_one_stays() {
         ))
         .await;
     assert_eq!(old_again, old_csv);
+    crate::plots::check_trajectories_picture(&app, sequence, first["run_id"].as_i64().unwrap())
+        .await;
     let (status, runs) = api.get(&format!("/sequences/{sequence}/tracking")).await;
     assert_eq!(status, 200, "{runs}");
     let ids: Vec<&Value> = runs
