@@ -318,6 +318,14 @@ impl Draw for Canvas {
     }
 
     fn disc(&mut self, cx: f64, cy: f64, r: f64, colour: Colour) {
+        if r < 0.75 {
+            // Thinner than a pixel's diagonal: the nearest pixel, so that a
+            // thin line's points (half a pixel apart) join up.
+            if cx.is_finite() && cy.is_finite() {
+                self.put(cx.round() as i64, cy.round() as i64, colour);
+            }
+            return;
+        }
         self.around(cx, cy, r, colour, |d| d <= r);
     }
 

@@ -335,6 +335,24 @@ fn draws_the_disparity_maps_as_a_png() {
     assert!(out.status.success(), "{out:?}");
     let report: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     let image = image::open(dir.path().join("maps.png")).unwrap().to_rgb8();
+    // `ptv plot disparity` draws the same picture from the report file.
+    std::fs::write(dir.path().join("report.json"), &out.stdout).unwrap();
+    let plot = ptv(
+        &[
+            "plot",
+            "disparity",
+            "--report",
+            "report.json",
+            "-o",
+            "again.png",
+        ],
+        dir.path(),
+    );
+    assert!(plot.status.success(), "{plot:?}");
+    assert_eq!(
+        std::fs::read(dir.path().join("again.png")).unwrap(),
+        std::fs::read(dir.path().join("maps.png")).unwrap()
+    );
 
     let grid: Vec<usize> = report["grid"]
         .as_array()
