@@ -12,7 +12,10 @@
 //! - `residuals, 200 points`: one camera's residual plot (200 points used,
 //!   2 excluded, 30 check points) as PNG and as SVG.
 //!
-//! The figures measured are in ARCHITECTURE.md (`benches/`).
+//! Measured on the 2-core development machine, pinned to one core, others
+//! building (load average 3-4.6): overlay 12.5 ms as PNG (12.1-13.1),
+//! 3.2 ms drawn only, 8.9 ms as SVG; residuals 2.1 ms as PNG, 0.56 ms as
+//! SVG. The overlay's PNG is 1.8 MB, its SVG 1.3 MB.
 
 use std::hint::black_box;
 

@@ -597,16 +597,7 @@ pub fn heat(t: f64) -> Colour {
         [253.0, 141.0, 60.0],
         [227.0, 26.0, 28.0],
     ];
-    let t = if t.is_finite() {
-        t.clamp(0.0, 1.0)
-    } else {
-        0.0
-    };
-    let x = t * (STOPS.len() - 1) as f64;
-    let i = (x.floor() as usize).min(STOPS.len() - 2);
-    let f = x - i as f64;
-    let mix = |k: usize| (STOPS[i][k] + f * (STOPS[i + 1][k] - STOPS[i][k])).round() as u8;
-    Rgb([mix(0), mix(1), mix(2)])
+    ramp(&STOPS, t)
 }
 
 /// Encodes a picture as PNG, with the encoder's fast compression and its
