@@ -216,10 +216,17 @@ pub trait Draw {
         }
     }
 
-    /// A "+" of arms `arm` pixels long around (`cx`, `cy`).
-    fn cross(&mut self, cx: f64, cy: f64, arm: f64, width: f64, colour: Colour) {
-        self.line((cx - arm, cy), (cx + arm, cy), width, colour);
-        self.line((cx, cy - arm), (cx, cy + arm), width, colour);
+    /// A "+" around (`cx`, `cy`) whose arms reach from `gap` to `arm`
+    /// pixels from it (a hollow centre with `gap` > 0).
+    fn cross(&mut self, cx: f64, cy: f64, (gap, arm): (f64, f64), width: f64, colour: Colour) {
+        for (dx, dy) in [(1.0, 0.0), (-1.0, 0.0), (0.0, 1.0), (0.0, -1.0)] {
+            self.line(
+                (cx + gap * dx, cy + gap * dy),
+                (cx + arm * dx, cy + arm * dy),
+                width,
+                colour,
+            );
+        }
     }
 }
 
