@@ -12,7 +12,10 @@
 //! - `residuals, 200 points`: one camera's residual plot (200 points used,
 //!   2 excluded, 30 check points) as PNG and as SVG.
 //!
-//! The figures measured are in ARCHITECTURE.md (`benches/`).
+//! Measured on the 2-core development machine, pinned to one core, others
+//! building (load average 3-8): overlay 12.3-16.2 ms as PNG, 4.3 ms drawn
+//! only, 16 ms as SVG; residuals 2.1-2.8 ms as PNG, 0.56-0.74 ms as SVG.
+//! The overlay's PNG is 1.8 MB, its SVG 1.8 MB.
 
 use std::hint::black_box;
 

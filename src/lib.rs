@@ -60,13 +60,19 @@
 //!   `id X Y Z`, image coordinates `id x y`) and the report.
 //! - [`openptv`](formats::openptv): OpenPTV's `.ori`, `.addpar` and
 //!   `ptv.par`, imported and exported without loss.
-//! - [`csv`](formats::csv): the command line's point, observation, target
-//!   and particle tables.
+//! - [`csv`](formats::csv): the command line's point, observation, target,
+//!   particle and trajectory tables.
 //! - [`image`](formats::image): greyscale PNG, TIFF and raw buffers.
+//!
+//! [`plot`]: pictures of results as PNG or SVG, drawn once against one
+//! drawing interface with a raster and an SVG backend: a calibration's
+//! residuals, a self-calibration's disparity maps, a camera image with its
+//! targets and reprojections, particles and trajectories in three views
+//! (`ptv plot` and the service's `*.png` routes). Outside the core.
 //!
 //! [`cli`]: the `ptv` command line, one subcommand per task (`calibration`
 //! import and export, `calibrate`, `project`, `intersect`, `detect`,
-//! `match`, `process`, `simulate`, `serve`). It wires [`formats`] to
+//! `match`, `process`, `simulate`, `plot`, `serve`). It wires [`formats`] to
 //! [`photogrammetry`] and has no numerics of its own.
 //!
 //! [`service`]: the HTTP service (`ptv serve`). The core knows nothing of

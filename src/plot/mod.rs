@@ -216,10 +216,17 @@ pub trait Draw {
         }
     }
 
-    /// A "+" of arms `arm` pixels long around (`cx`, `cy`).
-    fn cross(&mut self, cx: f64, cy: f64, arm: f64, width: f64, colour: Colour) {
-        self.line((cx - arm, cy), (cx + arm, cy), width, colour);
-        self.line((cx, cy - arm), (cx, cy + arm), width, colour);
+    /// A "+" around (`cx`, `cy`) whose arms reach from `gap` to `arm`
+    /// pixels from it (a hollow centre with `gap` > 0).
+    fn cross(&mut self, cx: f64, cy: f64, (gap, arm): (f64, f64), width: f64, colour: Colour) {
+        for (dx, dy) in [(1.0, 0.0), (-1.0, 0.0), (0.0, 1.0), (0.0, -1.0)] {
+            self.line(
+                (cx + gap * dx, cy + gap * dy),
+                (cx + arm * dx, cy + arm * dy),
+                width,
+                colour,
+            );
+        }
     }
 }
 
@@ -597,16 +604,7 @@ pub fn heat(t: f64) -> Colour {
         [253.0, 141.0, 60.0],
         [227.0, 26.0, 28.0],
     ];
-    let t = if t.is_finite() {
-        t.clamp(0.0, 1.0)
-    } else {
-        0.0
-    };
-    let x = t * (STOPS.len() - 1) as f64;
-    let i = (x.floor() as usize).min(STOPS.len() - 2);
-    let f = x - i as f64;
-    let mix = |k: usize| (STOPS[i][k] + f * (STOPS[i + 1][k] - STOPS[i][k])).round() as u8;
-    Rgb([mix(0), mix(1), mix(2)])
+    ramp(&STOPS, t)
 }
 
 /// Encodes a picture as PNG, with the encoder's fast compression and its

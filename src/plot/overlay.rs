@@ -5,8 +5,8 @@
 //! (section 6.1) ringed: matched targets (used by a particle, section 6.2)
 //! in blue, unmatched ones in magenta, larger and thicker, so they stand
 //! out; each particle's reprojection into this camera (collinearity with
-//! the multimedia model, Eq. 1-12) as a "+" coloured by how many cameras
-//! saw it ([`super::cameras_colour`]). A legend strip under the image.
+//! the multimedia model, Eq. 1-12) as a hollow "+" (the particle's image
+//! shows in its centre) coloured by how many cameras saw it ([`super::cameras_colour`]). A legend strip under the image.
 
 use image::Rgb;
 use nalgebra::Point3;
@@ -28,8 +28,9 @@ pub const BLANK: Colour = Rgb([0, 0, 0]);
 pub const MATCHED_RADIUS: f64 = 5.0;
 /// An unmatched target's ring radius.
 pub const UNMATCHED_RADIUS: f64 = 7.0;
-/// A reprojection's "+" arm.
-pub const CROSS_ARM: f64 = 3.0;
+/// A reprojection's "+": its arms reach from `CROSS.0` to `CROSS.1` pixels
+/// from the point, so the particle's image shows in its hollow centre.
+pub const CROSS: (f64, f64) = (1.5, 3.0);
 /// The legend's height under the image.
 pub const LEGEND: u32 = 2 * 7 + 3 * 8 + 6;
 
@@ -158,7 +159,7 @@ pub fn draw_overlay(d: &mut dyn Draw, overlay: &Overlay<'_>) {
     for r in &overlay.reprojections {
         if let Some((x, y)) = r.pixel {
             let (x, y) = point(x, y);
-            d.cross(x, y, CROSS_ARM, 1.0, cameras_colour(r.cameras));
+            d.cross(x, y, CROSS, 1.0, cameras_colour(r.cameras));
         }
     }
     // The legend.
@@ -196,7 +197,7 @@ pub fn draw_overlay(d: &mut dyn Draw, overlay: &Overlay<'_>) {
         d.cross(
             x as f64 + 4.0,
             y as f64 + 3.0,
-            CROSS_ARM,
+            CROSS,
             1.0,
             cameras_colour(cameras),
         );
@@ -252,7 +253,9 @@ mod tests {
         assert_eq!(at(x - MATCHED_RADIUS, y), MATCHED);
         let (px, py) = overlay.reprojections[0].pixel.unwrap();
         let (px, py) = point(px, py);
-        assert_eq!(at(px, py), cameras_colour(2));
+        assert_eq!(at(px + 2.5, py), cameras_colour(2));
+        assert_eq!(at(px, py - 2.5), cameras_colour(2));
+        assert_eq!(at(px, py), BLANK, "the cross's centre is hollow");
         let svg = String::from_utf8(overlay_plot(&overlay, PlotFormat::Svg).unwrap()).unwrap();
         assert_eq!(
             svg.matches("stroke=\"#ff00ff\"").count(),

@@ -298,5 +298,20 @@ async fn a_splitter_frame_is_one_image_cut_into_the_cameras_views() {
         .await;
     assert!(!a["particles"].as_array().unwrap().is_empty());
     assert_eq!(a["particles"], b["particles"]);
+    // The frame overlay of camera 2: its own image, or its view of the one
+    // image, under the same marks (the legends name the sequences).
+    let sensor = rig.cameras[2].sensor();
+    let mut overlays = Vec::new();
+    for sequence in [four, one] {
+        let path = format!("/sequences/{sequence}/frames/0/overlay.png?camera=2");
+        let image = crate::plots::png_picture(&app, &path).await;
+        assert_eq!(image.height(), sensor.height + ptv::plot::overlay::LEGEND);
+        overlays
+            .push(image::imageops::crop_imm(&image, 0, 0, sensor.width, sensor.height).to_image());
+    }
+    assert!(
+        overlays[0] == overlays[1],
+        "the split view's overlay differs"
+    );
     app.stop().await;
 }

@@ -17,7 +17,7 @@ use ptv::plot::residuals::{ResidualLayout, ResidualReport, EXCLUDED, SENSOR, USE
 use ptv::plot::views::{ParticlePoint, TrajectoryPoint, ViewsLayout, PANEL};
 use ptv::plot::{cameras_colour, WHITE};
 
-use crate::helpers::{image_form, png, rig, spawn_app, targets_form, TestApp};
+use crate::helpers::{image_form, png, raw8, rig, spawn_app, targets_form, TestApp};
 
 /// GETs a picture: status, content type and body.
 pub async fn picture(app: &TestApp, path: &str) -> (u16, String, Vec<u8>) {
@@ -191,12 +191,20 @@ async fn frame_pictures_mark_the_targets_and_particles_where_they_are() {
     let files: Vec<Vec<u8>> = rendered.images.iter().map(png).collect();
     let (status, body) = app.upload(kept, image_form(3, &files)).await;
     assert_eq!(status, 202, "{body}");
+    // The same images as raw samples: read back with the frame's layout.
+    let raw: Vec<Vec<u8>> = rendered.images.iter().map(raw8).collect();
+    let form = image_form(4, &raw)
+        .text("width", "1280")
+        .text("height", "1024")
+        .text("bits", "8");
+    let (status, body) = app.upload(kept, form).await;
+    assert_eq!(status, 202, "{body}");
     let targets_only = app.create_sequence(calibration, &rig.volume, true).await;
     let (status, body) = app
         .upload(targets_only, targets_form(3, &rig.targets(300, 8)))
         .await;
     assert_eq!(status, 202, "{body}");
-    assert_eq!(app.wait_for_sequence(kept).await["frames"]["done"], 1);
+    assert_eq!(app.wait_for_sequence(kept).await["frames"]["done"], 2);
     assert_eq!(
         app.wait_for_sequence(targets_only).await["frames"]["done"],
         1
@@ -225,6 +233,18 @@ async fn frame_pictures_mark_the_targets_and_particles_where_they_are() {
         .unwrap();
     let grey = rendered.images[1].get(far.0, far.1).unwrap() as u8;
     assert_eq!(*image.get_pixel(far.0, far.1), image::Rgb([grey; 3]));
+    // The raw frame's overlay: the same picture above the legend.
+    let raw = png_picture(
+        &app,
+        &format!("/sequences/{kept}/frames/4/overlay.png?camera=1"),
+    )
+    .await;
+    let crop =
+        |i: &RgbImage| image::imageops::crop_imm(i, 0, 0, sensor.width, sensor.height).to_image();
+    assert!(
+        crop(&raw) == crop(&image),
+        "the raw frame's overlay differs"
+    );
     // SVG: the image embedded, one ring per target and one per legend key.
     let svg = svg_picture(&app, &format!("{path}&format=svg")).await;
     assert!(svg.contains("href=\"data:image/png;base64,"));
