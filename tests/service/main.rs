@@ -12,6 +12,10 @@
 //! - `layers`: what every request passes through: request ids, gzip,
 //!   header and body timeouts, the early 413, the bearer token before
 //!   routing, bounded metrics labels.
+//! - `live`: a sequence's events (server-sent events) in order as its
+//!   frames are uploaded and processed, 404 and the token before a stream,
+//!   the stream's end at shutdown; the lists newest first, a page at a
+//!   time.
 //! - `fuzz`: multipart uploads to every multipart route, fuzzed (seeded;
 //!   `PTV_FUZZ_CASES` for longer runs), and the 10,000-camera calibration.
 //! - `connections`: the connection limit under idle and slowloris
@@ -46,6 +50,7 @@ mod fuzz;
 mod helpers;
 mod job_bounds;
 mod layers;
+mod live;
 mod preprocessing;
 mod recovery;
 mod reliability;

@@ -10,7 +10,7 @@ use utoipa::{Modify, OpenApi};
 use utoipa_swagger_ui::SwaggerUi;
 
 use super::{
-    calibrations, experiments, jobs, problem, selfcal, sequence_images, sequences, tracking,
+    calibrations, events, experiments, jobs, problem, selfcal, sequence_images, sequences, tracking,
 };
 use crate::service::app::AppState;
 use crate::service::parameters;
@@ -24,6 +24,7 @@ use crate::service::parameters;
         license(name = "MIT OR Apache-2.0"),
     ),
     paths(
+        calibrations::list,
         calibrations::create,
         calibrations::create_openptv,
         calibrations::solve,
@@ -31,9 +32,12 @@ use crate::service::parameters;
         calibrations::openptv_file,
         calibrations::project,
         calibrations::intersect_points,
+        sequences::list,
         sequences::create,
         sequences::read,
         sequences::upload_frame,
+        sequences::frames,
+        events::events,
         sequence_images::upload_background,
         sequence_images::upload_mask,
         experiments::import,
@@ -56,6 +60,10 @@ use crate::service::parameters;
     ),
     components(schemas(
         problem::Problem,
+        crate::service::events::SequenceEvent,
+        crate::service::events::Change,
+        events::Snapshot,
+        events::Lagged,
         parameters::DetectionSettings,
         parameters::MatchingSettings,
         parameters::SequenceParameters,

@@ -5,6 +5,7 @@
 //!   OpenPTV files, project and intersect.
 //! - [`sequences`]: create, read, upload frames, fetch particles and
 //!   targets.
+//! - [`events`]: a sequence's live progress as server-sent events.
 //! - [`selfcal`]: a sequence's calibration self-calibrated from its
 //!   targets, its frames reprocessed with another calibration, a
 //!   calibration's report.
@@ -23,6 +24,7 @@
 
 pub mod calibrations;
 pub mod docs;
+pub mod events;
 pub mod experiments;
 pub mod jobs;
 pub mod layers;
@@ -41,12 +43,53 @@ use axum::http::{header, StatusCode};
 use axum::response::{IntoResponse, Response};
 use axum::routing::get;
 use axum::Router;
+use serde::Deserialize;
+use utoipa::IntoParams;
 
 use self::problem::ApiError;
 use super::app::AppState;
 
 /// The shared state handlers get.
 pub type Shared = State<Arc<AppState>>;
+
+/// The longest page of a list.
+pub const MAX_PAGE: u32 = 100;
+/// A list's page when the query does not say.
+pub const DEFAULT_PAGE: u32 = 20;
+
+/// The query of the lists that go newest first (`GET /calibrations`,
+/// `GET /sequences`): a page of `limit` below the id `before`.
+#[derive(Debug, Default, Deserialize, IntoParams)]
+#[serde(deny_unknown_fields)]
+pub struct PageQuery {
+    /// Items per page, 1 to 100 [default: 20].
+    #[serde(default)]
+    pub limit: Option<u32>,
+    /// Only items with a lower id (the `next` link sets it).
+    #[serde(default)]
+    pub before: Option<i64>,
+}
+
+impl PageQuery {
+    /// The page's length, checked.
+    pub fn limit(&self) -> Result<u32, ApiError> {
+        match self.limit {
+            None => Ok(DEFAULT_PAGE),
+            Some(n @ 1..=MAX_PAGE) => Ok(n),
+            Some(n) => Err(ApiError::bad_request(format!(
+                "limit: {n} is not within 1 to {MAX_PAGE}"
+            ))),
+        }
+    }
+
+    /// The link to the page after one whose last item has id `last`.
+    pub fn next(&self, path: &str, last: i64) -> String {
+        format!(
+            "/api/v1{path}?limit={}&before={last}",
+            self.limit.unwrap_or(DEFAULT_PAGE)
+        )
+    }
+}
 
 /// The whole application's routes, in the service's layers.
 pub fn router(state: Arc<AppState>) -> Router {
@@ -55,6 +98,7 @@ pub fn router(state: Arc<AppState>) -> Router {
     let api = Router::new()
         .merge(calibrations::router())
         .merge(sequences::router())
+        .merge(events::router())
         .merge(sequence_images::router())
         .merge(selfcal::router())
         .merge(experiments::router())
