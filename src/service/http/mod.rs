@@ -1,5 +1,6 @@
 //! The HTTP API: axum routers per resource under `/api/v1`, plus
-//! `/healthz`, `/metrics`, `/openapi.json` and `/docs`.
+//! `/healthz`, `/metrics`, `/openapi.json`, `/docs` and the web page at
+//! `/` ([`web`]).
 //!
 //! - [`calibrations`]: create (JSON or OpenPTV files), read, export as
 //!   OpenPTV files, project and intersect.
@@ -16,6 +17,7 @@
 //!   and the extractors that use it.
 //! - [`upload`]: the multipart upload path frames and solving share.
 //! - [`links`]: the API's URLs.
+//! - [`web`]: the lab web page and its assets, compiled in.
 //! - [`docs`]: the OpenAPI document and the vendored Swagger UI.
 //! - [`layers`]: the tower and tower-http layers every request passes
 //!   through (request ids, tracing, compression, timeouts, body limits,
@@ -35,6 +37,7 @@ pub mod sequence_images;
 pub mod sequences;
 pub mod tracking;
 pub mod upload;
+pub mod web;
 
 use std::sync::Arc;
 
@@ -110,6 +113,7 @@ pub fn router(state: Arc<AppState>) -> Router {
         .route("/readyz", get(readyz))
         .route("/metrics", get(metrics))
         .merge(docs::router())
+        .merge(web::router())
         .fallback(not_found)
         .method_not_allowed_fallback(method_not_allowed);
     layers::apply(routes, &state.config, state.metrics.clone()).with_state(state)
