@@ -265,3 +265,69 @@ async fn lists_go_newest_first_a_page_at_a_time() {
     }
     app.stop().await;
 }
+
+/// A tracked sequence's stream: a frame past its time limit is announced
+/// failed with the reason, every frame (the failed one as a gap) tracked
+/// after its job's outcome, and the run's end after the finish request.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_tracked_sequence_announces_failures_and_its_tracking() {
+    // Frames past 0.2 s fail: 100 targets per camera take milliseconds,
+    // 4 x 40,000 far longer (as in `job_bounds`).
+    let app = spawn_app_configured(|args| {
+        args.job_limits = ptv::service::JobLimits {
+            floor_secs: 0.2,
+            factor: 0.0,
+        };
+    })
+    .await;
+    let rig = rig();
+    let calibration = app.create_calibration(&rig.cameras).await;
+    let mut body = sequence_body(calibration, &rig.volume, false);
+    body["tracking"] = serde_json::json!({"max_velocity": 3.0});
+    let (status, created) = app.post_json("/sequences", &body).await;
+    assert_eq!(status, 201, "{created}");
+    let sequence = created["id"].as_i64().unwrap();
+    let mut events = EventStream::open(
+        &app.client,
+        app.api(&format!("/sequences/{sequence}/events")),
+    )
+    .await;
+    assert_eq!(events.next().await.unwrap().event, "snapshot");
+    let run = created["tracking"]["run_id"].as_i64().unwrap();
+    for frame in 0..3 {
+        let targets = rig.targets(if frame == 1 { 40_000 } else { 100 }, frame as u64);
+        let (status, body) = app.upload(sequence, targets_form(frame, &targets)).await;
+        assert_eq!(status, 202, "{body}");
+        let outcome = if frame == 1 {
+            "frame_failed"
+        } else {
+            "frame_processed"
+        };
+        for expected in ["frame_accepted", "frame_running", outcome, "tracked"] {
+            let event = events.next().await.unwrap();
+            assert_eq!(event.event, expected, "frame {frame}: {event:?}");
+            if expected == "tracked" {
+                assert_eq!(event.data["run_id"], run);
+                assert_eq!(event.data["tracked_through"], frame);
+            } else {
+                assert_eq!(event.data["frame"], frame, "{event:?}");
+            }
+            if expected == "frame_failed" {
+                let error = event.data["error"].as_str().unwrap();
+                assert!(error.contains("time limit"), "{error}");
+            }
+        }
+    }
+    let (status, body) = app
+        .post_json(
+            &format!("/sequences/{sequence}/tracking/finish"),
+            &Value::Null,
+        )
+        .await;
+    assert_eq!(status, 202, "{body}");
+    let ended = events.next().await.unwrap();
+    assert_eq!(ended.event, "tracking_ended", "{ended:?}");
+    assert_eq!(ended.data["finished"], true);
+    assert_eq!(ended.data["run_id"], run);
+    app.stop().await;
+}

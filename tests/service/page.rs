@@ -119,6 +119,39 @@ async fn the_page_shows_a_simulated_experiment_in_chromium() {
         target_counts.push(targets["targets"].as_array().unwrap().len());
     }
 
+    // A tracked sequence of moving particles (targets uploaded), its run
+    // finished: the 3D view shows trajectories.
+    let mut body = sequence_body(calibration, &rig.volume, false);
+    body["tracking"] = json!({"max_velocity": 3.0});
+    let (status, created) = app.post_json("/sequences", &body).await;
+    assert_eq!(status, 201, "{created}");
+    let tracked = created["id"].as_i64().unwrap();
+    for (frame, targets) in crate::tracking::moving_frames(&rig, 12, 7)
+        .iter()
+        .enumerate()
+    {
+        let (status, body) = app
+            .upload(tracked, targets_form(frame as i64, targets))
+            .await;
+        assert_eq!(status, 202, "{body}");
+    }
+    app.wait_for_sequence(tracked).await;
+    let (status, run) = app
+        .post_json(&format!("/sequences/{tracked}/tracking/finish"), &json!({}))
+        .await;
+    assert_eq!(status, 202, "{run}");
+    let start = Instant::now();
+    while app.get_json(&format!("/sequences/{tracked}")).await.1["tracking"]["state"] != "finished"
+    {
+        assert!(start.elapsed() < PATIENCE, "tracking did not finish");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    let (_, near) = app
+        .get_json(&format!("/sequences/{tracked}/trajectories?frames=0..15"))
+        .await;
+    let near = near["trajectories"].as_array().unwrap().len();
+    assert!(near > 100, "{near} trajectories");
+
     // The plots the page shows, and whether the service has them yet.
     let mut plots = HashMap::new();
     for path in (0..4)
@@ -127,6 +160,8 @@ async fn the_page_shows_a_simulated_experiment_in_chromium() {
             format!("/sequences/{sequence}/frames/{shown_frame}/particles.png"),
             format!("/sequences/{sequence}/frames/{shown_frame}/overlay.png?camera=0"),
             format!("/sequences/{sequence}/frames/{shown_frame}/overlay.png?camera=2"),
+            format!("/sequences/{tracked}/trajectories.png"),
+            format!("/sequences/{tracked}/frames/5/particles.png"),
         ])
     {
         let status = status_of(&app, &path).await;
@@ -258,6 +293,22 @@ async fn the_page_shows_a_simulated_experiment_in_chromium() {
         assert_ne!(before, after, "the 3D view did not turn");
         check_plots(&mut browser, &plots);
         browser.screenshot(&dir.join("frame.png"));
+
+        // The tracked sequence: its trajectories plot, and the trajectories
+        // within 10 frames in a frame's 3D view.
+        show(&mut browser, &format!("#/sequences/{tracked}"));
+        let text = browser.eval("document.getElementById('main').innerText");
+        assert!(text.as_str().unwrap().contains("finished"), "{text}");
+        check_plots(&mut browser, &plots);
+        show(&mut browser, &format!("#/sequences/{tracked}/frames/5"));
+        browser.wait_for(
+            &format!(
+                "document.getElementById('view3d-note').textContent.includes('; {near} trajectories')"
+            ),
+            VIEW,
+        );
+        browser.eval("document.getElementById('view3d').scrollIntoView({block: 'center'})");
+        browser.screenshot(&dir.join("tracked.png"));
 
         // Nothing went wrong on any page.
         assert_eq!(browser.text("error-count").unwrap(), "0");

@@ -311,7 +311,7 @@
     showCounts(counts, sequence.frames);
     if (sequence.tracking) {
       main.append(el('h2', { text: 'Trajectories' }),
-        el('p', { class: 'note', text: `Tracking run ${sequence.tracking.id}: ${sequence.tracking.state}, tracked through frame ${sequence.tracking.tracked_through ?? '–'}.` }),
+        el('p', { class: 'note', text: `Tracking run ${sequence.tracking.run_id}: ${sequence.tracking.state}, tracked through frame ${sequence.tracking.tracked_through ?? '–'}.` }),
         plot(`/sequences/${id}/trajectories.png`, 'trajectories coloured by speed'));
     }
     await showFrames(frames, id);
