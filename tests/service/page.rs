@@ -430,3 +430,61 @@ async fn the_page_asks_for_the_token_and_keeps_it_for_the_tab() {
     }
     app.stop().await;
 }
+
+/// The page and its assets: their content types, caching (the assets
+/// immutable at the page's versioned URLs, revalidated elsewhere; the HTML
+/// always revalidated, 304 on its ETag), the page's security headers, and
+/// a 404 problem for a file it does not have; no token needed for any of
+/// them.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_page_and_its_assets_are_served_with_types_and_caching() {
+    let app = spawn_app_with(Some("lab-token")).await;
+    let get = |path: &str, etag: Option<&str>| {
+        let mut request = app.client.get(format!("{}{path}", app.address));
+        if let Some(etag) = etag {
+            request = request.header("if-none-match", etag);
+        }
+        request.send()
+    };
+    let page = get("/", None).await.unwrap();
+    assert_eq!(page.status(), 200);
+    let headers = page.headers().clone();
+    assert_eq!(headers["content-type"], "text/html; charset=utf-8");
+    assert_eq!(headers["cache-control"], "no-cache");
+    assert_eq!(headers["x-content-type-options"], "nosniff");
+    let policy = headers["content-security-policy"].to_str().unwrap();
+    assert!(policy.contains("script-src 'self'"), "{policy}");
+    let html = page.text().await.unwrap();
+    let etag = headers["etag"].to_str().unwrap();
+    let again = get("/", Some(etag)).await.unwrap();
+    assert_eq!(again.status(), 304);
+    assert!(again.bytes().await.unwrap().is_empty());
+
+    for (name, content_type) in [
+        ("app.js", "text/javascript; charset=utf-8"),
+        ("app.css", "text/css; charset=utf-8"),
+    ] {
+        let url = html
+            .split('"')
+            .find(|s| s.starts_with(&format!("/ui/{name}?v=")))
+            .unwrap_or_else(|| panic!("the page does not name {name}"));
+        let asset = get(url, None).await.unwrap();
+        assert_eq!(asset.status(), 200);
+        assert_eq!(asset.headers()["content-type"], content_type);
+        assert_eq!(
+            asset.headers()["cache-control"],
+            "public, max-age=31536000, immutable"
+        );
+        let etag = asset.headers()["etag"].to_str().unwrap().to_owned();
+        assert!(!asset.bytes().await.unwrap().is_empty());
+        // Another version's URL is revalidated, not cached for a year.
+        let stale = get(&format!("/ui/{name}?v=0"), None).await.unwrap();
+        assert_eq!(stale.headers()["cache-control"], "no-cache");
+        assert_eq!(get(url, Some(&etag)).await.unwrap().status(), 304);
+    }
+    let (status, body) = status_and_json(get("/ui/secret.txt", None).await.unwrap()).await;
+    assert_eq!(status, 404, "{body}");
+    let (status, _) = status_and_json(get("/ui/..%2fCargo.toml", None).await.unwrap()).await;
+    assert_eq!(status, 404);
+    app.stop().await;
+}
