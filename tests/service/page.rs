@@ -313,6 +313,18 @@ async fn the_page_shows_a_simulated_experiment_in_chromium() {
         // Nothing went wrong on any page.
         assert_eq!(browser.text("error-count").unwrap(), "0");
         let log = browser.log.lock().unwrap().clone();
+
+        // A frame's view opened directly (a new document): its first paint
+        // and when its data was drawn.
+        browser.open("about:blank");
+        let frame_view = format!("sequences/{sequence}/frames/{shown_frame}");
+        browser.open(&format!("{address}/#/{frame_view}"));
+        browser.wait_for(&format!("document.body.dataset.ready === {frame_view:?}"), VIEW);
+        let frame_paint = browser.eval(&format!(
+            "JSON.stringify(performance.getEntriesByType('paint').map(p => [p.name, p.startTime]) \
+             .concat(performance.getEntriesByName('ready {frame_view}').map(m => ['data drawn', m.startTime])))"
+        ));
+        let paint = format!("home page {paint}; frame view {frame_paint}");
         let errors = errors(&log, &plots);
         assert!(errors.is_empty(), "the page logged errors: {errors:#?}");
         (paint, started.elapsed())
@@ -323,8 +335,8 @@ async fn the_page_shows_a_simulated_experiment_in_chromium() {
         Err(panic) => std::panic::resume_unwind(panic.into_panic()),
     };
     eprintln!(
-        "page weight {weight} bytes (HTML and assets, before gzip); first paint on the home \
-         page [name, ms]: {paint}; browser checks took {elapsed:.1?}; screenshots in {}",
+        "page weight {weight} bytes (HTML and assets, before gzip); paint times [name, ms \
+         from navigation start]: {paint}; browser checks took {elapsed:.1?}; screenshots in {}",
         screenshots().display()
     );
     app.stop().await;

@@ -674,7 +674,11 @@
         else if (!(error instanceof NeedToken)) { main.replaceChildren(); failed(error); }
       }
     }
-    if (mine === generation) document.body.dataset.ready = parts.join('/') || 'home';
+    if (mine === generation) {
+      const view = parts.join('/') || 'home';
+      performance.mark(`ready ${view}`);
+      document.body.dataset.ready = view;
+    }
   }
   window.addEventListener('hashchange', route);
   showForget();
