@@ -348,6 +348,43 @@ mod tests {
     }
 
     #[test]
+    fn every_change_is_named_by_its_serialised_type() {
+        let (frame, job_id, run_id) = (FrameNumber(1), JobId(2), TrackingRunId(3));
+        let changes = [
+            Change::FrameAccepted { frame, job_id },
+            Change::FrameRunning { frame, job_id },
+            Change::FrameProcessed { frame, job_id },
+            Change::FrameFailed {
+                frame,
+                job_id,
+                error: "why".into(),
+            },
+            Change::FrameRequeued {
+                frame,
+                job_id,
+                reason: "why".into(),
+            },
+            Change::Job {
+                job_id,
+                kind: "self_calibrate".into(),
+                state: JobStateView::Running,
+            },
+            Change::Tracked {
+                run_id,
+                tracked_through: frame,
+            },
+            Change::TrackingEnded {
+                run_id,
+                finished: true,
+            },
+        ];
+        for change in changes {
+            let json = serde_json::to_value(&change).unwrap();
+            assert_eq!(json["type"], change.name(), "{json}");
+        }
+    }
+
+    #[test]
     fn a_subscriber_that_falls_behind_is_told_how_many_it_missed() {
         let events = Events::default();
         let mut slow = events.subscribe();
