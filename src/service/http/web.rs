@@ -16,7 +16,9 @@
 //! own; the HTML is revalidated every time (`no-cache`, with an `ETag`).
 //! A `Content-Security-Policy` lets the page load only its own scripts,
 //! styles and API (images also from `blob:`, where the page puts the
-//! plots it fetched with the token).
+//! plots it fetched with the token). The page puts every value it gets
+//! into the document as text, never as HTML, so a sequence's name cannot
+//! inject markup.
 
 use std::sync::{Arc, OnceLock};
 
