@@ -285,9 +285,11 @@
 
   /** Parameters with sigmas; other columns (a self-calibration's) as given. */
   function parameterTable(parameters) {
-    // The service's JSON comes with sorted keys: name, value and sigma
-    // first, then the rest in the order found.
-    const keys = ['name', 'value', 'sigma', 'status'].filter((k) => parameters.some((p) => k in p));
+    // The service's JSON comes with sorted keys: name, the values (a
+    // self-calibration's before and after) and sigma first, then the rest
+    // in the order found.
+    const keys = ['name', 'value', 'before', 'after', 'change', 'sigma', 'status']
+      .filter((k) => parameters.some((p) => k in p));
     for (const p of parameters) for (const k of Object.keys(p)) if (!keys.includes(k)) keys.push(k);
     const numeric = keys.map((k, i) => (parameters.some((p) => typeof p[k] === 'number') ? i : -1));
     return table(keys, parameters.map((p) => keys.map((k) => fmt(p[k]))), numeric);
