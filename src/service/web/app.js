@@ -84,8 +84,27 @@
     if (token) result.Authorization = `Bearer ${token}`;
     return result;
   }
+  /** fetch, waiting and trying again (at most 5 times) when the service
+   * sheds the request: a 503 with Retry-After means it is busy with as
+   * many CPU-heavy requests (plots, projections) as it runs at once. */
+  async function send(url, options = {}) {
+    for (let attempt = 1; ; attempt += 1) {
+      const response = await fetch(url, options);
+      const retry = response.headers.get('Retry-After');
+      if (response.status !== 503 || retry === null || attempt > 5) return response;
+      await sleep(Math.min(Number(retry) || 1, 10) * 1000);
+    }
+  }
+  /** Images (plots, overlays) are drawn on the service's CPU threads: the
+   * page asks for one at a time, so that it is not shed. */
+  let imageQueue = Promise.resolve();
+  function oneAtATime(task) {
+    const run = imageQueue.then(task, task);
+    imageQueue = run.catch(() => {});
+    return run;
+  }
   async function api(path, options = {}) {
-    const response = await fetch(API + path, { ...options, headers: headers(options.headers) });
+    const response = await send(API + path, { ...options, headers: headers(options.headers) });
     if (response.status === 401) {
       askToken(sessionStorage.getItem(TOKEN_KEY) !== null);
       throw new NeedToken('the API token is needed');
@@ -132,7 +151,7 @@
     const figure = el('figure', { class: 'plot', dataset: { src: API + path, loaded: 'pending' } });
     (async () => {
       try {
-        const response = await fetch(API + path, { headers: headers() });
+        const response = await oneAtATime(() => send(API + path, { headers: headers() }));
         if (!response.ok) throw new HttpError(response.status, response.statusText);
         const image = el('img', { alt: caption });
         const url = URL.createObjectURL(await response.blob());
@@ -204,29 +223,29 @@
         el('a', { href: `#/calibrations/${c.id}`, text: `calibration ${c.id}` }), c.cameras,
         c.has_report ? 'yes' : 'no',
         c.origin_calibration ? el('a', { href: `#/calibrations/${c.origin_calibration}`, text: String(c.origin_calibration) }) : '–',
-        c.created_at]),
+        c.created_at], [1]),
       pages(sequences, '/sequences', ['id', 'name', 'calibration', 'queued', 'running', 'done', 'failed', 'created'], (s) => [
         el('a', { href: `#/sequences/${s.id}`, text: `sequence ${s.id}` }), s.name || '–',
         el('a', { href: `#/calibrations/${s.calibration_id}`, text: String(s.calibration_id) }),
-        s.frames.queued, s.frames.running, s.frames.done, s.frames.failed, s.created_at]),
+        s.frames.queued, s.frames.running, s.frames.done, s.frames.failed, s.created_at], [3, 4, 5, 6]),
     ]);
   }
 
   /** A list with a "more" button that follows `next`. */
-  async function pages(section, path, headings, row) {
+  async function pages(section, path, headings, row, numeric) {
     const body = await getJson(path);
     if (!body.items.length) {
       section.append(el('p', { class: 'note', text: 'None yet.' }));
       return;
     }
-    const list = table(headings, body.items.map(row));
+    const list = table(headings, body.items.map(row), numeric);
     section.append(list);
     let next = body.next;
     if (next) {
       const more = el('button', { type: 'button', text: 'more' });
       more.addEventListener('click', async () => {
         const page = await getJson(next.replace(API, ''));
-        const rows = table(headings, page.items.map(row)).querySelector('tbody').children;
+        const rows = table(headings, page.items.map(row), numeric).querySelector('tbody').children;
         list.querySelector('tbody').append(...rows);
         next = page.next;
         if (!next) more.remove();
@@ -421,12 +440,15 @@
     const info = el('span', { class: 'note' });
     const buttons = cameras.map((_, c) => el('button', { type: 'button', id: `camera-button-${c}`, text: `camera ${c}` }));
     const zoomLabel = el('span', { id: 'zoom', text: '100%' });
+    const marks = el('input', { type: 'checkbox', id: 'marks', checked: '' });
+    marks.addEventListener('change', () => draw());
     const imageNote = el('p', { class: 'note', id: 'image-note' });
     const node = el('section', { class: 'frame-viewer' },
       el('div', { class: 'toolbar' }, buttons,
         el('button', { type: 'button', text: '+', onclick: () => zoomAt(1.5, canvas.width / 2, canvas.height / 2) }),
         el('button', { type: 'button', text: '−', onclick: () => zoomAt(1 / 1.5, canvas.width / 2, canvas.height / 2) }),
-        el('button', { type: 'button', text: 'fit', onclick: () => { fit(); draw(); } }), zoomLabel),
+        el('button', { type: 'button', text: 'fit', onclick: () => { fit(); draw(); } }), zoomLabel,
+        el('label', {}, marks, ' the page\'s marks')),
       canvas,
       el('p', { class: 'legend' }, el('span', {}, el('i', { class: 'swatch sw-used' }), 'target of a particle'),
         el('span', {}, el('i', { class: 'swatch sw-unused' }), 'unmatched target'),
@@ -461,7 +483,9 @@
       context.setTransform(s, 0, 0, s, state.x, state.y);
       if (state.image) {
         context.imageSmoothingEnabled = state.zoom < 4;
-        context.drawImage(state.image, 0, 0, w, h);
+        // At one image pixel per sensor pixel (the service's overlay has
+        // its legend below the sensor's rows).
+        context.drawImage(state.image, 0, 0, state.image.width, state.image.height);
       } else {
         context.fillStyle = '#1e2a36';
         context.fillRect(0, 0, w, h);
@@ -469,6 +493,8 @@
       context.strokeStyle = '#5f6b76';
       context.lineWidth = 1 / s;
       context.strokeRect(0, 0, w, h);
+      zoomLabel.textContent = `${Math.round(state.zoom * 100)}%`;
+      if (!marks.checked) return;
       const r = Math.max(3, 2 * state.zoom) / s;
       context.lineWidth = 1.5 / s;
       state.targets.forEach((t, i) => {
@@ -487,7 +513,6 @@
         context.moveTo(p[0], p[1] - arm); context.lineTo(p[0], p[1] + arm);
         context.stroke();
       }
-      zoomLabel.textContent = `${Math.round(state.zoom * 100)}%`;
     }
     async function show(camera) {
       state.camera = camera;
@@ -507,7 +532,8 @@
       // The overlay (the image with the service's marks), where kept.
       if (keptImages) {
         try {
-          const response = await fetch(`${API}/sequences/${id}/frames/${frame}/overlay.png?camera=${camera}`, { headers: headers() });
+          const url = `${API}/sequences/${id}/frames/${frame}/overlay.png?camera=${camera}`;
+          const response = await oneAtATime(() => send(url, { headers: headers() }));
           if (!response.ok) throw new HttpError(response.status, response.statusText);
           const bitmap = await createImageBitmap(await response.blob());
           if (state.camera !== camera) return;
