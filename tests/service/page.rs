@@ -194,6 +194,9 @@ async fn the_page_shows_a_simulated_experiment_in_chromium() {
         // The home page: both lists.
         browser.open(&format!("{address}/"));
         browser.wait_for("document.body.dataset.ready === 'home'", VIEW);
+        // The view may be ready before the first paint.
+        let painted = "performance.getEntriesByName('first-contentful-paint').length > 0";
+        browser.wait_for(painted, VIEW);
         let paint = browser.eval(
             "JSON.stringify(performance.getEntriesByType('paint').map(p => [p.name, p.startTime]))",
         );
@@ -324,6 +327,7 @@ async fn the_page_shows_a_simulated_experiment_in_chromium() {
         let frame_view = format!("sequences/{sequence}/frames/{shown_frame}");
         browser.open(&format!("{address}/#/{frame_view}"));
         browser.wait_for(&format!("document.body.dataset.ready === {frame_view:?}"), VIEW);
+        browser.wait_for(painted, VIEW);
         let frame_paint = browser.eval(&format!(
             "JSON.stringify(performance.getEntriesByType('paint').map(p => [p.name, p.startTime]) \
              .concat(performance.getEntriesByName('ready {frame_view}').map(m => ['data drawn', m.startTime])))"
