@@ -44,6 +44,8 @@ pub struct AppState {
     pub instance: String,
     /// The tracking runs' trackers.
     pub trackers: super::tracking::Trackers,
+    /// Live progress for `GET /sequences/{id}/events`.
+    pub events: super::events::Events,
 }
 
 /// The built service, bound and ready to run.
@@ -122,6 +124,7 @@ impl Application {
             wake: Notify::new(),
             instance: format!("{}-{nanos}", std::process::id()),
             trackers: Default::default(),
+            events: Default::default(),
         });
         Ok(Application {
             listener,
@@ -169,6 +172,13 @@ impl Application {
         super::tracking::resume_all(&state);
         let router = http::router(state.clone());
         let settings = connections::Settings::new(&state.config);
+        // Event streams never end by themselves: they end at the shutdown,
+        // so that the requests in flight can finish.
+        let events = state.events.clone();
+        let shutdown = async move {
+            shutdown.await;
+            events.close();
+        };
         connections::serve(listener, router, connections, settings, shutdown).await;
         let _ = stop_workers.send(true);
         let drained = tokio::time::timeout(SHUTDOWN_GRACE, async {

@@ -446,6 +446,7 @@ async fn execute(state: &Arc<AppState>, kinds: &JobKinds, job: ClaimedJob) {
         started: Instant::now(),
     };
     let kind = job.kind.clone();
+    super::events::job_running(state, &job);
     let outcome = match kinds.get(&kind) {
         Some(handler) => handler(state.clone(), run.clone()).await,
         None => Err(JobError::Failed(format!(
@@ -453,6 +454,7 @@ async fn execute(state: &Arc<AppState>, kinds: &JobKinds, job: ClaimedJob) {
         ))),
     };
     let seconds = run.elapsed_s();
+    let announced = super::events::JobOutcome::of(&outcome, job.attempts);
     let label = match outcome {
         Ok(()) => "succeeded",
         Err(JobError::LostLease) => {
@@ -501,6 +503,7 @@ async fn execute(state: &Arc<AppState>, kinds: &JobKinds, job: ClaimedJob) {
         }
     };
     state.metrics.job(&kind, label, seconds);
+    super::events::job_ended(state, &job, announced);
     if kind == PROCESS_FRAME {
         // A frame done (or failed: a gap) may let its sequence's tracking
         // advance.

@@ -10,6 +10,8 @@
 //! - [`http`]: axum routers per resource under `/api/v1`, one error type
 //!   rendered as RFC 9457 problem+json, the OpenAPI document and docs page,
 //!   and the tower layers every request passes through.
+//! - [`events`]: live progress, a sequence's changes broadcast to its
+//!   event streams (server-sent events).
 //! - [`jobs`]: the workers, the job kinds, the CPU pool.
 //! - [`store`]: all SQL (SQLite in WAL mode, migrations in `migrations/`).
 //! - [`images`]: uploaded images as content-addressed files.
@@ -28,6 +30,7 @@ pub mod app;
 pub mod codec;
 pub mod config;
 pub mod connections;
+pub mod events;
 pub mod http;
 pub mod images;
 pub mod jobs;

@@ -85,6 +85,7 @@ use utoipa::ToSchema;
 
 use super::app::AppState;
 use super::codec::{self, DamagedBlob};
+use super::events::Change;
 use super::jobs::{error_chain, CpuError};
 use super::parameters::SequenceParameters;
 use super::store::{
@@ -505,6 +506,12 @@ async fn advance_logged(state: &Arc<AppState>, id: TrackingRunId) {
             tracing::warn!(run = %id, %message, "tracking run failed");
             if let Err(error) = state.store.fail_tracking_run(id, &message).await {
                 tracing::error!(run = %id, %error, "cannot record a tracking run's failure");
+            } else if let Ok(Some(run)) = state.store.tracking_run(id).await {
+                let ended = Change::TrackingEnded {
+                    run_id: id,
+                    finished: false,
+                };
+                state.events.send(run.sequence_id, ended);
             }
         } else {
             tracing::warn!(run = %id, %message, "tracking did not advance; next frame retries");
@@ -574,10 +581,17 @@ pub async fn advance(state: &Arc<AppState>, id: TrackingRunId) -> Result<(), Tra
         let mut held = live.targets;
         hold_recovered(&mut held, recovered)?;
         let rows = rows(&held, &points)?;
-        state
+        let finished = state
             .store
             .finish_tracking_run(id, live.through, &rows)
             .await?;
+        if finished {
+            let ended = Change::TrackingEnded {
+                run_id: id,
+                finished: true,
+            };
+            state.events.send(run.sequence_id, ended);
+        }
         state.trackers.forget(id);
     }
     Ok(())
@@ -646,10 +660,20 @@ async fn take_frames(
                 return Err(TrackingError::Moved);
             }
             let (store, id) = (state.store.clone(), run.id);
+            let (events, sequence_id) = (state.events.clone(), run.sequence_id);
             *storing = Some(tokio::spawn(async move {
-                store
+                let stored = store
                     .store_tracked_frame(id, previous, frame, recorded, &rows)
-                    .await
+                    .await;
+                if matches!(stored, Ok(true)) {
+                    let tracked_through = frame;
+                    let change = Change::Tracked {
+                        run_id: id,
+                        tracked_through,
+                    };
+                    events.send(sequence_id, change);
+                }
+                stored
             }));
             next = FrameNumber(frame.0 + 1);
         }

@@ -12,6 +12,14 @@
 //! - `layers`: what every request passes through: request ids, gzip,
 //!   header and body timeouts, the early 413, the bearer token before
 //!   routing, bounded metrics labels.
+//! - `live`: a sequence's events (server-sent events) in order as its
+//!   frames are uploaded and processed, 404 and the token before a stream,
+//!   the stream's end at shutdown; the lists newest first, a page at a
+//!   time.
+//! - `page`: the web page in a real headless Chromium (`browser`: the
+//!   DevTools protocol over a pipe) on a simulated experiment: what each
+//!   view shows, live progress, the camera switch, the 3D view's rotation,
+//!   the token, no console errors; screenshots in `target/tmp/screenshots`.
 //! - `fuzz`: multipart uploads to every multipart route, fuzzed (seeded;
 //!   `PTV_FUZZ_CASES` for longer runs), and the 10,000-camera calibration.
 //! - `connections`: the connection limit under idle and slowloris
@@ -44,12 +52,15 @@
 
 mod api;
 mod bad_inputs;
+mod browser;
 mod connections;
 mod experiments;
 mod fuzz;
 mod helpers;
 mod job_bounds;
 mod layers;
+mod live;
+mod page;
 mod plots;
 mod preprocessing;
 mod recovery;

@@ -43,7 +43,7 @@ const MAX_VELOCITY: f64 = 3.0;
 /// The particles of every frame, moving at [`VELOCITY`] through the
 /// volume and re-entering it on the other side (a particle that leaves
 /// is a new one), imaged with 0.05 px noise and 5% of images lost.
-fn moving_frames(rig: &Rig, frames: usize, seed: u64) -> Vec<TargetFrame> {
+pub(crate) fn moving_frames(rig: &Rig, frames: usize, seed: u64) -> Vec<TargetFrame> {
     let mut rng = simulate::rng(seed);
     let start = simulate::particles(&rig.volume, PARTICLES, &mut rng);
     let (min, max) = (rig.volume.min, rig.volume.max);

@@ -14,7 +14,7 @@ use serde::{Deserialize, Serialize};
 use utoipa::ToSchema;
 
 use super::links;
-use super::problem::{parse_json, ApiError, ApiJson, ApiMultipart, ApiPath, JsonText};
+use super::problem::{parse_json, ApiError, ApiJson, ApiMultipart, ApiPath, ApiQuery, JsonText};
 use super::upload::{accepted, check_images, or_drain, persist_and_commit, stream_part, text_part};
 use super::Shared;
 use crate::formats::{self, control, openptv::OriTexts};
@@ -71,7 +71,7 @@ where
 
 pub(super) fn router() -> Router<Arc<AppState>> {
     Router::new()
-        .route("/calibrations", post(create))
+        .route("/calibrations", post(create).get(list))
         .route("/calibrations/openptv", post(create_openptv))
         .route("/calibrations/solve", post(solve))
         .route("/calibrations/{id}", get(read))
@@ -118,6 +118,72 @@ impl CalibrationView {
             created_at: row.created_at,
         })
     }
+}
+
+/// A calibration in the list.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct CalibrationSummaryView {
+    /// Its id.
+    #[schema(value_type = i64)]
+    pub id: CalibrationId,
+    /// How many cameras.
+    pub cameras: i64,
+    /// Whether it has a report (solved, or self-calibrated).
+    pub has_report: bool,
+    /// The calibration it was refined from, if any.
+    #[schema(value_type = Option<i64>)]
+    pub origin_calibration: Option<CalibrationId>,
+    /// When it was stored (UTC).
+    pub created_at: String,
+    /// Where it is.
+    pub link: String,
+}
+
+/// A page of calibrations, newest first.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct CalibrationList {
+    /// The calibrations.
+    pub items: Vec<CalibrationSummaryView>,
+    /// The next page (older ones), if there may be more.
+    pub next: Option<String>,
+}
+
+/// The calibrations, newest first, a page at a time (without their models
+/// and reports: `GET /calibrations/{id}` has those).
+#[utoipa::path(
+    get, path = "/api/v1/calibrations", tag = "calibrations",
+    params(super::PageQuery),
+    responses(
+        (status = 200, body = CalibrationList),
+        (status = 400, description = "A bad query", body = super::problem::Problem, content_type = "application/problem+json"),
+    )
+)]
+pub async fn list(
+    State(state): Shared,
+    ApiQuery(query): ApiQuery<super::PageQuery>,
+) -> Result<Json<CalibrationList>, ApiError> {
+    let limit = query.limit()?;
+    let rows = state
+        .store
+        .calibrations_page(query.before.map(CalibrationId), limit)
+        .await?;
+    let next = (rows.len() == limit as usize)
+        .then(|| rows.last().map(|r| query.next("/calibrations", r.id.0)))
+        .flatten();
+    Ok(Json(CalibrationList {
+        items: rows
+            .into_iter()
+            .map(|r| CalibrationSummaryView {
+                id: r.id,
+                cameras: r.cameras,
+                has_report: r.has_report,
+                origin_calibration: r.origin,
+                created_at: r.created_at,
+                link: links::calibration(r.id),
+            })
+            .collect(),
+        next,
+    }))
 }
 
 /// Stores validated cameras (and their splitter, if they are views of one

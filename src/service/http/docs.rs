@@ -10,7 +10,8 @@ use utoipa::{Modify, OpenApi};
 use utoipa_swagger_ui::SwaggerUi;
 
 use super::{
-    calibrations, experiments, jobs, plots, problem, selfcal, sequence_images, sequences, tracking,
+    calibrations, events, experiments, jobs, plots, problem, selfcal, sequence_images, sequences,
+    tracking,
 };
 use crate::service::app::AppState;
 use crate::service::parameters;
@@ -24,6 +25,7 @@ use crate::service::parameters;
         license(name = "MIT OR Apache-2.0"),
     ),
     paths(
+        calibrations::list,
         calibrations::create,
         calibrations::create_openptv,
         calibrations::solve,
@@ -31,9 +33,12 @@ use crate::service::parameters;
         calibrations::openptv_file,
         calibrations::project,
         calibrations::intersect_points,
+        sequences::list,
         sequences::create,
         sequences::read,
         sequences::upload_frame,
+        sequences::frames,
+        events::events,
         sequence_images::upload_background,
         sequence_images::upload_mask,
         experiments::import,
@@ -61,6 +66,10 @@ use crate::service::parameters;
     ),
     components(schemas(
         problem::Problem,
+        crate::service::events::SequenceEvent,
+        crate::service::events::Change,
+        events::Snapshot,
+        events::Lagged,
         parameters::DetectionSettings,
         parameters::MatchingSettings,
         parameters::SequenceParameters,

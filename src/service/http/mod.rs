@@ -1,10 +1,12 @@
 //! The HTTP API: axum routers per resource under `/api/v1`, plus
-//! `/healthz`, `/metrics`, `/openapi.json` and `/docs`.
+//! `/healthz`, `/metrics`, `/openapi.json`, `/docs` and the web page at
+//! `/` ([`web`]).
 //!
 //! - [`calibrations`]: create (JSON or OpenPTV files), read, export as
 //!   OpenPTV files, project and intersect.
 //! - [`sequences`]: create, read, upload frames, fetch particles and
 //!   targets.
+//! - [`events`]: a sequence's live progress as server-sent events.
 //! - [`selfcal`]: a sequence's calibration self-calibrated from its
 //!   targets, its frames reprocessed with another calibration, a
 //!   calibration's report.
@@ -18,6 +20,7 @@
 //!   and the extractors that use it.
 //! - [`upload`]: the multipart upload path frames and solving share.
 //! - [`links`]: the API's URLs.
+//! - [`web`]: the lab web page and its assets, compiled in.
 //! - [`docs`]: the OpenAPI document and the vendored Swagger UI.
 //! - [`layers`]: the tower and tower-http layers every request passes
 //!   through (request ids, tracing, compression, timeouts, body limits,
@@ -26,6 +29,7 @@
 
 pub mod calibrations;
 pub mod docs;
+pub mod events;
 pub mod experiments;
 pub mod jobs;
 pub mod layers;
@@ -37,6 +41,7 @@ pub mod sequence_images;
 pub mod sequences;
 pub mod tracking;
 pub mod upload;
+pub mod web;
 
 use std::sync::Arc;
 
@@ -45,12 +50,53 @@ use axum::http::{header, StatusCode};
 use axum::response::{IntoResponse, Response};
 use axum::routing::get;
 use axum::Router;
+use serde::Deserialize;
+use utoipa::IntoParams;
 
 use self::problem::ApiError;
 use super::app::AppState;
 
 /// The shared state handlers get.
 pub type Shared = State<Arc<AppState>>;
+
+/// The longest page of a list.
+pub const MAX_PAGE: u32 = 100;
+/// A list's page when the query does not say.
+pub const DEFAULT_PAGE: u32 = 20;
+
+/// The query of the lists that go newest first (`GET /calibrations`,
+/// `GET /sequences`): a page of `limit` below the id `before`.
+#[derive(Debug, Default, Deserialize, IntoParams)]
+#[serde(deny_unknown_fields)]
+pub struct PageQuery {
+    /// Items per page, 1 to 100 [default: 20].
+    #[serde(default)]
+    pub limit: Option<u32>,
+    /// Only items with a lower id (the `next` link sets it).
+    #[serde(default)]
+    pub before: Option<i64>,
+}
+
+impl PageQuery {
+    /// The page's length, checked.
+    pub fn limit(&self) -> Result<u32, ApiError> {
+        match self.limit {
+            None => Ok(DEFAULT_PAGE),
+            Some(n @ 1..=MAX_PAGE) => Ok(n),
+            Some(n) => Err(ApiError::bad_request(format!(
+                "limit: {n} is not within 1 to {MAX_PAGE}"
+            ))),
+        }
+    }
+
+    /// The link to the page after one whose last item has id `last`.
+    pub fn next(&self, path: &str, last: i64) -> String {
+        format!(
+            "/api/v1{path}?limit={}&before={last}",
+            self.limit.unwrap_or(DEFAULT_PAGE)
+        )
+    }
+}
 
 /// The whole application's routes, in the service's layers.
 pub fn router(state: Arc<AppState>) -> Router {
@@ -59,6 +105,7 @@ pub fn router(state: Arc<AppState>) -> Router {
     let api = Router::new()
         .merge(calibrations::router())
         .merge(sequences::router())
+        .merge(events::router())
         .merge(sequence_images::router())
         .merge(selfcal::router())
         .merge(experiments::router())
@@ -71,6 +118,7 @@ pub fn router(state: Arc<AppState>) -> Router {
         .route("/readyz", get(readyz))
         .route("/metrics", get(metrics))
         .merge(docs::router())
+        .merge(web::router())
         .fallback(not_found)
         .method_not_allowed_fallback(method_not_allowed);
     layers::apply(routes, &state.config, state.metrics.clone()).with_state(state)

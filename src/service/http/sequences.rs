@@ -17,6 +17,7 @@ use serde::{Deserialize, Serialize};
 use utoipa::{IntoParams, ToSchema};
 
 use super::calibrations::stored_rig;
+use super::jobs::JobStateView;
 use super::links;
 use super::problem::{ApiError, ApiJson, ApiMultipart, ApiPath, ApiQuery};
 use super::tracking::{frame_trajectories, run_view, TrackingRunView};
@@ -28,14 +29,15 @@ use crate::photogrammetry::correspond::Particle;
 use crate::photogrammetry::{Camera, Cancel, Sensor, Splitter, StopOnDrop, Target};
 use crate::service::app::AppState;
 use crate::service::codec;
+use crate::service::events::Change;
 use crate::service::images::UploadedFile;
 use crate::service::jobs::{prepare_pipeline, StoredRawLayout};
 use crate::service::parameters::{
     ComputedBackground, DetectionSettings, MatchingSettings, SequenceParameters,
 };
 use crate::service::store::{
-    CalibrationId, FrameInputKind, FrameNumber, InsertFrameError, JobId, NewFrame, SequenceId,
-    SequenceImageKind, SequenceRow, TrackingRunId,
+    CalibrationId, FrameCounts, FrameInputKind, FrameNumber, InsertFrameError, JobId, NewFrame,
+    SequenceId, SequenceImageKind, SequenceRow, TrackingRunId,
 };
 use crate::service::tracking::TrackingSettings;
 
@@ -50,9 +52,9 @@ const MAX_TARGETS_PART: usize = 64 << 20;
 
 pub(super) fn router() -> Router<Arc<AppState>> {
     Router::new()
-        .route("/sequences", post(create))
+        .route("/sequences", post(create).get(list))
         .route("/sequences/{id}", get(read))
-        .route("/sequences/{id}/frames", post(upload_frame))
+        .route("/sequences/{id}/frames", post(upload_frame).get(frames))
         .route(
             "/sequences/{id}/frames/{frame}/particles",
             get(frame_particles),
@@ -181,12 +183,7 @@ pub(super) async fn view(state: &AppState, row: SequenceRow) -> Result<SequenceV
         background_cameras,
         mask_cameras: cameras_of(SequenceImageKind::Mask),
         created_at: row.created_at,
-        frames: FrameCountsView {
-            queued: counts.queued,
-            running: counts.running,
-            done: counts.done,
-            failed: counts.failed,
-        },
+        frames: counts.into(),
         tracking,
     })
 }
@@ -298,6 +295,174 @@ pub async fn read(
 ) -> Result<Json<SequenceView>, ApiError> {
     let row = sequence(&state, id).await?;
     Ok(Json(view(&state, row).await?))
+}
+
+/// A sequence in the list.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct SequenceSummaryView {
+    /// Its id.
+    #[schema(value_type = i64)]
+    pub id: SequenceId,
+    /// Its calibration.
+    #[schema(value_type = i64)]
+    pub calibration_id: CalibrationId,
+    /// Its name.
+    pub name: String,
+    /// When it was created (UTC).
+    pub created_at: String,
+    /// Its frames by state.
+    pub frames: FrameCountsView,
+    /// Where it is.
+    pub link: String,
+}
+
+/// A page of sequences, newest first.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct SequenceList {
+    /// The sequences.
+    pub items: Vec<SequenceSummaryView>,
+    /// The next page (older ones), if there may be more.
+    pub next: Option<String>,
+}
+
+/// The sequences, newest first, a page at a time, with their frames
+/// counted by state.
+#[utoipa::path(
+    get, path = "/api/v1/sequences", tag = "sequences",
+    params(super::PageQuery),
+    responses(
+        (status = 200, body = SequenceList),
+        (status = 400, description = "A bad query", body = super::problem::Problem, content_type = "application/problem+json"),
+    )
+)]
+pub async fn list(
+    State(state): Shared,
+    ApiQuery(query): ApiQuery<super::PageQuery>,
+) -> Result<Json<SequenceList>, ApiError> {
+    let limit = query.limit()?;
+    let rows = state
+        .store
+        .sequences_page(query.before.map(SequenceId), limit)
+        .await?;
+    let next = (rows.len() == limit as usize)
+        .then(|| rows.last().map(|r| query.next("/sequences", r.id.0)))
+        .flatten();
+    let mut items = Vec::with_capacity(rows.len());
+    for row in rows {
+        let counts = state.store.frame_counts(row.id).await?;
+        items.push(SequenceSummaryView {
+            id: row.id,
+            calibration_id: row.calibration_id,
+            name: row.name,
+            created_at: row.created_at,
+            frames: counts.into(),
+            link: links::sequence(row.id),
+        });
+    }
+    Ok(Json(SequenceList { items, next }))
+}
+
+impl From<FrameCounts> for FrameCountsView {
+    fn from(counts: FrameCounts) -> Self {
+        FrameCountsView {
+            queued: counts.queued,
+            running: counts.running,
+            done: counts.done,
+            failed: counts.failed,
+        }
+    }
+}
+
+/// Query of the frame list.
+#[derive(Debug, Deserialize, IntoParams)]
+#[serde(deny_unknown_fields)]
+pub struct FramePageQuery {
+    /// Frames per page, 1 to 1000 [default: 100].
+    #[serde(default)]
+    pub limit: Option<u32>,
+    /// Only frames with a higher number (the `next` link sets it).
+    #[serde(default)]
+    #[param(value_type = Option<i64>)]
+    pub after: Option<FrameNumber>,
+}
+
+/// Longest page of the frame list.
+const MAX_FRAME_PAGE: u32 = 1000;
+
+/// A frame in the list.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct FrameSummaryView {
+    /// The frame.
+    #[schema(value_type = i64)]
+    pub frame: FrameNumber,
+    /// Its job.
+    #[schema(value_type = i64)]
+    pub job_id: JobId,
+    /// The job's state.
+    pub state: JobStateView,
+    /// How many particles, once processed.
+    pub particles: Option<i64>,
+}
+
+/// A page of a sequence's frames, in frame order.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct FrameList {
+    /// The frames.
+    pub items: Vec<FrameSummaryView>,
+    /// The next page, if there may be more.
+    pub next: Option<String>,
+}
+
+/// A sequence's frames in frame order, a page at a time: each frame's job,
+/// its state, and its particle count once processed.
+#[utoipa::path(
+    get, path = "/api/v1/sequences/{id}/frames", tag = "sequences",
+    params(("id" = i64, Path, description = "Sequence id"), FramePageQuery),
+    responses(
+        (status = 200, body = FrameList),
+        (status = 400, description = "A bad query", body = super::problem::Problem, content_type = "application/problem+json"),
+        (status = 404, body = super::problem::Problem, content_type = "application/problem+json"),
+    )
+)]
+pub async fn frames(
+    State(state): Shared,
+    ApiPath(id): ApiPath<SequenceId>,
+    ApiQuery(query): ApiQuery<FramePageQuery>,
+) -> Result<Json<FrameList>, ApiError> {
+    let limit = match query.limit {
+        None => 100,
+        Some(n @ 1..=MAX_FRAME_PAGE) => n,
+        Some(n) => {
+            return Err(ApiError::bad_request(format!(
+                "limit: {n} is not within 1 to {MAX_FRAME_PAGE}"
+            )))
+        }
+    };
+    sequence(&state, id).await?;
+    let rows = state.store.frames_page(id, query.after, limit).await?;
+    let next = (rows.len() == limit as usize)
+        .then(|| {
+            rows.last().map(|r| {
+                format!(
+                    "{}/frames?limit={limit}&after={}",
+                    links::sequence(id),
+                    r.frame
+                )
+            })
+        })
+        .flatten();
+    Ok(Json(FrameList {
+        items: rows
+            .into_iter()
+            .map(|r| FrameSummaryView {
+                frame: r.frame,
+                job_id: r.job_id,
+                state: r.state.into(),
+                particles: r.particles,
+            })
+            .collect(),
+        next,
+    }))
 }
 
 /// An accepted frame.
@@ -611,6 +776,9 @@ pub async fn upload_frame(
 
     let files = whole.into_iter().chain(images).collect();
     let job_id = persist_and_commit(&state, files, || state.store.insert_frame(&new_frame)).await?;
+    state
+        .events
+        .send(id, Change::FrameAccepted { frame, job_id });
     let body = FrameAccepted {
         frame,
         job_id,

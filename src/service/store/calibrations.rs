@@ -25,6 +25,33 @@ pub struct CalibrationRow {
     pub created_at: String,
 }
 
+/// A calibration in a list: what it is without its model and report.
+#[derive(Clone, Debug)]
+pub struct CalibrationSummary {
+    /// Its id.
+    pub id: CalibrationId,
+    /// How many cameras.
+    pub cameras: i64,
+    /// Whether it has a report (solved or self-calibrated).
+    pub has_report: bool,
+    /// The calibration it was refined from, if any.
+    pub origin: Option<CalibrationId>,
+    /// When it was stored.
+    pub created_at: String,
+}
+
+impl FromRow<'_, SqliteRow> for CalibrationSummary {
+    fn from_row(row: &SqliteRow) -> Result<Self, sqlx::Error> {
+        Ok(CalibrationSummary {
+            id: row.try_get("id")?,
+            cameras: row.try_get("cameras")?,
+            has_report: row.try_get("has_report")?,
+            origin: row.try_get("origin_calibration")?,
+            created_at: row.try_get("created_at")?,
+        })
+    }
+}
+
 impl FromRow<'_, SqliteRow> for CalibrationRow {
     fn from_row(row: &SqliteRow) -> Result<Self, sqlx::Error> {
         Ok(CalibrationRow {
@@ -63,6 +90,24 @@ impl Store {
         )
         .bind(id)
         .fetch_optional(&self.reader)
+        .await
+    }
+
+    /// Calibrations newest first (highest id first), below `before` if
+    /// given, at most `limit`, without their model and report: id,
+    /// cameras, whether it has a report, origin, created_at.
+    pub async fn calibrations_page(
+        &self,
+        before: Option<CalibrationId>,
+        limit: u32,
+    ) -> Result<Vec<CalibrationSummary>, sqlx::Error> {
+        sqlx::query_as(
+            "SELECT id, cameras, report IS NOT NULL AS has_report, origin_calibration, created_at \
+             FROM calibrations WHERE id < ? ORDER BY id DESC LIMIT ?",
+        )
+        .bind(before.map_or(i64::MAX, |b| b.0))
+        .bind(limit)
+        .fetch_all(&self.reader)
         .await
     }
 

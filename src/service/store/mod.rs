@@ -65,15 +65,15 @@ use sqlx::sqlite::{
 };
 use sqlx::{Database, Executor, Row, Sqlite, TransactionManager};
 
-pub use self::calibrations::{insert_calibration, CalibrationRow};
+pub use self::calibrations::{insert_calibration, CalibrationRow, CalibrationSummary};
 pub use self::ids::{CalibrationId, FrameNumber, JobId, SequenceId, TrackingRunId};
 pub use self::jobs::{
     enqueue, finish, ClaimedJob, JobFile, JobResult, JobRow, JobState, RetryOutcome, MAX_ATTEMPTS,
 };
 pub use self::selfcal::{reprocess_payload, RefinedCalibration, REPROCESS_SEQUENCE};
 pub use self::sequences::{
-    FrameCounts, FrameInput, FrameInputKind, NewFrame, SequenceImage, SequenceImageKind,
-    SequenceImagesError, SequenceRow,
+    FrameCounts, FrameInput, FrameInputKind, FrameSummary, NewFrame, SequenceImage,
+    SequenceImageKind, SequenceImagesError, SequenceRow,
 };
 pub use self::tracking::{FrameReadiness, PointRow, TrackingRunRow, TrackingState, TrajectoryRow};
 

@@ -87,6 +87,30 @@ pub struct FrameCounts {
     pub failed: i64,
 }
 
+/// A frame in a list: its job's state and its particle count.
+#[derive(Clone, Debug)]
+pub struct FrameSummary {
+    /// The frame.
+    pub frame: FrameNumber,
+    /// Its process_frame job.
+    pub job_id: JobId,
+    /// The job's state.
+    pub state: JobState,
+    /// Its particles, once processed.
+    pub particles: Option<i64>,
+}
+
+impl FromRow<'_, SqliteRow> for FrameSummary {
+    fn from_row(row: &SqliteRow) -> Result<Self, sqlx::Error> {
+        Ok(FrameSummary {
+            frame: row.try_get("frame")?,
+            job_id: row.try_get("job_id")?,
+            state: text_column(row, "state")?,
+            particles: row.try_get("particles")?,
+        })
+    }
+}
+
 /// What a sequence's per-camera image is for (`sequence_images.kind`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum SequenceImageKind {
@@ -256,6 +280,45 @@ impl Store {
         )
         .bind(id)
         .fetch_optional(&self.reader)
+        .await
+    }
+
+    /// Sequences newest first (highest id first), below `before` if given,
+    /// at most `limit`.
+    pub async fn sequences_page(
+        &self,
+        before: Option<SequenceId>,
+        limit: u32,
+    ) -> Result<Vec<SequenceRow>, sqlx::Error> {
+        sqlx::query_as(
+            "SELECT id, calibration_id, name, parameters, keep_images, created_at \
+             FROM sequences WHERE id < ? ORDER BY id DESC LIMIT ?",
+        )
+        .bind(before.map_or(i64::MAX, |b| b.0))
+        .bind(limit)
+        .fetch_all(&self.reader)
+        .await
+    }
+
+    /// A sequence's frames in order, after `after` if given, at most
+    /// `limit`: each with its job, the job's state and the particle count
+    /// once processed.
+    pub async fn frames_page(
+        &self,
+        sequence_id: SequenceId,
+        after: Option<FrameNumber>,
+        limit: u32,
+    ) -> Result<Vec<FrameSummary>, sqlx::Error> {
+        sqlx::query_as(
+            "SELECT f.frame, f.job_id, j.state, p.count AS particles \
+             FROM frames f JOIN jobs j ON j.id = f.job_id \
+             LEFT JOIN particles p ON p.sequence_id = f.sequence_id AND p.frame = f.frame \
+             WHERE f.sequence_id = ? AND f.frame > ? ORDER BY f.frame LIMIT ?",
+        )
+        .bind(sequence_id)
+        .bind(after.map_or(-1, |a| a.0))
+        .bind(limit)
+        .fetch_all(&self.reader)
         .await
     }
 
