@@ -46,7 +46,7 @@
 //! | ---: | ---: | ---: | ---: | ---: | ---: |
 //! | 2,000 | 0.9955 | 0.04% | 33.6 of 34 | 0.75% / 2.09% (1.30%) | 23% |
 //! | 8,000 | 0.9965 | 0.10% | 33.5 of 34 | 0.75% / 1.33% (0.97%) | 21% |
-//! | 20,000 | 0.9950 | 0.28% | 32.9 of 34 | 0.89% / 2.82% (1.10%) | 36% |
+//! | 20,000 | 0.9952 | 0.28% | 32.9 of 34 | 0.89% / 2.82% (1.10%) | 36% |
 //!
 //! Issue 15's goals at 8,000 (recall at least 0.98, wrong links at most
 //! 0.5%, velocity error at most 2%) and at 20,000 (wrong links at most 1%)
@@ -60,7 +60,7 @@
 //! / 2.16% / 5.46%. What is left at 8,000 is the noise at the
 //! trajectories' ends, whose windows are one-sided (a point at an end has
 //! 3.5 times the velocity noise of a centred one). With a displacement of
-//! 0.44 of the spacing (`-- 8000 34 0.5`): recall 0.9811, wrong links
+//! 0.44 of the spacing (`-- 8000 34 0.5`): recall 0.9813, wrong links
 //! 0.24%, velocity RMS 4.7%, acceleration 28% (before the cuts: 0.9863,
 //! 0.93%, 7.6%, 44%; most of the rest of its velocity error is chains at
 //! the sequence's ends and trajectories of 3 or 4 points, too short to test);

@@ -79,6 +79,18 @@ pub struct Derivatives {
     pub acceleration_sigma: Option<Vector3<f64>>,
 }
 
+/// What [`derivatives_at`] found: the derivatives, and whether the window
+/// centred on the point (shifted inward at the ends; it always holds the
+/// point and the one before it) was consistent. Where it was, the path
+/// does not break next to the point, and the tracker spares the test
+/// ([`breaks_before`]).
+pub(super) struct WindowFit {
+    /// The derivatives (see [`derivatives_at`]).
+    pub derivatives: Option<Derivatives>,
+    /// Whether the centred window was consistent.
+    pub centred_consistent: bool,
+}
+
 /// The derivatives at the `k`-th of a trajectory's consecutive points
 /// `track` (all that it has within `2 w` points of `k` on each side, in
 /// order), from a window of `2 w + 1` of them (all of them if there are
@@ -97,24 +109,35 @@ pub struct Derivatives {
 /// shifted, either way, within `k`'s reach); with none, the centred
 /// window without its worst sample ([`OUTLIER_CHI2`]).
 ///
-/// `None` with fewer than two points or a singular system (two points at
-/// one frame).
+/// No derivatives with fewer than two points or a singular system (two
+/// points at one frame).
 pub(super) fn derivatives_at(
     track: &[Sample],
     k: usize,
     half_window: usize,
     order: usize,
-) -> Option<Derivatives> {
-    let at = track.get(k)?.frame;
+) -> WindowFit {
+    let found = |derivatives| WindowFit {
+        derivatives,
+        centred_consistent: false,
+    };
+    let Some(at) = track.get(k).map(|s| s.frame) else {
+        return found(None);
+    };
     let span = 2 * half_window + 1;
     if track.len() <= span {
-        return robust_fit(track, at, order);
+        return found(robust_fit(track, at, order));
     }
     let latest = track.len() - span;
     let centred = k.saturating_sub(half_window).min(latest);
-    let fit = fit_once(&track[centred..centred + span], at, order, false)?;
+    let Some(fit) = fit_once(&track[centred..centred + span], at, order, false) else {
+        return found(None);
+    };
     if fit.consistent() {
-        return Some(fit.derivatives);
+        return WindowFit {
+            derivatives: Some(fit.derivatives),
+            centred_consistent: true,
+        };
     }
     // Other starts that keep `k` in the window, nearest the centred first.
     let (low, high) = (k.saturating_sub(span - 1), k.min(latest));
@@ -126,12 +149,12 @@ pub(super) fn derivatives_at(
         {
             if let Some(other) = fit_once(&track[start..start + span], at, order, false) {
                 if other.consistent() {
-                    return Some(other.derivatives);
+                    return found(Some(other.derivatives));
                 }
             }
         }
     }
-    robust_fit(&track[centred..centred + span], at, order)
+    found(robust_fit(&track[centred..centred + span], at, order))
 }
 
 /// Whether a trajectory's end point is an intruder: a point of another
@@ -559,7 +582,9 @@ mod tests {
         let mut track = noisy(0..6, a, sigma);
         track.extend(noisy(6..10, b, sigma));
         for k in [4usize, 5] {
-            let d = derivatives_at(&track[k - 4..], 4, 2, 2).unwrap();
+            let d = derivatives_at(&track[k - 4..], 4, 2, 2)
+                .derivatives
+                .unwrap();
             let truth = Vector3::new(1.0, 0.4 * k as f64, 0.0);
             // A's own window's velocity noise (at most sigma sqrt(1.24)
             // per axis at a window's end), far from B's.
@@ -571,7 +596,7 @@ mod tests {
         }
         // Without the switch the centred window serves, as before.
         let clean = noisy(0..10, a, sigma);
-        let d = derivatives_at(&clean[1..], 3, 2, 2).unwrap();
+        let d = derivatives_at(&clean[1..], 3, 2, 2).derivatives.unwrap();
         let centred = robust_fit(&clean[2..7], 4, 2).unwrap();
         assert_eq!(d, centred);
     }
