@@ -4,7 +4,10 @@
 //! - `api`: the synthetic 4-camera experiment end to end, OpenPTV import
 //!   and the project/intersect helpers, the API token, the committed
 //!   OpenAPI document.
-//! - `reliability`: a kill -9 while jobs run, and 32 concurrent uploaders.
+//! - `reliability`: a kill -9 while jobs run, and 32 concurrent uploaders;
+//!   `ptv serve --workers 0` with two `ptv worker` processes, one killed
+//!   in the middle of a job, which the other takes over once its lease
+//!   has run out and completes exactly once.
 //! - `bad_inputs`: every kind of bad request gets its 4xx and leaves the
 //!   database consistent.
 //! - `job_bounds`: projections per request bounded, a frame past its time
