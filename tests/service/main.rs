@@ -35,7 +35,8 @@
 //!   their particles naming the calibration; bad requests' 4xx.
 //! - `tracking`: a simulated sequence of moving particles uploaded out of
 //!   order by 4 clients is tracked exactly as the core's tracker tracks
-//!   its particles in order, also across a kill -9 and a restart; a re-run
+//!   its particles in order, also across a kill -9 and a restart, and by
+//!   two `ptv worker` processes, the run's holder killed; a re-run
 //!   with other settings is a new run next to the old one; bad settings
 //!   and queries refused.
 //! - `upload`: `ptv upload` against the service and a flaky stand-in:
