@@ -960,6 +960,90 @@ mod tests {
         store.close().await;
     }
 
+    /// One tracker per run: the lease is taken, renewed by its owner and
+    /// refused to others until it runs out or is given up; a change of
+    /// owner increments the token, and the earlier owner's frame is fenced
+    /// out.
+    #[tokio::test]
+    async fn a_tracking_run_is_held_by_one_owner_and_fenced_on_its_token() {
+        use super::super::{FrameNumber, SequenceId};
+        let (_dir, store) = store().await;
+        sqlx::raw_sql(
+            "INSERT INTO calibrations (id, model, cameras) VALUES (1, '{}', 2);
+             INSERT INTO sequences (id, calibration_id, name, parameters, keep_images)
+                 VALUES (1, 1, '', '{}', 1);",
+        )
+        .execute(&store.writer)
+        .await
+        .unwrap();
+        let run = store
+            .insert_tracking_run(SequenceId(1), r#"{"max_velocity": 1.0}"#)
+            .await
+            .unwrap()
+            .unwrap();
+        let first = store
+            .take_tracking_lease(run.id, "here:1:aa", SHORT)
+            .await
+            .unwrap()
+            .unwrap();
+        assert_eq!(
+            store
+                .take_tracking_lease(run.id, "here:1:aa", SHORT)
+                .await
+                .unwrap(),
+            Some(first),
+            "a renewal keeps the token"
+        );
+        assert_eq!(
+            store
+                .take_tracking_lease(run.id, "here:2:bb", LONG)
+                .await
+                .unwrap(),
+            None
+        );
+        assert_eq!(
+            store.tracking_runs_to_advance("here:2:bb").await.unwrap(),
+            []
+        );
+        outlive_short_lease().await;
+        assert_eq!(
+            store.tracking_runs_to_advance("here:2:bb").await.unwrap(),
+            [run.id]
+        );
+        let second = store
+            .take_tracking_lease(run.id, "here:2:bb", LONG)
+            .await
+            .unwrap()
+            .unwrap();
+        assert_eq!(second.0, first.0 + 1);
+        // The first owner's frame is fenced out; the holder's is stored.
+        assert!(!store
+            .store_tracked_frame((run.id, first), None, FrameNumber(0), Some(0), &[])
+            .await
+            .unwrap());
+        assert!(store
+            .store_tracked_frame((run.id, second), None, FrameNumber(0), Some(0), &[])
+            .await
+            .unwrap());
+        assert!(!store
+            .finish_tracking_run((run.id, first), Some(FrameNumber(0)), &[])
+            .await
+            .unwrap());
+        // Given up at a shutdown: another owner takes it at once.
+        assert_eq!(store.release_tracking_leases("here:2:bb").await.unwrap(), 1);
+        let third = store
+            .take_tracking_lease(run.id, "here:3:cc", LONG)
+            .await
+            .unwrap()
+            .unwrap();
+        assert_eq!(third.0, second.0 + 1);
+        assert!(store
+            .finish_tracking_run((run.id, third), Some(FrameNumber(0)), &[])
+            .await
+            .unwrap());
+        store.close().await;
+    }
+
     #[test]
     fn worker_names_give_their_host_and_process() {
         let instance = WorkerId::instance("lab-pc.local");
