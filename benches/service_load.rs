@@ -8,7 +8,13 @@
 //! cargo bench --bench service_load                # raw 8-bit images
 //! cargo bench --bench service_load -- --png       # PNG images
 //! cargo bench --bench service_load -- --frames 400 --clients 8 --workers 2
+//! cargo bench --bench service_load -- --worker-processes 2 --workers 1
 //! ```
+//!
+//! With `--worker-processes N` the service in this process serves only
+//! (`--workers 0`) and N `ptv worker` processes (each with `--workers`,
+//! default 1) on the same data directory process the frames; the job
+//! durations are then in those processes, not in this one's metrics.
 //!
 //! Each client uploads a frame, waits for its job, and uploads the next
 //! (closed loop), so the queue never grows without bound and the latency
@@ -37,6 +43,7 @@ struct Options {
     particles: usize,
     distinct: usize,
     png: bool,
+    worker_processes: usize,
 }
 
 fn options() -> Options {
@@ -47,6 +54,7 @@ fn options() -> Options {
         particles: 2000,
         distinct: 8,
         png: false,
+        worker_processes: 0,
     };
     let mut args = std::env::args().skip(1);
     while let Some(arg) = args.next() {
@@ -61,6 +69,7 @@ fn options() -> Options {
             "--workers" => options.workers = Some(number("--workers")),
             "--particles" => options.particles = number("--particles"),
             "--png" => options.png = true,
+            "--worker-processes" => options.worker_processes = number("--worker-processes"),
             // cargo bench passes --bench; ignore what we do not know.
             _ => {}
         }
@@ -115,8 +124,38 @@ async fn run(options: Options) {
         .collect();
 
     let data_dir = tempfile::tempdir().unwrap();
-    let server = Server::start(data_dir.path(), options.workers).await;
-    let (address, workers) = (server.address.clone(), server.workers);
+    let (server, worker_processes) = if options.worker_processes == 0 {
+        (
+            Server::start(data_dir.path(), options.workers).await,
+            Vec::new(),
+        )
+    } else {
+        let per_process = options.workers.unwrap_or(1).max(1).to_string();
+        let processes: Vec<WorkerProcess> = (0..options.worker_processes)
+            .map(|_| {
+                WorkerProcess(
+                    std::process::Command::new(env!("CARGO_BIN_EXE_ptv"))
+                        .args(["worker", "--workers", &per_process, "--data-dir"])
+                        .arg(data_dir.path())
+                        .stdout(std::process::Stdio::null())
+                        .stderr(std::process::Stdio::null())
+                        .spawn()
+                        .expect("ptv worker starts"),
+                )
+            })
+            .collect();
+        (Server::start(data_dir.path(), Some(0)).await, processes)
+    };
+    let address = server.address.clone();
+    let workers = if worker_processes.is_empty() {
+        format!("{}", server.workers)
+    } else {
+        format!(
+            "0 in the server + {} ptv worker processes x {}",
+            worker_processes.len(),
+            options.workers.unwrap_or(1).max(1)
+        )
+    };
 
     let client = reqwest::Client::new();
     let api = |path: &str| format!("{address}/api/v1{path}");
@@ -257,4 +296,16 @@ async fn run(options: Options) {
         particles as f64 / latencies.len() as f64,
     );
     server.stop().await;
+    drop(worker_processes);
+}
+
+/// A `ptv worker` child process, stopped (SIGKILL: the bench is over)
+/// when dropped.
+struct WorkerProcess(std::process::Child);
+
+impl Drop for WorkerProcess {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
 }

@@ -154,6 +154,11 @@ pub enum Command {
     /// Run the HTTP service (the default without a subcommand); prints the
     /// address it listens on and where its API docs are.
     Serve(crate::service::ServeArgs),
+    /// Run jobs from a data directory's queue without serving HTTP: any
+    /// number of these next to one `ptv serve` (which may run with
+    /// `--workers 0`); jobs are held by leases, so a killed worker's job
+    /// goes to another within `--lease-secs`.
+    Worker(crate::service::WorkerArgs),
 }
 
 /// The `calibration` subcommands.
@@ -375,6 +380,7 @@ pub fn run(
         Command::Plot(command) => plot::run(&command),
         Command::Upload(args) => upload::run(&args, stdout),
         Command::Serve(args) => Ok(crate::service::run(args, stdout)?),
+        Command::Worker(args) => Ok(crate::service::run_worker(args)?),
     }
 }
 

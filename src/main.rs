@@ -20,9 +20,10 @@ fn main() -> ExitCode {
         },
     };
     let result = match command {
-        // The service's threads log to standard error, and `ptv upload`'s
-        // runtime threads draw its progress bar there: no locks held here.
-        unlocked @ (Command::Serve(_) | Command::Upload(_)) => {
+        // The service's and the worker's threads log to standard error, and
+        // `ptv upload`'s runtime threads draw its progress bar there: no
+        // locks held here.
+        unlocked @ (Command::Serve(_) | Command::Worker(_) | Command::Upload(_)) => {
             ptv::cli::run(unlocked, &mut io::stdout(), &mut io::stderr())
         }
         other => ptv::cli::run(other, &mut io::stdout().lock(), &mut io::stderr().lock()),

@@ -28,6 +28,7 @@ impl Server {
             max_connections: None,
             timeouts: Timeouts::default(),
             job_limits: Default::default(),
+            lease: Default::default(),
         };
         let workers = args.worker_count();
         let app = Application::build(args).await.unwrap();

@@ -1,7 +1,8 @@
 //! Building the service from its settings and running it until a shutdown
 //! signal: open the database (applying migrations) and the image store,
 //! queue again the jobs a stopped process left running, bind the listener,
-//! start the workers, serve HTTP.
+//! start the workers, serve HTTP. [`run_worker`]: the same without HTTP
+//! (`ptv worker`).
 
 use std::future::Future;
 use std::net::SocketAddr;
@@ -11,12 +12,12 @@ use std::time::Duration;
 use tokio::net::TcpListener;
 use tokio::sync::{watch, Notify};
 
-use super::config::ServeArgs;
+use super::config::{ServeArgs, WorkerArgs};
 use super::connections::{self, Registry};
 use super::images::ImageStore;
 use super::jobs::{self, CpuPool, JobKinds, PipelineCache};
 use super::metrics::Metrics;
-use super::store::Store;
+use super::store::{Store, WorkerId};
 use super::{http, ServiceError};
 
 /// How long a shutdown waits for running jobs before returning them to the
@@ -38,9 +39,11 @@ pub struct AppState {
     pub pipelines: PipelineCache,
     /// Counters for /metrics.
     pub metrics: Arc<Metrics>,
-    /// Wakes a waiting worker when a job is enqueued.
+    /// Wakes a waiting worker of this process when a job is enqueued
+    /// (workers in other processes poll).
     pub wake: Notify,
-    /// This process's name in job claims.
+    /// This process's name in job claims and leases
+    /// (`HOST:PID:RANDOM`, [`WorkerId`]).
     pub instance: String,
     /// The tracking runs' trackers.
     pub trackers: super::tracking::Trackers,
@@ -63,21 +66,13 @@ impl Application {
         std::fs::create_dir_all(data_dir).map_err(|e| ServiceError::io(data_dir, e))?;
         let workers = config.worker_count();
         let readers = (workers as u32 + 4).min(16);
-        let store = Store::open(data_dir, readers)
-            .await
-            .map_err(ServiceError::Database)?;
-        let (requeued, failed) = store.reap().await.map_err(ServiceError::Database)?;
-        if requeued + failed > 0 {
-            tracing::warn!(
-                requeued,
-                failed,
-                "jobs left running by a stopped process were queued again or failed"
-            );
-        }
+        let store = open_and_reap(data_dir, readers).await?;
         let images = ImageStore::open(data_dir).map_err(|e| ServiceError::io(data_dir, e))?;
         // A process killed between committing a frame's results and
-        // deleting its images leaves files no row refers to.
+        // deleting its images leaves files no row refers to. Under the
+        // store's lock: a worker process may be storing a file meanwhile.
         let mut swept = 0;
+        let guard = images.lock().await;
         for hash in images.stored().map_err(|e| ServiceError::io(data_dir, e))? {
             if !store
                 .image_in_use(&hash)
@@ -91,17 +86,15 @@ impl Application {
                 swept += 1;
             }
         }
+        drop(guard);
         if swept > 0 {
             tracing::warn!(files = swept, "removed image files no frame refers to");
         }
-        let cpu = CpuPool::new(workers).map_err(|e| ServiceError::Start(e.to_string()))?;
+        let cpu =
+            CpuPool::new(config.cpu_threads()).map_err(|e| ServiceError::Start(e.to_string()))?;
         let listener = TcpListener::bind(config.bind)
             .await
             .map_err(|e| ServiceError::Bind(config.bind, e))?;
-        let nanos = std::time::SystemTime::now()
-            .duration_since(std::time::UNIX_EPOCH)
-            .map(|d| d.as_nanos())
-            .unwrap_or_default();
         let open_files = connections::raise_open_file_limit();
         let max_connections = config.max_connections.map_or_else(
             || connections::default_max_connections(open_files, workers, readers + 1),
@@ -122,7 +115,7 @@ impl Application {
             pipelines: PipelineCache::default(),
             metrics,
             wake: Notify::new(),
-            instance: format!("{}-{nanos}", std::process::id()),
+            instance: WorkerId::instance(&host_name()),
             trackers: Default::default(),
             events: Default::default(),
         });
@@ -165,11 +158,7 @@ impl Application {
             kinds,
         } = self;
         let (stop_workers, stopped) = watch::channel(false);
-        let mut workers =
-            jobs::spawn_workers(state.clone(), kinds, state.config.worker_count(), stopped);
-        // Runs a stopped process left tracking go on from their stored
-        // progress.
-        super::tracking::resume_all(&state);
+        let workers = start_workers(&state, kinds, stopped);
         let router = http::router(state.clone());
         let settings = connections::Settings::new(&state.config);
         // Event streams never end by themselves: they end at the shutdown,
@@ -181,18 +170,142 @@ impl Application {
         };
         connections::serve(listener, router, connections, settings, shutdown).await;
         let _ = stop_workers.send(true);
-        let drained = tokio::time::timeout(SHUTDOWN_GRACE, async {
-            while workers.join_next().await.is_some() {}
-        })
-        .await;
-        if drained.is_err() {
-            workers.abort_all();
-            match state.store.release_held(&state.instance).await {
-                Ok(n) => tracing::warn!(jobs = n, "running jobs returned to the queue"),
-                Err(error) => tracing::error!(%error, "cannot return running jobs to the queue"),
-            }
-        }
+        drain(&state, workers).await;
         state.store.close().await;
         Ok(())
+    }
+}
+
+/// Opens the database and ends the leases that processes of this host
+/// left when they died ([`Store::reap`]).
+async fn open_and_reap(data_dir: &std::path::Path, readers: u32) -> Result<Store, ServiceError> {
+    let store = Store::open(data_dir, readers)
+        .await
+        .map_err(ServiceError::Database)?;
+    let (requeued, failed) = store
+        .reap(&host_name(), process_exists)
+        .await
+        .map_err(ServiceError::Database)?;
+    if requeued + failed > 0 {
+        tracing::warn!(
+            requeued,
+            failed,
+            "jobs left running by a stopped process were queued again or failed"
+        );
+    }
+    Ok(store)
+}
+
+/// Starts the workers (none with `--workers 0`) and the tracking of the
+/// runs a stopped process left tracking, which goes on from their stored
+/// progress; a process without workers tracks nothing (tracking is CPU
+/// work, left to the processes that have workers).
+fn start_workers(
+    state: &Arc<AppState>,
+    kinds: JobKinds,
+    stopped: watch::Receiver<bool>,
+) -> tokio::task::JoinSet<()> {
+    let count = state.config.worker_count();
+    let workers = jobs::spawn_workers(state.clone(), kinds, count, stopped.clone());
+    if count > 0 {
+        super::tracking::spawn_tracking(state.clone(), stopped);
+    }
+    workers
+}
+
+/// Lets the running jobs finish for up to [`SHUTDOWN_GRACE`], then returns
+/// those still running to the queue.
+async fn drain(state: &AppState, mut workers: tokio::task::JoinSet<()>) {
+    let drained = tokio::time::timeout(SHUTDOWN_GRACE, async {
+        while workers.join_next().await.is_some() {}
+    })
+    .await;
+    if drained.is_err() {
+        workers.abort_all();
+        match state.store.release_held(&state.instance).await {
+            Ok(n) => tracing::warn!(jobs = n, "running jobs returned to the queue"),
+            Err(error) => tracing::error!(%error, "cannot return running jobs to the queue"),
+        }
+    }
+    // Another process may take this one's tracking runs over at once.
+    if let Err(error) = state.store.release_tracking_leases(&state.instance).await {
+        tracing::warn!(%error, "cannot give up the tracking runs' leases");
+    }
+}
+
+/// Runs `ptv worker`: the job queue's workers on the data directory's
+/// database and images, without HTTP, until `shutdown` completes; then
+/// lets running jobs finish as `ptv serve` does. Everything a job needs is
+/// in the database and the image directory, so any number of these
+/// processes share the queue with a `ptv serve` (SQLite in WAL mode allows
+/// several processes; each write takes the lock with `BEGIN IMMEDIATE`).
+pub async fn run_worker(
+    args: WorkerArgs,
+    kinds: JobKinds,
+    shutdown: impl Future<Output = ()> + Send + 'static,
+) -> Result<(), ServiceError> {
+    let config = args.serve_args();
+    let data_dir = config.data_dir.clone();
+    std::fs::create_dir_all(&data_dir).map_err(|e| ServiceError::io(&data_dir, e))?;
+    let workers = config.worker_count();
+    let readers = (workers as u32 + 4).min(16);
+    let store = open_and_reap(&data_dir, readers).await?;
+    let images = ImageStore::open_shared(&data_dir).map_err(|e| ServiceError::io(&data_dir, e))?;
+    let cpu = CpuPool::new(workers).map_err(|e| ServiceError::Start(e.to_string()))?;
+    let state = Arc::new(AppState {
+        config,
+        store,
+        images,
+        cpu,
+        pipelines: PipelineCache::default(),
+        metrics: Arc::new(Metrics::default()),
+        wake: Notify::new(),
+        instance: WorkerId::instance(&host_name()),
+        trackers: Default::default(),
+        // Nobody subscribes in a worker process: its changes reach a
+        // serving process's streams only through their snapshots (see
+        // `service::events`).
+        events: Default::default(),
+    });
+    tracing::info!(instance = %state.instance, workers, "worker started");
+    let (stop_workers, stopped) = watch::channel(false);
+    let running = start_workers(&state, kinds, stopped);
+    shutdown.await;
+    let _ = stop_workers.send(true);
+    drain(&state, running).await;
+    state.store.close().await;
+    Ok(())
+}
+
+/// This host's name, as leases name their owners' hosts.
+pub fn host_name() -> String {
+    std::fs::read_to_string("/proc/sys/kernel/hostname")
+        .ok()
+        .or_else(|| std::env::var("HOSTNAME").ok())
+        .map(|name| name.trim().to_owned())
+        .filter(|name| !name.is_empty())
+        .unwrap_or_else(|| "localhost".to_owned())
+}
+
+/// Whether a process of this host runs with this id (signal 0); where
+/// this cannot be told, it is assumed to run (its leases then run out).
+fn process_exists(pid: u32) -> bool {
+    #[cfg(unix)]
+    {
+        let Some(pid) = i32::try_from(pid)
+            .ok()
+            .and_then(rustix::process::Pid::from_raw)
+        else {
+            return false;
+        };
+        match rustix::process::test_kill_process(pid) {
+            Ok(()) => true,
+            Err(error) => error != rustix::io::Errno::SRCH,
+        }
+    }
+    #[cfg(not(unix))]
+    {
+        let _ = pid;
+        true
     }
 }

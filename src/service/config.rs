@@ -18,8 +18,9 @@ pub struct ServeArgs {
     /// missing).
     #[arg(long, env = "PTV_DATA_DIR", default_value = "ptv-data")]
     pub data_dir: PathBuf,
-    /// Frames processed at once, each on its own CPU thread [default: the
-    /// number of cores]
+    /// Frames processed at once, each on its own CPU thread; 0 serves only
+    /// (jobs are left to `ptv worker` processes on the same data
+    /// directory) [default: the number of cores]
     #[arg(long, env = "PTV_WORKERS")]
     pub workers: Option<usize>,
     /// Largest request body (MiB); larger uploads get 413.
@@ -45,6 +46,100 @@ pub struct ServeArgs {
     /// Time limits on jobs.
     #[command(flatten)]
     pub job_limits: JobLimits,
+    /// How long a worker holds a job (and a tracking run) it claimed.
+    #[command(flatten)]
+    pub lease: Lease,
+}
+
+/// Arguments of `ptv worker`: a process that runs jobs from the data
+/// directory's queue without serving HTTP (any number of them, next to a
+/// `ptv serve`, which may run with `--workers 0`).
+#[derive(Clone, Debug, Args)]
+pub struct WorkerArgs {
+    /// Directory of the SQLite database and the image store, as given to
+    /// `ptv serve` (created if missing).
+    #[arg(long, env = "PTV_DATA_DIR", default_value = "ptv-data")]
+    pub data_dir: PathBuf,
+    /// Jobs processed at once, each on its own CPU thread, at least 1
+    /// [default: the number of cores]
+    #[arg(long, env = "PTV_WORKERS", value_parser = clap::value_parser!(u64).range(1..))]
+    pub workers: Option<u64>,
+    /// Time limits on jobs.
+    #[command(flatten)]
+    pub job_limits: JobLimits,
+    /// How long a worker holds a job (and a tracking run) it claimed.
+    #[command(flatten)]
+    pub lease: Lease,
+}
+
+impl WorkerArgs {
+    /// The settings the jobs read: `ptv serve`'s, with this process's
+    /// data directory, workers, limits and lease (nothing is served).
+    pub fn serve_args(&self) -> ServeArgs {
+        ServeArgs {
+            bind: ([127, 0, 0, 1], 0).into(),
+            data_dir: self.data_dir.clone(),
+            workers: Some(self.worker_count()),
+            max_upload_mb: 0,
+            api_token: None,
+            max_cpu_requests: None,
+            max_connections: None,
+            timeouts: Timeouts::default(),
+            job_limits: self.job_limits.clone(),
+            lease: self.lease.clone(),
+        }
+    }
+
+    /// The number of workers: the flag, or the cores.
+    pub fn worker_count(&self) -> usize {
+        self.workers
+            .and_then(|n| usize::try_from(n).ok())
+            .unwrap_or_else(cores)
+            .max(1)
+    }
+}
+
+/// How long a claim holds its job or tracking run: the holder renews it
+/// every third of this while it works ([`Lease::heartbeat`]); once it
+/// runs out (the holder died, hung, or lost the database) another worker
+/// takes the work over. Longer: fewer renewals, slower takeover.
+#[derive(Clone, Debug, Args)]
+pub struct Lease {
+    /// Seconds a worker holds a claimed job or tracking run without
+    /// renewing it; a job whose worker stops renewing is taken by another
+    /// worker within this time.
+    #[arg(long = "lease-secs", env = "PTV_LEASE_SECS", default_value_t = Lease::SECS,
+          value_parser = clap::value_parser!(u64).range(1..=3600))]
+    pub secs: u64,
+}
+
+impl Lease {
+    /// Default of `--lease-secs`.
+    pub const SECS: u64 = 30;
+
+    /// The lease.
+    pub fn duration(&self) -> Duration {
+        Duration::from_secs(self.secs)
+    }
+
+    /// How often a holder renews it: a third of the lease, so that two
+    /// renewals may fail (a busy database) before it runs out.
+    pub fn heartbeat(&self) -> Duration {
+        self.duration() / 3
+    }
+}
+
+impl Default for Lease {
+    fn default() -> Self {
+        Lease { secs: Lease::SECS }
+    }
+}
+
+/// The machine's cores.
+fn cores() -> usize {
+    std::thread::available_parallelism()
+        .map(usize::from)
+        .unwrap_or(1)
 }
 
 /// How long a job may run: `--job-timeout-secs` plus
@@ -140,15 +235,15 @@ impl Default for Timeouts {
 }
 
 impl ServeArgs {
-    /// The number of workers: the flag, or the cores.
+    /// The number of workers: the flag (0: serve only), or the cores.
     pub fn worker_count(&self) -> usize {
-        self.workers
-            .unwrap_or_else(|| {
-                std::thread::available_parallelism()
-                    .map(usize::from)
-                    .unwrap_or(1)
-            })
-            .max(1)
+        self.workers.unwrap_or_else(cores)
+    }
+
+    /// Threads for the CPU pool: the workers', and at least one for the
+    /// CPU-heavy requests of a process that serves only.
+    pub fn cpu_threads(&self) -> usize {
+        self.worker_count().max(1)
     }
 
     /// The body limit in bytes.
@@ -159,6 +254,6 @@ impl ServeArgs {
     /// How many CPU-heavy requests may run at once: the flag, or the workers.
     pub fn cpu_request_limit(&self) -> usize {
         self.max_cpu_requests
-            .map_or_else(|| self.worker_count(), |n| n as usize)
+            .map_or_else(|| self.cpu_threads(), |n| n as usize)
     }
 }

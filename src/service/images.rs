@@ -6,7 +6,10 @@
 //! request is complete the file is renamed to its hash. The database holds
 //! which frame uses which hash. [`ImageStore::lock`] orders "rename, then
 //! commit the rows" against "no row left, so delete the file", so a file
-//! is never deleted while a frame being stored refers to it.
+//! is never deleted while a frame being stored refers to it; across
+//! processes too (`ptv serve` and `ptv worker` on one data directory): it
+//! holds an exclusive `flock` on `images.lock` in the data directory
+//! besides the process's own mutex.
 
 use std::io;
 use std::path::{Path, PathBuf};
@@ -47,6 +50,16 @@ pub struct ImageStore {
     /// Held while files are persisted and their rows committed, or while
     /// unused files are deleted.
     lock: Mutex<()>,
+    /// The file locked for the same across processes.
+    lock_file: PathBuf,
+}
+
+/// The image store's lock, held until dropped (closing the locked file
+/// releases its `flock`).
+#[derive(Debug)]
+pub struct ImageLock<'a> {
+    _guard: MutexGuard<'a, ()>,
+    _file: Option<std::fs::File>,
 }
 
 /// An upload being written.
@@ -86,19 +99,28 @@ impl UploadedFile {
 
 impl ImageStore {
     /// Opens the store under `data_dir`, creating its directories and
-    /// removing uploads a stopped process left half-written.
+    /// removing uploads a stopped process left half-written (`ptv serve`,
+    /// which takes the uploads).
     pub fn open(data_dir: &Path) -> io::Result<ImageStore> {
-        let root = data_dir.join("images");
         let tmp = data_dir.join("tmp");
-        std::fs::create_dir_all(&root)?;
         if tmp.exists() {
             std::fs::remove_dir_all(&tmp)?;
         }
+        ImageStore::open_shared(data_dir)
+    }
+
+    /// Opens the store under `data_dir` next to a `ptv serve` that may be
+    /// taking uploads into it (`ptv worker`): nothing is removed.
+    pub fn open_shared(data_dir: &Path) -> io::Result<ImageStore> {
+        let root = data_dir.join("images");
+        let tmp = data_dir.join("tmp");
+        std::fs::create_dir_all(&root)?;
         std::fs::create_dir_all(&tmp)?;
         Ok(ImageStore {
             root,
             tmp,
             lock: Mutex::new(()),
+            lock_file: data_dir.join("images.lock"),
         })
     }
 
@@ -128,9 +150,38 @@ impl ImageStore {
         self.root.join(prefix).join(sha256)
     }
 
-    /// Holds the store's lock; see the module's doc.
-    pub async fn lock(&self) -> MutexGuard<'_, ()> {
-        self.lock.lock().await
+    /// Holds the store's lock; see the module's doc. Where the lock file
+    /// cannot be opened or locked (a file system without `flock`), only
+    /// the process's own mutex is held, with a warning.
+    pub async fn lock(&self) -> ImageLock<'_> {
+        let guard = self.lock.lock().await;
+        let path = self.lock_file.clone();
+        let file = tokio::task::spawn_blocking(move || {
+            let file = std::fs::OpenOptions::new()
+                .create(true)
+                .truncate(false)
+                .write(true)
+                .open(&path)?;
+            #[cfg(unix)]
+            rustix::fs::flock(&file, rustix::fs::FlockOperation::LockExclusive)?;
+            Ok::<_, io::Error>(file)
+        })
+        .await;
+        let file = match file {
+            Ok(Ok(file)) => Some(file),
+            Ok(Err(error)) => {
+                tracing::warn!(%error, "cannot lock the image store across processes");
+                None
+            }
+            Err(error) => {
+                tracing::warn!(%error, "cannot lock the image store across processes");
+                None
+            }
+        };
+        ImageLock {
+            _guard: guard,
+            _file: file,
+        }
     }
 
     /// Moves an upload to its place (a file of the same content may be

@@ -1,18 +1,28 @@
 //! The durable job queue's workers.
 //!
 //! Jobs are rows of the `jobs` table ([`Store`]): enqueued in the same
-//! transaction as what they work on, claimed by one `UPDATE ... RETURNING`
-//! statement, and completed in the same transaction that stores their
-//! results, fenced by the claim (`locked_by`), so a job's results exist
-//! exactly once. Each kind of job is a [`JobHandler`] registered in
-//! [`JobKinds`] under its name; the workers do not know the kinds.
+//! transaction as what they work on, claimed with a lease (`UPDATE ...
+//! RETURNING` in one write transaction; see the store's `jobs` module),
+//! and completed in the same transaction that stores their results,
+//! fenced by the claim's token, so a job's results exist exactly once.
+//! Each kind of job is a [`JobHandler`] registered in [`JobKinds`] under
+//! its name; the workers do not know the kinds.
 //!
-//! Workers are async tasks, one per `--workers`, that claim a job, read its
-//! inputs, and hand the CPU work to [`CpuPool`] (a rayon pool of the same
-//! size), never computing on the async runtime's threads. A stopped or
-//! killed process leaves its running jobs `running`; the reaper
-//! ([`Store::reap`]) queues them again at the next start, and fails a job
-//! that was claimed [`MAX_ATTEMPTS`] times.
+//! Workers are async tasks, one per `--workers`, in `ptv serve` or in any
+//! number of `ptv worker` processes on the same data directory. Each
+//! claims a job, renews its lease by heartbeat every third of
+//! `--lease-secs` while the attempt runs, reads its inputs (all in the
+//! database and the image directory: nothing of the serving process),
+//! and hands the CPU work to [`CpuPool`] (a rayon pool of the same size),
+//! never computing on the async runtime's threads. An idle worker polls
+//! the queue (a read) with a backoff from [`IDLE_POLL_MIN`] to
+//! [`IDLE_POLL_MAX`]; in `ptv serve` an upload also wakes it at once.
+//! A killed, hung or cut-off worker stops renewing: once its lease has
+//! run out the next claim anywhere queues the job again (or fails it
+//! once it was claimed [`MAX_ATTEMPTS`] times), and the late worker's
+//! completion, if it ever comes, is fenced out and dropped. At start-up
+//! the reaper ([`Store::reap`]) ends at once the leases of processes of
+//! this host that no longer exist.
 //!
 //! Kinds today: [`PROCESS_FRAME`] ([`process_frame`]),
 //! [`SOLVE_CALIBRATION`] ([`solve_calibration`]: calibration by resection
@@ -80,8 +90,9 @@ pub enum JobError {
     /// what it waits for and shows as the job's `error` meanwhile.
     #[error("{0}")]
     Deferred(String),
-    /// The worker no longer holds the job; nothing to do.
-    #[error("lost the job's claim")]
+    /// The worker no longer holds the job (its lease ran out and another
+    /// worker took it): its result is dropped.
+    #[error("lost the job's lease")]
     LostLease,
 }
 
@@ -412,34 +423,99 @@ pub fn spawn_workers(
     set
 }
 
+/// The shortest wait of an idle worker before it looks at the queue again.
+pub const IDLE_POLL_MIN: Duration = Duration::from_millis(50);
+
+/// The longest: the wait doubles while the queue stays empty.
+pub const IDLE_POLL_MAX: Duration = Duration::from_secs(1);
+
 async fn worker_loop(
     state: Arc<AppState>,
     kinds: JobKinds,
     worker: String,
     mut shutdown: watch::Receiver<bool>,
 ) {
+    let mut idle = IDLE_POLL_MIN;
     loop {
         if *shutdown.borrow() {
             return;
         }
-        match state.store.claim(&worker).await {
-            Ok(Some(job)) => execute(&state, &kinds, job).await,
+        match state
+            .store
+            .claim(&worker, state.config.lease.duration())
+            .await
+        {
+            Ok(Some(job)) => {
+                idle = IDLE_POLL_MIN;
+                execute(&state, &kinds, job).await;
+            }
             Ok(None) => {
                 tokio::select! {
-                    _ = state.wake.notified() => {}
-                    _ = tokio::time::sleep(Duration::from_secs(1)) => {}
+                    _ = state.wake.notified() => idle = IDLE_POLL_MIN,
+                    _ = tokio::time::sleep(idle) => idle = (idle * 2).min(IDLE_POLL_MAX),
                     _ = shutdown.changed() => {}
                 }
             }
             Err(error) => {
                 tracing::error!(%error, "cannot claim a job");
-                tokio::time::sleep(Duration::from_secs(1)).await;
+                tokio::time::sleep(IDLE_POLL_MAX).await;
             }
         }
     }
 }
 
-/// Runs one claimed job and records its outcome.
+/// Renews a held job's lease every [`crate::service::config::Lease::heartbeat`]
+/// until dropped; stops (and says so) once the job is no longer held.
+struct Heartbeat(tokio::task::JoinHandle<()>);
+
+impl Heartbeat {
+    fn start(state: &Arc<AppState>, job: &ClaimedJob) -> Heartbeat {
+        let (state, job) = (state.clone(), job.clone());
+        Heartbeat(tokio::spawn(async move {
+            let lease = state.config.lease.duration();
+            loop {
+                tokio::time::sleep(state.config.lease.heartbeat()).await;
+                match state.store.renew(&job, lease).await {
+                    Ok(true) => {}
+                    Ok(false) => {
+                        tracing::warn!(
+                            job = %job.id,
+                            token = %job.token,
+                            "lost the job's lease (it ran out and another worker took the job); \
+                             this attempt's result will be dropped"
+                        );
+                        return;
+                    }
+                    Err(error) => {
+                        tracing::warn!(job = %job.id, %error, "cannot renew a job's lease")
+                    }
+                }
+            }
+        }))
+    }
+}
+
+impl Drop for Heartbeat {
+    fn drop(&mut self) {
+        self.0.abort();
+    }
+}
+
+/// Fault injection for tests: `PTV_FAULT_JOB_DELAY_MS` makes every attempt
+/// wait that long (its lease renewed) before its handler runs, so that a
+/// test can kill a worker in the middle of a job. Unset in production.
+fn fault_job_delay() -> Option<Duration> {
+    static DELAY: std::sync::OnceLock<Option<Duration>> = std::sync::OnceLock::new();
+    *DELAY.get_or_init(|| {
+        std::env::var("PTV_FAULT_JOB_DELAY_MS")
+            .ok()
+            .and_then(|ms| ms.parse().ok())
+            .map(Duration::from_millis)
+    })
+}
+
+/// Runs one claimed job, its lease renewed meanwhile, and records its
+/// outcome (fenced on the claim's token).
 async fn execute(state: &Arc<AppState>, kinds: &JobKinds, job: ClaimedJob) {
     let run = JobRun {
         job: job.clone(),
@@ -447,30 +523,49 @@ async fn execute(state: &Arc<AppState>, kinds: &JobKinds, job: ClaimedJob) {
     };
     let kind = job.kind.clone();
     super::events::job_running(state, &job);
+    let heartbeat = Heartbeat::start(state, &job);
+    if let Some(delay) = fault_job_delay() {
+        tokio::time::sleep(delay).await;
+    }
     let outcome = match kinds.get(&kind) {
         Some(handler) => handler(state.clone(), run.clone()).await,
         None => Err(JobError::Failed(format!(
             "this service does not know jobs of kind `{kind}`"
         ))),
     };
+    drop(heartbeat);
     let seconds = run.elapsed_s();
     let announced = super::events::JobOutcome::of(&outcome, job.attempts);
+    let fenced = |error: CompleteError| match error {
+        CompleteError::LostLease(_) => tracing::warn!(
+            job = %job.id,
+            token = %job.token,
+            "the job's lease was lost (another worker took it); this attempt's outcome is dropped"
+        ),
+        CompleteError::Database(error) => {
+            tracing::error!(job = %job.id, %error, "cannot record a job's outcome")
+        }
+    };
     let label = match outcome {
         Ok(()) => "succeeded",
         Err(JobError::LostLease) => {
-            tracing::warn!(job = %job.id, "job completed elsewhere; result dropped");
+            tracing::warn!(
+                job = %job.id,
+                token = %job.token,
+                "the job's lease was lost (another worker took it); result dropped"
+            );
             "lost"
         }
         Err(JobError::Failed(message)) => {
             if let Err(error) = state.store.fail(&job, &message, seconds).await {
-                tracing::error!(job = %job.id, %error, "cannot record a failure");
+                fenced(error);
             }
             "failed"
         }
         Err(JobError::Retry(message)) if job.attempts < MAX_ATTEMPTS => {
             tracing::warn!(job = %job.id, %message, "job attempt failed; queued again");
             if let Err(error) = state.store.release(&job, Some(&message)).await {
-                tracing::error!(job = %job.id, %error, "cannot queue a job again");
+                fenced(error);
             }
             state.wake.notify_one();
             "retried"
@@ -478,7 +573,7 @@ async fn execute(state: &Arc<AppState>, kinds: &JobKinds, job: ClaimedJob) {
         Err(JobError::Retry(message)) => {
             let message = format!("gave up after {} attempts: {message}", job.attempts);
             if let Err(error) = state.store.fail(&job, &message, seconds).await {
-                tracing::error!(job = %job.id, %error, "cannot record a failure");
+                fenced(error);
             }
             "failed"
         }
@@ -486,10 +581,20 @@ async fn execute(state: &Arc<AppState>, kinds: &JobKinds, job: ClaimedJob) {
             tracing::warn!(job = %job.id, %message, "the disk is full; job queued again");
             // Giving the job back is a write too: on a full disk it may
             // fail, so keep trying (a shutdown's grace period ends this,
-            // and the job then goes back with the others held).
-            while let Err(error) = state.store.give_back(&job, &message).await {
-                tracing::error!(job = %job.id, %error, "cannot queue a job again");
-                tokio::time::sleep(STORAGE_FULL_PAUSE).await;
+            // and the job then goes back with the others held); a lost
+            // lease ends it.
+            loop {
+                match state.store.give_back(&job, &message).await {
+                    Ok(()) => break,
+                    Err(error @ CompleteError::LostLease(_)) => {
+                        fenced(error);
+                        break;
+                    }
+                    Err(error) => {
+                        tracing::error!(job = %job.id, %error, "cannot queue a job again");
+                        tokio::time::sleep(STORAGE_FULL_PAUSE).await;
+                    }
+                }
             }
             tokio::time::sleep(STORAGE_FULL_PAUSE).await;
             "storage_full"
@@ -497,7 +602,7 @@ async fn execute(state: &Arc<AppState>, kinds: &JobKinds, job: ClaimedJob) {
         Err(JobError::Deferred(note)) => {
             let delay = super::preprocessing::WAIT_FOR_BACKGROUND.as_secs_f64();
             if let Err(error) = state.store.defer(&job, &note, delay).await {
-                tracing::error!(job = %job.id, %error, "cannot defer a job");
+                fenced(error);
             }
             "deferred"
         }

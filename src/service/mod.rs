@@ -3,7 +3,7 @@
 //!
 //! - [`config`]: `ptv serve`'s flags (each also an environment variable).
 //! - [`app`]: builds the service from its settings, binds, serves until a
-//!   shutdown signal, drains the workers.
+//!   shutdown signal, drains the workers; `ptv worker`'s loop without HTTP.
 //! - [`connections`]: serves HTTP/1.1 with hyper within a connection limit
 //!   (the longest-idle connection makes room for a new one) and closes a
 //!   connection whose upload was refused unread by lingering.
@@ -46,7 +46,7 @@ use std::net::SocketAddr;
 use std::path::Path;
 
 pub use app::{AppState, Application};
-pub use config::{JobLimits, ServeArgs, Timeouts};
+pub use config::{JobLimits, Lease, ServeArgs, Timeouts, WorkerArgs};
 
 /// Why the service could not start or stopped with an error.
 #[derive(Debug, thiserror::Error)]
@@ -107,6 +107,23 @@ pub fn run(args: ServeArgs, stdout: &mut dyn Write) -> Result<(), ServiceError> 
         let _ = stdout.flush();
         app.run_until(shutdown_signal()).await
     })
+}
+
+/// Runs `ptv worker` until SIGINT or SIGTERM (see [`app::run_worker`]).
+pub fn run_worker(args: WorkerArgs) -> Result<(), ServiceError> {
+    let _ = tracing_subscriber::fmt()
+        .with_writer(std::io::stderr)
+        .with_target(false)
+        .try_init();
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .map_err(|e| ServiceError::Start(e.to_string()))?;
+    runtime.block_on(app::run_worker(
+        args,
+        jobs::JobKinds::standard(),
+        shutdown_signal(),
+    ))
 }
 
 /// Completes at the first SIGINT (Ctrl-C) or SIGTERM.

@@ -398,8 +398,8 @@ pub async fn reprocess_sequence(state: Arc<AppState>, run: JobRun) -> Result<(),
             state
                 .store
                 .replace_particles(
-                    sequence_id,
-                    frame,
+                    &run.job,
+                    (sequence_id, frame),
                     calibration_id,
                     (particles.len() as i64, &blob),
                 )

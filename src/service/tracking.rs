@@ -79,6 +79,9 @@
 
 use std::collections::{HashMap, VecDeque};
 use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use tokio::sync::watch;
 
 use serde::{Deserialize, Serialize};
 use utoipa::ToSchema;
@@ -89,7 +92,8 @@ use super::events::Change;
 use super::jobs::{error_chain, CpuError};
 use super::parameters::SequenceParameters;
 use super::store::{
-    FrameNumber, FrameReadiness, PointRow, SequenceId, TrackingRunId, TrackingRunRow, TrackingState,
+    FrameNumber, FrameReadiness, LeaseToken, PointRow, SequenceId, TrackingRunId, TrackingRunRow,
+    TrackingState,
 };
 use crate::formats;
 use crate::photogrammetry::correspond::Particle;
@@ -471,7 +475,12 @@ impl Trackers {
 
 /// Advances the sequence's current run in the background (after a frame
 /// job, a finish request, a new run).
+/// A process without workers (`ptv serve --workers 0`) tracks nothing:
+/// the worker processes' polls find the run.
 pub fn kick(state: &Arc<AppState>, sequence_id: SequenceId) {
+    if state.config.worker_count() == 0 {
+        return;
+    }
     let state = state.clone();
     tokio::spawn(async move {
         match state.store.current_tracking_run(sequence_id).await {
@@ -484,19 +493,74 @@ pub fn kick(state: &Arc<AppState>, sequence_id: SequenceId) {
     });
 }
 
-/// Advances every run still tracking (at start-up).
-pub fn resume_all(state: &Arc<AppState>) {
-    let state = state.clone();
+/// How often a process with workers looks for runs to advance whose frames
+/// other processes processed (and renews the leases of the runs it holds;
+/// at most a third of the lease apart).
+const TRACKING_POLL: Duration = Duration::from_secs(1);
+
+/// Advances, until `stopped`, every run still tracking that this process
+/// holds or may take (its lease free or run out: at start-up, the runs a
+/// stopped process left, and later those whose holder died), every
+/// [`TRACKING_POLL`]: frames processed by other processes (`ptv worker`)
+/// kick no tracker here, so the holder looks for them.
+pub fn spawn_tracking(state: Arc<AppState>, mut stopped: watch::Receiver<bool>) {
     tokio::spawn(async move {
-        match state.store.unfinished_tracking_runs().await {
-            Ok(runs) => {
-                for id in runs {
-                    advance_logged(&state, id).await;
+        let every = TRACKING_POLL.min(state.config.lease.heartbeat());
+        loop {
+            match state.store.tracking_runs_to_advance(&state.instance).await {
+                Ok(runs) => {
+                    for id in runs {
+                        if *stopped.borrow() {
+                            return;
+                        }
+                        advance_logged(&state, id).await;
+                    }
                 }
+                Err(error) => tracing::warn!(%error, "cannot list the tracking runs to advance"),
             }
-            Err(error) => tracing::warn!(%error, "cannot list the tracking runs to resume"),
+            tokio::select! {
+                _ = tokio::time::sleep(every) => {}
+                _ = stopped.changed() => return,
+            }
         }
     });
+}
+
+/// Renews a run's lease every third of it while an advance runs (a
+/// replay may take longer than the lease); stops when dropped.
+struct LeaseHeartbeat(tokio::task::JoinHandle<()>);
+
+impl LeaseHeartbeat {
+    fn start(state: &Arc<AppState>, id: TrackingRunId) -> LeaseHeartbeat {
+        let state = state.clone();
+        LeaseHeartbeat(tokio::spawn(async move {
+            let lease = state.config.lease.duration();
+            loop {
+                tokio::time::sleep(state.config.lease.heartbeat()).await;
+                match state
+                    .store
+                    .take_tracking_lease(id, &state.instance, lease)
+                    .await
+                {
+                    Ok(Some(_)) => {}
+                    Ok(None) => {
+                        tracing::warn!(run = %id, "lost the tracking run's lease; what this \
+                                       process tracks of it from now on is not stored");
+                        return;
+                    }
+                    Err(error) => {
+                        tracing::warn!(run = %id, %error, "cannot renew a tracking lease")
+                    }
+                }
+            }
+        }))
+    }
+}
+
+impl Drop for LeaseHeartbeat {
+    fn drop(&mut self) {
+        self.0.abort();
+    }
 }
 
 async fn advance_logged(state: &Arc<AppState>, id: TrackingRunId) {
@@ -527,6 +591,17 @@ const FRAMES_PER_QUERY: u32 = 256;
 pub async fn advance(state: &Arc<AppState>, id: TrackingRunId) -> Result<(), TrackingError> {
     let slot = state.trackers.slot(id);
     let mut guard = slot.lock().await;
+    let lease = state.config.lease.duration();
+    let Some(token) = state
+        .store
+        .take_tracking_lease(id, &state.instance, lease)
+        .await?
+    else {
+        // Another process holds the run's tracker (or the run ended).
+        *guard = None;
+        return Ok(());
+    };
+    let _heartbeat = LeaseHeartbeat::start(state, id);
     let Some(run) = state.store.tracking_run(id).await? else {
         return Ok(());
     };
@@ -546,7 +621,7 @@ pub async fn advance(state: &Arc<AppState>, id: TrackingRunId) -> Result<(), Tra
     // every way out waits for that store first, so that the tracker in
     // memory and the stored progress agree whenever the lock is free.
     let mut storing = None;
-    let taken = take_frames(state, &run, &settings, live, cameras, &mut storing).await;
+    let taken = take_frames(state, (&run, token), &settings, live, cameras, &mut storing).await;
     let stored = settle(&mut storing).await;
     let at_end = match (taken, stored) {
         (Ok(Taken::AtEnd), Ok(true)) => true,
@@ -583,7 +658,7 @@ pub async fn advance(state: &Arc<AppState>, id: TrackingRunId) -> Result<(), Tra
         let rows = rows(&held, &points)?;
         let finished = state
             .store
-            .finish_tracking_run(id, live.through, &rows)
+            .finish_tracking_run((id, token), live.through, &rows)
             .await?;
         if finished {
             let ended = Change::TrackingEnded {
@@ -623,7 +698,7 @@ async fn settle(storing: &mut Storing) -> Result<bool, TrackingError> {
 /// each frame's points (the last one's store may still run in `storing`).
 async fn take_frames(
     state: &AppState,
-    run: &TrackingRunRow,
+    (run, token): (&TrackingRunRow, LeaseToken),
     settings: &TrackingSettings,
     live: &mut Live,
     cameras: usize,
@@ -663,7 +738,7 @@ async fn take_frames(
             let (events, sequence_id) = (state.events.clone(), run.sequence_id);
             *storing = Some(tokio::spawn(async move {
                 let stored = store
-                    .store_tracked_frame(id, previous, frame, recorded, &rows)
+                    .store_tracked_frame((id, token), previous, frame, recorded, &rows)
                     .await;
                 if matches!(stored, Ok(true)) {
                     let tracked_through = frame;

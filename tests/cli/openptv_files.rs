@@ -514,7 +514,7 @@ fn help_lists_the_commands_and_no_subcommand_serves() {
     let output = ptv(&["--help"], dir.path());
     assert!(output.status.success());
     let stdout = text(&output.stdout);
-    for command in ["calibration", "project", "intersect", "serve"] {
+    for command in ["calibration", "project", "intersect", "serve", "worker"] {
         assert!(stdout.contains(command), "{stdout}");
     }
     assert!(output.stderr.is_empty());

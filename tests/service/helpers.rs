@@ -50,6 +50,7 @@ pub fn test_args(data_dir: &Path, api_token: Option<&str>) -> ServeArgs {
         max_connections: None,
         timeouts: Timeouts::default(),
         job_limits: JobLimits::default(),
+        lease: Default::default(),
     }
 }
 
@@ -390,11 +391,17 @@ impl ServiceProcess {
     /// Starts `ptv serve` on port 0 with `data_dir` and reads the address it
     /// prints.
     pub fn start(data_dir: &Path, workers: usize) -> ServiceProcess {
+        ServiceProcess::start_with(data_dir, workers, &[])
+    }
+
+    /// [`ServiceProcess::start`] with more arguments (`--lease-secs 3`).
+    pub fn start_with(data_dir: &Path, workers: usize, more: &[&str]) -> ServiceProcess {
         let mut child = Command::new(env!("CARGO_BIN_EXE_ptv"))
             .args(["serve", "--bind", "127.0.0.1:0", "--workers"])
             .arg(workers.to_string())
             .arg("--data-dir")
             .arg(data_dir)
+            .args(more)
             .stdout(Stdio::piped())
             .stderr(Stdio::null())
             .spawn()
@@ -426,6 +433,53 @@ impl Drop for ServiceProcess {
         let _ = self.child.kill();
         let _ = self.child.wait();
     }
+}
+
+/// `ptv worker` as a child process (killed when dropped).
+pub struct WorkerProcess {
+    /// The child.
+    pub child: Child,
+}
+
+impl WorkerProcess {
+    /// Starts `ptv worker --data-dir DATA_DIR` with `more` arguments and
+    /// environment variables `env`.
+    pub fn start(data_dir: &Path, more: &[&str], env: &[(&str, &str)]) -> WorkerProcess {
+        let child = Command::new(env!("CARGO_BIN_EXE_ptv"))
+            .args(["worker", "--data-dir"])
+            .arg(data_dir)
+            .args(more)
+            .envs(env.iter().copied())
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .expect("the ptv binary starts");
+        WorkerProcess { child }
+    }
+
+    /// Its process id.
+    pub fn pid(&self) -> u32 {
+        self.child.id()
+    }
+
+    /// Kills the process (SIGKILL) and reaps it.
+    pub fn kill(&mut self) {
+        self.child.kill().unwrap();
+        self.child.wait().unwrap();
+    }
+}
+
+impl Drop for WorkerProcess {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// The process id in a worker's name (`HOST:PID:RANDOM/INDEX`).
+pub fn worker_pid(worker: &str) -> Option<u32> {
+    let instance = worker.split('/').next()?;
+    instance.rsplit(':').nth(1)?.parse().ok()
 }
 
 /// The repository's root.

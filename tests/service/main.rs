@@ -4,7 +4,10 @@
 //! - `api`: the synthetic 4-camera experiment end to end, OpenPTV import
 //!   and the project/intersect helpers, the API token, the committed
 //!   OpenAPI document.
-//! - `reliability`: a kill -9 while jobs run, and 32 concurrent uploaders.
+//! - `reliability`: a kill -9 while jobs run, and 32 concurrent uploaders;
+//!   `ptv serve --workers 0` with two `ptv worker` processes, one killed
+//!   in the middle of a job, which the other takes over once its lease
+//!   has run out and completes exactly once.
 //! - `bad_inputs`: every kind of bad request gets its 4xx and leaves the
 //!   database consistent.
 //! - `job_bounds`: projections per request bounded, a frame past its time
@@ -44,7 +47,8 @@
 //!   their particles naming the calibration; bad requests' 4xx.
 //! - `tracking`: a simulated sequence of moving particles uploaded out of
 //!   order by 4 clients is tracked exactly as the core's tracker tracks
-//!   its particles in order, also across a kill -9 and a restart; a re-run
+//!   its particles in order, also across a kill -9 and a restart, and by
+//!   two `ptv worker` processes, the run's holder killed; a re-run
 //!   with other settings is a new run next to the old one; bad settings
 //!   and queries refused.
 //! - `upload`: `ptv upload` against the service and a flaky stand-in:

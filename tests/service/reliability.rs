@@ -130,6 +130,191 @@ async fn killed_service_processes_every_accepted_frame_exactly_once() {
     assert!(crate::api::walk(&data_dir.path().join("images")).is_empty());
 }
 
+/// The lease in the worker test (s): short, so that the takeover is
+/// quick, yet many heartbeats (a third of it) long on a loaded machine.
+const LEASE_SECS: u64 = 3;
+
+/// How long each attempt waits before its work in the worker test
+/// (`PTV_FAULT_JOB_DELAY_MS`), its lease renewed meanwhile: longer than
+/// the lease, so that only renewals keep a live worker's job.
+const JOB_DELAY_MS: u64 = 4_000;
+
+/// Frames in the worker test: as many as one worker process has workers,
+/// so that the surviving process has a worker free when the lease runs
+/// out (a busy one would take the job only after its own).
+const WORKER_FRAMES: i64 = 2;
+
+/// `ptv serve --workers 0` takes the uploads and two `ptv worker`
+/// processes (2 workers each) the jobs. One worker is killed (-9) in the middle of a job:
+/// the other takes the job over once its lease has run out (not before),
+/// within the lease plus the idle workers' poll, and it completes exactly
+/// once; the job's claims show the takeover; every frame is processed
+/// once, by the worker processes only.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_killed_worker_process_s_job_is_taken_over_after_its_lease_and_completes_once() {
+    let data_dir = tempfile::tempdir().unwrap();
+    let lease = LEASE_SECS.to_string();
+    let lease_args = ["--lease-secs", lease.as_str()];
+    let server = ServiceProcess::start_with(data_dir.path(), 0, &lease_args);
+    let delay = JOB_DELAY_MS.to_string();
+    let env = [("PTV_FAULT_JOB_DELAY_MS", delay.as_str())];
+    let worker_args = ["--lease-secs", lease.as_str(), "--workers", "2"];
+    let mut workers = [
+        WorkerProcess::start(data_dir.path(), &worker_args, &env),
+        WorkerProcess::start(data_dir.path(), &worker_args, &env),
+    ];
+    let pids: Vec<u32> = workers.iter().map(WorkerProcess::pid).collect();
+
+    let client = reqwest::Client::new();
+    let address = server.address.clone();
+    let api = |path: &str| format!("{address}/api/v1{path}");
+    let rig = rig();
+    let response = client
+        .post(api("/calibrations"))
+        .body(ptv::formats::calibration::to_json(&rig.cameras))
+        .send()
+        .await
+        .unwrap();
+    let (status, body) = status_and_json(response).await;
+    assert_eq!(status, 201, "{body}");
+    let calibration = body["id"].as_i64().unwrap();
+    let response = client
+        .post(api("/sequences"))
+        .json(&sequence_body(calibration, &rig.volume, false))
+        .send()
+        .await
+        .unwrap();
+    let (status, body) = status_and_json(response).await;
+    assert_eq!(status, 201, "{body}");
+    let sequence = body["id"].as_i64().unwrap();
+    let frames: Vec<_> = (0..WORKER_FRAMES)
+        .map(|f| rig.targets(200, 900 + f as u64))
+        .collect();
+    for (frame, targets) in frames.iter().enumerate() {
+        let (status, body) = upload(
+            &client,
+            &address,
+            sequence,
+            targets_form(frame as i64, targets),
+        )
+        .await;
+        assert_eq!(status, 202, "{body}");
+    }
+
+    // Kill the holder of the first job seen running, a second into its
+    // attempt (the attempt waits JOB_DELAY_MS before its work).
+    let db = open_database(data_dir.path()).await;
+    let (job, holder) = loop {
+        let running: Option<(i64, String)> = sqlx::query_as(
+            "SELECT id, locked_by FROM jobs WHERE state = 'running' \
+             AND started_at <= strftime('%Y-%m-%dT%H:%M:%fZ', 'now', '-1 seconds') \
+             ORDER BY id LIMIT 1",
+        )
+        .fetch_optional(&db)
+        .await
+        .unwrap();
+        if let Some(found) = running {
+            break found;
+        }
+        tokio::time::sleep(std::time::Duration::from_millis(20)).await;
+    };
+    let pid = worker_pid(&holder).unwrap();
+    let index = pids
+        .iter()
+        .position(|&p| p == pid)
+        .unwrap_or_else(|| panic!("job {job} is held by {holder}, not by a worker process"));
+    workers[index].kill();
+    // The lease it held when it died, from the database's clock.
+    let (lease_until,): (String,) = sqlx::query_as("SELECT lease_until FROM jobs WHERE id = ?")
+        .bind(job)
+        .fetch_one(&db)
+        .await
+        .unwrap();
+
+    let view = wait_for_sequence(&client, &address, sequence).await;
+    assert_eq!(view["frames"]["done"], WORKER_FRAMES, "{view}");
+    assert_eq!(view["frames"]["failed"], 0, "{view}");
+
+    // The job's claims: the killed worker's expired, the other's succeeded.
+    let (status, job_view) = status_and_json(
+        client
+            .get(api(&format!("/jobs/{job}")))
+            .send()
+            .await
+            .unwrap(),
+    )
+    .await;
+    assert_eq!(status, 200, "{job_view}");
+    assert_eq!(job_view["state"], "succeeded", "{job_view}");
+    assert_eq!(job_view["attempts"], 2, "{job_view}");
+    let claims = job_view["claims"].as_array().unwrap();
+    assert_eq!(claims.len(), 2, "{job_view}");
+    assert_eq!(claims[0]["token"], 1, "{job_view}");
+    assert_eq!(claims[0]["worker"], holder.as_str(), "{job_view}");
+    assert_eq!(claims[0]["outcome"], "expired", "{job_view}");
+    assert_eq!(claims[1]["token"], 2, "{job_view}");
+    assert_eq!(claims[1]["outcome"], "succeeded", "{job_view}");
+    let taker = claims[1]["worker"].as_str().unwrap();
+    assert_eq!(worker_pid(taker), Some(pids[1 - index]), "{job_view}");
+
+    // Taken over after the lease ran out, and within the lease's end plus
+    // the idle worker's longest poll (1 s) and 2 s of slack for a loaded
+    // machine: the seconds from the dead worker's lease to the takeover.
+    let (after,): (f64,) = sqlx::query_as(
+        "SELECT (julianday(claimed_at) - julianday(?)) * 86400 FROM job_claims \
+         WHERE job_id = ? AND token = 2",
+    )
+    .bind(&lease_until)
+    .bind(job)
+    .fetch_one(&db)
+    .await
+    .unwrap();
+    assert!(
+        (0.0..=3.0).contains(&after),
+        "taken over {after:.2} s after the lease ended"
+    );
+
+    // Exactly once: one result per frame, and no claim left open.
+    assert_eq!(
+        count(&db, "SELECT count(*) FROM frames").await,
+        WORKER_FRAMES
+    );
+    assert_eq!(
+        count(&db, "SELECT count(*) FROM jobs WHERE state = 'succeeded'").await,
+        WORKER_FRAMES
+    );
+    assert_eq!(
+        count(&db, "SELECT count(*) FROM particles").await,
+        WORKER_FRAMES
+    );
+    assert_eq!(
+        count(
+            &db,
+            "SELECT count(*) FROM job_claims WHERE outcome = 'succeeded'"
+        )
+        .await,
+        WORKER_FRAMES
+    );
+    assert_eq!(
+        count(&db, "SELECT count(*) FROM job_claims WHERE outcome IS NULL").await,
+        0
+    );
+    // Only the worker processes claimed: the server has no workers.
+    let claimers: Vec<(String,)> = sqlx::query_as("SELECT DISTINCT worker FROM job_claims")
+        .fetch_all(&db)
+        .await
+        .unwrap();
+    for (worker,) in &claimers {
+        let pid = worker_pid(worker);
+        assert!(pid.is_some_and(|p| pids.contains(&p)), "{worker}");
+    }
+    // The sequence keeps no images: none left behind.
+    assert_eq!(count(&db, "SELECT count(*) FROM images").await, 0);
+    db.close().await;
+    drop(workers);
+    drop(server);
+}
+
 /// Uploaders at once.
 const CLIENTS: usize = 32;
 /// Frames each uploader sends (all of them send the same frames).

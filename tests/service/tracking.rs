@@ -4,7 +4,9 @@
 //! on the same targets, the image-space recovery included (particles the
 //! correspondences missed, found again in the stored targets); the same
 //! after a kill -9 mid-tracking and a restart (the replay recovers
-//! identically), and across a failed frame (a gap in both); a re-run with
+//! identically), and with two `ptv worker` processes one of which is
+//! killed while it holds the run (the other takes the run's lease over),
+//! and across a failed frame (a gap in both); a re-run with
 //! other settings is a new run next to the old one, and without the
 //! recovery gives the core's tracker's trajectories over the stored
 //! particles; bad settings and queries are refused.
@@ -27,8 +29,8 @@ use ptv::photogrammetry::simulate::{self, TargetFrame};
 use ptv::photogrammetry::track::{self, ParticlePosition, TrackingParameters, Trajectory};
 
 use crate::helpers::{
-    rig, sequence_body, status_and_json, targets_form, upload, wait_for_sequence, Rig,
-    ServiceProcess, PATIENCE,
+    open_database, rig, sequence_body, status_and_json, targets_form, upload, wait_for_sequence,
+    worker_pid, Rig, ServiceProcess, WorkerProcess, PATIENCE,
 };
 
 /// Particles per frame.
@@ -881,6 +883,79 @@ async fn a_kill_during_tracking_then_a_restart_gives_the_same_trajectories() {
         recovered > 0,
         "nothing recovered: the replay's recovery is not tested"
     );
+}
+
+/// Frames of the cross-process test.
+const WORKER_FRAMES: usize = 120;
+
+/// `ptv serve --workers 0` and two `ptv worker` processes: the frames are
+/// processed by both, one process tracks the run under its lease; killed
+/// (-9) once tracking is under way, the other takes the run over when the
+/// lease runs out, rebuilds the tracker by replay, and the trajectories are
+/// still `ptv track`'s, row for row.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn worker_processes_track_in_frame_order_and_one_takes_over_a_killed_ones_run() {
+    let data_dir = tempfile::tempdir().unwrap();
+    let rig = rig();
+    let frames = moving_frames(&rig, WORKER_FRAMES, 51);
+    let mut order: Vec<(i64, &TargetFrame)> = frames
+        .iter()
+        .enumerate()
+        .map(|(f, t)| (f as i64, t))
+        .collect();
+    let (before, after) = order.split_at_mut(WORKER_FRAMES / 2);
+    before.shuffle(&mut simulate::rng(52));
+    after.shuffle(&mut simulate::rng(53));
+
+    let lease = ["--lease-secs", "3"];
+    let server = ServiceProcess::start_with(data_dir.path(), 0, &lease);
+    let worker_args = ["--lease-secs", "3", "--workers", "1"];
+    let mut workers = [
+        WorkerProcess::start(data_dir.path(), &worker_args, &[]),
+        WorkerProcess::start(data_dir.path(), &worker_args, &[]),
+    ];
+    let pids: Vec<u32> = workers.iter().map(WorkerProcess::pid).collect();
+    let api = Api::at(&server.address);
+    let sequence = api
+        .tracked_sequence(&rig, json!({"max_velocity": MAX_VELOCITY}))
+        .await;
+    api.upload_concurrently(sequence, before, 4).await;
+    let start = Instant::now();
+    loop {
+        let (_, body) = api.get(&format!("/sequences/{sequence}")).await;
+        if body["tracking"]["tracked_through"].as_i64().unwrap_or(-1) >= 3 {
+            break;
+        }
+        assert!(start.elapsed() < PATIENCE, "tracking did not start: {body}");
+        tokio::time::sleep(Duration::from_millis(5)).await;
+    }
+    let db = open_database(data_dir.path()).await;
+    let (owner, token): (String, i64) = sqlx::query_as(
+        "SELECT lease_owner, lease_token FROM tracking_runs ORDER BY id DESC LIMIT 1",
+    )
+    .fetch_one(&db)
+    .await
+    .unwrap();
+    let holder = pids
+        .iter()
+        .position(|&p| Some(p) == worker_pid(&owner))
+        .unwrap_or_else(|| panic!("the run is held by {owner}, not by a worker process"));
+    workers[holder].kill();
+
+    api.upload_concurrently(sequence, after, 4).await;
+    let run = api.finish(sequence).await;
+    assert_eq!(run["tracked_through"], WORKER_FRAMES as i64 - 1, "{run}");
+    let (taken_over,): (i64,) =
+        sqlx::query_as("SELECT lease_token FROM tracking_runs ORDER BY id DESC LIMIT 1")
+            .fetch_one(&db)
+            .await
+            .unwrap();
+    assert!(taken_over > token, "the run's lease never changed hands");
+    db.close().await;
+    let (_, recovered) = api.tracked_as_ptv_track(sequence, &rig, &frames).await;
+    assert!(recovered > 0, "nothing recovered");
+    drop(workers);
+    drop(server);
 }
 
 #[tokio::test]

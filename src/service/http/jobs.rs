@@ -15,7 +15,7 @@ use super::problem::{ApiError, ApiPath};
 use super::upload;
 use super::Shared;
 use crate::service::app::AppState;
-use crate::service::store::{JobId, JobRow, JobState, RetryOutcome};
+use crate::service::store::{ClaimOutcome, JobClaim, JobId, JobRow, JobState, RetryOutcome};
 
 /// A job's state.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, ToSchema)]
@@ -74,6 +74,75 @@ pub struct JobView {
     pub started_at: Option<String>,
     /// Finished at.
     pub finished_at: Option<String>,
+    /// The worker holding it while it runs (`HOST:PID:RANDOM/INDEX`: a
+    /// `ptv serve` or `ptv worker` process and its worker).
+    pub worker: Option<String>,
+    /// Until when that worker holds it (UTC; its heartbeat renews this
+    /// every third of `--lease-secs`); once past, another worker takes the
+    /// job over.
+    pub lease_until: Option<String>,
+    /// Its claims by workers, oldest first (the last 20):
+    /// who took it up and how each attempt ended, e.g. `expired` when a
+    /// worker died and another took the job over.
+    pub claims: Vec<ClaimView>,
+}
+
+/// Claims a job view shows at most.
+pub const CLAIMS_SHOWN: u32 = 20;
+
+/// One claim of a job by a worker.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct ClaimView {
+    /// The claim's fencing token, from 1, one more at every claim: only the
+    /// holder of the latest may complete the job.
+    pub token: i64,
+    /// The worker that claimed it.
+    pub worker: String,
+    /// When (UTC).
+    pub claimed_at: String,
+    /// How the attempt ended; absent while it runs.
+    pub outcome: Option<ClaimOutcomeView>,
+}
+
+/// How a claim of a job ended.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, ToSchema)]
+#[serde(rename_all = "snake_case")]
+#[schema(as = ClaimOutcome)]
+pub enum ClaimOutcomeView {
+    /// The job succeeded with this attempt's results.
+    Succeeded,
+    /// The job failed in this attempt.
+    Failed,
+    /// Queued again after a passing failure or at a shutdown.
+    Released,
+    /// Queued again uncounted (a full disk, or waiting for other work).
+    GivenBack,
+    /// The worker's lease ran out (it died, hung or lost the database);
+    /// the job went back to the queue for another worker.
+    Expired,
+}
+
+impl From<ClaimOutcome> for ClaimOutcomeView {
+    fn from(outcome: ClaimOutcome) -> Self {
+        match outcome {
+            ClaimOutcome::Succeeded => ClaimOutcomeView::Succeeded,
+            ClaimOutcome::Failed => ClaimOutcomeView::Failed,
+            ClaimOutcome::Released => ClaimOutcomeView::Released,
+            ClaimOutcome::GivenBack => ClaimOutcomeView::GivenBack,
+            ClaimOutcome::Expired => ClaimOutcomeView::Expired,
+        }
+    }
+}
+
+impl From<JobClaim> for ClaimView {
+    fn from(claim: JobClaim) -> Self {
+        ClaimView {
+            token: claim.token.0,
+            worker: claim.worker,
+            claimed_at: claim.claimed_at,
+            outcome: claim.outcome.map(Into::into),
+        }
+    }
 }
 
 /// A job's state, timestamps, attempts, error and result.
@@ -94,12 +163,13 @@ pub async fn read(
         .job(id)
         .await?
         .ok_or_else(|| ApiError::not_found(format!("job {id} does not exist")))?;
-    Ok(Json(JobView::of(row)?))
+    let claims = state.store.job_claims(id, CLAIMS_SHOWN).await?;
+    Ok(Json(JobView::of(row, claims)?))
 }
 
 impl JobView {
-    /// The view of a stored job.
-    fn of(row: JobRow) -> Result<JobView, ApiError> {
+    /// The view of a stored job and its claims.
+    fn of(row: JobRow, claims: Vec<JobClaim>) -> Result<JobView, ApiError> {
         Ok(JobView {
             id: row.id,
             kind: row.kind,
@@ -111,6 +181,9 @@ impl JobView {
             created_at: row.created_at,
             started_at: row.started_at,
             finished_at: row.finished_at,
+            worker: row.worker,
+            lease_until: row.lease_until,
+            claims: claims.into_iter().map(Into::into).collect(),
         })
     }
 }
@@ -157,5 +230,6 @@ pub async fn retry(
         .job(id)
         .await?
         .ok_or_else(|| ApiError::not_found(format!("job {id} does not exist")))?;
-    Ok(upload::accepted(&state, id, JobView::of(row)?))
+    let claims = state.store.job_claims(id, CLAIMS_SHOWN).await?;
+    Ok(upload::accepted(&state, id, JobView::of(row, claims)?))
 }

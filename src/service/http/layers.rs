@@ -544,6 +544,7 @@ mod tests {
                 ..Timeouts::default()
             },
             job_limits: Default::default(),
+            lease: Default::default(),
         }
     }
 

@@ -81,3 +81,9 @@ id!(
     /// A tracking run's id.
     TrackingRunId
 );
+id!(
+    /// A lease's fencing token: incremented at every claim of a job (or
+    /// change of a tracking run's holder), so that a write fenced on it
+    /// fails for every earlier holder.
+    LeaseToken
+);

@@ -1,13 +1,46 @@
-//! The job queue: enqueue, claim, complete, fail, release, reap; and the
-//! input files of jobs that are not frames.
+//! The job queue: enqueue, claim, renew, complete, fail, release, reap;
+//! and the input files of jobs that are not frames.
+//!
+//! **Leases.** A claim holds its job for a lease (`lease_until`, from the
+//! database's clock) that the worker renews by heartbeat ([`Store::renew`])
+//! while the attempt runs. A running job whose lease has run out (its
+//! worker died, hung or lost the database) is queued again by the next
+//! claim, from any process ([`expire_leases`]), or failed once it has been
+//! claimed [`MAX_ATTEMPTS`] times. Every claim increments the job's
+//! fencing token (`lease_token`), and every end of an attempt (success
+//! with its results, failure, release, give-back, deferral) is an `UPDATE
+//! ... WHERE id = ? AND lease_token = ?` that checks the rows it changed,
+//! in the transaction of the attempt's results: a worker whose lease ran
+//! out and whose job another worker took writes nothing. Each claim and
+//! how it ended is a row of `job_claims`, the job's attempt history.
+//!
+//! On SQLite a claim is one `BEGIN IMMEDIATE` transaction (the write lock
+//! makes it atomic across processes): expire, pick the oldest queued job,
+//! `UPDATE ... RETURNING`, record the claim. On PostgreSQL the same steps
+//! take the row with `SELECT ... FOR UPDATE SKIP LOCKED`.
 
 use sqlx::sqlite::SqliteRow;
 use sqlx::{FromRow, Row, Sqlite, Transaction};
 
+use std::time::Duration;
+
 use super::{
     decode_text, stored_as_text, text_column, CalibrationId, CompleteError, FrameNumber, JobId,
-    SequenceId, Store,
+    LeaseToken, SequenceId, Store, TextColumn,
 };
+
+/// The database's clock now, as the stored timestamps are written.
+const NOW: &str = "strftime('%Y-%m-%dT%H:%M:%fZ', 'now')";
+
+/// The database's clock plus the seconds bound at `?N` (the lease).
+fn now_plus(parameter: usize) -> String {
+    format!("strftime('%Y-%m-%dT%H:%M:%fZ', 'now', printf('+%.3f seconds', ?{parameter}))")
+}
+
+/// Whether a running job's lease has run out (no lease: a job left running
+/// by a version without leases, or one whose holder's death was noticed).
+const LEASE_EXPIRED: &str =
+    "(lease_until IS NULL OR lease_until <= strftime('%Y-%m-%dT%H:%M:%fZ', 'now'))";
 
 /// How often a job may be claimed before a crash-looping one is failed.
 pub const MAX_ATTEMPTS: i64 = 3;
@@ -66,6 +99,10 @@ pub struct JobRow {
     pub started_at: Option<String>,
     /// Finished at.
     pub finished_at: Option<String>,
+    /// The worker holding it while it runs.
+    pub worker: Option<String>,
+    /// Until when its worker holds it (renewed while it runs).
+    pub lease_until: Option<String>,
 }
 
 /// Where a succeeded job's result is: what the HTTP layer links to.
@@ -113,8 +150,11 @@ pub struct ClaimedJob {
     pub payload: String,
     /// This claim's number, from 1.
     pub attempts: i64,
-    /// Who holds it; completion is refused to anyone else.
+    /// Who holds it (host, process, worker).
     pub locked_by: String,
+    /// The claim's fencing token: completion is refused once another claim
+    /// has taken the job.
+    pub token: LeaseToken,
 }
 
 impl FromRow<'_, SqliteRow> for JobRow {
@@ -130,6 +170,8 @@ impl FromRow<'_, SqliteRow> for JobRow {
             created_at: row.try_get("created_at")?,
             started_at: row.try_get("started_at")?,
             finished_at: row.try_get("finished_at")?,
+            worker: row.try_get("locked_by")?,
+            lease_until: row.try_get("lease_until")?,
         })
     }
 }
@@ -142,6 +184,7 @@ impl FromRow<'_, SqliteRow> for ClaimedJob {
             payload: row.try_get("payload")?,
             attempts: row.try_get("attempts")?,
             locked_by: row.try_get("locked_by")?,
+            token: row.try_get("lease_token")?,
         })
     }
 }
@@ -160,21 +203,112 @@ pub struct JobFile {
 }
 
 impl Store {
-    /// Claims the oldest queued job for `worker` that is not deferred
-    /// ([`Store::defer`]), in one statement.
-    pub async fn claim(&self, worker: &str) -> Result<Option<ClaimedJob>, sqlx::Error> {
-        sqlx::query_as(
+    /// Whether a claim would find a job now (a read, so that idle workers
+    /// polling the queue do not take the write lock).
+    pub async fn claimable(&self) -> Result<bool, sqlx::Error> {
+        let (found,): (bool,) = sqlx::query_as(&format!(
+            "SELECT EXISTS (SELECT 1 FROM jobs WHERE state = 'queued' \
+             AND (not_before IS NULL OR not_before <= {NOW})) \
+             OR EXISTS (SELECT 1 FROM jobs WHERE state = 'running' AND {LEASE_EXPIRED})"
+        ))
+        .fetch_one(&self.reader)
+        .await?;
+        Ok(found)
+    }
+
+    /// Claims the oldest queued job that is not deferred ([`Store::defer`])
+    /// for `worker`, holding it for `lease`; first queues again the running
+    /// jobs whose lease has run out ([`expire_leases`]). One write
+    /// transaction; the claim is recorded in `job_claims`.
+    pub async fn claim(
+        &self,
+        worker: &str,
+        lease: Duration,
+    ) -> Result<Option<ClaimedJob>, sqlx::Error> {
+        if !self.claimable().await? {
+            return Ok(None);
+        }
+        let mut tx = self.write_transaction().await?;
+        expire_leases(&mut tx).await?;
+        // On PostgreSQL: SELECT id ... FOR UPDATE SKIP LOCKED.
+        let next: Option<(JobId,)> = sqlx::query_as(&format!(
+            "SELECT id FROM jobs WHERE state = 'queued' \
+             AND (not_before IS NULL OR not_before <= {NOW}) ORDER BY id LIMIT 1"
+        ))
+        .fetch_optional(&mut *tx)
+        .await?;
+        let Some((id,)) = next else {
+            tx.commit().await?;
+            return Ok(None);
+        };
+        let job: ClaimedJob = sqlx::query_as(&format!(
             "UPDATE jobs SET state = 'running', attempts = attempts + 1, locked_by = ?1, \
-             started_at = strftime('%Y-%m-%dT%H:%M:%fZ', 'now') \
-             WHERE id = (SELECT id FROM jobs WHERE state = 'queued' \
-                         AND (not_before IS NULL \
-                              OR not_before <= strftime('%Y-%m-%dT%H:%M:%fZ', 'now')) \
-                         ORDER BY id LIMIT 1) \
-             RETURNING id, kind, payload, attempts, locked_by",
-        )
+             lease_token = lease_token + 1, lease_until = {until}, started_at = {NOW} \
+             WHERE id = ?3 AND state = 'queued' \
+             RETURNING id, kind, payload, attempts, locked_by, lease_token",
+            until = now_plus(2)
+        ))
         .bind(worker)
-        .fetch_optional(&self.writer)
-        .await
+        .bind(lease.as_secs_f64())
+        .bind(id)
+        .fetch_one(&mut *tx)
+        .await?;
+        sqlx::query("INSERT INTO job_claims (job_id, token, worker) VALUES (?, ?, ?)")
+            .bind(job.id)
+            .bind(job.token)
+            .bind(worker)
+            .execute(&mut *tx)
+            .await?;
+        tx.commit().await?;
+        Ok(Some(job))
+    }
+
+    /// Renews the lease of a job the worker holds for another `lease`
+    /// (the heartbeat). False if the worker no longer holds it: another
+    /// claim took it (its lease ran out), or the attempt ended.
+    pub async fn renew(&self, job: &ClaimedJob, lease: Duration) -> Result<bool, sqlx::Error> {
+        let done = sqlx::query(&format!(
+            "UPDATE jobs SET lease_until = {until} \
+             WHERE id = ?2 AND state = 'running' AND lease_token = ?3",
+            until = now_plus(1)
+        ))
+        .bind(lease.as_secs_f64())
+        .bind(job.id)
+        .bind(job.token)
+        .execute(&self.writer)
+        .await?;
+        Ok(done.rows_affected() > 0)
+    }
+
+    /// Ends the worker's attempt at a job that it still holds: `set` (the
+    /// job's new state and columns, binding `?1`..`?{n}` from `binds`),
+    /// fenced on the claim's token, and the claim's outcome recorded, in
+    /// one transaction. [`CompleteError::LostLease`] if the worker no
+    /// longer holds the job (nothing written).
+    async fn end_attempt(
+        &self,
+        job: &ClaimedJob,
+        set: &str,
+        binds: (Option<&str>, Option<f64>),
+        outcome: ClaimOutcome,
+    ) -> Result<(), CompleteError> {
+        let mut tx = self.write_transaction().await?;
+        let done = sqlx::query(&format!(
+            "UPDATE jobs SET {set}, locked_by = NULL, lease_until = NULL \
+             WHERE id = ?3 AND state = 'running' AND lease_token = ?4"
+        ))
+        .bind(binds.0)
+        .bind(binds.1)
+        .bind(job.id)
+        .bind(job.token)
+        .execute(&mut *tx)
+        .await?;
+        if done.rows_affected() == 0 {
+            return Err(CompleteError::LostLease(job.id));
+        }
+        end_claim(&mut tx, job.id, job.token, outcome).await?;
+        tx.commit().await?;
+        Ok(())
     }
 
     /// Fails a job the worker holds.
@@ -184,52 +318,42 @@ impl Store {
         error: &str,
         duration_s: f64,
     ) -> Result<(), CompleteError> {
-        let done = sqlx::query(
-            "UPDATE jobs SET state = 'failed', error = ?, locked_by = NULL, duration_s = ?, \
-             finished_at = strftime('%Y-%m-%dT%H:%M:%fZ', 'now') \
-             WHERE id = ? AND state = 'running' AND locked_by = ?",
+        self.end_attempt(
+            job,
+            &format!("state = 'failed', error = ?1, duration_s = ?2, finished_at = {NOW}"),
+            (Some(error), Some(duration_s)),
+            ClaimOutcome::Failed,
         )
-        .bind(error)
-        .bind(duration_s)
-        .bind(job.id)
-        .bind(&job.locked_by)
-        .execute(&self.writer)
-        .await?;
-        if done.rows_affected() == 0 {
-            return Err(CompleteError::LostLease(job.id));
-        }
-        Ok(())
+        .await
     }
 
     /// Returns a job the worker holds to the queue (its attempt failed for
-    /// a passing reason, or the service is stopping).
-    pub async fn release(&self, job: &ClaimedJob, error: Option<&str>) -> Result<(), sqlx::Error> {
-        sqlx::query(
-            "UPDATE jobs SET state = 'queued', error = coalesce(?, error), locked_by = NULL \
-             WHERE id = ? AND state = 'running' AND locked_by = ?",
+    /// a passing reason).
+    pub async fn release(
+        &self,
+        job: &ClaimedJob,
+        error: Option<&str>,
+    ) -> Result<(), CompleteError> {
+        self.end_attempt(
+            job,
+            "state = 'queued', error = coalesce(?1, error)",
+            (error, None),
+            ClaimOutcome::Released,
         )
-        .bind(error)
-        .bind(job.id)
-        .bind(&job.locked_by)
-        .execute(&self.writer)
-        .await?;
-        Ok(())
+        .await
     }
 
     /// Returns a job the worker holds to the queue without counting the
     /// claim (its attempt failed for want of disk space, which is not the
     /// job's fault): `attempts` goes back by one, `error` says why.
-    pub async fn give_back(&self, job: &ClaimedJob, error: &str) -> Result<(), sqlx::Error> {
-        sqlx::query(
-            "UPDATE jobs SET state = 'queued', attempts = max(attempts - 1, 0), error = ?, \
-             locked_by = NULL WHERE id = ? AND state = 'running' AND locked_by = ?",
+    pub async fn give_back(&self, job: &ClaimedJob, error: &str) -> Result<(), CompleteError> {
+        self.end_attempt(
+            job,
+            "state = 'queued', attempts = max(attempts - 1, 0), error = ?1",
+            (Some(error), None),
+            ClaimOutcome::GivenBack,
         )
-        .bind(error)
-        .bind(job.id)
-        .bind(&job.locked_by)
-        .execute(&self.writer)
-        .await?;
-        Ok(())
+        .await
     }
 
     /// Returns a job the worker holds to the queue without counting the
@@ -241,20 +365,38 @@ impl Store {
         job: &ClaimedJob,
         note: &str,
         delay_s: f64,
-    ) -> Result<(), sqlx::Error> {
-        sqlx::query(
-            "UPDATE jobs SET state = 'queued', attempts = max(attempts - 1, 0), error = ?, \
-             locked_by = NULL, \
-             not_before = strftime('%Y-%m-%dT%H:%M:%fZ', 'now', printf('+%.3f seconds', ?)) \
-             WHERE id = ? AND state = 'running' AND locked_by = ?",
+    ) -> Result<(), CompleteError> {
+        self.end_attempt(
+            job,
+            "state = 'queued', attempts = max(attempts - 1, 0), error = ?1, \
+             not_before = strftime('%Y-%m-%dT%H:%M:%fZ', 'now', printf('+%.3f seconds', ?2))",
+            (Some(note), Some(delay_s)),
+            ClaimOutcome::GivenBack,
         )
-        .bind(note)
-        .bind(delay_s)
-        .bind(job.id)
-        .bind(&job.locked_by)
-        .execute(&self.writer)
+        .await
+    }
+
+    /// A job's claims in order (its attempt history): token, worker, when,
+    /// and how each ended (`None` while it runs); at most the last `last`.
+    pub async fn job_claims(&self, id: JobId, last: u32) -> Result<Vec<JobClaim>, sqlx::Error> {
+        let rows: Vec<(LeaseToken, String, String, Option<String>)> = sqlx::query_as(
+            "SELECT * FROM (SELECT token, worker, claimed_at, outcome FROM job_claims \
+             WHERE job_id = ? ORDER BY token DESC LIMIT ?) ORDER BY token",
+        )
+        .bind(id)
+        .bind(last)
+        .fetch_all(&self.reader)
         .await?;
-        Ok(())
+        rows.into_iter()
+            .map(|(token, worker, claimed_at, outcome)| {
+                Ok(JobClaim {
+                    token,
+                    worker,
+                    claimed_at,
+                    outcome: outcome.map(|o| decode_text("outcome", &o)).transpose()?,
+                })
+            })
+            .collect()
     }
 
     /// Queues a failed job again with its attempts reset (`POST
@@ -287,31 +429,59 @@ impl Store {
         Ok(outcome)
     }
 
-    /// The reaper, run at start-up before any worker: a job left running
-    /// by a process that died goes back to the queue, or fails once it has
-    /// been claimed [`MAX_ATTEMPTS`] times (a job that kills its worker
-    /// must not kill every restart). Returns (requeued, failed).
-    pub async fn reap(&self) -> Result<(u64, u64), sqlx::Error> {
+    /// The reaper, run at start-up: the leases of jobs (and tracking runs)
+    /// held by processes of this host that no longer exist (a kill, a crash: `alive` says
+    /// whether a process id runs) end at once, instead of when they run
+    /// out; then every running job whose lease has run out goes back to
+    /// the queue, or fails once it has been claimed [`MAX_ATTEMPTS`]
+    /// times (a job that kills its worker must not kill every restart).
+    /// Jobs that live processes hold, here or on other hosts, are left to
+    /// their leases. Returns (requeued, failed).
+    pub async fn reap(
+        &self,
+        host: &str,
+        alive: impl Fn(u32) -> bool,
+    ) -> Result<(u64, u64), sqlx::Error> {
         let mut tx = self.write_transaction().await?;
-        let failed = sqlx::query(
-            "UPDATE jobs SET state = 'failed', locked_by = NULL, \
-             error = 'the service stopped while running this job ' || attempts || \
-                     ' times; it is not retried again', \
-             finished_at = strftime('%Y-%m-%dT%H:%M:%fZ', 'now') \
-             WHERE state = 'running' AND attempts >= ?",
+        let held: Vec<(JobId, LeaseToken, String)> = sqlx::query_as(
+            "SELECT id, lease_token, locked_by FROM jobs \
+             WHERE state = 'running' AND locked_by IS NOT NULL",
         )
-        .bind(MAX_ATTEMPTS)
-        .execute(&mut *tx)
-        .await?
-        .rows_affected();
-        let requeued = sqlx::query(
-            "UPDATE jobs SET state = 'queued', locked_by = NULL WHERE state = 'running'",
+        .fetch_all(&mut *tx)
+        .await?;
+        for (id, token, owner) in held {
+            let dead = WorkerId::parse(&owner)
+                .is_some_and(|(owner_host, pid)| owner_host == host && !alive(pid));
+            if dead {
+                sqlx::query("UPDATE jobs SET lease_until = NULL WHERE id = ? AND lease_token = ?")
+                    .bind(id)
+                    .bind(token)
+                    .execute(&mut *tx)
+                    .await?;
+            }
+        }
+        let holders: Vec<(i64, String)> = sqlx::query_as(
+            "SELECT id, lease_owner FROM tracking_runs WHERE lease_owner IS NOT NULL",
         )
-        .execute(&mut *tx)
-        .await?
-        .rows_affected();
+        .fetch_all(&mut *tx)
+        .await?;
+        for (id, owner) in holders {
+            let dead = WorkerId::parse(&owner)
+                .is_some_and(|(owner_host, pid)| owner_host == host && !alive(pid));
+            if dead {
+                sqlx::query(
+                    "UPDATE tracking_runs SET lease_owner = NULL, lease_until = NULL \
+                     WHERE id = ? AND lease_owner = ?",
+                )
+                .bind(id)
+                .bind(&owner)
+                .execute(&mut *tx)
+                .await?;
+            }
+        }
+        let outcome = expire_leases(&mut tx).await?;
         tx.commit().await?;
-        Ok((requeued, failed))
+        Ok(outcome)
     }
 
     /// A job by id, with what its result is: the calibration that names
@@ -319,7 +489,8 @@ impl Store {
     pub async fn job(&self, id: JobId) -> Result<Option<JobRow>, sqlx::Error> {
         sqlx::query_as(
             "SELECT j.id, j.kind, j.payload, j.state, j.attempts, j.error, j.result, \
-             j.created_at, j.started_at, j.finished_at, c.id AS result_calibration, \
+             j.created_at, j.started_at, j.finished_at, j.locked_by, j.lease_until, \
+             c.id AS result_calibration, \
              f.sequence_id AS result_sequence, f.frame AS result_frame \
              FROM jobs j \
              LEFT JOIN calibrations c ON c.job_id = j.id \
@@ -409,14 +580,20 @@ impl Store {
     /// Returns the jobs this process's workers hold to the queue (at a
     /// shutdown whose grace period ran out).
     pub async fn release_held(&self, instance: &str) -> Result<u64, sqlx::Error> {
-        Ok(sqlx::query(
-            "UPDATE jobs SET state = 'queued', locked_by = NULL \
-             WHERE state = 'running' AND substr(locked_by, 1, length(?1) + 1) = ?1 || '/'",
+        let mut tx = self.write_transaction().await?;
+        let held: Vec<(JobId, LeaseToken)> = sqlx::query_as(
+            "UPDATE jobs SET state = 'queued', locked_by = NULL, lease_until = NULL \
+             WHERE state = 'running' AND substr(locked_by, 1, length(?1) + 1) = ?1 || '/' \
+             RETURNING id, lease_token",
         )
         .bind(instance)
-        .execute(&self.writer)
-        .await?
-        .rows_affected())
+        .fetch_all(&mut *tx)
+        .await?;
+        for (id, token) in &held {
+            end_claim(&mut tx, *id, *token, ClaimOutcome::Released).await?;
+        }
+        tx.commit().await?;
+        Ok(held.len() as u64)
     }
 }
 
@@ -448,19 +625,137 @@ pub async fn finish(
 ) -> Result<(), CompleteError> {
     let done = sqlx::query(
         "UPDATE jobs SET state = 'succeeded', result = ?, error = NULL, locked_by = NULL, \
-         duration_s = ?, finished_at = strftime('%Y-%m-%dT%H:%M:%fZ', 'now') \
-         WHERE id = ? AND state = 'running' AND locked_by = ?",
+         lease_until = NULL, duration_s = ?, \
+         finished_at = strftime('%Y-%m-%dT%H:%M:%fZ', 'now') \
+         WHERE id = ? AND state = 'running' AND lease_token = ?",
     )
     .bind(link)
     .bind(duration_s)
     .bind(job.id)
-    .bind(&job.locked_by)
+    .bind(job.token)
     .execute(&mut **tx)
     .await?;
     if done.rows_affected() == 0 {
         return Err(CompleteError::LostLease(job.id));
     }
+    end_claim(tx, job.id, job.token, ClaimOutcome::Succeeded).await?;
     Ok(())
+}
+
+/// Records how a claim ended.
+async fn end_claim(
+    tx: &mut Transaction<'_, Sqlite>,
+    id: JobId,
+    token: LeaseToken,
+    outcome: ClaimOutcome,
+) -> Result<(), sqlx::Error> {
+    sqlx::query(&format!(
+        "UPDATE job_claims SET outcome = ?, ended_at = {NOW} \
+         WHERE job_id = ? AND token = ? AND outcome IS NULL"
+    ))
+    .bind(outcome.as_str())
+    .bind(id)
+    .bind(token)
+    .execute(&mut **tx)
+    .await?;
+    Ok(())
+}
+
+/// Queues again the running jobs whose lease has run out, or fails those
+/// claimed [`MAX_ATTEMPTS`] times, recording their claims as expired;
+/// inside the caller's write transaction (a claim, the reaper). Returns
+/// (requeued, failed).
+pub async fn expire_leases(tx: &mut Transaction<'_, Sqlite>) -> Result<(u64, u64), sqlx::Error> {
+    let failed: Vec<(JobId, LeaseToken)> = sqlx::query_as(&format!(
+        "UPDATE jobs SET state = 'failed', locked_by = NULL, lease_until = NULL, \
+         error = 'its worker stopped or lost its lease while running this job ' || attempts || \
+                 ' times; it is not retried again', \
+         finished_at = {NOW} \
+         WHERE state = 'running' AND {LEASE_EXPIRED} AND attempts >= ? \
+         RETURNING id, lease_token"
+    ))
+    .bind(MAX_ATTEMPTS)
+    .fetch_all(&mut **tx)
+    .await?;
+    let requeued: Vec<(JobId, LeaseToken)> = sqlx::query_as(&format!(
+        "UPDATE jobs SET state = 'queued', \
+         error = 'the lease of ' || coalesce(locked_by, 'a stopped process') || \
+                 ' ran out; queued again', \
+         locked_by = NULL, lease_until = NULL \
+         WHERE state = 'running' AND {LEASE_EXPIRED} \
+         RETURNING id, lease_token"
+    ))
+    .fetch_all(&mut **tx)
+    .await?;
+    for (id, token) in failed.iter().chain(&requeued) {
+        end_claim(tx, *id, *token, ClaimOutcome::Expired).await?;
+    }
+    Ok((requeued.len() as u64, failed.len() as u64))
+}
+
+/// How a claim of a job ended (`job_claims.outcome`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ClaimOutcome {
+    /// The job succeeded with this claim's results.
+    Succeeded,
+    /// The job failed in this attempt.
+    Failed,
+    /// Queued again after a passing failure, or at a shutdown.
+    Released,
+    /// Queued again uncounted (a full disk; deferred).
+    GivenBack,
+    /// Its lease ran out (the worker died, hung or lost the database);
+    /// queued again for another worker, or failed at the attempt limit.
+    Expired,
+}
+
+stored_as_text!(ClaimOutcome, "claim outcome", {
+    Succeeded => "succeeded",
+    Failed => "failed",
+    Released => "released",
+    GivenBack => "given_back",
+    Expired => "expired",
+});
+
+/// One claim of a job: its attempt history's line.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct JobClaim {
+    /// The claim's fencing token.
+    pub token: LeaseToken,
+    /// The worker that claimed it.
+    pub worker: String,
+    /// When.
+    pub claimed_at: String,
+    /// How the attempt ended; `None` while it runs.
+    pub outcome: Option<ClaimOutcome>,
+}
+
+/// A worker's name in claims and leases: `HOST:PID:RANDOM/INDEX`, the host
+/// and process id so that a restarted process on the same host can tell
+/// that the holder is gone, the random part so that a reused process id
+/// is another owner.
+pub struct WorkerId;
+
+impl WorkerId {
+    /// The name of this process's workers' prefix (`HOST:PID:RANDOM`).
+    pub fn instance(host: &str) -> String {
+        format!(
+            "{host}:{}:{:08x}",
+            std::process::id(),
+            rand::random::<u32>()
+        )
+    }
+
+    /// The host and process id of a worker's name; `None` for a name of
+    /// another form (an older version's).
+    pub fn parse(owner: &str) -> Option<(&str, u32)> {
+        let instance = owner.split('/').next()?;
+        let mut parts = instance.rsplitn(3, ':');
+        let _random = parts.next()?;
+        let pid = parts.next()?.parse().ok()?;
+        let host = parts.next()?;
+        Some((host, pid))
+    }
 }
 
 #[cfg(test)]
@@ -475,12 +770,291 @@ mod tests {
         sqlx::query_as(
             "SELECT 7 AS id, 'process_frame' AS kind, '{}' AS payload, ? AS state, \
              1 AS attempts, NULL AS error, NULL AS result, '2024-01-01T00:00:00Z' AS created_at, \
-             NULL AS started_at, NULL AS finished_at, NULL AS result_calibration, \
+             NULL AS started_at, NULL AS finished_at, NULL AS locked_by, NULL AS lease_until, \
+             NULL AS result_calibration, \
              NULL AS result_sequence, NULL AS result_frame",
         )
         .bind(state)
         .fetch_one(&pool)
         .await
+    }
+
+    /// A lease that has run out by the time the next statement runs.
+    const SHORT: Duration = Duration::from_millis(100);
+    /// A lease that does not run out during a test.
+    const LONG: Duration = Duration::from_secs(600);
+
+    /// Waits until a lease of [`SHORT`] has run out: twice its length, so
+    /// that the database's clock (millisecond text) is past it.
+    async fn outlive_short_lease() {
+        tokio::time::sleep(SHORT * 2).await;
+    }
+
+    async fn store() -> (tempfile::TempDir, Store) {
+        let dir = tempfile::tempdir().unwrap();
+        let store = Store::open(dir.path(), 1).await.unwrap();
+        (dir, store)
+    }
+
+    async fn count(store: &Store, sql: &str) -> i64 {
+        let (n,): (i64,) = sqlx::query_as(sql).fetch_one(&store.reader).await.unwrap();
+        n
+    }
+
+    #[tokio::test]
+    async fn a_held_job_is_not_claimed_until_its_lease_runs_out_and_its_renewal_keeps_it() {
+        let (_dir, store) = store().await;
+        let id = store.enqueue("echo", "{}").await.unwrap();
+        let a = store.claim("host:1:aa/0", LONG).await.unwrap().unwrap();
+        assert_eq!((a.id, a.attempts, a.token), (id, 1, LeaseToken(1)));
+        // Held: nobody else gets it, and its holder renews it.
+        assert!(store.claim("host:2:bb/0", LONG).await.unwrap().is_none());
+        assert!(!store.claimable().await.unwrap());
+        assert!(store.renew(&a, LONG).await.unwrap());
+        assert!(store.claim("host:2:bb/0", LONG).await.unwrap().is_none());
+        // A renewal to a short lease that then runs out: the job is free.
+        assert!(store.renew(&a, SHORT).await.unwrap());
+        outlive_short_lease().await;
+        assert!(store.claimable().await.unwrap());
+        let b = store.claim("host:2:bb/0", LONG).await.unwrap().unwrap();
+        assert_eq!((b.id, b.attempts, b.token), (id, 2, LeaseToken(2)));
+        // The first holder's renewal now fails: it is fenced out.
+        assert!(!store.renew(&a, LONG).await.unwrap());
+        assert!(store.renew(&b, LONG).await.unwrap());
+        store.close().await;
+    }
+
+    /// A late worker (its lease ran out, another worker took the job)
+    /// completes, fails, releases, gives back, defers: each is refused and
+    /// writes nothing; the job completes once, by its holder, and its
+    /// claims show the takeover.
+    #[tokio::test]
+    async fn a_fenced_out_worker_changes_nothing() {
+        let (_dir, store) = store().await;
+        let id = store.enqueue("solve_calibration", "{}").await.unwrap();
+        let late = store.claim("host:1:aa/0", SHORT).await.unwrap().unwrap();
+        outlive_short_lease().await;
+        let holder = store.claim("host:2:bb/0", LONG).await.unwrap().unwrap();
+        assert_eq!(holder.id, id);
+
+        let lost = |result: Result<_, CompleteError>| {
+            assert!(
+                matches!(result, Err(CompleteError::LostLease(j)) if j == id),
+                "{:?}",
+                result.err()
+            )
+        };
+        lost(
+            store
+                .complete_calibration(&late, "{}", 2, "{}", true, 1.0)
+                .await
+                .map(|_| ()),
+        );
+        lost(store.succeed(&late, "/late", 1.0).await);
+        lost(store.fail(&late, "late", 1.0).await);
+        lost(store.release(&late, Some("late")).await);
+        lost(store.give_back(&late, "late").await);
+        lost(store.defer(&late, "late", 1.0).await);
+        assert_eq!(count(&store, "SELECT count(*) FROM calibrations").await, 0);
+        let row = store.job(id).await.unwrap().unwrap();
+        assert_eq!(row.state, JobState::Running);
+        assert_eq!(row.attempts, 2);
+        assert_eq!(row.result, None);
+
+        let (calibration, _) = store
+            .complete_calibration(&holder, "{}", 2, "{}", true, 1.0)
+            .await
+            .unwrap();
+        let row = store.job(id).await.unwrap().unwrap();
+        assert_eq!(row.state, JobState::Succeeded);
+        assert_eq!(row.result, Some(JobResult::Calibration(calibration)));
+        assert_eq!(count(&store, "SELECT count(*) FROM calibrations").await, 1);
+        // And after the holder's success, the late worker still writes
+        // nothing.
+        lost(
+            store
+                .complete_calibration(&late, "{}", 2, "{}", true, 1.0)
+                .await
+                .map(|_| ()),
+        );
+        assert_eq!(count(&store, "SELECT count(*) FROM calibrations").await, 1);
+
+        let claims = store.job_claims(id, 100).await.unwrap();
+        let seen: Vec<_> = claims
+            .iter()
+            .map(|c| (c.token, c.worker.as_str(), c.outcome))
+            .collect();
+        assert_eq!(
+            seen,
+            [
+                (LeaseToken(1), "host:1:aa/0", Some(ClaimOutcome::Expired)),
+                (LeaseToken(2), "host:2:bb/0", Some(ClaimOutcome::Succeeded)),
+            ]
+        );
+        store.close().await;
+    }
+
+    #[tokio::test]
+    async fn a_job_whose_lease_runs_out_at_every_attempt_fails_at_the_attempt_limit() {
+        let (_dir, store) = store().await;
+        let id = store.enqueue("echo", "{}").await.unwrap();
+        for attempt in 1..=MAX_ATTEMPTS {
+            let job = store.claim("host:1:aa/0", SHORT).await.unwrap().unwrap();
+            assert_eq!((job.id, job.attempts), (id, attempt));
+            outlive_short_lease().await;
+        }
+        assert!(store.claim("host:1:aa/0", LONG).await.unwrap().is_none());
+        let row = store.job(id).await.unwrap().unwrap();
+        assert_eq!(row.state, JobState::Failed);
+        assert!(row.error.as_deref().unwrap().contains("3 times"), "{row:?}");
+        let claims = store.job_claims(id, 100).await.unwrap();
+        assert_eq!(claims.len() as i64, MAX_ATTEMPTS);
+        assert!(claims
+            .iter()
+            .all(|c| c.outcome == Some(ClaimOutcome::Expired)));
+        store.close().await;
+    }
+
+    /// The attempts a job gives back uncounted (a full disk, deferred) and
+    /// its passing failures are claims of their own: the token grows at
+    /// every claim even where the attempts do not.
+    #[tokio::test]
+    async fn the_token_grows_at_every_claim_whatever_the_attempts_do() {
+        let (_dir, store) = store().await;
+        store.enqueue("echo", "{}").await.unwrap();
+        let first = store.claim("w/0", LONG).await.unwrap().unwrap();
+        store.give_back(&first, "full").await.unwrap();
+        let second = store.claim("w/0", LONG).await.unwrap().unwrap();
+        assert_eq!((second.attempts, second.token), (1, LeaseToken(2)));
+        store.release(&second, Some("passing")).await.unwrap();
+        let third = store.claim("w/0", LONG).await.unwrap().unwrap();
+        assert_eq!((third.attempts, third.token), (2, LeaseToken(3)));
+        // The earlier claims of the same worker are fenced out too.
+        assert!(!store.renew(&first, LONG).await.unwrap());
+        assert!(matches!(
+            store.succeed(&second, "/x", 0.0).await,
+            Err(CompleteError::LostLease(_))
+        ));
+        store.succeed(&third, "/x", 0.0).await.unwrap();
+        store.close().await;
+    }
+
+    /// At start-up the leases of this host's processes that are gone end
+    /// at once; live ones and other hosts' run on.
+    #[tokio::test]
+    async fn the_reaper_ends_the_leases_of_dead_processes_of_this_host_only() {
+        let (_dir, store) = store().await;
+        for _ in 0..3 {
+            store.enqueue("echo", "{}").await.unwrap();
+        }
+        let dead = store.claim("here:100:aa/0", LONG).await.unwrap().unwrap();
+        let alive = store.claim("here:200:bb/1", LONG).await.unwrap().unwrap();
+        let elsewhere = store.claim("there:100:cc/0", LONG).await.unwrap().unwrap();
+        let (requeued, failed) = store.reap("here", |pid| pid == 200).await.unwrap();
+        assert_eq!((requeued, failed), (1, 0));
+        let again = store.claim("here:300:dd/0", LONG).await.unwrap().unwrap();
+        assert_eq!((again.id, again.token), (dead.id, LeaseToken(2)));
+        assert!(store.renew(&alive, LONG).await.unwrap());
+        assert!(store.renew(&elsewhere, LONG).await.unwrap());
+        assert!(!store.renew(&dead, LONG).await.unwrap());
+        store.close().await;
+    }
+
+    /// One tracker per run: the lease is taken, renewed by its owner and
+    /// refused to others until it runs out or is given up; a change of
+    /// owner increments the token, and the earlier owner's frame is fenced
+    /// out.
+    #[tokio::test]
+    async fn a_tracking_run_is_held_by_one_owner_and_fenced_on_its_token() {
+        use super::super::{FrameNumber, SequenceId};
+        let (_dir, store) = store().await;
+        sqlx::raw_sql(
+            "INSERT INTO calibrations (id, model, cameras) VALUES (1, '{}', 2);
+             INSERT INTO sequences (id, calibration_id, name, parameters, keep_images)
+                 VALUES (1, 1, '', '{}', 1);",
+        )
+        .execute(&store.writer)
+        .await
+        .unwrap();
+        let run = store
+            .insert_tracking_run(SequenceId(1), r#"{"max_velocity": 1.0}"#)
+            .await
+            .unwrap()
+            .unwrap();
+        let first = store
+            .take_tracking_lease(run.id, "here:1:aa", SHORT)
+            .await
+            .unwrap()
+            .unwrap();
+        assert_eq!(
+            store
+                .take_tracking_lease(run.id, "here:1:aa", SHORT)
+                .await
+                .unwrap(),
+            Some(first),
+            "a renewal keeps the token"
+        );
+        assert_eq!(
+            store
+                .take_tracking_lease(run.id, "here:2:bb", LONG)
+                .await
+                .unwrap(),
+            None
+        );
+        assert_eq!(
+            store.tracking_runs_to_advance("here:2:bb").await.unwrap(),
+            []
+        );
+        outlive_short_lease().await;
+        assert_eq!(
+            store.tracking_runs_to_advance("here:2:bb").await.unwrap(),
+            [run.id]
+        );
+        let second = store
+            .take_tracking_lease(run.id, "here:2:bb", LONG)
+            .await
+            .unwrap()
+            .unwrap();
+        assert_eq!(second.0, first.0 + 1);
+        // The first owner's frame is fenced out; the holder's is stored.
+        assert!(!store
+            .store_tracked_frame((run.id, first), None, FrameNumber(0), Some(0), &[])
+            .await
+            .unwrap());
+        assert!(store
+            .store_tracked_frame((run.id, second), None, FrameNumber(0), Some(0), &[])
+            .await
+            .unwrap());
+        assert!(!store
+            .finish_tracking_run((run.id, first), Some(FrameNumber(0)), &[])
+            .await
+            .unwrap());
+        // Given up at a shutdown: another owner takes it at once.
+        assert_eq!(store.release_tracking_leases("here:2:bb").await.unwrap(), 1);
+        let third = store
+            .take_tracking_lease(run.id, "here:3:cc", LONG)
+            .await
+            .unwrap()
+            .unwrap();
+        assert_eq!(third.0, second.0 + 1);
+        assert!(store
+            .finish_tracking_run((run.id, third), Some(FrameNumber(0)), &[])
+            .await
+            .unwrap());
+        store.close().await;
+    }
+
+    #[test]
+    fn worker_names_give_their_host_and_process() {
+        let instance = WorkerId::instance("lab-pc.local");
+        let worker = format!("{instance}/3");
+        let (host, pid) = WorkerId::parse(&worker).unwrap();
+        assert_eq!((host, pid), ("lab-pc.local", std::process::id()));
+        // A host name with colons (an address) keeps them.
+        assert_eq!(WorkerId::parse("fe80::1:42:ab/0"), Some(("fe80::1", 42)));
+        // An older version's names, and names of no process.
+        assert_eq!(WorkerId::parse("4242-1700000000/0"), None);
+        assert_eq!(WorkerId::parse("killed/0"), None);
     }
 
     #[tokio::test]

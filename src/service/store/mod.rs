@@ -66,9 +66,10 @@ use sqlx::sqlite::{
 use sqlx::{Database, Executor, Row, Sqlite, TransactionManager};
 
 pub use self::calibrations::{insert_calibration, CalibrationRow, CalibrationSummary};
-pub use self::ids::{CalibrationId, FrameNumber, JobId, SequenceId, TrackingRunId};
+pub use self::ids::{CalibrationId, FrameNumber, JobId, LeaseToken, SequenceId, TrackingRunId};
 pub use self::jobs::{
-    enqueue, finish, ClaimedJob, JobFile, JobResult, JobRow, JobState, RetryOutcome, MAX_ATTEMPTS,
+    enqueue, expire_leases, finish, ClaimOutcome, ClaimedJob, JobClaim, JobFile, JobResult, JobRow,
+    JobState, RetryOutcome, WorkerId, MAX_ATTEMPTS,
 };
 pub use self::selfcal::{reprocess_payload, RefinedCalibration, REPROCESS_SEQUENCE};
 pub use self::sequences::{
@@ -168,6 +169,11 @@ const MIGRATIONS: &[(i64, &str, &str)] = &[
         7,
         "tracking_recovery",
         include_str!("../../../migrations/0007_tracking_recovery.sql"),
+    ),
+    (
+        8,
+        "leases",
+        include_str!("../../../migrations/0008_leases.sql"),
     ),
 ];
 

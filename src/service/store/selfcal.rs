@@ -135,16 +135,28 @@ impl Store {
     }
 
     /// Replaces a processed frame's particles with those `calibration_id`
-    /// made, in one statement (one transaction): the old ones stay until
-    /// the new ones are written. False if the frame has no particles.
+    /// made, in one transaction fenced on the reprocess `job`'s lease (a
+    /// worker whose lease ran out writes nothing:
+    /// [`CompleteError::LostLease`]): the old ones stay until the new ones
+    /// are written. False if the frame has no particles.
     pub async fn replace_particles(
         &self,
-        sequence_id: SequenceId,
-        frame: FrameNumber,
+        job: &ClaimedJob,
+        (sequence_id, frame): (SequenceId, FrameNumber),
         calibration_id: CalibrationId,
         particles: (i64, &[u8]),
-    ) -> Result<bool, sqlx::Error> {
+    ) -> Result<bool, CompleteError> {
         let mut tx = self.write_transaction().await?;
+        let held: Option<(i64,)> = sqlx::query_as(
+            "SELECT 1 FROM jobs WHERE id = ? AND state = 'running' AND lease_token = ?",
+        )
+        .bind(job.id)
+        .bind(job.token)
+        .fetch_optional(&mut *tx)
+        .await?;
+        if held.is_none() {
+            return Err(CompleteError::LostLease(job.id));
+        }
         let changed = sqlx::query(
             "UPDATE particles SET count = ?, data = ?, calibration_id = ? \
              WHERE sequence_id = ? AND frame = ?",

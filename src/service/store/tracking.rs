@@ -4,12 +4,22 @@
 //! progress, so that a crash leaves either the frame tracked (its points
 //! and `tracked_through`) or not at all, and a repeated frame writes
 //! nothing twice (the progress is the fence).
+//!
+//! **One tracker per run, across processes.** The process that advances a
+//! run holds the run's lease (`lease_owner`, `lease_until`, `lease_token`:
+//! [`Store::take_tracking_lease`]), renewed while it keeps the run's
+//! tracker; another process takes the run over only once the lease has
+//! run out (and rebuilds the tracker by replay). The stored frames are
+//! fenced on the lease's token as well as on the progress.
 
 use sqlx::sqlite::SqliteRow;
 use sqlx::{FromRow, QueryBuilder, Row, Sqlite, Transaction};
 
+use std::time::Duration;
+
 use super::{
-    stored_as_text, text_column, CalibrationId, FrameNumber, SequenceId, Store, TrackingRunId,
+    stored_as_text, text_column, CalibrationId, FrameNumber, LeaseToken, SequenceId, Store,
+    TrackingRunId,
 };
 
 /// Where a tracking run stands (`tracking_runs.state`).
@@ -209,13 +219,62 @@ impl Store {
         .await
     }
 
-    /// Runs still tracking (to resume at start-up).
-    pub async fn unfinished_tracking_runs(&self) -> Result<Vec<TrackingRunId>, sqlx::Error> {
-        let rows: Vec<(TrackingRunId,)> =
-            sqlx::query_as("SELECT id FROM tracking_runs WHERE state = 'tracking' ORDER BY id")
-                .fetch_all(&self.reader)
-                .await?;
+    /// Runs still tracking that `owner` holds or may take (their lease
+    /// is free or has run out): those its process advances.
+    pub async fn tracking_runs_to_advance(
+        &self,
+        owner: &str,
+    ) -> Result<Vec<TrackingRunId>, sqlx::Error> {
+        let rows: Vec<(TrackingRunId,)> = sqlx::query_as(
+            "SELECT id FROM tracking_runs WHERE state = 'tracking' \
+             AND (lease_owner IS NULL OR lease_owner = ? OR lease_until IS NULL \
+                  OR lease_until <= strftime('%Y-%m-%dT%H:%M:%fZ', 'now')) ORDER BY id",
+        )
+        .bind(owner)
+        .fetch_all(&self.reader)
+        .await?;
         Ok(rows.into_iter().map(|(id,)| id).collect())
+    }
+
+    /// Takes or renews the lease of a run still tracking for `owner` (a
+    /// process), for `lease`: its token if `owner` holds it now, `None` if
+    /// another owner's lease still runs (or the run is not tracking). A
+    /// change of owner increments the token.
+    pub async fn take_tracking_lease(
+        &self,
+        id: TrackingRunId,
+        owner: &str,
+        lease: Duration,
+    ) -> Result<Option<LeaseToken>, sqlx::Error> {
+        let row: Option<(LeaseToken,)> = sqlx::query_as(
+            "UPDATE tracking_runs SET \
+             lease_token = CASE WHEN lease_owner IS ?1 THEN lease_token ELSE lease_token + 1 END, \
+             lease_owner = ?1, \
+             lease_until = strftime('%Y-%m-%dT%H:%M:%fZ', 'now', printf('+%.3f seconds', ?2)) \
+             WHERE id = ?3 AND state = 'tracking' \
+             AND (lease_owner IS NULL OR lease_owner = ?1 OR lease_until IS NULL \
+                  OR lease_until <= strftime('%Y-%m-%dT%H:%M:%fZ', 'now')) \
+             RETURNING lease_token",
+        )
+        .bind(owner)
+        .bind(lease.as_secs_f64())
+        .bind(id)
+        .fetch_optional(&self.writer)
+        .await?;
+        Ok(row.map(|(token,)| token))
+    }
+
+    /// Gives up the tracking leases `owner` holds (a process stopping), so
+    /// that another process takes its runs over at once.
+    pub async fn release_tracking_leases(&self, owner: &str) -> Result<u64, sqlx::Error> {
+        Ok(sqlx::query(
+            "UPDATE tracking_runs SET lease_owner = NULL, lease_until = NULL \
+             WHERE lease_owner = ?",
+        )
+        .bind(owner)
+        .execute(&self.writer)
+        .await?
+        .rows_affected())
     }
 
     /// A new tracking run of the sequence with `parameters`, in one
@@ -320,11 +379,12 @@ impl Store {
 
     /// Stores what tracking `frame` gave (`particles`: how many the tracker
     /// was given, `None` for a gap) and advances the run to it, in one
-    /// transaction, if the run is still tracking and still at `previous`.
-    /// False (nothing written) otherwise: someone else advanced it.
+    /// transaction, if the run is still tracking, still at `previous` and
+    /// still held with `token`. False (nothing written) otherwise: someone
+    /// else advanced it, or took the run's lease.
     pub async fn store_tracked_frame(
         &self,
-        id: TrackingRunId,
+        (id, token): (TrackingRunId, LeaseToken),
         previous: Option<FrameNumber>,
         frame: FrameNumber,
         particles: Option<i64>,
@@ -333,11 +393,12 @@ impl Store {
         let mut tx = self.write_transaction().await?;
         let advanced = sqlx::query(
             "UPDATE tracking_runs SET tracked_through = ? \
-             WHERE id = ? AND state = 'tracking' AND tracked_through IS ?",
+             WHERE id = ? AND state = 'tracking' AND tracked_through IS ? AND lease_token = ?",
         )
         .bind(frame)
         .bind(id)
         .bind(previous)
+        .bind(token)
         .execute(&mut *tx)
         .await?
         .rows_affected();
@@ -356,20 +417,22 @@ impl Store {
     }
 
     /// Ends a run tracked through `through` with its last points, in one
-    /// transaction; false (nothing written) if it moved meanwhile.
+    /// transaction; false (nothing written) if it moved meanwhile or
+    /// another holder took its lease.
     pub async fn finish_tracking_run(
         &self,
-        id: TrackingRunId,
+        (id, token): (TrackingRunId, LeaseToken),
         through: Option<FrameNumber>,
         points: &[PointRow],
     ) -> Result<bool, sqlx::Error> {
         let mut tx = self.write_transaction().await?;
         let done = sqlx::query(
-            "UPDATE tracking_runs SET state = 'finished' \
-             WHERE id = ? AND state = 'tracking' AND tracked_through IS ?",
+            "UPDATE tracking_runs SET state = 'finished', lease_owner = NULL, lease_until = NULL \
+             WHERE id = ? AND state = 'tracking' AND tracked_through IS ? AND lease_token = ?",
         )
         .bind(id)
         .bind(through)
+        .bind(token)
         .execute(&mut *tx)
         .await?
         .rows_affected();
