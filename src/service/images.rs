@@ -155,24 +155,8 @@ impl ImageStore {
     /// the process's own mutex is held, with a warning.
     pub async fn lock(&self) -> ImageLock<'_> {
         let guard = self.lock.lock().await;
-        let path = self.lock_file.clone();
-        let file = tokio::task::spawn_blocking(move || {
-            let file = std::fs::OpenOptions::new()
-                .create(true)
-                .truncate(false)
-                .write(true)
-                .open(&path)?;
-            #[cfg(unix)]
-            rustix::fs::flock(&file, rustix::fs::FlockOperation::LockExclusive)?;
-            Ok::<_, io::Error>(file)
-        })
-        .await;
-        let file = match file {
-            Ok(Ok(file)) => Some(file),
-            Ok(Err(error)) => {
-                tracing::warn!(%error, "cannot lock the image store across processes");
-                None
-            }
+        let file = match super::file_lock::exclusive(self.lock_file.clone()).await {
+            Ok(file) => Some(file),
             Err(error) => {
                 tracing::warn!(%error, "cannot lock the image store across processes");
                 None

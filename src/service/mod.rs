@@ -31,6 +31,7 @@ pub mod codec;
 pub mod config;
 pub mod connections;
 pub mod events;
+pub mod file_lock;
 pub mod http;
 pub mod images;
 pub mod jobs;

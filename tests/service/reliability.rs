@@ -401,3 +401,31 @@ async fn concurrent_uploads_lose_and_duplicate_nothing() {
     }
     app.stop().await;
 }
+
+/// Processes started together on a new data directory (an operator's
+/// script, a compose file) open the database one at a time: before, two
+/// migrating it at once both applied its first migration and one died
+/// ("table job_files already exists", or "database is locked" switching
+/// it to WAL). Workers first, then the server, with no wait between.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn processes_started_together_on_a_new_data_directory_all_run() {
+    for _ in 0..3 {
+        let data_dir = tempfile::tempdir().unwrap();
+        let mut workers = [
+            WorkerProcess::start(data_dir.path(), &[], &[]),
+            WorkerProcess::start(data_dir.path(), &[], &[]),
+        ];
+        let server = ServiceProcess::start_with(data_dir.path(), 0, &[]);
+        let health = reqwest::get(format!("{}/readyz", server.address))
+            .await
+            .unwrap();
+        assert_eq!(health.status(), 200);
+        tokio::time::sleep(std::time::Duration::from_millis(500)).await;
+        for worker in &mut workers {
+            assert!(
+                worker.child.try_wait().unwrap().is_none(),
+                "a worker started beside others exited"
+            );
+        }
+    }
+}

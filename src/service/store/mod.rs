@@ -326,8 +326,15 @@ impl<T> OnUniqueViolation<T> for Result<T, sqlx::Error> {
 
 impl Store {
     /// Opens (creating if missing) the database `ptv.sqlite` in
-    /// `data_dir` and brings its schema up to date.
+    /// `data_dir` and brings its schema up to date. Processes that start
+    /// on one data directory at once (`ptv serve` and `ptv worker`s) open
+    /// it one at a time, under a lock on `ptv.sqlite.lock`: two migrating
+    /// a new database together would both apply its first migration, and
+    /// switching a new database to WAL does not wait for a busy one.
     pub async fn open(data_dir: &Path, readers: u32) -> Result<Store, sqlx::Error> {
+        let _opening = crate::service::file_lock::exclusive(data_dir.join("ptv.sqlite.lock"))
+            .await
+            .map_err(sqlx::Error::Io)?;
         let options = SqliteConnectOptions::new()
             .filename(data_dir.join("ptv.sqlite"))
             .create_if_missing(true)
