@@ -17,6 +17,10 @@
 //! [`CAPACITY`] events behind loses the oldest and is told how many it
 //! missed (`lagged`), to read the state again. Nothing is stored: a client
 //! that reconnects reads the sequence's state, then follows the events.
+//! The channel is the process's own: changes made by `ptv worker`
+//! processes (`app::run_worker`) are not announced to a serving process's
+//! subscribers, who see them in the next snapshot; a channel between
+//! processes (PostgreSQL's LISTEN/NOTIFY) comes with issue 17's backends.
 
 use serde::Serialize;
 use tokio::sync::{broadcast, watch};
