@@ -89,18 +89,23 @@ impl From<sqlx::migrate::MigrateError> for ServiceError {
     }
 }
 
-/// Runs the service until SIGINT or SIGTERM; prints the address bound and
-/// the docs' URL to `stdout` once it listens.
-pub fn run(args: ServeArgs, stdout: &mut dyn Write) -> Result<(), ServiceError> {
+/// Logging to standard error, and the multi-threaded runtime that `ptv
+/// serve` and `ptv worker` run on.
+fn runtime() -> Result<tokio::runtime::Runtime, ServiceError> {
     let _ = tracing_subscriber::fmt()
         .with_writer(std::io::stderr)
         .with_target(false)
         .try_init();
-    let runtime = tokio::runtime::Builder::new_multi_thread()
+    tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()
-        .map_err(|e| ServiceError::Start(e.to_string()))?;
-    runtime.block_on(async {
+        .map_err(|e| ServiceError::Start(e.to_string()))
+}
+
+/// Runs the service until SIGINT or SIGTERM; prints the address bound and
+/// the docs' URL to `stdout` once it listens.
+pub fn run(args: ServeArgs, stdout: &mut dyn Write) -> Result<(), ServiceError> {
+    runtime()?.block_on(async {
         let app = Application::build(args).await?;
         let address = app.local_addr().map_err(ServiceError::Serve)?;
         let _ = writeln!(stdout, "listening on http://{address}");
@@ -112,15 +117,7 @@ pub fn run(args: ServeArgs, stdout: &mut dyn Write) -> Result<(), ServiceError> 
 
 /// Runs `ptv worker` until SIGINT or SIGTERM (see [`app::run_worker`]).
 pub fn run_worker(args: WorkerArgs) -> Result<(), ServiceError> {
-    let _ = tracing_subscriber::fmt()
-        .with_writer(std::io::stderr)
-        .with_target(false)
-        .try_init();
-    let runtime = tokio::runtime::Builder::new_multi_thread()
-        .enable_all()
-        .build()
-        .map_err(|e| ServiceError::Start(e.to_string()))?;
-    runtime.block_on(app::run_worker(
+    runtime()?.block_on(app::run_worker(
         args,
         jobs::JobKinds::standard(),
         shutdown_signal(),
