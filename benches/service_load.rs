@@ -282,17 +282,22 @@ async fn run(options: Options) {
             .unwrap_or(f64::NAN)
     };
     let mean_job = job_line("sum") / job_line("count");
+    // With worker processes the jobs' durations are in their metrics.
+    let mean_job = if mean_job.is_finite() {
+        format!("{:.0} ms", 1e3 * mean_job)
+    } else {
+        "not measured here".to_owned()
+    };
     println!(
         "service_load: {} frame sets in {elapsed:.1} s: {:.2} frame sets/s; latency \
          p50 {:.0} ms, p90 {:.0} ms, p99 {:.0} ms, max {:.0} ms; job (read, decode, detect, \
-         match, store) mean {:.0} ms; {:.0} particles per frame set",
+         match, store) mean {mean_job}; {:.0} particles per frame set",
         latencies.len(),
         latencies.len() as f64 / elapsed,
         1e3 * percentile(&latencies, 50.0),
         1e3 * percentile(&latencies, 90.0),
         1e3 * percentile(&latencies, 99.0),
         1e3 * latencies.last().copied().unwrap_or(f64::NAN),
-        1e3 * mean_job,
         particles as f64 / latencies.len() as f64,
     );
     server.stop().await;
