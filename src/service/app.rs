@@ -51,6 +51,31 @@ pub struct AppState {
     pub events: super::events::Events,
 }
 
+impl AppState {
+    /// The state of a process (`ptv serve` or `ptv worker`) on its opened
+    /// stores, with empty caches and its own worker name.
+    fn new(
+        config: ServeArgs,
+        store: Store,
+        images: ImageStore,
+        cpu: CpuPool,
+        metrics: Arc<Metrics>,
+    ) -> AppState {
+        AppState {
+            config,
+            store,
+            images,
+            cpu,
+            pipelines: PipelineCache::default(),
+            metrics,
+            wake: Notify::new(),
+            instance: WorkerId::instance(&host_name()),
+            trackers: Default::default(),
+            events: Default::default(),
+        }
+    }
+}
+
 /// The built service, bound and ready to run.
 pub struct Application {
     listener: TcpListener,
@@ -107,18 +132,7 @@ impl Application {
         );
         let metrics = Arc::new(Metrics::default());
         let connections = Arc::new(Registry::new(max_connections, metrics.clone()));
-        let state = Arc::new(AppState {
-            config,
-            store,
-            images,
-            cpu,
-            pipelines: PipelineCache::default(),
-            metrics,
-            wake: Notify::new(),
-            instance: WorkerId::instance(&host_name()),
-            trackers: Default::default(),
-            events: Default::default(),
-        });
+        let state = Arc::new(AppState::new(config, store, images, cpu, metrics));
         Ok(Application {
             listener,
             connections,
@@ -252,21 +266,11 @@ pub async fn run_worker(
     let store = open_and_reap(&data_dir, readers).await?;
     let images = ImageStore::open_shared(&data_dir).map_err(|e| ServiceError::io(&data_dir, e))?;
     let cpu = CpuPool::new(workers).map_err(|e| ServiceError::Start(e.to_string()))?;
-    let state = Arc::new(AppState {
-        config,
-        store,
-        images,
-        cpu,
-        pipelines: PipelineCache::default(),
-        metrics: Arc::new(Metrics::default()),
-        wake: Notify::new(),
-        instance: WorkerId::instance(&host_name()),
-        trackers: Default::default(),
-        // Nobody subscribes in a worker process: its changes reach a
-        // serving process's streams only through their snapshots (see
-        // `service::events`).
-        events: Default::default(),
-    });
+    // Nobody subscribes to a worker process's events: its changes reach a
+    // serving process's streams only through their snapshots (see
+    // `service::events`).
+    let metrics = Arc::new(Metrics::default());
+    let state = Arc::new(AppState::new(config, store, images, cpu, metrics));
     tracing::info!(instance = %state.instance, workers, "worker started");
     let (stop_workers, stopped) = watch::channel(false);
     let running = start_workers(&state, kinds, stopped);
