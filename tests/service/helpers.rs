@@ -236,6 +236,29 @@ pub async fn upload(
     status_and_json(response).await
 }
 
+/// Creates the rig's calibration and a sequence on it (images not kept)
+/// on the service at `address`: the sequence's id.
+pub async fn create_rig_sequence(client: &reqwest::Client, address: &str, rig: &Rig) -> i64 {
+    let response = client
+        .post(format!("{address}/api/v1/calibrations"))
+        .body(ptv::formats::calibration::to_json(&rig.cameras))
+        .send()
+        .await
+        .unwrap();
+    let (status, body) = status_and_json(response).await;
+    assert_eq!(status, 201, "{body}");
+    let calibration = body["id"].as_i64().unwrap();
+    let response = client
+        .post(format!("{address}/api/v1/sequences"))
+        .json(&sequence_body(calibration, &rig.volume, false))
+        .send()
+        .await
+        .unwrap();
+    let (status, body) = status_and_json(response).await;
+    assert_eq!(status, 201, "{body}");
+    body["id"].as_i64().unwrap()
+}
+
 /// Waits until no frame of the sequence is queued or running.
 pub async fn wait_for_sequence(client: &reqwest::Client, address: &str, sequence: i64) -> Value {
     let start = Instant::now();

@@ -24,24 +24,7 @@ async fn killed_service_processes_every_accepted_frame_exactly_once() {
     let first = ServiceProcess::start(data_dir.path(), 1);
     let first_address = first.address.clone();
     let api = |path: &str| format!("{first_address}/api/v1{path}");
-    let response = client
-        .post(api("/calibrations"))
-        .body(ptv::formats::calibration::to_json(&rig.cameras))
-        .send()
-        .await
-        .unwrap();
-    let (status, body) = status_and_json(response).await;
-    assert_eq!(status, 201, "{body}");
-    let calibration = body["id"].as_i64().unwrap();
-    let response = client
-        .post(api("/sequences"))
-        .json(&sequence_body(calibration, &rig.volume, false))
-        .send()
-        .await
-        .unwrap();
-    let (status, body) = status_and_json(response).await;
-    assert_eq!(status, 201, "{body}");
-    let sequence = body["id"].as_i64().unwrap();
+    let sequence = create_rig_sequence(&client, &first_address, &rig).await;
     for frame in 0..CRASH_FRAMES {
         let (status, body) =
             upload(&client, &first_address, sequence, image_form(frame, &files)).await;
@@ -169,24 +152,7 @@ async fn a_killed_worker_process_s_job_is_taken_over_after_its_lease_and_complet
     let address = server.address.clone();
     let api = |path: &str| format!("{address}/api/v1{path}");
     let rig = rig();
-    let response = client
-        .post(api("/calibrations"))
-        .body(ptv::formats::calibration::to_json(&rig.cameras))
-        .send()
-        .await
-        .unwrap();
-    let (status, body) = status_and_json(response).await;
-    assert_eq!(status, 201, "{body}");
-    let calibration = body["id"].as_i64().unwrap();
-    let response = client
-        .post(api("/sequences"))
-        .json(&sequence_body(calibration, &rig.volume, false))
-        .send()
-        .await
-        .unwrap();
-    let (status, body) = status_and_json(response).await;
-    assert_eq!(status, 201, "{body}");
-    let sequence = body["id"].as_i64().unwrap();
+    let sequence = create_rig_sequence(&client, &address, &rig).await;
     let frames: Vec<_> = (0..WORKER_FRAMES)
         .map(|f| rig.targets(200, 900 + f as u64))
         .collect();
