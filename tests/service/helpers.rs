@@ -297,15 +297,20 @@ pub async fn count(db: &sqlx::SqlitePool, sql: &str) -> i64 {
     n
 }
 
-/// The status and the JSON body (or the text as a JSON string).
-pub async fn status_and_json(response: reqwest::Response) -> (u16, Value) {
-    let status = response.status().as_u16();
-    let content_type = response
+/// A response's content type ("" when it has none).
+pub fn content_type(response: &reqwest::Response) -> String {
+    response
         .headers()
         .get("content-type")
         .and_then(|v| v.to_str().ok())
         .unwrap_or("")
-        .to_owned();
+        .to_owned()
+}
+
+/// The status and the JSON body (or the text as a JSON string).
+pub async fn status_and_json(response: reqwest::Response) -> (u16, Value) {
+    let status = response.status().as_u16();
+    let content_type = content_type(&response);
     let text = response.text().await.unwrap();
     if status >= 400 {
         assert_eq!(content_type, "application/problem+json", "{status}: {text}");

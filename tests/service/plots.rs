@@ -17,18 +17,13 @@ use ptv::plot::residuals::{ResidualLayout, ResidualReport, EXCLUDED, SENSOR, USE
 use ptv::plot::views::{ParticlePoint, TrajectoryPoint, ViewsLayout, PANEL};
 use ptv::plot::{cameras_colour, WHITE};
 
-use crate::helpers::{image_form, png, raw8, rig, spawn_app, targets_form, TestApp};
+use crate::helpers::{content_type, image_form, png, raw8, rig, spawn_app, targets_form, TestApp};
 
 /// GETs a picture: status, content type and body.
 pub async fn picture(app: &TestApp, path: &str) -> (u16, String, Vec<u8>) {
     let response = app.client.get(app.api(path)).send().await.unwrap();
     let status = response.status().as_u16();
-    let content_type = response
-        .headers()
-        .get("content-type")
-        .and_then(|v| v.to_str().ok())
-        .unwrap_or("")
-        .to_owned();
+    let content_type = content_type(&response);
     (
         status,
         content_type,
