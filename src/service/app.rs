@@ -14,6 +14,7 @@ use tokio::sync::{watch, Notify};
 
 use super::config::{ServeArgs, WorkerArgs};
 use super::connections::{self, Registry};
+use super::events;
 use super::images::ImageStore;
 use super::jobs::{self, CpuPool, JobKinds, PipelineCache};
 use super::metrics::Metrics;
@@ -53,15 +54,17 @@ pub struct AppState {
 
 impl AppState {
     /// The state of a process (`ptv serve` or `ptv worker`) on its opened
-    /// stores, with empty caches and its own worker name.
-    fn new(
+    /// stores, with empty caches and its own worker name, and the recorder
+    /// of its events running (`service::events`; it ends with the
+    /// runtime).
+    fn start(
         config: ServeArgs,
         store: Store,
         images: ImageStore,
         cpu: CpuPool,
         metrics: Arc<Metrics>,
-    ) -> AppState {
-        AppState {
+    ) -> Arc<AppState> {
+        let state = Arc::new(AppState {
             config,
             store,
             images,
@@ -72,7 +75,9 @@ impl AppState {
             instance: WorkerId::instance(&host_name()),
             trackers: Default::default(),
             events: Default::default(),
-        }
+        });
+        tokio::spawn(events::record(state.events.clone(), state.store.clone()));
+        state
     }
 }
 
@@ -132,7 +137,7 @@ impl Application {
         );
         let metrics = Arc::new(Metrics::default());
         let connections = Arc::new(Registry::new(max_connections, metrics.clone()));
-        let state = Arc::new(AppState::new(config, store, images, cpu, metrics));
+        let state = AppState::start(config, store, images, cpu, metrics);
         Ok(Application {
             listener,
             connections,
@@ -173,6 +178,7 @@ impl Application {
         } = self;
         let (stop_workers, stopped) = watch::channel(false);
         let workers = start_workers(&state, kinds, stopped);
+        tokio::spawn(events::follow(state.events.clone(), state.store.clone()));
         let router = http::router(state.clone());
         let settings = connections::Settings::new(&state.config);
         // Event streams never end by themselves: they end at the shutdown,
@@ -266,12 +272,10 @@ pub async fn run_worker(
     let store = open_and_reap(&data_dir, readers).await?;
     let images = ImageStore::open_shared(&data_dir).map_err(|e| ServiceError::io(&data_dir, e))?;
     let cpu = CpuPool::new(workers).map_err(|e| ServiceError::Start(e.to_string()))?;
-    // Nobody subscribes to a worker process's events: its changes reach a
-    // serving process's streams only through their snapshots (see
-    // `service::events`).
     let metrics = Arc::new(Metrics::default());
-    let state = Arc::new(AppState::new(config, store, images, cpu, metrics));
+    let state = AppState::start(config, store, images, cpu, metrics);
     tracing::info!(instance = %state.instance, workers, "worker started");
+    // Its changes reach the serving processes' streams through the log.
     let (stop_workers, stopped) = watch::channel(false);
     let running = start_workers(&state, kinds, stopped);
     shutdown.await;

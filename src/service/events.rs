@@ -2,44 +2,86 @@
 //! listens (`GET /api/v1/sequences/{id}/events`, server-sent events), so
 //! acquisition PCs and the web page need not poll.
 //!
-//! One [`tokio::sync::broadcast`] channel for the whole service
-//! ([`Events`], in the app state); every [`SequenceEvent`] carries its
-//! sequence's id and a number from one counter, in the order sent, and
-//! each subscriber keeps its sequence's. Events are sent right after the
-//! change they announce is committed (the frame's upload, a job's outcome,
-//! a tracked frame), never before, so a client that reads the state on an
-//! event sees the change. One frame's events come in the order of its
-//! changes, accepted, running, processed; with one exception: a worker
-//! already looking for work (finishing another job, or at its 1 s poll)
-//! may take up a frame between its upload's commit and the
-//! `frame_accepted` sent right after, and then `frame_running` comes
-//! first. Sending never waits: a subscriber more than
-//! [`CAPACITY`] events behind loses the oldest and is told how many it
-//! missed (`lagged`), to read the state again. Nothing is stored: a client
-//! that reconnects reads the sequence's state, then follows the events.
-//! The channel is the process's own: changes made by `ptv worker`
-//! processes (`app::run_worker`) are not announced to a serving process's
-//! subscribers, who see them in the next snapshot; a channel between
-//! processes (PostgreSQL's LISTEN/NOTIFY) comes with issue 17's backends.
+//! Every change goes through the event log, the database's `events`
+//! table (migration 0009), so that every serving process announces what
+//! any process did: `ptv worker` processes on other hosts, or another
+//! `ptv serve` behind the same load balancer.
+//!
+//! - **Recording.** [`Events::send`] never waits: it puts the change in
+//!   this process's outbox. The recorder ([`record`], one task per
+//!   process) appends what the outbox holds to the log in one transaction
+//!   per batch. Changes are sent right after the change they announce
+//!   commits, never before, so a client that reads the state on an event
+//!   sees the change. While the database cannot be written, the recorder
+//!   keeps up to [`MAX_PENDING`] changes and tries again every second;
+//!   beyond that it drops the oldest, saying so in the log (the streams'
+//!   snapshots stay right).
+//! - **Following.** In a serving process the follower ([`follow`]) reads
+//!   the log's new rows, at once when this process's recorder wrote some
+//!   and otherwise every [`POLL`], and hands them to this process's
+//!   subscribers through one [`tokio::sync::broadcast`] channel; each
+//!   subscriber keeps its sequence's. A row's id is its event's id on the
+//!   streams (the SSE `id:`), rising in the order written. On PostgreSQL,
+//!   ids are drawn before their transactions commit, so a row may become
+//!   visible after one with a higher id; the follower reads again the last
+//!   [`LOOKBACK`] ids and passes on each row once.
+//! - **Order.** One frame's events come in the order of its changes,
+//!   accepted, running, processed, with one exception: a worker already
+//!   looking for work may take up a frame between its upload's commit and
+//!   the `frame_accepted` sent right after, and then `frame_running` comes
+//!   first.
+//! - **Falling behind.** Handing on never waits: a subscriber more than
+//!   [`CAPACITY`] events behind loses the oldest and is told how many it
+//!   missed (`lagged`), to read the state again.
+//! - **Reconnecting.** A client that reconnects with `Last-Event-ID` is
+//!   sent the events of its sequence it missed, from the log, then follows
+//!   (`http::events`). Rows are deleted after [`RETENTION_S`]; a client
+//!   whose last event is older gets a fresh snapshot.
 
-use serde::Serialize;
-use tokio::sync::{broadcast, watch};
+use std::collections::{BTreeSet, VecDeque};
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use serde::{Deserialize, Serialize};
+use tokio::sync::{broadcast, mpsc, watch, Notify};
 use utoipa::ToSchema;
 
 use super::app::AppState;
 use super::http::jobs::JobStateView;
 use super::jobs::{JobError, PROCESS_FRAME};
-use super::store::{ClaimedJob, FrameNumber, JobId, SequenceId, TrackingRunId, MAX_ATTEMPTS};
+use super::store::{
+    ClaimedJob, EventId, EventRow, FrameNumber, JobId, SequenceId, Store, TrackingRunId,
+    MAX_ATTEMPTS,
+};
 
 /// Events a subscriber may fall behind by before it loses the oldest.
 pub const CAPACITY: usize = 1024;
 
+/// Changes the recorder keeps while the database cannot be written.
+pub const MAX_PENDING: usize = 100_000;
+
+/// How often the follower reads the log when its own recorder wrote
+/// nothing (other processes' changes come within this).
+pub const POLL: Duration = Duration::from_millis(250);
+
+/// How many ids below the highest seen the follower reads again, for rows
+/// committed after rows with higher ids (PostgreSQL).
+pub const LOOKBACK: i64 = 64;
+
+/// How long the log keeps an event: a day.
+pub const RETENTION_S: u32 = 86_400;
+
+/// Rows the follower reads at a time.
+const BATCH: u32 = 1000;
+
 /// What changed, with the sequence it changed in and its number.
 #[derive(Clone, Debug, Serialize, ToSchema)]
 pub struct SequenceEvent {
-    /// Numbered from 1 in the order sent, for the whole service (the SSE
-    /// `id:`); a gap in one sequence's numbers is other sequences' events.
-    pub id: u64,
+    /// The event's id in the log, rising in the order written, for every
+    /// sequence (the SSE `id:`); a gap in one sequence's ids is other
+    /// sequences' events.
+    #[schema(value_type = i64)]
+    pub id: EventId,
     /// The sequence.
     #[schema(value_type = i64)]
     pub sequence_id: SequenceId,
@@ -49,7 +91,7 @@ pub struct SequenceEvent {
 }
 
 /// What changed in a sequence.
-#[derive(Clone, Debug, PartialEq, Serialize, ToSchema)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, ToSchema)]
 #[serde(tag = "type", rename_all = "snake_case")]
 pub enum Change {
     /// A frame's upload was stored and its job queued.
@@ -150,40 +192,48 @@ impl Change {
     }
 }
 
-/// The service's event channel (cheap to clone).
+/// A committed change not logged yet, in the outbox.
+type Unrecorded = (SequenceId, Change);
+
+/// The service's event channel (cheap to clone): the outbox to the log,
+/// and what the follower hands on to this process's subscribers.
 #[derive(Clone, Debug)]
 pub struct Events {
+    outbox: mpsc::UnboundedSender<Unrecorded>,
+    /// The outbox's other end, until the recorder takes it.
+    unrecorded: Arc<Mutex<Option<mpsc::UnboundedReceiver<Unrecorded>>>>,
+    /// Woken when the recorder wrote to the log.
+    recorded: Arc<Notify>,
     sender: broadcast::Sender<SequenceEvent>,
-    counter: std::sync::Arc<std::sync::atomic::AtomicU64>,
     /// True once the service shuts down: every stream ends.
     closing: watch::Sender<bool>,
 }
 
 impl Default for Events {
     fn default() -> Self {
+        let (outbox, unrecorded) = mpsc::unbounded_channel();
         Events {
+            outbox,
+            unrecorded: Arc::new(Mutex::new(Some(unrecorded))),
+            recorded: Arc::default(),
             sender: broadcast::channel(CAPACITY).0,
-            counter: Default::default(),
             closing: watch::channel(false).0,
         }
     }
 }
 
 impl Events {
-    /// Announces `change` in `sequence_id` to the current subscribers (none:
-    /// nothing happens). Never waits.
+    /// Announces `change` in `sequence_id`, which has committed: puts it in
+    /// the outbox for the recorder. Never waits.
     pub fn send(&self, sequence_id: SequenceId, change: Change) {
-        if self.sender.receiver_count() == 0 {
-            return;
-        }
-        let id = 1 + self
-            .counter
-            .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-        let _ = self.sender.send(SequenceEvent {
-            id,
-            sequence_id,
-            change,
-        });
+        // The recorder ends only with the process.
+        let _ = self.outbox.send((sequence_id, change));
+    }
+
+    /// Hands a logged event to this process's subscribers (none: nothing
+    /// happens). Never waits.
+    fn publish(&self, event: SequenceEvent) {
+        let _ = self.sender.send(event);
     }
 
     /// A new subscriber to every sequence's events from now on.
@@ -200,6 +250,169 @@ impl Events {
     /// requests in flight, which an open stream would be forever).
     pub fn close(&self) {
         self.closing.send_replace(true);
+    }
+}
+
+/// A logged event as subscribers get it; a row whose change does not
+/// parse (written by a newer version) is skipped, saying so.
+pub fn logged(row: EventRow) -> Option<SequenceEvent> {
+    match serde_json::from_str(&row.change) {
+        Ok(change) => Some(SequenceEvent {
+            id: row.id,
+            sequence_id: row.sequence_id,
+            change,
+        }),
+        Err(error) => {
+            tracing::warn!(id = %row.id, %error, "an event in the log does not parse; skipped");
+            None
+        }
+    }
+}
+
+/// The recorder: appends the outbox's changes to the log, a batch per
+/// transaction, until the process ends (the outbox's senders are
+/// dropped); deletes the events older than [`RETENTION_S`] at the start
+/// and every hour. Where another task took the outbox already, returns.
+pub async fn record(events: Events, store: Store) {
+    let Some(mut outbox) = events.unrecorded.lock().ok().and_then(|mut o| o.take()) else {
+        return;
+    };
+    let mut pending: VecDeque<(SequenceId, String)> = VecDeque::new();
+    // Pruned at the start, then hourly.
+    let mut pruned_at: Option<tokio::time::Instant> = None;
+    loop {
+        if pending.is_empty() {
+            match outbox.recv().await {
+                Some(change) => pending.extend(encoded(change)),
+                None => return,
+            }
+        }
+        while let Ok(change) = outbox.try_recv() {
+            pending.extend(encoded(change));
+        }
+        if pending.len() > MAX_PENDING {
+            let dropped = pending.len() - MAX_PENDING;
+            pending.drain(..dropped);
+            tracing::warn!(dropped, "events dropped: the database cannot be written");
+        }
+        let due = match pruned_at {
+            None => true,
+            Some(at) => at.elapsed() >= Duration::from_secs(3600),
+        };
+        if due {
+            pruned_at = Some(tokio::time::Instant::now());
+            match store.prune_events(RETENTION_S).await {
+                Ok(0) => {}
+                Ok(deleted) => tracing::info!(deleted, "old events deleted from the log"),
+                Err(error) => tracing::warn!(%error, "cannot delete old events"),
+            }
+        }
+        let batch: Vec<_> = pending.iter().take(500).cloned().collect();
+        match store.append_events(&batch).await {
+            Ok(_) => {
+                pending.drain(..batch.len());
+                events.recorded.notify_one();
+            }
+            Err(error) => {
+                tracing::warn!(%error, pending = pending.len(), "cannot log events; trying again in 1 s");
+                tokio::time::sleep(Duration::from_secs(1)).await;
+            }
+        }
+    }
+}
+
+/// A change as the log stores it.
+fn encoded((sequence_id, change): Unrecorded) -> Option<(SequenceId, String)> {
+    match serde_json::to_string(&change) {
+        Ok(json) => Some((sequence_id, json)),
+        Err(error) => {
+            tracing::error!(%error, "an event does not serialise");
+            None
+        }
+    }
+}
+
+/// The follower: hands the log's new rows, from whichever process, to this
+/// process's subscribers, from the log's end when it starts until the
+/// service closes.
+pub async fn follow(events: Events, store: Store) {
+    let mut closing = events.closing();
+    let start = loop {
+        match store.last_event_id().await {
+            Ok(last) => break last,
+            Err(error) => {
+                tracing::warn!(%error, "cannot read the event log; trying again in 1 s");
+                tokio::select! {
+                    _ = tokio::time::sleep(Duration::from_secs(1)) => {}
+                    _ = closing.wait_for(|closed| *closed) => return,
+                }
+            }
+        }
+    };
+    follow_from(events, store, start).await;
+}
+
+/// The follower from the log's event `start` on (exclusive).
+async fn follow_from(events: Events, store: Store, start: EventId) {
+    let mut closing = events.closing();
+    let mut seen = Seen::default();
+    seen.start(start);
+    loop {
+        match store.events_after(seen.from(), BATCH).await {
+            Ok(rows) => {
+                let full = rows.len() == BATCH as usize;
+                for row in rows {
+                    if seen.first_time(row.id) {
+                        if let Some(event) = logged(row) {
+                            events.publish(event);
+                        }
+                    }
+                }
+                if full {
+                    continue;
+                }
+            }
+            Err(error) => tracing::warn!(%error, "cannot read the event log"),
+        }
+        tokio::select! {
+            _ = events.recorded.notified() => {}
+            _ = tokio::time::sleep(POLL) => {}
+            _ = closing.wait_for(|closed| *closed) => return,
+        }
+    }
+}
+
+/// The ids the follower handed on, within [`LOOKBACK`] of the highest.
+#[derive(Debug, Default)]
+struct Seen {
+    ids: BTreeSet<i64>,
+    /// Ids up to here are not handed on: before the start, or more than
+    /// [`LOOKBACK`] below the highest seen.
+    floor: i64,
+}
+
+impl Seen {
+    /// Starts after `last`: the events before it are history.
+    fn start(&mut self, last: EventId) {
+        self.floor = last.0;
+    }
+
+    /// Where the next read starts (exclusive).
+    fn from(&self) -> EventId {
+        EventId(self.floor)
+    }
+
+    /// Whether `id` is new; remembers it.
+    fn first_time(&mut self, id: EventId) -> bool {
+        if id.0 <= self.floor || !self.ids.insert(id.0) {
+            return false;
+        }
+        let top = *self.ids.last().expect("just inserted");
+        self.floor = self.floor.max(top - LOOKBACK);
+        while self.ids.first().is_some_and(|&low| low <= self.floor) {
+            self.ids.pop_first();
+        }
+        true
     }
 }
 
@@ -309,46 +522,101 @@ mod tests {
     use super::*;
 
     #[test]
-    fn events_are_numbered_in_order_and_named_by_their_type() {
-        let events = Events::default();
-        // Nobody listens: nothing is numbered.
-        events.send(
-            SequenceId(1),
-            Change::FrameAccepted {
-                frame: FrameNumber(0),
-                job_id: JobId(1),
-            },
-        );
-        let mut receiver = events.subscribe();
-        events.send(
-            SequenceId(2),
-            Change::FrameProcessed {
+    fn events_serialise_flat_and_changes_round_trip_through_the_log() {
+        let event = SequenceEvent {
+            id: EventId(1),
+            sequence_id: SequenceId(2),
+            change: Change::FrameProcessed {
                 frame: FrameNumber(3),
                 job_id: JobId(7),
             },
-        );
-        events.send(
-            SequenceId(2),
-            Change::Tracked {
-                run_id: TrackingRunId(1),
-                tracked_through: FrameNumber(3),
-            },
-        );
-        let first = receiver.try_recv().unwrap();
-        let second = receiver.try_recv().unwrap();
-        assert_eq!((first.id, second.id), (1, 2));
-        assert_eq!(first.change.name(), "frame_processed");
-        let json = serde_json::to_value(&first).unwrap();
+        };
         assert_eq!(
-            json,
+            serde_json::to_value(&event).unwrap(),
             serde_json::json!({"id": 1, "sequence_id": 2, "type": "frame_processed",
                                "frame": 3, "job_id": 7})
         );
-        // The name is the serialised type, for every variant.
-        assert_eq!(
-            serde_json::to_value(&second).unwrap()["type"],
-            second.change.name()
-        );
+        let (_, json) = encoded((event.sequence_id, event.change.clone())).unwrap();
+        let row = EventRow {
+            id: EventId(9),
+            sequence_id: SequenceId(2),
+            change: json,
+        };
+        let back = logged(row).unwrap();
+        assert_eq!((back.id, back.change), (EventId(9), event.change));
+        // A change this version does not know is skipped, not a panic.
+        let unknown = EventRow {
+            id: EventId(10),
+            sequence_id: SequenceId(2),
+            change: r#"{"type": "frame_teleported"}"#.into(),
+        };
+        assert!(logged(unknown).is_none());
+    }
+
+    #[test]
+    fn the_follower_passes_on_late_rows_once_and_forgets_after_the_lookback() {
+        let mut seen = Seen::default();
+        seen.start(EventId(10));
+        assert_eq!(seen.from(), EventId(10));
+        assert!(!seen.first_time(EventId(9)), "before the start");
+        assert!(seen.first_time(EventId(12)));
+        // 11 committed after 12 (PostgreSQL): read again, passed on once.
+        assert_eq!(seen.from(), EventId(10));
+        assert!(seen.first_time(EventId(11)));
+        assert!(!seen.first_time(EventId(11)));
+        assert!(!seen.first_time(EventId(12)));
+        // Far ahead: what is more than LOOKBACK below is no longer read.
+        let top = 12 + 2 * LOOKBACK;
+        assert!(seen.first_time(EventId(top)));
+        assert_eq!(seen.from(), EventId(top - LOOKBACK));
+        assert!(!seen.first_time(EventId(13)), "below the lookback");
+        assert!(seen.first_time(EventId(top - 1)), "within it");
+    }
+
+    #[tokio::test]
+    async fn every_process_on_the_database_hears_every_change() {
+        let dir = tempfile::tempdir().unwrap();
+        let store = Store::open(dir.path(), 2).await.unwrap();
+        // Two processes: `server` serves streams, `worker` only records.
+        let (server, worker) = (Events::default(), Events::default());
+        // History: not handed on.
+        store
+            .append_events(&[(SequenceId(1), "{}".into())])
+            .await
+            .unwrap();
+        let start = store.last_event_id().await.unwrap();
+        let follower = tokio::spawn(follow_from(server.clone(), store.clone(), start));
+        let recorders = [
+            tokio::spawn(record(server.clone(), store.clone())),
+            tokio::spawn(record(worker.clone(), store.clone())),
+        ];
+        let mut receiver = server.subscribe();
+        let accepted = Change::FrameAccepted {
+            frame: FrameNumber(0),
+            job_id: JobId(1),
+        };
+        let processed = Change::FrameProcessed {
+            frame: FrameNumber(0),
+            job_id: JobId(1),
+        };
+        server.send(SequenceId(1), accepted.clone());
+        worker.send(SequenceId(1), processed.clone());
+        let within = Duration::from_secs(5);
+        let first = tokio::time::timeout(within, receiver.recv())
+            .await
+            .unwrap()
+            .unwrap();
+        let second = tokio::time::timeout(within, receiver.recv())
+            .await
+            .unwrap()
+            .unwrap();
+        assert_eq!((first.id, first.change), (EventId(2), accepted));
+        assert_eq!((second.id, second.change), (EventId(3), processed));
+        server.close();
+        follower.await.unwrap();
+        for recorder in recorders {
+            recorder.abort();
+        }
     }
 
     #[test]
@@ -393,19 +661,20 @@ mod tests {
         let events = Events::default();
         let mut slow = events.subscribe();
         for frame in 0..CAPACITY as i64 + 5 {
-            events.send(
-                SequenceId(1),
-                Change::FrameAccepted {
+            events.publish(SequenceEvent {
+                id: EventId(frame + 1),
+                sequence_id: SequenceId(1),
+                change: Change::FrameAccepted {
                     frame: FrameNumber(frame),
                     job_id: JobId(frame),
                 },
-            );
+            });
         }
         assert!(matches!(
             slow.try_recv(),
             Err(broadcast::error::TryRecvError::Lagged(5))
         ));
         // Then the oldest kept.
-        assert_eq!(slow.try_recv().unwrap().id, 6);
+        assert_eq!(slow.try_recv().unwrap().id, EventId(6));
     }
 }

@@ -30,7 +30,12 @@ pub struct EventStream {
 impl EventStream {
     /// Opens `GET {url}`, which must answer 200 `text/event-stream`.
     pub async fn open(client: &reqwest::Client, url: String) -> EventStream {
-        let response = client.get(url).send().await.unwrap();
+        EventStream::request(client.get(url)).await
+    }
+
+    /// Sends `request`, which must answer 200 `text/event-stream`.
+    pub async fn request(request: reqwest::RequestBuilder) -> EventStream {
+        let response = request.send().await.unwrap();
         assert_eq!(response.status(), 200);
         assert_eq!(response.headers()["content-type"], "text/event-stream");
         EventStream {
@@ -132,6 +137,100 @@ async fn a_sequence_s_events_arrive_in_order() {
     let (stopped, closing) = tokio::join!(stop, events.next());
     stopped.expect("the service stops with an event stream open");
     assert_eq!(closing.unwrap().event, "closing");
+}
+
+/// With `ptv serve --workers 0` and a `ptv worker` process on one data
+/// directory, the frames the worker processes are announced on the
+/// server's stream (through the event log, as workers on other hosts'
+/// would be); a client that reconnects with `Last-Event-ID` is sent the
+/// events it missed instead of a snapshot, and one with a bad id gets a
+/// 400.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_worker_process_s_changes_reach_the_stream_and_a_reconnect_gets_what_it_missed() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = ServiceProcess::start(dir.path(), 0);
+    let _worker = WorkerProcess::start(dir.path(), &[], &[]);
+    let (client, address) = (reqwest::Client::new(), server.address.clone());
+    let rig = rig();
+    let sequence = create_rig_sequence(&client, &address, &rig).await;
+    let url = format!("{address}/api/v1/sequences/{sequence}/events");
+    let mut events = EventStream::open(&client, url.clone()).await;
+    assert_eq!(events.next().await.unwrap().event, "snapshot");
+    let (status, body) = upload(
+        &client,
+        &address,
+        sequence,
+        targets_form(0, &rig.targets(100, 0)),
+    )
+    .await;
+    assert_eq!(status, 202, "{body}");
+    let mut last = 0;
+    for expected in ["frame_accepted", "frame_running", "frame_processed"] {
+        let event = events.next().await.unwrap();
+        assert_eq!(event.event, expected, "{event:?}");
+        assert_eq!(event.data["frame"], 0);
+        last = event.id.unwrap();
+    }
+    drop(events);
+
+    // Missed while away: frames 1 and 2, processed by the worker.
+    for frame in 1..3 {
+        let (status, body) = upload(
+            &client,
+            &address,
+            sequence,
+            targets_form(frame, &rig.targets(100, frame as u64)),
+        )
+        .await;
+        assert_eq!(status, 202, "{body}");
+    }
+    wait_for_sequence(&client, &address, sequence).await;
+    let mut events =
+        EventStream::request(client.get(&url).header("Last-Event-ID", last.to_string())).await;
+    let mut processed = Vec::new();
+    while processed.len() < 2 {
+        let event = events.next().await.unwrap();
+        assert_ne!(event.event, "snapshot", "replayed, not a snapshot");
+        let id = event.id.unwrap();
+        assert!(id > last, "{id} after {last}");
+        last = id;
+        if event.event == "frame_processed" {
+            processed.push(event.data["frame"].as_i64().unwrap());
+        }
+    }
+    assert_eq!(processed, [1, 2]);
+
+    // An id past the log's end: nothing missed, no snapshot either; the
+    // next frame's events follow.
+    drop(events);
+    let mut events =
+        EventStream::request(client.get(&url).header("Last-Event-ID", last.to_string())).await;
+    let (status, body) = upload(
+        &client,
+        &address,
+        sequence,
+        targets_form(3, &rig.targets(100, 3)),
+    )
+    .await;
+    assert_eq!(status, 202, "{body}");
+    let event = events.next().await.unwrap();
+    assert_eq!(
+        (event.event.as_str(), &event.data["frame"]),
+        ("frame_accepted", &Value::from(3))
+    );
+
+    let response = client
+        .get(&url)
+        .header("Last-Event-ID", "yesterday")
+        .send()
+        .await
+        .unwrap();
+    let (status, body) = status_and_json(response).await;
+    assert_eq!(status, 400, "{body}");
+    assert!(
+        body["detail"].as_str().unwrap().contains("Last-Event-ID"),
+        "{body}"
+    );
 }
 
 /// An unknown sequence's events are a 404 problem, not an empty stream;

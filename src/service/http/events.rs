@@ -2,16 +2,20 @@
 //! events (the WHATWG HTML standard's `text/event-stream`), from
 //! [`crate::service::events`].
 //!
-//! Each event is `id:` (the service's event number), `event:` (the
+//! Each event is `id:` (the event's id in the event log), `event:` (the
 //! change's `type`) and `data:` (the change as one line of JSON, with
 //! `sequence_id` and `type`). The stream opens with a `snapshot` of the
 //! sequence's frame counts, so a client needs no other request to start;
 //! a comment every [`KEEP_ALIVE`] keeps proxies from closing an idle
 //! stream; a client too slow to keep up gets `lagged` with how many events
 //! it missed (read the sequence again), never holding up anyone else. The
-//! stream ends when the service shuts down (`event: closing`). Events are
-//! not stored, so `Last-Event-ID` is not replayed: a client that reconnects
-//! gets a fresh snapshot.
+//! stream ends when the service shuts down (`event: closing`).
+//!
+//! A client that reconnects with `Last-Event-ID` (as browsers'
+//! `EventSource` does) is sent the sequence's events after that id from
+//! the log, at most [`REPLAY_LIMIT`], instead of the snapshot, then
+//! follows. When the log no longer holds them all (kept for a day), or
+//! they are more, it gets the snapshot as a new client does.
 //!
 //! Authentication is the API's: `Authorization: Bearer` (with
 //! `--api-token`). Browsers' `EventSource` cannot send that header, so the
@@ -23,6 +27,7 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use axum::extract::State;
+use axum::http::HeaderMap;
 use axum::response::sse::{Event, KeepAlive, Sse};
 use axum::response::{IntoResponse, Response};
 use axum::routing::get;
@@ -36,11 +41,15 @@ use super::problem::{ApiError, ApiPath};
 use super::sequences::{sequence, FrameCountsView};
 use super::Shared;
 use crate::service::app::AppState;
-use crate::service::events::SequenceEvent;
-use crate::service::store::SequenceId;
+use crate::service::events::{logged, SequenceEvent};
+use crate::service::store::{EventId, SequenceId};
 
 /// How often an idle stream sends a comment line.
 pub const KEEP_ALIVE: Duration = Duration::from_secs(15);
+
+/// The most events a reconnecting client is sent from the log; one that
+/// missed more gets a snapshot.
+pub const REPLAY_LIMIT: u32 = 10_000;
 
 pub(super) fn router() -> Router<Arc<AppState>> {
     Router::new().route("/sequences/{id}/events", get(events))
@@ -70,10 +79,14 @@ pub struct Lagged {
 /// `frame_requeued`, `job`, `tracked`, `tracking_ended` as they are
 /// committed (each `data` one JSON object of schema `SequenceEvent`),
 /// `lagged` for a client that fell behind, `closing` at shutdown.
-/// `curl -N` prints them as they come.
+/// With `Last-Event-ID`, the events after it instead of the snapshot,
+/// where the log still holds them all. `curl -N` prints them as they come.
 #[utoipa::path(
     get, path = "/api/v1/sequences/{id}/events", tag = "sequences",
-    params(("id" = i64, Path, description = "Sequence id")),
+    params(
+        ("id" = i64, Path, description = "Sequence id"),
+        ("Last-Event-ID" = Option<i64>, Header, description = "The id of the last event received: the stream starts with the events after it (no snapshot) where the log still holds them, else with a snapshot"),
+    ),
     responses(
         (status = 200, content_type = "text/event-stream", body = String,
             description = "`id:`, `event:` (the change's type) and `data:` (JSON: SequenceEvent; Snapshot first; Lagged) per event"),
@@ -83,32 +96,108 @@ pub struct Lagged {
 pub async fn events(
     State(state): Shared,
     ApiPath(id): ApiPath<SequenceId>,
+    headers: HeaderMap,
 ) -> Result<Response, ApiError> {
-    // Subscribed before the snapshot is read, so that no change between
-    // the two is lost (one may come twice: counted in the snapshot, then
-    // announced).
+    // Subscribed before the snapshot or the missed events are read, so
+    // that no change between the two is lost. What the client has (the
+    // snapshot, or the events up to the last it was sent) it is not sent
+    // again: the follower may hand on events logged before this request.
     let receiver = state.events.subscribe();
     let closing = state.events.closing();
     sequence(&state, id).await?;
-    let counts = state.store.frame_counts(id).await?;
-    let snapshot = Event::default().event("snapshot").json_data(Snapshot {
-        sequence_id: id,
-        frames: counts.into(),
-    });
-    let snapshot = snapshot.map_err(ApiError::internal)?;
-    let first = stream::once(async move { Ok::<_, Infallible>(snapshot) });
-    let rest = follow(id, receiver, closing);
+    let (first, after) = match missed(&state, id, &headers).await? {
+        Some(missed) => missed,
+        None => {
+            // Changes are logged after they commit: those logged up to
+            // here are in the counts read next.
+            let after = state.store.last_event_id().await?;
+            let counts = state.store.frame_counts(id).await?;
+            let snapshot = Event::default().event("snapshot").json_data(Snapshot {
+                sequence_id: id,
+                frames: counts.into(),
+            });
+            (vec![snapshot.map_err(ApiError::internal)?], after)
+        }
+    };
+    let first = stream::iter(first.into_iter().map(Ok::<_, Infallible>));
+    let rest = follow(id, receiver, closing, after);
     use futures_util::StreamExt as _;
     Ok(Sse::new(first.chain(rest))
         .keep_alive(KeepAlive::new().interval(KEEP_ALIVE))
         .into_response())
 }
 
-/// The events of sequence `id` from `receiver`, until the service closes.
+/// The events of sequence `id` after the request's `Last-Event-ID`, from
+/// the log, and the last id the client then has; `None` without the
+/// header, or where the log no longer holds them all (the client gets a
+/// snapshot). A header that is not an event id is a 400.
+async fn missed(
+    state: &AppState,
+    id: SequenceId,
+    headers: &HeaderMap,
+) -> Result<Option<(Vec<Event>, EventId)>, ApiError> {
+    let Some(value) = headers.get("last-event-id") else {
+        return Ok(None);
+    };
+    let last = value
+        .to_str()
+        .ok()
+        .and_then(|text| text.trim().parse::<i64>().ok())
+        .filter(|last| *last >= 0)
+        .map(EventId)
+        .ok_or_else(|| {
+            ApiError::bad_request(
+                "Last-Event-ID is not an event id: send the `id:` of the last event received, \
+                 or no header for a snapshot",
+            )
+        })?;
+    // Events after `last` may have been deleted when the oldest kept is
+    // past it (ids rise by one, whatever their sequence; a gap left by a
+    // rolled-back write only costs a snapshot), or when none is kept.
+    match state.store.oldest_event_id().await? {
+        Some(oldest) if oldest.0 <= last.0 + 1 => {}
+        _ => return Ok(None),
+    }
+    let rows = state
+        .store
+        .sequence_events_after(id, last, REPLAY_LIMIT)
+        .await?;
+    if rows.len() == REPLAY_LIMIT as usize {
+        return Ok(None);
+    }
+    let after = rows.last().map_or(last, |row| row.id.max(last));
+    let events = rows
+        .into_iter()
+        .filter_map(logged)
+        .filter_map(|event| sse(&event));
+    Ok(Some((events.collect(), after)))
+}
+
+/// An event as sent; one that does not serialise (plain data: none does)
+/// is skipped rather than the stream ended.
+fn sse(event: &SequenceEvent) -> Option<Event> {
+    let sent = Event::default()
+        .id(event.id.to_string())
+        .event(event.change.name())
+        .json_data(event);
+    match sent {
+        Ok(sent) => Some(sent),
+        Err(error) => {
+            tracing::error!(%error, "an event does not serialise");
+            None
+        }
+    }
+}
+
+/// The events of sequence `id` from `receiver` with ids above `after`,
+/// until the service closes. (On PostgreSQL an event may be logged with a
+/// lower id than one logged before it, see `service::events`; a stream
+/// whose client had the later one skips it.)
 fn follow(
     id: SequenceId,
     receiver: tokio::sync::broadcast::Receiver<SequenceEvent>,
     closing: tokio::sync::watch::Receiver<bool>,
+    after: EventId,
 ) -> impl Stream<Item = Result<Event, Infallible>> {
     stream::unfold(Some((receiver, closing)), move |open| async move {
         let (mut receiver, mut closing) = open?;
@@ -121,21 +210,24 @@ fn follow(
                 }
             };
             let event = match received {
-                Ok(event) if event.sequence_id != id => continue,
-                Ok(event) => Event::default()
-                    .id(event.id.to_string())
-                    .event(event.change.name())
-                    .json_data(&event),
-                Err(RecvError::Lagged(missed)) => Event::default()
-                    .event("lagged")
-                    .json_data(Lagged { missed }),
+                Ok(event) if event.sequence_id != id || event.id <= after => continue,
+                Ok(event) => sse(&event),
+                Err(RecvError::Lagged(missed)) => {
+                    match Event::default()
+                        .event("lagged")
+                        .json_data(Lagged { missed })
+                    {
+                        Ok(event) => Some(event),
+                        Err(error) => {
+                            tracing::error!(%error, "an event does not serialise");
+                            None
+                        }
+                    }
+                }
                 Err(RecvError::Closed) => return None,
             };
-            // The events serialise (plain data); were one not to, it
-            // is skipped rather than the stream ended.
-            match event {
-                Ok(event) => return Some((Ok(event), Some((receiver, closing)))),
-                Err(error) => tracing::error!(%error, "an event does not serialise"),
+            if let Some(event) = event {
+                return Some((Ok(event), Some((receiver, closing))));
             }
         }
     })

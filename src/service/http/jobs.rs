@@ -18,7 +18,7 @@ use crate::service::app::AppState;
 use crate::service::store::{ClaimOutcome, JobClaim, JobId, JobRow, JobState, RetryOutcome};
 
 /// A job's state.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, ToSchema)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, serde::Deserialize, ToSchema)]
 #[serde(rename_all = "snake_case")]
 #[schema(as = JobState)]
 pub enum JobStateView {

@@ -87,3 +87,8 @@ id!(
     /// fails for every earlier holder.
     LeaseToken
 );
+id!(
+    /// An event's id in the event log: its number on every sequence's
+    /// event stream (the SSE `id:`).
+    EventId
+);

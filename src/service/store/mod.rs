@@ -42,6 +42,7 @@
 //! and what they share.
 
 mod calibrations;
+mod events;
 mod ids;
 mod jobs;
 mod selfcal;
@@ -66,7 +67,10 @@ use sqlx::sqlite::{
 use sqlx::{Database, Executor, Row, Sqlite, TransactionManager};
 
 pub use self::calibrations::{insert_calibration, CalibrationRow, CalibrationSummary};
-pub use self::ids::{CalibrationId, FrameNumber, JobId, LeaseToken, SequenceId, TrackingRunId};
+pub use self::events::EventRow;
+pub use self::ids::{
+    CalibrationId, EventId, FrameNumber, JobId, LeaseToken, SequenceId, TrackingRunId,
+};
 pub use self::jobs::{
     enqueue, expire_leases, finish, ClaimOutcome, ClaimedJob, JobClaim, JobFile, JobResult, JobRow,
     JobState, RetryOutcome, WorkerId, MAX_ATTEMPTS,
@@ -174,6 +178,11 @@ const MIGRATIONS: &[(i64, &str, &str)] = &[
         8,
         "leases",
         include_str!("../../../migrations/0008_leases.sql"),
+    ),
+    (
+        9,
+        "events",
+        include_str!("../../../migrations/0009_events.sql"),
     ),
 ];
 
