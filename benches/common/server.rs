@@ -21,6 +21,7 @@ impl Server {
         let args = ServeArgs {
             bind: "127.0.0.1:0".parse().unwrap(),
             data_dir: data_dir.to_owned(),
+            database: None,
             workers,
             max_upload_mb: 256,
             api_token: None,

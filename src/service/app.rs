@@ -91,7 +91,7 @@ impl Application {
         std::fs::create_dir_all(data_dir).map_err(|e| ServiceError::io(data_dir, e))?;
         let workers = config.worker_count();
         let readers = (workers as u32 + 4).min(16);
-        let store = open_and_reap(data_dir, readers).await?;
+        let store = open_and_reap(&config, readers).await?;
         let images = ImageStore::open(data_dir).map_err(|e| ServiceError::io(data_dir, e))?;
         // A process killed between committing a frame's results and
         // deleting its images leaves files no row refers to. Under the
@@ -192,10 +192,12 @@ impl Application {
 
 /// Opens the database and ends the leases that processes of this host
 /// left when they died ([`Store::reap`]).
-async fn open_and_reap(data_dir: &std::path::Path, readers: u32) -> Result<Store, ServiceError> {
-    let store = Store::open(data_dir, readers)
-        .await
-        .map_err(ServiceError::Database)?;
+async fn open_and_reap(config: &ServeArgs, readers: u32) -> Result<Store, ServiceError> {
+    let store = match &config.database {
+        None => Store::open(&config.data_dir, readers).await,
+        Some(url) => Store::open_postgres(url, readers).await,
+    }
+    .map_err(ServiceError::Database)?;
     let (requeued, failed) = store
         .reap(&host_name(), process_exists)
         .await
@@ -263,7 +265,7 @@ pub async fn run_worker(
     std::fs::create_dir_all(&data_dir).map_err(|e| ServiceError::io(&data_dir, e))?;
     let workers = config.worker_count();
     let readers = (workers as u32 + 4).min(16);
-    let store = open_and_reap(&data_dir, readers).await?;
+    let store = open_and_reap(&config, readers).await?;
     let images = ImageStore::open_shared(&data_dir).map_err(|e| ServiceError::io(&data_dir, e))?;
     let cpu = CpuPool::new(workers).map_err(|e| ServiceError::Start(e.to_string()))?;
     // Nobody subscribes to a worker process's events: its changes reach a

@@ -66,6 +66,7 @@ mod layers;
 mod live;
 mod page;
 mod plots;
+mod postgres;
 mod preprocessing;
 mod recovery;
 mod reliability;
