@@ -17,7 +17,7 @@ use super::connections::{self, Registry};
 use super::images::ImageStore;
 use super::jobs::{self, CpuPool, JobKinds, PipelineCache};
 use super::metrics::Metrics;
-use super::store::{Store, WorkerId};
+use super::store::{self, Store, WorkerId};
 use super::{http, ServiceError};
 
 /// How long a shutdown waits for running jobs before returning them to the
@@ -190,14 +190,33 @@ impl Application {
     }
 }
 
+/// How long a starting process waits for a database server that cannot
+/// be reached before it gives up.
+const DATABASE_WAIT: Duration = Duration::from_secs(60);
+
 /// Opens the database and ends the leases that processes of this host
 /// left when they died ([`Store::reap`]).
 async fn open_and_reap(config: &ServeArgs, readers: u32) -> Result<Store, ServiceError> {
-    let store = match &config.database {
-        None => Store::open(&config.data_dir, readers).await,
-        Some(url) => Store::open_postgres(url, readers).await,
-    }
-    .map_err(ServiceError::Database)?;
+    let started = std::time::Instant::now();
+    let store = loop {
+        let opened = match &config.database {
+            None => Store::open(&config.data_dir, readers).await,
+            Some(url) => Store::open_postgres(url, readers).await,
+        };
+        match opened {
+            Ok(store) => break store,
+            // A database server that is not up yet (started together with
+            // this process, or restarting) is waited for.
+            Err(error)
+                if store::error_kind(&error) == store::ErrorKind::Unavailable
+                    && started.elapsed() < DATABASE_WAIT =>
+            {
+                tracing::warn!(%error, "the database cannot be reached yet; trying again");
+                tokio::time::sleep(Duration::from_secs(1)).await;
+            }
+            Err(error) => return Err(ServiceError::Database(error)),
+        }
+    };
     let (requeued, failed) = store
         .reap(&host_name(), process_exists)
         .await
