@@ -1,13 +1,35 @@
 //! All of the service's SQL: calibrations, sequences, frames and their
-//! inputs and results, and the job queue, in one SQLite database.
+//! inputs and results, and the job queue, in one database: SQLite in the
+//! data directory (the default), or PostgreSQL (`--database
+//! postgres://...`). The HTTP layer, the jobs and the tracker call
+//! [`Store`]'s methods and do not know which engine runs.
+//!
+//! **One query text for both engines.** The queries go through sqlx's
+//! `Any` driver and are written once, with `$N` parameters (SQLite reads
+//! `$N` as parameter N); where the dialects differ (the database's clock
+//! as stored text, the clock plus a lease, the claim's row lock, how a
+//! write transaction begins) a [`Dialect`] supplies the fragment. `Any`
+//! decodes `bool` only from a real boolean, so flags are 0/1 integers and
+//! `EXISTS` is read through `CASE`; every integer is 64-bit.
 //!
 //! SQLite runs in WAL mode (readers never wait for the writer) with a busy
 //! timeout. Writes go through a pool of one connection, so they queue in
 //! the process instead of failing on SQLite's lock; reads use their own
-//! pool. Every multi-statement write is one transaction: an upload and its
-//! job, a job's results and its completion. Queries are checked at run
+//! pool. PostgreSQL has one pool for both; the server orders concurrent
+//! writes (read committed), the claim locks its row with `FOR UPDATE SKIP
+//! LOCKED`. Every multi-statement write is one transaction: an upload and
+//! its job, a job's results and its completion. Queries are checked at run
 //! time (no database at build time); their results map onto `FromRow`
 //! structs (`FromRow` written out, no derive macros).
+//!
+//! What differs by engine: SQLite takes one write lock for every write
+//! transaction (`BEGIN IMMEDIATE`), so transactions that read then write
+//! are serial; on PostgreSQL they run concurrently and rely on their
+//! `WHERE` fences (state, token, progress) and row locks. SQLite's page
+//! limit ([`Store::set_max_page_count`]) and `left_clean`'s `BEGIN
+//! DEFERRED` probe exist on SQLite only. Migrations are per engine
+//! (`migrations/`, `migrations/postgres/`); PostgreSQL's run under its
+//! advisory lock, SQLite's under the flock on `ptv.sqlite.lock`.
 //!
 //! **No connection is left inside a transaction.** A failed statement or
 //! `COMMIT` leaves sqlx's `Transaction` to be dropped, which only queues a
@@ -27,10 +49,12 @@
 //! transaction whose future was cancelled; an explicit rollback in each
 //! path would add nothing the queued one does not do.
 //!
-//! **A full disk** (SQLITE_FULL, [`is_storage_full`]) is an error of its
-//! own kind to the callers: a 507 with `Retry-After` to a client, a job
-//! attempt given back to the queue ([`Store::give_back`]) rather than
-//! counted. [`Store::set_max_page_count`] makes the writer fail exactly so
+//! **Errors by kind** ([`error_kind`]): a full disk (SQLITE_FULL,
+//! PostgreSQL's 53100, [`is_storage_full`]) is an error of its own kind to
+//! the callers: a 507 with `Retry-After` to a client, a job attempt given
+//! back to the queue ([`Store::give_back`]) rather than counted; so is a
+//! database that cannot be reached (PostgreSQL stopped or restarting, the
+//! network): a 503 with `Retry-After`, the attempt given back. [`Store::set_max_page_count`] makes the writer fail exactly so
 //! (SQLite's page limit), for tests.
 //!
 //! One file per table group, each with its own `impl Store`:
