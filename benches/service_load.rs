@@ -9,7 +9,13 @@
 //! cargo bench --bench service_load -- --png       # PNG images
 //! cargo bench --bench service_load -- --frames 400 --clients 8 --workers 2
 //! cargo bench --bench service_load -- --worker-processes 2 --workers 1
+//! cargo bench --bench service_load -- --database postgres://ptv@127.0.0.1:5432/ptv
 //! ```
+//!
+//! With `--database URL` the service and the worker processes keep their
+//! state and queue in that PostgreSQL database (which must be empty or
+//! this bench's own: it is migrated, and the frames added to it) instead
+//! of SQLite in the temporary data directory.
 //!
 //! With `--worker-processes N` the service in this process serves only
 //! (`--workers 0`) and N `ptv worker` processes (each with `--workers`,
@@ -44,6 +50,7 @@ struct Options {
     distinct: usize,
     png: bool,
     worker_processes: usize,
+    database: Option<String>,
 }
 
 fn options() -> Options {
@@ -55,6 +62,7 @@ fn options() -> Options {
         distinct: 8,
         png: false,
         worker_processes: 0,
+        database: None,
     };
     let mut args = std::env::args().skip(1);
     while let Some(arg) = args.next() {
@@ -70,6 +78,7 @@ fn options() -> Options {
             "--particles" => options.particles = number("--particles"),
             "--png" => options.png = true,
             "--worker-processes" => options.worker_processes = number("--worker-processes"),
+            "--database" => options.database = args.next(),
             // cargo bench passes --bench; ignore what we do not know.
             _ => {}
         }
@@ -126,7 +135,12 @@ async fn run(options: Options) {
     let data_dir = tempfile::tempdir().unwrap();
     let (server, worker_processes) = if options.worker_processes == 0 {
         (
-            Server::start(data_dir.path(), options.workers).await,
+            Server::start(
+                data_dir.path(),
+                options.workers,
+                options.database.as_deref(),
+            )
+            .await,
             Vec::new(),
         )
     } else {
@@ -137,6 +151,7 @@ async fn run(options: Options) {
                     std::process::Command::new(env!("CARGO_BIN_EXE_ptv"))
                         .args(["worker", "--workers", &per_process, "--data-dir"])
                         .arg(data_dir.path())
+                        .args(options.database.iter().flat_map(|url| ["--database", url]))
                         .stdout(std::process::Stdio::null())
                         .stderr(std::process::Stdio::null())
                         .spawn()
@@ -144,7 +159,10 @@ async fn run(options: Options) {
                 )
             })
             .collect();
-        (Server::start(data_dir.path(), Some(0)).await, processes)
+        (
+            Server::start(data_dir.path(), Some(0), options.database.as_deref()).await,
+            processes,
+        )
     };
     let address = server.address.clone();
     let workers = if worker_processes.is_empty() {

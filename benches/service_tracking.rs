@@ -124,7 +124,7 @@ async fn run(options: Options) {
     forms.shuffle(&mut rng);
 
     let data_dir = tempfile::tempdir().unwrap();
-    let server = Server::start(data_dir.path(), options.workers).await;
+    let server = Server::start(data_dir.path(), options.workers, None).await;
     let address = server.address.clone();
     let client = reqwest::Client::new();
     let api = |address: &str, path: &str| format!("{address}/api/v1{path}");
@@ -198,7 +198,7 @@ async fn run(options: Options) {
     // Stop before finishing: the restarted service rebuilds the tracker.
     server.stop().await;
 
-    let server = Server::start(data_dir.path(), options.workers).await;
+    let server = Server::start(data_dir.path(), options.workers, None).await;
     let address = server.address.clone();
     let restarted = Instant::now();
     let response = client

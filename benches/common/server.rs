@@ -16,11 +16,13 @@ pub struct Server {
 
 impl Server {
     /// Starts the service on `data_dir` with `workers` (default: the
-    /// cores), listening on a free loopback port.
-    pub async fn start(data_dir: &Path, workers: Option<usize>) -> Server {
+    /// cores), listening on a free loopback port; on `database`
+    /// (`postgres://...`) if given, else SQLite in `data_dir`.
+    pub async fn start(data_dir: &Path, workers: Option<usize>, database: Option<&str>) -> Server {
         let args = ServeArgs {
             bind: "127.0.0.1:0".parse().unwrap(),
             data_dir: data_dir.to_owned(),
+            database: database.map(|url| url.parse().expect("a postgres:// URL")),
             workers,
             max_upload_mb: 256,
             api_token: None,

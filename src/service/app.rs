@@ -18,7 +18,7 @@ use super::events;
 use super::images::ImageStore;
 use super::jobs::{self, CpuPool, JobKinds, PipelineCache};
 use super::metrics::Metrics;
-use super::store::{Store, WorkerId};
+use super::store::{self, Store, WorkerId};
 use super::{http, ServiceError};
 
 /// How long a shutdown waits for running jobs before returning them to the
@@ -96,7 +96,7 @@ impl Application {
         std::fs::create_dir_all(data_dir).map_err(|e| ServiceError::io(data_dir, e))?;
         let workers = config.worker_count();
         let readers = (workers as u32 + 4).min(16);
-        let store = open_and_reap(data_dir, readers).await?;
+        let store = open_and_reap(&config, readers).await?;
         let images = ImageStore::open(data_dir).map_err(|e| ServiceError::io(data_dir, e))?;
         // A process killed between committing a frame's results and
         // deleting its images leaves files no row refers to. Under the
@@ -196,12 +196,33 @@ impl Application {
     }
 }
 
+/// How long a starting process waits for a database server that cannot
+/// be reached before it gives up.
+const DATABASE_WAIT: Duration = Duration::from_secs(60);
+
 /// Opens the database and ends the leases that processes of this host
 /// left when they died ([`Store::reap`]).
-async fn open_and_reap(data_dir: &std::path::Path, readers: u32) -> Result<Store, ServiceError> {
-    let store = Store::open(data_dir, readers)
-        .await
-        .map_err(ServiceError::Database)?;
+async fn open_and_reap(config: &ServeArgs, readers: u32) -> Result<Store, ServiceError> {
+    let started = std::time::Instant::now();
+    let store = loop {
+        let opened = match &config.database {
+            None => Store::open(&config.data_dir, readers).await,
+            Some(url) => Store::open_postgres(url, readers).await,
+        };
+        match opened {
+            Ok(store) => break store,
+            // A database server that is not up yet (started together with
+            // this process, or restarting) is waited for.
+            Err(error)
+                if store::error_kind(&error) == store::ErrorKind::Unavailable
+                    && started.elapsed() < DATABASE_WAIT =>
+            {
+                tracing::warn!(%error, "the database cannot be reached yet; trying again");
+                tokio::time::sleep(Duration::from_secs(1)).await;
+            }
+            Err(error) => return Err(ServiceError::Database(error)),
+        }
+    };
     let (requeued, failed) = store
         .reap(&host_name(), process_exists)
         .await
@@ -269,7 +290,7 @@ pub async fn run_worker(
     std::fs::create_dir_all(&data_dir).map_err(|e| ServiceError::io(&data_dir, e))?;
     let workers = config.worker_count();
     let readers = (workers as u32 + 4).min(16);
-    let store = open_and_reap(&data_dir, readers).await?;
+    let store = open_and_reap(&config, readers).await?;
     let images = ImageStore::open_shared(&data_dir).map_err(|e| ServiceError::io(&data_dir, e))?;
     let cpu = CpuPool::new(workers).map_err(|e| ServiceError::Start(e.to_string()))?;
     let metrics = Arc::new(Metrics::default());

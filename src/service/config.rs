@@ -7,6 +7,8 @@ use std::time::Duration;
 
 use clap::Args;
 
+use super::store::PostgresUrl;
+
 /// Arguments of `ptv serve` (and of `ptv` without a subcommand).
 #[derive(Clone, Debug, Args)]
 pub struct ServeArgs {
@@ -18,6 +20,11 @@ pub struct ServeArgs {
     /// missing).
     #[arg(long, env = "PTV_DATA_DIR", default_value = "ptv-data")]
     pub data_dir: PathBuf,
+    /// The database: `postgres://USER@HOST:PORT/DATABASE` for PostgreSQL
+    /// (state and job queue shared by processes on any hosts); without
+    /// it, SQLite (`ptv.sqlite`) in the data directory.
+    #[arg(long, env = "PTV_DATABASE_URL", hide_env_values = true)]
+    pub database: Option<PostgresUrl>,
     /// Frames processed at once, each on its own CPU thread; 0 serves only
     /// (jobs are left to `ptv worker` processes on the same data
     /// directory) [default: the number of cores]
@@ -60,6 +67,10 @@ pub struct WorkerArgs {
     /// `ptv serve` (created if missing).
     #[arg(long, env = "PTV_DATA_DIR", default_value = "ptv-data")]
     pub data_dir: PathBuf,
+    /// The database, as given to `ptv serve`: `postgres://...`, or
+    /// without it SQLite in the data directory.
+    #[arg(long, env = "PTV_DATABASE_URL", hide_env_values = true)]
+    pub database: Option<PostgresUrl>,
     /// Jobs processed at once, each on its own CPU thread, at least 1
     /// [default: the number of cores]
     #[arg(long, env = "PTV_WORKERS", value_parser = clap::value_parser!(u64).range(1..))]
@@ -79,6 +90,7 @@ impl WorkerArgs {
         ServeArgs {
             bind: ([127, 0, 0, 1], 0).into(),
             data_dir: self.data_dir.clone(),
+            database: self.database.clone(),
             workers: Some(self.worker_count()),
             max_upload_mb: 0,
             api_token: None,

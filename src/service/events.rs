@@ -457,6 +457,7 @@ impl JobOutcome {
             Err(
                 JobError::Retry(message)
                 | JobError::StorageFull(message)
+                | JobError::Unavailable(message)
                 | JobError::Deferred(message),
             ) => JobOutcome::Requeued(message.clone()),
             Err(JobError::LostLease) => JobOutcome::Lost,

@@ -84,6 +84,11 @@ pub enum JobError {
     /// [`STORAGE_FULL_PAUSE`] before its next claim.
     #[error("{0}")]
     StorageFull(String),
+    /// The database cannot be reached for now (PostgreSQL restarting, the
+    /// network): handled as [`JobError::StorageFull`], given back
+    /// uncounted however often, the worker pausing before its next claim.
+    #[error("{0}")]
+    Unavailable(String),
     /// The job waits for other work (its sequence's computed background):
     /// given back uncounted, not claimed again for a while
     /// ([`super::preprocessing::WAIT_FOR_BACKGROUND`]); the message says
@@ -109,11 +114,19 @@ impl JobError {
 }
 
 impl From<sqlx::Error> for JobError {
+    /// A full disk, or a database that cannot be reached for now, is not
+    /// the job's fault: its attempt is given back uncounted
+    /// (the worker pausing before its next claim); any other database error a passing failure.
     fn from(error: sqlx::Error) -> Self {
-        if super::store::is_storage_full(&error) {
-            JobError::StorageFull(format!("the disk is full; waiting for space: {error}"))
-        } else {
-            JobError::Retry(format!("database: {error}"))
+        use super::store::ErrorKind;
+        match super::store::error_kind(&error) {
+            ErrorKind::StorageFull => {
+                JobError::StorageFull(format!("the disk is full; waiting for space: {error}"))
+            }
+            ErrorKind::Unavailable => JobError::Unavailable(format!(
+                "the database cannot be reached; waiting for it: {error}"
+            )),
+            ErrorKind::Other => JobError::Retry(format!("database: {error}")),
         }
     }
 }
@@ -577,8 +590,10 @@ async fn execute(state: &Arc<AppState>, kinds: &JobKinds, job: ClaimedJob) {
             }
             "failed"
         }
-        Err(JobError::StorageFull(message)) => {
-            tracing::warn!(job = %job.id, %message, "the disk is full; job queued again");
+        Err(error @ (JobError::StorageFull(_) | JobError::Unavailable(_))) => {
+            let unavailable = matches!(error, JobError::Unavailable(_));
+            let message = error.to_string();
+            tracing::warn!(job = %job.id, %message, "job given back uncounted; queued again");
             // Giving the job back is a write too: on a full disk it may
             // fail, so keep trying (a shutdown's grace period ends this,
             // and the job then goes back with the others held); a lost
@@ -597,7 +612,11 @@ async fn execute(state: &Arc<AppState>, kinds: &JobKinds, job: ClaimedJob) {
                 }
             }
             tokio::time::sleep(STORAGE_FULL_PAUSE).await;
-            "storage_full"
+            if unavailable {
+                "database_unavailable"
+            } else {
+                "storage_full"
+            }
         }
         Err(JobError::Deferred(note)) => {
             let delay = super::preprocessing::WAIT_FOR_BACKGROUND.as_secs_f64();

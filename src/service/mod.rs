@@ -1,5 +1,6 @@
 //! The service: the HTTP API in front of the core, a durable job queue
-//! with a pool of workers, and SQLite plus an image directory for storage.
+//! with a pool of workers, and SQLite (or PostgreSQL) plus an image
+//! directory for storage.
 //!
 //! - [`config`]: `ptv serve`'s flags (each also an environment variable).
 //! - [`app`]: builds the service from its settings, binds, serves until a
@@ -13,7 +14,8 @@
 //! - [`events`]: live progress, a sequence's changes broadcast to its
 //!   event streams (server-sent events).
 //! - [`jobs`]: the workers, the job kinds, the CPU pool.
-//! - [`store`]: all SQL (SQLite in WAL mode, migrations in `migrations/`).
+//! - [`store`]: all SQL, one text per query for SQLite (WAL mode, the
+//!   default) and PostgreSQL (`--database`); migrations in `migrations/`.
 //! - [`images`]: uploaded images as content-addressed files.
 //! - [`codec`]: the compact blobs in which targets and particles are stored.
 //! - [`parameters`]: a sequence's detection and matching parameters.

@@ -43,6 +43,7 @@ pub fn test_args(data_dir: &Path, api_token: Option<&str>) -> ServeArgs {
     ServeArgs {
         bind: "127.0.0.1:0".parse().unwrap(),
         data_dir: data_dir.to_owned(),
+        database: crate::postgres::database_url(data_dir).map(|url| url.parse().unwrap()),
         workers: Some(2),
         max_upload_mb: 64,
         api_token: api_token.map(str::to_owned),
@@ -203,8 +204,9 @@ impl TestApp {
         wait_for_sequence(&self.client, &self.address, sequence).await
     }
 
-    /// Opens the service's database (read-only) for consistency checks.
-    pub async fn database(&self) -> sqlx::SqlitePool {
+    /// Opens the service's database (read-only on SQLite) for consistency
+    /// checks.
+    pub async fn database(&self) -> sqlx::AnyPool {
         open_database(self.data_dir.path()).await
     }
 }
@@ -279,22 +281,71 @@ pub async fn wait_for_sequence(client: &reqwest::Client, address: &str, sequence
     }
 }
 
-/// Opens a data directory's database read-only.
-pub async fn open_database(data_dir: &Path) -> sqlx::SqlitePool {
-    let options = sqlx::sqlite::SqliteConnectOptions::new()
-        .filename(data_dir.join("ptv.sqlite"))
-        .read_only(true);
-    sqlx::sqlite::SqlitePoolOptions::new()
+/// Opens the database of the servers on a data directory: its SQLite file
+/// read-only, or under `PTV_TEST_DATABASE=postgres` its PostgreSQL
+/// database. Queries are written once for both (`$1` parameters).
+pub async fn open_database(data_dir: &Path) -> sqlx::AnyPool {
+    connect_database(data_dir, "ro").await
+}
+
+/// [`open_database`] for writing (a test that stages a state by hand).
+pub async fn open_database_writable(data_dir: &Path) -> sqlx::AnyPool {
+    connect_database(data_dir, "rw").await
+}
+
+/// The database of the servers on `data_dir`, its SQLite file opened in
+/// `mode` (`ro`, `rw`).
+async fn connect_database(data_dir: &Path, mode: &str) -> sqlx::AnyPool {
+    sqlx::any::install_default_drivers();
+    let url = crate::postgres::database_url(data_dir).unwrap_or_else(|| {
+        format!(
+            "sqlite://{}?mode={mode}",
+            data_dir.join("ptv.sqlite").display()
+        )
+    });
+    sqlx::any::AnyPoolOptions::new()
         .max_connections(1)
-        .connect_with(options)
+        .connect(&url)
         .await
         .unwrap()
 }
 
 /// A count from the database.
-pub async fn count(db: &sqlx::SqlitePool, sql: &str) -> i64 {
+pub async fn count(db: &sqlx::AnyPool, sql: &str) -> i64 {
     let (n,): (i64,) = sqlx::query_as(sql).fetch_one(db).await.unwrap();
     n
+}
+
+/// Seconds since 1970 of a stored timestamp (UTC RFC 3339 with
+/// milliseconds, `2026-11-25T23:53:40.123Z`, as both engines write them).
+pub fn unix_seconds(stamp: &str) -> f64 {
+    let field = |range: std::ops::Range<usize>| -> i64 {
+        stamp
+            .get(range)
+            .and_then(|s| s.parse().ok())
+            .unwrap_or_else(|| panic!("not a stored timestamp: `{stamp}`"))
+    };
+    let (year, month, day) = (field(0..4), field(5..7), field(8..10));
+    // Days from civil (Howard Hinnant's algorithm).
+    let y = if month <= 2 { year - 1 } else { year };
+    let era = y.div_euclid(400);
+    let yoe = y - era * 400;
+    let doy = (153 * ((month + 9) % 12) + 2) / 5 + day - 1;
+    let doe = yoe * 365 + yoe / 4 - yoe / 100 + doy;
+    let days = era * 146_097 + doe - 719_468;
+    let seconds: f64 = stamp
+        .get(17..stamp.len() - 1)
+        .and_then(|s| s.parse().ok())
+        .unwrap_or_else(|| panic!("not a stored timestamp: `{stamp}`"));
+    (days * 86_400 + field(11..13) * 3600 + field(14..16) * 60) as f64 + seconds
+}
+
+/// This machine's clock, in seconds since 1970.
+pub fn unix_seconds_now() -> f64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .unwrap()
+        .as_secs_f64()
 }
 
 /// A response's content type ("" when it has none).
@@ -429,6 +480,7 @@ impl ServiceProcess {
             .arg(workers.to_string())
             .arg("--data-dir")
             .arg(data_dir)
+            .args(database_args(data_dir))
             .args(more)
             .stdout(Stdio::piped())
             .stderr(Stdio::null())
@@ -476,6 +528,7 @@ impl WorkerProcess {
         let child = Command::new(env!("CARGO_BIN_EXE_ptv"))
             .args(["worker", "--data-dir"])
             .arg(data_dir)
+            .args(database_args(data_dir))
             .args(more)
             .envs(env.iter().copied())
             .stdout(Stdio::null())
@@ -502,6 +555,14 @@ impl Drop for WorkerProcess {
         let _ = self.child.kill();
         let _ = self.child.wait();
     }
+}
+
+/// `--database URL` for a child process on `data_dir` under
+/// `PTV_TEST_DATABASE=postgres`; nothing on SQLite.
+pub fn database_args(data_dir: &Path) -> Vec<String> {
+    crate::postgres::database_url(data_dir)
+        .map(|url| vec!["--database".to_owned(), url])
+        .unwrap_or_default()
 }
 
 /// The process id in a worker's name (`HOST:PID:RANDOM/INDEX`).

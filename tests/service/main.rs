@@ -53,6 +53,10 @@
 //!   and queries refused.
 //! - `upload`: `ptv upload` against the service and a flaky stand-in:
 //!   concurrent, resumable, retried uploads and their summary.
+//! - `postgres`: with `PTV_TEST_DATABASE=postgres` every server above runs
+//!   against a fresh database on a real PostgreSQL this process starts
+//!   (the SQLite-only fault tests skip themselves; the outage test, in
+//!   `reliability`, runs only then).
 
 mod api;
 mod bad_inputs;
@@ -66,6 +70,7 @@ mod layers;
 mod live;
 mod page;
 mod plots;
+mod postgres;
 mod preprocessing;
 mod recovery;
 mod reliability;

@@ -2,7 +2,10 @@
 //!
 //! The full disk is SQLite's page limit on the writer
 //! (`Store::set_max_page_count`), which fails writes with SQLITE_FULL
-//! exactly as a full disk does.
+//! exactly as a full disk does, or a real one (a tmpfs); both SQLite's, so
+//! skipped under `PTV_TEST_DATABASE=postgres`, where PostgreSQL's own
+//! errors (disk full, shutting down) are raised by the server and mapped
+//! to their statuses instead.
 
 use std::time::{Duration, Instant};
 
@@ -72,6 +75,12 @@ async fn wait_until(app: &TestApp, job_id: i64, done: impl Fn(&Value) -> bool) -
 /// processed, its storage-full attempts not counted.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_full_disk_is_a_507_and_the_service_recovers_without_a_restart() {
+    if crate::postgres::enabled() {
+        // The fault injection is SQLite's page limit; PostgreSQL has none
+        // (its disk full, SQLSTATE 53100, maps to the same 507: a unit test
+        // of the store's error kinds).
+        return;
+    }
     let app = spawn_app().await;
     let (rig, sequence) = app.rig_sequence().await;
     let files: Vec<Vec<u8>> = rig.render(300, 12).images.iter().map(png).collect();
@@ -163,21 +172,15 @@ async fn a_failed_frame_is_processed_after_a_retry() {
     // What three kill -9 while its job runs leave: the frame's inputs, no
     // result, the job running under a dead process, claimed 3 times.
     {
-        let options =
-            sqlx::sqlite::SqliteConnectOptions::new().filename(data_dir.path().join("ptv.sqlite"));
-        let db = sqlx::sqlite::SqlitePoolOptions::new()
-            .max_connections(1)
-            .connect_with(options)
-            .await
-            .unwrap();
-        sqlx::query("DELETE FROM particles WHERE sequence_id = ? AND frame = 0")
+        let db = open_database_writable(data_dir.path()).await;
+        sqlx::query("DELETE FROM particles WHERE sequence_id = $1 AND frame = 0")
             .bind(sequence)
             .execute(&db)
             .await
             .unwrap();
         sqlx::query(
             "UPDATE jobs SET state = 'running', attempts = 3, locked_by = 'killed/0', \
-             error = NULL, finished_at = NULL WHERE id = ?",
+             error = NULL, finished_at = NULL WHERE id = $1",
         )
         .bind(job_id)
         .execute(&db)
@@ -243,6 +246,12 @@ async fn a_failed_frame_is_processed_after_a_retry() {
 /// another file. Needs the right to mount (root); skipped otherwise.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_real_full_disk_is_a_507_and_freeing_space_is_enough() {
+    if crate::postgres::enabled() {
+        // The disk filled is the data directory's, where SQLite's file is;
+        // PostgreSQL's database is on its server's disk, which this test
+        // does not fill.
+        return;
+    }
     let mount = tempfile::tempdir().unwrap();
     let mounted = std::process::Command::new("mount")
         .args(["-t", "tmpfs", "-o", "size=16m", "tmpfs"])
@@ -294,4 +303,35 @@ async fn a_real_full_disk_is_a_507_and_freeing_space_is_enough() {
     let view = app.wait_for_sequence(sequence).await;
     assert_eq!(view["frames"]["done"], 1, "{view}");
     app.stop().await;
+}
+
+/// PostgreSQL's disk full (SQLSTATE 53100) and a server shutting down
+/// (57P01) or not accepting connections (57P03), raised by a real server,
+/// are told apart as SQLite's full disk is: storage full (507) and
+/// unavailable (503). PostgreSQL only.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn postgres_errors_map_to_their_kinds() {
+    use ptv::service::store::{error_kind, ErrorKind};
+    let data_dir = tempfile::tempdir().unwrap();
+    if !crate::postgres::enabled() {
+        // SQLite's full disk is the page-limit test above.
+        return;
+    }
+    let db = open_database_writable(data_dir.path()).await;
+    for (code, kind) in [
+        ("53100", ErrorKind::StorageFull),
+        ("57P01", ErrorKind::Unavailable),
+        ("57P03", ErrorKind::Unavailable),
+        ("08006", ErrorKind::Unavailable),
+        ("23505", ErrorKind::Other),
+    ] {
+        let error = sqlx::query(&format!(
+            "DO $$ BEGIN RAISE EXCEPTION 'raised' USING ERRCODE = '{code}'; END $$"
+        ))
+        .execute(&db)
+        .await
+        .unwrap_err();
+        assert_eq!(error_kind(&error), kind, "{code}: {error:?}");
+    }
+    db.close().await;
 }

@@ -171,16 +171,18 @@ async fn a_killed_worker_process_s_job_is_taken_over_after_its_lease_and_complet
     // attempt (the attempt waits JOB_DELAY_MS before its work).
     let db = open_database(data_dir.path()).await;
     let (job, holder) = loop {
-        let running: Option<(i64, String)> = sqlx::query_as(
-            "SELECT id, locked_by FROM jobs WHERE state = 'running' \
-             AND started_at <= strftime('%Y-%m-%dT%H:%M:%fZ', 'now', '-1 seconds') \
+        let running: Option<(i64, String, String)> = sqlx::query_as(
+            "SELECT id, locked_by, started_at FROM jobs WHERE state = 'running' \
              ORDER BY id LIMIT 1",
         )
         .fetch_optional(&db)
         .await
         .unwrap();
-        if let Some(found) = running {
-            break found;
+        // The database's clock is this machine's.
+        if let Some((id, holder, started_at)) = running {
+            if unix_seconds_now() - unix_seconds(&started_at) >= 1.0 {
+                break (id, holder);
+            }
         }
         tokio::time::sleep(std::time::Duration::from_millis(20)).await;
     };
@@ -191,7 +193,7 @@ async fn a_killed_worker_process_s_job_is_taken_over_after_its_lease_and_complet
         .unwrap_or_else(|| panic!("job {job} is held by {holder}, not by a worker process"));
     workers[index].kill();
     // The lease it held when it died, from the database's clock.
-    let (lease_until,): (String,) = sqlx::query_as("SELECT lease_until FROM jobs WHERE id = ?")
+    let (lease_until,): (String,) = sqlx::query_as("SELECT lease_until FROM jobs WHERE id = $1")
         .bind(job)
         .fetch_one(&db)
         .await
@@ -226,15 +228,13 @@ async fn a_killed_worker_process_s_job_is_taken_over_after_its_lease_and_complet
     // Taken over after the lease ran out, and within the lease's end plus
     // the idle worker's longest poll (1 s) and 2 s of slack for a loaded
     // machine: the seconds from the dead worker's lease to the takeover.
-    let (after,): (f64,) = sqlx::query_as(
-        "SELECT (julianday(claimed_at) - julianday(?)) * 86400 FROM job_claims \
-         WHERE job_id = ? AND token = 2",
-    )
-    .bind(&lease_until)
-    .bind(job)
-    .fetch_one(&db)
-    .await
-    .unwrap();
+    let (claimed_at,): (String,) =
+        sqlx::query_as("SELECT claimed_at FROM job_claims WHERE job_id = $1 AND token = 2")
+            .bind(job)
+            .fetch_one(&db)
+            .await
+            .unwrap();
+    let after = unix_seconds(&claimed_at) - unix_seconds(&lease_until);
     assert!(
         (0.0..=3.0).contains(&after),
         "taken over {after:.2} s after the lease ended"
@@ -394,4 +394,174 @@ async fn processes_started_together_on_a_new_data_directory_all_run() {
             );
         }
     }
+}
+
+/// Claimers in two processes' worth of stores (two pools on one database)
+/// claim at once: no job is claimed twice, and every job is claimed. On
+/// SQLite the write lock orders the claims; on PostgreSQL each claim locks
+/// its row with `FOR UPDATE SKIP LOCKED`, so that claimers pass over each
+/// other's rows instead of taking them twice or waiting.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn claimers_at_once_never_get_the_same_job() {
+    use ptv::service::store::Store;
+    use std::time::Duration;
+    const JOBS: usize = 60;
+    const CLAIMERS: usize = 8;
+    let data_dir = tempfile::tempdir().unwrap();
+    let open = || async {
+        match crate::postgres::database_url(data_dir.path()) {
+            Some(url) => Store::open_postgres(&url.parse().unwrap(), 4)
+                .await
+                .unwrap(),
+            None => Store::open(data_dir.path(), 4).await.unwrap(),
+        }
+    };
+    let stores = [open().await, open().await];
+    for _ in 0..JOBS {
+        stores[0].enqueue("echo", "{}").await.unwrap();
+    }
+    let mut tasks = tokio::task::JoinSet::new();
+    for claimer in 0..CLAIMERS {
+        let store = stores[claimer % 2].clone();
+        tasks.spawn(async move {
+            let mut claimed = Vec::new();
+            let worker = format!("here:{claimer}:aa/0");
+            while let Some(job) = store
+                .claim(&worker, Duration::from_secs(600))
+                .await
+                .unwrap()
+            {
+                claimed.push(job.id.0);
+            }
+            claimed
+        });
+    }
+    let mut all = Vec::new();
+    while let Some(claimed) = tasks.join_next().await {
+        all.extend(claimed.unwrap());
+    }
+    all.sort_unstable();
+    let expected: Vec<i64> = (1..=JOBS as i64).collect();
+    assert_eq!(all, expected, "each job claimed exactly once");
+    let db = open_database(data_dir.path()).await;
+    assert_eq!(
+        count(&db, "SELECT count(*) FROM job_claims").await,
+        JOBS as i64
+    );
+    assert_eq!(
+        count(
+            &db,
+            "SELECT count(*) FROM jobs WHERE state = 'running' AND attempts = 1"
+        )
+        .await,
+        JOBS as i64
+    );
+    db.close().await;
+    for store in stores {
+        store.close().await;
+    }
+}
+
+/// PostgreSQL stopped for 10 s (`pg_ctl stop -m fast`, then started again
+/// on the same port) while a client uploads frames: every upload is
+/// accepted (202) or refused with a 503 and `Retry-After` (then sent
+/// again), the service recovers by itself, no accepted frame is lost and
+/// every accepted frame ends processed. PostgreSQL only: the test stops a
+/// server of its own (the other tests' server runs on).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn uploads_survive_postgres_stopped_for_ten_seconds() {
+    use std::time::{Duration, Instant};
+    if !crate::postgres::enabled() {
+        // SQLite lives in the service's process: there is no server to stop.
+        return;
+    }
+    const FRAMES: i64 = 40;
+    const OUTAGE: Duration = Duration::from_secs(10);
+    let server = std::sync::Arc::new(crate::postgres::Server::start("outage"));
+    let url = server.create_database();
+    let app = spawn_app_configured(|args| args.database = Some(url.parse().unwrap())).await;
+    let (rig, sequence) = app.rig_sequence().await;
+    let frames: Vec<_> = (0..FRAMES)
+        .map(|f| rig.targets(150, 4000 + f as u64))
+        .collect();
+
+    let stopper = server.clone();
+    let outage = tokio::spawn(async move {
+        tokio::time::sleep(Duration::from_secs(1)).await;
+        let s = stopper.clone();
+        tokio::task::spawn_blocking(move || s.stop()).await.unwrap();
+        let stopped = Instant::now();
+        tokio::time::sleep(OUTAGE).await;
+        let s = stopper.clone();
+        tokio::task::spawn_blocking(move || s.start_again())
+            .await
+            .unwrap();
+        stopped.elapsed()
+    });
+
+    let mut accepted = 0;
+    let mut refused = 0;
+    let started = Instant::now();
+    for (frame, targets) in frames.iter().enumerate() {
+        loop {
+            let response = app
+                .client
+                .post(app.api(&format!("/sequences/{sequence}/frames")))
+                .multipart(targets_form(frame as i64, targets))
+                .send()
+                .await
+                .unwrap();
+            let retry_after = response.headers().get("retry-after").cloned();
+            let (status, body) = status_and_json(response).await;
+            match status {
+                202 => {
+                    accepted += 1;
+                    break;
+                }
+                503 => {
+                    let seconds: u64 = retry_after
+                        .unwrap_or_else(|| panic!("a 503 without Retry-After: {body}"))
+                        .to_str()
+                        .unwrap()
+                        .parse()
+                        .unwrap();
+                    assert!(seconds > 0, "{body}");
+                    refused += 1;
+                    // A client waits as asked (capped: the test's patience).
+                    tokio::time::sleep(Duration::from_secs(seconds.min(2))).await;
+                }
+                other => panic!("frame {frame}: {other} {body}"),
+            }
+            assert!(started.elapsed() < PATIENCE, "uploads did not recover");
+        }
+        // Spread the uploads over the outage.
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+    let down_for = outage.await.unwrap();
+    assert!(down_for >= OUTAGE, "{down_for:?}");
+    assert_eq!(accepted, FRAMES);
+    assert!(refused > 0, "no upload met the outage");
+
+    let view = app.wait_for_sequence(sequence).await;
+    assert_eq!(view["frames"]["done"], FRAMES, "{view}");
+    assert_eq!(view["frames"]["failed"], 0, "{view}");
+    let db = {
+        sqlx::any::install_default_drivers();
+        sqlx::any::AnyPoolOptions::new()
+            .max_connections(1)
+            .connect(&url)
+            .await
+            .unwrap()
+    };
+    assert_eq!(count(&db, "SELECT count(*) FROM frames").await, FRAMES);
+    assert_eq!(count(&db, "SELECT count(*) FROM particles").await, FRAMES);
+    assert_eq!(
+        count(&db, "SELECT count(*) FROM jobs WHERE state = 'succeeded'").await,
+        FRAMES
+    );
+    db.close().await;
+    app.stop().await;
+    tokio::task::spawn_blocking(move || server.stop())
+        .await
+        .unwrap();
 }

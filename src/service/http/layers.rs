@@ -534,6 +534,7 @@ mod tests {
         ServeArgs {
             bind: "127.0.0.1:0".parse().unwrap(),
             data_dir: "unused".into(),
+            database: None,
             workers: Some(1),
             max_upload_mb: 1,
             api_token: None,

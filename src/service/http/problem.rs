@@ -58,6 +58,10 @@ pub struct ApiError {
 /// again once the service's disk was full.
 pub const STORAGE_FULL_RETRY_AFTER_S: u32 = 30;
 
+/// `Retry-After` of a 503 for a database that cannot be reached: a
+/// restarting PostgreSQL is usually back within seconds.
+pub const DATABASE_UNAVAILABLE_RETRY_AFTER_S: u32 = 5;
+
 impl ApiError {
     /// An error of `status` with `detail`.
     pub fn new(status: StatusCode, detail: impl Into<String>) -> ApiError {
@@ -108,6 +112,19 @@ impl ApiError {
                 StatusCode::INSUFFICIENT_STORAGE,
                 "the service's disk is full; nothing was stored. Try again later \
                  (Retry-After); the service recovers by itself once space is freed",
+            )
+        }
+    }
+    /// 503: the database cannot be reached for now; logged, answered with
+    /// `Retry-After`.
+    pub fn database_unavailable(error: impl std::fmt::Display) -> ApiError {
+        tracing::error!(%error, "database unavailable");
+        ApiError {
+            retry_after: Some(DATABASE_UNAVAILABLE_RETRY_AFTER_S),
+            ..ApiError::new(
+                StatusCode::SERVICE_UNAVAILABLE,
+                "the service's database cannot be reached for now; nothing was stored. \
+                 Try again later (Retry-After)",
             )
         }
     }
@@ -192,12 +209,13 @@ impl From<crate::plot::PlotError> for ApiError {
 }
 
 impl From<sqlx::Error> for ApiError {
-    /// A full disk is a 507; any other database error a 500.
+    /// A full disk is a 507, a database that cannot be reached a 503 (both
+    /// with `Retry-After`); any other database error a 500.
     fn from(error: sqlx::Error) -> Self {
-        if store::is_storage_full(&error) {
-            ApiError::storage_full(error)
-        } else {
-            ApiError::internal(error)
+        match store::error_kind(&error) {
+            store::ErrorKind::StorageFull => ApiError::storage_full(error),
+            store::ErrorKind::Unavailable => ApiError::database_unavailable(error),
+            store::ErrorKind::Other => ApiError::internal(error),
         }
     }
 }

@@ -1,8 +1,8 @@
 //! Calibrations: stored from the API, or solved by a job and stored with
 //! its report when the job completes.
 
-use sqlx::sqlite::SqliteRow;
-use sqlx::{FromRow, Row, Sqlite, Transaction};
+use sqlx::any::AnyRow;
+use sqlx::{Any, FromRow, Row, Transaction};
 
 use super::jobs::{finish, ClaimedJob};
 use super::{file_in_use, CalibrationId, CompleteError, JobId, Store};
@@ -40,20 +40,20 @@ pub struct CalibrationSummary {
     pub created_at: String,
 }
 
-impl FromRow<'_, SqliteRow> for CalibrationSummary {
-    fn from_row(row: &SqliteRow) -> Result<Self, sqlx::Error> {
+impl FromRow<'_, AnyRow> for CalibrationSummary {
+    fn from_row(row: &AnyRow) -> Result<Self, sqlx::Error> {
         Ok(CalibrationSummary {
             id: row.try_get("id")?,
             cameras: row.try_get("cameras")?,
-            has_report: row.try_get("has_report")?,
+            has_report: row.try_get::<i64, _>("has_report")? != 0,
             origin: row.try_get("origin_calibration")?,
             created_at: row.try_get("created_at")?,
         })
     }
 }
 
-impl FromRow<'_, SqliteRow> for CalibrationRow {
-    fn from_row(row: &SqliteRow) -> Result<Self, sqlx::Error> {
+impl FromRow<'_, AnyRow> for CalibrationRow {
+    fn from_row(row: &AnyRow) -> Result<Self, sqlx::Error> {
         Ok(CalibrationRow {
             id: row.try_get("id")?,
             model: row.try_get("model")?,
@@ -86,7 +86,7 @@ impl Store {
     ) -> Result<Option<CalibrationRow>, sqlx::Error> {
         sqlx::query_as(
             "SELECT id, model, cameras, report, origin_calibration, created_at FROM calibrations \
-             WHERE id = ?",
+             WHERE id = $1",
         )
         .bind(id)
         .fetch_optional(&self.reader)
@@ -102,11 +102,11 @@ impl Store {
         limit: u32,
     ) -> Result<Vec<CalibrationSummary>, sqlx::Error> {
         sqlx::query_as(
-            "SELECT id, cameras, report IS NOT NULL AS has_report, origin_calibration, created_at \
-             FROM calibrations WHERE id < ? ORDER BY id DESC LIMIT ?",
+            "SELECT id, cameras, CASE WHEN report IS NULL THEN 0 ELSE 1 END AS has_report, origin_calibration, created_at \
+             FROM calibrations WHERE id < $1 ORDER BY id DESC LIMIT $2",
         )
         .bind(before.map_or(i64::MAX, |b| b.0))
-        .bind(limit)
+        .bind(i64::from(limit))
         .fetch_all(&self.reader)
         .await
     }
@@ -126,12 +126,12 @@ impl Store {
         duration_s: f64,
     ) -> Result<(CalibrationId, Vec<String>), CompleteError> {
         let mut tx = self.write_transaction().await?;
-        finish(&mut tx, job, None, duration_s).await?;
+        finish(&mut tx, self.dialect, job, None, duration_s).await?;
         let row = insert_calibration(&mut tx, model, cameras, Some(report), Some(job.id)).await?;
         let mut orphans = Vec::new();
         if !keep_files {
             let hashes: Vec<(String,)> =
-                sqlx::query_as("DELETE FROM job_files WHERE job_id = ? RETURNING sha256")
+                sqlx::query_as("DELETE FROM job_files WHERE job_id = $1 RETURNING sha256")
                     .bind(job.id)
                     .fetch_all(&mut *tx)
                     .await?;
@@ -150,14 +150,14 @@ impl Store {
 /// completion stores its calibration, naming the job, and finishes the job
 /// together).
 pub async fn insert_calibration(
-    tx: &mut Transaction<'_, Sqlite>,
+    tx: &mut Transaction<'_, Any>,
     model: &str,
     cameras: i64,
     report: Option<&str>,
     solved_by: Option<JobId>,
 ) -> Result<CalibrationRow, sqlx::Error> {
     sqlx::query_as(
-        "INSERT INTO calibrations (model, cameras, report, job_id) VALUES (?, ?, ?, ?) \
+        "INSERT INTO calibrations (model, cameras, report, job_id) VALUES ($1, $2, $3, $4) \
          RETURNING id, model, cameras, report, origin_calibration, created_at",
     )
     .bind(model)

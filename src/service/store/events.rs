@@ -4,7 +4,7 @@
 //! (`service::events`). Rows are appended in batches, one transaction per
 //! batch, and deleted after a day.
 
-use sqlx::sqlite::SqliteRow;
+use sqlx::any::AnyRow;
 use sqlx::{FromRow, Row};
 
 use super::{EventId, SequenceId, Store};
@@ -20,8 +20,8 @@ pub struct EventRow {
     pub change: String,
 }
 
-impl FromRow<'_, SqliteRow> for EventRow {
-    fn from_row(row: &SqliteRow) -> Result<Self, sqlx::Error> {
+impl FromRow<'_, AnyRow> for EventRow {
+    fn from_row(row: &AnyRow) -> Result<Self, sqlx::Error> {
         Ok(EventRow {
             id: row.try_get("id")?,
             sequence_id: row.try_get("sequence_id")?,
@@ -111,11 +111,11 @@ impl Store {
     /// how many.
     pub async fn prune_events(&self, age_s: u32) -> Result<u64, sqlx::Error> {
         let mut tx = self.write_transaction().await?;
-        let deleted = sqlx::query(
-            "DELETE FROM events WHERE created_at < \
-             strftime('%Y-%m-%dT%H:%M:%fZ', 'now', printf('-%d seconds', $1))",
-        )
-        .bind(i64::from(age_s))
+        let deleted = sqlx::query(&format!(
+            "DELETE FROM events WHERE created_at < {}",
+            self.dialect.now_plus(1)
+        ))
+        .bind(-f64::from(age_s))
         .execute(&mut *tx)
         .await?
         .rows_affected();

@@ -1,6 +1,6 @@
 //! Ids that cannot be mixed up: a calibration's id passed where a
 //! sequence's is expected does not compile. Each is its integer in JSON
-//! (`serde(transparent)`) and in SQL (encoded and decoded as `INTEGER`),
+//! (`serde(transparent)`) and in SQL (encoded and decoded as a 64-bit integer through sqlx's `Any` driver, `BIGINT` on PostgreSQL),
 //! so rows bind and read them directly. Their OpenAPI schema is the HTTP
 //! layer's business (`#[schema(value_type = i64)]` on its fields).
 //!
@@ -15,10 +15,10 @@
 use std::fmt;
 
 use serde::{Deserialize, Serialize};
+use sqlx::any::{AnyTypeInfo, AnyValueRef};
 use sqlx::encode::IsNull;
 use sqlx::error::BoxDynError;
-use sqlx::sqlite::{SqliteTypeInfo, SqliteValueRef};
-use sqlx::{Decode, Encode, Sqlite, Type};
+use sqlx::{Any, Decode, Encode, Type};
 
 /// Declares an id type over `i64`.
 macro_rules! id {
@@ -34,28 +34,28 @@ macro_rules! id {
             }
         }
 
-        impl Type<Sqlite> for $name {
-            fn type_info() -> SqliteTypeInfo {
-                <i64 as Type<Sqlite>>::type_info()
+        impl Type<Any> for $name {
+            fn type_info() -> AnyTypeInfo {
+                <i64 as Type<Any>>::type_info()
             }
 
-            fn compatible(ty: &SqliteTypeInfo) -> bool {
-                <i64 as Type<Sqlite>>::compatible(ty)
+            fn compatible(ty: &AnyTypeInfo) -> bool {
+                <i64 as Type<Any>>::compatible(ty)
             }
         }
 
-        impl<'q> Encode<'q, Sqlite> for $name {
+        impl<'q> Encode<'q, Any> for $name {
             fn encode_by_ref(
                 &self,
-                buf: &mut <Sqlite as sqlx::Database>::ArgumentBuffer<'q>,
+                buf: &mut <Any as sqlx::Database>::ArgumentBuffer<'q>,
             ) -> Result<IsNull, BoxDynError> {
-                <i64 as Encode<'q, Sqlite>>::encode_by_ref(&self.0, buf)
+                <i64 as Encode<'q, Any>>::encode_by_ref(&self.0, buf)
             }
         }
 
-        impl<'r> Decode<'r, Sqlite> for $name {
-            fn decode(value: SqliteValueRef<'r>) -> Result<Self, BoxDynError> {
-                <i64 as Decode<'r, Sqlite>>::decode(value).map($name)
+        impl<'r> Decode<'r, Any> for $name {
+            fn decode(value: AnyValueRef<'r>) -> Result<Self, BoxDynError> {
+                <i64 as Decode<'r, Any>>::decode(value).map($name)
             }
         }
     };

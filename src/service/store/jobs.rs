@@ -19,28 +19,15 @@
 //! `UPDATE ... RETURNING`, record the claim. On PostgreSQL the same steps
 //! take the row with `SELECT ... FOR UPDATE SKIP LOCKED`.
 
-use sqlx::sqlite::SqliteRow;
-use sqlx::{FromRow, Row, Sqlite, Transaction};
+use sqlx::any::AnyRow;
+use sqlx::{Any, FromRow, Row, Transaction};
 
 use std::time::Duration;
 
 use super::{
-    decode_text, stored_as_text, text_column, CalibrationId, CompleteError, FrameNumber, JobId,
-    LeaseToken, SequenceId, Store, TextColumn,
+    decode_text, stored_as_text, text_column, CalibrationId, CompleteError, Dialect, FrameNumber,
+    JobId, LeaseToken, SequenceId, Store, TextColumn,
 };
-
-/// The database's clock now, as the stored timestamps are written.
-const NOW: &str = "strftime('%Y-%m-%dT%H:%M:%fZ', 'now')";
-
-/// The database's clock plus the seconds bound at `?N` (the lease).
-fn now_plus(parameter: usize) -> String {
-    format!("strftime('%Y-%m-%dT%H:%M:%fZ', 'now', printf('+%.3f seconds', ?{parameter}))")
-}
-
-/// Whether a running job's lease has run out (no lease: a job left running
-/// by a version without leases, or one whose holder's death was noticed).
-const LEASE_EXPIRED: &str =
-    "(lease_until IS NULL OR lease_until <= strftime('%Y-%m-%dT%H:%M:%fZ', 'now'))";
 
 /// How often a job may be claimed before a crash-looping one is failed.
 pub const MAX_ATTEMPTS: i64 = 3;
@@ -125,7 +112,7 @@ pub enum JobResult {
 impl JobResult {
     /// The result of a row of [`Store::job`]'s query: the calibration or
     /// frame it wrote, else the link it gave.
-    fn of(row: &SqliteRow) -> Result<Option<JobResult>, sqlx::Error> {
+    fn of(row: &AnyRow) -> Result<Option<JobResult>, sqlx::Error> {
         let calibration: Option<CalibrationId> = row.try_get("result_calibration")?;
         let sequence: Option<SequenceId> = row.try_get("result_sequence")?;
         let frame: Option<FrameNumber> = row.try_get("result_frame")?;
@@ -157,8 +144,8 @@ pub struct ClaimedJob {
     pub token: LeaseToken,
 }
 
-impl FromRow<'_, SqliteRow> for JobRow {
-    fn from_row(row: &SqliteRow) -> Result<Self, sqlx::Error> {
+impl FromRow<'_, AnyRow> for JobRow {
+    fn from_row(row: &AnyRow) -> Result<Self, sqlx::Error> {
         Ok(JobRow {
             id: row.try_get("id")?,
             kind: row.try_get("kind")?,
@@ -176,8 +163,8 @@ impl FromRow<'_, SqliteRow> for JobRow {
     }
 }
 
-impl FromRow<'_, SqliteRow> for ClaimedJob {
-    fn from_row(row: &SqliteRow) -> Result<Self, sqlx::Error> {
+impl FromRow<'_, AnyRow> for ClaimedJob {
+    fn from_row(row: &AnyRow) -> Result<Self, sqlx::Error> {
         Ok(ClaimedJob {
             id: row.try_get("id")?,
             kind: row.try_get("kind")?,
@@ -206,14 +193,18 @@ impl Store {
     /// Whether a claim would find a job now (a read, so that idle workers
     /// polling the queue do not take the write lock).
     pub async fn claimable(&self) -> Result<bool, sqlx::Error> {
-        let (found,): (bool,) = sqlx::query_as(&format!(
-            "SELECT EXISTS (SELECT 1 FROM jobs WHERE state = 'queued' \
-             AND (not_before IS NULL OR not_before <= {NOW})) \
-             OR EXISTS (SELECT 1 FROM jobs WHERE state = 'running' AND {LEASE_EXPIRED})"
+        let d = self.dialect;
+        let (found,): (i64,) = sqlx::query_as(&format!(
+            "SELECT CASE WHEN EXISTS (SELECT 1 FROM jobs WHERE state = 'queued' \
+             AND (not_before IS NULL OR not_before <= {now})) \
+             OR EXISTS (SELECT 1 FROM jobs WHERE state = 'running' AND {expired}) \
+             THEN 1 ELSE 0 END",
+            now = d.now(),
+            expired = d.lease_expired(),
         ))
         .fetch_one(&self.reader)
         .await?;
-        Ok(found)
+        Ok(found == 1)
     }
 
     /// Claims the oldest queued job that is not deferred ([`Store::defer`])
@@ -228,12 +219,14 @@ impl Store {
         if !self.claimable().await? {
             return Ok(None);
         }
+        let d = self.dialect;
         let mut tx = self.write_transaction().await?;
-        expire_leases(&mut tx).await?;
-        // On PostgreSQL: SELECT id ... FOR UPDATE SKIP LOCKED.
+        expire_leases(&mut tx, d).await?;
         let next: Option<(JobId,)> = sqlx::query_as(&format!(
             "SELECT id FROM jobs WHERE state = 'queued' \
-             AND (not_before IS NULL OR not_before <= {NOW}) ORDER BY id LIMIT 1"
+             AND (not_before IS NULL OR not_before <= {now}) ORDER BY id LIMIT 1{skip_locked}",
+            now = d.now(),
+            skip_locked = d.skip_locked(),
         ))
         .fetch_optional(&mut *tx)
         .await?;
@@ -242,18 +235,19 @@ impl Store {
             return Ok(None);
         };
         let job: ClaimedJob = sqlx::query_as(&format!(
-            "UPDATE jobs SET state = 'running', attempts = attempts + 1, locked_by = ?1, \
-             lease_token = lease_token + 1, lease_until = {until}, started_at = {NOW} \
-             WHERE id = ?3 AND state = 'queued' \
+            "UPDATE jobs SET state = 'running', attempts = attempts + 1, locked_by = $1, \
+             lease_token = lease_token + 1, lease_until = {until}, started_at = {now} \
+             WHERE id = $3 AND state = 'queued' \
              RETURNING id, kind, payload, attempts, locked_by, lease_token",
-            until = now_plus(2)
+            until = d.now_plus(2),
+            now = d.now(),
         ))
         .bind(worker)
         .bind(lease.as_secs_f64())
         .bind(id)
         .fetch_one(&mut *tx)
         .await?;
-        sqlx::query("INSERT INTO job_claims (job_id, token, worker) VALUES (?, ?, ?)")
+        sqlx::query("INSERT INTO job_claims (job_id, token, worker) VALUES ($1, $2, $3)")
             .bind(job.id)
             .bind(job.token)
             .bind(worker)
@@ -269,8 +263,8 @@ impl Store {
     pub async fn renew(&self, job: &ClaimedJob, lease: Duration) -> Result<bool, sqlx::Error> {
         let done = sqlx::query(&format!(
             "UPDATE jobs SET lease_until = {until} \
-             WHERE id = ?2 AND state = 'running' AND lease_token = ?3",
-            until = now_plus(1)
+             WHERE id = $2 AND state = 'running' AND lease_token = $3",
+            until = self.dialect.now_plus(1)
         ))
         .bind(lease.as_secs_f64())
         .bind(job.id)
@@ -281,7 +275,7 @@ impl Store {
     }
 
     /// Ends the worker's attempt at a job that it still holds: `set` (the
-    /// job's new state and columns, binding `?1`..`?{n}` from `binds`),
+    /// job's new state and columns, binding `$1` and `$2` from `binds`),
     /// fenced on the claim's token, and the claim's outcome recorded, in
     /// one transaction. [`CompleteError::LostLease`] if the worker no
     /// longer holds the job (nothing written).
@@ -295,7 +289,7 @@ impl Store {
         let mut tx = self.write_transaction().await?;
         let done = sqlx::query(&format!(
             "UPDATE jobs SET {set}, locked_by = NULL, lease_until = NULL \
-             WHERE id = ?3 AND state = 'running' AND lease_token = ?4"
+             WHERE id = $3 AND state = 'running' AND lease_token = $4"
         ))
         .bind(binds.0)
         .bind(binds.1)
@@ -306,7 +300,7 @@ impl Store {
         if done.rows_affected() == 0 {
             return Err(CompleteError::LostLease(job.id));
         }
-        end_claim(&mut tx, job.id, job.token, outcome).await?;
+        end_claim(&mut tx, self.dialect, job.id, job.token, outcome).await?;
         tx.commit().await?;
         Ok(())
     }
@@ -320,7 +314,10 @@ impl Store {
     ) -> Result<(), CompleteError> {
         self.end_attempt(
             job,
-            &format!("state = 'failed', error = ?1, duration_s = ?2, finished_at = {NOW}"),
+            &format!(
+                "state = 'failed', error = $1, duration_s = $2, finished_at = {}",
+                self.dialect.now()
+            ),
             (Some(error), Some(duration_s)),
             ClaimOutcome::Failed,
         )
@@ -336,7 +333,7 @@ impl Store {
     ) -> Result<(), CompleteError> {
         self.end_attempt(
             job,
-            "state = 'queued', error = coalesce(?1, error)",
+            "state = 'queued', error = coalesce($1, error)",
             (error, None),
             ClaimOutcome::Released,
         )
@@ -349,7 +346,8 @@ impl Store {
     pub async fn give_back(&self, job: &ClaimedJob, error: &str) -> Result<(), CompleteError> {
         self.end_attempt(
             job,
-            "state = 'queued', attempts = max(attempts - 1, 0), error = ?1",
+            "state = 'queued', attempts = CASE WHEN attempts > 0 THEN attempts - 1 ELSE 0 END, \
+             error = $1",
             (Some(error), None),
             ClaimOutcome::GivenBack,
         )
@@ -368,8 +366,11 @@ impl Store {
     ) -> Result<(), CompleteError> {
         self.end_attempt(
             job,
-            "state = 'queued', attempts = max(attempts - 1, 0), error = ?1, \
-             not_before = strftime('%Y-%m-%dT%H:%M:%fZ', 'now', printf('+%.3f seconds', ?2))",
+            &format!(
+                "state = 'queued', attempts = CASE WHEN attempts > 0 THEN attempts - 1 ELSE 0 END, \
+                 error = $1, not_before = {}",
+                self.dialect.now_plus(2)
+            ),
             (Some(note), Some(delay_s)),
             ClaimOutcome::GivenBack,
         )
@@ -381,10 +382,10 @@ impl Store {
     pub async fn job_claims(&self, id: JobId, last: u32) -> Result<Vec<JobClaim>, sqlx::Error> {
         let rows: Vec<(LeaseToken, String, String, Option<String>)> = sqlx::query_as(
             "SELECT * FROM (SELECT token, worker, claimed_at, outcome FROM job_claims \
-             WHERE job_id = ? ORDER BY token DESC LIMIT ?) ORDER BY token",
+             WHERE job_id = $1 ORDER BY token DESC LIMIT $2) AS last ORDER BY token",
         )
         .bind(id)
-        .bind(last)
+        .bind(i64::from(last))
         .fetch_all(&self.reader)
         .await?;
         rows.into_iter()
@@ -405,7 +406,7 @@ impl Store {
     /// go only when their job succeeds.
     pub async fn retry(&self, id: JobId) -> Result<RetryOutcome, sqlx::Error> {
         let mut tx = self.write_transaction().await?;
-        let state: Option<(String,)> = sqlx::query_as("SELECT state FROM jobs WHERE id = ?")
+        let state: Option<(String,)> = sqlx::query_as("SELECT state FROM jobs WHERE id = $1")
             .bind(id)
             .fetch_optional(&mut *tx)
             .await?;
@@ -415,7 +416,7 @@ impl Store {
                 JobState::Failed => {
                     sqlx::query(
                         "UPDATE jobs SET state = 'queued', attempts = 0, locked_by = NULL, \
-                         finished_at = NULL, duration_s = NULL WHERE id = ?",
+                         finished_at = NULL, duration_s = NULL WHERE id = $1 AND state = 'failed'",
                     )
                     .bind(id)
                     .execute(&mut *tx)
@@ -453,11 +454,13 @@ impl Store {
             let dead = WorkerId::parse(&owner)
                 .is_some_and(|(owner_host, pid)| owner_host == host && !alive(pid));
             if dead {
-                sqlx::query("UPDATE jobs SET lease_until = NULL WHERE id = ? AND lease_token = ?")
-                    .bind(id)
-                    .bind(token)
-                    .execute(&mut *tx)
-                    .await?;
+                sqlx::query(
+                    "UPDATE jobs SET lease_until = NULL WHERE id = $1 AND lease_token = $2",
+                )
+                .bind(id)
+                .bind(token)
+                .execute(&mut *tx)
+                .await?;
             }
         }
         let holders: Vec<(i64, String)> = sqlx::query_as(
@@ -471,7 +474,7 @@ impl Store {
             if dead {
                 sqlx::query(
                     "UPDATE tracking_runs SET lease_owner = NULL, lease_until = NULL \
-                     WHERE id = ? AND lease_owner = ?",
+                     WHERE id = $1 AND lease_owner = $2",
                 )
                 .bind(id)
                 .bind(&owner)
@@ -479,7 +482,7 @@ impl Store {
                 .await?;
             }
         }
-        let outcome = expire_leases(&mut tx).await?;
+        let outcome = expire_leases(&mut tx, self.dialect).await?;
         tx.commit().await?;
         Ok(outcome)
     }
@@ -495,7 +498,7 @@ impl Store {
              FROM jobs j \
              LEFT JOIN calibrations c ON c.job_id = j.id \
              LEFT JOIN frames f ON f.job_id = j.id AND j.state = 'succeeded' \
-             WHERE j.id = ?",
+             WHERE j.id = $1",
         )
         .bind(id)
         .fetch_optional(&self.reader)
@@ -521,7 +524,7 @@ impl Store {
         let id = enqueue(&mut tx, kind, payload).await?;
         for file in files {
             sqlx::query(
-                "INSERT INTO job_files (job_id, part, camera, sha256, size) VALUES (?, ?, ?, ?, ?)",
+                "INSERT INTO job_files (job_id, part, camera, sha256, size) VALUES ($1, $2, $3, $4, $5)",
             )
             .bind(id)
             .bind(&file.part)
@@ -538,7 +541,7 @@ impl Store {
     /// A job's input files, in the order they were recorded.
     pub async fn job_files(&self, job_id: JobId) -> Result<Vec<JobFile>, sqlx::Error> {
         let rows: Vec<(String, Option<i64>, String, i64)> = sqlx::query_as(
-            "SELECT part, camera, sha256, size FROM job_files WHERE job_id = ? ORDER BY rowid",
+            "SELECT part, camera, sha256, size FROM job_files WHERE job_id = $1 ORDER BY rowid",
         )
         .bind(job_id)
         .fetch_all(&self.reader)
@@ -563,7 +566,7 @@ impl Store {
         duration_s: f64,
     ) -> Result<(), CompleteError> {
         let mut tx = self.write_transaction().await?;
-        finish(&mut tx, job, Some(result), duration_s).await?;
+        finish(&mut tx, self.dialect, job, Some(result), duration_s).await?;
         tx.commit().await?;
         Ok(())
     }
@@ -583,14 +586,14 @@ impl Store {
         let mut tx = self.write_transaction().await?;
         let held: Vec<(JobId, LeaseToken)> = sqlx::query_as(
             "UPDATE jobs SET state = 'queued', locked_by = NULL, lease_until = NULL \
-             WHERE state = 'running' AND substr(locked_by, 1, length(?1) + 1) = ?1 || '/' \
+             WHERE state = 'running' AND substr(locked_by, 1, length($1) + 1) = $1 || '/' \
              RETURNING id, lease_token",
         )
         .bind(instance)
         .fetch_all(&mut *tx)
         .await?;
         for (id, token) in &held {
-            end_claim(&mut tx, *id, *token, ClaimOutcome::Released).await?;
+            end_claim(&mut tx, self.dialect, *id, *token, ClaimOutcome::Released).await?;
         }
         tx.commit().await?;
         Ok(held.len() as u64)
@@ -600,12 +603,12 @@ impl Store {
 /// Enqueues a job inside the caller's transaction, so that the job exists
 /// exactly when what it works on does.
 pub async fn enqueue(
-    tx: &mut Transaction<'_, Sqlite>,
+    tx: &mut Transaction<'_, Any>,
     kind: &str,
     payload: &str,
 ) -> Result<JobId, sqlx::Error> {
     let (id,): (JobId,) =
-        sqlx::query_as("INSERT INTO jobs (kind, payload) VALUES (?, ?) RETURNING id")
+        sqlx::query_as("INSERT INTO jobs (kind, payload) VALUES ($1, $2) RETURNING id")
             .bind(kind)
             .bind(payload)
             .fetch_one(&mut **tx)
@@ -618,17 +621,18 @@ pub async fn enqueue(
 /// it. `link` is for kinds whose results no row names (the frame and
 /// calibration rows name their jobs).
 pub async fn finish(
-    tx: &mut Transaction<'_, Sqlite>,
+    tx: &mut Transaction<'_, Any>,
+    dialect: Dialect,
     job: &ClaimedJob,
     link: Option<&str>,
     duration_s: f64,
 ) -> Result<(), CompleteError> {
-    let done = sqlx::query(
-        "UPDATE jobs SET state = 'succeeded', result = ?, error = NULL, locked_by = NULL, \
-         lease_until = NULL, duration_s = ?, \
-         finished_at = strftime('%Y-%m-%dT%H:%M:%fZ', 'now') \
-         WHERE id = ? AND state = 'running' AND lease_token = ?",
-    )
+    let done = sqlx::query(&format!(
+        "UPDATE jobs SET state = 'succeeded', result = $1, error = NULL, locked_by = NULL, \
+         lease_until = NULL, duration_s = $2, finished_at = {} \
+         WHERE id = $3 AND state = 'running' AND lease_token = $4",
+        dialect.now()
+    ))
     .bind(link)
     .bind(duration_s)
     .bind(job.id)
@@ -638,20 +642,22 @@ pub async fn finish(
     if done.rows_affected() == 0 {
         return Err(CompleteError::LostLease(job.id));
     }
-    end_claim(tx, job.id, job.token, ClaimOutcome::Succeeded).await?;
+    end_claim(tx, dialect, job.id, job.token, ClaimOutcome::Succeeded).await?;
     Ok(())
 }
 
 /// Records how a claim ended.
 async fn end_claim(
-    tx: &mut Transaction<'_, Sqlite>,
+    tx: &mut Transaction<'_, Any>,
+    dialect: Dialect,
     id: JobId,
     token: LeaseToken,
     outcome: ClaimOutcome,
 ) -> Result<(), sqlx::Error> {
     sqlx::query(&format!(
-        "UPDATE job_claims SET outcome = ?, ended_at = {NOW} \
-         WHERE job_id = ? AND token = ? AND outcome IS NULL"
+        "UPDATE job_claims SET outcome = $1, ended_at = {} \
+         WHERE job_id = $2 AND token = $3 AND outcome IS NULL",
+        dialect.now()
     ))
     .bind(outcome.as_str())
     .bind(id)
@@ -665,13 +671,24 @@ async fn end_claim(
 /// claimed [`MAX_ATTEMPTS`] times, recording their claims as expired;
 /// inside the caller's write transaction (a claim, the reaper). Returns
 /// (requeued, failed).
-pub async fn expire_leases(tx: &mut Transaction<'_, Sqlite>) -> Result<(u64, u64), sqlx::Error> {
+pub async fn expire_leases(
+    tx: &mut Transaction<'_, Any>,
+    dialect: Dialect,
+) -> Result<(u64, u64), sqlx::Error> {
+    // On PostgreSQL, claimers expiring at once pass over each other's rows
+    // (SKIP LOCKED) rather than wait for them, and cannot deadlock.
+    let (now, expired, skip_locked) = (
+        dialect.now(),
+        dialect.lease_expired(),
+        dialect.skip_locked(),
+    );
     let failed: Vec<(JobId, LeaseToken)> = sqlx::query_as(&format!(
         "UPDATE jobs SET state = 'failed', locked_by = NULL, lease_until = NULL, \
          error = 'its worker stopped or lost its lease while running this job ' || attempts || \
                  ' times; it is not retried again', \
-         finished_at = {NOW} \
-         WHERE state = 'running' AND {LEASE_EXPIRED} AND attempts >= ? \
+         finished_at = {now} \
+         WHERE id IN (SELECT id FROM jobs \
+                      WHERE state = 'running' AND {expired} AND attempts >= $1{skip_locked}) \
          RETURNING id, lease_token"
     ))
     .bind(MAX_ATTEMPTS)
@@ -682,13 +699,13 @@ pub async fn expire_leases(tx: &mut Transaction<'_, Sqlite>) -> Result<(u64, u64
          error = 'the lease of ' || coalesce(locked_by, 'a stopped process') || \
                  ' ran out; queued again', \
          locked_by = NULL, lease_until = NULL \
-         WHERE state = 'running' AND {LEASE_EXPIRED} \
+         WHERE id IN (SELECT id FROM jobs WHERE state = 'running' AND {expired}{skip_locked}) \
          RETURNING id, lease_token"
     ))
     .fetch_all(&mut **tx)
     .await?;
     for (id, token) in failed.iter().chain(&requeued) {
-        end_claim(tx, *id, *token, ClaimOutcome::Expired).await?;
+        end_claim(tx, dialect, *id, *token, ClaimOutcome::Expired).await?;
     }
     Ok((requeued.len() as u64, failed.len() as u64))
 }
@@ -764,11 +781,12 @@ mod tests {
 
     /// A row of the `jobs` table as `Store::job` reads it, with `state`.
     async fn job_row_with_state(state: &str) -> Result<JobRow, sqlx::Error> {
-        let pool = sqlx::sqlite::SqlitePoolOptions::new()
+        sqlx::any::install_default_drivers();
+        let pool = sqlx::any::AnyPoolOptions::new()
             .connect("sqlite::memory:")
             .await?;
         sqlx::query_as(
-            "SELECT 7 AS id, 'process_frame' AS kind, '{}' AS payload, ? AS state, \
+            "SELECT 7 AS id, 'process_frame' AS kind, '{}' AS payload, $1 AS state, \
              1 AS attempts, NULL AS error, NULL AS result, '2024-01-01T00:00:00Z' AS created_at, \
              NULL AS started_at, NULL AS finished_at, NULL AS locked_by, NULL AS lease_until, \
              NULL AS result_calibration, \

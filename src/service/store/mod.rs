@@ -1,13 +1,35 @@
 //! All of the service's SQL: calibrations, sequences, frames and their
-//! inputs and results, and the job queue, in one SQLite database.
+//! inputs and results, and the job queue, in one database: SQLite in the
+//! data directory (the default), or PostgreSQL (`--database
+//! postgres://...`). The HTTP layer, the jobs and the tracker call
+//! [`Store`]'s methods and do not know which engine runs.
+//!
+//! **One query text for both engines.** The queries go through sqlx's
+//! `Any` driver and are written once, with `$N` parameters (SQLite reads
+//! `$N` as parameter N); where the dialects differ (the database's clock
+//! as stored text, the clock plus a lease, the claim's row lock, how a
+//! write transaction begins) a [`Dialect`] supplies the fragment. `Any`
+//! decodes `bool` only from a real boolean, so flags are 0/1 integers and
+//! `EXISTS` is read through `CASE`; every integer is 64-bit.
 //!
 //! SQLite runs in WAL mode (readers never wait for the writer) with a busy
 //! timeout. Writes go through a pool of one connection, so they queue in
 //! the process instead of failing on SQLite's lock; reads use their own
-//! pool. Every multi-statement write is one transaction: an upload and its
-//! job, a job's results and its completion. Queries are checked at run
+//! pool. PostgreSQL has one pool for both; the server orders concurrent
+//! writes (read committed), the claim locks its row with `FOR UPDATE SKIP
+//! LOCKED`. Every multi-statement write is one transaction: an upload and
+//! its job, a job's results and its completion. Queries are checked at run
 //! time (no database at build time); their results map onto `FromRow`
 //! structs (`FromRow` written out, no derive macros).
+//!
+//! What differs by engine: SQLite takes one write lock for every write
+//! transaction (`BEGIN IMMEDIATE`), so transactions that read then write
+//! are serial; on PostgreSQL they run concurrently and rely on their
+//! `WHERE` fences (state, token, progress) and row locks. SQLite's page
+//! limit ([`Store::set_max_page_count`]) and `left_clean`'s `BEGIN
+//! DEFERRED` probe exist on SQLite only. Migrations are per engine
+//! (`migrations/`, `migrations/postgres/`); PostgreSQL's run under its
+//! advisory lock, SQLite's under the flock on `ptv.sqlite.lock`.
 //!
 //! **No connection is left inside a transaction.** A failed statement or
 //! `COMMIT` leaves sqlx's `Transaction` to be dropped, which only queues a
@@ -27,10 +49,12 @@
 //! transaction whose future was cancelled; an explicit rollback in each
 //! path would add nothing the queued one does not do.
 //!
-//! **A full disk** (SQLITE_FULL, [`is_storage_full`]) is an error of its
-//! own kind to the callers: a 507 with `Retry-After` to a client, a job
-//! attempt given back to the queue ([`Store::give_back`]) rather than
-//! counted. [`Store::set_max_page_count`] makes the writer fail exactly so
+//! **Errors by kind** ([`error_kind`]): a full disk (SQLITE_FULL,
+//! PostgreSQL's 53100, [`is_storage_full`]) is an error of its own kind to
+//! the callers: a 507 with `Retry-After` to a client, a job attempt given
+//! back to the queue ([`Store::give_back`]) rather than counted; so is a
+//! database that cannot be reached (PostgreSQL stopped or restarting, the
+//! network): a 503 with `Retry-After`, the attempt given back. [`Store::set_max_page_count`] makes the writer fail exactly so
 //! (SQLite's page limit), for tests.
 //!
 //! One file per table group, each with its own `impl Store`:
@@ -42,6 +66,7 @@
 //! and what they share.
 
 mod calibrations;
+mod dialect;
 mod events;
 mod ids;
 mod jobs;
@@ -58,15 +83,14 @@ use std::time::Duration;
 use std::future::Future;
 use std::pin::Pin;
 
+use sqlx::any::{AnyConnectOptions, AnyPoolOptions, AnyRow};
 use sqlx::error::BoxDynError;
 use sqlx::migrate::{Migration, MigrationSource, MigrationType, Migrator};
-use sqlx::sqlite::{
-    SqliteConnectOptions, SqliteConnection, SqliteJournalMode, SqlitePool, SqlitePoolOptions,
-    SqliteRow, SqliteSynchronous,
-};
-use sqlx::{Database, Executor, Row, Sqlite, TransactionManager};
+use sqlx::{Any, Database, Executor, Row, TransactionManager};
+use sqlx::{AnyConnection, AnyPool};
 
 pub use self::calibrations::{insert_calibration, CalibrationRow, CalibrationSummary};
+pub use self::dialect::{error_kind, Dialect, ErrorKind, PostgresUrl};
 pub use self::events::EventRow;
 pub use self::ids::{
     CalibrationId, EventId, FrameNumber, JobId, LeaseToken, SequenceId, TrackingRunId,
@@ -85,41 +109,41 @@ pub use self::tracking::{FrameReadiness, PointRow, TrackingRunRow, TrackingState
 /// The database.
 #[derive(Clone, Debug)]
 pub struct Store {
-    /// Readers, several at once.
-    reader: SqlitePool,
-    /// The one writer.
-    writer: SqlitePool,
+    /// Readers, several at once (on PostgreSQL the same pool as `writer`).
+    reader: AnyPool,
+    /// The one writer on SQLite; on PostgreSQL a pool (the server orders
+    /// the writes, with row locks).
+    writer: AnyPool,
+    /// Which engine runs, for the few fragments of SQL that differ.
+    dialect: Dialect,
     /// The page limit put on the writer by [`Store::set_max_page_count`]
     /// (0: none), applied again to every writer connection opened.
     page_limit: Arc<AtomicU32>,
 }
 
-/// SQLite's result code for "database or disk is full" (it has no
-/// extended codes).
-const SQLITE_FULL: &str = "13";
-
 /// Whether a database error means that the disk (or the page limit) is
-/// full: SQLITE_FULL, or an I/O error that says so.
+/// full ([`ErrorKind::StorageFull`]).
 pub fn is_storage_full(error: &sqlx::Error) -> bool {
-    match error {
-        sqlx::Error::Database(db) => db.code().as_deref() == Some(SQLITE_FULL),
-        sqlx::Error::Io(io) => crate::service::images::is_storage_full(io),
-        _ => false,
-    }
+    error_kind(error) == ErrorKind::StorageFull
 }
 
 /// Whether a writer connection came back outside any transaction, by
-/// sqlx's count and by SQLite's own state (`BEGIN` fails inside a
-/// transaction; a deferred one takes no lock and writes nothing). A
-/// connection for which this is false is closed rather than reused.
-async fn left_clean(conn: &mut SqliteConnection) -> bool {
-    let depth = <<Sqlite as Database>::TransactionManager>::get_transaction_depth(conn);
+/// sqlx's count and, on SQLite, by SQLite's own state (`BEGIN` fails
+/// inside a transaction; a deferred one takes no lock and writes nothing).
+/// A connection for which this is false is closed rather than reused.
+async fn left_clean(conn: &mut AnyConnection, dialect: Dialect) -> bool {
+    let depth = <<Any as Database>::TransactionManager>::get_transaction_depth(conn);
     if depth > 0 {
         tracing::warn!(
             depth,
             "a database connection was left inside a transaction; it is closed"
         );
         return false;
+    }
+    if dialect == Dialect::Postgres {
+        // The server ends a failed transaction's connection state itself
+        // (sqlx's queued ROLLBACK runs before the next use).
+        return true;
     }
     match conn.execute("BEGIN DEFERRED; ROLLBACK").await {
         Ok(_) => true,
@@ -137,7 +161,7 @@ async fn left_clean(conn: &mut SqliteConnection) -> bool {
 #[derive(Debug)]
 struct Migrations(&'static [(i64, &'static str, &'static str)]);
 
-/// Version, description and SQL of each migration, in order.
+/// Version, description and SQL of each SQLite migration, in order.
 const MIGRATIONS: &[(i64, &str, &str)] = &[
     (
         1,
@@ -183,6 +207,22 @@ const MIGRATIONS: &[(i64, &str, &str)] = &[
         9,
         "events",
         include_str!("../../../migrations/0009_events.sql"),
+    ),
+];
+
+/// Version, description and SQL of each PostgreSQL migration, in order
+/// (`migrations/postgres/`): 0001 is the schema SQLite's 0001-0008
+/// reach, 0002 SQLite's 0009; each engine numbers its own migrations.
+const POSTGRES_MIGRATIONS: &[(i64, &str, &str)] = &[
+    (
+        1,
+        "schema",
+        include_str!("../../../migrations/postgres/0001_schema.sql"),
+    ),
+    (
+        2,
+        "events",
+        include_str!("../../../migrations/postgres/0002_events.sql"),
     ),
 ];
 
@@ -310,7 +350,7 @@ fn decode_text<T: FromStr<Err = UnknownValue>>(column: &str, text: &str) -> Resu
 
 /// The text column `column` of `row`, as its enum (see [`decode_text`]).
 fn text_column<T: FromStr<Err = UnknownValue>>(
-    row: &SqliteRow,
+    row: &AnyRow,
     column: &str,
 ) -> Result<T, sqlx::Error> {
     decode_text(column, row.try_get::<&str, _>(column)?)
@@ -333,6 +373,40 @@ impl<T> OnUniqueViolation<T> for Result<T, sqlx::Error> {
     }
 }
 
+/// The SQLite database `ptv.sqlite` in `data_dir`, as a URL for the Any
+/// driver (which takes its options from the URL only; the pragmas are set
+/// on each connection by [`sqlite_pragmas`]).
+fn sqlite_url(data_dir: &Path, read_only: bool) -> Result<AnyConnectOptions, sqlx::Error> {
+    let path = data_dir.join("ptv.sqlite");
+    let path = std::path::absolute(&path).map_err(sqlx::Error::Io)?;
+    let mut url = String::from("sqlite://");
+    for byte in path.as_os_str().as_encoded_bytes() {
+        match byte {
+            b'A'..=b'Z' | b'a'..=b'z' | b'0'..=b'9' | b'/' | b'-' | b'_' | b'.' | b'~' => {
+                url.push(char::from(*byte))
+            }
+            other => url.push_str(&format!("%{other:02X}")),
+        }
+    }
+    url.push_str(if read_only { "?mode=ro" } else { "?mode=rwc" });
+    AnyConnectOptions::from_str(&url)
+}
+
+/// The pragmas of every SQLite connection: WAL (readers never wait for
+/// the writer; set once, kept in the file), `synchronous = NORMAL` (in
+/// WAL mode it survives a killed process; only a power loss may lose the
+/// last transactions), a busy timeout, foreign keys.
+async fn sqlite_pragmas(conn: &mut AnyConnection, writer: bool) -> Result<(), sqlx::Error> {
+    if writer {
+        conn.execute("PRAGMA journal_mode = WAL").await?;
+    }
+    conn.execute(
+        "PRAGMA synchronous = NORMAL; PRAGMA busy_timeout = 10000; PRAGMA foreign_keys = ON",
+    )
+    .await?;
+    Ok(())
+}
+
 impl Store {
     /// Opens (creating if missing) the database `ptv.sqlite` in
     /// `data_dir` and brings its schema up to date. Processes that start
@@ -341,57 +415,93 @@ impl Store {
     /// a new database together would both apply its first migration, and
     /// switching a new database to WAL does not wait for a busy one.
     pub async fn open(data_dir: &Path, readers: u32) -> Result<Store, sqlx::Error> {
+        sqlx::any::install_default_drivers();
         let _opening = crate::service::file_lock::exclusive(data_dir.join("ptv.sqlite.lock"))
             .await
             .map_err(sqlx::Error::Io)?;
-        let options = SqliteConnectOptions::new()
-            .filename(data_dir.join("ptv.sqlite"))
-            .create_if_missing(true)
-            .journal_mode(SqliteJournalMode::Wal)
-            // In WAL mode NORMAL survives a crash of the process (a kill);
-            // only a power loss may lose the last transactions.
-            .synchronous(SqliteSynchronous::Normal)
-            .busy_timeout(Duration::from_secs(10))
-            .foreign_keys(true);
         let page_limit = Arc::new(AtomicU32::new(0));
         let limit = page_limit.clone();
-        let writer = SqlitePoolOptions::new()
+        let writer = AnyPoolOptions::new()
             .max_connections(1)
             .after_connect(move |conn, _| {
                 let limit = limit.load(Ordering::Acquire);
                 Box::pin(async move {
+                    sqlite_pragmas(conn, true).await?;
                     if limit > 0 {
                         apply_page_limit(conn, limit).await?;
                     }
                     Ok(())
                 })
             })
-            .after_release(|conn, _| Box::pin(async move { Ok(left_clean(conn).await) }))
-            .connect_with(options.clone())
+            .after_release(|conn, _| {
+                Box::pin(async move { Ok(left_clean(conn, Dialect::Sqlite).await) })
+            })
+            .connect_with(sqlite_url(data_dir, false)?)
             .await?;
         Migrator::new(Migrations(MIGRATIONS))
             .await
             .map_err(sqlx::Error::from)?
             .run(&writer)
             .await?;
-        let reader = SqlitePoolOptions::new()
+        let reader = AnyPoolOptions::new()
             .max_connections(readers.max(1))
-            .connect_with(options.read_only(true))
+            .after_connect(|conn, _| Box::pin(async move { sqlite_pragmas(conn, false).await }))
+            .connect_with(sqlite_url(data_dir, true)?)
             .await?;
         Ok(Store {
             reader,
             writer,
+            dialect: Dialect::Sqlite,
             page_limit,
         })
+    }
+
+    /// Connects to the PostgreSQL database at `url` and brings its schema
+    /// up to date. sqlx's migrator takes PostgreSQL's advisory lock for
+    /// the run, so processes started together migrate one at a time. One
+    /// pool serves reads and writes: `readers` connections and a few for
+    /// the writes (claims, heartbeats, results).
+    pub async fn open_postgres(url: &PostgresUrl, readers: u32) -> Result<Store, sqlx::Error> {
+        sqlx::any::install_default_drivers();
+        let pool = AnyPoolOptions::new()
+            .max_connections(readers.max(1) + 8)
+            .acquire_timeout(Duration::from_secs(10))
+            .after_release(|conn, _| {
+                Box::pin(async move { Ok(left_clean(conn, Dialect::Postgres).await) })
+            })
+            .connect_with(AnyConnectOptions::from_str(url.as_str())?)
+            .await?;
+        Migrator::new(Migrations(POSTGRES_MIGRATIONS))
+            .await
+            .map_err(sqlx::Error::from)?
+            .run(&pool)
+            .await?;
+        Ok(Store {
+            reader: pool.clone(),
+            writer: pool,
+            dialect: Dialect::Postgres,
+            page_limit: Arc::new(AtomicU32::new(0)),
+        })
+    }
+
+    /// Which engine runs.
+    pub fn dialect(&self) -> Dialect {
+        self.dialect
     }
 
     /// Fault injection for tests: limits the database to `pages` pages
     /// (SQLite's `max_page_count`; never below its current size, so
     /// `Some(0)` means "not one page more"), so that writes that need
     /// more fail with SQLITE_FULL exactly as on a full disk; `None` lifts
-    /// the limit. Returns the limit in force.
+    /// the limit. Returns the limit in force. SQLite only (PostgreSQL has
+    /// no such limit): an error on PostgreSQL.
     #[doc(hidden)]
     pub async fn set_max_page_count(&self, pages: Option<u32>) -> Result<u32, sqlx::Error> {
+        if self.dialect != Dialect::Sqlite {
+            return Err(sqlx::Error::Configuration(
+                "the page limit is SQLite's; PostgreSQL has none".into(),
+            ));
+        }
         self.page_limit
             .store(pages.map_or(0, |p| p.max(1)), Ordering::Release);
         let mut conn = self.writer.acquire().await?;
@@ -409,25 +519,31 @@ impl Store {
         }
     }
 
-    /// Starts a write transaction with `BEGIN IMMEDIATE`: it takes SQLite's
-    /// write lock at once, so a transaction that reads before it writes never
-    /// finds its snapshot stale when it comes to write (a deferred `BEGIN`
-    /// would then fail with SQLITE_BUSY whatever the busy timeout), also
-    /// with several processes on one database.
-    async fn write_transaction(
-        &self,
-    ) -> Result<sqlx::Transaction<'static, sqlx::Sqlite>, sqlx::Error> {
-        self.writer.begin_with("BEGIN IMMEDIATE").await
+    /// Starts a write transaction. On SQLite with `BEGIN IMMEDIATE`: it
+    /// takes SQLite's write lock at once, so a transaction that reads
+    /// before it writes never finds its snapshot stale when it comes to
+    /// write (a deferred `BEGIN` would then fail with SQLITE_BUSY whatever
+    /// the busy timeout), also with several processes on one database. On
+    /// PostgreSQL a plain `BEGIN` (read committed): the writes that must
+    /// not race are fenced by their `WHERE` (tokens, states) or lock their
+    /// rows (`FOR UPDATE`).
+    async fn write_transaction(&self) -> Result<sqlx::Transaction<'static, Any>, sqlx::Error> {
+        self.writer.begin_with(self.dialect.begin_write()).await
     }
 
-    /// Readiness: the writer takes SQLite's write lock (`BEGIN
-    /// IMMEDIATE`, then `ROLLBACK`: nothing written) within `within`. A
-    /// full disk does not show here (only a write that needs space finds
-    /// it); a writer that cannot be opened or locked does.
+    /// Readiness: on SQLite the writer takes SQLite's write lock (`BEGIN
+    /// IMMEDIATE`, then `ROLLBACK`: nothing written) within `within`; on
+    /// PostgreSQL a connection answers. A full disk does not show here
+    /// (only a write that needs space finds it); a writer that cannot be
+    /// opened or locked does.
     pub async fn ready(&self, within: Duration) -> Result<(), sqlx::Error> {
+        let probe = match self.dialect {
+            Dialect::Sqlite => "BEGIN IMMEDIATE; ROLLBACK",
+            Dialect::Postgres => "SELECT 1",
+        };
         tokio::time::timeout(within, async {
             let mut conn = self.writer.acquire().await?;
-            conn.execute("BEGIN IMMEDIATE; ROLLBACK").await?;
+            conn.execute(probe).await?;
             Ok(())
         })
         .await
@@ -448,20 +564,42 @@ impl Store {
 }
 
 /// Sets the connection's `max_page_count`; returns the limit in force.
-async fn apply_page_limit(conn: &mut SqliteConnection, pages: u32) -> Result<u32, sqlx::Error> {
+async fn apply_page_limit(conn: &mut AnyConnection, pages: u32) -> Result<u32, sqlx::Error> {
     let (limit,): (i64,) = sqlx::query_as(&format!("PRAGMA max_page_count = {pages}"))
         .fetch_one(&mut *conn)
         .await?;
     Ok(u32::try_from(limit).unwrap_or(u32::MAX))
 }
 
+/// The `VALUES` list of a multi-row insert, `rows` rows of `columns`
+/// parameters each, numbered `$1`.. in order (the one placeholder style
+/// both engines read; sqlx's `QueryBuilder` writes `?` under the `Any`
+/// driver).
+fn placeholders(rows: usize, columns: usize) -> String {
+    let mut sql = String::with_capacity(rows * columns * 7);
+    for row in 0..rows {
+        if row > 0 {
+            sql.push_str(", ");
+        }
+        sql.push('(');
+        for column in 0..columns {
+            if column > 0 {
+                sql.push_str(", ");
+            }
+            sql.push_str(&format!("${}", row * columns + column + 1));
+        }
+        sql.push(')');
+    }
+    sql
+}
+
 /// Whether any frame's image, job's file or sequence's background or
 /// mask is the file with this hash.
-async fn file_in_use(conn: &mut sqlx::SqliteConnection, sha256: &str) -> Result<bool, sqlx::Error> {
+async fn file_in_use(conn: &mut AnyConnection, sha256: &str) -> Result<bool, sqlx::Error> {
     let (n,): (i64,) = sqlx::query_as(
-        "SELECT (SELECT count(*) FROM images WHERE sha256 = ?1) + \
-                (SELECT count(*) FROM job_files WHERE sha256 = ?1) + \
-                (SELECT count(*) FROM sequence_images WHERE sha256 = ?1)",
+        "SELECT (SELECT count(*) FROM images WHERE sha256 = $1) + \
+                (SELECT count(*) FROM job_files WHERE sha256 = $1) + \
+                (SELECT count(*) FROM sequence_images WHERE sha256 = $1)",
     )
     .bind(sha256)
     .fetch_one(&mut *conn)
@@ -472,6 +610,7 @@ async fn file_in_use(conn: &mut sqlx::SqliteConnection, sha256: &str) -> Result<
 #[cfg(test)]
 mod tests {
     use super::*;
+    use sqlx::sqlite::{SqliteConnectOptions, SqlitePoolOptions};
 
     /// The database in `data_dir` (created where missing) with its first
     /// `version` migrations run, on one connection.
@@ -693,7 +832,7 @@ mod tests {
         database_of_version_2(dir.path()).await;
         let pool = migrated_to(dir.path(), 6).await;
         let old_settings = r#"{"max_velocity":2.0,"max_acceleration":1.0,"max_gap":1,"min_length":3,"fit_half_window":2,"fit_order":2,"first_frame":0}"#;
-        sqlx::query("INSERT INTO tracking_runs (id, sequence_id, parameters) VALUES (1, 1, ?)")
+        sqlx::query("INSERT INTO tracking_runs (id, sequence_id, parameters) VALUES (1, 1, $1)")
             .bind(old_settings)
             .execute(&pool)
             .await

@@ -43,7 +43,7 @@ impl Store {
         duration_s: f64,
     ) -> Result<(CalibrationId, Option<JobId>), CompleteError> {
         let mut tx = self.write_transaction().await?;
-        finish(&mut tx, job, None, duration_s).await?;
+        finish(&mut tx, self.dialect, job, None, duration_s).await?;
         let row = insert_calibration(
             &mut tx,
             refined.model,
@@ -52,14 +52,14 @@ impl Store {
             Some(job.id),
         )
         .await?;
-        sqlx::query("UPDATE calibrations SET origin_calibration = ? WHERE id = ?")
+        sqlx::query("UPDATE calibrations SET origin_calibration = $1 WHERE id = $2")
             .bind(refined.origin)
             .bind(row.id)
             .execute(&mut *tx)
             .await?;
         let mut reprocess_job = None;
         if let Some(sequence_id) = reprocess {
-            sqlx::query("UPDATE sequences SET calibration_id = ? WHERE id = ?")
+            sqlx::query("UPDATE sequences SET calibration_id = $1 WHERE id = $2")
                 .bind(row.id)
                 .bind(sequence_id)
                 .execute(&mut *tx)
@@ -80,7 +80,7 @@ impl Store {
         calibration_id: CalibrationId,
     ) -> Result<Option<JobId>, sqlx::Error> {
         let mut tx = self.write_transaction().await?;
-        let changed = sqlx::query("UPDATE sequences SET calibration_id = ? WHERE id = ?")
+        let changed = sqlx::query("UPDATE sequences SET calibration_id = $1 WHERE id = $2")
             .bind(calibration_id)
             .bind(sequence_id)
             .execute(&mut *tx)
@@ -104,8 +104,8 @@ impl Store {
         cameras: i64,
     ) -> Result<Vec<FrameNumber>, sqlx::Error> {
         let rows: Vec<(FrameNumber,)> = sqlx::query_as(
-            "SELECT frame FROM targets WHERE sequence_id = ? AND frame BETWEEN ? AND ? \
-             GROUP BY frame HAVING count(*) = ? ORDER BY frame",
+            "SELECT frame FROM targets WHERE sequence_id = $1 AND frame BETWEEN $2 AND $3 \
+             GROUP BY frame HAVING count(*) = $4 ORDER BY frame",
         )
         .bind(sequence_id)
         .bind(first)
@@ -124,8 +124,8 @@ impl Store {
         calibration_id: CalibrationId,
     ) -> Result<Vec<FrameNumber>, sqlx::Error> {
         let rows: Vec<(FrameNumber,)> = sqlx::query_as(
-            "SELECT frame FROM particles WHERE sequence_id = ? \
-             AND (calibration_id IS NULL OR calibration_id != ?) ORDER BY frame",
+            "SELECT frame FROM particles WHERE sequence_id = $1 \
+             AND (calibration_id IS NULL OR calibration_id != $2) ORDER BY frame",
         )
         .bind(sequence_id)
         .bind(calibration_id)
@@ -148,7 +148,7 @@ impl Store {
     ) -> Result<bool, CompleteError> {
         let mut tx = self.write_transaction().await?;
         let held: Option<(i64,)> = sqlx::query_as(
-            "SELECT 1 FROM jobs WHERE id = ? AND state = 'running' AND lease_token = ?",
+            "SELECT 1 FROM jobs WHERE id = $1 AND state = 'running' AND lease_token = $2",
         )
         .bind(job.id)
         .bind(job.token)
@@ -158,8 +158,8 @@ impl Store {
             return Err(CompleteError::LostLease(job.id));
         }
         let changed = sqlx::query(
-            "UPDATE particles SET count = ?, data = ?, calibration_id = ? \
-             WHERE sequence_id = ? AND frame = ?",
+            "UPDATE particles SET count = $1, data = $2, calibration_id = $3 \
+             WHERE sequence_id = $4 AND frame = $5",
         )
         .bind(particles.0)
         .bind(particles.1)

@@ -1,8 +1,8 @@
 //! Sequences and their frames: a frame's upload (inputs and its job in one
 //! transaction), what its job reads, and its results.
 
-use sqlx::sqlite::SqliteRow;
-use sqlx::{FromRow, Row, Sqlite, Transaction};
+use sqlx::any::AnyRow;
+use sqlx::{Any, FromRow, Row, Transaction};
 
 use super::calibrations::{insert_calibration, CalibrationRow};
 use super::jobs::{enqueue, finish, ClaimedJob, JobState};
@@ -100,8 +100,8 @@ pub struct FrameSummary {
     pub particles: Option<i64>,
 }
 
-impl FromRow<'_, SqliteRow> for FrameSummary {
-    fn from_row(row: &SqliteRow) -> Result<Self, sqlx::Error> {
+impl FromRow<'_, AnyRow> for FrameSummary {
+    fn from_row(row: &AnyRow) -> Result<Self, sqlx::Error> {
         Ok(FrameSummary {
             frame: row.try_get("frame")?,
             job_id: row.try_get("job_id")?,
@@ -146,8 +146,8 @@ pub struct SequenceImage {
     pub bits: i64,
 }
 
-impl FromRow<'_, SqliteRow> for SequenceImage {
-    fn from_row(row: &SqliteRow) -> Result<Self, sqlx::Error> {
+impl FromRow<'_, AnyRow> for SequenceImage {
+    fn from_row(row: &AnyRow) -> Result<Self, sqlx::Error> {
         Ok(SequenceImage {
             kind: text_column(row, "kind")?,
             camera: row.try_get("camera")?,
@@ -175,21 +175,21 @@ pub enum SequenceImagesError {
     Database(#[from] sqlx::Error),
 }
 
-impl FromRow<'_, SqliteRow> for SequenceRow {
-    fn from_row(row: &SqliteRow) -> Result<Self, sqlx::Error> {
+impl FromRow<'_, AnyRow> for SequenceRow {
+    fn from_row(row: &AnyRow) -> Result<Self, sqlx::Error> {
         Ok(SequenceRow {
             id: row.try_get("id")?,
             calibration_id: row.try_get("calibration_id")?,
             name: row.try_get("name")?,
             parameters: row.try_get("parameters")?,
-            keep_images: row.try_get("keep_images")?,
+            keep_images: row.try_get::<i64, _>("keep_images")? != 0,
             created_at: row.try_get("created_at")?,
         })
     }
 }
 
-impl FromRow<'_, SqliteRow> for FrameInput {
-    fn from_row(row: &SqliteRow) -> Result<Self, sqlx::Error> {
+impl FromRow<'_, AnyRow> for FrameInput {
+    fn from_row(row: &AnyRow) -> Result<Self, sqlx::Error> {
         Ok(FrameInput {
             sequence_id: row.try_get("sequence_id")?,
             frame: row.try_get("frame")?,
@@ -215,12 +215,12 @@ impl Store {
         let mut tx = self.write_transaction().await?;
         let result: Option<SequenceRow> = sqlx::query_as(
             "INSERT INTO sequences (calibration_id, name, parameters, keep_images) \
-             SELECT id, ?, ?, ? FROM calibrations WHERE id = ? \
+             SELECT id, $1, $2, $3 FROM calibrations WHERE id = $4 \
              RETURNING id, calibration_id, name, parameters, keep_images, created_at",
         )
         .bind(name)
         .bind(parameters)
-        .bind(keep_images)
+        .bind(i64::from(keep_images))
         .bind(calibration_id)
         .fetch_optional(&mut *tx)
         .await?;
@@ -247,13 +247,13 @@ impl Store {
         let calibration = insert_calibration(&mut tx, model, cameras, None, None).await?;
         let sequence: SequenceRow = sqlx::query_as(
             "INSERT INTO sequences (calibration_id, name, parameters, keep_images) \
-             VALUES (?, ?, ?, ?) \
+             VALUES ($1, $2, $3, $4) \
              RETURNING id, calibration_id, name, parameters, keep_images, created_at",
         )
         .bind(calibration.id)
         .bind(name)
         .bind(parameters)
-        .bind(keep_images)
+        .bind(i64::from(keep_images))
         .fetch_one(&mut *tx)
         .await?;
         for (camera, sha256, size, bits) in backgrounds {
@@ -276,7 +276,7 @@ impl Store {
     pub async fn sequence(&self, id: SequenceId) -> Result<Option<SequenceRow>, sqlx::Error> {
         sqlx::query_as(
             "SELECT id, calibration_id, name, parameters, keep_images, created_at \
-             FROM sequences WHERE id = ?",
+             FROM sequences WHERE id = $1",
         )
         .bind(id)
         .fetch_optional(&self.reader)
@@ -292,10 +292,10 @@ impl Store {
     ) -> Result<Vec<SequenceRow>, sqlx::Error> {
         sqlx::query_as(
             "SELECT id, calibration_id, name, parameters, keep_images, created_at \
-             FROM sequences WHERE id < ? ORDER BY id DESC LIMIT ?",
+             FROM sequences WHERE id < $1 ORDER BY id DESC LIMIT $2",
         )
         .bind(before.map_or(i64::MAX, |b| b.0))
-        .bind(limit)
+        .bind(i64::from(limit))
         .fetch_all(&self.reader)
         .await
     }
@@ -313,11 +313,11 @@ impl Store {
             "SELECT f.frame, f.job_id, j.state, p.count AS particles \
              FROM frames f JOIN jobs j ON j.id = f.job_id \
              LEFT JOIN particles p ON p.sequence_id = f.sequence_id AND p.frame = f.frame \
-             WHERE f.sequence_id = ? AND f.frame > ? ORDER BY f.frame LIMIT ?",
+             WHERE f.sequence_id = $1 AND f.frame > $2 ORDER BY f.frame LIMIT $3",
         )
         .bind(sequence_id)
         .bind(after.map_or(-1, |a| a.0))
-        .bind(limit)
+        .bind(i64::from(limit))
         .fetch_all(&self.reader)
         .await
     }
@@ -326,7 +326,7 @@ impl Store {
     pub async fn frame_counts(&self, sequence_id: SequenceId) -> Result<FrameCounts, sqlx::Error> {
         let rows: Vec<(String, i64)> = sqlx::query_as(
             "SELECT j.state, count(*) FROM frames f JOIN jobs j ON j.id = f.job_id \
-             WHERE f.sequence_id = ? GROUP BY j.state",
+             WHERE f.sequence_id = $1 GROUP BY j.state",
         )
         .bind(sequence_id)
         .fetch_all(&self.reader)
@@ -352,7 +352,7 @@ impl Store {
         let job_id = enqueue(&mut tx, crate::service::jobs::PROCESS_FRAME, &payload).await?;
         sqlx::query(
             "INSERT INTO frames (sequence_id, frame, job_id, input, raw_layout) \
-             VALUES (?, ?, ?, ?, ?)",
+             VALUES ($1, $2, $3, $4, $5)",
         )
         .bind(frame.sequence_id)
         .bind(frame.frame)
@@ -368,7 +368,7 @@ impl Store {
         for (camera, sha256, size) in &frame.images {
             sqlx::query(
                 "INSERT INTO images (sequence_id, frame, camera, sha256, size) \
-                 VALUES (?, ?, ?, ?, ?)",
+                 VALUES ($1, $2, $3, $4, $5)",
             )
             .bind(frame.sequence_id)
             .bind(frame.frame)
@@ -402,7 +402,7 @@ impl Store {
         sqlx::query_as(
             "SELECT f.sequence_id, f.frame, f.input, f.raw_layout, s.calibration_id \
              FROM frames f JOIN sequences s ON s.id = f.sequence_id \
-             WHERE f.sequence_id = ? AND f.frame = ?",
+             WHERE f.sequence_id = $1 AND f.frame = $2",
         )
         .bind(sequence_id)
         .bind(frame)
@@ -417,7 +417,7 @@ impl Store {
         frame: FrameNumber,
     ) -> Result<Vec<(i64, String)>, sqlx::Error> {
         sqlx::query_as(
-            "SELECT camera, sha256 FROM images WHERE sequence_id = ? AND frame = ? \
+            "SELECT camera, sha256 FROM images WHERE sequence_id = $1 AND frame = $2 \
              ORDER BY camera",
         )
         .bind(sequence_id)
@@ -433,7 +433,7 @@ impl Store {
         frame: FrameNumber,
     ) -> Result<Vec<(i64, i64, Vec<u8>)>, sqlx::Error> {
         sqlx::query_as(
-            "SELECT camera, count, data FROM targets WHERE sequence_id = ? AND frame = ? \
+            "SELECT camera, count, data FROM targets WHERE sequence_id = $1 AND frame = $2 \
              ORDER BY camera",
         )
         .bind(sequence_id)
@@ -449,7 +449,7 @@ impl Store {
         frame: FrameNumber,
     ) -> Result<bool, sqlx::Error> {
         let row: Option<(i64,)> =
-            sqlx::query_as("SELECT job_id FROM frames WHERE sequence_id = ? AND frame = ?")
+            sqlx::query_as("SELECT job_id FROM frames WHERE sequence_id = $1 AND frame = $2")
                 .bind(sequence_id)
                 .bind(frame)
                 .fetch_optional(&self.reader)
@@ -465,7 +465,7 @@ impl Store {
         frame: FrameNumber,
     ) -> Result<Option<(i64, Vec<u8>, CalibrationId)>, sqlx::Error> {
         sqlx::query_as(
-            "SELECT count, data, calibration_id FROM particles WHERE sequence_id = ? AND frame = ?",
+            "SELECT count, data, calibration_id FROM particles WHERE sequence_id = $1 AND frame = $2",
         )
         .bind(sequence_id)
         .bind(frame)
@@ -479,7 +479,7 @@ impl Store {
         sequence_id: SequenceId,
     ) -> Result<Vec<FrameNumber>, sqlx::Error> {
         let rows: Vec<(FrameNumber,)> =
-            sqlx::query_as("SELECT frame FROM particles WHERE sequence_id = ? ORDER BY frame")
+            sqlx::query_as("SELECT frame FROM particles WHERE sequence_id = $1 ORDER BY frame")
                 .bind(sequence_id)
                 .fetch_all(&self.reader)
                 .await?;
@@ -502,13 +502,13 @@ impl Store {
     ) -> Result<Vec<String>, CompleteError> {
         let (sequence_id, frame) = (input.sequence_id, input.frame);
         let mut tx = self.write_transaction().await?;
-        finish(&mut tx, job, None, duration_s).await?;
+        finish(&mut tx, self.dialect, job, None, duration_s).await?;
         for (camera, count, data) in targets {
             insert_targets(&mut tx, sequence_id, frame, *camera, *count, data).await?;
         }
         sqlx::query(
             "INSERT INTO particles (sequence_id, frame, count, data, calibration_id) \
-             VALUES (?, ?, ?, ?, ?)",
+             VALUES ($1, $2, $3, $4, $5)",
         )
         .bind(sequence_id)
         .bind(frame)
@@ -520,7 +520,7 @@ impl Store {
         let mut orphans = Vec::new();
         if drop_images {
             let hashes: Vec<(String,)> = sqlx::query_as(
-                "DELETE FROM images WHERE sequence_id = ? AND frame = ? RETURNING sha256",
+                "DELETE FROM images WHERE sequence_id = $1 AND frame = $2 RETURNING sha256",
             )
             .bind(sequence_id)
             .bind(frame)
@@ -543,7 +543,7 @@ impl Store {
     ) -> Result<Vec<SequenceImage>, sqlx::Error> {
         sqlx::query_as(
             "SELECT kind, camera, sha256, size, bits FROM sequence_images \
-             WHERE sequence_id = ? ORDER BY kind, camera",
+             WHERE sequence_id = $1 ORDER BY kind, camera",
         )
         .bind(sequence_id)
         .fetch_all(&self.reader)
@@ -560,15 +560,16 @@ impl Store {
         images: &[(i64, String, i64, i64)],
     ) -> Result<(), SequenceImagesError> {
         let mut tx = self.write_transaction().await?;
-        let (frames,): (i64,) = sqlx::query_as("SELECT count(*) FROM frames WHERE sequence_id = ?")
-            .bind(sequence_id)
-            .fetch_one(&mut *tx)
-            .await?;
+        let (frames,): (i64,) =
+            sqlx::query_as("SELECT count(*) FROM frames WHERE sequence_id = $1")
+                .bind(sequence_id)
+                .fetch_one(&mut *tx)
+                .await?;
         if frames > 0 {
             return Err(SequenceImagesError::HasFrames(sequence_id, kind));
         }
         let (existing,): (i64,) = sqlx::query_as(
-            "SELECT count(*) FROM sequence_images WHERE sequence_id = ? AND kind = ?",
+            "SELECT count(*) FROM sequence_images WHERE sequence_id = $1 AND kind = $2",
         )
         .bind(sequence_id)
         .bind(kind.as_str())
@@ -596,7 +597,7 @@ impl Store {
     ) -> Result<Vec<String>, sqlx::Error> {
         let mut tx = self.write_transaction().await?;
         let (existing,): (i64,) = sqlx::query_as(
-            "SELECT count(*) FROM sequence_images WHERE sequence_id = ? AND kind = 'background'",
+            "SELECT count(*) FROM sequence_images WHERE sequence_id = $1 AND kind = 'background'",
         )
         .bind(sequence_id)
         .fetch_one(&mut *tx)
@@ -633,15 +634,15 @@ impl Store {
         limit: u32,
     ) -> Result<(Vec<FrameNumber>, i64), sqlx::Error> {
         let frames: Vec<(FrameNumber,)> = sqlx::query_as(
-            "SELECT frame FROM frames WHERE sequence_id = ? AND input = 'images' \
-             ORDER BY frame LIMIT ?",
+            "SELECT frame FROM frames WHERE sequence_id = $1 AND input = 'images' \
+             ORDER BY frame LIMIT $2",
         )
         .bind(sequence_id)
-        .bind(limit)
+        .bind(i64::from(limit))
         .fetch_all(&self.reader)
         .await?;
         let (count,): (i64,) = sqlx::query_as(
-            "SELECT count(*) FROM frames WHERE sequence_id = ? AND input = 'images'",
+            "SELECT count(*) FROM frames WHERE sequence_id = $1 AND input = 'images'",
         )
         .bind(sequence_id)
         .fetch_one(&self.reader)
@@ -651,7 +652,7 @@ impl Store {
 }
 
 async fn insert_targets(
-    tx: &mut Transaction<'_, Sqlite>,
+    tx: &mut Transaction<'_, Any>,
     sequence_id: SequenceId,
     frame: FrameNumber,
     camera: i64,
@@ -659,7 +660,7 @@ async fn insert_targets(
     data: &[u8],
 ) -> Result<(), sqlx::Error> {
     sqlx::query(
-        "INSERT INTO targets (sequence_id, frame, camera, count, data) VALUES (?, ?, ?, ?, ?)",
+        "INSERT INTO targets (sequence_id, frame, camera, count, data) VALUES ($1, $2, $3, $4, $5)",
     )
     .bind(sequence_id)
     .bind(frame)
@@ -672,7 +673,7 @@ async fn insert_targets(
 }
 
 async fn insert_sequence_image(
-    tx: &mut Transaction<'_, Sqlite>,
+    tx: &mut Transaction<'_, Any>,
     sequence_id: SequenceId,
     kind: SequenceImageKind,
     camera: i64,
@@ -682,7 +683,7 @@ async fn insert_sequence_image(
 ) -> Result<(), sqlx::Error> {
     sqlx::query(
         "INSERT INTO sequence_images (sequence_id, kind, camera, sha256, size, bits) \
-         VALUES (?, ?, ?, ?, ?, ?)",
+         VALUES ($1, $2, $3, $4, $5, $6)",
     )
     .bind(sequence_id)
     .bind(kind.as_str())

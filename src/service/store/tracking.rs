@@ -12,8 +12,8 @@
 //! run out (and rebuilds the tracker by replay). The stored frames are
 //! fenced on the lease's token as well as on the progress.
 
-use sqlx::sqlite::SqliteRow;
-use sqlx::{FromRow, QueryBuilder, Row, Sqlite, Transaction};
+use sqlx::any::AnyRow;
+use sqlx::{Any, FromRow, Row, Transaction};
 
 use std::time::Duration;
 
@@ -71,14 +71,14 @@ pub struct TrackingRunRow {
 const RUN_COLUMNS: &str = "id, sequence_id, parameters, tracked_through, finish_requested, state, \
      error, created_at, calibration_id";
 
-impl FromRow<'_, SqliteRow> for TrackingRunRow {
-    fn from_row(row: &SqliteRow) -> Result<Self, sqlx::Error> {
+impl FromRow<'_, AnyRow> for TrackingRunRow {
+    fn from_row(row: &AnyRow) -> Result<Self, sqlx::Error> {
         Ok(TrackingRunRow {
             id: row.try_get("id")?,
             sequence_id: row.try_get("sequence_id")?,
             parameters: row.try_get("parameters")?,
             tracked_through: row.try_get("tracked_through")?,
-            finish_requested: row.try_get("finish_requested")?,
+            finish_requested: row.try_get::<i64, _>("finish_requested")? != 0,
             state: text_column(row, "state")?,
             error: row.try_get("error")?,
             created_at: row.try_get("created_at")?,
@@ -109,8 +109,8 @@ pub struct PointRow {
     pub targets: String,
 }
 
-impl FromRow<'_, SqliteRow> for PointRow {
-    fn from_row(row: &SqliteRow) -> Result<Self, sqlx::Error> {
+impl FromRow<'_, AnyRow> for PointRow {
+    fn from_row(row: &AnyRow) -> Result<Self, sqlx::Error> {
         let triple = |names: [&str; 3]| -> Result<Option<[f64; 3]>, sqlx::Error> {
             let values = [
                 row.try_get::<Option<f64>, _>(names[0])?,
@@ -151,8 +151,8 @@ pub struct TrajectoryRow {
     pub length: i64,
 }
 
-impl FromRow<'_, SqliteRow> for TrajectoryRow {
-    fn from_row(row: &SqliteRow) -> Result<Self, sqlx::Error> {
+impl FromRow<'_, AnyRow> for TrajectoryRow {
+    fn from_row(row: &AnyRow) -> Result<Self, sqlx::Error> {
         Ok(TrajectoryRow {
             id: row.try_get("id")?,
             first_frame: row.try_get("first_frame")?,
@@ -173,8 +173,8 @@ pub enum FrameReadiness {
     Pending,
 }
 
-/// Points written per statement (16 values each, within SQLite's limit of
-/// 32,766 bound values).
+/// Points written per statement (17 values each, within SQLite's limit of
+/// 32,766 bound values and PostgreSQL's of 65,535).
 const POINTS_PER_STATEMENT: usize = 1000;
 
 impl Store {
@@ -184,7 +184,7 @@ impl Store {
         id: TrackingRunId,
     ) -> Result<Option<TrackingRunRow>, sqlx::Error> {
         sqlx::query_as(&format!(
-            "SELECT {RUN_COLUMNS} FROM tracking_runs WHERE id = ?"
+            "SELECT {RUN_COLUMNS} FROM tracking_runs WHERE id = $1"
         ))
         .bind(id)
         .fetch_optional(&self.reader)
@@ -198,7 +198,7 @@ impl Store {
         sequence_id: SequenceId,
     ) -> Result<Vec<TrackingRunRow>, sqlx::Error> {
         sqlx::query_as(&format!(
-            "SELECT {RUN_COLUMNS} FROM tracking_runs WHERE sequence_id = ? ORDER BY id"
+            "SELECT {RUN_COLUMNS} FROM tracking_runs WHERE sequence_id = $1 ORDER BY id"
         ))
         .bind(sequence_id)
         .fetch_all(&self.reader)
@@ -211,7 +211,7 @@ impl Store {
         sequence_id: SequenceId,
     ) -> Result<Option<TrackingRunRow>, sqlx::Error> {
         sqlx::query_as(&format!(
-            "SELECT {RUN_COLUMNS} FROM tracking_runs WHERE sequence_id = ? \
+            "SELECT {RUN_COLUMNS} FROM tracking_runs WHERE sequence_id = $1 \
              ORDER BY id DESC LIMIT 1"
         ))
         .bind(sequence_id)
@@ -225,11 +225,11 @@ impl Store {
         &self,
         owner: &str,
     ) -> Result<Vec<TrackingRunId>, sqlx::Error> {
-        let rows: Vec<(TrackingRunId,)> = sqlx::query_as(
+        let rows: Vec<(TrackingRunId,)> = sqlx::query_as(&format!(
             "SELECT id FROM tracking_runs WHERE state = 'tracking' \
-             AND (lease_owner IS NULL OR lease_owner = ? OR lease_until IS NULL \
-                  OR lease_until <= strftime('%Y-%m-%dT%H:%M:%fZ', 'now')) ORDER BY id",
-        )
+             AND (lease_owner IS NULL OR lease_owner = $1 OR {expired}) ORDER BY id",
+            expired = self.dialect.lease_expired()
+        ))
         .bind(owner)
         .fetch_all(&self.reader)
         .await?;
@@ -246,16 +246,17 @@ impl Store {
         owner: &str,
         lease: Duration,
     ) -> Result<Option<LeaseToken>, sqlx::Error> {
-        let row: Option<(LeaseToken,)> = sqlx::query_as(
+        let row: Option<(LeaseToken,)> = sqlx::query_as(&format!(
             "UPDATE tracking_runs SET \
-             lease_token = CASE WHEN lease_owner IS ?1 THEN lease_token ELSE lease_token + 1 END, \
-             lease_owner = ?1, \
-             lease_until = strftime('%Y-%m-%dT%H:%M:%fZ', 'now', printf('+%.3f seconds', ?2)) \
-             WHERE id = ?3 AND state = 'tracking' \
-             AND (lease_owner IS NULL OR lease_owner = ?1 OR lease_until IS NULL \
-                  OR lease_until <= strftime('%Y-%m-%dT%H:%M:%fZ', 'now')) \
+             lease_token = CASE WHEN lease_owner IS NOT DISTINCT FROM $1 THEN lease_token \
+                           ELSE lease_token + 1 END, \
+             lease_owner = $1, lease_until = {until} \
+             WHERE id = $3 AND state = 'tracking' \
+             AND (lease_owner IS NULL OR lease_owner = $1 OR {expired}) \
              RETURNING lease_token",
-        )
+            until = self.dialect.now_plus(2),
+            expired = self.dialect.lease_expired(),
+        ))
         .bind(owner)
         .bind(lease.as_secs_f64())
         .bind(id)
@@ -269,7 +270,7 @@ impl Store {
     pub async fn release_tracking_leases(&self, owner: &str) -> Result<u64, sqlx::Error> {
         Ok(sqlx::query(
             "UPDATE tracking_runs SET lease_owner = NULL, lease_until = NULL \
-             WHERE lease_owner = ?",
+             WHERE lease_owner = $1",
         )
         .bind(owner)
         .execute(&self.writer)
@@ -288,15 +289,15 @@ impl Store {
         parameters: &str,
     ) -> Result<Option<TrackingRunRow>, sqlx::Error> {
         let mut tx = self.write_transaction().await?;
-        let exists: Option<(i64,)> = sqlx::query_as("SELECT 1 FROM sequences WHERE id = ?")
+        let exists: Option<(i64,)> = sqlx::query_as("SELECT 1 FROM sequences WHERE id = $1")
             .bind(sequence_id)
             .fetch_optional(&mut *tx)
             .await?;
         if exists.is_none() {
             return Ok(None);
         }
-        let (finish,): (bool,) = sqlx::query_as(
-            "SELECT coalesce((SELECT finish_requested FROM tracking_runs WHERE sequence_id = ? \
+        let (finish,): (i64,) = sqlx::query_as(
+            "SELECT coalesce((SELECT finish_requested FROM tracking_runs WHERE sequence_id = $1 \
              ORDER BY id DESC LIMIT 1), 0)",
         )
         .bind(sequence_id)
@@ -304,12 +305,12 @@ impl Store {
         .await?;
         sqlx::query(
             "UPDATE tracking_runs SET state = 'superseded' \
-             WHERE sequence_id = ? AND state = 'tracking'",
+             WHERE sequence_id = $1 AND state = 'tracking'",
         )
         .bind(sequence_id)
         .execute(&mut *tx)
         .await?;
-        let row = insert_run(&mut tx, sequence_id, parameters, finish).await?;
+        let row = insert_run(&mut tx, sequence_id, parameters, finish != 0).await?;
         tx.commit().await?;
         Ok(Some(row))
     }
@@ -321,7 +322,7 @@ impl Store {
         id: TrackingRunId,
     ) -> Result<Option<TrackingRunRow>, sqlx::Error> {
         sqlx::query_as(&format!(
-            "UPDATE tracking_runs SET finish_requested = 1 WHERE id = ? RETURNING {RUN_COLUMNS}"
+            "UPDATE tracking_runs SET finish_requested = 1 WHERE id = $1 RETURNING {RUN_COLUMNS}"
         ))
         .bind(id)
         .fetch_optional(&self.writer)
@@ -336,20 +337,20 @@ impl Store {
         from: FrameNumber,
         limit: u32,
     ) -> Result<Vec<(FrameNumber, FrameReadiness)>, sqlx::Error> {
-        let rows: Vec<(FrameNumber, String, bool)> = sqlx::query_as(
-            "SELECT f.frame, j.state, p.frame IS NOT NULL FROM frames f \
+        let rows: Vec<(FrameNumber, String, i64)> = sqlx::query_as(
+            "SELECT f.frame, j.state, CASE WHEN p.frame IS NULL THEN 0 ELSE 1 END FROM frames f \
              JOIN jobs j ON j.id = f.job_id \
              LEFT JOIN particles p ON p.sequence_id = f.sequence_id AND p.frame = f.frame \
-             WHERE f.sequence_id = ? AND f.frame >= ? ORDER BY f.frame LIMIT ?",
+             WHERE f.sequence_id = $1 AND f.frame >= $2 ORDER BY f.frame LIMIT $3",
         )
         .bind(sequence_id)
         .bind(from)
-        .bind(limit)
+        .bind(i64::from(limit))
         .fetch_all(&self.reader)
         .await?;
         rows.into_iter()
             .map(|(frame, state, processed)| {
-                let readiness = if processed {
+                let readiness = if processed != 0 {
                     FrameReadiness::Processed
                 } else if super::decode_text::<super::JobState>("state", &state)?
                     == super::JobState::Failed
@@ -370,7 +371,7 @@ impl Store {
         id: TrackingRunId,
     ) -> Result<Vec<(FrameNumber, Option<i64>)>, sqlx::Error> {
         sqlx::query_as(
-            "SELECT frame, particles FROM tracking_frames WHERE run_id = ? ORDER BY frame",
+            "SELECT frame, particles FROM tracking_frames WHERE run_id = $1 ORDER BY frame",
         )
         .bind(id)
         .fetch_all(&self.reader)
@@ -392,8 +393,8 @@ impl Store {
     ) -> Result<bool, sqlx::Error> {
         let mut tx = self.write_transaction().await?;
         let advanced = sqlx::query(
-            "UPDATE tracking_runs SET tracked_through = ? \
-             WHERE id = ? AND state = 'tracking' AND tracked_through IS ? AND lease_token = ?",
+            "UPDATE tracking_runs SET tracked_through = $1 \
+             WHERE id = $2 AND state = 'tracking' AND tracked_through IS NOT DISTINCT FROM $3 AND lease_token = $4",
         )
         .bind(frame)
         .bind(id)
@@ -405,7 +406,7 @@ impl Store {
         if advanced == 0 {
             return Ok(false);
         }
-        sqlx::query("INSERT INTO tracking_frames (run_id, frame, particles) VALUES (?, ?, ?)")
+        sqlx::query("INSERT INTO tracking_frames (run_id, frame, particles) VALUES ($1, $2, $3)")
             .bind(id)
             .bind(frame)
             .bind(particles)
@@ -428,7 +429,7 @@ impl Store {
         let mut tx = self.write_transaction().await?;
         let done = sqlx::query(
             "UPDATE tracking_runs SET state = 'finished', lease_owner = NULL, lease_until = NULL \
-             WHERE id = ? AND state = 'tracking' AND tracked_through IS ? AND lease_token = ?",
+             WHERE id = $1 AND state = 'tracking' AND tracked_through IS NOT DISTINCT FROM $2 AND lease_token = $3",
         )
         .bind(id)
         .bind(through)
@@ -451,8 +452,8 @@ impl Store {
         error: &str,
     ) -> Result<(), sqlx::Error> {
         sqlx::query(
-            "UPDATE tracking_runs SET state = 'failed', error = ? \
-             WHERE id = ? AND state = 'tracking'",
+            "UPDATE tracking_runs SET state = 'failed', error = $1 \
+             WHERE id = $2 AND state = 'tracking'",
         )
         .bind(error)
         .bind(id)
@@ -463,7 +464,7 @@ impl Store {
 
     /// How many trajectories the run has stored.
     pub async fn trajectory_count(&self, id: TrackingRunId) -> Result<i64, sqlx::Error> {
-        let (n,): (i64,) = sqlx::query_as("SELECT count(*) FROM trajectories WHERE run_id = ?")
+        let (n,): (i64,) = sqlx::query_as("SELECT count(*) FROM trajectories WHERE run_id = $1")
             .bind(id)
             .fetch_one(&self.reader)
             .await?;
@@ -483,15 +484,15 @@ impl Store {
     ) -> Result<Vec<TrajectoryRow>, sqlx::Error> {
         sqlx::query_as(
             "SELECT id, first_frame, last_frame, length FROM trajectories \
-             WHERE run_id = ? AND length >= ? AND last_frame >= ? AND first_frame <= ? AND id > ? \
-             ORDER BY id LIMIT ?",
+             WHERE run_id = $1 AND length >= $2 AND last_frame >= $3 AND first_frame <= $4 AND id > $5 \
+             ORDER BY id LIMIT $6",
         )
         .bind(id)
         .bind(min_length)
         .bind(frames.0)
         .bind(frames.1)
         .bind(after)
-        .bind(limit)
+        .bind(i64::from(limit))
         .fetch_all(&self.reader)
         .await
     }
@@ -504,7 +505,7 @@ impl Store {
     ) -> Result<Option<TrajectoryRow>, sqlx::Error> {
         sqlx::query_as(
             "SELECT id, first_frame, last_frame, length FROM trajectories \
-             WHERE run_id = ? AND id = ?",
+             WHERE run_id = $1 AND id = $2",
         )
         .bind(id)
         .bind(trajectory)
@@ -522,7 +523,7 @@ impl Store {
     ) -> Result<Vec<PointRow>, sqlx::Error> {
         sqlx::query_as(&format!(
             "SELECT {POINT_COLUMNS} FROM trajectory_points \
-             WHERE run_id = ? AND trajectory BETWEEN ? AND ? AND frame BETWEEN ? AND ? \
+             WHERE run_id = $1 AND trajectory BETWEEN $2 AND $3 AND frame BETWEEN $4 AND $5 \
              ORDER BY trajectory, frame"
         ))
         .bind(id)
@@ -542,7 +543,7 @@ impl Store {
         frame: FrameNumber,
     ) -> Result<Vec<(i64, i64)>, sqlx::Error> {
         sqlx::query_as(
-            "SELECT particle, trajectory FROM trajectory_points WHERE run_id = ? AND frame = ? \
+            "SELECT particle, trajectory FROM trajectory_points WHERE run_id = $1 AND frame = $2 \
              ORDER BY particle",
         )
         .bind(id)
@@ -555,19 +556,19 @@ impl Store {
 /// Inserts a tracking run inside the caller's transaction, with the
 /// sequence's calibration as the one its recovery projects with.
 pub(super) async fn insert_run(
-    tx: &mut Transaction<'_, Sqlite>,
+    tx: &mut Transaction<'_, Any>,
     sequence_id: SequenceId,
     parameters: &str,
     finish_requested: bool,
 ) -> Result<TrackingRunRow, sqlx::Error> {
     sqlx::query_as(&format!(
         "INSERT INTO tracking_runs (sequence_id, parameters, finish_requested, calibration_id) \
-         VALUES (?, ?, ?, (SELECT calibration_id FROM sequences WHERE id = ?)) \
+         VALUES ($1, $2, $3, (SELECT calibration_id FROM sequences WHERE id = $4)) \
          RETURNING {RUN_COLUMNS}"
     ))
     .bind(sequence_id)
     .bind(parameters)
-    .bind(finish_requested)
+    .bind(i64::from(finish_requested))
     .bind(sequence_id)
     .fetch_one(&mut **tx)
     .await
@@ -576,37 +577,40 @@ pub(super) async fn insert_run(
 /// Inserts trajectory points and brings their trajectories' extents up to
 /// date, inside the caller's transaction.
 async fn insert_points(
-    tx: &mut Transaction<'_, Sqlite>,
+    tx: &mut Transaction<'_, Any>,
     id: TrackingRunId,
     points: &[PointRow],
 ) -> Result<(), sqlx::Error> {
     for chunk in points.chunks(POINTS_PER_STATEMENT) {
-        let mut insert: QueryBuilder<Sqlite> = QueryBuilder::new(format!(
-            "INSERT INTO trajectory_points (run_id, {POINT_COLUMNS}) "
-        ));
-        insert.push_values(chunk, |mut row, p| {
+        let sql = format!(
+            "INSERT INTO trajectory_points (run_id, {POINT_COLUMNS}) VALUES {}",
+            super::placeholders(chunk.len(), 17)
+        );
+        let mut insert = sqlx::query(&sql);
+        for p in chunk {
             let [u, v, w] = p.velocity.map_or([None; 3], |v| v.map(Some));
             let [ax, ay, az] = p.acceleration.map_or([None; 3], |a| a.map(Some));
             let [su, sv, sw] = p.velocity_sigma.map_or([None; 3], |s| s.map(Some));
-            row.push_bind(id)
-                .push_bind(p.trajectory)
-                .push_bind(p.frame)
-                .push_bind(p.particle)
-                .push_bind(p.position[0])
-                .push_bind(p.position[1])
-                .push_bind(p.position[2])
-                .push_bind(u)
-                .push_bind(v)
-                .push_bind(w)
-                .push_bind(ax)
-                .push_bind(ay)
-                .push_bind(az)
-                .push_bind(su)
-                .push_bind(sv)
-                .push_bind(sw)
-                .push_bind(p.targets.clone());
-        });
-        insert.build().execute(&mut **tx).await?;
+            insert = insert
+                .bind(id)
+                .bind(p.trajectory)
+                .bind(p.frame)
+                .bind(p.particle)
+                .bind(p.position[0])
+                .bind(p.position[1])
+                .bind(p.position[2])
+                .bind(u)
+                .bind(v)
+                .bind(w)
+                .bind(ax)
+                .bind(ay)
+                .bind(az)
+                .bind(su)
+                .bind(sv)
+                .bind(sw)
+                .bind(p.targets.as_str());
+        }
+        insert.execute(&mut **tx).await?;
     }
     // Per trajectory: its frames and points among these.
     let mut extents: std::collections::BTreeMap<i64, (FrameNumber, FrameNumber, i64)> =
@@ -619,23 +623,26 @@ async fn insert_points(
     }
     let extents: Vec<_> = extents.into_iter().collect();
     for chunk in extents.chunks(POINTS_PER_STATEMENT) {
-        let mut upsert: QueryBuilder<Sqlite> = QueryBuilder::new(
-            "INSERT INTO trajectories (run_id, id, first_frame, last_frame, length) ",
+        let sql = format!(
+            "INSERT INTO trajectories (run_id, id, first_frame, last_frame, length) VALUES {} \
+             ON CONFLICT (run_id, id) DO UPDATE SET \
+             first_frame = CASE WHEN excluded.first_frame < trajectories.first_frame \
+                           THEN excluded.first_frame ELSE trajectories.first_frame END, \
+             last_frame = CASE WHEN excluded.last_frame > trajectories.last_frame \
+                          THEN excluded.last_frame ELSE trajectories.last_frame END, \
+             length = trajectories.length + excluded.length",
+            super::placeholders(chunk.len(), 5)
         );
-        upsert.push_values(chunk, |mut row, (trajectory, (first, last, length))| {
-            row.push_bind(id)
-                .push_bind(*trajectory)
-                .push_bind(*first)
-                .push_bind(*last)
-                .push_bind(*length);
-        });
-        upsert.push(
-            " ON CONFLICT (run_id, id) DO UPDATE SET \
-             first_frame = min(first_frame, excluded.first_frame), \
-             last_frame = max(last_frame, excluded.last_frame), \
-             length = length + excluded.length",
-        );
-        upsert.build().execute(&mut **tx).await?;
+        let mut upsert = sqlx::query(&sql);
+        for (trajectory, (first, last, length)) in chunk {
+            upsert = upsert
+                .bind(id)
+                .bind(*trajectory)
+                .bind(*first)
+                .bind(*last)
+                .bind(*length);
+        }
+        upsert.execute(&mut **tx).await?;
     }
     Ok(())
 }
