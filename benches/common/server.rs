@@ -29,6 +29,7 @@ impl Server {
             timeouts: Timeouts::default(),
             job_limits: Default::default(),
             lease: Default::default(),
+            objects: Default::default(),
         };
         let workers = args.worker_count();
         let app = Application::build(args).await.unwrap();

@@ -244,6 +244,7 @@ impl JobOutcome {
             Err(
                 JobError::Retry(message)
                 | JobError::StorageFull(message)
+                | JobError::Unavailable(message)
                 | JobError::Deferred(message),
             ) => JobOutcome::Requeued(message.clone()),
             Err(JobError::LostLease) => JobOutcome::Lost,

@@ -84,6 +84,11 @@ pub enum JobError {
     /// [`STORAGE_FULL_PAUSE`] before its next claim.
     #[error("{0}")]
     StorageFull(String),
+    /// The object store cannot be reached: not the job's fault, so the
+    /// attempt is given back uncounted and the job not claimed again for
+    /// [`UNAVAILABLE_PAUSE`], however often.
+    #[error("{0}")]
+    Unavailable(String),
     /// The job waits for other work (its sequence's computed background):
     /// given back uncounted, not claimed again for a while
     /// ([`super::preprocessing::WAIT_FOR_BACKGROUND`]); the message says
@@ -100,7 +105,32 @@ pub enum JobError {
 /// before it claims again (or tries again to give the job back).
 pub const STORAGE_FULL_PAUSE: Duration = Duration::from_secs(2);
 
+/// How long a job whose attempt found the object store out of reach waits
+/// before it is claimed again.
+pub const UNAVAILABLE_PAUSE: Duration = Duration::from_secs(5);
+
 impl JobError {
+    /// An image store error while reading `what` (`the image of camera
+    /// 2`): out of reach, the attempt is given back; a full disk waits for
+    /// space; a missing file that a committed row names fails the job
+    /// (the store lost it: nothing a retry mends); other I/O is retried.
+    pub fn image(what: &str, error: super::images::ImageStoreError) -> JobError {
+        use super::images::ImageStoreError;
+        match error {
+            ImageStoreError::Unavailable(message) => {
+                JobError::Unavailable(format!("{what}: {message}"))
+            }
+            ImageStoreError::Io(error) if super::images::is_storage_full(&error) => {
+                JobError::StorageFull(format!("the disk is full; waiting for space: {error}"))
+            }
+            ImageStoreError::Missing { sha256 } => JobError::Failed(format!(
+                "{what} is missing from the image store (image {sha256}), although a \
+                 committed row refers to it: the store lost it"
+            )),
+            error => JobError::Retry(format!("{what}: {error}")),
+        }
+    }
+
     /// The job cannot succeed: it fails with `error` and its causes as
     /// its message.
     pub fn failed(error: impl std::error::Error + 'static) -> JobError {
@@ -599,6 +629,14 @@ async fn execute(state: &Arc<AppState>, kinds: &JobKinds, job: ClaimedJob) {
             tokio::time::sleep(STORAGE_FULL_PAUSE).await;
             "storage_full"
         }
+        Err(JobError::Unavailable(message)) => {
+            tracing::warn!(job = %job.id, %message, "the object store is out of reach; job queued again");
+            let delay = UNAVAILABLE_PAUSE.as_secs_f64();
+            if let Err(error) = state.store.defer(&job, &message, delay).await {
+                fenced(error);
+            }
+            "unavailable"
+        }
         Err(JobError::Deferred(note)) => {
             let delay = super::preprocessing::WAIT_FOR_BACKGROUND.as_secs_f64();
             if let Err(error) = state.store.defer(&job, &note, delay).await {
@@ -816,9 +854,11 @@ async fn frame_work(
         let mut targets = Vec::with_capacity(cameras);
         for (index, (camera, sha256)) in images.into_iter().enumerate() {
             cancel.check().map_err(JobError::failed)?;
-            let bytes = state.images.read(&sha256).await.map_err(|e| {
-                JobError::Failed(format!("the image of camera {camera} is missing: {e}"))
-            })?;
+            let bytes = state
+                .images
+                .read(&sha256)
+                .await
+                .map_err(|e| JobError::image(&format!("the image of camera {camera}"), e))?;
             let (pipeline, work_cancel) = (pipeline.clone(), cancel.clone());
             let found = state
                 .cpu
@@ -1100,10 +1140,8 @@ pub async fn solve_calibration(state: Arc<AppState>, run: JobRun) -> Result<(), 
     let mut files = Vec::new();
     for file in state.store.job_files(run.job.id).await? {
         let bytes = state.images.read(&file.sha256).await.map_err(|e| {
-            JobError::Failed(format!(
-                "the file of {} is missing: {e}",
-                part_source(&file.part, file.camera.map(|c| c as usize))
-            ))
+            let part = part_source(&file.part, file.camera.map(|c| c as usize));
+            JobError::image(&format!("the file of {part}"), e)
         })?;
         files.push((file, bytes));
     }

@@ -287,7 +287,7 @@ async fn synthetic_experiment_gives_the_true_particles() {
     assert_eq!(count(&db, "SELECT count(*) FROM images").await, 0);
     assert_eq!(count(&db, "SELECT count(*) FROM job_files").await, 0);
     assert_eq!(count(&db, "SELECT count(*) FROM particles").await, FRAMES);
-    let files = walk(&app.data_dir.path().join("images"));
+    let files = stored_images(app.data_dir.path()).await;
     assert!(files.is_empty(), "{files:?}");
 
     let metrics = app.get_text(format!("{}/metrics", app.address)).await;

@@ -110,7 +110,7 @@ async fn killed_service_processes_every_accepted_frame_exactly_once() {
     }
     // No image rows are left (the sequence keeps none), and no files.
     assert_eq!(count(&db, "SELECT count(*) FROM images").await, 0);
-    assert!(crate::api::walk(&data_dir.path().join("images")).is_empty());
+    assert!(stored_images(data_dir.path()).await.is_empty());
 }
 
 /// The lease in the worker test (s): short, so that the takeover is
@@ -394,4 +394,122 @@ async fn processes_started_together_on_a_new_data_directory_all_run() {
             );
         }
     }
+}
+
+/// Frames uploaded in the object store fault test.
+const OUTAGE_FRAMES: i64 = 16;
+
+/// How long the S3 server is down in the fault test.
+const OUTAGE: std::time::Duration = std::time::Duration::from_secs(10);
+
+/// Under `PTV_TEST_OBJECT_STORE=s3` only (the local directory has no
+/// server to stop): the S3 server is killed (-9) for 10 s while frames are
+/// uploaded and processed, then started again on its port and directory.
+/// Uploads meanwhile get 503 with `Retry-After` (or wait in
+/// `object_store`'s retries and succeed) and succeed again afterwards;
+/// every accepted (202) frame ends processed, none failed, none lost.
+/// This test has an S3 server of its own, so that the outage does not
+/// touch the other tests running in the same process.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_object_store_outage_during_uploads_loses_no_accepted_frame() {
+    if !s3_tests() {
+        return; // Specific to the S3 backend: no server to stop otherwise.
+    }
+    let _ = s3_server(); // the AWS variables
+    let server = std::sync::Arc::new(std::sync::Mutex::new(S3Server::launch()));
+    let endpoint = server.lock().unwrap().endpoint.clone();
+    let app = spawn_app_configured(|args| {
+        args.objects.url = Some(format!("s3://{TEST_BUCKET}/outage").parse().unwrap());
+        args.objects.s3_endpoint = Some(endpoint);
+    })
+    .await;
+    let (rig, sequence) = app.rig_sequence().await;
+    let files: Vec<Vec<u8>> = rig.render(300, 78).images.iter().map(png).collect();
+
+    let uploads = {
+        let (client, address) = (app.client.clone(), app.address.clone());
+        tokio::spawn(async move {
+            let mut unavailable = 0;
+            let deadline = std::time::Instant::now() + std::time::Duration::from_secs(300);
+            for frame in 0..OUTAGE_FRAMES {
+                loop {
+                    assert!(
+                        std::time::Instant::now() < deadline,
+                        "uploads never recovered"
+                    );
+                    let response = client
+                        .post(format!("{address}/api/v1/sequences/{sequence}/frames"))
+                        .multipart(image_form(frame, &files))
+                        .send()
+                        .await
+                        .unwrap();
+                    let status = response.status().as_u16();
+                    let retry_after = response.headers().get("retry-after").cloned();
+                    let body = response.text().await.unwrap();
+                    match status {
+                        202 => break,
+                        503 => {
+                            let seconds: u64 = retry_after
+                                .expect("a 503 says when to retry")
+                                .to_str()
+                                .unwrap()
+                                .parse()
+                                .unwrap();
+                            assert!(body.contains("object store"), "{body}");
+                            unavailable += 1;
+                            tokio::time::sleep(std::time::Duration::from_secs(seconds.min(2)))
+                                .await;
+                        }
+                        other => panic!("frame {frame}: {other} {body}"),
+                    }
+                }
+            }
+            unavailable
+        })
+    };
+    // The outage starts once a few frames are in.
+    loop {
+        let (_, view) = app.get_json(&format!("/sequences/{sequence}")).await;
+        let counts = &view["frames"];
+        let total: i64 = ["queued", "running", "done", "failed"]
+            .iter()
+            .map(|state| counts[state].as_i64().unwrap_or(0))
+            .sum();
+        if total >= 3 {
+            break;
+        }
+        tokio::time::sleep(std::time::Duration::from_millis(20)).await;
+    }
+    {
+        let server = server.clone();
+        tokio::task::spawn_blocking(move || server.lock().unwrap().stop())
+            .await
+            .unwrap();
+    }
+    tokio::time::sleep(OUTAGE).await;
+    {
+        let server = server.clone();
+        tokio::task::spawn_blocking(move || server.lock().unwrap().start())
+            .await
+            .unwrap();
+    }
+    let unavailable = uploads.await.unwrap();
+    // 10 s is longer than `object_store`'s retries of one request (about
+    // 6 s of backoff), so the uploads during the outage were answered 503.
+    assert!(unavailable > 0, "no upload saw the outage");
+
+    let view = app.wait_for_sequence(sequence).await;
+    assert_eq!(view["frames"]["done"], OUTAGE_FRAMES, "{view}");
+    assert_eq!(view["frames"]["failed"], 0, "{view}");
+    let db = app.database().await;
+    assert_eq!(
+        count(&db, "SELECT count(*) FROM particles").await,
+        OUTAGE_FRAMES
+    );
+    assert_eq!(
+        count(&db, "SELECT count(*) FROM jobs WHERE state = 'succeeded'").await,
+        OUTAGE_FRAMES
+    );
+    app.stop().await;
+    drop(server);
 }

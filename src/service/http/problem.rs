@@ -6,7 +6,8 @@
 //! without their details; everything a caller can cause is a 4xx. A full
 //! disk, the database's (SQLITE_FULL) or the image store's (ENOSPC), is a
 //! 507 with `Retry-After`: nothing is stored, and the same request may
-//! succeed once space is freed, without a restart. The
+//! succeed once space is freed, without a restart. An object store that
+//! cannot be reached is a 503 with `Retry-After`. The
 //! status follows from the error's type (the `From` impls below, as
 //! realworld-axum-sqlx maps its errors), so handlers use `?`.
 
@@ -58,6 +59,10 @@ pub struct ApiError {
 /// again once the service's disk was full.
 pub const STORAGE_FULL_RETRY_AFTER_S: u32 = 30;
 
+/// `Retry-After` of a 503 for an object store out of reach: a restarting
+/// server is back within seconds.
+pub const STORE_UNAVAILABLE_RETRY_AFTER_S: u32 = 5;
+
 impl ApiError {
     /// An error of `status` with `detail`.
     pub fn new(status: StatusCode, detail: impl Into<String>) -> ApiError {
@@ -108,6 +113,19 @@ impl ApiError {
                 StatusCode::INSUFFICIENT_STORAGE,
                 "the service's disk is full; nothing was stored. Try again later \
                  (Retry-After); the service recovers by itself once space is freed",
+            )
+        }
+    }
+    /// 503: the object store cannot be reached; logged, answered with
+    /// `Retry-After`.
+    pub fn store_unavailable(error: impl std::fmt::Display) -> ApiError {
+        tracing::error!(%error, "object store unavailable");
+        ApiError {
+            retry_after: Some(STORE_UNAVAILABLE_RETRY_AFTER_S),
+            ..ApiError::new(
+                StatusCode::SERVICE_UNAVAILABLE,
+                "the service's object store cannot be reached; nothing was stored. Try \
+                 again later (Retry-After)",
             )
         }
     }
@@ -209,6 +227,22 @@ impl From<std::io::Error> for ApiError {
             ApiError::storage_full(error)
         } else {
             ApiError::internal(error)
+        }
+    }
+}
+
+impl From<images::ImageStoreError> for ApiError {
+    /// A full local disk is a 507 and an object store out of reach a 503,
+    /// both with `Retry-After`; an image missing that a row refers to,
+    /// and anything else, a 500 (logged with what is missing).
+    fn from(error: images::ImageStoreError) -> Self {
+        match error {
+            images::ImageStoreError::Io(error) => error.into(),
+            images::ImageStoreError::Unavailable(_) => ApiError::store_unavailable(error),
+            images::ImageStoreError::Missing { .. } => ApiError::internal(format!(
+                "{error}, although a committed row refers to it: the store lost it"
+            )),
+            images::ImageStoreError::Other(_) => ApiError::internal(error),
         }
     }
 }
