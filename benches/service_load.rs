@@ -9,7 +9,13 @@
 //! cargo bench --bench service_load -- --png       # PNG images
 //! cargo bench --bench service_load -- --frames 400 --clients 8 --workers 2
 //! cargo bench --bench service_load -- --worker-processes 2 --workers 1
+//! AWS_ENDPOINT_URL=http://127.0.0.1:9014 AWS_ALLOW_HTTP=true AWS_ACCESS_KEY_ID=k \
+//!   AWS_SECRET_ACCESS_KEY=s cargo bench --bench service_load -- --object-store s3://ptv/load
 //! ```
+//!
+//! With `--object-store URL` (or `PTV_OBJECT_STORE`) the images go to that
+//! S3-compatible store, in the server and in the worker processes (which
+//! inherit the variables), as with `ptv serve --object-store`.
 //!
 //! With `--worker-processes N` the service in this process serves only
 //! (`--workers 0`) and N `ptv worker` processes (each with `--workers`,
@@ -70,6 +76,13 @@ fn options() -> Options {
             "--particles" => options.particles = number("--particles"),
             "--png" => options.png = true,
             "--worker-processes" => options.worker_processes = number("--worker-processes"),
+            // Read where `ptv serve` reads it (and the worker processes
+            // inherit it); set before any thread starts.
+            "--object-store" => std::env::set_var(
+                "PTV_OBJECT_STORE",
+                args.next()
+                    .expect("--object-store needs s3://bucket/prefix"),
+            ),
             // cargo bench passes --bench; ignore what we do not know.
             _ => {}
         }

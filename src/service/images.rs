@@ -721,6 +721,90 @@ mod tests {
     use super::*;
 
     #[test]
+    fn object_store_urls_are_parsed_or_refused_saying_why() {
+        let url: ObjectStoreUrl = "s3://ptv-images/lab/campaign-7/".parse().unwrap();
+        assert_eq!(url.bucket, "ptv-images");
+        assert_eq!(url.prefix, "lab/campaign-7");
+        let bare: ObjectStoreUrl = "s3://ptv-images".parse().unwrap();
+        assert_eq!(bare.prefix, "");
+        for (bad, says) in [
+            ("/data/images", "not an s3:// URL"),
+            ("gs://bucket/x", "not an s3:// URL"),
+            ("s3://", "not an S3 bucket name"),
+            ("s3://Upper/x", "not an S3 bucket name"),
+            ("s3://ab/x", "not an S3 bucket name"),
+            ("s3://bucket/a/../b", "not a usable prefix"),
+            ("s3://bucket/a//b", "not a usable prefix"),
+        ] {
+            let error = bad.parse::<ObjectStoreUrl>().unwrap_err();
+            assert!(error.contains(says), "{bad}: {error}");
+        }
+    }
+
+    #[test]
+    fn a_missing_object_is_told_from_an_unreachable_store() {
+        let missing = object_store::Error::NotFound {
+            path: "images/ab/abc".to_owned(),
+            source: "404".into(),
+        };
+        assert!(matches!(
+            ImageStoreError::from_object_store(missing, Some("abc")),
+            ImageStoreError::Missing { sha256 } if sha256 == "abc"
+        ));
+        let refused = object_store::Error::Generic {
+            store: "S3",
+            source: Box::new(io::Error::from(io::ErrorKind::ConnectionRefused)),
+        };
+        assert!(matches!(
+            ImageStoreError::from_object_store(refused, Some("abc")),
+            ImageStoreError::Unavailable(_)
+        ));
+        let denied = object_store::Error::PermissionDenied {
+            path: "images".to_owned(),
+            source: "403 access denied".into(),
+        };
+        assert!(matches!(
+            ImageStoreError::from_object_store(denied, None),
+            ImageStoreError::Other(_)
+        ));
+    }
+
+    /// A real request to a port where nothing listens: the error that
+    /// `object_store` gives after its retries reads as unreachable.
+    #[tokio::test]
+    async fn a_refused_connection_reads_as_unavailable() {
+        use object_store::aws::AmazonS3Builder;
+        let port = std::net::TcpListener::bind("127.0.0.1:0")
+            .unwrap()
+            .local_addr()
+            .unwrap()
+            .port();
+        let store = AmazonS3Builder::new()
+            .with_bucket_name("ptv-test")
+            .with_region("us-east-1")
+            .with_access_key_id("key")
+            .with_secret_access_key("secret")
+            .with_endpoint(format!("http://127.0.0.1:{port}"))
+            .with_allow_http(true)
+            .with_retry(object_store::RetryConfig {
+                max_retries: 1,
+                retry_timeout: Duration::from_secs(2),
+                ..Default::default()
+            })
+            .build()
+            .unwrap();
+        let error = store
+            .get(&ObjectPath::from("images/ab/abc"))
+            .await
+            .unwrap_err();
+        let error = ImageStoreError::from_object_store(error, Some("abc"));
+        assert!(
+            matches!(error, ImageStoreError::Unavailable(_)),
+            "{error:?}"
+        );
+    }
+
+    #[test]
     fn a_full_disk_is_told_from_other_io_errors() {
         assert!(is_storage_full(&io::Error::from_raw_os_error(28)));
         assert!(!is_storage_full(&io::Error::from_raw_os_error(13)));

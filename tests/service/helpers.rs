@@ -147,6 +147,7 @@ impl S3Server {
             .arg(&binary)
             .arg(&self.root)
             .stdin(Stdio::null())
+            .stderr(Stdio::null())
             .spawn()
             .expect("the S3 server starts");
         self.child = Some(child);
