@@ -494,8 +494,9 @@ async fn an_object_store_outage_during_uploads_loses_no_accepted_frame() {
             .unwrap();
     }
     let unavailable = uploads.await.unwrap();
-    // 10 s is longer than `object_store`'s retries of one request (about
-    // 6 s of backoff), so the uploads during the outage were answered 503.
+    // 10 s is longer than `object_store`'s retries of one request (6
+    // retries, 1.6 s of backoff against a refused connection here, at most
+    // 15 s), so the uploads during the outage were answered 503.
     assert!(unavailable > 0, "no upload saw the outage");
 
     let view = app.wait_for_sequence(sequence).await;
