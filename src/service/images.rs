@@ -425,10 +425,21 @@ impl ImageStore {
         })
     }
 
-    /// Whether the images go to an object store rather than the data
-    /// directory.
-    pub fn is_object_store(&self) -> bool {
-        matches!(self.backend, Backend::Objects { .. })
+    /// Whether the store answers within `limit`: the local directory
+    /// always does (a full disk shows on a write); an object store must
+    /// answer a listing of its prefix (one request, no retries counted
+    /// beyond the limit).
+    pub async fn ready(&self, limit: Duration) -> Result<(), ImageStoreError> {
+        let Backend::Objects { store, root } = &self.backend else {
+            return Ok(());
+        };
+        match tokio::time::timeout(limit, store.list_with_delimiter(Some(root))).await {
+            Ok(Ok(_)) => Ok(()),
+            Ok(Err(error)) => Err(ImageStoreError::from_object_store(error, None)),
+            Err(_) => Err(ImageStoreError::Unavailable(format!(
+                "no answer within {limit:?}"
+            ))),
+        }
     }
 
     /// The directory of uploads in progress (emptied at every start): for

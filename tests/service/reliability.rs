@@ -407,7 +407,8 @@ const OUTAGE: std::time::Duration = std::time::Duration::from_secs(10);
 /// uploaded and processed, then started again on its port and directory.
 /// Uploads meanwhile get 503 with `Retry-After` (or wait in
 /// `object_store`'s retries and succeed) and succeed again afterwards;
-/// every accepted (202) frame ends processed, none failed, none lost.
+/// every accepted (202) frame ends processed, none failed, none lost;
+/// `/readyz` is 503 during the outage and 200 after it.
 /// This test has an S3 server of its own, so that the outage does not
 /// touch the other tests running in the same process.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -486,7 +487,18 @@ async fn an_object_store_outage_during_uploads_loses_no_accepted_frame() {
             .await
             .unwrap();
     }
-    tokio::time::sleep(OUTAGE).await;
+    let started = std::time::Instant::now();
+    // Readiness says so meanwhile.
+    let ready = app
+        .client
+        .get(format!("{}/readyz", app.address))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(ready.status().as_u16(), 503);
+    let detail = ready.text().await.unwrap();
+    assert!(detail.contains("object store"), "{detail}");
+    tokio::time::sleep(OUTAGE.saturating_sub(started.elapsed())).await;
     {
         let server = server.clone();
         tokio::task::spawn_blocking(move || server.lock().unwrap().start())
@@ -499,6 +511,10 @@ async fn an_object_store_outage_during_uploads_loses_no_accepted_frame() {
     // 15 s), so the uploads during the outage were answered 503.
     assert!(unavailable > 0, "no upload saw the outage");
 
+    assert_eq!(
+        app.get_text(format!("{}/readyz", app.address)).await,
+        "ready\n"
+    );
     let view = app.wait_for_sequence(sequence).await;
     assert_eq!(view["frames"]["done"], OUTAGE_FRAMES, "{view}");
     assert_eq!(view["frames"]["failed"], 0, "{view}");
