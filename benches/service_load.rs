@@ -10,12 +10,18 @@
 //! cargo bench --bench service_load -- --frames 400 --clients 8 --workers 2
 //! cargo bench --bench service_load -- --worker-processes 2 --workers 1
 //! cargo bench --bench service_load -- --database postgres://ptv@127.0.0.1:5432/ptv
+//! AWS_ENDPOINT_URL=http://127.0.0.1:9014 AWS_ALLOW_HTTP=true AWS_ACCESS_KEY_ID=k \
+//!   AWS_SECRET_ACCESS_KEY=s cargo bench --bench service_load -- --object-store s3://ptv/load
 //! ```
 //!
 //! With `--database URL` the service and the worker processes keep their
 //! state and queue in that PostgreSQL database (which must be empty or
 //! this bench's own: it is migrated, and the frames added to it) instead
 //! of SQLite in the temporary data directory.
+//!
+//! With `--object-store URL` (or `PTV_OBJECT_STORE`) the images go to that
+//! S3-compatible store, in the server and in the worker processes (which
+//! inherit the variables), as with `ptv serve --object-store`.
 //!
 //! With `--worker-processes N` the service in this process serves only
 //! (`--workers 0`) and N `ptv worker` processes (each with `--workers`,
@@ -79,6 +85,13 @@ fn options() -> Options {
             "--png" => options.png = true,
             "--worker-processes" => options.worker_processes = number("--worker-processes"),
             "--database" => options.database = args.next(),
+            // Read where `ptv serve` reads it (and the worker processes
+            // inherit it); set before any thread starts.
+            "--object-store" => std::env::set_var(
+                "PTV_OBJECT_STORE",
+                args.next()
+                    .expect("--object-store needs s3://bucket/prefix"),
+            ),
             // cargo bench passes --bench; ignore what we do not know.
             _ => {}
         }

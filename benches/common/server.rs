@@ -1,6 +1,7 @@
 //! The service started in this process for the load benches
 //! (`service_load`, `service_tracking`), on a temporary data directory,
-//! with the serving defaults but for the upload limit.
+//! with the serving defaults but for the upload limit; images in the object
+//! store `PTV_OBJECT_STORE` names, if set (as for `ptv serve`).
 
 use std::path::Path;
 
@@ -31,6 +32,14 @@ impl Server {
             timeouts: Timeouts::default(),
             job_limits: Default::default(),
             lease: Default::default(),
+            // As `ptv serve` reads them: images in an object store when
+            // PTV_OBJECT_STORE is set (endpoint: AWS_ENDPOINT_URL).
+            objects: ptv::service::config::ObjectStoreArgs {
+                url: std::env::var("PTV_OBJECT_STORE")
+                    .ok()
+                    .map(|url| url.parse().expect("PTV_OBJECT_STORE is s3://bucket/prefix")),
+                s3_endpoint: std::env::var("AWS_ENDPOINT_URL").ok(),
+            },
         };
         let workers = args.worker_count();
         let app = Application::build(args).await.unwrap();

@@ -15,7 +15,7 @@ use tokio::sync::{watch, Notify};
 use super::config::{ServeArgs, WorkerArgs};
 use super::connections::{self, Registry};
 use super::events;
-use super::images::ImageStore;
+use super::images::{ImageStore, SweepError, SWEEP_INTERVAL};
 use super::jobs::{self, CpuPool, JobKinds, PipelineCache};
 use super::metrics::Metrics;
 use super::store::{self, Store, WorkerId};
@@ -97,29 +97,14 @@ impl Application {
         let workers = config.worker_count();
         let readers = (workers as u32 + 4).min(16);
         let store = open_and_reap(&config, readers).await?;
-        let images = ImageStore::open(data_dir).map_err(|e| ServiceError::io(data_dir, e))?;
-        // A process killed between committing a frame's results and
-        // deleting its images leaves files no row refers to. Under the
-        // store's lock: a worker process may be storing a file meanwhile.
-        let mut swept = 0;
-        let guard = images.lock().await;
-        for hash in images.stored().map_err(|e| ServiceError::io(data_dir, e))? {
-            if !store
-                .image_in_use(&hash)
-                .await
-                .map_err(ServiceError::Database)?
-            {
-                images
-                    .remove(&hash)
-                    .await
-                    .map_err(|e| ServiceError::io(data_dir, e))?;
-                swept += 1;
-            }
-        }
-        drop(guard);
-        if swept > 0 {
-            tracing::warn!(files = swept, "removed image files no frame refers to");
-        }
+        let images = ImageStore::open(data_dir, config.objects.location())
+            .await
+            .map_err(ServiceError::Images)?;
+        // A process killed between storing a file and committing its rows,
+        // or between committing a frame's results and deleting its images,
+        // leaves files no row refers to. A worker process may be storing
+        // a file meanwhile: see `ImageStore::sweep`.
+        sweep(&store, &images).await?;
         let cpu =
             CpuPool::new(config.cpu_threads()).map_err(|e| ServiceError::Start(e.to_string()))?;
         let listener = TcpListener::bind(config.bind)
@@ -179,6 +164,7 @@ impl Application {
         let (stop_workers, stopped) = watch::channel(false);
         let workers = start_workers(&state, kinds, stopped);
         tokio::spawn(events::follow(state.events.clone(), state.store.clone()));
+        let sweeper = tokio::spawn(sweep_every(state.clone(), SWEEP_INTERVAL));
         let router = http::router(state.clone());
         let settings = connections::Settings::new(&state.config);
         // Event streams never end by themselves: they end at the shutdown,
@@ -189,6 +175,7 @@ impl Application {
             events.close();
         };
         connections::serve(listener, router, connections, settings, shutdown).await;
+        sweeper.abort();
         let _ = stop_workers.send(true);
         drain(&state, workers).await;
         state.store.close().await;
@@ -199,6 +186,30 @@ impl Application {
 /// How long a starting process waits for a database server that cannot
 /// be reached before it gives up.
 const DATABASE_WAIT: Duration = Duration::from_secs(60);
+
+/// Removes the stored files no row refers to ([`ImageStore::sweep`]),
+/// saying how many.
+async fn sweep(store: &Store, images: &ImageStore) -> Result<(), ServiceError> {
+    let swept = images.sweep(store).await.map_err(|e| match e {
+        SweepError::Images(e) => ServiceError::Images(e),
+        SweepError::Database(e) => ServiceError::Database(e),
+    })?;
+    if swept > 0 {
+        tracing::warn!(files = swept, "removed image files no frame refers to");
+    }
+    Ok(())
+}
+
+/// The sweep of a running `ptv serve`, every `interval` (the only process
+/// that sweeps: workers never do, so there is one sweeper per database).
+async fn sweep_every(state: Arc<AppState>, interval: Duration) {
+    loop {
+        tokio::time::sleep(interval).await;
+        if let Err(error) = sweep(&state.store, &state.images).await {
+            tracing::warn!(%error, "cannot remove unused image files; trying again later");
+        }
+    }
+}
 
 /// Opens the database and ends the leases that processes of this host
 /// left when they died ([`Store::reap`]).
@@ -291,7 +302,9 @@ pub async fn run_worker(
     let workers = config.worker_count();
     let readers = (workers as u32 + 4).min(16);
     let store = open_and_reap(&config, readers).await?;
-    let images = ImageStore::open_shared(&data_dir).map_err(|e| ServiceError::io(&data_dir, e))?;
+    let images = ImageStore::open_shared(&data_dir, config.objects.location())
+        .await
+        .map_err(ServiceError::Images)?;
     let cpu = CpuPool::new(workers).map_err(|e| ServiceError::Start(e.to_string()))?;
     let metrics = Arc::new(Metrics::default());
     let state = AppState::start(config, store, images, cpu, metrics);

@@ -7,6 +7,7 @@ use std::time::Duration;
 
 use clap::Args;
 
+use super::images::ObjectStoreUrl;
 use super::store::PostgresUrl;
 
 /// Arguments of `ptv serve` (and of `ptv` without a subcommand).
@@ -56,6 +57,36 @@ pub struct ServeArgs {
     /// How long a worker holds a job (and a tracking run) it claimed.
     #[command(flatten)]
     pub lease: Lease,
+    /// Where the images go: the data directory, or an object store.
+    #[command(flatten)]
+    pub objects: ObjectStoreArgs,
+}
+
+/// Where images (and every other stored file) are kept: under the data
+/// directory by default, or in an S3-compatible object store, which
+/// workers on other hosts read without a shared disk.
+#[derive(Clone, Debug, Default, Args)]
+pub struct ObjectStoreArgs {
+    /// `s3://bucket/prefix`: images in an S3-compatible object store
+    /// (credentials and region from `AWS_ACCESS_KEY_ID`,
+    /// `AWS_SECRET_ACCESS_KEY`, `AWS_REGION`; `AWS_ALLOW_HTTP=true` for a
+    /// plain-http endpoint) instead of the data directory, which then
+    /// holds only temporary files [default: DATA_DIR/images]
+    #[arg(long = "object-store", env = "PTV_OBJECT_STORE")]
+    pub url: Option<ObjectStoreUrl>,
+    /// The S3 endpoint for `--object-store` (MinIO, Ceph: `http://host:9000`)
+    /// [default: AWS's, for the region]
+    #[arg(long = "s3-endpoint", env = "AWS_ENDPOINT_URL")]
+    pub s3_endpoint: Option<String>,
+}
+
+impl ObjectStoreArgs {
+    /// The object store and its endpoint, if one is given.
+    pub fn location(&self) -> Option<(&ObjectStoreUrl, Option<&str>)> {
+        self.url
+            .as_ref()
+            .map(|url| (url, self.s3_endpoint.as_deref()))
+    }
 }
 
 /// Arguments of `ptv worker`: a process that runs jobs from the data
@@ -81,6 +112,9 @@ pub struct WorkerArgs {
     /// How long a worker holds a job (and a tracking run) it claimed.
     #[command(flatten)]
     pub lease: Lease,
+    /// Where the images are: as given to `ptv serve`.
+    #[command(flatten)]
+    pub objects: ObjectStoreArgs,
 }
 
 impl WorkerArgs {
@@ -99,6 +133,7 @@ impl WorkerArgs {
             timeouts: Timeouts::default(),
             job_limits: self.job_limits.clone(),
             lease: self.lease.clone(),
+            objects: self.objects.clone(),
         }
     }
 

@@ -1,22 +1,86 @@
-//! The image store: uploaded camera images as files under the data
-//! directory, named by the SHA-256 of their bytes (`images/ab/abcdef...`).
+//! The image store: uploaded camera images (and every other stored file:
+//! job inputs, backgrounds, masks), named by the SHA-256 of their bytes,
+//! in one of two backends behind this one type, so that the HTTP layer and
+//! the jobs do not know which runs:
 //!
-//! An upload streams into a temporary file (`tmp/`) while it is hashed, so
-//! no image is ever held whole in memory by the HTTP layer; once the
-//! request is complete the file is renamed to its hash. The database holds
-//! which frame uses which hash. [`ImageStore::lock`] orders "rename, then
-//! commit the rows" against "no row left, so delete the file", so a file
-//! is never deleted while a frame being stored refers to it; across
-//! processes too (`ptv serve` and `ptv worker` on one data directory): it
-//! holds an exclusive `flock` on `images.lock` in the data directory
-//! besides the process's own mutex.
+//! - **the local directory** (the default): files under the data
+//!   directory (`images/ab/abcdef...`);
+//! - **an S3-compatible object store** (`--object-store s3://bucket/prefix`:
+//!   AWS, MinIO, Ceph; objects `PREFIX/images/ab/abcdef...`), through
+//!   apache arrow-rs's `object_store` crate (request signing, retries with
+//!   backoff, multipart uploads, the usual AWS variables).
+//!
+//! The local backend stays our own code rather than `object_store`'s
+//! `LocalFileSystem`: that one would have to keep the guarantees below
+//! (the `flock`, a full disk told apart as 507, the temporary files'
+//! cleanup) around it anyway, and a rename into place is what it does too.
+//!
+//! In both, an upload streams into a temporary file under the data
+//! directory (`tmp/`) while it is hashed, so no image is ever held whole in
+//! memory by the HTTP layer; the data directory stays the place of such
+//! scratch files whatever the backend. The database holds which frame
+//! (or job, or background) uses which hash.
+//!
+//! # Persist, then commit; delete only what no row refers to
+//!
+//! Invariant: **no object is deleted while a committed row refers to it**,
+//! and an object a failed or crashed upload left is removed eventually
+//! (by [`ImageStore::sweep`], at every `ptv serve` start and every
+//! [`SWEEP_INTERVAL`] while it runs).
+//!
+//! [`ImageStore::lock`] orders the two critical sections:
+//!
+//! - *storing* (the request that uploads, or a job storing a background):
+//!   [`ImageStore::stage`] each file first, without the lock (the local
+//!   backend does nothing here; S3 puts the object, multipart above
+//!   [`MULTIPART_ABOVE`]); then, holding the lock, [`ImageStore::persist`]
+//!   each (local: rename into place; S3: check that the object is there
+//!   and put it again from the temporary file, still kept, if not) and
+//!   commit the rows;
+//! - *deleting*: holding the lock, check that no row refers to the hash
+//!   ([`super::store::Store::image_in_use`]), then [`ImageStore::remove`].
+//!
+//! Why this is enough: a deletion of hash `h` either ends before a storing
+//! section for `h` starts, and then that section finds the object missing
+//! and puts it again before committing; or it starts after the section
+//! committed, and then it sees the row and deletes nothing. The object put
+//! before the section (S3's `stage`) may be deleted meanwhile: that is the
+//! first case. Only the check and the commit wait for the lock, never an
+//! upload's transfer, so uploads to S3 proceed in parallel.
+//!
+//! The lock must be held by one process at a time among all that share
+//! the database. It is the process's own mutex, then an exclusive `flock`
+//! on `images.lock` in the data directory: exact for every process on one
+//! SQLite database, which lie on one host by construction (SQLite is not
+//! shared across hosts), whatever the image backend; then, on PostgreSQL,
+//! whose processes may run on any host, a transaction-level advisory lock
+//! in the database ([`Store::lock_across_hosts`], [`IMAGES_LOCK_KEY`]),
+//! held by one connection per process (the mutex comes first). The
+//! protocol above stays as it is. S3 offers no conditional delete
+//! that could replace it (an object's ETag is the same for the same
+//! content, so `If-Match` cannot tell a re-upload from the old object).
+//!
+//! # Errors
+//!
+//! [`ImageStoreError`] says by type what went wrong: a full local disk
+//! (507 to a client, a job waiting for space), an object store that cannot
+//! be reached or answers 5xx after `object_store`'s own retries (503 with
+//! `Retry-After`, a job attempt given back uncounted), an object missing
+//! that a committed row refers to (an internal error that says so).
 
 use std::io;
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::Duration;
 
+use futures_util::StreamExt;
+use object_store::path::Path as ObjectPath;
+use object_store::ObjectStore;
 use sha2::{Digest, Sha256};
-use tokio::io::AsyncWriteExt;
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::sync::{Mutex, MutexGuard};
+
+use super::store::{HostsLock, Store};
 
 /// The operating system's "no space left on device" (ENOSPC: 28 on Linux
 /// and the BSDs) and "disk quota exceeded" (EDQUOT) codes;
@@ -40,11 +104,178 @@ pub fn is_storage_full(error: &io::Error) -> bool {
         .is_some_and(|code| STORAGE_FULL_CODES.contains(&code))
 }
 
-/// The files of uploaded images.
+/// Files larger than this go to S3 as multipart uploads, in parts of this
+/// size (S3's smallest part is 5 MiB); smaller ones in one request, read
+/// whole from their temporary file.
+pub const MULTIPART_ABOVE: usize = 8 << 20;
+
+/// How often a running `ptv serve` removes the objects no row refers to
+/// (left by crashed uploads), besides at its start.
+pub const SWEEP_INTERVAL: Duration = Duration::from_secs(3600);
+
+/// How long one request to the object store may take, retries included
+/// (`object_store`'s retry timeout), before the store counts as
+/// unavailable: short enough that a client gets its 503 well within the
+/// request timeout, long enough to ride out a server's restart.
+pub const OBJECT_STORE_RETRY_TIMEOUT: Duration = Duration::from_secs(15);
+
+/// What went wrong in the image store, by kind.
+#[derive(Debug, thiserror::Error)]
+pub enum ImageStoreError {
+    /// A local file operation failed (a full disk among them:
+    /// [`is_storage_full`]).
+    #[error("the image store: {0}")]
+    Io(#[from] io::Error),
+    /// The object store cannot be reached: connection refused or reset,
+    /// timeouts, or 5xx answers after `object_store`'s own retries. The
+    /// same operation may succeed later.
+    #[error("the object store cannot be reached (try again later): {0}")]
+    Unavailable(String),
+    /// An image that should be there is not.
+    #[error("image {sha256} is missing from the image store")]
+    Missing {
+        /// Its hash.
+        sha256: String,
+    },
+    /// The object store refused the operation otherwise (credentials,
+    /// a missing bucket, a malformed answer).
+    #[error("the object store: {0}")]
+    Other(String),
+}
+
+impl ImageStoreError {
+    /// Sorts an `object_store` error: a missing object, the store out of
+    /// reach, or anything else. `object_store` 0.12 keeps its retry
+    /// error's type private, so a 5xx after its retries is told by the
+    /// status in its message; connection and timeout errors by the HTTP
+    /// client's own error in the chain.
+    fn from_object_store(error: object_store::Error, sha256: Option<&str>) -> ImageStoreError {
+        if let (object_store::Error::NotFound { .. }, Some(sha256)) = (&error, sha256) {
+            return ImageStoreError::Missing {
+                sha256: sha256.to_owned(),
+            };
+        }
+        let message = super::jobs::error_chain(&error);
+        if unreachable(&error) {
+            ImageStoreError::Unavailable(message)
+        } else {
+            ImageStoreError::Other(message)
+        }
+    }
+}
+
+/// Whether an `object_store` error means the server could not be reached
+/// or failed on its side (see [`ImageStoreError::Unavailable`]).
+fn unreachable(error: &object_store::Error) -> bool {
+    use object_store::client::HttpErrorKind;
+    let mut source: Option<&(dyn std::error::Error + 'static)> = Some(error);
+    while let Some(error) = source {
+        if let Some(http) = error.downcast_ref::<object_store::client::HttpError>() {
+            if matches!(
+                http.kind(),
+                HttpErrorKind::Connect
+                    | HttpErrorKind::Request
+                    | HttpErrorKind::Timeout
+                    | HttpErrorKind::Interrupted
+            ) {
+                return true;
+            }
+        }
+        if let Some(http) = error.downcast_ref::<reqwest::Error>() {
+            if http.is_connect() || http.is_timeout() || http.is_request() {
+                return true;
+            }
+        }
+        if let Some(io) = error.downcast_ref::<io::Error>() {
+            if matches!(
+                io.kind(),
+                io::ErrorKind::ConnectionRefused
+                    | io::ErrorKind::ConnectionReset
+                    | io::ErrorKind::ConnectionAborted
+                    | io::ErrorKind::TimedOut
+                    | io::ErrorKind::BrokenPipe
+            ) {
+                return true;
+            }
+        }
+        let text = error.to_string();
+        if text.contains("status code: 5") || text.contains("error sending request") {
+            return true;
+        }
+        source = error.source();
+    }
+    false
+}
+
+/// Where images are stored: `--object-store`.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct ObjectStoreUrl {
+    /// The bucket.
+    pub bucket: String,
+    /// The prefix within it, without slashes at either end (may be empty).
+    pub prefix: String,
+}
+
+impl std::str::FromStr for ObjectStoreUrl {
+    type Err = String;
+
+    /// `s3://bucket` or `s3://bucket/prefix/of/any/depth`.
+    fn from_str(text: &str) -> Result<Self, Self::Err> {
+        let rest = text.strip_prefix("s3://").ok_or_else(|| {
+            format!(
+                "`{text}` is not an s3:// URL; give s3://bucket/prefix (leave the option out \
+                 for images in the data directory)"
+            )
+        })?;
+        let (bucket, prefix) = rest.split_once('/').unwrap_or((rest, ""));
+        let valid_bucket = (3..=63).contains(&bucket.len())
+            && bucket
+                .bytes()
+                .all(|b| b.is_ascii_lowercase() || b.is_ascii_digit() || b == b'-' || b == b'.');
+        if !valid_bucket {
+            return Err(format!(
+                "`{bucket}` is not an S3 bucket name (3 to 63 lower-case letters, digits, \
+                 dots and hyphens): give s3://bucket/prefix"
+            ));
+        }
+        let prefix = prefix.trim_matches('/');
+        if prefix.split('/').any(|p| p == "." || p == "..")
+            || prefix.contains("//")
+            || prefix.chars().any(char::is_control)
+        {
+            return Err(format!(
+                "`{prefix}` is not a usable prefix: no empty, `.` or `..` parts"
+            ));
+        }
+        Ok(ObjectStoreUrl {
+            bucket: bucket.to_owned(),
+            prefix: prefix.to_owned(),
+        })
+    }
+}
+
+impl std::fmt::Display for ObjectStoreUrl {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "s3://{}/{}", self.bucket, self.prefix)
+    }
+}
+
+/// Where the bytes live.
+#[derive(Debug)]
+enum Backend {
+    /// `images/` under the data directory.
+    Local { root: PathBuf },
+    /// An S3-compatible object store, under `PREFIX/images/`.
+    Objects {
+        store: Arc<dyn ObjectStore>,
+        root: ObjectPath,
+    },
+}
+
+/// The stored files, in their backend.
 #[derive(Debug)]
 pub struct ImageStore {
-    /// `images/` under the data directory.
-    root: PathBuf,
+    backend: Backend,
     /// `tmp/` under the data directory: uploads in progress.
     tmp: PathBuf,
     /// Held while files are persisted and their rows committed, or while
@@ -55,12 +286,18 @@ pub struct ImageStore {
 }
 
 /// The image store's lock, held until dropped (closing the locked file
-/// releases its `flock`).
+/// releases its `flock`; ending the transaction, PostgreSQL's advisory
+/// lock).
 #[derive(Debug)]
 pub struct ImageLock<'a> {
     _guard: MutexGuard<'a, ()>,
     _file: Option<std::fs::File>,
+    _hosts: HostsLock,
 }
+
+/// The key of the image store's advisory lock on PostgreSQL ("ptvimage"
+/// in ASCII): one lock for every process on the database.
+pub const IMAGES_LOCK_KEY: i64 = 0x7074_7669_6d61_6765;
 
 /// An upload being written.
 #[derive(Debug)]
@@ -97,31 +334,121 @@ impl UploadedFile {
     }
 }
 
+/// The S3 client of `--object-store`: endpoint from `endpoint` (else
+/// `AWS_ENDPOINT_URL` / `AWS_ENDPOINT`), region and credentials from the
+/// usual AWS variables (`AWS_REGION`, `AWS_ACCESS_KEY_ID`,
+/// `AWS_SECRET_ACCESS_KEY`, `AWS_SESSION_TOKEN`; `AWS_ALLOW_HTTP=true`
+/// for a plain-http endpoint such as a lab's MinIO); path-style requests
+/// when an endpoint is given (what MinIO and most self-hosted servers
+/// need). Retries end after [`OBJECT_STORE_RETRY_TIMEOUT`].
+fn s3_client(
+    url: &ObjectStoreUrl,
+    endpoint: Option<&str>,
+) -> Result<Arc<dyn ObjectStore>, ImageStoreError> {
+    use object_store::aws::AmazonS3Builder;
+    use object_store::{ClientOptions, RetryConfig};
+    let mut builder = AmazonS3Builder::from_env().with_bucket_name(&url.bucket);
+    let endpoint = endpoint.map(str::to_owned).or_else(|| {
+        std::env::var("AWS_ENDPOINT_URL")
+            .ok()
+            .or_else(|| std::env::var("AWS_ENDPOINT").ok())
+    });
+    if let Some(endpoint) = endpoint {
+        builder = builder
+            .with_endpoint(endpoint)
+            .with_virtual_hosted_style_request(false);
+    }
+    if std::env::var_os("AWS_REGION").is_none() && std::env::var_os("AWS_DEFAULT_REGION").is_none()
+    {
+        builder = builder.with_region("us-east-1");
+    }
+    let retry = RetryConfig {
+        retry_timeout: OBJECT_STORE_RETRY_TIMEOUT,
+        max_retries: 6,
+        ..RetryConfig::default()
+    };
+    let allow_http = std::env::var("AWS_ALLOW_HTTP").is_ok_and(|v| v == "true" || v == "1");
+    let options = ClientOptions::new()
+        .with_allow_http(allow_http)
+        .with_connect_timeout(Duration::from_secs(5))
+        .with_timeout(Duration::from_secs(120));
+    let store = builder
+        .with_retry(retry)
+        .with_client_options(options)
+        .build()
+        .map_err(|e| ImageStoreError::Other(super::jobs::error_chain(&e)))?;
+    Ok(Arc::new(store))
+}
+
 impl ImageStore {
     /// Opens the store under `data_dir`, creating its directories and
     /// removing uploads a stopped process left half-written (`ptv serve`,
-    /// which takes the uploads).
-    pub fn open(data_dir: &Path) -> io::Result<ImageStore> {
+    /// which takes the uploads); `objects`: the object store's URL and
+    /// endpoint, if the images go there.
+    pub async fn open(
+        data_dir: &Path,
+        objects: Option<(&ObjectStoreUrl, Option<&str>)>,
+    ) -> Result<ImageStore, ImageStoreError> {
         let tmp = data_dir.join("tmp");
         if tmp.exists() {
             std::fs::remove_dir_all(&tmp)?;
         }
-        ImageStore::open_shared(data_dir)
+        ImageStore::open_shared(data_dir, objects).await
     }
 
     /// Opens the store under `data_dir` next to a `ptv serve` that may be
-    /// taking uploads into it (`ptv worker`): nothing is removed.
-    pub fn open_shared(data_dir: &Path) -> io::Result<ImageStore> {
-        let root = data_dir.join("images");
+    /// taking uploads into it (`ptv worker`): nothing is removed. With an
+    /// object store, its bucket is listed once, so that a wrong bucket or
+    /// credentials show at the start.
+    pub async fn open_shared(
+        data_dir: &Path,
+        objects: Option<(&ObjectStoreUrl, Option<&str>)>,
+    ) -> Result<ImageStore, ImageStoreError> {
         let tmp = data_dir.join("tmp");
-        std::fs::create_dir_all(&root)?;
         std::fs::create_dir_all(&tmp)?;
+        let backend = match objects {
+            None => {
+                let root = data_dir.join("images");
+                std::fs::create_dir_all(&root)?;
+                Backend::Local { root }
+            }
+            Some((url, endpoint)) => {
+                let store = s3_client(url, endpoint)?;
+                let root = if url.prefix.is_empty() {
+                    ObjectPath::from("images")
+                } else {
+                    ObjectPath::from(format!("{}/images", url.prefix))
+                };
+                store
+                    .list_with_delimiter(Some(&root))
+                    .await
+                    .map_err(|e| ImageStoreError::from_object_store(e, None))?;
+                Backend::Objects { store, root }
+            }
+        };
         Ok(ImageStore {
-            root,
+            backend,
             tmp,
             lock: Mutex::new(()),
             lock_file: data_dir.join("images.lock"),
         })
+    }
+
+    /// Whether the store answers within `limit`: the local directory
+    /// always does (a full disk shows on a write); an object store must
+    /// answer a listing of its prefix (one request, no retries counted
+    /// beyond the limit).
+    pub async fn ready(&self, limit: Duration) -> Result<(), ImageStoreError> {
+        let Backend::Objects { store, root } = &self.backend else {
+            return Ok(());
+        };
+        match tokio::time::timeout(limit, store.list_with_delimiter(Some(root))).await {
+            Ok(Ok(_)) => Ok(()),
+            Ok(Err(error)) => Err(ImageStoreError::from_object_store(error, None)),
+            Err(_) => Err(ImageStoreError::Unavailable(format!(
+                "no answer within {limit:?}"
+            ))),
+        }
     }
 
     /// The directory of uploads in progress (emptied at every start): for
@@ -144,16 +471,24 @@ impl ImageStore {
         })
     }
 
-    /// The file of an image.
-    pub fn path(&self, sha256: &str) -> PathBuf {
+    /// The local file of an image (`images/ab/abcdef...`).
+    fn local_path(root: &Path, sha256: &str) -> PathBuf {
         let prefix = sha256.get(..2).unwrap_or("00");
-        self.root.join(prefix).join(sha256)
+        root.join(prefix).join(sha256)
     }
 
-    /// Holds the store's lock; see the module's doc. Where the lock file
-    /// cannot be opened or locked (a file system without `flock`), only
-    /// the process's own mutex is held, with a warning.
-    pub async fn lock(&self) -> ImageLock<'_> {
+    /// The object of an image (`PREFIX/images/ab/abcdef...`).
+    fn object_path(root: &ObjectPath, sha256: &str) -> ObjectPath {
+        let prefix = sha256.get(..2).unwrap_or("00");
+        root.child(prefix).child(sha256)
+    }
+
+    /// Holds the store's lock, for every process on `database`; see the
+    /// module's doc. Where the lock file cannot be opened or locked (a
+    /// file system without `flock`), the process's own mutex stands in for
+    /// it, with a warning. Fails only where the database's lock cannot be
+    /// taken (PostgreSQL out of reach).
+    pub async fn lock(&self, database: &Store) -> Result<ImageLock<'_>, sqlx::Error> {
         let guard = self.lock.lock().await;
         let file = match super::file_lock::exclusive(self.lock_file.clone()).await {
             Ok(file) => Some(file),
@@ -162,52 +497,211 @@ impl ImageStore {
                 None
             }
         };
-        ImageLock {
+        let hosts = database.lock_across_hosts(IMAGES_LOCK_KEY).await?;
+        Ok(ImageLock {
             _guard: guard,
             _file: file,
-        }
+            _hosts: hosts,
+        })
     }
 
-    /// Moves an upload to its place (a file of the same content may be
-    /// there already). Call with the lock held, then commit the rows.
-    pub async fn persist(&self, mut upload: UploadedFile) -> io::Result<()> {
-        let target = self.path(&upload.sha256);
-        if let Some(parent) = target.parent() {
-            tokio::fs::create_dir_all(parent).await?;
-        }
-        if let Some(path) = upload.path.take() {
-            tokio::fs::rename(&path, &target).await?;
-        }
-        Ok(())
-    }
-
-    /// The hashes of every stored image file.
-    pub fn stored(&self) -> io::Result<Vec<String>> {
-        let mut hashes = Vec::new();
-        for prefix in std::fs::read_dir(&self.root)? {
-            let prefix = prefix?;
-            if prefix.file_type()?.is_dir() {
-                for file in std::fs::read_dir(prefix.path())? {
-                    hashes.push(file?.file_name().to_string_lossy().into_owned());
-                }
+    /// The first step of storing a file, before the lock: S3 puts the
+    /// object (the file stays in `tmp/` until persisted); the local
+    /// backend does nothing. See the module's doc.
+    pub async fn stage(&self, upload: &UploadedFile) -> Result<(), ImageStoreError> {
+        match (&self.backend, &upload.path) {
+            (Backend::Objects { store, root }, Some(path)) => {
+                put_file(
+                    store.as_ref(),
+                    &Self::object_path(root, &upload.sha256),
+                    path,
+                )
+                .await
             }
-        }
-        Ok(hashes)
-    }
-
-    /// Reads an image's bytes.
-    pub async fn read(&self, sha256: &str) -> io::Result<Vec<u8>> {
-        tokio::fs::read(self.path(sha256)).await
-    }
-
-    /// Deletes an image file; call with the lock held, after checking that
-    /// no row refers to it.
-    pub async fn remove(&self, sha256: &str) -> io::Result<()> {
-        match tokio::fs::remove_file(self.path(sha256)).await {
-            Err(e) if e.kind() != io::ErrorKind::NotFound => Err(e),
             _ => Ok(()),
         }
     }
+
+    /// Puts an upload in its place (one of the same content may be there
+    /// already): local: renamed into `images/`; S3: the object staged is
+    /// checked and put again if a deletion removed it meanwhile. Call
+    /// with the lock held, then commit the rows.
+    pub async fn persist(&self, mut upload: UploadedFile) -> Result<(), ImageStoreError> {
+        match &self.backend {
+            Backend::Local { root } => {
+                let target = Self::local_path(root, &upload.sha256);
+                if let Some(parent) = target.parent() {
+                    tokio::fs::create_dir_all(parent).await?;
+                }
+                if let Some(path) = upload.path.take() {
+                    tokio::fs::rename(&path, &target).await?;
+                }
+                Ok(())
+            }
+            Backend::Objects { store, root } => {
+                let location = Self::object_path(root, &upload.sha256);
+                match store.head(&location).await {
+                    Ok(_) => Ok(()),
+                    Err(object_store::Error::NotFound { .. }) => match &upload.path {
+                        Some(path) => put_file(store.as_ref(), &location, path).await,
+                        None => Err(ImageStoreError::Missing {
+                            sha256: upload.sha256.clone(),
+                        }),
+                    },
+                    Err(error) => Err(ImageStoreError::from_object_store(error, None)),
+                }
+            }
+        }
+    }
+
+    /// The hashes of every stored image.
+    pub async fn stored(&self) -> Result<Vec<String>, ImageStoreError> {
+        match &self.backend {
+            Backend::Local { root } => {
+                let mut hashes = Vec::new();
+                for prefix in std::fs::read_dir(root)? {
+                    let prefix = prefix?;
+                    if prefix.file_type()?.is_dir() {
+                        for file in std::fs::read_dir(prefix.path())? {
+                            hashes.push(file?.file_name().to_string_lossy().into_owned());
+                        }
+                    }
+                }
+                Ok(hashes)
+            }
+            Backend::Objects { store, root } => {
+                let mut hashes = Vec::new();
+                let mut listing = store.list(Some(root));
+                while let Some(object) = listing.next().await {
+                    let object = object.map_err(|e| ImageStoreError::from_object_store(e, None))?;
+                    if let Some(name) = object.location.filename() {
+                        hashes.push(name.to_owned());
+                    }
+                }
+                Ok(hashes)
+            }
+        }
+    }
+
+    /// Reads an image's bytes; [`ImageStoreError::Missing`] if it is not
+    /// stored.
+    pub async fn read(&self, sha256: &str) -> Result<Vec<u8>, ImageStoreError> {
+        match &self.backend {
+            Backend::Local { root } => {
+                match tokio::fs::read(Self::local_path(root, sha256)).await {
+                    Err(e) if e.kind() == io::ErrorKind::NotFound => {
+                        Err(ImageStoreError::Missing {
+                            sha256: sha256.to_owned(),
+                        })
+                    }
+                    read => Ok(read?),
+                }
+            }
+            Backend::Objects { store, root } => {
+                let location = Self::object_path(root, sha256);
+                let fetched = async {
+                    let result = store.get(&location).await?;
+                    result.bytes().await
+                }
+                .await;
+                fetched
+                    .map(|bytes| bytes.to_vec())
+                    .map_err(|e| ImageStoreError::from_object_store(e, Some(sha256)))
+            }
+        }
+    }
+
+    /// Deletes an image; call with the lock held, after checking that no
+    /// row refers to it. Deleting one that is not there is no error.
+    pub async fn remove(&self, sha256: &str) -> Result<(), ImageStoreError> {
+        match &self.backend {
+            Backend::Local { root } => {
+                match tokio::fs::remove_file(Self::local_path(root, sha256)).await {
+                    Err(e) if e.kind() != io::ErrorKind::NotFound => Err(e.into()),
+                    _ => Ok(()),
+                }
+            }
+            Backend::Objects { store, root } => {
+                match store.delete(&Self::object_path(root, sha256)).await {
+                    Ok(()) | Err(object_store::Error::NotFound { .. }) => Ok(()),
+                    Err(error) => Err(ImageStoreError::from_object_store(error, None)),
+                }
+            }
+        }
+    }
+
+    /// Deletes every stored image that no row refers to (left by a process
+    /// killed between storing and committing, or between committing a
+    /// frame's results and deleting its images); how many. The listing
+    /// runs without the lock; each check and deletion holds it (see the
+    /// module's doc), so uploads go on meanwhile.
+    pub async fn sweep(&self, store: &Store) -> Result<usize, SweepError> {
+        let mut swept = 0;
+        for hash in self.stored().await? {
+            let _guard = self.lock(store).await?;
+            if !store.image_in_use(&hash).await? {
+                self.remove(&hash).await?;
+                swept += 1;
+            }
+        }
+        Ok(swept)
+    }
+}
+
+/// Why a sweep stopped.
+#[derive(Debug, thiserror::Error)]
+pub enum SweepError {
+    /// The image store.
+    #[error(transparent)]
+    Images(#[from] ImageStoreError),
+    /// The database.
+    #[error("the database: {0}")]
+    Database(#[from] sqlx::Error),
+}
+
+/// Puts a local file as an object: in one request up to
+/// [`MULTIPART_ABOVE`] bytes, else as a multipart upload read from the
+/// file a part at a time (aborted if a part fails).
+async fn put_file(
+    store: &dyn ObjectStore,
+    location: &ObjectPath,
+    path: &Path,
+) -> Result<(), ImageStoreError> {
+    let unavailable = |e| ImageStoreError::from_object_store(e, None);
+    let mut file = tokio::fs::File::open(path).await?;
+    let size = file.metadata().await?.len();
+    if size <= MULTIPART_ABOVE as u64 {
+        let mut bytes = Vec::with_capacity(size as usize);
+        file.read_to_end(&mut bytes).await?;
+        store
+            .put(location, bytes.into())
+            .await
+            .map_err(unavailable)?;
+        return Ok(());
+    }
+    let upload = store.put_multipart(location).await.map_err(unavailable)?;
+    let mut writer = object_store::WriteMultipart::new_with_chunk_size(upload, MULTIPART_ABOVE);
+    let mut buffer = vec![0; 1 << 20];
+    loop {
+        let n = match file.read(&mut buffer).await {
+            Ok(n) => n,
+            Err(error) => {
+                let _ = writer.abort().await;
+                return Err(error.into());
+            }
+        };
+        if n == 0 {
+            break;
+        }
+        // At most two parts in flight: bounded memory per upload.
+        if let Err(error) = writer.wait_for_capacity(2).await {
+            let _ = writer.abort().await;
+            return Err(unavailable(error));
+        }
+        writer.write(&buffer[..n]);
+    }
+    writer.finish().await.map_err(unavailable)?;
+    Ok(())
 }
 
 impl Upload {
@@ -249,6 +743,90 @@ impl Drop for Upload {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn object_store_urls_are_parsed_or_refused_saying_why() {
+        let url: ObjectStoreUrl = "s3://ptv-images/lab/campaign-7/".parse().unwrap();
+        assert_eq!(url.bucket, "ptv-images");
+        assert_eq!(url.prefix, "lab/campaign-7");
+        let bare: ObjectStoreUrl = "s3://ptv-images".parse().unwrap();
+        assert_eq!(bare.prefix, "");
+        for (bad, says) in [
+            ("/data/images", "not an s3:// URL"),
+            ("gs://bucket/x", "not an s3:// URL"),
+            ("s3://", "not an S3 bucket name"),
+            ("s3://Upper/x", "not an S3 bucket name"),
+            ("s3://ab/x", "not an S3 bucket name"),
+            ("s3://bucket/a/../b", "not a usable prefix"),
+            ("s3://bucket/a//b", "not a usable prefix"),
+        ] {
+            let error = bad.parse::<ObjectStoreUrl>().unwrap_err();
+            assert!(error.contains(says), "{bad}: {error}");
+        }
+    }
+
+    #[test]
+    fn a_missing_object_is_told_from_an_unreachable_store() {
+        let missing = object_store::Error::NotFound {
+            path: "images/ab/abc".to_owned(),
+            source: "404".into(),
+        };
+        assert!(matches!(
+            ImageStoreError::from_object_store(missing, Some("abc")),
+            ImageStoreError::Missing { sha256 } if sha256 == "abc"
+        ));
+        let refused = object_store::Error::Generic {
+            store: "S3",
+            source: Box::new(io::Error::from(io::ErrorKind::ConnectionRefused)),
+        };
+        assert!(matches!(
+            ImageStoreError::from_object_store(refused, Some("abc")),
+            ImageStoreError::Unavailable(_)
+        ));
+        let denied = object_store::Error::PermissionDenied {
+            path: "images".to_owned(),
+            source: "403 access denied".into(),
+        };
+        assert!(matches!(
+            ImageStoreError::from_object_store(denied, None),
+            ImageStoreError::Other(_)
+        ));
+    }
+
+    /// A real request to a port where nothing listens: the error that
+    /// `object_store` gives after its retries reads as unreachable.
+    #[tokio::test]
+    async fn a_refused_connection_reads_as_unavailable() {
+        use object_store::aws::AmazonS3Builder;
+        let port = std::net::TcpListener::bind("127.0.0.1:0")
+            .unwrap()
+            .local_addr()
+            .unwrap()
+            .port();
+        let store = AmazonS3Builder::new()
+            .with_bucket_name("ptv-test")
+            .with_region("us-east-1")
+            .with_access_key_id("key")
+            .with_secret_access_key("secret")
+            .with_endpoint(format!("http://127.0.0.1:{port}"))
+            .with_allow_http(true)
+            .with_retry(object_store::RetryConfig {
+                max_retries: 1,
+                retry_timeout: Duration::from_secs(2),
+                ..Default::default()
+            })
+            .build()
+            .unwrap();
+        let error = store
+            .get(&ObjectPath::from("images/ab/abc"))
+            .await
+            .unwrap_err();
+        let error = ImageStoreError::from_object_store(error, Some("abc"));
+        assert!(
+            matches!(error, ImageStoreError::Unavailable(_)),
+            "{error:?}"
+        );
+    }
 
     #[test]
     fn a_full_disk_is_told_from_other_io_errors() {

@@ -84,9 +84,10 @@ pub enum JobError {
     /// [`STORAGE_FULL_PAUSE`] before its next claim.
     #[error("{0}")]
     StorageFull(String),
-    /// The database cannot be reached for now (PostgreSQL restarting, the
-    /// network): handled as [`JobError::StorageFull`], given back
-    /// uncounted however often, the worker pausing before its next claim.
+    /// The database or the object store cannot be reached for now
+    /// (PostgreSQL or the S3 server restarting, the network): not the
+    /// job's fault, so the attempt is given back uncounted however often,
+    /// and the job is not claimed again for [`UNAVAILABLE_PAUSE`].
     #[error("{0}")]
     Unavailable(String),
     /// The job waits for other work (its sequence's computed background):
@@ -105,7 +106,32 @@ pub enum JobError {
 /// before it claims again (or tries again to give the job back).
 pub const STORAGE_FULL_PAUSE: Duration = Duration::from_secs(2);
 
+/// How long a job whose attempt found the database or the object store
+/// out of reach waits before it is claimed again.
+pub const UNAVAILABLE_PAUSE: Duration = Duration::from_secs(5);
+
 impl JobError {
+    /// An image store error while reading `what` (`the image of camera
+    /// 2`): out of reach, the attempt is given back; a full disk waits for
+    /// space; a missing file that a committed row names fails the job
+    /// (the store lost it: nothing a retry mends); other I/O is retried.
+    pub fn image(what: &str, error: super::images::ImageStoreError) -> JobError {
+        use super::images::ImageStoreError;
+        match error {
+            ImageStoreError::Unavailable(message) => {
+                JobError::Unavailable(format!("{what}: {message}"))
+            }
+            ImageStoreError::Io(error) if super::images::is_storage_full(&error) => {
+                JobError::StorageFull(format!("the disk is full; waiting for space: {error}"))
+            }
+            ImageStoreError::Missing { sha256 } => JobError::Failed(format!(
+                "{what} is missing from the image store (image {sha256}), although a \
+                 committed row refers to it: the store lost it"
+            )),
+            error => JobError::Retry(format!("{what}: {error}")),
+        }
+    }
+
     /// The job cannot succeed: it fails with `error` and its causes as
     /// its message.
     pub fn failed(error: impl std::error::Error + 'static) -> JobError {
@@ -594,12 +620,19 @@ async fn execute(state: &Arc<AppState>, kinds: &JobKinds, job: ClaimedJob) {
             let unavailable = matches!(error, JobError::Unavailable(_));
             let message = error.to_string();
             tracing::warn!(job = %job.id, %message, "job given back uncounted; queued again");
-            // Giving the job back is a write too: on a full disk it may
-            // fail, so keep trying (a shutdown's grace period ends this,
-            // and the job then goes back with the others held); a lost
-            // lease ends it.
+            // Giving the job back is a write too: on a full disk, or with
+            // the database out of reach, it may fail, so keep trying (a
+            // shutdown's grace period ends this, and the job then goes back
+            // with the others held); a lost lease ends it. A job that found
+            // a backend out of reach is not claimed again for a while.
             loop {
-                match state.store.give_back(&job, &message).await {
+                let given_back = if unavailable {
+                    let pause = UNAVAILABLE_PAUSE.as_secs_f64();
+                    state.store.defer(&job, &message, pause).await
+                } else {
+                    state.store.give_back(&job, &message).await
+                };
+                match given_back {
                     Ok(()) => break,
                     Err(error @ CompleteError::LostLease(_)) => {
                         fenced(error);
@@ -613,7 +646,7 @@ async fn execute(state: &Arc<AppState>, kinds: &JobKinds, job: ClaimedJob) {
             }
             tokio::time::sleep(STORAGE_FULL_PAUSE).await;
             if unavailable {
-                "database_unavailable"
+                "unavailable"
             } else {
                 "storage_full"
             }
@@ -835,9 +868,11 @@ async fn frame_work(
         let mut targets = Vec::with_capacity(cameras);
         for (index, (camera, sha256)) in images.into_iter().enumerate() {
             cancel.check().map_err(JobError::failed)?;
-            let bytes = state.images.read(&sha256).await.map_err(|e| {
-                JobError::Failed(format!("the image of camera {camera} is missing: {e}"))
-            })?;
+            let bytes = state
+                .images
+                .read(&sha256)
+                .await
+                .map_err(|e| JobError::image(&format!("the image of camera {camera}"), e))?;
             let (pipeline, work_cancel) = (pipeline.clone(), cancel.clone());
             let found = state
                 .cpu
@@ -1119,10 +1154,8 @@ pub async fn solve_calibration(state: Arc<AppState>, run: JobRun) -> Result<(), 
     let mut files = Vec::new();
     for file in state.store.job_files(run.job.id).await? {
         let bytes = state.images.read(&file.sha256).await.map_err(|e| {
-            JobError::Failed(format!(
-                "the file of {} is missing: {e}",
-                part_source(&file.part, file.camera.map(|c| c as usize))
-            ))
+            let part = part_source(&file.part, file.camera.map(|c| c as usize));
+            JobError::image(&format!("the file of {part}"), e)
         })?;
         files.push((file, bytes));
     }
@@ -1156,7 +1189,14 @@ pub(super) async fn remove_unused_images(
     if hashes.is_empty() {
         return;
     }
-    let _guard = images.lock().await;
+    let _guard = match images.lock(store).await {
+        Ok(guard) => guard,
+        Err(error) => {
+            // The files stay; the next sweep removes them.
+            tracing::warn!(%error, "cannot lock the image store to delete unused files");
+            return;
+        }
+    };
     for hash in hashes {
         match store.image_in_use(hash).await {
             Ok(false) => {

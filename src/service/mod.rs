@@ -16,7 +16,8 @@
 //! - [`jobs`]: the workers, the job kinds, the CPU pool.
 //! - [`store`]: all SQL, one text per query for SQLite (WAL mode, the
 //!   default) and PostgreSQL (`--database`); migrations in `migrations/`.
-//! - [`images`]: uploaded images as content-addressed files.
+//! - [`images`]: uploaded images as content-addressed files, in the data
+//!   directory or an S3-compatible object store (`--object-store`).
 //! - [`codec`]: the compact blobs in which targets and particles are stored.
 //! - [`parameters`]: a sequence's detection and matching parameters.
 //! - [`metrics`]: the counters behind `/metrics`.
@@ -65,6 +66,11 @@ pub enum ServiceError {
     /// The database could not be opened or migrated.
     #[error("the database: {0}")]
     Database(#[source] sqlx::Error),
+    /// The image store could not be opened (a data directory that cannot
+    /// be written, an object store that cannot be reached or refuses the
+    /// credentials).
+    #[error("{0}")]
+    Images(#[source] images::ImageStoreError),
     /// The address could not be bound.
     #[error("cannot listen on {0}: {1}")]
     Bind(SocketAddr, #[source] std::io::Error),

@@ -45,10 +45,10 @@ pub async fn with_stored_images(
     let mut files = Vec::with_capacity(stored.len());
     for image in stored {
         let bytes = state.images.read(&image.sha256).await.map_err(|e| {
-            JobError::Failed(format!(
-                "the sequence's {} of camera {} is missing: {e}",
-                image.kind, image.camera
-            ))
+            JobError::image(
+                &format!("the sequence's {} of camera {}", image.kind, image.camera),
+                e,
+            )
         })?;
         files.push((image.kind, image.camera, bytes));
     }
@@ -124,9 +124,7 @@ pub async fn ensure_computed_background(
         };
         for (camera, sha256) in state.store.frame_images(sequence_id, frame).await? {
             let bytes = state.images.read(&sha256).await.map_err(|e| {
-                JobError::Failed(format!(
-                    "the image of camera {camera} of frame {frame} is missing: {e}"
-                ))
+                JobError::image(&format!("the image of camera {camera} of frame {frame}"), e)
             })?;
             let Some(slot) = usize::try_from(camera).ok().filter(|&c| c < cameras) else {
                 continue;
@@ -218,9 +216,20 @@ async fn store_backgrounds(
         rows.push((camera, file.sha256.clone(), file.size as i64, bits));
         files.push(file);
     }
-    let _guard = state.images.lock().await;
+    for file in &files {
+        state
+            .images
+            .stage(file)
+            .await
+            .map_err(|e| JobError::image("a background", e))?;
+    }
+    let _guard = state.images.lock(&state.store).await?;
     for file in files {
-        state.images.persist(file).await.map_err(io_error)?;
+        state
+            .images
+            .persist(file)
+            .await
+            .map_err(|e| JobError::image("a background", e))?;
     }
     let orphans = state
         .store

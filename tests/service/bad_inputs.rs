@@ -302,7 +302,7 @@ async fn bad_inputs_get_their_4xx_and_store_nothing() {
     assert_eq!(count(&db, "SELECT count(*) FROM images").await, 4);
     assert_eq!(count(&db, "SELECT count(*) FROM sequences").await, 1);
     assert_eq!(count(&db, "SELECT count(*) FROM calibrations").await, 1);
-    let stored = crate::api::walk(&app.data_dir.path().join("images"));
+    let stored = stored_images(app.data_dir.path()).await;
     assert_eq!(stored.len(), 4, "{stored:?}");
     let temporary = crate::api::walk(&app.data_dir.path().join("tmp"));
     assert!(temporary.is_empty(), "{temporary:?}");
@@ -501,7 +501,7 @@ async fn bad_solve_requests_get_their_4xx_and_store_nothing() {
     assert_eq!(count(&db, "SELECT count(*) FROM jobs").await, 0);
     assert_eq!(count(&db, "SELECT count(*) FROM job_files").await, 0);
     assert_eq!(count(&db, "SELECT count(*) FROM calibrations").await, 0);
-    let files = crate::api::walk(&app.data_dir.path().join("images"));
+    let files = stored_images(app.data_dir.path()).await;
     assert!(files.is_empty(), "{files:?}");
     app.stop().await;
 }
@@ -546,10 +546,10 @@ async fn a_solve_that_cannot_calibrate_fails_its_job_with_the_reason() {
 
     // A restart's sweep keeps the files the job's rows name.
     let data_dir = app.stop_keeping_data().await;
-    let files = crate::api::walk(&data_dir.path().join("images"));
+    let files = stored_images(data_dir.path()).await;
     assert_eq!(files.len(), 6, "{files:?}");
     let restarted = spawn_app_in(data_dir).await;
-    let files = crate::api::walk(&restarted.data_dir.path().join("images"));
+    let files = stored_images(restarted.data_dir.path()).await;
     assert_eq!(files.len(), 6, "{files:?}");
     restarted.stop().await;
 }

@@ -52,7 +52,187 @@ pub fn test_args(data_dir: &Path, api_token: Option<&str>) -> ServeArgs {
         timeouts: Timeouts::default(),
         job_limits: JobLimits::default(),
         lease: Default::default(),
+        objects: object_store_args(data_dir),
     }
+}
+
+/// The S3-compatible server of this test process under
+/// `PTV_TEST_OBJECT_STORE=s3`: one `s3s-fs` child process (installed by
+/// `.ci/run` into `target/tools`, or named by `PTV_TEST_S3_SERVER`) on a
+/// free port, over a temporary directory, started at the first use. Every
+/// server a test starts gets its own prefix in its bucket: the name of
+/// its data directory (unique per test, and the same across a restart on
+/// that directory). Unset: images in the data directory, as by default.
+pub struct S3Server {
+    /// `http://127.0.0.1:PORT`.
+    pub endpoint: String,
+    /// The port, kept across a restart.
+    pub port: u16,
+    /// The directory its buckets live in, kept across a restart.
+    pub root: PathBuf,
+    /// The running server (a watchdog shell around `s3s-fs`: it ends when
+    /// this test process does).
+    child: Option<Child>,
+}
+
+/// The bucket the tests' servers use.
+pub const TEST_BUCKET: &str = "ptv-test";
+
+/// Whether this run stores images in the test S3 server.
+pub fn s3_tests() -> bool {
+    std::env::var("PTV_TEST_OBJECT_STORE").is_ok_and(|v| v == "s3")
+}
+
+/// The test process's S3 server, started at the first call.
+pub fn s3_server() -> &'static S3Server {
+    static SERVER: std::sync::OnceLock<S3Server> = std::sync::OnceLock::new();
+    SERVER.get_or_init(|| {
+        // The variables every server reads (in this process, and inherited
+        // by `ptv serve` and `ptv worker` children): set once, before the
+        // first server of the process is built.
+        std::env::set_var("AWS_ACCESS_KEY_ID", "ptv-test");
+        std::env::set_var("AWS_SECRET_ACCESS_KEY", "ptv-test-secret");
+        std::env::set_var("AWS_REGION", "us-east-1");
+        std::env::set_var("AWS_ALLOW_HTTP", "true");
+        S3Server::launch()
+    })
+}
+
+impl S3Server {
+    /// Starts an S3 server of its own (the shared one: [`s3_server`]) on a
+    /// free port over a new directory holding the bucket [`TEST_BUCKET`].
+    pub fn launch() -> S3Server {
+        static NEXT: std::sync::atomic::AtomicU32 = std::sync::atomic::AtomicU32::new(0);
+        let n = NEXT.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        let root = std::env::temp_dir().join(format!("ptv-test-s3-{}-{n}", std::process::id()));
+        std::fs::create_dir_all(root.join(TEST_BUCKET)).unwrap();
+        let port = std::net::TcpListener::bind("127.0.0.1:0")
+            .unwrap()
+            .local_addr()
+            .unwrap()
+            .port();
+        let mut server = S3Server {
+            endpoint: format!("http://127.0.0.1:{port}"),
+            port,
+            root,
+            child: None,
+        };
+        server.start();
+        server
+    }
+
+    /// Starts `s3s-fs` on its port and directory and waits until it
+    /// accepts connections.
+    pub fn start(&mut self) {
+        let binary = std::env::var("PTV_TEST_S3_SERVER")
+            .map(PathBuf::from)
+            .unwrap_or_else(|_| repository().join("target/tools/bin/s3s-fs"));
+        assert!(
+            binary.exists(),
+            "PTV_TEST_OBJECT_STORE=s3 needs the S3 server {}: cargo install s3s-fs --version \
+             0.14.1 --features binary --locked --root target/tools (.ci/run does)",
+            binary.display()
+        );
+        // The shell ends s3s-fs and removes its directory once this test
+        // process is gone (a test process's statics are never dropped).
+        let script = format!(
+            "\"$0\" --host 127.0.0.1 --port {port} --access-key ptv-test \
+             --secret-key ptv-test-secret \"$1\" >/dev/null 2>&1 & child=$!; \
+             while kill -0 {parent} 2>/dev/null && kill -0 $child 2>/dev/null; do sleep 1; done; \
+             kill $child 2>/dev/null; kill -0 {parent} 2>/dev/null || rm -rf \"$1\"",
+            port = self.port,
+            parent = std::process::id(),
+        );
+        let child = Command::new("sh")
+            .args(["-c", &script])
+            .arg(&binary)
+            .arg(&self.root)
+            .stdin(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .expect("the S3 server starts");
+        self.child = Some(child);
+        let deadline = Instant::now() + Duration::from_secs(30);
+        while std::net::TcpStream::connect(("127.0.0.1", self.port)).is_err() {
+            assert!(Instant::now() < deadline, "the S3 server did not start");
+            std::thread::sleep(Duration::from_millis(50));
+        }
+    }
+
+    /// Stops the server (SIGKILL to `s3s-fs` through its watchdog, which
+    /// then ends), as a crash or a network cut would.
+    pub fn stop(&mut self) {
+        if let Some(mut child) = self.child.take() {
+            let _ = Command::new("pkill")
+                .args(["-KILL", "-P", &child.id().to_string()])
+                .status();
+            let _ = child.wait();
+        }
+        let deadline = Instant::now() + Duration::from_secs(10);
+        while std::net::TcpStream::connect(("127.0.0.1", self.port)).is_ok() {
+            assert!(Instant::now() < deadline, "the S3 server did not stop");
+            std::thread::sleep(Duration::from_millis(50));
+        }
+    }
+}
+
+/// `--object-store` of a server on `data_dir`: under
+/// `PTV_TEST_OBJECT_STORE=s3`, `s3://ptv-test/NAME` with NAME the data
+/// directory's name; else none (the data directory).
+/// The variables every server reads (in this process, and inherited
+/// by `ptv serve` and `ptv worker` children) are set at the first call.
+pub fn object_store_url(data_dir: &Path) -> Option<String> {
+    if !s3_tests() {
+        return None;
+    }
+    let _ = s3_server();
+    let name = data_dir.file_name()?.to_string_lossy();
+    Some(format!(
+        "s3://{TEST_BUCKET}/{}",
+        name.trim_start_matches('.')
+    ))
+}
+
+impl Drop for S3Server {
+    fn drop(&mut self) {
+        self.stop();
+        let _ = std::fs::remove_dir_all(&self.root);
+    }
+}
+
+/// The object store settings of an in-process server on `data_dir`.
+pub fn object_store_args(data_dir: &Path) -> ptv::service::config::ObjectStoreArgs {
+    ptv::service::config::ObjectStoreArgs {
+        url: object_store_url(data_dir).map(|url| url.parse().unwrap()),
+        s3_endpoint: object_store_url(data_dir).map(|_| s3_server().endpoint.clone()),
+    }
+}
+
+/// The arguments that give a `ptv serve` or `ptv worker` child on
+/// `data_dir` the test's object store (none without one).
+pub fn object_store_flags(data_dir: &Path) -> Vec<String> {
+    match object_store_url(data_dir) {
+        Some(url) => vec![
+            "--object-store".to_owned(),
+            url,
+            "--s3-endpoint".to_owned(),
+            s3_server().endpoint.clone(),
+        ],
+        None => Vec::new(),
+    }
+}
+
+/// The hashes of the images stored for the servers on `data_dir`, in
+/// whichever backend the tests run (the data directory's `images/`, or
+/// the test bucket's prefix).
+pub async fn stored_images(data_dir: &Path) -> Vec<String> {
+    let args = object_store_args(data_dir);
+    let store = ptv::service::images::ImageStore::open_shared(data_dir, args.location())
+        .await
+        .expect("the image store opens");
+    let mut stored = store.stored().await.expect("the image store lists");
+    stored.sort();
+    stored
 }
 
 /// Starts the service with a fresh data directory.
@@ -481,6 +661,7 @@ impl ServiceProcess {
             .arg("--data-dir")
             .arg(data_dir)
             .args(database_args(data_dir))
+            .args(object_store_flags(data_dir))
             .args(more)
             .stdout(Stdio::piped())
             .stderr(Stdio::null())
@@ -529,6 +710,7 @@ impl WorkerProcess {
             .args(["worker", "--data-dir"])
             .arg(data_dir)
             .args(database_args(data_dir))
+            .args(object_store_flags(data_dir))
             .args(more)
             .envs(env.iter().copied())
             .stdout(Stdio::null())
@@ -690,5 +872,18 @@ impl TestApp {
             assert!(start.elapsed() < PATIENCE, "job still pending: {body}");
             tokio::time::sleep(Duration::from_millis(50)).await;
         }
+    }
+}
+
+/// The store of the servers on `data_dir`, as a process of theirs opens
+/// it: SQLite in the data directory, or under `PTV_TEST_DATABASE=postgres`
+/// the data directory's PostgreSQL database.
+pub async fn open_store(data_dir: &Path) -> ptv::service::store::Store {
+    use ptv::service::store::Store;
+    match crate::postgres::database_url(data_dir) {
+        Some(url) => Store::open_postgres(&url.parse().unwrap(), 4)
+            .await
+            .unwrap(),
+        None => Store::open(data_dir, 4).await.unwrap(),
     }
 }

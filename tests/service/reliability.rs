@@ -110,7 +110,7 @@ async fn killed_service_processes_every_accepted_frame_exactly_once() {
     }
     // No image rows are left (the sequence keeps none), and no files.
     assert_eq!(count(&db, "SELECT count(*) FROM images").await, 0);
-    assert!(crate::api::walk(&data_dir.path().join("images")).is_empty());
+    assert!(stored_images(data_dir.path()).await.is_empty());
 }
 
 /// The lease in the worker test (s): short, so that the takeover is
@@ -403,20 +403,14 @@ async fn processes_started_together_on_a_new_data_directory_all_run() {
 /// other's rows instead of taking them twice or waiting.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn claimers_at_once_never_get_the_same_job() {
-    use ptv::service::store::Store;
     use std::time::Duration;
     const JOBS: usize = 60;
     const CLAIMERS: usize = 8;
     let data_dir = tempfile::tempdir().unwrap();
-    let open = || async {
-        match crate::postgres::database_url(data_dir.path()) {
-            Some(url) => Store::open_postgres(&url.parse().unwrap(), 4)
-                .await
-                .unwrap(),
-            None => Store::open(data_dir.path(), 4).await.unwrap(),
-        }
-    };
-    let stores = [open().await, open().await];
+    let stores = [
+        open_store(data_dir.path()).await,
+        open_store(data_dir.path()).await,
+    ];
     for _ in 0..JOBS {
         stores[0].enqueue("echo", "{}").await.unwrap();
     }
@@ -564,4 +558,196 @@ async fn uploads_survive_postgres_stopped_for_ten_seconds() {
     tokio::task::spawn_blocking(move || server.stop())
         .await
         .unwrap();
+}
+
+/// Frames uploaded in the object store fault test.
+const OUTAGE_FRAMES: i64 = 16;
+
+/// How long the S3 server is down in the fault test.
+const OUTAGE: std::time::Duration = std::time::Duration::from_secs(10);
+
+/// Under `PTV_TEST_OBJECT_STORE=s3` only (the local directory has no
+/// server to stop): the S3 server is killed (-9) for 10 s while frames are
+/// uploaded and processed, then started again on its port and directory.
+/// Uploads meanwhile get 503 with `Retry-After` (or wait in
+/// `object_store`'s retries and succeed) and succeed again afterwards;
+/// every accepted (202) frame ends processed, none failed, none lost;
+/// `/readyz` is 503 during the outage and 200 after it.
+/// This test has an S3 server of its own, so that the outage does not
+/// touch the other tests running in the same process.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_object_store_outage_during_uploads_loses_no_accepted_frame() {
+    if !s3_tests() {
+        return; // Specific to the S3 backend: no server to stop otherwise.
+    }
+    let _ = s3_server(); // the AWS variables
+    let server = std::sync::Arc::new(std::sync::Mutex::new(S3Server::launch()));
+    let endpoint = server.lock().unwrap().endpoint.clone();
+    let app = spawn_app_configured(|args| {
+        args.objects.url = Some(format!("s3://{TEST_BUCKET}/outage").parse().unwrap());
+        args.objects.s3_endpoint = Some(endpoint);
+    })
+    .await;
+    let (rig, sequence) = app.rig_sequence().await;
+    let files: Vec<Vec<u8>> = rig.render(300, 78).images.iter().map(png).collect();
+
+    let uploads = {
+        let (client, address) = (app.client.clone(), app.address.clone());
+        tokio::spawn(async move {
+            let mut unavailable = 0;
+            let deadline = std::time::Instant::now() + std::time::Duration::from_secs(300);
+            for frame in 0..OUTAGE_FRAMES {
+                loop {
+                    assert!(
+                        std::time::Instant::now() < deadline,
+                        "uploads never recovered"
+                    );
+                    let response = client
+                        .post(format!("{address}/api/v1/sequences/{sequence}/frames"))
+                        .multipart(image_form(frame, &files))
+                        .send()
+                        .await
+                        .unwrap();
+                    let status = response.status().as_u16();
+                    let retry_after = response.headers().get("retry-after").cloned();
+                    let body = response.text().await.unwrap();
+                    match status {
+                        202 => break,
+                        503 => {
+                            let seconds: u64 = retry_after
+                                .expect("a 503 says when to retry")
+                                .to_str()
+                                .unwrap()
+                                .parse()
+                                .unwrap();
+                            assert!(body.contains("object store"), "{body}");
+                            unavailable += 1;
+                            tokio::time::sleep(std::time::Duration::from_secs(seconds.min(2)))
+                                .await;
+                        }
+                        other => panic!("frame {frame}: {other} {body}"),
+                    }
+                }
+            }
+            unavailable
+        })
+    };
+    // The outage starts once a few frames are in.
+    loop {
+        let (_, view) = app.get_json(&format!("/sequences/{sequence}")).await;
+        let counts = &view["frames"];
+        let total: i64 = ["queued", "running", "done", "failed"]
+            .iter()
+            .map(|state| counts[state].as_i64().unwrap_or(0))
+            .sum();
+        if total >= 3 {
+            break;
+        }
+        tokio::time::sleep(std::time::Duration::from_millis(20)).await;
+    }
+    {
+        let server = server.clone();
+        tokio::task::spawn_blocking(move || server.lock().unwrap().stop())
+            .await
+            .unwrap();
+    }
+    let started = std::time::Instant::now();
+    // Readiness says so meanwhile.
+    let ready = app
+        .client
+        .get(format!("{}/readyz", app.address))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(ready.status().as_u16(), 503);
+    let detail = ready.text().await.unwrap();
+    assert!(detail.contains("object store"), "{detail}");
+    tokio::time::sleep(OUTAGE.saturating_sub(started.elapsed())).await;
+    {
+        let server = server.clone();
+        tokio::task::spawn_blocking(move || server.lock().unwrap().start())
+            .await
+            .unwrap();
+    }
+    let unavailable = uploads.await.unwrap();
+    // 10 s is longer than `object_store`'s retries of one request (6
+    // retries, 1.6 s of backoff against a refused connection here, at most
+    // 15 s), so the uploads during the outage were answered 503.
+    assert!(unavailable > 0, "no upload saw the outage");
+
+    assert_eq!(
+        app.get_text(format!("{}/readyz", app.address)).await,
+        "ready\n"
+    );
+    let view = app.wait_for_sequence(sequence).await;
+    assert_eq!(view["frames"]["done"], OUTAGE_FRAMES, "{view}");
+    assert_eq!(view["frames"]["failed"], 0, "{view}");
+    let db = app.database().await;
+    assert_eq!(
+        count(&db, "SELECT count(*) FROM particles").await,
+        OUTAGE_FRAMES
+    );
+    assert_eq!(
+        count(&db, "SELECT count(*) FROM jobs WHERE state = 'succeeded'").await,
+        OUTAGE_FRAMES
+    );
+    app.stop().await;
+    drop(server);
+}
+
+/// The image store's lock (persist and commit against "no row, so
+/// delete") excludes every process on the database: on SQLite those of
+/// its one data directory (the `flock`), on PostgreSQL those of every
+/// host (an advisory lock in the database; here two data directories,
+/// whose `flock`s cannot see each other, stand for two hosts). The
+/// second process waits until the first lets go.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_image_lock_holds_across_hosts() {
+    use ptv::service::images::ImageStore;
+    use std::time::Duration;
+    let (first_dir, other_dir) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
+    // SQLite's processes share one host, and so one data directory.
+    let postgres = crate::postgres::database_url(first_dir.path()).is_some();
+    let second_dir = if postgres {
+        other_dir.path()
+    } else {
+        first_dir.path()
+    };
+    // Both on the first's database.
+    let open = |dir: std::path::PathBuf| {
+        let database = first_dir.path().to_owned();
+        async move {
+            let store = open_store(&database).await;
+            let images = ImageStore::open_shared(&dir, None).await.unwrap();
+            (store, images)
+        }
+    };
+    let first = open(first_dir.path().to_owned()).await;
+    let second = std::sync::Arc::new(open(second_dir.to_owned()).await);
+    let held = first.1.lock(&first.0).await.unwrap();
+    let (took, taken) = tokio::sync::oneshot::channel();
+    let waiter = {
+        let second = second.clone();
+        tokio::spawn(async move {
+            let _lock = second.1.lock(&second.0).await.unwrap();
+            let _ = took.send(());
+        })
+    };
+    let mut taken = taken;
+    // Half a second is many times what taking a free lock costs (a few
+    // ms); the waiter must not have it while the first holds it.
+    assert!(
+        tokio::time::timeout(Duration::from_millis(500), &mut taken)
+            .await
+            .is_err(),
+        "a second process took the image lock while the first held it"
+    );
+    drop(held);
+    tokio::time::timeout(Duration::from_secs(10), taken)
+        .await
+        .expect("the second process takes the lock once it is free")
+        .unwrap();
+    waiter.await.unwrap();
+    first.0.close().await;
+    second.0.close().await;
 }

@@ -546,6 +546,7 @@ mod tests {
             },
             job_limits: Default::default(),
             lease: Default::default(),
+            objects: Default::default(),
         }
     }
 

@@ -132,7 +132,9 @@ pub async fn healthz() -> &'static str {
 }
 
 /// Readiness: 200 `ready` when the database takes a write lock within
-/// 5 s, else 503 (problem+json): the service cannot store anything now.
+/// 5 s and the object store (if images go to one) answers a listing
+/// within 5 s, else 503 (problem+json): the service cannot store anything
+/// now.
 /// `/healthz` stays liveness.
 #[utoipa::path(get, path = "/readyz", tag = "operations", security(()),
     responses(
@@ -141,12 +143,22 @@ pub async fn healthz() -> &'static str {
     ))]
 pub async fn readyz(State(state): Shared) -> Result<&'static str, ApiError> {
     match state.store.ready(std::time::Duration::from_secs(5)).await {
+        Ok(()) => {}
+        Err(error) => {
+            tracing::warn!(%error, "not ready");
+            return Err(ApiError::new(
+                StatusCode::SERVICE_UNAVAILABLE,
+                "the database cannot take writes now; the error is in the service's log",
+            ));
+        }
+    }
+    match state.images.ready(std::time::Duration::from_secs(5)).await {
         Ok(()) => Ok("ready\n"),
         Err(error) => {
             tracing::warn!(%error, "not ready");
             Err(ApiError::new(
                 StatusCode::SERVICE_UNAVAILABLE,
-                "the database cannot take writes now; the error is in the service's log",
+                "the object store cannot be reached now; the error is in the service's log",
             ))
         }
     }

@@ -269,7 +269,7 @@ pub async fn overlay(
         let (_, sha256) = images.get(wanted).ok_or_else(not_kept)?;
         let bytes = match state.images.read(sha256).await {
             Ok(bytes) => bytes,
-            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Err(not_kept()),
+            Err(crate::service::images::ImageStoreError::Missing { .. }) => return Err(not_kept()),
             Err(e) => return Err(e.into()),
         };
         let layout = state

@@ -6,7 +6,8 @@
 //! without their details; everything a caller can cause is a 4xx. A full
 //! disk, the database's (SQLITE_FULL) or the image store's (ENOSPC), is a
 //! 507 with `Retry-After`: nothing is stored, and the same request may
-//! succeed once space is freed, without a restart. The
+//! succeed once space is freed, without a restart. An object store that
+//! cannot be reached is a 503 with `Retry-After`. The
 //! status follows from the error's type (the `From` impls below, as
 //! realworld-axum-sqlx maps its errors), so handlers use `?`.
 
@@ -58,9 +59,10 @@ pub struct ApiError {
 /// again once the service's disk was full.
 pub const STORAGE_FULL_RETRY_AFTER_S: u32 = 30;
 
-/// `Retry-After` of a 503 for a database that cannot be reached: a
-/// restarting PostgreSQL is usually back within seconds.
-pub const DATABASE_UNAVAILABLE_RETRY_AFTER_S: u32 = 5;
+/// `Retry-After` of a 503 for a database or object store that cannot be
+/// reached: a restarting PostgreSQL or S3 server is usually back within
+/// seconds.
+pub const UNAVAILABLE_RETRY_AFTER_S: u32 = 5;
 
 impl ApiError {
     /// An error of `status` with `detail`.
@@ -115,16 +117,18 @@ impl ApiError {
             )
         }
     }
-    /// 503: the database cannot be reached for now; logged, answered with
-    /// `Retry-After`.
-    pub fn database_unavailable(error: impl std::fmt::Display) -> ApiError {
-        tracing::error!(%error, "database unavailable");
+    /// 503: `backend` (the database, the object store) cannot be reached
+    /// for now; logged, answered with `Retry-After`.
+    pub fn unavailable(backend: &str, error: impl std::fmt::Display) -> ApiError {
+        tracing::error!(%error, backend, "unavailable");
         ApiError {
-            retry_after: Some(DATABASE_UNAVAILABLE_RETRY_AFTER_S),
+            retry_after: Some(UNAVAILABLE_RETRY_AFTER_S),
             ..ApiError::new(
                 StatusCode::SERVICE_UNAVAILABLE,
-                "the service's database cannot be reached for now; nothing was stored. \
-                 Try again later (Retry-After)",
+                format!(
+                    "the service's {backend} cannot be reached for now; nothing was stored. \
+                     Try again later (Retry-After)"
+                ),
             )
         }
     }
@@ -214,7 +218,7 @@ impl From<sqlx::Error> for ApiError {
     fn from(error: sqlx::Error) -> Self {
         match store::error_kind(&error) {
             store::ErrorKind::StorageFull => ApiError::storage_full(error),
-            store::ErrorKind::Unavailable => ApiError::database_unavailable(error),
+            store::ErrorKind::Unavailable => ApiError::unavailable("database", error),
             store::ErrorKind::Other => ApiError::internal(error),
         }
     }
@@ -227,6 +231,22 @@ impl From<std::io::Error> for ApiError {
             ApiError::storage_full(error)
         } else {
             ApiError::internal(error)
+        }
+    }
+}
+
+impl From<images::ImageStoreError> for ApiError {
+    /// A full local disk is a 507 and an object store out of reach a 503,
+    /// both with `Retry-After`; an image missing that a row refers to,
+    /// and anything else, a 500 (logged with what is missing).
+    fn from(error: images::ImageStoreError) -> Self {
+        match error {
+            images::ImageStoreError::Io(error) => error.into(),
+            images::ImageStoreError::Unavailable(_) => ApiError::unavailable("object store", error),
+            images::ImageStoreError::Missing { .. } => ApiError::internal(format!(
+                "{error}, although a committed row refers to it: the store lost it"
+            )),
+            images::ImageStoreError::Other(_) => ApiError::internal(error),
         }
     }
 }

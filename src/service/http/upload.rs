@@ -11,8 +11,8 @@
 //!    ([`check_images`], on the blocking pool: it reads the files; a
 //!    1280x1024 8-bit PNG decodes in under 20 ms, and an upload of four
 //!    8192x8192 PNGs of a dark field was answered in 175 ms);
-//! 3. persist the files and commit the rows that refer to them under the
-//!    image store's lock, removing the files again if the commit fails
+//! 3. stage the files (S3: put them), then persist them and commit the
+//!    rows that refer to them under the image store's lock, removing the files again if the commit fails
 //!    ([`persist_and_commit`]), so that a failed request leaves no file
 //!    and a crash at any instant at most files no row refers to, which the
 //!    start-up sweep removes;
@@ -156,7 +156,12 @@ where
     Fut: Future<Output = Result<T, E>>,
     ApiError: From<E>,
 {
-    let _guard = state.images.lock().await;
+    // Staged (put to S3) before the lock, so that uploads' transfers run in
+    // parallel; see `service::images` for why this is safe.
+    for file in &files {
+        state.images.stage(file).await?;
+    }
+    let _guard = state.images.lock(&state.store).await?;
     let hashes: Vec<String> = files.iter().map(|f| f.sha256.clone()).collect();
     let committed = async {
         for file in files {

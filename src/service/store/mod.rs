@@ -121,6 +121,14 @@ pub struct Store {
     page_limit: Arc<AtomicU32>,
 }
 
+/// A lock that every process on the database holds one at a time
+/// ([`Store::lock_across_hosts`]), held until dropped: on PostgreSQL a
+/// transaction holding a transaction-level advisory lock (dropping it
+/// rolls back, which releases the lock); nothing on SQLite, whose
+/// processes share one host and lock a file instead.
+#[derive(Debug)]
+pub struct HostsLock(#[allow(dead_code)] Option<sqlx::Transaction<'static, Any>>);
+
 /// Whether a database error means that the disk (or the page limit) is
 /// full ([`ErrorKind::StorageFull`]).
 pub fn is_storage_full(error: &sqlx::Error) -> bool {
@@ -554,6 +562,25 @@ impl Store {
     pub async fn close(&self) {
         self.writer.close().await;
         self.reader.close().await;
+    }
+
+    /// Takes the lock named `key` that the processes on this database
+    /// share with every other host's (see [`HostsLock`]); waits while
+    /// another holds it. One connection stays with the lock: take it once
+    /// per process at a time (behind a process mutex), so that waiters do
+    /// not use up the pool.
+    pub async fn lock_across_hosts(&self, key: i64) -> Result<HostsLock, sqlx::Error> {
+        match self.dialect {
+            Dialect::Sqlite => Ok(HostsLock(None)),
+            Dialect::Postgres => {
+                let mut tx = self.writer.begin().await?;
+                sqlx::query("SELECT pg_advisory_xact_lock($1)")
+                    .bind(key)
+                    .execute(&mut *tx)
+                    .await?;
+                Ok(HostsLock(Some(tx)))
+            }
+        }
     }
 
     /// Whether any frame, job or sequence refers to the file with this hash.
