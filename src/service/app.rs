@@ -288,7 +288,7 @@ async fn drain(state: &AppState, mut workers: tokio::task::JoinSet<()>) {
 /// Runs `ptv worker`: the job queue's workers on the data directory's
 /// database and images, without HTTP, until `shutdown` completes; then
 /// lets running jobs finish as `ptv serve` does. Everything a job needs is
-/// in the database and the image directory, so any number of these
+/// in the database and the image store, so any number of these
 /// processes share the queue with a `ptv serve` (SQLite in WAL mode allows
 /// several processes; each write takes the lock with `BEGIN IMMEDIATE`).
 pub async fn run_worker(

@@ -865,14 +865,25 @@ async fn frame_work(
                 cameras: expected,
             }));
         }
+        // The files are read all at once, concurrently, so that an object
+        // store's latency per request (tens of ms) is paid once per frame
+        // rather than once per camera; they are still decoded one at a
+        // time, each dropped once detected.
+        cancel.check().map_err(JobError::failed)?;
+        let files = futures_util::future::try_join_all(images.iter().map(|(camera, sha256)| {
+            let camera = *camera;
+            async move {
+                state
+                    .images
+                    .read(sha256)
+                    .await
+                    .map_err(|e| JobError::image(&format!("the image of camera {camera}"), e))
+            }
+        }))
+        .await?;
         let mut targets = Vec::with_capacity(cameras);
-        for (index, (camera, sha256)) in images.into_iter().enumerate() {
+        for (index, ((camera, _), bytes)) in images.into_iter().zip(files).enumerate() {
             cancel.check().map_err(JobError::failed)?;
-            let bytes = state
-                .images
-                .read(&sha256)
-                .await
-                .map_err(|e| JobError::image(&format!("the image of camera {camera}"), e))?;
             let (pipeline, work_cancel) = (pipeline.clone(), cancel.clone());
             let found = state
                 .cpu

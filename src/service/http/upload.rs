@@ -26,6 +26,7 @@ use axum::extract::Multipart;
 use axum::http::{header, StatusCode};
 use axum::response::{IntoResponse, Response};
 use axum::Json;
+use futures_util::future::try_join_all;
 use serde::Serialize;
 
 use super::links;
@@ -157,16 +158,14 @@ where
     ApiError: From<E>,
 {
     // Staged (put to S3) before the lock, so that uploads' transfers run in
-    // parallel; see `service::images` for why this is safe.
-    for file in &files {
-        state.images.stage(file).await?;
-    }
+    // parallel; see `service::images` for why this is safe. A request's
+    // files go at once, as do their checks under the lock: an object
+    // store's latency is paid once per request, not once per file.
+    try_join_all(files.iter().map(|file| state.images.stage(file))).await?;
     let _guard = state.images.lock(&state.store).await?;
     let hashes: Vec<String> = files.iter().map(|f| f.sha256.clone()).collect();
     let committed = async {
-        for file in files {
-            state.images.persist(file).await?;
-        }
+        try_join_all(files.into_iter().map(|file| state.images.persist(file))).await?;
         Ok::<T, ApiError>(commit().await?)
     }
     .await;
