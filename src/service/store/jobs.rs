@@ -15,8 +15,9 @@
 //! how it ended is a row of `job_claims`, the job's attempt history.
 //!
 //! On SQLite a claim is one `BEGIN IMMEDIATE` transaction (the write lock
-//! makes it atomic across processes): expire, pick the oldest queued job,
-//! `UPDATE ... RETURNING`, record the claim. On PostgreSQL the same
+//! makes it atomic across processes): expire (when a read saw a lease run
+//! out), take the oldest queued job (`UPDATE ... WHERE id = (SELECT ...)
+//! RETURNING`), record the claim. On PostgreSQL the same
 //! statements run in one read-committed transaction, the oldest queued job
 //! (and the expired leases) taken with `FOR UPDATE SKIP LOCKED`: claimers
 //! at once lock different rows, never wait for each other and never get
@@ -240,31 +241,28 @@ impl Store {
         if expired {
             expire_leases(&mut tx, d).await?;
         }
-        let next: Option<(JobId,)> = sqlx::query_as(&format!(
-            "SELECT id FROM jobs WHERE state = 'queued' \
-             AND (not_before IS NULL OR not_before <= {now}) ORDER BY id LIMIT 1{skip_locked}",
-            now = d.now(),
-            skip_locked = d.skip_locked(),
-        ))
-        .fetch_optional(&mut *tx)
-        .await?;
-        let Some((id,)) = next else {
-            tx.commit().await?;
-            return Ok(None);
-        };
-        let job: ClaimedJob = sqlx::query_as(&format!(
+        // The oldest ready job, taken in the same statement (on PostgreSQL
+        // its row locked by the subquery, rows other claimers hold skipped).
+        let job: Option<ClaimedJob> = sqlx::query_as(&format!(
             "UPDATE jobs SET state = 'running', attempts = attempts + 1, locked_by = $1, \
              lease_token = lease_token + 1, lease_until = {until}, started_at = {now} \
-             WHERE id = $3 AND state = 'queued' \
+             WHERE id = (SELECT id FROM jobs WHERE state = 'queued' \
+                         AND (not_before IS NULL OR not_before <= {now}) \
+                         ORDER BY id LIMIT 1{skip_locked}) \
+             AND state = 'queued' \
              RETURNING id, kind, payload, attempts, locked_by, lease_token",
             until = d.now_plus(2),
             now = d.now(),
+            skip_locked = d.skip_locked(),
         ))
         .bind(worker)
         .bind(lease.as_secs_f64())
-        .bind(id)
-        .fetch_one(&mut *tx)
+        .fetch_optional(&mut *tx)
         .await?;
+        let Some(job) = job else {
+            tx.commit().await?;
+            return Ok(None);
+        };
         sqlx::query("INSERT INTO job_claims (job_id, token, worker) VALUES ($1, $2, $3)")
             .bind(job.id)
             .bind(job.token)
