@@ -290,7 +290,8 @@ async fn drain(state: &AppState, mut workers: tokio::task::JoinSet<()>) {
 /// lets running jobs finish as `ptv serve` does. Everything a job needs is
 /// in the database and the image store, so any number of these
 /// processes share the queue with a `ptv serve` (SQLite in WAL mode allows
-/// several processes; each write takes the lock with `BEGIN IMMEDIATE`).
+/// several processes on one host, each write taking the lock with `BEGIN
+/// IMMEDIATE`; with `--database postgres://...` they may run on any host).
 pub async fn run_worker(
     args: WorkerArgs,
     kinds: JobKinds,

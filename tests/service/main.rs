@@ -15,6 +15,9 @@
 //! - `layers`: what every request passes through: request ids, gzip,
 //!   header and body timeouts, the early 413, the bearer token before
 //!   routing, bounded metrics labels.
+//! - `leases`: the store's lease rules (claims, renewals, fences, the
+//!   attempt limit, the reaper, a tracking run's one holder) on the engine
+//!   under test.
 //! - `live`: a sequence's events (server-sent events) in order as its
 //!   frames are uploaded and processed, 404 and the token before a stream,
 //!   the stream's end at shutdown; the lists newest first, a page at a
@@ -67,6 +70,7 @@ mod fuzz;
 mod helpers;
 mod job_bounds;
 mod layers;
+mod leases;
 mod live;
 mod page;
 mod plots;

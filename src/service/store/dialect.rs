@@ -8,6 +8,7 @@
 //! | now, as stored (UTC RFC 3339 text, ms) | `strftime('%Y-%m-%dT%H:%M:%fZ', 'now')` | `to_char(clock_timestamp() AT TIME ZONE 'UTC', ...)` |
 //! | now + a lease (seconds bound at `$N`, either sign) | `strftime(..., printf('%+.3f seconds', $N))` | `clock_timestamp() + make_interval(secs => $N)` |
 //! | a claim's row lock | the write lock (`BEGIN IMMEDIATE`) | `FOR UPDATE SKIP LOCKED` |
+//! | a row held to the end of a write (a sequence's) | the write lock | `FOR UPDATE` |
 //! | a write transaction | `BEGIN IMMEDIATE` on the one writer connection | `BEGIN` (read committed) on a pool |
 //!
 //! Timestamps stay text in both, in one format, so that they compare as
@@ -66,6 +67,18 @@ impl Dialect {
         match self {
             Dialect::Sqlite => "",
             Dialect::Postgres => " FOR UPDATE SKIP LOCKED",
+        }
+    }
+
+    /// What a `SELECT` of a row that a write transaction must hold until
+    /// it ends (its sequence, before checking the sequence's frames) ends
+    /// with: nothing on SQLite (the write lock holds the database),
+    /// `FOR UPDATE` on PostgreSQL (a frame inserted meanwhile, whose
+    /// foreign key takes a share lock on the same row, waits).
+    pub(super) fn for_update(self) -> &'static str {
+        match self {
+            Dialect::Sqlite => "",
+            Dialect::Postgres => " FOR UPDATE",
         }
     }
 

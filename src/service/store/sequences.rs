@@ -560,6 +560,7 @@ impl Store {
         images: &[(i64, String, i64, i64)],
     ) -> Result<(), SequenceImagesError> {
         let mut tx = self.write_transaction().await?;
+        lock_sequence(&mut tx, self.dialect, sequence_id).await?;
         let (frames,): (i64,) =
             sqlx::query_as("SELECT count(*) FROM frames WHERE sequence_id = $1")
                 .bind(sequence_id)
@@ -596,6 +597,7 @@ impl Store {
         images: &[(i64, String, i64, i64)],
     ) -> Result<Vec<String>, sqlx::Error> {
         let mut tx = self.write_transaction().await?;
+        lock_sequence(&mut tx, self.dialect, sequence_id).await?;
         let (existing,): (i64,) = sqlx::query_as(
             "SELECT count(*) FROM sequence_images WHERE sequence_id = $1 AND kind = 'background'",
         )
@@ -691,6 +693,26 @@ async fn insert_sequence_image(
     .bind(sha256)
     .bind(size)
     .bind(bits)
+    .execute(&mut **tx)
+    .await?;
+    Ok(())
+}
+
+/// Holds the sequence's row until the transaction ends, so that its
+/// checks (no frames yet, no background yet) stay true until it commits:
+/// on PostgreSQL `FOR UPDATE` (a frame's insert, whose foreign key takes a
+/// share lock on the row, waits; so does another such transaction); on
+/// SQLite the write lock already holds everything.
+pub(super) async fn lock_sequence(
+    tx: &mut Transaction<'_, Any>,
+    dialect: super::Dialect,
+    sequence_id: SequenceId,
+) -> Result<(), sqlx::Error> {
+    sqlx::query(&format!(
+        "SELECT id FROM sequences WHERE id = $1{}",
+        dialect.for_update()
+    ))
+    .bind(sequence_id)
     .execute(&mut **tx)
     .await?;
     Ok(())
