@@ -40,6 +40,12 @@ impl Server {
                     .map(|url| url.parse().expect("PTV_OBJECT_STORE is s3://bucket/prefix")),
                 s3_endpoint: std::env::var("AWS_ENDPOINT_URL").ok(),
             },
+            // `--fsync` as `ptv serve` reads PTV_FSYNC (the worker
+            // processes inherit it).
+            durability: ptv::service::config::Durability {
+                fsync: std::env::var("PTV_FSYNC")
+                    .is_ok_and(|v| !matches!(v.as_str(), "" | "0" | "false" | "no" | "off")),
+            },
         };
         let workers = args.worker_count();
         let app = Application::build(args).await.unwrap();

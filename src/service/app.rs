@@ -99,7 +99,8 @@ impl Application {
         let store = open_and_reap(&config, readers).await?;
         let images = ImageStore::open(data_dir, config.objects.location())
             .await
-            .map_err(ServiceError::Images)?;
+            .map_err(ServiceError::Images)?
+            .with_fsync(config.durability.fsync);
         // A process killed between storing a file and committing its rows,
         // or between committing a frame's results and deleting its images,
         // leaves files no row refers to. A worker process may be storing
@@ -217,7 +218,14 @@ async fn open_and_reap(config: &ServeArgs, readers: u32) -> Result<Store, Servic
     let started = std::time::Instant::now();
     let store = loop {
         let opened = match &config.database {
-            None => Store::open(&config.data_dir, readers).await,
+            None => {
+                let synchronous = if config.durability.fsync {
+                    store::Synchronous::Full
+                } else {
+                    store::Synchronous::Normal
+                };
+                Store::open_sqlite(&config.data_dir, readers, synchronous).await
+            }
             Some(url) => Store::open_postgres(url, readers).await,
         };
         match opened {
@@ -305,7 +313,8 @@ pub async fn run_worker(
     let store = open_and_reap(&config, readers).await?;
     let images = ImageStore::open_shared(&data_dir, config.objects.location())
         .await
-        .map_err(ServiceError::Images)?;
+        .map_err(ServiceError::Images)?
+        .with_fsync(config.durability.fsync);
     let cpu = CpuPool::new(workers).map_err(|e| ServiceError::Start(e.to_string()))?;
     let metrics = Arc::new(Metrics::default());
     let state = AppState::start(config, store, images, cpu, metrics);

@@ -60,6 +60,9 @@ pub struct ServeArgs {
     /// Where the images go: the data directory, or an object store.
     #[command(flatten)]
     pub objects: ObjectStoreArgs,
+
+    #[command(flatten)]
+    pub durability: Durability,
 }
 
 /// Where images (and every other stored file) are kept: under the data
@@ -115,6 +118,9 @@ pub struct WorkerArgs {
     /// Where the images are: as given to `ptv serve`.
     #[command(flatten)]
     pub objects: ObjectStoreArgs,
+
+    #[command(flatten)]
+    pub durability: Durability,
 }
 
 impl WorkerArgs {
@@ -134,6 +140,7 @@ impl WorkerArgs {
             job_limits: self.job_limits.clone(),
             lease: self.lease.clone(),
             objects: self.objects.clone(),
+            durability: self.durability.clone(),
         }
     }
 
@@ -144,6 +151,23 @@ impl WorkerArgs {
             .unwrap_or_else(cores)
             .max(1)
     }
+}
+
+/// What an accepted upload survives on the embedded default (SQLite and
+/// the image directory): by default a killed process, with `--fsync` also
+/// a power loss.
+#[derive(Clone, Debug, Default, Args)]
+pub struct Durability {
+    /// Make every accepted upload and stored result survive a power loss,
+    /// not only a killed process: SQLite commits with `synchronous =
+    /// FULL`, and each stored image file and its directory are flushed to
+    /// disk before the rows that name it commit (so before the 202). Costs
+    /// disk flushes per upload. PostgreSQL and S3 keep their own
+    /// guarantees (PostgreSQL's `synchronous_commit`, an S3 PUT's
+    /// acknowledgement); there it changes nothing.
+    #[arg(long = "fsync", env = "PTV_FSYNC", action = clap::ArgAction::SetTrue,
+          value_parser = clap::builder::BoolishValueParser::new())]
+    pub fsync: bool,
 }
 
 /// How long a claim holds its job or tracking run: the holder renews it

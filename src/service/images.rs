@@ -283,6 +283,10 @@ pub struct ImageStore {
     lock: Mutex<()>,
     /// The file locked for the same across processes.
     lock_file: PathBuf,
+    /// Whether a local file and its directory are flushed to the disk
+    /// when persisted (`ptv serve --fsync`), so that it survives a power
+    /// loss before the rows naming it commit.
+    fsync: bool,
 }
 
 /// The image store's lock, held until dropped (closing the locked file
@@ -431,7 +435,15 @@ impl ImageStore {
             tmp,
             lock: Mutex::new(()),
             lock_file: data_dir.join("images.lock"),
+            fsync: false,
         })
+    }
+
+    /// The store, with local files flushed to the disk as they are
+    /// persisted where `fsync` (`--fsync`; an object store's PUT is
+    /// durable once acknowledged, and this changes nothing there).
+    pub fn with_fsync(self, fsync: bool) -> ImageStore {
+        ImageStore { fsync, ..self }
     }
 
     /// Whether the store answers within `limit`: the local directory
@@ -530,11 +542,21 @@ impl ImageStore {
         match &self.backend {
             Backend::Local { root } => {
                 let target = Self::local_path(root, &upload.sha256);
-                if let Some(parent) = target.parent() {
-                    tokio::fs::create_dir_all(parent).await?;
-                }
+                let parent = target.parent().unwrap_or(root);
+                let new_directory = !parent.exists();
+                tokio::fs::create_dir_all(parent).await?;
                 if let Some(path) = upload.path.take() {
+                    if self.fsync {
+                        tokio::fs::File::open(&path).await?.sync_all().await?;
+                    }
                     tokio::fs::rename(&path, &target).await?;
+                    if self.fsync {
+                        // The rename and, for a new directory, its entry.
+                        sync_directory(parent).await?;
+                        if new_directory {
+                            sync_directory(root).await?;
+                        }
+                    }
                 }
                 Ok(())
             }
@@ -646,6 +668,12 @@ impl ImageStore {
         }
         Ok(swept)
     }
+}
+
+/// Flushes a directory's entries to the disk (`fsync` on the directory),
+/// so that a rename into it survives a power loss.
+async fn sync_directory(directory: &Path) -> io::Result<()> {
+    tokio::fs::File::open(directory).await?.sync_all().await
 }
 
 /// Why a sweep stopped.

@@ -53,6 +53,7 @@ pub fn test_args(data_dir: &Path, api_token: Option<&str>) -> ServeArgs {
         job_limits: JobLimits::default(),
         lease: Default::default(),
         objects: object_store_args(data_dir),
+        durability: Default::default(),
     }
 }
 

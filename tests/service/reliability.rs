@@ -764,3 +764,25 @@ async fn the_image_lock_holds_across_hosts() {
     first.0.close().await;
     second.0.close().await;
 }
+
+/// `ptv serve --fsync` and `ptv worker` with `PTV_FSYNC=1` (every commit
+/// and stored file flushed to the disk before the 202: what survives a
+/// power loss, which no test can cut) take uploads and process them as
+/// without it, and keep the images they are asked to keep.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn flushed_uploads_are_stored_and_processed() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = ServiceProcess::start_with(dir.path(), 0, &["--fsync"]);
+    let _worker = WorkerProcess::start(dir.path(), &[], &[("PTV_FSYNC", "1")]);
+    let (client, address) = (reqwest::Client::new(), server.address.clone());
+    let rig = rig();
+    let sequence = create_rig_sequence(&client, &address, &rig).await;
+    let rendered = rig.render(200, 7);
+    let files: Vec<Vec<u8>> = rendered.images.iter().map(png).collect();
+    for frame in 0..3 {
+        let (status, body) = upload(&client, &address, sequence, image_form(frame, &files)).await;
+        assert_eq!(status, 202, "{body}");
+    }
+    let body = wait_for_sequence(&client, &address, sequence).await;
+    assert_eq!(body["frames"]["done"], 3, "{body}");
+}

@@ -547,6 +547,7 @@ mod tests {
             job_limits: Default::default(),
             lease: Default::default(),
             objects: Default::default(),
+            durability: Default::default(),
         }
     }
 

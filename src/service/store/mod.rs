@@ -404,15 +404,41 @@ fn sqlite_url(data_dir: &Path, read_only: bool) -> Result<AnyConnectOptions, sql
 /// the writer; set once, kept in the file), `synchronous = NORMAL` (in
 /// WAL mode it survives a killed process; only a power loss may lose the
 /// last transactions), a busy timeout, foreign keys.
-async fn sqlite_pragmas(conn: &mut AnyConnection, writer: bool) -> Result<(), sqlx::Error> {
+async fn sqlite_pragmas(
+    conn: &mut AnyConnection,
+    writer: bool,
+    synchronous: Synchronous,
+) -> Result<(), sqlx::Error> {
     if writer {
         conn.execute("PRAGMA journal_mode = WAL").await?;
     }
+    let synchronous = match synchronous {
+        Synchronous::Normal => "NORMAL",
+        Synchronous::Full => "FULL",
+    };
     conn.execute(
-        "PRAGMA synchronous = NORMAL; PRAGMA busy_timeout = 10000; PRAGMA foreign_keys = ON",
+        format!(
+            "PRAGMA synchronous = {synchronous}; PRAGMA busy_timeout = 10000; \
+             PRAGMA foreign_keys = ON"
+        )
+        .as_str(),
     )
     .await?;
     Ok(())
+}
+
+/// When SQLite's commits reach the disk (its `synchronous` setting, in
+/// WAL mode).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Synchronous {
+    /// `NORMAL`: a commit survives a killed process; a power loss may
+    /// undo the last ones (the WAL is flushed at checkpoints). The
+    /// default.
+    #[default]
+    Normal,
+    /// `FULL`: every commit is flushed to the disk before it returns, so
+    /// it survives a power loss too (`ptv serve --fsync`).
+    Full,
 }
 
 impl Store {
@@ -423,6 +449,15 @@ impl Store {
     /// a new database together would both apply its first migration, and
     /// switching a new database to WAL does not wait for a busy one.
     pub async fn open(data_dir: &Path, readers: u32) -> Result<Store, sqlx::Error> {
+        Store::open_sqlite(data_dir, readers, Synchronous::Normal).await
+    }
+
+    /// [`Store::open`] with SQLite's commits flushed as `synchronous` says.
+    pub async fn open_sqlite(
+        data_dir: &Path,
+        readers: u32,
+        synchronous: Synchronous,
+    ) -> Result<Store, sqlx::Error> {
         sqlx::any::install_default_drivers();
         let _opening = crate::service::file_lock::exclusive(data_dir.join("ptv.sqlite.lock"))
             .await
@@ -434,7 +469,7 @@ impl Store {
             .after_connect(move |conn, _| {
                 let limit = limit.load(Ordering::Acquire);
                 Box::pin(async move {
-                    sqlite_pragmas(conn, true).await?;
+                    sqlite_pragmas(conn, true, synchronous).await?;
                     if limit > 0 {
                         apply_page_limit(conn, limit).await?;
                     }
@@ -453,7 +488,9 @@ impl Store {
             .await?;
         let reader = AnyPoolOptions::new()
             .max_connections(readers.max(1))
-            .after_connect(|conn, _| Box::pin(async move { sqlite_pragmas(conn, false).await }))
+            .after_connect(move |conn, _| {
+                Box::pin(async move { sqlite_pragmas(conn, false, synchronous).await })
+            })
             .connect_with(sqlite_url(data_dir, true)?)
             .await?;
         Ok(Store {
@@ -638,6 +675,26 @@ async fn file_in_use(conn: &mut AnyConnection, sha256: &str) -> Result<bool, sql
 mod tests {
     use super::*;
     use sqlx::sqlite::{SqliteConnectOptions, SqlitePoolOptions};
+
+    /// `--fsync` reaches every connection: SQLite's `synchronous` is FULL
+    /// (2) on the writer and the readers with it, NORMAL (1) without.
+    #[tokio::test]
+    async fn commits_are_flushed_as_asked() {
+        for (synchronous, expected) in [(Synchronous::Normal, 1), (Synchronous::Full, 2)] {
+            let dir = tempfile::tempdir().unwrap();
+            let store = Store::open_sqlite(dir.path(), 1, synchronous)
+                .await
+                .unwrap();
+            for pool in [&store.writer, &store.reader] {
+                let (found,): (i64,) = sqlx::query_as("PRAGMA synchronous")
+                    .fetch_one(pool)
+                    .await
+                    .unwrap();
+                assert_eq!(found, expected, "{synchronous:?}");
+            }
+            store.close().await;
+        }
+    }
 
     /// The database in `data_dir` (created where missing) with its first
     /// `version` migrations run, on one connection.
