@@ -341,7 +341,7 @@ pub fn host_name() -> String {
 
 /// Whether a process of this host runs with this id (signal 0); where
 /// this cannot be told, it is assumed to run (its leases then run out).
-fn process_exists(pid: u32) -> bool {
+pub(crate) fn process_exists(pid: u32) -> bool {
     #[cfg(unix)]
     {
         let Some(pid) = i32::try_from(pid)

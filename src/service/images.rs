@@ -386,17 +386,14 @@ fn s3_client(
 
 impl ImageStore {
     /// Opens the store under `data_dir`, creating its directories and
-    /// removing uploads a stopped process left half-written (`ptv serve`,
-    /// which takes the uploads); `objects`: the object store's URL and
-    /// endpoint, if the images go there.
+    /// removing the uploads and scratch files that stopped processes left
+    /// in `tmp/` (`ptv serve`, which takes the uploads); `objects`: the
+    /// object store's URL and endpoint, if the images go there.
     pub async fn open(
         data_dir: &Path,
         objects: Option<(&ObjectStoreUrl, Option<&str>)>,
     ) -> Result<ImageStore, ImageStoreError> {
-        let tmp = data_dir.join("tmp");
-        if tmp.exists() {
-            std::fs::remove_dir_all(&tmp)?;
-        }
+        remove_abandoned(&data_dir.join("tmp"), super::app::process_exists)?;
         ImageStore::open_shared(data_dir, objects).await
     }
 
@@ -463,8 +460,9 @@ impl ImageStore {
         }
     }
 
-    /// The directory of uploads in progress (emptied at every start): for
-    /// scratch files of a request, in a directory of their own.
+    /// The directory of uploads in progress, for scratch files of a
+    /// request too, in a directory of their own named `KIND-PID-...` (what
+    /// a stopped process left is removed at the next `ptv serve` start).
     pub fn temp_dir(&self) -> &Path {
         &self.tmp
     }
@@ -670,6 +668,41 @@ impl ImageStore {
     }
 }
 
+/// Removes the entries of `tmp` whose process has stopped: each is named
+/// `KIND-PID-...` by the process that made it (an upload, a request's
+/// scratch directory); one whose process `alive` says still runs (a
+/// `ptv worker` on the same data directory, or this process) is kept, and
+/// one whose name says no process is removed.
+fn remove_abandoned(tmp: &Path, alive: impl Fn(u32) -> bool) -> io::Result<()> {
+    let entries = match std::fs::read_dir(tmp) {
+        Ok(entries) => entries,
+        Err(error) if error.kind() == io::ErrorKind::NotFound => return Ok(()),
+        Err(error) => return Err(error),
+    };
+    for entry in entries {
+        let entry = entry?;
+        let name = entry.file_name();
+        let owner = name
+            .to_str()
+            .and_then(|name| name.split('-').nth(1))
+            .and_then(|pid| pid.parse::<u32>().ok());
+        if owner.is_some_and(&alive) {
+            continue;
+        }
+        let path = entry.path();
+        let removed = if entry.file_type()?.is_dir() {
+            std::fs::remove_dir_all(&path)
+        } else {
+            std::fs::remove_file(&path)
+        };
+        match removed {
+            Err(error) if error.kind() != io::ErrorKind::NotFound => return Err(error),
+            _ => {}
+        }
+    }
+    Ok(())
+}
+
 /// Flushes a directory's entries to the disk (`fsync` on the directory),
 /// so that a rename into it survives a power loss.
 async fn sync_directory(directory: &Path) -> io::Result<()> {
@@ -771,6 +804,39 @@ impl Drop for Upload {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A starting `ptv serve` removes what stopped processes left in
+    /// `tmp/` and keeps what running ones (a `ptv worker` on the same data
+    /// directory) are writing.
+    #[tokio::test]
+    async fn a_start_removes_only_the_temporary_files_of_stopped_processes() {
+        let dir = tempfile::tempdir().unwrap();
+        let tmp = dir.path().join("tmp");
+        std::fs::create_dir_all(tmp.join("experiment-7-123")).unwrap();
+        std::fs::write(tmp.join("experiment-7-123").join("ptv.par"), "x").unwrap();
+        std::fs::create_dir_all(tmp.join("experiment-9-456")).unwrap();
+        for name in ["upload-7-0", "upload-9-0", "upload-9-1", "stray"] {
+            std::fs::write(tmp.join(name), "x").unwrap();
+        }
+        // Process 7 runs; 9 stopped.
+        remove_abandoned(&tmp, |pid| pid == 7).unwrap();
+        let mut left: Vec<_> = std::fs::read_dir(&tmp)
+            .unwrap()
+            .map(|e| e.unwrap().file_name().into_string().unwrap())
+            .collect();
+        left.sort();
+        assert_eq!(left, ["experiment-7-123", "upload-7-0"]);
+        // A missing tmp/ is nothing to remove.
+        remove_abandoned(&dir.path().join("none"), |_| true).unwrap();
+        // Through the store: this process's own upload is kept.
+        let store = ImageStore::open_shared(dir.path(), None).await.unwrap();
+        let mut upload = store.create_upload().await.unwrap();
+        upload.write(b"abc").await.unwrap();
+        let again = ImageStore::open(dir.path(), None).await.unwrap();
+        let file = upload.finish().await.unwrap();
+        again.persist(file).await.unwrap();
+        assert!(!tmp.join("upload-9-0").exists());
+    }
 
     #[test]
     fn object_store_urls_are_parsed_or_refused_saying_why() {
