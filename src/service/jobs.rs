@@ -1021,7 +1021,7 @@ pub async fn process_frame(state: Arc<AppState>, run: JobRun) -> Result<(), JobE
         .sequence(input.sequence_id)
         .await?
         .map_or(true, |s| s.keep_images);
-    let orphans = state
+    let released = state
         .store
         .complete_frame(
             &run.job,
@@ -1033,7 +1033,7 @@ pub async fn process_frame(state: Arc<AppState>, run: JobRun) -> Result<(), JobE
         )
         .await?;
     state.metrics.particles(particles.len());
-    remove_unused_images(&state.store, &state.images, &orphans).await;
+    remove_unused_images(&state.store, &state.images, &released).await;
     Ok(())
 }
 
@@ -1176,7 +1176,7 @@ pub async fn solve_calibration(state: Arc<AppState>, run: JobRun) -> Result<(), 
         .try_run(move || solve(files, &options))
         .await
         .map_err(JobError::failed)?;
-    let (_, orphans) = state
+    let (_, released) = state
         .store
         .complete_calibration(
             &run.job,
@@ -1187,11 +1187,12 @@ pub async fn solve_calibration(state: Arc<AppState>, run: JobRun) -> Result<(), 
             run.elapsed_s(),
         )
         .await?;
-    remove_unused_images(&state.store, &state.images, &orphans).await;
+    remove_unused_images(&state.store, &state.images, &released).await;
     Ok(())
 }
 
-/// Deletes the files of images no frame refers to any more.
+/// Deletes the files of `hashes` that nothing refers to any more, each
+/// checked under the image store's lock against what is committed.
 pub(super) async fn remove_unused_images(
     store: &Store,
     images: &super::images::ImageStore,

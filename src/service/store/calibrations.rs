@@ -5,7 +5,7 @@ use sqlx::any::AnyRow;
 use sqlx::{Any, FromRow, Row, Transaction};
 
 use super::jobs::{finish, ClaimedJob};
-use super::{file_in_use, CalibrationId, CompleteError, JobId, Store};
+use super::{CalibrationId, CompleteError, JobId, Store};
 
 /// A stored calibration.
 #[derive(Clone, Debug)]
@@ -114,8 +114,9 @@ impl Store {
     /// Stores a solved calibration with its report and completes its job,
     /// in one transaction (the calibration names the job: its result);
     /// unless `keep_files`, the job's file rows go too.
-    /// Returns the calibration's id and the hashes of the files nothing
-    /// refers to any more, whose files may go.
+    /// Returns the calibration's id and the hashes of the removed file
+    /// rows, whose files go where nothing else refers to them (checked by
+    /// the caller after the commit, as for `complete_frame`).
     pub async fn complete_calibration(
         &self,
         job: &ClaimedJob,
@@ -128,21 +129,19 @@ impl Store {
         let mut tx = self.write_transaction().await?;
         finish(&mut tx, self.dialect, job, None, duration_s).await?;
         let row = insert_calibration(&mut tx, model, cameras, Some(report), Some(job.id)).await?;
-        let mut orphans = Vec::new();
+        let mut released = Vec::new();
         if !keep_files {
             let hashes: Vec<(String,)> =
                 sqlx::query_as("DELETE FROM job_files WHERE job_id = $1 RETURNING sha256")
                     .bind(job.id)
                     .fetch_all(&mut *tx)
                     .await?;
-            for (hash,) in hashes {
-                if !orphans.contains(&hash) && !file_in_use(&mut tx, &hash).await? {
-                    orphans.push(hash);
-                }
-            }
+            released.extend(hashes.into_iter().map(|(hash,)| hash));
+            released.sort_unstable();
+            released.dedup();
         }
         tx.commit().await?;
-        Ok((row.id, orphans))
+        Ok((row.id, released))
     }
 }
 

@@ -489,8 +489,13 @@ impl Store {
     /// Stores a processed frame's results and completes its job, in one
     /// transaction: `targets` (detected; empty when they were uploaded),
     /// the particles (naming `input.calibration_id`, which made them), and, when the sequence does not keep images, the
-    /// removal of the frame's image rows. Returns the hashes of the images
-    /// no frame refers to any more, whose files may go.
+    /// removal of the frame's image rows. Returns the hashes of the removed
+    /// rows: their files go where nothing else refers to them, which the
+    /// caller checks after the commit under the image store's lock
+    /// (`jobs::remove_unused_images`). A check here, inside the
+    /// transaction, would miss on PostgreSQL (read committed) when two
+    /// frames of the same images complete at once: each would still see
+    /// the other's rows, and neither delete the file.
     pub async fn complete_frame(
         &self,
         job: &ClaimedJob,
@@ -517,7 +522,7 @@ impl Store {
         .bind(input.calibration_id)
         .execute(&mut *tx)
         .await?;
-        let mut orphans = Vec::new();
+        let mut released = Vec::new();
         if drop_images {
             let hashes: Vec<(String,)> = sqlx::query_as(
                 "DELETE FROM images WHERE sequence_id = $1 AND frame = $2 RETURNING sha256",
@@ -526,14 +531,12 @@ impl Store {
             .bind(frame)
             .fetch_all(&mut *tx)
             .await?;
-            for (hash,) in hashes {
-                if !file_in_use(&mut tx, &hash).await? {
-                    orphans.push(hash);
-                }
-            }
+            released.extend(hashes.into_iter().map(|(hash,)| hash));
+            released.sort_unstable();
+            released.dedup();
         }
         tx.commit().await?;
-        Ok(orphans)
+        Ok(released)
     }
 
     /// A sequence's backgrounds and masks, by kind and camera.
