@@ -9,6 +9,10 @@ use sqlx::{FromRow, Row};
 
 use super::{EventId, SequenceId, Store};
 
+/// Rows of one `INSERT` into the log (two parameters each, far below
+/// either engine's limit).
+const INSERT_ROWS: usize = 200;
+
 /// One logged change: its id, its sequence and the change as JSON.
 #[derive(Clone, Debug, PartialEq)]
 pub struct EventRow {
@@ -32,22 +36,30 @@ impl FromRow<'_, AnyRow> for EventRow {
 
 impl Store {
     /// Appends `events` (sequence, change as JSON) in one transaction, in
-    /// order; returns the last id given.
+    /// order, [`INSERT_ROWS`] rows a statement; returns the last id given.
     pub async fn append_events(
         &self,
         events: &[(SequenceId, String)],
     ) -> Result<Option<EventId>, sqlx::Error> {
+        if events.is_empty() {
+            return Ok(None);
+        }
         let mut tx = self.write_transaction().await?;
         let mut last = None;
-        for (sequence_id, change) in events {
-            let (id,): (EventId,) = sqlx::query_as(
-                "INSERT INTO events (sequence_id, change) VALUES ($1, $2) RETURNING id",
-            )
-            .bind(sequence_id)
-            .bind(change)
-            .fetch_one(&mut *tx)
-            .await?;
-            last = Some(id);
+        for chunk in events.chunks(INSERT_ROWS) {
+            let values: Vec<String> = (0..chunk.len())
+                .map(|i| format!("(${}, ${})", 2 * i + 1, 2 * i + 2))
+                .collect();
+            let sql = format!(
+                "INSERT INTO events (sequence_id, change) VALUES {} RETURNING id",
+                values.join(", ")
+            );
+            let mut insert = sqlx::query_as::<_, (EventId,)>(&sql);
+            for (sequence_id, change) in chunk {
+                insert = insert.bind(*sequence_id).bind(change.as_str());
+            }
+            let ids = insert.fetch_all(&mut *tx).await?;
+            last = ids.into_iter().map(|(id,)| id).max().or(last);
         }
         tx.commit().await?;
         Ok(last)
@@ -164,5 +176,19 @@ mod tests {
         // Ids are never given twice, also after a prune.
         let next = store.append_events(&[(one, "d".into())]).await.unwrap();
         assert_eq!(next, Some(EventId(4)));
+        // More than one statement's rows: in order, ids rising.
+        let dir = tempfile::tempdir().unwrap();
+        let other = Store::open(dir.path(), 1).await.unwrap();
+        let many: Vec<_> = (0..INSERT_ROWS + 7)
+            .map(|i| (two, format!("m{i}")))
+            .collect();
+        let last = other.append_events(&many).await.unwrap().unwrap();
+        assert_eq!(last, EventId(many.len() as i64));
+        let read = other.events_after(EventId(0), 1000).await.unwrap();
+        assert!(read
+            .iter()
+            .zip(&many)
+            .all(|(row, (_, change))| &row.change == change));
+        assert_eq!(read.len(), many.len());
     }
 }
