@@ -60,7 +60,7 @@ pub struct ServeArgs {
     /// Where the images go: the data directory, or an object store.
     #[command(flatten)]
     pub objects: ObjectStoreArgs,
-
+    /// What an accepted upload survives (`--fsync`).
     #[command(flatten)]
     pub durability: Durability,
 }
@@ -118,7 +118,7 @@ pub struct WorkerArgs {
     /// Where the images are: as given to `ptv serve`.
     #[command(flatten)]
     pub objects: ObjectStoreArgs,
-
+    /// What an accepted upload survives (`--fsync`).
     #[command(flatten)]
     pub durability: Durability,
 }
