@@ -106,6 +106,19 @@ impl Api {
     }
 
     /// A calibration of the rig and a sequence on it with `tracking`.
+    /// Waits until the sequence's tracking has taken frame `frame`.
+    async fn wait_tracked_through(&self, sequence: i64, frame: i64) {
+        let start = Instant::now();
+        loop {
+            let (_, body) = self.get(&format!("/sequences/{sequence}")).await;
+            if body["tracking"]["tracked_through"].as_i64().unwrap_or(-1) >= frame {
+                return;
+            }
+            assert!(start.elapsed() < PATIENCE, "tracking did not start: {body}");
+            tokio::time::sleep(Duration::from_millis(5)).await;
+        }
+    }
+
     async fn tracked_sequence(&self, rig: &Rig, tracking: Value) -> i64 {
         let response = self
             .client
@@ -859,15 +872,7 @@ async fn a_kill_during_tracking_then_a_restart_gives_the_same_trajectories() {
     api.upload_concurrently(sequence, before, 4).await;
     // Kill once tracking is under way (some frames tracked), while frames
     // are still being processed and tracked.
-    let start = Instant::now();
-    loop {
-        let (_, body) = api.get(&format!("/sequences/{sequence}")).await;
-        if body["tracking"]["tracked_through"].as_i64().unwrap_or(-1) >= 3 {
-            break;
-        }
-        assert!(start.elapsed() < PATIENCE, "tracking did not start: {body}");
-        tokio::time::sleep(Duration::from_millis(5)).await;
-    }
+    api.wait_tracked_through(sequence, 3).await;
     first.kill();
 
     let second = ServiceProcess::start(data_dir.path(), 2);
@@ -920,15 +925,7 @@ async fn worker_processes_track_in_frame_order_and_one_takes_over_a_killed_ones_
         .tracked_sequence(&rig, json!({"max_velocity": MAX_VELOCITY}))
         .await;
     api.upload_concurrently(sequence, before, 4).await;
-    let start = Instant::now();
-    loop {
-        let (_, body) = api.get(&format!("/sequences/{sequence}")).await;
-        if body["tracking"]["tracked_through"].as_i64().unwrap_or(-1) >= 3 {
-            break;
-        }
-        assert!(start.elapsed() < PATIENCE, "tracking did not start: {body}");
-        tokio::time::sleep(Duration::from_millis(5)).await;
-    }
+    api.wait_tracked_through(sequence, 3).await;
     let db = open_database(data_dir.path()).await;
     let (owner, token): (String, i64) = sqlx::query_as(
         "SELECT lease_owner, lease_token FROM tracking_runs ORDER BY id DESC LIMIT 1",
