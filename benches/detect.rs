@@ -146,5 +146,42 @@ fn background(c: &mut Criterion) {
     }
 }
 
-criterion_group!(benches, single_frame, several_cameras, background);
+/// A real frame: camera 3 of OpenPTV's test_cavity recording, frame 10001
+/// (1280x1024, 8-bit; `tests/data/openptv/test_cavity_recording/`), whose
+/// particle images have structure of their own, so that the automatic split
+/// rule splits its deferred blobs twice (`detect.rs`, "Structured particle
+/// images"); against the experiment's own absolute split depth (OpenPTV's
+/// `discont` 100), which measures every blob as it is found. One core.
+fn real_frame(c: &mut Criterion) {
+    let path = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/tests/data/openptv/test_cavity_recording/img/cam3.10001"
+    );
+    let image = ptv::formats::image::read_image(std::path::Path::new(path), None)
+        .expect("the test_cavity recording's frame");
+    let mut group = c.benchmark_group("detect test_cavity_recording cam3.10001, 1280x1024 real");
+    group.throughput(Throughput::Elements(u64::from(
+        image.width() * image.height(),
+    )));
+    let defaults = DetectionParameters::default();
+    group.bench_function("defaults (automatic split rule)", |b| {
+        b.iter(|| black_box(detect(black_box(&image), &defaults)))
+    });
+    let depth = DetectionParameters {
+        split_depth: Some(100),
+        ..DetectionParameters::default()
+    };
+    group.bench_function("split depth 100", |b| {
+        b.iter(|| black_box(detect(black_box(&image), &depth)))
+    });
+    group.finish();
+}
+
+criterion_group!(
+    benches,
+    single_frame,
+    several_cameras,
+    background,
+    real_frame
+);
 criterion_main!(benches);

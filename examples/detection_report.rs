@@ -10,8 +10,8 @@
 //! 10001-10004, cameras 1-4), against `golden/test_cavity_recording/`
 //! (optv 0.3.2 with the experiment's `targ_rec.par` after a 25-pixel
 //! high-pass). Two parameter sets: the experiment's (thresholds 9/9/9/11,
-//! `discont` 100 as split depth 100, which also makes blobs 4-connected as
-//! in OpenPTV's `targ_rec`, 4..500 px, extent 2..100, sum of grey
+//! `discont` 100 as split depth 100, 4-connected blobs as in OpenPTV's
+//! `targ_rec`, 4..500 px, extent 2..100, sum of grey
 //! at least 150, high-pass radius 25: OpenPTV's box filter averages 25
 //! pixels on each side, a `(2·25+1)²` window, which is our radius 25) and
 //! our defaults only. The golden targets use our pixel convention (pixel

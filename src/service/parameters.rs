@@ -31,7 +31,7 @@ pub struct DetectionSettings {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub thresholds: Option<Vec<u16>>,
     /// Radius (px) of the high-pass filter's window; 0 turns it off
-    /// [default: 10].
+    /// [default: 25, OpenPTV's and pyptv's].
     pub highpass_radius: Option<u32>,
     /// Fewest pixels of a target [default: 2].
     pub min_pixels: Option<u32>,
@@ -59,7 +59,8 @@ pub struct DetectionSettings {
     /// brightest path joining them for a blob to be split there; OpenPTV's
     /// `discont`. Unset or `null`: the automatic rule of `ptv detect`
     /// without `--split-depth` (relative to the maximum's height above the
-    /// threshold and to the image's noise level).
+    /// threshold and to the image's noise level, stricter in frames whose
+    /// particle images have structure of their own).
     #[serde(default)]
     pub split_depth: Option<u16>,
     /// How a target's position is estimated: `weighted` (the grey value
@@ -474,6 +475,7 @@ mod tests {
             p,
             DetectionParameters {
                 threshold: 12,
+                highpass_radius: 10,
                 ..DetectionParameters::default()
             }
         );

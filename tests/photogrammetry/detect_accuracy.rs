@@ -225,6 +225,31 @@ fn merges(
             blob_of.insert(pixel, k);
         }
     }
+    // The detector's blobs are 4-connected; particles merge where their
+    // images touch, at an edge or a corner: join blobs that touch at a
+    // corner into the 8-connected components.
+    let mut parent: Vec<usize> = (0..plain.len()).collect();
+    fn root(parent: &mut [usize], mut k: usize) -> usize {
+        while parent[k] != k {
+            parent[k] = parent[parent[k]];
+            k = parent[k];
+        }
+        k
+    }
+    for (k, t) in plain.iter().enumerate() {
+        for &(x, y) in &t.pixels {
+            for (dx, dy) in [(-1i64, -1i64), (1, -1), (-1, 1), (1, 1)] {
+                let q = ((i64::from(x) + dx) as u32, (i64::from(y) + dy) as u32);
+                if let Some(&j) = blob_of.get(&q) {
+                    let (a, b) = (root(&mut parent, k), root(&mut parent, j));
+                    parent[a] = b;
+                }
+            }
+        }
+    }
+    for k in blob_of.values_mut() {
+        *k = root(&mut parent, *k);
+    }
     let mut members: HashMap<usize, Vec<usize>> = HashMap::new();
     for (i, p) in truth.iter().enumerate() {
         if !interior(*p) {

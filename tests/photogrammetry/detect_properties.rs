@@ -25,7 +25,8 @@
 //!   and inside its pixels' bounding box.
 //!
 //! The translated images keep the content at least `MARGIN` pixels from the
-//! border, so that no high-pass window is clipped differently.
+//! border, so that no high-pass window is clipped differently and the noise
+//! level's sample sees the same empty background.
 
 use nalgebra::Point2;
 use proptest::prelude::*;
@@ -35,9 +36,14 @@ use ptv::photogrammetry::{detect, Centroid, DetectionParameters, GreyImage, Grey
 
 /// The side of the rendered patch.
 const PATCH: u32 = 48;
-/// Free border around the patch: the default high-pass radius, 10, plus the
-/// largest shift, 8, plus 2.
-const MARGIN: u32 = 20;
+/// Free border around the patch: at least the default high-pass radius,
+/// 25, plus the largest shift, 8, plus 2; and so wide that the pixels within
+/// a filter radius of the patch, whose filtered values are negative, are
+/// fewer than a quarter of the image (98² of 248²), so that the noise level
+/// (estimated from the lower half of a sample on fixed rows of the image,
+/// wherever the patch lies) is that of the empty background, 0, for every
+/// shift.
+const MARGIN: u32 = 100;
 
 /// A patch of particles (possibly overlapping) with noise, on a zero
 /// background so that its edges are not a step.

@@ -294,14 +294,12 @@ pub const MAX_TARGETS_PER_CAMERA: usize = 1 << 20;
 /// [`MAX_TARGETS_PER_CAMERA`].
 ///
 /// A particle image is at least one pixel, and two particle images are
-/// told apart only with a pixel between them: the detector's 8-connected
-/// blobs split at grey value minima, so two targets' brightest pixels are
-/// never neighbours, and each 2x2 block of pixels holds at most one. With
-/// an absolute split depth the detector's blobs are 4-connected, as
-/// OpenPTV's, and pixels touching at a corner can be separate targets: the
-/// bound then holds for targets of at least 4 pixels (OpenPTV experiments'
-/// usual `nnmin`), each blob being its own pixels; single-pixel targets of
-/// a noise checkerboard can exceed it, and such a frame is refused
+/// told apart only with a pixel between them. The detector's blobs are
+/// 4-connected, as OpenPTV's, and pixels touching at a corner can be
+/// separate targets: the bound holds for targets of at least 4 pixels
+/// (OpenPTV experiments' usual `nnmin`), each blob being its own pixels;
+/// smaller targets of a noise checkerboard (which the default significance
+/// test, `min_snr`, leaves out) can exceed it, and such a frame is refused
 /// ([`MatchError::TooManyTargets`]) rather than matched. A list with more
 /// targets is not one frame of particles of this sensor. (Real frames are
 /// far sparser: 0.005..0.05 particles per pixel.)
@@ -383,22 +381,15 @@ mod tests {
             (width, height, pixels) in (1u32..40, 1u32..40).prop_flat_map(|(w, h)| {
                 (Just(w), Just(h), prop::collection::vec(any::<u8>(), (w * h) as usize))
             }),
-            split_depth in 0u16..3,
-            four_connected in any::<bool>(),
+            split_depth in prop::option::of(0u16..3),
         ) {
             use crate::photogrammetry::{detect, DetectionParameters, GreyImage};
             let image = GreyImage::from_u8(width, height, pixels).unwrap();
-            // 8-connected blobs (the automatic split rule) from one pixel
-            // on; 4-connected ones (an absolute depth) from four.
-            let (split_depth, min_pixels) = if four_connected {
-                (Some(split_depth), 4)
-            } else {
-                (None, 1)
-            };
+            // 4-connected blobs: the bound holds from four pixels on.
             let parameters = DetectionParameters {
                 threshold: 0,
                 highpass_radius: 0,
-                min_pixels,
+                min_pixels: 4,
                 max_pixels: u32::MAX,
                 max_nx: u32::MAX,
                 max_ny: u32::MAX,
