@@ -105,7 +105,9 @@ fn several_cameras(c: &mut Criterion) {
 /// the samples; one core. Targets: <= 3 ms at 1280x1024, <= 8 ms at
 /// 2304x1720. Measured on one core of the idle development VM (load 1.1,
 /// `taskset -c 0 cargo bench --bench detect -- background`): 1.42 ms and
-/// 4.55 ms with the background, 1.36 ms and 4.19 ms without. Both goals
+/// 4.55 ms with the background, 1.36 ms and 4.19 ms without (with the
+/// defaults of radius 25 and 4-connected blobs: 1.46 and 4.52 ms, 1.40 and
+/// 4.10 ms, core 1). Both goals
 /// are met; earlier runs on the loaded machine (8-13 ms at 2304x1720)
 /// measured the other builds as much as the detector.
 fn background(c: &mut Criterion) {
@@ -152,6 +154,16 @@ fn background(c: &mut Criterion) {
 /// rule splits its deferred blobs twice (`detect.rs`, "Structured particle
 /// images"); against the experiment's own absolute split depth (OpenPTV's
 /// `discont` 100), which measures every blob as it is found. One core.
+///
+/// Measured (`cargo bench --bench detect --no-run`, then `taskset -c 1
+/// target/release/deps/detect-<hash> --bench real`, idle machine): 17.7 ms
+/// with the defaults, 11.1 ms with split depth 100. The frame is heavier
+/// than the rendered one (1.44 ms): at radius 25, 114,000 of its pixels
+/// are above the threshold (80,000 at radius 10), many in bright
+/// structures of thousands of pixels with many maxima, and flooding and
+/// sorting those is most of the time; the automatic rule splits them twice.
+/// The defaults before radius 25 and the rule for structured frames (radius
+/// 10, 8-connected blobs) took 8.3 ms on it.
 fn real_frame(c: &mut Criterion) {
     let path = concat!(
         env!("CARGO_MANIFEST_DIR"),

@@ -1821,7 +1821,10 @@ impl<'a, G: Grey> Detector<'a, G> {
             return;
         }
         if self.defers() {
-            // The automatic rule: split when the frame is known.
+            // The automatic rule: split when the frame is known. Sorted
+            // into flooding order once here, the blob's keys need no
+            // sorting when split (once or twice).
+            self.blob.sort_unstable();
             self.deferred.extend_from_slice(&self.blob);
             self.deferred_ends.push(self.deferred.len());
             return;
@@ -1845,17 +1848,38 @@ impl<'a, G: Grey> Detector<'a, G> {
             return;
         }
         let mut fine: Found = (Vec::new(), Vec::new());
+        // Per deferred blob: its particles, and where its targets in `fine`
+        // end.
+        let mut split = Vec::with_capacity(self.deferred_ends.len());
         let mut parted = 0;
         for blob in 0..self.deferred_ends.len() {
             let before = fine.0.len();
-            self.measure_deferred::<PIXELS>(blob, &mut fine);
+            let particles = self.measure_deferred::<PIXELS>(blob, &mut fine);
             parted += (fine.0.len() - before).saturating_sub(1);
+            split.push((particles, fine.0.len()));
         }
         self.target_sizes.extend(fine.0.iter().map(|t| t.n));
         if self.structured(found.0.len() + fine.0.len(), parted) {
             self.split_noise = AUTO_SPLIT_NOISE_STRUCTURED;
-            for blob in 0..self.deferred_ends.len() {
-                self.measure_deferred::<PIXELS>(blob, found);
+            let mut pixels = fine.1.into_iter();
+            let mut start = 0;
+            for (blob, &(particles, end)) in split.iter().enumerate() {
+                if particles == 1 {
+                    // Whole with the lower floor, so whole with the higher
+                    // (every test is as strict or stricter, and merges
+                    // leave the same state whichever region anchors them):
+                    // its target stands.
+                    found.0.extend_from_slice(&fine.0[start..end]);
+                    if PIXELS {
+                        found.1.extend(pixels.by_ref().take(end - start));
+                    }
+                } else {
+                    if PIXELS {
+                        pixels.by_ref().take(end - start).for_each(drop);
+                    }
+                    self.measure_deferred::<PIXELS>(blob, found);
+                }
+                start = end;
             }
         } else {
             found.0.append(&mut fine.0);
@@ -1866,8 +1890,8 @@ impl<'a, G: Grey> Detector<'a, G> {
     }
 
     /// Splits and measures deferred blob number `blob`, its levels put back
-    /// for the time.
-    fn measure_deferred<const PIXELS: bool>(&mut self, blob: usize, found: &mut Found) {
+    /// for the time; returns its number of particles.
+    fn measure_deferred<const PIXELS: bool>(&mut self, blob: usize, found: &mut Found) -> u32 {
         let start = if blob == 0 {
             0
         } else {
@@ -1888,7 +1912,7 @@ impl<'a, G: Grey> Detector<'a, G> {
         }
         let threshold =
             (u64::from(self.parameters.threshold) * G::LEVEL_SCALE).min(u64::from(u32::MAX)) as u32;
-        self.split_and_measure::<PIXELS>(
+        let particles = self.split_and_measure::<PIXELS>(
             (xmin, ymin),
             (xmax - xmin + 1, ymax - ymin + 1),
             threshold,
@@ -1897,6 +1921,7 @@ impl<'a, G: Grey> Detector<'a, G> {
         for &k in &self.blob {
             self.levels[key_index(k)] = 0;
         }
+        particles
     }
 
     /// Whether the frame's particle images have structure of their own:
@@ -1926,14 +1951,14 @@ impl<'a, G: Grey> Detector<'a, G> {
     }
 
     /// Splits the blob in `blob` (of bounding box `corner`, `size`) and
-    /// measures each particle.
+    /// measures each particle; returns the number of particles.
     fn split_and_measure<const PIXELS: bool>(
         &mut self,
         corner: (usize, usize),
         size: (usize, usize),
         threshold: u32,
         found: &mut Found,
-    ) {
+    ) -> u32 {
         let maxima = self.count_maxima(usize::MAX);
         self.split(corner, size, maxima);
         // Number the particles in flooding order, and re-key each pixel by
@@ -1965,6 +1990,7 @@ impl<'a, G: Grey> Detector<'a, G> {
             self.measure_particle::<PIXELS>(start..end, corner, threshold, found);
             start = end;
         }
+        particles
     }
 
     /// Step 4 for one particle, the pixels `range` of `blob`: its moments,
@@ -2108,21 +2134,26 @@ impl<'a, G: Grey> Detector<'a, G> {
             let level = u32::from(key_level(k));
             let (x, y) = self.position(key_index(k));
             let (bx, by) = (x - corner.0, y - corner.1);
-            // Visited neighbours (all at least as bright): key and region root.
-            let mut neighbours = [(u64::MAX, NONE); 8];
+            // Visited neighbours (all at least as bright): their cells and
+            // region roots. Most pixels see one region only and join it; a
+            // saddle, where several meet, needs their keys.
+            let (x0, x1) = (bx.saturating_sub(1), (bx + 2).min(box_width));
+            let (y0, y1) = (by.saturating_sub(1), (by + 2).min(box_height));
+            let mut cells = [(0usize, NONE); 8];
             let mut count = 0;
-            for ny in by.saturating_sub(1)..=(by + 1).min(box_height - 1) {
-                for nx in bx.saturating_sub(1)..=(bx + 1).min(box_width - 1) {
+            let mut several = false;
+            for ny in y0..y1 {
+                for nx in x0..x1 {
                     let region = self.grid[ny * box_width + nx];
                     if region != NONE {
-                        let q = (ny + corner.1) * self.width + nx + corner.0;
-                        neighbours[count] = (key(self.levels[q], q), self.find(region));
+                        let root = self.find(region);
+                        several |= count > 0 && root != cells[0].1;
+                        cells[count] = (ny * box_width + nx, root);
                         count += 1;
                     }
                 }
             }
-            let neighbours = &neighbours[..count];
-            let Some(&(_, brightest)) = neighbours.iter().min_by_key(|(q, _)| *q) else {
+            if count == 0 {
                 // A local maximum: a new particle.
                 self.grid[by * box_width + bx] = self.regions.len() as u32;
                 self.regions.push(Region {
@@ -2133,8 +2164,20 @@ impl<'a, G: Grey> Detector<'a, G> {
                     self.caps.push((1, level));
                 }
                 continue;
-            };
-            if neighbours.iter().any(|&(_, root)| root != neighbours[0].1) {
+            }
+            let mut brightest = cells[0].1;
+            if several {
+                let mut neighbours = [(u64::MAX, NONE); 8];
+                for (slot, &(cell, root)) in neighbours.iter_mut().zip(&cells[..count]) {
+                    let q =
+                        (cell / box_width + corner.1) * self.width + cell % box_width + corner.0;
+                    *slot = (key(self.levels[q], q), root);
+                }
+                let neighbours = &neighbours[..count];
+                brightest = neighbours
+                    .iter()
+                    .min_by_key(|(q, _)| *q)
+                    .map_or(brightest, |&(_, root)| root);
                 self.merge_insignificant(neighbours, level, rule);
             }
             // A saddle pixel goes to the particle of its brightest neighbour.
