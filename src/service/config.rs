@@ -24,7 +24,7 @@ pub struct ServeArgs {
     /// The database: `postgres://USER@HOST:PORT/DATABASE` for PostgreSQL
     /// (state and job queue shared by processes on any hosts); without
     /// it, SQLite (`ptv.sqlite`) in the data directory.
-    #[arg(long, env = "PTV_DATABASE_URL", hide_env_values = true)]
+    #[arg(long, env = "PTV_DATABASE_URL", hide_env_values = true, value_parser = DatabaseUrlParser)]
     pub database: Option<PostgresUrl>,
     /// Frames processed at once, each on its own CPU thread; 0 serves only
     /// (jobs are left to `ptv worker` processes on the same data
@@ -65,6 +65,36 @@ pub struct ServeArgs {
     pub durability: Durability,
 }
 
+/// `--database`'s parser. Clap's own message for a value it cannot parse
+/// repeats the value, and a database URL's password with it; this one
+/// names the URL with its password hidden ([`PostgresUrl`]'s parse error).
+#[derive(Clone, Copy, Debug)]
+struct DatabaseUrlParser;
+
+impl clap::builder::TypedValueParser for DatabaseUrlParser {
+    type Value = PostgresUrl;
+
+    fn parse_ref(
+        &self,
+        cmd: &clap::Command,
+        _arg: Option<&clap::Arg>,
+        value: &std::ffi::OsStr,
+    ) -> Result<PostgresUrl, clap::Error> {
+        let invalid = |reason: String| {
+            clap::Error::raw(
+                clap::error::ErrorKind::ValueValidation,
+                format!("invalid value for --database: {reason}\n"),
+            )
+            .with_cmd(cmd)
+        };
+        value
+            .to_str()
+            .ok_or_else(|| invalid("it is not UTF-8".to_owned()))?
+            .parse()
+            .map_err(invalid)
+    }
+}
+
 /// Where images (and every other stored file) are kept: under the data
 /// directory by default, or in an S3-compatible object store, which
 /// workers on other hosts read without a shared disk.
@@ -103,7 +133,7 @@ pub struct WorkerArgs {
     pub data_dir: PathBuf,
     /// The database, as given to `ptv serve`: `postgres://...`, or
     /// without it SQLite in the data directory.
-    #[arg(long, env = "PTV_DATABASE_URL", hide_env_values = true)]
+    #[arg(long, env = "PTV_DATABASE_URL", hide_env_values = true, value_parser = DatabaseUrlParser)]
     pub database: Option<PostgresUrl>,
     /// Jobs processed at once, each on its own CPU thread, at least 1
     /// [default: the number of cores]

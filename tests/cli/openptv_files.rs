@@ -540,6 +540,24 @@ fn help_lists_the_commands_and_no_subcommand_serves() {
 }
 
 #[test]
+fn a_database_url_that_does_not_parse_is_named_without_its_password() {
+    let dir = tempfile::tempdir().unwrap();
+    for command in ["serve", "worker"] {
+        let output = ptv(
+            &[command, "--database", "mysql://lab:s3cret@db.lab/ptv"],
+            dir.path(),
+        );
+        assert_eq!(output.status.code(), Some(2), "{command}");
+        let stderr = text(&output.stderr);
+        assert!(!stderr.contains("s3cret"), "{command}: {stderr}");
+        assert!(
+            stderr.contains("invalid value for --database: `mysql://lab:***@db.lab/ptv` is not a PostgreSQL URL"),
+            "{command}: {stderr}"
+        );
+    }
+}
+
+#[test]
 fn usage_errors_keep_clap_exit_code() {
     let dir = tempfile::tempdir().unwrap();
     for args in [
