@@ -80,11 +80,14 @@ pub struct DetectionFlags {
     pub min_sumg: u64,
     /// How far (grey levels) the fainter of two touching particles' maxima
     /// must rise above the saddle between them to be split off (OpenPTV's
-    /// `discont`; with it, as in OpenPTV, pixels that touch only at a
-    /// corner are not joined). Without it, the automatic rule: the rise must exceed a
+    /// `discont`). Without it, the automatic rule: the rise must exceed a
     /// fifth of the maximum's height above the threshold and 3 times the
-    /// image's noise level, and the maximum's pixels above the saddle must
-    /// hold a volume above it of more than 4 times the noise of their sum.
+    /// image's noise level (25 times in a frame whose particle images have
+    /// structure of their own, rings or streaks: one whose splits are far
+    /// more than chance overlaps explain), and the maximum's pixels above
+    /// the saddle must hold a volume above it of more than 4 times the
+    /// noise of their sum. Either way, as in OpenPTV, pixels that touch
+    /// only at a corner are not joined.
     #[arg(long, value_name = "D")]
     pub split_depth: Option<u16>,
     /// Smallest signal-to-noise ratio of a target: its sum of grey over its

@@ -179,7 +179,7 @@
 //! than the noise of a count (`3 sqrt(4 E) + 3`: 3 sigma of a Poisson count
 //! of that mean, and a few splits where `E` is near 0, so that a lone
 //! touching pair is still parted), the blobs
-//! are split again (from the same deferred pixels) with a noise floor of 25 sigma
+//! are split again with a noise floor of 25 sigma
 //! ([`AUTO_SPLIT_NOISE_STRUCTURED`]), about twice the median rise of
 //! those structured splits: what parts a blob is then a dip few ripples
 //! reach, as OpenPTV's `discont` is set per experiment. Measured, `k / E`:
@@ -194,9 +194,13 @@
 //! ripples). 4 lies between, with margins of 1.2 to 1.3 on each side: the
 //! estimate of `E` is rough (the reach from a median area, pairs only),
 //! and it is the ratio's size, not its exact value, that tells the two
-//! kinds of frame apart. The deferred blobs are
-//! split once or twice, a share of the frame's pixels; on frames without
-//! blobs of several maxima nothing changes.
+//! kinds of frame apart. The deferred blobs keep their levels and are
+//! flooded again from their first pixel at the end of the frame; in a
+//! structured frame, those in which some saddle kept particles apart are
+//! split a second time (where every saddle merged what it met, the higher
+//! floor merges the same, and the target stands). On frames without blobs
+//! of several maxima nothing changes; on the real recording's frames the
+//! second split is most of the extra time (`benches/detect.rs`).
 //!
 //! **Defaults on a real recording** (`tests/photogrammetry/real_recording.rs`,
 //! `examples/detection_report.rs`; test_cavity frames 10001-10004, cameras
@@ -268,13 +272,13 @@
 //!
 //! Detection's scratch is bounded per pixel of the image, whatever the
 //! image holds: at most **20 bytes a pixel** with an absolute split depth
-//! and **32** with the automatic rule (plus a few bytes a row and a
-//! column), 1.25 and 2 GiB for the largest sensor
+//! and **30** with the automatic rule (plus a few bytes a row and a
+//! column), 1.25 and 1.9 GiB for the largest sensor
 //! ([`MAX_SENSOR_PIXELS`](super::camera::MAX_SENSOR_PIXELS), 2^26 px),
 //! besides the image itself and the targets found (40 bytes each, at most
 //! twice that while their vector grows and is sorted; with the automatic
 //! rule, also the targets of the deferred blobs' first split while the
-//! frame is weighed). It is made of:
+//! frame is weighed, and 4 bytes a target for their sizes). It is made of:
 //! the filtered levels (2 bytes a pixel); the blob being measured, each
 //! pixel packed with its level in one `u64` that is the flood's queue,
 //! then sorted into flooding order, then re-keyed by particle (8 bytes a
@@ -284,8 +288,11 @@
 //! a particle number per local maximum (12 bytes; reserved by a count of
 //! the pixels with no brighter edge neighbour, at most one per 2 pixels: 6
 //! bytes a pixel); with the automatic split rule also its cap's pixel
-//! count and sum (8 bytes more a maximum, 4 a pixel) and the deferred
-//! blobs' copy (8 bytes a pixel above the threshold).
+//! count and sum (8 bytes more a maximum, 4 a pixel), and for the blobs
+//! deferred to the end of the frame (whose levels stay in place and are
+//! flooded again from their first pixel) a mark a pixel (one bit) and
+//! their first pixels (8 bytes a blob of at least 3 pixels, at most twice
+//! that while the vector grows: 5.3 bytes a pixel).
 //! Particles are measured one at a time. The worst case is an image whose
 //! pixels are all above the threshold in one noisy blob; a test in this
 //! module counts the allocations of such an image and holds them to the
@@ -1434,8 +1441,11 @@ type Found = (Vec<Target>, Vec<Vec<(u32, u32)>>);
 /// holds (see the module's "Memory" section): `levels` (2 bytes a pixel),
 /// `blob` (8 bytes a pixel above the threshold; see `reserve_blob`), `grid` (4
 /// bytes a cell of the largest split blob's bounding box), `regions` and
-/// `slot` (12 bytes a local maximum of the largest split blob; maxima are
-/// never 8-neighbours, so at most one per 2x2 cells of its bounding box).
+/// `slot` (12 bytes a local maximum of the largest split blob, reserved by
+/// a count of at most one per 2 pixels), `caps` (8 bytes a maximum, with
+/// the automatic rule), and with the automatic rule the deferred blobs'
+/// marks (a bit a pixel), seeds (8 bytes a deferred blob, of 3 pixels or
+/// more) and the first split's target sizes (4 bytes a target).
 struct Detector<'a, G: Grey> {
     pixels: &'a [G],
     width: usize,
@@ -1479,10 +1489,15 @@ struct Detector<'a, G: Grey> {
     /// [`AUTO_SPLIT_NOISE_STRUCTURED`] once the frame is found structured.
     split_noise: u64,
     /// The automatic split rule: the blobs with several maxima, split after
-    /// the whole frame has been searched (their keys one after another, and
-    /// where each ends), when the frame's statistics are known.
-    deferred: Vec<u64>,
-    deferred_ends: Vec<usize>,
+    /// the whole frame has been searched, when the frame's statistics are
+    /// known: each one's first pixel, from which it is flooded again, and a
+    /// bit a pixel marking their pixels, whose levels stay in `levels`
+    /// until then (the search passes them by; allocated with the first).
+    deferred: Vec<usize>,
+    deferred_marks: Vec<u64>,
+    /// Whether the last split kept particles apart at some saddle (see
+    /// [`Detector::split_deferred`]).
+    kept_apart: bool,
     /// The automatic split rule: the pixel counts of the targets found
     /// (with [`AUTO_SPLIT_NOISE`]).
     target_sizes: Vec<u32>,
@@ -1514,7 +1529,8 @@ impl<'a, G: Grey> Detector<'a, G> {
             noise: 0,
             split_noise: AUTO_SPLIT_NOISE,
             deferred: Vec::new(),
-            deferred_ends: Vec::new(),
+            deferred_marks: Vec::new(),
+            kept_apart: false,
             target_sizes: Vec::new(),
         }
     }
@@ -1679,7 +1695,7 @@ impl<'a, G: Grey> Detector<'a, G> {
             }
             if self.levels[start..stop].iter().fold(0, |any, &l| any | l) != 0 {
                 for seed in start..stop {
-                    if self.levels[seed] == 0 {
+                    if self.levels[seed] == 0 || self.is_deferred(seed) {
                         continue; // below the threshold, or part of an earlier blob
                     }
                     self.reserve_blob(frontier);
@@ -1690,9 +1706,10 @@ impl<'a, G: Grey> Detector<'a, G> {
                             return Some(self.position(seed).1);
                         }
                     }
-                    self.measure_blob::<PIXELS>(found);
-                    for &k in &self.blob {
-                        self.levels[key_index(k)] = 0;
+                    if self.measure_blob::<PIXELS>(found) {
+                        for &k in &self.blob {
+                            self.levels[key_index(k)] = 0;
+                        }
                     }
                 }
             }
@@ -1793,8 +1810,9 @@ impl<'a, G: Grey> Detector<'a, G> {
     }
 
     /// Steps 3 and 4 for the blob in `blob`: splits it, measures each
-    /// particle and keeps those that pass the filters.
-    fn measure_blob<const PIXELS: bool>(&mut self, found: &mut Found) {
+    /// particle and keeps those that pass the filters. Returns false for a
+    /// blob deferred to the end of the frame (its levels must stay).
+    fn measure_blob<const PIXELS: bool>(&mut self, found: &mut Found) -> bool {
         let threshold =
             (u64::from(self.parameters.threshold) * G::LEVEL_SCALE).min(u64::from(u32::MAX)) as u32;
         let (mut xmin, mut ymin, mut xmax, mut ymax) = (usize::MAX, usize::MAX, 0, 0);
@@ -1818,18 +1836,29 @@ impl<'a, G: Grey> Detector<'a, G> {
             if self.defers() && found.0.len() > before {
                 self.target_sizes.push(found.0[before].n);
             }
-            return;
+            return true;
         }
         if self.defers() {
-            // The automatic rule: split when the frame is known. Sorted
-            // into flooding order once here, the blob's keys need no
-            // sorting when split (once or twice).
-            self.blob.sort_unstable();
-            self.deferred.extend_from_slice(&self.blob);
-            self.deferred_ends.push(self.deferred.len());
-            return;
+            // The automatic rule: split when the frame is known.
+            if self.deferred_marks.is_empty() {
+                self.deferred_marks = vec![0; (self.width * self.height).div_ceil(64)];
+            }
+            for &k in &self.blob {
+                let p = key_index(k);
+                self.deferred_marks[p >> 6] |= 1 << (p & 63);
+            }
+            // The flood's first pixel is its seed.
+            self.deferred.push(key_index(self.blob[0]));
+            return false;
         }
         self.split_and_measure::<PIXELS>(corner, size, threshold, found);
+        true
+    }
+
+    /// Whether pixel `p` belongs to a deferred blob.
+    #[inline(always)]
+    fn is_deferred(&self, p: usize) -> bool {
+        !self.deferred_marks.is_empty() && (self.deferred_marks[p >> 6] >> (p & 63)) & 1 == 1
     }
 
     /// Whether blobs with several maxima wait for the whole frame: with the
@@ -1842,42 +1871,46 @@ impl<'a, G: Grey> Detector<'a, G> {
     /// [`Detector::measure_blob`]: split with [`AUTO_SPLIT_NOISE`]; if
     /// that parts more targets than chance overlaps explain
     /// ([`Detector::structured`]), split again with
-    /// [`AUTO_SPLIT_NOISE_STRUCTURED`] instead.
+    /// [`AUTO_SPLIT_NOISE_STRUCTURED`] instead. Each is flooded again from
+    /// its seed; at the end their levels are cleared by their marks.
     fn split_deferred<const PIXELS: bool>(&mut self, found: &mut Found) {
-        if self.deferred_ends.is_empty() {
+        if self.deferred.is_empty() {
             return;
         }
+        self.reserve_blob(None);
         let mut fine: Found = (Vec::new(), Vec::new());
-        // Per deferred blob: its particles, and where its targets in `fine`
-        // end.
-        let mut split = Vec::with_capacity(self.deferred_ends.len());
+        // Per deferred blob: whether a saddle kept particles apart, and
+        // where its targets in `fine` end.
+        let mut first = Vec::with_capacity(self.deferred.len());
         let mut parted = 0;
-        for blob in 0..self.deferred_ends.len() {
+        for blob in 0..self.deferred.len() {
             let before = fine.0.len();
-            let particles = self.measure_deferred::<PIXELS>(blob, &mut fine);
+            self.measure_deferred::<PIXELS>(blob, &mut fine);
             parted += (fine.0.len() - before).saturating_sub(1);
-            split.push((particles, fine.0.len()));
+            first.push((self.kept_apart, fine.0.len()));
         }
         self.target_sizes.extend(fine.0.iter().map(|t| t.n));
         if self.structured(found.0.len() + fine.0.len(), parted) {
             self.split_noise = AUTO_SPLIT_NOISE_STRUCTURED;
             let mut pixels = fine.1.into_iter();
             let mut start = 0;
-            for (blob, &(particles, end)) in split.iter().enumerate() {
-                if particles == 1 {
-                    // Whole with the lower floor, so whole with the higher
-                    // (every test is as strict or stricter, and merges
-                    // leave the same state whichever region anchors them):
-                    // its target stands.
-                    found.0.extend_from_slice(&fine.0[start..end]);
-                    if PIXELS {
-                        found.1.extend(pixels.by_ref().take(end - start));
-                    }
-                } else {
+            for (blob, &(kept_apart, end)) in first.iter().enumerate() {
+                if kept_apart {
                     if PIXELS {
                         pixels.by_ref().take(end - start).for_each(drop);
                     }
                     self.measure_deferred::<PIXELS>(blob, found);
+                } else {
+                    // Every saddle merged all the particles it met into
+                    // one: each region merged was insignificant with the
+                    // lower floor, so with the higher one too, and whichever
+                    // region anchors them the union is the same, so the
+                    // flood goes through the same states with either floor
+                    // and its target stands.
+                    found.0.extend_from_slice(&fine.0[start..end]);
+                    if PIXELS {
+                        found.1.extend(pixels.by_ref().take(end - start));
+                    }
                 }
                 start = end;
             }
@@ -1885,26 +1918,25 @@ impl<'a, G: Grey> Detector<'a, G> {
             found.0.append(&mut fine.0);
             found.1.append(&mut fine.1);
         }
+        // Clear the deferred blobs' levels, word by word of their marks.
+        for (word, &marks) in self.deferred_marks.iter().enumerate() {
+            let mut marks = marks;
+            while marks != 0 {
+                self.levels[(word << 6) + marks.trailing_zeros() as usize] = 0;
+                marks &= marks - 1;
+            }
+        }
         self.deferred = Vec::new();
-        self.deferred_ends = Vec::new();
+        self.deferred_marks = Vec::new();
     }
 
-    /// Splits and measures deferred blob number `blob`, its levels put back
-    /// for the time; returns its number of particles.
-    fn measure_deferred<const PIXELS: bool>(&mut self, blob: usize, found: &mut Found) -> u32 {
-        let start = if blob == 0 {
-            0
-        } else {
-            self.deferred_ends[blob - 1]
-        };
-        let end = self.deferred_ends[blob];
-        self.blob.clear();
-        self.blob.extend_from_slice(&self.deferred[start..end]);
+    /// Floods deferred blob number `blob` from its seed, splits it and
+    /// measures its particles (its levels stay).
+    fn measure_deferred<const PIXELS: bool>(&mut self, blob: usize, found: &mut Found) {
+        self.flood(self.deferred[blob]);
         let (mut xmin, mut ymin, mut xmax, mut ymax) = (usize::MAX, usize::MAX, 0, 0);
         for &k in &self.blob {
-            let p = key_index(k);
-            self.levels[p] = key_level(k);
-            let (x, y) = self.position(p);
+            let (x, y) = self.position(key_index(k));
             xmin = xmin.min(x);
             ymin = ymin.min(y);
             xmax = xmax.max(x);
@@ -1912,16 +1944,12 @@ impl<'a, G: Grey> Detector<'a, G> {
         }
         let threshold =
             (u64::from(self.parameters.threshold) * G::LEVEL_SCALE).min(u64::from(u32::MAX)) as u32;
-        let particles = self.split_and_measure::<PIXELS>(
+        self.split_and_measure::<PIXELS>(
             (xmin, ymin),
             (xmax - xmin + 1, ymax - ymin + 1),
             threshold,
             found,
         );
-        for &k in &self.blob {
-            self.levels[key_index(k)] = 0;
-        }
-        particles
     }
 
     /// Whether the frame's particle images have structure of their own:
@@ -1951,14 +1979,14 @@ impl<'a, G: Grey> Detector<'a, G> {
     }
 
     /// Splits the blob in `blob` (of bounding box `corner`, `size`) and
-    /// measures each particle; returns the number of particles.
+    /// measures each particle.
     fn split_and_measure<const PIXELS: bool>(
         &mut self,
         corner: (usize, usize),
         size: (usize, usize),
         threshold: u32,
         found: &mut Found,
-    ) -> u32 {
+    ) {
         let maxima = self.count_maxima(usize::MAX);
         self.split(corner, size, maxima);
         // Number the particles in flooding order, and re-key each pixel by
@@ -1990,7 +2018,6 @@ impl<'a, G: Grey> Detector<'a, G> {
             self.measure_particle::<PIXELS>(start..end, corner, threshold, found);
             start = end;
         }
-        particles
     }
 
     /// Step 4 for one particle, the pixels `range` of `blob`: its moments,
@@ -2099,6 +2126,7 @@ impl<'a, G: Grey> Detector<'a, G> {
     /// `size` at `corner`) from its brightest pixel down, leaving each
     /// pixel's region in `grid`.
     fn split(&mut self, corner: (usize, usize), size: (usize, usize), maxima: usize) {
+        self.kept_apart = false;
         let rule = match self.parameters.split_depth {
             Some(depth) => SplitRule::Absolute(
                 (u64::from(depth) * G::LEVEL_SCALE).min(u64::from(u32::MAX)) as u32,
@@ -2179,6 +2207,13 @@ impl<'a, G: Grey> Detector<'a, G> {
                     .min_by_key(|(q, _)| *q)
                     .map_or(brightest, |&(_, root)| root);
                 self.merge_insignificant(neighbours, level, rule);
+                let first = self.find(neighbours[0].1);
+                for &(_, root) in &neighbours[1..] {
+                    if self.find(root) != first {
+                        self.kept_apart = true;
+                        break;
+                    }
+                }
             }
             // A saddle pixel goes to the particle of its brightest neighbour.
             let root = self.find(brightest);
@@ -2191,7 +2226,8 @@ impl<'a, G: Grey> Detector<'a, G> {
     }
 
     /// The automatic rule's noise floor in levels: [`AUTO_SPLIT_NOISE`]
-    /// times the image's noise level.
+    /// (or [`AUTO_SPLIT_NOISE_STRUCTURED`] in a structured frame) times the
+    /// image's noise level.
     fn noise_depth(&self) -> u32 {
         (u64::from(self.noise) * self.split_noise / 10).min(u64::from(u32::MAX)) as u32
     }
@@ -2779,7 +2815,7 @@ mod tests {
     fn rings_stay_whole_where_overlaps_cannot_explain_their_maxima() {
         // 300 out-of-focus particle images, rings of radius 2.5..4.5 px
         // with two bumps on opposite sides (75 grey levels on the bumps, 45
-        // between them, 40 above a background of 20 with noise of sigma 2),
+        // between them, added to a background of 20 with noise of sigma 2),
         // spread 40 px apart: no two touch. Each ring's second bump rises
         // 30 grey levels (about 15 sigma) above the saddle, which the 3
         // sigma floor splits (as an absolute depth of 10 does: 600
@@ -3031,7 +3067,7 @@ mod tests {
     /// split depth and with the automatic rule (which defers the blobs it
     /// splits).
     const SCRATCH_BYTES_PER_PIXEL: usize = 20;
-    const SCRATCH_BYTES_PER_PIXEL_AUTO: usize = 32;
+    const SCRATCH_BYTES_PER_PIXEL_AUTO: usize = 30;
 
     #[test]
     fn scratch_is_bounded_per_pixel_on_a_hostile_image() {
@@ -3047,9 +3083,9 @@ mod tests {
         let mut rng = rng(5);
         // An absolute depth splits at every maximum the noise makes. The
         // automatic rule scales its depth to the noise and keeps the blob
-        // whole, but keeps a copy of it until the frame is searched and
-        // floods it with a region reserved for every one of its maxima all
-        // the same: the worst case of the scratch.
+        // whole, but defers it to the end of the frame and floods it with
+        // a region and a cap reserved for every one of its maxima all the
+        // same: the worst case of the scratch.
         for (noise, split_depth, per_pixel) in [
             (3u16, Some(4), SCRATCH_BYTES_PER_PIXEL),
             (4095, Some(4), SCRATCH_BYTES_PER_PIXEL),
