@@ -156,12 +156,13 @@ fn background(c: &mut Criterion) {
 /// `discont` 100), which measures every blob as it is found. One core.
 ///
 /// Measured (`cargo bench --bench detect --no-run`, then `taskset -c 1
-/// target/release/deps/detect-<hash> --bench real`, idle machine): 17.7 ms
+/// target/release/deps/detect-<hash> --bench real`, idle machine): 19.9 ms
 /// with the defaults, 11.1 ms with split depth 100. The frame is heavier
 /// than the rendered one (1.44 ms): at radius 25, 114,000 of its pixels
 /// are above the threshold (80,000 at radius 10), many in bright
 /// structures of thousands of pixels with many maxima, and flooding and
-/// sorting those is most of the time; the automatic rule splits them twice.
+/// sorting those is most of the time; the automatic rule floods and splits
+/// them twice (the frame is structured).
 /// The defaults before radius 25 and the rule for structured frames (radius
 /// 10, 8-connected blobs) took 8.3 ms on it.
 fn real_frame(c: &mut Criterion) {
