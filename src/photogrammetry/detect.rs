@@ -1813,18 +1813,8 @@ impl<'a, G: Grey> Detector<'a, G> {
     /// particle and keeps those that pass the filters. Returns false for a
     /// blob deferred to the end of the frame (its levels must stay).
     fn measure_blob<const PIXELS: bool>(&mut self, found: &mut Found) -> bool {
-        let threshold =
-            (u64::from(self.parameters.threshold) * G::LEVEL_SCALE).min(u64::from(u32::MAX)) as u32;
-        let (mut xmin, mut ymin, mut xmax, mut ymax) = (usize::MAX, usize::MAX, 0, 0);
-        for &k in &self.blob {
-            let (x, y) = self.position(key_index(k));
-            xmin = xmin.min(x);
-            ymin = ymin.min(y);
-            xmax = xmax.max(x);
-            ymax = ymax.max(y);
-        }
-        let corner = (xmin, ymin);
-        let size = (xmax - xmin + 1, ymax - ymin + 1);
+        let threshold = self.threshold_level();
+        let (corner, size) = self.blob_box();
         let maxima = if !self.parameters.split || self.blob.len() < 3 {
             1
         } else {
@@ -1934,6 +1924,18 @@ impl<'a, G: Grey> Detector<'a, G> {
     /// measures its particles (its levels stay).
     fn measure_deferred<const PIXELS: bool>(&mut self, blob: usize, found: &mut Found) {
         self.flood(self.deferred[blob]);
+        let (corner, size) = self.blob_box();
+        self.split_and_measure::<PIXELS>(corner, size, self.threshold_level(), found);
+    }
+
+    /// The threshold in levels (16-bit grey levels).
+    fn threshold_level(&self) -> u32 {
+        (u64::from(self.parameters.threshold) * G::LEVEL_SCALE).min(u64::from(u32::MAX)) as u32
+    }
+
+    /// The bounding box of the blob in `blob`: its corner (column, row) and
+    /// size.
+    fn blob_box(&self) -> ((usize, usize), (usize, usize)) {
         let (mut xmin, mut ymin, mut xmax, mut ymax) = (usize::MAX, usize::MAX, 0, 0);
         for &k in &self.blob {
             let (x, y) = self.position(key_index(k));
@@ -1942,14 +1944,7 @@ impl<'a, G: Grey> Detector<'a, G> {
             xmax = xmax.max(x);
             ymax = ymax.max(y);
         }
-        let threshold =
-            (u64::from(self.parameters.threshold) * G::LEVEL_SCALE).min(u64::from(u32::MAX)) as u32;
-        self.split_and_measure::<PIXELS>(
-            (xmin, ymin),
-            (xmax - xmin + 1, ymax - ymin + 1),
-            threshold,
-            found,
-        );
+        ((xmin, ymin), (xmax - xmin + 1, ymax - ymin + 1))
     }
 
     /// Whether the frame's particle images have structure of their own:
@@ -2133,8 +2128,7 @@ impl<'a, G: Grey> Detector<'a, G> {
             ),
             None => SplitRule::Auto {
                 noise: self.noise_depth(),
-                threshold: (u64::from(self.parameters.threshold) * G::LEVEL_SCALE)
-                    .min(u64::from(u32::MAX)) as u32,
+                threshold: self.threshold_level(),
                 cap: (u64::from(self.noise) * AUTO_SPLIT_CAP / 10).min(u64::from(u32::MAX)) as u32,
             },
         };
