@@ -2806,6 +2806,60 @@ mod tests {
     }
 
     #[test]
+    fn a_blob_whole_at_the_lower_floor_may_part_at_the_higher_and_is_split_again() {
+        // A blob (levels, noise level 10) that is one particle with the 3
+        // sigma floor and two with 25 sigma. At 3 sigma the maxima X (400)
+        // and X' (200) stay apart at their saddle (150); each then fails
+        // the cap test alone where it meets the ridge of P1 (5000) and
+        // merges into it. At 25 sigma X' merges into X first, and their
+        // union passes the cap test at the ridge. So a structured frame
+        // cannot keep the first split's target of every blob that came out
+        // whole: only of those where no saddle kept particles apart
+        // (`kept_apart`), which this one did.
+        let (width, height) = (52usize, 3usize);
+        let mut levels = vec![0u16; width * height];
+        let mut set = |x: usize, y: usize, level: u16| levels[y * width + x] = level;
+        (1..45).for_each(|x| set(x, 0, 140)); // X's shelf
+        set(45, 0, 400); // X
+        set(46, 0, 150); // the saddle of X and X'
+        set(47, 0, 200); // X'
+        (48..51).for_each(|x| set(x, 0, 130)); // X''s shelf
+        set(1, 1, 140); // where X's shelf meets the ridge
+        set(49, 1, 130); // where X''s shelf meets it
+        (0..52).for_each(|x| set(x, 2, 1000)); // P1's ridge
+        set(25, 2, 5000); // P1
+        let pixels = vec![0u8; width * height];
+        let parameters = DetectionParameters {
+            threshold: 0,
+            ..DetectionParameters::default()
+        };
+        let particles = |floor: u64| {
+            let mut detector = Detector::new(&pixels[..], width, height, &parameters);
+            detector.levels = levels.clone();
+            detector.above = width * height;
+            detector.noise = 10;
+            detector.split_noise = floor;
+            detector.reserve_blob(None);
+            detector.flood(2 * width + 25); // P1
+            let (corner, size) = detector.blob_box();
+            let maxima = detector.count_maxima(usize::MAX);
+            detector.split(corner, size, maxima);
+            let mut roots: Vec<u32> = (0..detector.blob.len())
+                .map(|i| {
+                    let (x, y) = detector.position(key_index(detector.blob[i]));
+                    let cell = (y - corner.1) * size.0 + (x - corner.0);
+                    detector.find(detector.grid[cell])
+                })
+                .collect();
+            roots.sort_unstable();
+            roots.dedup();
+            (roots.len(), detector.kept_apart)
+        };
+        assert_eq!(particles(AUTO_SPLIT_NOISE), (1, true));
+        assert_eq!(particles(AUTO_SPLIT_NOISE_STRUCTURED).0, 2);
+    }
+
+    #[test]
     fn rings_stay_whole_where_overlaps_cannot_explain_their_maxima() {
         // 300 out-of-focus particle images, rings of radius 2.5..4.5 px
         // with two bumps on opposite sides (75 grey levels on the bumps, 45
