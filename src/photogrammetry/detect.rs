@@ -184,9 +184,9 @@
 //! those structured splits: what parts a blob is then a dip few ripples
 //! reach, as OpenPTV's `discont` is set per experiment. Measured, `k / E`:
 //! on rendered frames of ideal (Gaussian) particle images 2.1 to 2.3 for
-//! 2.5 px at 0.001 to 0.02 particles per pixel, 2.4 to 2.6 for 3.5 px,
-//! 2.8 for 4 px and 3.3 for 6 px at 0.003 to 0.006 (`ptv simulate`, the
-//! densest frames the most), and 0.4 to 1.8 in front of structure
+//! 2.5 px at 0.001 to 0.02 particles per pixel, 2.4 and 2.6 for 3.5 px
+//! at about 0.002 and 0.009, 2.8 for 4 px and 3.3 for 6 px at about 0.005
+//! (`ptv simulate`), and 0.4 to 1.8 in front of structure
 //! (`examples/detection_report.rs`); 5.1 to 7.4 on the test_cavity
 //! recording's 16 images, 7.3 on the rings of the unit test
 //! `rings_stay_whole_where_overlaps_cannot_explain_their_maxima`, and 8.9
