@@ -80,10 +80,14 @@
 //!
 //! | image diameter | weighted | Gaussian |
 //! | ---: | ---: | ---: |
-//! | 2 px | 0.030 | 0.026 |
-//! | 2.5 px | 0.034 | 0.021 |
+//! | 2 px | 0.030 | 0.027 |
+//! | 2.5 px | 0.035 | 0.022 |
 //! | 3 px | 0.024 | 0.023 |
 //! | 4 px | 0.020 | 0.031 |
+//!
+//! (With the high-pass radius of 25, the default since the detector's
+//! defaults were measured on a real recording; at 10 they differed by at
+//! most 0.001 px.)
 //!
 //! The fit reads three pixels per axis where the weighted centroid reads
 //! all of the particle's: it wins while the threshold truncates a large
@@ -92,9 +96,9 @@
 //! light. In crowded frames it wins at every density, as it reads only the
 //! particle's core, which a neighbour's tail hardly reaches
 //! (`examples/detection_report.rs`, 2.5 px particles in front of a
-//! structured background, background subtracted: 0.080 against 0.075 px
-//! at 0.001 particles per pixel, 0.140 against 0.103 at 0.005, 0.188
-//! against 0.134 at 0.01).
+//! structured background, background subtracted: 0.080 against 0.076 px
+//! at 0.001 particles per pixel, 0.141 against 0.104 at 0.005, 0.188
+//! against 0.133 at 0.01).
 //!
 //! The samples' background matters, and was measured with the same test
 //! (2 px images): the weights `g - threshold` instead of the filtered
