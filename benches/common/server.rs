@@ -22,8 +22,24 @@ impl Server {
     pub async fn start(data_dir: &Path, workers: Option<usize>, database: Option<&str>) -> Server {
         let args = ServeArgs {
             bind: "127.0.0.1:0".parse().unwrap(),
-            data_dir: data_dir.to_owned(),
-            database: database.map(|url| url.parse().expect("a postgres:// URL")),
+            storage: ptv::service::config::Storage {
+                data_dir: data_dir.to_owned(),
+                database: database.map(|url| url.parse().expect("a postgres:// URL")),
+                // As `ptv serve` reads them: images in an object store when
+                // PTV_OBJECT_STORE is set (endpoint: AWS_ENDPOINT_URL).
+                objects: ptv::service::config::ObjectStoreArgs {
+                    url: std::env::var("PTV_OBJECT_STORE")
+                        .ok()
+                        .map(|url| url.parse().expect("PTV_OBJECT_STORE is s3://bucket/prefix")),
+                    s3_endpoint: std::env::var("AWS_ENDPOINT_URL").ok(),
+                },
+                // `--fsync` as `ptv serve` reads PTV_FSYNC (the worker
+                // processes inherit it).
+                durability: ptv::service::config::Durability {
+                    fsync: std::env::var("PTV_FSYNC")
+                        .is_ok_and(|v| !matches!(v.as_str(), "" | "0" | "false" | "no" | "off")),
+                },
+            },
             workers,
             max_upload_mb: 256,
             api_token: None,
@@ -32,20 +48,6 @@ impl Server {
             timeouts: Timeouts::default(),
             job_limits: Default::default(),
             lease: Default::default(),
-            // As `ptv serve` reads them: images in an object store when
-            // PTV_OBJECT_STORE is set (endpoint: AWS_ENDPOINT_URL).
-            objects: ptv::service::config::ObjectStoreArgs {
-                url: std::env::var("PTV_OBJECT_STORE")
-                    .ok()
-                    .map(|url| url.parse().expect("PTV_OBJECT_STORE is s3://bucket/prefix")),
-                s3_endpoint: std::env::var("AWS_ENDPOINT_URL").ok(),
-            },
-            // `--fsync` as `ptv serve` reads PTV_FSYNC (the worker
-            // processes inherit it).
-            durability: ptv::service::config::Durability {
-                fsync: std::env::var("PTV_FSYNC")
-                    .is_ok_and(|v| !matches!(v.as_str(), "" | "0" | "false" | "no" | "off")),
-            },
         };
         let workers = args.worker_count();
         let app = Application::build(args).await.unwrap();

@@ -92,15 +92,15 @@ pub struct Application {
 impl Application {
     /// Opens the data directory and binds the listener.
     pub async fn build(config: ServeArgs) -> Result<Application, ServiceError> {
-        let data_dir = &config.data_dir;
+        let data_dir = &config.storage.data_dir;
         std::fs::create_dir_all(data_dir).map_err(|e| ServiceError::io(data_dir, e))?;
         let workers = config.worker_count();
         let readers = (workers as u32 + 4).min(16);
         let store = open_and_reap(&config, readers).await?;
-        let images = ImageStore::open(data_dir, config.objects.location())
+        let images = ImageStore::open(data_dir, config.storage.objects.location())
             .await
             .map_err(ServiceError::Images)?
-            .with_fsync(config.durability.fsync);
+            .with_fsync(config.storage.durability.fsync);
         // A process killed between storing a file and committing its rows,
         // or between committing a frame's results and deleting its images,
         // leaves files no row refers to. A worker process may be storing
@@ -217,14 +217,14 @@ async fn sweep_every(state: Arc<AppState>, interval: Duration) {
 async fn open_and_reap(config: &ServeArgs, readers: u32) -> Result<Store, ServiceError> {
     let started = std::time::Instant::now();
     let store = loop {
-        let opened = match &config.database {
+        let opened = match &config.storage.database {
             None => {
-                let synchronous = if config.durability.fsync {
+                let synchronous = if config.storage.durability.fsync {
                     store::Synchronous::Full
                 } else {
                     store::Synchronous::Normal
                 };
-                Store::open_sqlite(&config.data_dir, readers, synchronous).await
+                Store::open_sqlite(&config.storage.data_dir, readers, synchronous).await
             }
             Some(url) => Store::open_postgres(url, readers).await,
         };
@@ -306,15 +306,15 @@ pub async fn run_worker(
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> Result<(), ServiceError> {
     let config = args.serve_args();
-    let data_dir = config.data_dir.clone();
+    let data_dir = config.storage.data_dir.clone();
     std::fs::create_dir_all(&data_dir).map_err(|e| ServiceError::io(&data_dir, e))?;
     let workers = config.worker_count();
     let readers = (workers as u32 + 4).min(16);
     let store = open_and_reap(&config, readers).await?;
-    let images = ImageStore::open_shared(&data_dir, config.objects.location())
+    let images = ImageStore::open_shared(&data_dir, config.storage.objects.location())
         .await
         .map_err(ServiceError::Images)?
-        .with_fsync(config.durability.fsync);
+        .with_fsync(config.storage.durability.fsync);
     let cpu = CpuPool::new(workers).map_err(|e| ServiceError::Start(e.to_string()))?;
     let metrics = Arc::new(Metrics::default());
     let state = AppState::start(config, store, images, cpu, metrics);

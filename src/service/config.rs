@@ -17,15 +17,9 @@ pub struct ServeArgs {
     /// bound is printed).
     #[arg(long, env = "PTV_BIND", default_value = "127.0.0.1:8080")]
     pub bind: SocketAddr,
-    /// Directory of the SQLite database and the image store (created if
-    /// missing).
-    #[arg(long, env = "PTV_DATA_DIR", default_value = "ptv-data")]
-    pub data_dir: PathBuf,
-    /// The database: `postgres://USER@HOST:PORT/DATABASE` for PostgreSQL
-    /// (state and job queue shared by processes on any hosts); without
-    /// it, SQLite (`ptv.sqlite`) in the data directory.
-    #[arg(long, env = "PTV_DATABASE_URL", hide_env_values = true, value_parser = DatabaseUrlParser)]
-    pub database: Option<PostgresUrl>,
+    /// Where the state and the images are kept.
+    #[command(flatten)]
+    pub storage: Storage,
     /// Frames processed at once, each on its own CPU thread; 0 serves only
     /// (jobs are left to `ptv worker` processes on the same data
     /// directory) [default: the number of cores]
@@ -57,12 +51,42 @@ pub struct ServeArgs {
     /// How long a worker holds a job (and a tracking run) it claimed.
     #[command(flatten)]
     pub lease: Lease,
+}
+
+/// Where a process keeps the service's state and images: `ptv serve`'s
+/// and `ptv worker`'s flags for it, the same for both (a worker must be
+/// given what its `ptv serve` was).
+#[derive(Clone, Debug, Args)]
+pub struct Storage {
+    /// Directory of the SQLite database and the image store (created if
+    /// missing); with `--database` and `--object-store`, of temporary
+    /// files only.
+    #[arg(long, env = "PTV_DATA_DIR", default_value = "ptv-data")]
+    pub data_dir: PathBuf,
+    /// The database: `postgres://USER@HOST:PORT/DATABASE` for PostgreSQL
+    /// (state and job queue shared by processes on any hosts); without
+    /// it, SQLite (`ptv.sqlite`) in the data directory.
+    #[arg(long, env = "PTV_DATABASE_URL", hide_env_values = true, value_parser = DatabaseUrlParser)]
+    pub database: Option<PostgresUrl>,
     /// Where the images go: the data directory, or an object store.
     #[command(flatten)]
     pub objects: ObjectStoreArgs,
     /// What an accepted upload survives (`--fsync`).
     #[command(flatten)]
     pub durability: Durability,
+}
+
+impl Storage {
+    /// SQLite and the image store in `data_dir`, as without any of the
+    /// flags but the directory.
+    pub fn in_directory(data_dir: impl Into<PathBuf>) -> Storage {
+        Storage {
+            data_dir: data_dir.into(),
+            database: None,
+            objects: ObjectStoreArgs::default(),
+            durability: Durability::default(),
+        }
+    }
 }
 
 /// `--database`'s parser. Clap's own message for a value it cannot parse
@@ -127,14 +151,9 @@ impl ObjectStoreArgs {
 /// `ptv serve`, which may run with `--workers 0`).
 #[derive(Clone, Debug, Args)]
 pub struct WorkerArgs {
-    /// Directory of the SQLite database and the image store, as given to
-    /// `ptv serve` (created if missing).
-    #[arg(long, env = "PTV_DATA_DIR", default_value = "ptv-data")]
-    pub data_dir: PathBuf,
-    /// The database, as given to `ptv serve`: `postgres://...`, or
-    /// without it SQLite in the data directory.
-    #[arg(long, env = "PTV_DATABASE_URL", hide_env_values = true, value_parser = DatabaseUrlParser)]
-    pub database: Option<PostgresUrl>,
+    /// Where the state and the images are kept: as given to `ptv serve`.
+    #[command(flatten)]
+    pub storage: Storage,
     /// Jobs processed at once, each on its own CPU thread, at least 1
     /// [default: the number of cores]
     #[arg(long, env = "PTV_WORKERS", value_parser = clap::value_parser!(u64).range(1..))]
@@ -145,12 +164,6 @@ pub struct WorkerArgs {
     /// How long a worker holds a job (and a tracking run) it claimed.
     #[command(flatten)]
     pub lease: Lease,
-    /// Where the images are: as given to `ptv serve`.
-    #[command(flatten)]
-    pub objects: ObjectStoreArgs,
-    /// What an accepted upload survives (`--fsync`).
-    #[command(flatten)]
-    pub durability: Durability,
 }
 
 impl WorkerArgs {
@@ -159,8 +172,7 @@ impl WorkerArgs {
     pub fn serve_args(&self) -> ServeArgs {
         ServeArgs {
             bind: ([127, 0, 0, 1], 0).into(),
-            data_dir: self.data_dir.clone(),
-            database: self.database.clone(),
+            storage: self.storage.clone(),
             workers: Some(self.worker_count()),
             max_upload_mb: 0,
             api_token: None,
@@ -169,8 +181,6 @@ impl WorkerArgs {
             timeouts: Timeouts::default(),
             job_limits: self.job_limits.clone(),
             lease: self.lease.clone(),
-            objects: self.objects.clone(),
-            durability: self.durability.clone(),
         }
     }
 

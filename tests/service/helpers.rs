@@ -42,8 +42,11 @@ pub struct TestApp {
 pub fn test_args(data_dir: &Path, api_token: Option<&str>) -> ServeArgs {
     ServeArgs {
         bind: "127.0.0.1:0".parse().unwrap(),
-        data_dir: data_dir.to_owned(),
-        database: crate::postgres::database_url(data_dir).map(|url| url.parse().unwrap()),
+        storage: ptv::service::config::Storage {
+            database: crate::postgres::database_url(data_dir).map(|url| url.parse().unwrap()),
+            objects: object_store_args(data_dir),
+            ..ptv::service::config::Storage::in_directory(data_dir)
+        },
         workers: Some(2),
         max_upload_mb: 64,
         api_token: api_token.map(str::to_owned),
@@ -52,8 +55,6 @@ pub fn test_args(data_dir: &Path, api_token: Option<&str>) -> ServeArgs {
         timeouts: Timeouts::default(),
         job_limits: JobLimits::default(),
         lease: Default::default(),
-        objects: object_store_args(data_dir),
-        durability: Default::default(),
     }
 }
 

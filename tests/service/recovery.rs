@@ -274,7 +274,7 @@ async fn a_real_full_disk_is_a_507_and_freeing_space_is_enough() {
     }
     let _unmount = Unmount(mount.path().to_owned());
     let data_dir = mount.path().join("data");
-    let app = spawn_app_configured(|args| args.data_dir = data_dir.clone()).await;
+    let app = spawn_app_configured(|args| args.storage.data_dir = data_dir.clone()).await;
     let (rig, sequence) = app.rig_sequence().await;
     let calibration = ptv::formats::calibration::to_json(&rig.cameras);
 

@@ -474,7 +474,7 @@ async fn uploads_survive_postgres_stopped_for_ten_seconds() {
     const OUTAGE: Duration = Duration::from_secs(10);
     let server = std::sync::Arc::new(crate::postgres::Server::start("outage"));
     let url = server.create_database();
-    let app = spawn_app_configured(|args| args.database = Some(url.parse().unwrap())).await;
+    let app = spawn_app_configured(|args| args.storage.database = Some(url.parse().unwrap())).await;
     let (rig, sequence) = app.rig_sequence().await;
     let frames: Vec<_> = (0..FRAMES)
         .map(|f| rig.targets(150, 4000 + f as u64))
@@ -597,8 +597,8 @@ async fn an_object_store_outage_during_uploads_loses_no_accepted_frame() {
     let server = std::sync::Arc::new(std::sync::Mutex::new(S3Server::launch()));
     let endpoint = server.lock().unwrap().endpoint.clone();
     let app = spawn_app_configured(|args| {
-        args.objects.url = Some(format!("s3://{TEST_BUCKET}/outage").parse().unwrap());
-        args.objects.s3_endpoint = Some(endpoint);
+        args.storage.objects.url = Some(format!("s3://{TEST_BUCKET}/outage").parse().unwrap());
+        args.storage.objects.s3_endpoint = Some(endpoint);
     })
     .await;
     let (rig, sequence) = app.rig_sequence().await;

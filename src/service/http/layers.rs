@@ -533,8 +533,7 @@ mod tests {
     fn config(request_secs: u64, max_cpu_requests: u32) -> ServeArgs {
         ServeArgs {
             bind: "127.0.0.1:0".parse().unwrap(),
-            data_dir: "unused".into(),
-            database: None,
+            storage: crate::service::config::Storage::in_directory("unused"),
             workers: Some(1),
             max_upload_mb: 1,
             api_token: None,
@@ -546,8 +545,6 @@ mod tests {
             },
             job_limits: Default::default(),
             lease: Default::default(),
-            objects: Default::default(),
-            durability: Default::default(),
         }
     }
 
