@@ -47,12 +47,9 @@ impl Store {
         let mut tx = self.write_transaction().await?;
         let mut last = None;
         for chunk in events.chunks(INSERT_ROWS) {
-            let values: Vec<String> = (0..chunk.len())
-                .map(|i| format!("(${}, ${})", 2 * i + 1, 2 * i + 2))
-                .collect();
             let sql = format!(
                 "INSERT INTO events (sequence_id, change) VALUES {} RETURNING id",
-                values.join(", ")
+                super::placeholders(chunk.len(), 2)
             );
             let mut insert = sqlx::query_as::<_, (EventId,)>(&sql);
             for (sequence_id, change) in chunk {
