@@ -578,12 +578,15 @@ impl ImageStore {
     pub async fn stored(&self) -> Result<Vec<String>, ImageStoreError> {
         match &self.backend {
             Backend::Local { root } => {
+                // tokio::fs, as the store's other file operations: the
+                // hourly sweep runs on the serving runtime.
                 let mut hashes = Vec::new();
-                for prefix in std::fs::read_dir(root)? {
-                    let prefix = prefix?;
-                    if prefix.file_type()?.is_dir() {
-                        for file in std::fs::read_dir(prefix.path())? {
-                            hashes.push(file?.file_name().to_string_lossy().into_owned());
+                let mut prefixes = tokio::fs::read_dir(root).await?;
+                while let Some(prefix) = prefixes.next_entry().await? {
+                    if prefix.file_type().await?.is_dir() {
+                        let mut files = tokio::fs::read_dir(prefix.path()).await?;
+                        while let Some(file) = files.next_entry().await? {
+                            hashes.push(file.file_name().to_string_lossy().into_owned());
                         }
                     }
                 }

@@ -119,17 +119,14 @@ impl Store {
     /// Deletes the events logged more than `age_s` seconds ago; returns
     /// how many.
     pub async fn prune_events(&self, age_s: u32) -> Result<u64, sqlx::Error> {
-        let mut tx = self.write_transaction().await?;
-        let deleted = sqlx::query(&format!(
+        Ok(sqlx::query(&format!(
             "DELETE FROM events WHERE created_at < {}",
             self.dialect.now_plus(1)
         ))
         .bind(-f64::from(age_s))
-        .execute(&mut *tx)
+        .execute(&self.writer)
         .await?
-        .rows_affected();
-        tx.commit().await?;
-        Ok(deleted)
+        .rows_affected())
     }
 }
 
