@@ -180,9 +180,10 @@ impl S3Server {
 
 /// `--object-store` of a server on `data_dir`: under
 /// `PTV_TEST_OBJECT_STORE=s3`, `s3://ptv-test/NAME` with NAME the data
-/// directory's name; else none (the data directory).
-/// The variables every server reads (in this process, and inherited
-/// by `ptv serve` and `ptv worker` children) are set at the first call.
+/// directory's name; else none (the data directory). The first call starts
+/// the test process's S3 server and sets the variables every server reads
+/// (in this process, and inherited by `ptv serve` and `ptv worker`
+/// children).
 pub fn object_store_url(data_dir: &Path) -> Option<String> {
     if !s3_tests() {
         return None;
@@ -204,9 +205,10 @@ impl Drop for S3Server {
 
 /// The object store settings of an in-process server on `data_dir`.
 pub fn object_store_args(data_dir: &Path) -> ptv::service::config::ObjectStoreArgs {
+    let url = object_store_url(data_dir);
     ptv::service::config::ObjectStoreArgs {
-        url: object_store_url(data_dir).map(|url| url.parse().unwrap()),
-        s3_endpoint: object_store_url(data_dir).map(|_| s3_server().endpoint.clone()),
+        s3_endpoint: url.as_ref().map(|_| s3_server().endpoint.clone()),
+        url: url.map(|url| url.parse().unwrap()),
     }
 }
 

@@ -105,7 +105,6 @@ impl Api {
         response.text().await.unwrap()
     }
 
-    /// A calibration of the rig and a sequence on it with `tracking`.
     /// Waits until the sequence's tracking has taken frame `frame`.
     async fn wait_tracked_through(&self, sequence: i64, frame: i64) {
         let start = Instant::now();
@@ -119,6 +118,7 @@ impl Api {
         }
     }
 
+    /// A calibration of the rig and a sequence on it with `tracking`.
     async fn tracked_sequence(&self, rig: &Rig, tracking: Value) -> i64 {
         let response = self
             .client
