@@ -283,9 +283,10 @@ pub struct ImageStore {
     lock: Mutex<()>,
     /// The file locked for the same across processes.
     lock_file: PathBuf,
-    /// Whether a local file and its directory are flushed to the disk
-    /// when persisted (`ptv serve --fsync`), so that it survives a power
-    /// loss before the rows naming it commit.
+    /// Whether a local file is flushed to the disk when its upload is
+    /// finished, and its directory when it is persisted (`ptv serve
+    /// --fsync`), so that it survives a power loss before the rows naming
+    /// it commit; only the directory's flush is under the lock.
     fsync: bool,
 }
 
@@ -310,6 +311,9 @@ pub struct Upload {
     path: PathBuf,
     hasher: Sha256,
     size: u64,
+    /// `--fsync`: the file is flushed to the disk when it is finished,
+    /// before the image lock is taken to persist it.
+    fsync: bool,
 }
 
 /// A complete upload, in its temporary file until persisted; the file is
@@ -437,7 +441,7 @@ impl ImageStore {
     }
 
     /// The store, with local files flushed to the disk as they are
-    /// persisted where `fsync` (`--fsync`; an object store's PUT is
+    /// finished and persisted where `fsync` (`--fsync`; an object store's PUT is
     /// durable once acknowledged, and this changes nothing there).
     pub fn with_fsync(self, fsync: bool) -> ImageStore {
         ImageStore { fsync, ..self }
@@ -478,6 +482,7 @@ impl ImageStore {
             path,
             hasher: Sha256::new(),
             size: 0,
+            fsync: self.fsync,
         })
     }
 
@@ -544,9 +549,8 @@ impl ImageStore {
                 let new_directory = !parent.exists();
                 tokio::fs::create_dir_all(parent).await?;
                 if let Some(path) = upload.path.take() {
-                    if self.fsync {
-                        tokio::fs::File::open(&path).await?.sync_all().await?;
-                    }
+                    // With `--fsync` its bytes were flushed when it was
+                    // finished (`Upload::finish`), outside the lock.
                     tokio::fs::rename(&path, &target).await?;
                     if self.fsync {
                         // The rename and, for a new directory, its entry.
@@ -779,6 +783,9 @@ impl Upload {
     /// Flushes and closes the file.
     pub async fn finish(mut self) -> io::Result<UploadedFile> {
         self.file.flush().await?;
+        if self.fsync {
+            self.file.sync_all().await?;
+        }
         let path = std::mem::take(&mut self.path);
         let digest = std::mem::take(&mut self.hasher).finalize();
         let sha256 = digest.iter().map(|b| format!("{b:02x}")).collect();
@@ -945,6 +952,7 @@ mod tests {
             path: PathBuf::new(),
             hasher: Sha256::new(),
             size: 0,
+            fsync: false,
         };
         let mut error = upload.write(&[0; 1 << 16]).await.err();
         if error.is_none() {
