@@ -686,6 +686,14 @@ impl ServiceProcess {
         }
     }
 
+    /// The process's peak resident memory so far (`VmHWM` in
+    /// `/proc/PID/status`), in MiB: the bound the hostile-request tests
+    /// (`hostile`) assert, measured on the server alone, not on this test
+    /// process and its other tests.
+    pub fn peak_memory_mib(&self) -> f64 {
+        peak_memory_mib(self.child.id())
+    }
+
     /// Kills the process (SIGKILL: no chance to clean up) and reaps it.
     pub fn kill(mut self) {
         self.child.kill().unwrap();
@@ -890,4 +898,16 @@ pub async fn open_store(data_dir: &Path) -> ptv::service::store::Store {
             .unwrap(),
         None => Store::open(data_dir, 4).await.unwrap(),
     }
+}
+
+/// A process's peak resident memory (`VmHWM`), in MiB.
+pub fn peak_memory_mib(pid: u32) -> f64 {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status"))
+        .unwrap_or_else(|e| panic!("/proc/{pid}/status: {e}"));
+    let kib: f64 = status
+        .lines()
+        .find_map(|line| line.strip_prefix("VmHWM:"))
+        .and_then(|rest| rest.trim().trim_end_matches("kB").trim().parse().ok())
+        .unwrap_or_else(|| panic!("no VmHWM in /proc/{pid}/status"));
+    kib / 1024.0
 }

@@ -10,6 +10,8 @@
 //!   has run out and completes exactly once.
 //! - `bad_inputs`: every kind of bad request gets its 4xx and leaves the
 //!   database consistent.
+//! - `hostile`: issue 29's probe of hostile requests, each held to its
+//!   bound (status, the server's peak memory, time).
 //! - `job_bounds`: projections per request bounded, a frame past its time
 //!   limit failed and its worker freed, corrupt images refused at upload.
 //! - `layers`: what every request passes through: request ids, gzip,
@@ -68,6 +70,7 @@ mod connections;
 mod experiments;
 mod fuzz;
 mod helpers;
+mod hostile;
 mod job_bounds;
 mod layers;
 mod leases;
