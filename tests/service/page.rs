@@ -14,7 +14,7 @@ use std::time::{Duration, Instant};
 
 use serde_json::{json, Value};
 
-use crate::browser::{chromium, Browser, LogEntry};
+use crate::browser::{chromium_or_skip, Browser, LogEntry};
 use crate::helpers::*;
 
 /// How long a view may take to show (a hang guard; they take well under
@@ -71,8 +71,11 @@ async fn status_of(app: &TestApp, path: &str) -> u16 {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_page_shows_a_simulated_experiment_in_chromium() {
-    // Fails at once, saying what to install, where there is no Chromium.
-    chromium();
+    let Some(chromium) =
+        chromium_or_skip("page::the_page_shows_a_simulated_experiment_in_chromium")
+    else {
+        return;
+    };
     let app = spawn_app().await;
     let rig = rig();
 
@@ -188,7 +191,7 @@ async fn the_page_shows_a_simulated_experiment_in_chromium() {
     let runtime = tokio::runtime::Handle::current();
     let checks = tokio::task::spawn_blocking(move || {
         let started = Instant::now();
-        let mut browser = Browser::launch(1280, 1000);
+        let mut browser = Browser::launch(&chromium, 1280, 1000);
         let dir = screenshots();
 
         // The home page: both lists.
@@ -374,7 +377,11 @@ fn check_plots(browser: &mut Browser, plots: &HashMap<String, u16>) {
 /// and then lists and follows with it (the event stream too).
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_page_asks_for_the_token_and_keeps_it_for_the_tab() {
-    chromium();
+    let Some(chromium) =
+        chromium_or_skip("page::the_page_asks_for_the_token_and_keeps_it_for_the_tab")
+    else {
+        return;
+    };
     let app = spawn_app_with(Some("lab-token")).await;
     let rig = rig();
     let client = reqwest::Client::new();
@@ -410,7 +417,7 @@ async fn the_page_asks_for_the_token_and_keeps_it_for_the_tab() {
 
     let address = app.address.clone();
     let checks = tokio::task::spawn_blocking(move || {
-        let mut browser = Browser::launch(1280, 800);
+        let mut browser = Browser::launch(&chromium, 1280, 800);
         browser.open(&format!("{address}/"));
         browser.wait_for("!document.getElementById('token-form').hidden", VIEW);
         browser.eval(
