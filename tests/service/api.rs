@@ -411,6 +411,66 @@ async fn api_token_is_required_under_api() {
     app.stop().await;
 }
 
+/// Every parameter of the OpenAPI document is declared where it is
+/// taken: a path parameter is a `{name}` of its path (and each `{name}`
+/// one), anything else (the queries' `camera`, `format`, `limit`, ...) is
+/// not in the path, and a query parameter with a default is optional.
+#[test]
+fn openapi_parameters_are_declared_where_they_are_taken() {
+    let document: Value = serde_json::from_str(&ptv::service::openapi_json()).unwrap();
+    let mut queries = 0;
+    for (path, operations) in document["paths"].as_object().unwrap() {
+        let template: Vec<&str> = path
+            .split('/')
+            .filter_map(|segment| segment.strip_prefix('{')?.strip_suffix('}'))
+            .collect();
+        for (method, operation) in operations.as_object().unwrap() {
+            let parameters = operation["parameters"]
+                .as_array()
+                .cloned()
+                .unwrap_or_default();
+            let mut in_path: Vec<&str> = Vec::new();
+            for parameter in &parameters {
+                let name = parameter["name"].as_str().unwrap();
+                match parameter["in"].as_str().unwrap() {
+                    "path" => {
+                        assert!(
+                            template.contains(&name),
+                            "{method} {path}: `{name}` is declared in the path but is not one \
+                             of its segments"
+                        );
+                        assert_eq!(parameter["required"], true, "{method} {path}: `{name}`");
+                        in_path.push(name);
+                    }
+                    "query" => {
+                        queries += 1;
+                        let described = parameter["description"].as_str().unwrap_or("");
+                        if described.contains("default")
+                            || parameter["schema"].get("default").is_some()
+                        {
+                            assert_ne!(
+                                parameter["required"], true,
+                                "{method} {path}: query `{name}` has a default yet is required"
+                            );
+                        }
+                    }
+                    _ => {}
+                }
+            }
+            for name in &template {
+                assert!(
+                    in_path.contains(name),
+                    "{method} {path}: segment `{{{name}}}` is not declared as a path parameter"
+                );
+            }
+        }
+    }
+    assert!(
+        queries > 10,
+        "the document declares only {queries} query parameters"
+    );
+}
+
 /// The OpenAPI document served and committed are the code's. To update
 /// the committed one: `PTV_UPDATE_OPENAPI=1 cargo test --test service openapi`.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -67,6 +67,7 @@ pub const DEFAULT_PAGE: u32 = 20;
 /// The query of the lists that go newest first (`GET /calibrations`,
 /// `GET /sequences`): a page of `limit` below the id `before`.
 #[derive(Debug, Default, Deserialize, IntoParams)]
+#[into_params(parameter_in = Query)]
 #[serde(deny_unknown_fields)]
 pub struct PageQuery {
     /// Items per page, 1 to 100 [default: 20].

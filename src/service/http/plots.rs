@@ -64,6 +64,7 @@ pub(super) fn router() -> Router<Arc<AppState>> {
 
 /// Query of the pictures without other options.
 #[derive(Debug, Deserialize, IntoParams)]
+#[into_params(parameter_in = Query)]
 #[serde(deny_unknown_fields)]
 pub struct PlotQuery {
     /// png (default) or svg.
@@ -74,6 +75,7 @@ pub struct PlotQuery {
 
 /// Query of a camera's picture.
 #[derive(Debug, Deserialize, IntoParams)]
+#[into_params(parameter_in = Query)]
 #[serde(deny_unknown_fields)]
 pub struct CameraPlotQuery {
     /// The camera, from 0 [default: 0].
@@ -87,6 +89,7 @@ pub struct CameraPlotQuery {
 
 /// Query of the frame overlay.
 #[derive(Debug, Deserialize, IntoParams)]
+#[into_params(parameter_in = Query)]
 #[serde(deny_unknown_fields)]
 pub struct OverlayQuery {
     /// The camera, from 0 [default: 0].
@@ -105,6 +108,7 @@ pub struct OverlayQuery {
 
 /// Query of the trajectories picture.
 #[derive(Debug, Deserialize, IntoParams)]
+#[into_params(parameter_in = Query)]
 #[serde(deny_unknown_fields)]
 pub struct TrajectoriesPlotQuery {
     /// png (default) or svg.

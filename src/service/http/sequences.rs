@@ -375,6 +375,7 @@ impl From<FrameCounts> for FrameCountsView {
 
 /// Query of the frame list.
 #[derive(Debug, Deserialize, IntoParams)]
+#[into_params(parameter_in = Query)]
 #[serde(deny_unknown_fields)]
 pub struct FramePageQuery {
     /// Frames per page, 1 to 1000 [default: 100].
@@ -834,6 +835,7 @@ pub enum ParticleFormat {
 
 /// Query of the particle routes.
 #[derive(Debug, Deserialize, IntoParams)]
+#[into_params(parameter_in = Query)]
 #[serde(deny_unknown_fields)]
 pub struct ParticleQuery {
     /// json (default), csv or rt_is.
@@ -997,6 +999,7 @@ pub enum TargetFormat {
 
 /// Query of the targets route.
 #[derive(Debug, Deserialize, IntoParams)]
+#[into_params(parameter_in = Query)]
 #[serde(deny_unknown_fields)]
 pub struct TargetQuery {
     /// The camera, from 0.
@@ -1103,6 +1106,7 @@ pub async fn frame_targets(
 
 /// Query of the all-particles route.
 #[derive(Debug, Deserialize, IntoParams)]
+#[into_params(parameter_in = Query)]
 #[serde(deny_unknown_fields)]
 pub struct AllParticlesQuery {
     /// Only csv.

@@ -226,6 +226,7 @@ pub enum TrajectoryFormat {
 
 /// Query of the trajectories route.
 #[derive(Debug, Deserialize, IntoParams)]
+#[into_params(parameter_in = Query)]
 #[serde(deny_unknown_fields)]
 pub struct TrajectoriesQuery {
     /// json (default) or csv.
@@ -247,6 +248,7 @@ pub struct TrajectoriesQuery {
 
 /// Query of the one-trajectory route.
 #[derive(Debug, Deserialize, IntoParams)]
+#[into_params(parameter_in = Query)]
 #[serde(deny_unknown_fields)]
 pub struct TrajectoryQuery {
     /// A tracking run of the sequence [default: its current one].
