@@ -203,9 +203,9 @@ pub fn probe_raw(len: u64, layout: &RawLayout, source: &str) -> Result<ImageHead
 /// A PNG or TIFF image whose header has been read, ready for its pixels.
 enum Opened<R: BufRead + Seek> {
     /// PNG, with the `png` crate (ancillary chunks that inflate skipped).
-    Png(png::Reader<R>),
+    Png(Box<png::Reader<R>>),
     /// TIFF, with `image`'s decoder.
-    Tiff(TiffDecoder<R>),
+    Tiff(Box<TiffDecoder<R>>),
 }
 
 /// Opens a PNG or TIFF image and reads its header: the header, the
@@ -318,7 +318,7 @@ fn open_png<R: BufRead + Seek>(
         height,
         bit_depth,
     };
-    Ok((header, "PNG", Opened::Png(reader)))
+    Ok((header, "PNG", Opened::Png(Box::new(reader))))
 }
 
 /// Opens a TIFF with `image`'s decoder (the `tiff` crate's default limits
@@ -352,7 +352,7 @@ fn open_tiff<R: BufRead + Seek>(
         height,
         bit_depth,
     };
-    Ok((header, name, Opened::Tiff(decoder)))
+    Ok((header, name, Opened::Tiff(Box::new(decoder))))
 }
 
 /// What went wrong decoding a PNG, and what to do.
@@ -438,7 +438,7 @@ pub fn decode_image(bytes: &[u8], source: &str) -> Result<GreyImage, FormatError
                 }
             }
         }
-        Opened::Tiff(decoder) => match DynamicImage::from_decoder(decoder)
+        Opened::Tiff(decoder) => match DynamicImage::from_decoder(*decoder)
             .map_err(|error| corrupt(decoding_problem(error, name)))?
         {
             DynamicImage::ImageLuma8(buffer) => {

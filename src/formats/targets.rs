@@ -316,10 +316,7 @@ impl TargetsReader {
                 }
             }
             Kind::OpenPtv { count } => {
-                let mut line = self.line;
-                for text in slice.split_inclusive('\n') {
-                    let number = line;
-                    line += 1;
+                for (number, text) in (self.line..).zip(slice.split_inclusive('\n')) {
                     let text = text.strip_suffix('\n').unwrap_or(text);
                     let text = text.strip_suffix('\r').unwrap_or(text);
                     if text.trim().is_empty() {
