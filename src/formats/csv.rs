@@ -68,16 +68,54 @@ pub const TARGET_COLUMNS: [&str; 6] = ["x", "y", "n", "nx", "ny", "sumg"];
 /// Reads a targets table (pixels; `n`, `nx`, `ny`, `sumg` optional, 0 when
 /// absent), in file order.
 pub fn parse_targets(text: &str, source: &str) -> Result<Vec<Target>, FormatError> {
-    // The optional columns this header has.
-    let header = header_names(text);
-    let columns: Vec<&str> = TARGET_COLUMNS
-        .iter()
-        .enumerate()
-        .filter(|(i, name)| *i < 2 || header.iter().any(|h| h == *name))
-        .map(|(_, name)| *name)
-        .collect();
+    let mut rows = TargetRows::new(text);
     let mut targets = Vec::new();
-    read_table(text, source, &columns, |row| {
+    rows.read(text, source, 1, |target, _| {
+        targets.push(target);
+        Ok(())
+    })?;
+    Ok(targets)
+}
+
+/// A targets table read in slices: the columns its header names, and the
+/// rows of each slice given to a callback.
+pub(crate) struct TargetRows {
+    /// The optional columns the header has, and `x`, `y`.
+    columns: Vec<&'static str>,
+}
+
+impl TargetRows {
+    /// The columns of a table whose first non-blank line is `text`'s.
+    pub(crate) fn new(text: &str) -> TargetRows {
+        let header = header_names(text);
+        let columns = TARGET_COLUMNS
+            .iter()
+            .enumerate()
+            .filter(|(i, name)| *i < 2 || header.iter().any(|h| h == *name))
+            .map(|(_, name)| *name)
+            .collect();
+        TargetRows { columns }
+    }
+
+    /// Reads `text`, a header line and rows, the header being line
+    /// `first_line` of the file: `target` gets each row's target and line.
+    pub(crate) fn read(
+        &mut self,
+        text: &str,
+        source: &str,
+        first_line: u64,
+        mut target: impl FnMut(Target, u64) -> Result<(), FormatError>,
+    ) -> Result<(), FormatError> {
+        let columns = &self.columns;
+        read_table_from(text, source, columns, first_line, |row| {
+            target(row_target(row, columns)?, row.line)
+        })
+    }
+}
+
+/// The target of a targets table's row, of `columns`.
+fn row_target(row: &Row<'_>, columns: &[&str]) -> Result<Target, FormatError> {
+    {
         let mut target = Target {
             x: row.number(0)?,
             y: row.number(1)?,
@@ -99,10 +137,8 @@ pub fn parse_targets(text: &str, source: &str) -> Result<Vec<Target>, FormatErro
                 _ => target.sumg = value,
             }
         }
-        targets.push(target);
-        Ok(())
-    })?;
-    Ok(targets)
+        Ok(target)
+    }
 }
 
 /// A particle read from a particles table: its position, its standard
@@ -507,11 +543,12 @@ struct LineCounter<'t> {
 }
 
 impl<'t> LineCounter<'t> {
-    fn new(text: &'t str) -> Self {
+    /// Counts lines of `text` from `first` (1 for a whole file).
+    fn new(text: &'t str, first: u64) -> Self {
         LineCounter {
             text: text.as_bytes(),
             offset: 0,
-            line: 1,
+            line: first,
         }
     }
 
@@ -547,6 +584,19 @@ fn read_table(
     text: &str,
     source: &str,
     columns: &[&str],
+    row: impl FnMut(&Row<'_>) -> Result<(), FormatError>,
+) -> Result<(), FormatError> {
+    read_table_from(text, source, columns, 1, row)
+}
+
+/// [`read_table`] of a text whose first line is line `first_line` of its
+/// file (a header line and a slice of a file's rows, read as they arrive:
+/// [`TargetRows`]).
+fn read_table_from(
+    text: &str,
+    source: &str,
+    columns: &[&str],
+    first_line: u64,
     mut row: impl FnMut(&Row<'_>) -> Result<(), FormatError>,
 ) -> Result<(), FormatError> {
     let expected = columns.join(",");
@@ -555,7 +605,7 @@ fn read_table(
         .has_headers(false)
         .flexible(true)
         .from_reader(text.as_bytes());
-    let mut lines = LineCounter::new(text);
+    let mut lines = LineCounter::new(text, first_line);
     // The next record that is not a blank line, and its line; a line of
     // only whitespace reads as one empty field.
     let mut next = |record: &mut csv::ByteRecord| -> Result<Option<u64>, FormatError> {

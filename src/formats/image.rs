@@ -23,11 +23,28 @@
 //! sample is decoded: a small PNG of zeros can declare 22,000 x 22,000
 //! pixels. The decoder's own allocation limit ([`MAX_DECODE_BYTES`])
 //! backs this up.
+//!
+//! PNG's ancillary chunks that hold compressed data (`iCCP`, `zTXt`,
+//! `iTXt`, and `tEXt` with them) are skipped unread, never inflated: a 1 MB
+//! `iCCP` chunk can inflate to 1 GiB, and a colour profile or text says
+//! nothing the detector uses. PNG is therefore decoded with the `png` crate
+//! directly (the `image` crate cannot be told to skip them), with
+//! [`PNG_METADATA_BYTES`] for whatever else it buffers (other ancillary
+//! chunks, a row); TIFF with `image`'s decoder. Every route decodes here:
+//! frames, masks, backgrounds and calibration images in the service, and
+//! the command line.
+//!
+//! Errors: a file that is not an image this program can use (empty, not
+//! PNG or TIFF, BigTIFF, colour, grey with alpha, floating point, truncated
+//! or corrupt) is [`FormatError::UnsupportedImage`] (the service's 415),
+//! whichever step finds it; a readable greyscale image of the wrong size is
+//! [`FormatError::Invalid`] (422).
 
 use std::io::{BufRead, BufReader, Cursor, Seek};
 use std::path::Path;
 
-use image::{ColorType, DynamicImage, ImageDecoder, ImageFormat, ImageReader, Limits};
+use image::codecs::tiff::TiffDecoder;
+use image::{ColorType, DynamicImage, ImageDecoder, ImageFormat, Limits};
 
 use super::FormatError;
 use crate::photogrammetry::{BitDepth, GreyImage, GreyPixels, MAX_SENSOR_PIXELS, MAX_SENSOR_SIDE};
@@ -37,6 +54,13 @@ use crate::photogrammetry::{BitDepth, GreyImage, GreyPixels, MAX_SENSOR_PIXELS, 
 /// output (TIFF strips, PNG rows). A colour image of the largest size
 /// would need more, and is refused either way.
 pub const MAX_DECODE_BYTES: u64 = 2 * 2 * MAX_SENSOR_PIXELS;
+
+/// What the PNG decoder may allocate besides the image itself: the
+/// ancillary chunks it reads (`eXIf` and the small fixed-size ones; the
+/// compressed ones are skipped unread) and its row buffers (a row of the
+/// widest sensor is at most 128 KiB). 16 MiB, far more than a camera's PNG
+/// carries.
+pub const PNG_METADATA_BYTES: usize = 16 << 20;
 
 /// Checks an image's declared size against the sensor limits, before
 /// anything is decoded or copied.
@@ -176,83 +200,174 @@ pub fn probe_raw(len: u64, layout: &RawLayout, source: &str) -> Result<ImageHead
     })
 }
 
+/// A PNG or TIFF image whose header has been read, ready for its pixels.
+enum Opened<R: BufRead + Seek> {
+    /// PNG, with the `png` crate (ancillary chunks that inflate skipped).
+    Png(Box<png::Reader<R>>),
+    /// TIFF, with `image`'s decoder.
+    Tiff(Box<TiffDecoder<R>>),
+}
+
 /// Opens a PNG or TIFF image and reads its header: the header, the
 /// container's name for messages, and the decoder, ready for the pixels.
-fn open_image<'a, R: BufRead + Seek + 'a>(
+fn open_image<R: BufRead + Seek>(
     mut reader: R,
     source: &str,
-) -> Result<(ImageHeader, &'static str, impl ImageDecoder + 'a), FormatError> {
-    let unsupported = |location: &str, reason: String| FormatError::UnsupportedImage {
-        input: source.to_owned(),
-        location: location.to_owned(),
-        reason,
-    };
+) -> Result<(ImageHeader, &'static str, Opened<R>), FormatError> {
     let head = reader.fill_buf().map_err(|reason| FormatError::Io {
         path: source.into(),
         reason,
     })?;
     if head.is_empty() {
         return Err(unsupported(
+            source,
             "file",
             "the file is empty; expected a greyscale PNG or TIFF image".to_owned(),
         ));
     }
-    let Some(format) = sniff(head) else {
-        let head: Vec<String> = head.iter().take(4).map(|b| format!("{b:02x}")).collect();
+    if is_bigtiff(head) {
         return Err(unsupported(
-            "format",
-            format!(
-                "neither a PNG nor a TIFF image (it starts with bytes {}); for raw pixel data \
-                 give its width, height and bit depth",
-                head.join(" ")
-            ),
+            source,
+            "TIFF",
+            "BigTIFF is not supported: save the frame as a classic TIFF or PNG".to_owned(),
         ));
-    };
-    let name = match format {
-        ImageFormat::Png => "PNG",
-        _ => "TIFF",
-    };
-    let mut reader = ImageReader::with_format(reader, format);
-    // Our own size check first, so that a refusal names the sensor limits;
-    // the decoder's limits then bound what it allocates.
-    reader.no_limits();
-    let mut decoder = reader
-        .into_decoder()
-        .map_err(|error| unsupported(name, decoding_problem(error, name)))?;
-    let color = decoder.color_type();
-    let bit_depth = match color {
-        ColorType::L8 => BitDepth::Eight,
-        ColorType::L16 => BitDepth::Sixteen,
-        other => {
-            let kind = match other {
-                ColorType::La8 | ColorType::La16 => "grey with an alpha channel",
-                ColorType::Rgb32F | ColorType::Rgba32F => "floating-point colour",
-                _ => "colour",
-            };
-            return Err(FormatError::invalid(
+    }
+    match sniff(head) {
+        Some(ImageFormat::Png) => open_png(reader, source),
+        Some(_) => open_tiff(reader, source),
+        None => {
+            let head: Vec<String> = head.iter().take(4).map(|b| format!("{b:02x}")).collect();
+            Err(unsupported(
                 source,
-                name,
+                "format",
                 format!(
-                    "the image is {kind} ({other:?}); the detector needs 8- or 16-bit greyscale, \
-                     so convert the frame to greyscale without alpha"
+                    "neither a PNG nor a TIFF image (it starts with bytes {}); for raw pixel \
+                     data give its width, height and bit depth",
+                    head.join(" ")
                 ),
-            ));
+            ))
+        }
+    }
+}
+
+/// A file this program cannot use as an image (the service's 415).
+fn unsupported(source: &str, location: &str, reason: String) -> FormatError {
+    FormatError::UnsupportedImage {
+        input: source.to_owned(),
+        location: location.to_owned(),
+        reason,
+    }
+}
+
+/// The refusal of an image that is not 8- or 16-bit greyscale: `kind` says
+/// what it is, `color` as the decoder names it.
+fn not_grey(source: &str, name: &str, kind: &str, color: impl std::fmt::Debug) -> FormatError {
+    unsupported(
+        source,
+        name,
+        format!(
+            "the image is {kind} ({color:?}); the detector needs 8- or 16-bit greyscale, so \
+             convert the frame to greyscale without alpha"
+        ),
+    )
+}
+
+/// Opens a PNG: its header (IHDR) first, whose size is checked before any
+/// other chunk is read, then the chunks up to the image data, with those
+/// that inflate (`iCCP`, `zTXt`, `iTXt`) and `tEXt` skipped unread.
+/// Samples of fewer than 8 bits are expanded to 8, as `image` did.
+fn open_png<R: BufRead + Seek>(
+    reader: R,
+    source: &str,
+) -> Result<(ImageHeader, &'static str, Opened<R>), FormatError> {
+    let mut decoder = png::Decoder::new_with_limits(
+        reader,
+        png::Limits {
+            bytes: PNG_METADATA_BYTES,
+        },
+    );
+    decoder.set_ignore_iccp_chunk(true);
+    decoder.set_ignore_text_chunk(true);
+    decoder.set_transformations(png::Transformations::EXPAND);
+    let (width, height) = decoder
+        .read_header_info()
+        .map_err(|error| unsupported(source, "PNG", png_problem(error)))?
+        .size();
+    check_image_size(width, height, source)?;
+    let reader = decoder
+        .read_info()
+        .map_err(|error| unsupported(source, "PNG", png_problem(error)))?;
+    let bit_depth = match reader.output_color_type() {
+        (png::ColorType::Grayscale, png::BitDepth::Eight) => BitDepth::Eight,
+        (png::ColorType::Grayscale, png::BitDepth::Sixteen) => BitDepth::Sixteen,
+        (color, bits) => {
+            // Named as `image` names colour types: `Rgb8`, `La16`, ...
+            let (kind, name) = match color {
+                png::ColorType::GrayscaleAlpha => ("grey with an alpha channel", "La"),
+                png::ColorType::Rgb => ("colour", "Rgb"),
+                png::ColorType::Rgba => ("colour", "Rgba"),
+                png::ColorType::Indexed => ("colour", "Indexed"),
+                png::ColorType::Grayscale => ("grey", "L"),
+            };
+            let name = format!("{name}{}", bits as u8);
+            return Err(not_grey(source, "PNG", kind, format_args!("{name}")));
         }
     };
-    let (width, height) = decoder.dimensions();
-    check_image_size(width, height, source)?;
-    decoder
-        .set_limits(decoder_limits())
-        .map_err(|error| FormatError::invalid(source, name, decoding_problem(error, name)))?;
     let header = ImageHeader {
         width,
         height,
         bit_depth,
     };
-    Ok((header, name, decoder))
+    Ok((header, "PNG", Opened::Png(Box::new(reader))))
 }
 
-/// What went wrong decoding a PNG or TIFF (`name`), and what to do.
+/// Opens a TIFF with `image`'s decoder (the `tiff` crate's default limits
+/// while it reads the header, [`decoder_limits`] for the pixels).
+fn open_tiff<R: BufRead + Seek>(
+    reader: R,
+    source: &str,
+) -> Result<(ImageHeader, &'static str, Opened<R>), FormatError> {
+    let name = "TIFF";
+    let mut decoder = TiffDecoder::new(reader)
+        .map_err(|error| unsupported(source, name, decoding_problem(error, name)))?;
+    let color = decoder.color_type();
+    let bit_depth = match color {
+        ColorType::L8 => BitDepth::Eight,
+        ColorType::L16 => BitDepth::Sixteen,
+        ColorType::La8 | ColorType::La16 => {
+            return Err(not_grey(source, name, "grey with an alpha channel", color))
+        }
+        ColorType::Rgb32F | ColorType::Rgba32F => {
+            return Err(not_grey(source, name, "floating-point colour", color))
+        }
+        other => return Err(not_grey(source, name, "colour", other)),
+    };
+    let (width, height) = decoder.dimensions();
+    check_image_size(width, height, source)?;
+    decoder
+        .set_limits(decoder_limits())
+        .map_err(|error| unsupported(source, name, decoding_problem(error, name)))?;
+    let header = ImageHeader {
+        width,
+        height,
+        bit_depth,
+    };
+    Ok((header, name, Opened::Tiff(Box::new(decoder))))
+}
+
+/// What went wrong decoding a PNG, and what to do.
+fn png_problem(error: png::DecodingError) -> String {
+    match error {
+        png::DecodingError::LimitsExceeded => format!(
+            "its chunks need more memory to decode than the limit of {PNG_METADATA_BYTES} bytes \
+             (PNG_METADATA_BYTES); save the frame as an 8- or 16-bit greyscale PNG without \
+             large metadata"
+        ),
+        e => format!("cannot be decoded, the file is truncated or corrupt ({e})"),
+    }
+}
+
+/// What went wrong decoding a TIFF (`name`), and what to do.
 fn decoding_problem(error: image::ImageError, name: &str) -> String {
     match error {
         image::ImageError::Unsupported(e) => format!(
@@ -267,11 +382,17 @@ fn decoding_problem(error: image::ImageError, name: &str) -> String {
     }
 }
 
+/// Whether a file's first bytes announce a BigTIFF (64-bit offsets), which
+/// is refused by name rather than read.
+fn is_bigtiff(bytes: &[u8]) -> bool {
+    bytes.starts_with(b"II+\0") || bytes.starts_with(b"MM\0+")
+}
+
 /// The container a file's first bytes announce.
 fn sniff(bytes: &[u8]) -> Option<ImageFormat> {
     if bytes.starts_with(b"\x89PNG\r\n\x1a\n") {
         Some(ImageFormat::Png)
-    } else if [b"II*\0", b"MM\0*", b"II+\0", b"MM\0+"]
+    } else if [b"II*\0", b"MM\0*"]
         .iter()
         .any(|magic| bytes.starts_with(*magic))
     {
@@ -283,25 +404,58 @@ fn sniff(bytes: &[u8]) -> Option<ImageFormat> {
 
 /// Decodes a greyscale PNG or TIFF file's bytes.
 pub fn decode_image(bytes: &[u8], source: &str) -> Result<GreyImage, FormatError> {
-    let (ImageHeader { width, height, .. }, name, decoder) =
-        open_image(Cursor::new(bytes), source)?;
-    let decoded = DynamicImage::from_decoder(decoder)
-        .map_err(|error| FormatError::invalid(source, name, decoding_problem(error, name)))?;
-    let image = match decoded {
-        DynamicImage::ImageLuma8(buffer) => GreyImage::from_u8(width, height, buffer.into_raw()),
-        DynamicImage::ImageLuma16(buffer) => GreyImage::from_u16(width, height, buffer.into_raw()),
-        other => {
-            return Err(FormatError::invalid(
-                source,
-                name,
-                format!(
+    let (header, name, opened) = open_image(Cursor::new(bytes), source)?;
+    let ImageHeader {
+        width,
+        height,
+        bit_depth,
+    } = header;
+    let corrupt = |reason: String| unsupported(source, name, reason);
+    let image = match opened {
+        Opened::Png(mut reader) => {
+            let size = reader
+                .output_buffer_size()
+                .ok_or_else(|| corrupt(png_problem(png::DecodingError::LimitsExceeded)))?;
+            match bit_depth {
+                BitDepth::Eight => {
+                    let mut samples = vec![0u8; size];
+                    reader
+                        .next_frame(&mut samples)
+                        .map_err(|e| corrupt(png_problem(e)))?;
+                    GreyImage::from_u8(width, height, samples)
+                }
+                BitDepth::Sixteen => {
+                    // Read into the samples' own bytes (big-endian in the
+                    // file), then turned around in place: one buffer.
+                    let mut samples = vec![0u16; size / 2];
+                    reader
+                        .next_frame(bytemuck::cast_slice_mut(&mut samples))
+                        .map_err(|e| corrupt(png_problem(e)))?;
+                    for sample in &mut samples {
+                        *sample = u16::from_be(*sample);
+                    }
+                    GreyImage::from_u16(width, height, samples)
+                }
+            }
+        }
+        Opened::Tiff(decoder) => match DynamicImage::from_decoder(*decoder)
+            .map_err(|error| corrupt(decoding_problem(error, name)))?
+        {
+            DynamicImage::ImageLuma8(buffer) => {
+                GreyImage::from_u8(width, height, buffer.into_raw())
+            }
+            DynamicImage::ImageLuma16(buffer) => {
+                GreyImage::from_u16(width, height, buffer.into_raw())
+            }
+            other => {
+                return Err(corrupt(format!(
                     "decoded as {:?}, not the greyscale its header says",
                     other.color()
-                ),
-            ))
-        }
+                )))
+            }
+        },
     };
-    image.map_err(|e| FormatError::invalid(source, name, e.to_string()))
+    image.map_err(|e| corrupt(e.to_string()))
 }
 
 /// Decodes raw samples: `width * height` of them, row by row, 16-bit ones
@@ -507,10 +661,13 @@ mod tests {
             .to_string()
             .contains("truncated or corrupt"));
 
-        // Colour is refused as a value (the service's 422), anything that
-        // is not an image this program opens as unsupported (415).
+        // Colour, as anything that is not an image this program can use,
+        // is unsupported (the service's 415).
         let colour = probe(&encoded(ImageFormat::Png, Rgb8, 2, 2)).unwrap_err();
-        assert!(matches!(colour, FormatError::Invalid { .. }), "{colour}");
+        assert!(
+            matches!(colour, FormatError::UnsupportedImage { .. }),
+            "{colour}"
+        );
         assert!(
             colour
                 .to_string()
@@ -572,6 +729,111 @@ mod tests {
         );
         let missing = read_header(&dir.path().join("gone"), None, "cam1").unwrap_err();
         assert!(matches!(missing, FormatError::Io { .. }), "{missing}");
+    }
+
+    /// A zlib stream of `mib` MiB of zeros, built without deflating them
+    /// all: one MiB deflated with a full flush (which makes the block
+    /// independent of what comes before) repeated, then an empty final
+    /// block and the Adler-32 of the zeros.
+    fn zlib_zeros(mib: u64) -> Vec<u8> {
+        let mut deflate = flate2::Compress::new(flate2::Compression::best(), false);
+        let mut block = Vec::with_capacity(8 << 10);
+        deflate
+            .compress_vec(&vec![0; 1 << 20], &mut block, flate2::FlushCompress::Full)
+            .unwrap();
+        let mut stream = vec![0x78, 0xda];
+        for _ in 0..mib {
+            stream.extend_from_slice(&block);
+        }
+        stream.extend_from_slice(&[0x01, 0x00, 0x00, 0xff, 0xff]);
+        // Adler-32 of zeros: a = 1, b = the length mod 65521.
+        let b = ((mib << 20) % 65_521) as u32;
+        stream.extend_from_slice(&((b << 16) | 1).to_be_bytes());
+        stream
+    }
+
+    /// `png` with a chunk of `kind` and `data` after its header.
+    fn with_chunk(png: &[u8], kind: &[u8; 4], data: &[u8]) -> Vec<u8> {
+        let mut chunk = (data.len() as u32).to_be_bytes().to_vec();
+        chunk.extend_from_slice(kind);
+        chunk.extend_from_slice(data);
+        let mut crc = flate2::Crc::new();
+        crc.update(&chunk[4..]);
+        chunk.extend_from_slice(&crc.sum().to_be_bytes());
+        // Signature (8) and IHDR (25).
+        [&png[..33], &chunk, &png[33..]].concat()
+    }
+
+    #[test]
+    fn compressed_ancillary_chunks_are_skipped_not_inflated() {
+        use crate::photogrammetry::detect::tests::counting::peak_of;
+        let plain = encoded(ImageFormat::Png, image::ExtendedColorType::L16, 64, 32);
+        let expected = decode_image(&plain, "plain.png").unwrap();
+        // 256 MiB each once inflated, 256 KB in the file.
+        let zeros = zlib_zeros(256);
+        let bombs = [
+            (b"iCCP", [&b"icc\0\0"[..], &zeros].concat()),
+            (b"zTXt", [&b"Comment\0\0"[..], &zeros].concat()),
+            (b"iTXt", [&b"Comment\0\x01\0\0\0"[..], &zeros].concat()),
+            (b"tEXt", [&b"Comment\0"[..], &vec![b'a'; 1 << 20]].concat()),
+        ];
+        for (kind, data) in bombs {
+            let bomb = with_chunk(&plain, kind, &data);
+            let (peak, decoded) = peak_of(|| decode_image(&bomb, "bomb.png"));
+            let name = String::from_utf8_lossy(kind);
+            assert_eq!(decoded.unwrap(), expected, "{name}");
+            // The file's bytes are the caller's; the decoder holds its
+            // buffers and the image (4 KiB), far below one inflated MiB.
+            assert!(peak < 1 << 20, "{name}: {peak} bytes");
+            let (peak, header) = peak_of(|| probe_image(Cursor::new(&bomb), "bomb.png"));
+            assert_eq!(header.unwrap().width, 64);
+            assert!(peak < 1 << 20, "{name}: probing took {peak} bytes");
+        }
+    }
+
+    #[test]
+    fn bigtiff_is_refused_by_name() {
+        for head in [&b"II+\0\x08\0\0\0"[..], &b"MM\0+\0\x08\0\0"[..]] {
+            let mut bytes = head.to_vec();
+            bytes.extend_from_slice(&[0xff; 32]);
+            let error = decode_image(&bytes, "cam1").unwrap_err();
+            assert!(
+                matches!(error, FormatError::UnsupportedImage { .. }),
+                "{error}"
+            );
+            assert_eq!(
+                error.to_string(),
+                "cam1: TIFF: BigTIFF is not supported: save the frame as a classic TIFF or PNG"
+            );
+        }
+    }
+
+    #[test]
+    fn every_file_that_does_not_decode_is_unsupported() {
+        let png = encoded(ImageFormat::Png, image::ExtendedColorType::L8, 40, 30);
+        let tiff = encoded(ImageFormat::Tiff, image::ExtendedColorType::L8, 40, 30);
+        let mut bad_crc = png.clone();
+        bad_crc[40] ^= 0xff;
+        for (bytes, name) in [
+            (png[..png.len() / 2].to_vec(), "cut.png"),
+            (png[..40].to_vec(), "header.png"),
+            (bad_crc, "crc.png"),
+            (tiff[..tiff.len() / 2].to_vec(), "cut.tif"),
+            (tiff[..10].to_vec(), "header.tif"),
+            (b"II*\0\xff\xff\xff\x7f".to_vec(), "ifd.tif"),
+            ((0..200u8).map(|b| b.wrapping_mul(37)).collect(), "random"),
+            (
+                encoded(ImageFormat::Png, image::ExtendedColorType::Rgb8, 4, 4),
+                "rgb.png",
+            ),
+        ] {
+            let error = decode_image(&bytes, name).unwrap_err();
+            assert!(
+                matches!(error, FormatError::UnsupportedImage { .. }),
+                "{name}: {error}"
+            );
+            assert!(error.to_string().starts_with(name), "{error}");
+        }
     }
 
     #[test]

@@ -9,7 +9,9 @@
 //! - [`csv`]: point, observation and target tables of the command line.
 //! - [`image`]: camera images (greyscale PNG, TIFF, raw buffers).
 //!
-//! [`parse_targets`] reads targets in either format.
+//! [`parse_targets`] reads targets in either format;
+//! [`targets::TargetsReader`] reads them as their bytes arrive, with a
+//! limit on their count.
 //!
 //! Every parser takes the text and a `source` (a file name, or a label like
 //! `request body`) and returns a [`FormatError`] that names the source, the
@@ -22,6 +24,7 @@ pub mod experiment;
 pub mod frames;
 pub mod image;
 pub mod openptv;
+pub mod targets;
 #[cfg(test)]
 mod untrusted;
 

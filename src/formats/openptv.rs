@@ -326,13 +326,7 @@ pub fn parse_targets(text: &str, source: &str) -> Result<Vec<Target>, FormatErro
         .enumerate()
         .filter(|(_, l)| !l.trim().is_empty());
     let count = match lines.next() {
-        Some((i, line)) => line.trim().parse::<usize>().map_err(|_| {
-            FormatError::invalid(
-                source,
-                format!("line {}", i + 1),
-                format!("expected the number of targets, got `{}`", line.trim()),
-            )
-        })?,
+        Some((i, line)) => parse_target_count(line, i + 1, source)?,
         None => {
             return Err(FormatError::invalid(
                 source,
@@ -343,67 +337,101 @@ pub fn parse_targets(text: &str, source: &str) -> Result<Vec<Target>, FormatErro
     };
     let mut targets = Vec::with_capacity(count.min(1 << 20));
     for (i, line) in lines {
-        // The line's name only for an error, and its fields without an
-        // allocation: 10,000 targets are read in a few ms.
-        let at = || format!("line {}", i + 1);
-        let mut fields = [""; 8];
-        let found = ascii_fields(line, &mut fields);
-        if found != 8 {
-            return Err(FormatError::invalid(
-                source,
-                at(),
-                format!("expected 8 values `pnr x y n nx ny sumg tnr`, found {found}"),
-            ));
-        }
-        let integer = |k: usize, what: &str| -> Result<u64, FormatError> {
-            fields[k].parse::<u64>().map_err(|_| {
-                FormatError::invalid(
-                    source,
-                    at(),
-                    format!("{what} must be a non-negative integer, got `{}`", fields[k]),
-                )
-            })
-        };
-        let small = |k: usize, what: &str| -> Result<u32, FormatError> {
-            u32::try_from(integer(k, what)?)
-                .map_err(|_| FormatError::invalid(source, at(), format!("{what} is too large")))
-        };
-        let coordinate = |k: usize, what: &str| finite_number(fields[k], source, i + 1, what);
-        let pnr = integer(0, "pnr")?;
-        if pnr != targets.len() as u64 {
-            return Err(FormatError::invalid(
-                source,
-                at(),
-                format!("pnr {pnr} out of sequence: targets must be numbered 0, 1, 2, ... in file order, expected {}", targets.len()),
-            ));
-        }
-        targets.push(Target {
-            x: coordinate(1, "x")?,
-            y: coordinate(2, "y")?,
-            n: small(3, "n")?,
-            nx: small(4, "nx")?,
-            ny: small(5, "ny")?,
-            sumg: integer(6, "sumg")?,
-        });
-        fields[7].parse::<i64>().map_err(|_| {
-            FormatError::invalid(
-                source,
-                format!("line {}", i + 1),
-                format!("tnr must be an integer, got `{}`", fields[7]),
-            )
-        })?;
+        targets.push(parse_target_line(line, i + 1, targets.len(), source)?);
     }
-    if targets.len() != count {
+    check_target_count(count, targets.len(), source)?;
+    Ok(targets)
+}
+
+/// A `_targets` file's first line (line `number`, from 1): the count.
+pub(crate) fn parse_target_count(
+    line: &str,
+    number: usize,
+    source: &str,
+) -> Result<usize, FormatError> {
+    line.trim().parse::<usize>().map_err(|_| {
+        FormatError::invalid(
+            source,
+            format!("line {number}"),
+            format!("expected the number of targets, got `{}`", line.trim()),
+        )
+    })
+}
+
+/// Whether a `_targets` file listed the `count` targets it announced.
+pub(crate) fn check_target_count(
+    count: usize,
+    listed: usize,
+    source: &str,
+) -> Result<(), FormatError> {
+    if listed != count {
         return Err(FormatError::invalid(
             source,
             "line 1",
-            format!(
-                "announces {count} targets but the file lists {}",
-                targets.len()
-            ),
+            format!("announces {count} targets but the file lists {listed}"),
         ));
     }
-    Ok(targets)
+    Ok(())
+}
+
+/// A `_targets` file's target line (line `number`, from 1, not blank),
+/// whose `pnr` must be `index`, its place in the file.
+pub(crate) fn parse_target_line(
+    line: &str,
+    number: usize,
+    index: usize,
+    source: &str,
+) -> Result<Target, FormatError> {
+    // The line's name only for an error, and its fields without an
+    // allocation: 10,000 targets are read in a few ms.
+    let at = || format!("line {number}");
+    let mut fields = [""; 8];
+    let found = ascii_fields(line, &mut fields);
+    if found != 8 {
+        return Err(FormatError::invalid(
+            source,
+            at(),
+            format!("expected 8 values `pnr x y n nx ny sumg tnr`, found {found}"),
+        ));
+    }
+    let integer = |k: usize, what: &str| -> Result<u64, FormatError> {
+        fields[k].parse::<u64>().map_err(|_| {
+            FormatError::invalid(
+                source,
+                at(),
+                format!("{what} must be a non-negative integer, got `{}`", fields[k]),
+            )
+        })
+    };
+    let small = |k: usize, what: &str| -> Result<u32, FormatError> {
+        u32::try_from(integer(k, what)?)
+            .map_err(|_| FormatError::invalid(source, at(), format!("{what} is too large")))
+    };
+    let coordinate = |k: usize, what: &str| finite_number(fields[k], source, number, what);
+    let pnr = integer(0, "pnr")?;
+    if pnr != index as u64 {
+        return Err(FormatError::invalid(
+            source,
+            at(),
+            format!("pnr {pnr} out of sequence: targets must be numbered 0, 1, 2, ... in file order, expected {index}"),
+        ));
+    }
+    let target = Target {
+        x: coordinate(1, "x")?,
+        y: coordinate(2, "y")?,
+        n: small(3, "n")?,
+        nx: small(4, "nx")?,
+        ny: small(5, "ny")?,
+        sumg: integer(6, "sumg")?,
+    };
+    fields[7].parse::<i64>().map_err(|_| {
+        FormatError::invalid(
+            source,
+            at(),
+            format!("tnr must be an integer, got `{}`", fields[7]),
+        )
+    })?;
+    Ok(target)
 }
 
 /// Splits `line` at ASCII whitespace, the separators of liboptv's `fscanf`

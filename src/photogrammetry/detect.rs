@@ -293,6 +293,15 @@
 //! flooded again from their first pixel) a mark a pixel (one bit) and
 //! their first pixels (8 bytes a blob of at least 3 pixels, at most twice
 //! that while the vector grows: 5.3 bytes a pixel).
+//! With a target limit ([`detect_within`], which the frame pipeline calls
+//! with [`max_targets`](super::correspond::max_targets) of the camera's
+//! sensor), the targets found never exceed it by more than one blob's:
+//! detection stops as soon as it is passed ([`TooManyTargets`]), so a
+//! hostile frame (a 1-pixel checkerboard at threshold 1 would make 33.5
+//! million targets of an 8192x8192 sensor) costs its scratch and the
+//! limit's 40 bytes a target, not 40 bytes a pixel. With the automatic
+//! split rule the deferred blobs' first split is counted, not kept, once
+//! the frame is past the limit.
 //! Particles are measured one at a time. The worst case is an image whose
 //! pixels are all above the threshold in one noisy blob; a test in this
 //! module counts the allocations of such an image and holds them to the
@@ -479,7 +488,32 @@ impl DetectionParameters {
 /// The targets of one frame, sorted by y, then x (as OpenPTV sorts them
 /// for the correspondence search).
 pub fn detect(image: &GreyImage, parameters: &DetectionParameters) -> Vec<Target> {
-    detect_with_pixels_if::<false>(image, &NO_PREPROCESSING, parameters).0
+    detect_with_pixels_if::<false>(image, &NO_PREPROCESSING, parameters, usize::MAX)
+        .map_or_else(|_| unreachable!("no target limit"), |found| found.0)
+}
+
+/// Why [`detect_within`] stopped.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum DetectError {
+    /// The background or mask does not fit the frame.
+    #[error(transparent)]
+    Preprocess(#[from] PreprocessError),
+    /// The frame has more targets than the limit: detection stopped as
+    /// soon as it was passed.
+    #[error(transparent)]
+    TooManyTargets(#[from] TooManyTargets),
+}
+
+/// More targets than a detection's limit: it stopped as soon as the limit
+/// was passed, so the count is not known.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
+#[error(
+    "detection found more than {limit} targets and stopped; raise the threshold, min_pixels or \
+     min_snr so that noise is not taken for particles"
+)]
+pub struct TooManyTargets {
+    /// The limit.
+    pub limit: usize,
 }
 
 /// A target and the pixels (column, row) it was measured from.
@@ -497,7 +531,9 @@ pub fn detect_with_pixels(
     image: &GreyImage,
     parameters: &DetectionParameters,
 ) -> Vec<TargetPixels> {
-    let (targets, pixels) = detect_with_pixels_if::<true>(image, &NO_PREPROCESSING, parameters);
+    let (targets, pixels) =
+        detect_with_pixels_if::<true>(image, &NO_PREPROCESSING, parameters, usize::MAX)
+            .unwrap_or_else(|_| unreachable!("no target limit"));
     targets
         .into_iter()
         .zip(pixels)
@@ -630,7 +666,26 @@ pub fn detect_preprocessed(
     parameters: &DetectionParameters,
 ) -> Result<Vec<Target>, PreprocessError> {
     preprocessing.check(image)?;
-    Ok(detect_with_pixels_if::<false>(image, preprocessing, parameters).0)
+    Ok(
+        detect_with_pixels_if::<false>(image, preprocessing, parameters, usize::MAX)
+            .unwrap_or_else(|_| unreachable!("no target limit"))
+            .0,
+    )
+}
+
+/// [`detect_preprocessed`] with a limit on the targets: once more than
+/// `limit` targets have been found, detection stops with
+/// [`DetectError::TooManyTargets`] (the rest of the frame is not
+/// searched, and the targets found are dropped). Below the limit the
+/// targets are [`detect_preprocessed`]'s.
+pub fn detect_within(
+    image: &GreyImage,
+    preprocessing: &Preprocessing,
+    parameters: &DetectionParameters,
+    limit: usize,
+) -> Result<Vec<Target>, DetectError> {
+    preprocessing.check(image)?;
+    Ok(detect_with_pixels_if::<false>(image, preprocessing, parameters, limit)?.0)
 }
 
 /// An empty [`Preprocessing`], for the functions without one.
@@ -640,12 +695,14 @@ const NO_PREPROCESSING: Preprocessing = Preprocessing {
 };
 
 /// Detection after `preprocessing`, which fits the image (checked by the
-/// caller; one that does not is ignored where it does not fit).
+/// caller; one that does not is ignored where it does not fit), stopping
+/// once more than `limit` targets are found.
 fn detect_with_pixels_if<const PIXELS: bool>(
     image: &GreyImage,
     preprocessing: &Preprocessing,
     parameters: &DetectionParameters,
-) -> Found {
+    limit: usize,
+) -> Result<Found, TooManyTargets> {
     // A GreyImage has at least one pixel and its samples fill its size.
     let (width, height) = (image.width() as usize, image.height() as usize);
     let fits = preprocessing.check(image).is_ok();
@@ -655,22 +712,24 @@ fn detect_with_pixels_if<const PIXELS: bool>(
         GreyPixels::Eight(pixels) => {
             let mut detector = Detector::new(pixels, width, height, parameters);
             detector.mask = mask;
+            detector.limit = limit;
             if let Some(GreyPixels::Eight(b)) = background.map(GreyImage::pixels) {
                 detector.background = Some(b);
             }
-            detector.run::<PIXELS>()
+            detector.run::<PIXELS>()?
         }
         GreyPixels::Sixteen(pixels) => {
             let mut detector = Detector::new(pixels, width, height, parameters);
             detector.mask = mask;
+            detector.limit = limit;
             if let Some(GreyPixels::Sixteen(b)) = background.map(GreyImage::pixels) {
                 detector.background = Some(b);
             }
-            detector.run::<PIXELS>()
+            detector.run::<PIXELS>()?
         }
     };
     let order = |a: &Target, b: &Target| a.y.total_cmp(&b.y).then(a.x.total_cmp(&b.x));
-    if PIXELS {
+    Ok(if PIXELS {
         let mut found: Vec<_> = targets.into_iter().zip(pixels).collect();
         found.sort_by(|(a, _), (b, _)| order(a, b));
         found.into_iter().unzip()
@@ -678,7 +737,7 @@ fn detect_with_pixels_if<const PIXELS: bool>(
         // Stable, as before: targets at the same position keep their order.
         targets.sort_by(order);
         (targets, pixels)
-    }
+    })
 }
 
 /// A sample type the detector works on directly.
@@ -1501,6 +1560,9 @@ struct Detector<'a, G: Grey> {
     /// The automatic split rule: the pixel counts of the targets found
     /// (with [`AUTO_SPLIT_NOISE`]).
     target_sizes: Vec<u32>,
+    /// The most targets the frame may have: detection stops once more are
+    /// found ([`TooManyTargets`]).
+    limit: usize,
 }
 
 impl<'a, G: Grey> Detector<'a, G> {
@@ -1532,6 +1594,7 @@ impl<'a, G: Grey> Detector<'a, G> {
             deferred_marks: Vec::new(),
             kept_apart: false,
             target_sizes: Vec::new(),
+            limit: usize::MAX,
         }
     }
 
@@ -1546,7 +1609,7 @@ impl<'a, G: Grey> Detector<'a, G> {
     /// times, in total less than twice its size), and after the last row
     /// every blob is complete. Blobs are independent of one another, so the
     /// targets do not depend on when their blob is measured.
-    fn run<const PIXELS: bool>(self) -> Found {
+    fn run<const PIXELS: bool>(self) -> Result<Found, TooManyTargets> {
         #[cfg(target_arch = "x86_64")]
         if std::arch::is_x86_feature_detected!("avx2") {
             // SAFETY: `run_avx2` needs AVX2, which this CPU has (just
@@ -1563,13 +1626,13 @@ impl<'a, G: Grey> Detector<'a, G> {
     /// same: the arithmetic is integer and lane-wise.
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2")]
-    fn run_avx2<const PIXELS: bool>(self) -> Found {
+    fn run_avx2<const PIXELS: bool>(self) -> Result<Found, TooManyTargets> {
         self.run_here::<PIXELS>()
     }
 
     /// [`Detector::run`]'s body, inlined into each of its versions.
     #[inline(always)]
-    fn run_here<const PIXELS: bool>(mut self) -> Found {
+    fn run_here<const PIXELS: bool>(mut self) -> Result<Found, TooManyTargets> {
         let (width, height) = (self.width, self.height);
         self.levels = zeroed_levels(width * height);
         self.marks = vec![0; (width * height).div_ceil(64 * 64)];
@@ -1591,14 +1654,26 @@ impl<'a, G: Grey> Detector<'a, G> {
                 {
                     resume = y + (y - first_row) + 1;
                 }
+                self.check_limit(&found)?;
             }
         }
         self.find_blobs::<PIXELS>(&mut scan, width * height, None, &mut found);
-        self.split_deferred::<PIXELS>(&mut found);
+        self.check_limit(&found)?;
+        self.split_deferred::<PIXELS>(&mut found)?;
         // Every blob has been measured, and its levels set to 0 after.
         debug_assert!(self.levels.iter().all(|&l| l == 0));
         keep_zeroed_levels(std::mem::take(&mut self.levels));
-        found
+        Ok(found)
+    }
+
+    /// Whether `found` is past the limit. (A detection stopped this way
+    /// leaves levels behind: its buffer is dropped, not kept.)
+    #[inline(always)]
+    fn check_limit(&self, found: &Found) -> Result<(), TooManyTargets> {
+        if found.0.len() > self.limit {
+            return Err(TooManyTargets { limit: self.limit });
+        }
+        Ok(())
     }
 
     /// The image's noise level after the high-pass filter: [`noise_sigma`]
@@ -1710,6 +1785,11 @@ impl<'a, G: Grey> Detector<'a, G> {
                         for &k in &self.blob {
                             self.levels[key_index(k)] = 0;
                         }
+                    }
+                    if found.0.len() > self.limit {
+                        // Past the limit: the caller stops.
+                        *scan = end;
+                        return None;
                     }
                 }
             }
@@ -1863,9 +1943,19 @@ impl<'a, G: Grey> Detector<'a, G> {
     /// ([`Detector::structured`]), split again with
     /// [`AUTO_SPLIT_NOISE_STRUCTURED`] instead. Each is flooded again from
     /// its seed; at the end their levels are cleared by their marks.
-    fn split_deferred<const PIXELS: bool>(&mut self, found: &mut Found) {
+    ///
+    /// With a limit: once the first split's targets and `found` are more
+    /// than the limit, the first split's targets are counted (and their
+    /// sizes kept), no longer kept; if the frame is then not structured it
+    /// has those targets and detection stops ([`TooManyTargets`]), else
+    /// every deferred blob is measured again with the higher floor, and
+    /// detection stops as soon as `found` passes the limit.
+    fn split_deferred<const PIXELS: bool>(
+        &mut self,
+        found: &mut Found,
+    ) -> Result<(), TooManyTargets> {
         if self.deferred.is_empty() {
-            return;
+            return Ok(());
         }
         self.reserve_blob(None);
         let mut fine: Found = (Vec::new(), Vec::new());
@@ -1873,23 +1963,40 @@ impl<'a, G: Grey> Detector<'a, G> {
         // where its targets in `fine` end.
         let mut first = Vec::with_capacity(self.deferred.len());
         let mut parted = 0;
+        // The first split's targets, kept in `fine` or only counted.
+        let mut counted = 0;
+        let mut kept = true;
         for blob in 0..self.deferred.len() {
             let before = fine.0.len();
             self.measure_deferred::<PIXELS>(blob, &mut fine);
-            parted += (fine.0.len() - before).saturating_sub(1);
-            first.push((self.kept_apart, fine.0.len()));
+            let new = fine.0.len() - before;
+            parted += new.saturating_sub(1);
+            counted += new;
+            first.push((self.kept_apart, counted));
+            if kept && found.0.len() + counted > self.limit {
+                kept = false;
+                self.target_sizes.extend(fine.0.iter().map(|t| t.n));
+                fine = (Vec::new(), Vec::new());
+            } else if !kept {
+                self.target_sizes.extend(fine.0.iter().map(|t| t.n));
+                fine.0.clear();
+                fine.1.clear();
+            }
         }
-        self.target_sizes.extend(fine.0.iter().map(|t| t.n));
-        if self.structured(found.0.len() + fine.0.len(), parted) {
+        if kept {
+            self.target_sizes.extend(fine.0.iter().map(|t| t.n));
+        }
+        if self.structured(found.0.len() + counted, parted) {
             self.split_noise = AUTO_SPLIT_NOISE_STRUCTURED;
             let mut pixels = fine.1.into_iter();
             let mut start = 0;
             for (blob, &(kept_apart, end)) in first.iter().enumerate() {
-                if kept_apart {
-                    if PIXELS {
+                if kept_apart || !kept {
+                    if PIXELS && kept {
                         pixels.by_ref().take(end - start).for_each(drop);
                     }
                     self.measure_deferred::<PIXELS>(blob, found);
+                    self.check_limit(found)?;
                 } else {
                     // Every saddle merged all the particles it met into
                     // one: each region merged was insignificant with the
@@ -1901,12 +2008,16 @@ impl<'a, G: Grey> Detector<'a, G> {
                     if PIXELS {
                         found.1.extend(pixels.by_ref().take(end - start));
                     }
+                    self.check_limit(found)?;
                 }
                 start = end;
             }
+        } else if !kept {
+            return Err(TooManyTargets { limit: self.limit });
         } else {
             found.0.append(&mut fine.0);
             found.1.append(&mut fine.1);
+            self.check_limit(found)?;
         }
         // Clear the deferred blobs' levels, word by word of their marks.
         for (word, &marks) in self.deferred_marks.iter().enumerate() {
@@ -1918,6 +2029,7 @@ impl<'a, G: Grey> Detector<'a, G> {
         }
         self.deferred = Vec::new();
         self.deferred_marks = Vec::new();
+        Ok(())
     }
 
     /// Floods deferred blob number `blob` from its seed, splits it and
@@ -2385,7 +2497,7 @@ impl<'a, G: Grey> Detector<'a, G> {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use crate::photogrammetry::simulate::rng;
     use rand::Rng;
@@ -3045,7 +3157,7 @@ mod tests {
 
     /// Counts the bytes each thread has allocated and not freed, and their
     /// peak, so that a test can measure the scratch of what it calls.
-    mod counting {
+    pub(crate) mod counting {
         use std::alloc::{GlobalAlloc, Layout, System};
         use std::cell::Cell;
 
@@ -3281,6 +3393,90 @@ mod tests {
         assert!(error
             .to_string()
             .starts_with("the mask is 39x30 pixels but the frame is 40x30"));
+    }
+
+    /// A `side` x `side` 8-bit checkerboard of 1-pixel squares, 255 where
+    /// `x + y` is even.
+    fn checkerboard(side: u32) -> GreyImage {
+        let pixels = (0..side * side)
+            .map(|p| {
+                if (p % side + p / side) % 2 == 0 {
+                    255
+                } else {
+                    0
+                }
+            })
+            .collect();
+        GreyImage::from_u8(side, side, pixels).unwrap()
+    }
+
+    #[test]
+    fn the_target_limit_stops_detection_and_changes_nothing_below_it() {
+        let hostile = DetectionParameters {
+            threshold: 1,
+            min_pixels: 1,
+            min_snr: 0,
+            ..DetectionParameters::default()
+        };
+        // Noise at a low threshold: many blobs with several maxima, which
+        // the automatic rule defers to the end of the frame (and splits
+        // again when the frame is structured), and with a split depth.
+        let noisy = DetectionParameters {
+            threshold: 8,
+            min_snr: 0,
+            ..DetectionParameters::default()
+        };
+        let deep = DetectionParameters {
+            split_depth: Some(3),
+            ..noisy.clone()
+        };
+        let [noise, _] = noise_frame(160, 120, 100.0, 20.0, 7);
+        for (image, parameters) in [
+            (checkerboard(64), &hostile),
+            (noise.clone(), &noisy),
+            (noise, &deep),
+        ] {
+            let all = detect(&image, parameters);
+            let n = all.len();
+            assert!(n > 100, "{n}");
+            for limit in [n, n + 1, usize::MAX] {
+                let within = detect_within(&image, &NO_PREPROCESSING, parameters, limit);
+                assert_eq!(within.as_ref(), Ok(&all), "limit {limit}");
+            }
+            for limit in [n - 1, n / 2, 1, 0] {
+                let error =
+                    detect_within(&image, &NO_PREPROCESSING, parameters, limit).unwrap_err();
+                assert_eq!(error, DetectError::TooManyTargets(TooManyTargets { limit }));
+            }
+        }
+    }
+
+    #[test]
+    fn a_hostile_frame_stops_at_the_limit_without_its_targets() {
+        // Every other pixel a target: 2 million of them, 80 MB of targets
+        // (and as much again while their vector grows) without a limit.
+        let image = checkerboard(2048);
+        let parameters = DetectionParameters {
+            threshold: 1,
+            min_pixels: 1,
+            min_snr: 0,
+            ..DetectionParameters::default()
+        };
+        let pixels = 2048 * 2048;
+        let (peak, found) =
+            counting::peak_of(|| detect_within(&image, &NO_PREPROCESSING, &parameters, 10_000));
+        assert_eq!(
+            found,
+            Err(DetectError::TooManyTargets(TooManyTargets {
+                limit: 10_000
+            }))
+        );
+        // The levels (2 bytes a pixel) and the rows' scratch before the
+        // stop; the targets found, 10,001 of them, are 400 KB.
+        assert!(peak < 3 * pixels, "{peak} bytes");
+        let (peak, all) = counting::peak_of(|| detect(&image, &parameters));
+        assert!(all.len() > 2_000_000 - 2 * 2048, "{}", all.len());
+        assert!(peak > 20 * pixels, "{peak} bytes");
     }
 
     #[test]

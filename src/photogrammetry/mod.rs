@@ -46,8 +46,8 @@ pub use camera::{
 pub use cancel::{Cancel, Cancelled, StopOnDrop};
 pub use centroid::Centroid;
 pub use detect::{
-    detect, detect_cameras, detect_preprocessed, DetectionParameters, InvalidDetectionParameters,
-    PreprocessError, Preprocessing,
+    detect, detect_cameras, detect_preprocessed, detect_within, DetectError, DetectionParameters,
+    InvalidDetectionParameters, PreprocessError, Preprocessing, TooManyTargets,
 };
 pub use image::{BitDepth, GreyImage, GreyPixels, ImageError, Mask, SensorMismatch};
 pub use intersect::{intersect, Intersection, IntersectionError, Observation};

@@ -30,9 +30,11 @@ use rayon::prelude::*;
 
 use super::camera::Camera;
 use super::cancel::{Cancel, Cancelled};
-use super::correspond::{MatchError, Matcher, MatchingParameters, Particle};
+use super::correspond::{
+    max_targets, MatchError, Matcher, MatchingParameters, Particle, MAX_TARGETS_PER_CAMERA,
+};
 use super::detect::{
-    detect_preprocessed, DetectionParameters, InvalidDetectionParameters, PreprocessError,
+    detect_within, DetectError, DetectionParameters, InvalidDetectionParameters, PreprocessError,
     Preprocessing,
 };
 use super::image::{GreyImage, SensorMismatch};
@@ -128,9 +130,39 @@ pub enum PipelineError {
         #[source]
         source: PreprocessError,
     },
+    /// A camera's image with more targets than its sensor can hold
+    /// ([`max_targets`]): detection stopped as soon as it passed the limit.
+    #[error(
+        "camera {camera}: detection found more than {limit} targets, the limit for its sensor \
+         (at most one particle image per 2x2 pixels, and at most {MAX_TARGETS_PER_CAMERA} per \
+         camera), and stopped; raise the detection threshold, min_pixels or min_snr so that \
+         noise is not taken for particles"
+    )]
+    TooManyTargets {
+        /// The camera (0-based).
+        camera: usize,
+        /// The limit, [`max_targets`] of its sensor.
+        limit: usize,
+    },
     /// The work was stopped before detection ended.
     #[error("detection {0}")]
     Cancelled(#[from] Cancelled),
+}
+
+/// Detects camera `camera`'s targets (of sensor `model`) within its
+/// sensor's target limit, which the matcher would refuse anyway.
+fn detect_limited(
+    camera: usize,
+    model: &Camera,
+    image: &GreyImage,
+    preprocessing: &Preprocessing,
+    parameters: &DetectionParameters,
+) -> Result<Vec<Target>, PipelineError> {
+    let limit = max_targets(model.sensor());
+    detect_within(image, preprocessing, parameters, limit).map_err(|error| match error {
+        DetectError::Preprocess(source) => PipelineError::Preprocess { camera, source },
+        DetectError::TooManyTargets(_) => PipelineError::TooManyTargets { camera, limit },
+    })
 }
 
 /// What one frame gives.
@@ -253,8 +285,13 @@ impl FramePipeline {
         image
             .check_sensor(model.sensor())
             .map_err(|source| PipelineError::Sensor { camera, source })?;
-        detect_preprocessed(image, &self.preprocessing[camera], &self.detection[camera])
-            .map_err(|source| PipelineError::Preprocess { camera, source })
+        detect_limited(
+            camera,
+            model,
+            image,
+            &self.preprocessing[camera],
+            &self.detection[camera],
+        )
     }
 
     /// Matches a frame's targets, `targets[c]` camera c's (as
@@ -287,10 +324,10 @@ impl FramePipeline {
             .par_iter()
             .zip(&self.detection)
             .zip(&self.preprocessing)
+            .zip(cameras)
             .enumerate()
-            .map(|(camera, ((image, parameters), preprocessing))| {
-                detect_preprocessed(image, preprocessing, parameters)
-                    .map_err(|source| PipelineError::Preprocess { camera, source })
+            .map(|(camera, (((image, parameters), preprocessing), model))| {
+                detect_limited(camera, model, image, preprocessing, parameters)
             })
             .collect::<Result<Vec<_>, _>>()?;
         let particles = self.matcher.match_frame(&targets)?;

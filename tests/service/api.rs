@@ -593,7 +593,7 @@ async fn job_kinds_plug_in_with_one_call() {
 }
 
 /// A frame whose image header is fine but whose data is not is refused at
-/// upload with the decoder's reason (it used to be accepted and its job
+/// upload (415, as any file that does not decode) with the decoder's reason (it used to be accepted and its job
 /// failed later); nothing is stored. A frame whose job fails answers 409
 /// for its particles: see `job_bounds`.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -606,7 +606,7 @@ async fn a_frame_whose_image_does_not_decode_is_refused_with_the_reason() {
     let half = files[2].len() / 2;
     files[2].truncate(half);
     let (status, body) = app.upload(sequence, image_form(0, &files)).await;
-    assert_eq!(status, 422, "{body}");
+    assert_eq!(status, 415, "{body}");
     let detail = body["detail"].as_str().unwrap();
     assert!(
         detail.contains("cam2") && detail.contains("truncated or corrupt"),

@@ -127,7 +127,8 @@ fn tiff_with_bad_strip_offset(width: u32, height: u32) -> Vec<u8> {
 
 /// The smaller issue: a truncated PNG or a TIFF whose strips point outside
 /// the file passed the header check and got 202; now each is decoded
-/// before the answer and refused with 422 naming the camera.
+/// before the answer and refused with 415 (as any file that does not
+/// decode) naming the camera.
 #[tokio::test]
 async fn corrupt_images_are_refused_at_upload() {
     let app = spawn_app().await;
@@ -138,7 +139,7 @@ async fn corrupt_images_are_refused_at_upload() {
     let whole = files[1].clone();
     files[1].truncate(whole.len() / 2);
     let (status, body) = app.upload(sequence, image_form(0, &files)).await;
-    assert_eq!(status, 422, "{body}");
+    assert_eq!(status, 415, "{body}");
     let detail = body["detail"].as_str().unwrap();
     assert!(
         detail.contains("cam1") && detail.contains("truncated or corrupt"),
@@ -149,7 +150,7 @@ async fn corrupt_images_are_refused_at_upload() {
     let sensor = rig.cameras[2].sensor();
     files[2] = tiff_with_bad_strip_offset(sensor.width, sensor.height);
     let (status, body) = app.upload(sequence, image_form(0, &files)).await;
-    assert_eq!(status, 422, "{body}");
+    assert_eq!(status, 415, "{body}");
     let detail = body["detail"].as_str().unwrap();
     assert!(detail.contains("cam2"), "{detail}");
 

@@ -739,7 +739,7 @@ fn check_solve_parts(parts: &SolveParts) -> Result<CheckedSolve, ApiError> {
         (status = 202, body = SolveAccepted),
         (status = 400, description = "Malformed multipart, a missing, unknown or repeated part", body = super::problem::Problem, content_type = "application/problem+json"),
         (status = 413, description = "Larger than --max-upload-mb or a text part above 1 MiB", body = super::problem::Problem, content_type = "application/problem+json"),
-        (status = 415, description = "Not multipart, or an image that is not PNG/TIFF", body = super::problem::Problem, content_type = "application/problem+json"),
+        (status = 415, description = "Not multipart, or an image that does not decode as greyscale PNG/TIFF (unknown, BigTIFF, colour, truncated, corrupt)", body = super::problem::Problem, content_type = "application/problem+json"),
         (status = 422, description = "A file that does not parse (a setup camera without sensor or media), part counts that do not match the setup's cameras, invalid options, a fixed parameter the setup gives no value for, images of a camera with neither orientation nor reference points", body = super::problem::Problem, content_type = "application/problem+json"),
     )
 )]

@@ -58,7 +58,7 @@ impl From<SequenceImagesError> for ApiError {
         (status = 400, description = "Malformed multipart, unknown or repeated part, no part", body = super::problem::Problem, content_type = "application/problem+json"),
         (status = 404, description = "No such sequence", body = super::problem::Problem, content_type = "application/problem+json"),
         (status = 409, description = "The sequence has frames, a background already, or computes its background", body = super::problem::Problem, content_type = "application/problem+json"),
-        (status = 415, description = "Not PNG or TIFF", body = super::problem::Problem, content_type = "application/problem+json"),
+        (status = 415, description = "Not a greyscale PNG or TIFF that decodes (unknown, BigTIFF, colour, truncated, corrupt)", body = super::problem::Problem, content_type = "application/problem+json"),
         (status = 422, description = "Wrong size, or an image that does not decode", body = super::problem::Problem, content_type = "application/problem+json"),
     )
 )]
@@ -82,7 +82,7 @@ pub async fn upload_background(
         (status = 400, description = "Malformed multipart, unknown or repeated part, no part", body = super::problem::Problem, content_type = "application/problem+json"),
         (status = 404, description = "No such sequence", body = super::problem::Problem, content_type = "application/problem+json"),
         (status = 409, description = "The sequence has frames or masks already", body = super::problem::Problem, content_type = "application/problem+json"),
-        (status = 415, description = "Not PNG or TIFF", body = super::problem::Problem, content_type = "application/problem+json"),
+        (status = 415, description = "Not a greyscale PNG or TIFF that decodes (unknown, BigTIFF, colour, truncated, corrupt)", body = super::problem::Problem, content_type = "application/problem+json"),
         (status = 422, description = "Wrong size, or an image that does not decode", body = super::problem::Problem, content_type = "application/problem+json"),
     )
 )]

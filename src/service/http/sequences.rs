@@ -25,7 +25,8 @@ use super::upload::{accepted, check_images, or_drain, persist_and_commit, stream
 use super::Shared;
 use crate::formats;
 use crate::formats::image::ImageHeader;
-use crate::photogrammetry::correspond::Particle;
+use crate::formats::targets::TargetsReader;
+use crate::photogrammetry::correspond::{max_targets, Particle, MAX_TARGETS_PER_CAMERA};
 use crate::photogrammetry::{Camera, Cancel, Sensor, Splitter, StopOnDrop, Target};
 use crate::service::app::AppState;
 use crate::service::codec;
@@ -47,7 +48,12 @@ pub const CALIBRATION_HEADER: &str = "ptv-calibration-id";
 
 /// Longest sequence name.
 const MAX_NAME: usize = 200;
-/// Largest targets part (bytes).
+/// Largest targets part (bytes). The part is parsed as it arrives
+/// ([`TargetsReader`]), so this bounds the work, not the memory: a part
+/// holds at most one slice of its text (64 KiB, or one record of at most
+/// 1 MiB) and its targets, at most `max_targets` of its camera's sensor
+/// (40 bytes each, twice that while their vector grows: 80 MiB at the
+/// largest sensors' 2^20).
 const MAX_TARGETS_PART: usize = 64 << 20;
 
 pub(super) fn router() -> Router<Arc<AppState>> {
@@ -531,15 +537,17 @@ struct UploadParts {
     bits: Option<u32>,
 }
 
-/// Reads a frame upload's parts for a calibration of `n` cameras: images
-/// streamed to temporary files, targets parsed, numbers checked.
+/// Reads a frame upload's parts for a calibration of `cameras`: images
+/// streamed to temporary files, targets parsed as they arrive (each
+/// camera's at most `max_targets` of its sensor), numbers checked.
 async fn read_parts(
     state: &AppState,
     id: SequenceId,
-    n: usize,
+    cameras: &[Camera],
     splitter: Option<Splitter>,
     multipart: &mut Multipart,
 ) -> Result<UploadParts, ApiError> {
+    let n = cameras.len();
     let mut parts = UploadParts {
         frame: None,
         images: (0..n).map(|_| None).collect(),
@@ -594,13 +602,7 @@ async fn read_parts(
             if parts.targets[camera].is_some() {
                 return Err(repeated());
             }
-            let text = text_part(&mut field, &name, MAX_TARGETS_PART).await?;
-            // Tens of megabytes of text are CPU work: off the runtime.
-            let parsed = state
-                .cpu
-                .run(move || formats::parse_targets(&text, &name))
-                .await??;
-            parts.targets[camera] = Some(parsed);
+            parts.targets[camera] = Some(targets_part(&mut field, &name, camera, cameras).await?);
         } else {
             return Err(ApiError::bad_request(format!(
                 "unknown part `{}`; expected `frame`, `cam0`..`cam{m}` or `targets0`..`targets{m}`, \
@@ -611,6 +613,38 @@ async fn read_parts(
         }
     }
     Ok(parts)
+}
+
+/// Reads camera `camera`'s targets part `name`, parsing its rows as they
+/// arrive and refusing it once it has more targets than the camera's
+/// sensor can hold ([`max_targets`], which matching would refuse anyway)
+/// or is larger than [`MAX_TARGETS_PART`]. Each chunk is parsed where it
+/// arrives, on the runtime: a slice of 64 KiB parses in well under a
+/// millisecond.
+async fn targets_part(
+    field: &mut Field<'_>,
+    name: &str,
+    camera: usize,
+    cameras: &[Camera],
+) -> Result<Vec<Target>, ApiError> {
+    let sensor = cameras[camera].sensor();
+    let reason = format!(
+        "camera {camera}'s {}x{} px sensor (one target per 2x2 pixels, at most \
+         {MAX_TARGETS_PER_CAMERA} a camera)",
+        sensor.width, sensor.height
+    );
+    let mut reader = TargetsReader::new(name, max_targets(sensor), &reason);
+    let mut size = 0;
+    while let Some(chunk) = field.chunk().await? {
+        size += chunk.len();
+        if size > MAX_TARGETS_PART {
+            return Err(ApiError::too_large(format!(
+                "part `{name}` is larger than {MAX_TARGETS_PART} bytes"
+            )));
+        }
+        reader.push(&chunk)?;
+    }
+    Ok(reader.finish()?)
 }
 
 /// A sequence and its calibration's cameras and splitter.
@@ -656,8 +690,8 @@ pub(super) async fn sequence_cameras_and_row(
         (status = 404, description = "No such sequence", body = super::problem::Problem, content_type = "application/problem+json"),
         (status = 409, description = "The frame exists", body = super::problem::Problem, content_type = "application/problem+json"),
         (status = 413, description = "Larger than --max-upload-mb", body = super::problem::Problem, content_type = "application/problem+json"),
-        (status = 415, description = "Not multipart, or an image that is not PNG/TIFF", body = super::problem::Problem, content_type = "application/problem+json"),
-        (status = 422, description = "Wrong camera count, image size, or targets", body = super::problem::Problem, content_type = "application/problem+json"),
+        (status = 415, description = "Not multipart, or an image that does not decode as greyscale PNG/TIFF (unknown, BigTIFF, colour, truncated, corrupt)", body = super::problem::Problem, content_type = "application/problem+json"),
+        (status = 422, description = "Wrong camera count, image size, or targets (malformed, or more than the camera's sensor may have)", body = super::problem::Problem, content_type = "application/problem+json"),
     )
 )]
 pub async fn upload_frame(
@@ -671,7 +705,7 @@ pub async fn upload_frame(
     } = rig;
     let n = cameras.len();
 
-    let parts = read_parts(&state, id, n, splitter, &mut multipart).await;
+    let parts = read_parts(&state, id, &cameras, splitter, &mut multipart).await;
     let UploadParts {
         frame,
         images,

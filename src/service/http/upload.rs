@@ -91,8 +91,10 @@ pub async fn or_drain<T>(
 /// every PNG or TIFF decoded whole, one at a time and dropped at once (at
 /// most one decoded image per request in memory), so that a truncated file
 /// or a TIFF whose strips point outside it is refused here. `source(camera)`
-/// names an image in messages. Unreadable kinds are 415, wrong sizes and
-/// files that do not decode 422. Returns the headers, in the files' order.
+/// names an image in messages. Files that are not a greyscale PNG or TIFF
+/// this program can decode (unknown, BigTIFF, colour, truncated, corrupt)
+/// are 415 whichever step finds it, wrong sizes 422. Returns the headers,
+/// in the files' order.
 pub async fn check_images(
     files: &[UploadedFile],
     sensors: &[Sensor],
