@@ -39,6 +39,8 @@ pub struct AppState {
     pub cpu: CpuPool,
     /// The memory the jobs of this process may hold at once.
     pub budget: MemoryBudget,
+    /// The sequences whose background a worker of this process computes.
+    pub computing: super::preprocessing::Computing,
     /// Prepared pipelines by sequence.
     pub pipelines: PipelineCache,
     /// Counters for /metrics.
@@ -75,6 +77,7 @@ impl AppState {
             images,
             cpu,
             budget,
+            computing: Default::default(),
             pipelines: PipelineCache::default(),
             metrics,
             wake: Notify::new(),

@@ -179,7 +179,7 @@ impl Drop for Grant {
 
 /// The largest budget a semaphore holds (MiB): tokio's limit on permits,
 /// far above any machine's memory.
-const MAX_BUDGET_MIB: u64 = (u32::MAX) as u64;
+const MAX_BUDGET_MIB: u64 = u32::MAX as u64;
 
 impl MemoryBudget {
     /// A budget of `total_mib` MiB (at least 1), reported to `metrics`.

@@ -13,8 +13,9 @@
 //! with their rows; a cached pipeline made without them is then stale
 //! ([`super::jobs::PipelineCache`]). Until then frame jobs are deferred ([`JobError::Deferred`]): put
 //! back uncounted, not claimed again for [`WAIT_FOR_BACKGROUND`], so other
-//! sequences' frames go on. Two workers may compute it at once; the first
-//! stored wins and the other's files go.
+//! sequences' frames go on. One worker of a process computes it, the
+//! process's others defer; workers of two processes may compute it at
+//! once: the first stored wins and the other's files go.
 
 use std::sync::Arc;
 use std::time::Duration;
@@ -127,6 +128,14 @@ pub async fn ensure_computed_background(
             computed.frames
         )));
     }
+    // One worker of this process computes it; the others wait (in
+    // another process, another worker may compute it too: the first
+    // stored wins).
+    let Some(_computing) = Computing::start(state, sequence_id) else {
+        return Err(JobError::Deferred(
+            "waiting for the sequence's background: another worker computes it".to_owned(),
+        ));
+    };
     // Each frame's layout and image files (names only).
     let mut inputs = Vec::with_capacity(frames.len());
     for frame in frames {
@@ -239,6 +248,29 @@ pub async fn ensure_computed_background(
         files.push((camera as i64, file, bits));
     }
     store_backgrounds(state, sequence_id, files).await
+}
+
+/// The sequences whose background a worker of this process computes now.
+#[derive(Debug, Default)]
+pub struct Computing(std::sync::Mutex<std::collections::HashSet<SequenceId>>);
+
+/// A sequence's background being computed, until dropped.
+struct ComputingGuard<'a>(&'a Computing, SequenceId);
+
+impl Computing {
+    /// Marks the sequence's background as being computed, unless it is.
+    fn start(state: &AppState, sequence_id: SequenceId) -> Option<ComputingGuard<'_>> {
+        let mut set = state.computing.0.lock().unwrap_or_else(|e| e.into_inner());
+        set.insert(sequence_id)
+            .then(|| ComputingGuard(&state.computing, sequence_id))
+    }
+}
+
+impl Drop for ComputingGuard<'_> {
+    fn drop(&mut self) {
+        let mut set = self.0 .0.lock().unwrap_or_else(|e| e.into_inner());
+        set.remove(&self.1);
+    }
 }
 
 /// What computing a sequence's background needs at most (see
