@@ -128,33 +128,49 @@ impl Splitter {
 
     /// Cuts one image into the views, in camera order.
     pub fn split(&self, image: &GreyImage) -> Result<Vec<GreyImage>, SplitterError> {
-        let (w, h) = self.view_size(image.width(), image.height())?;
+        self.view_size(image.width(), image.height())?;
+        Ok((0..self.views())
+            .map(|index| self.cut(image, index))
+            .collect())
+    }
+
+    /// Cuts camera `index`'s view out of one image, without the others
+    /// (`None` past the last view): a worker that needs one camera at a
+    /// time holds the image and that view only.
+    pub fn view(
+        &self,
+        image: &GreyImage,
+        index: usize,
+    ) -> Result<Option<GreyImage>, SplitterError> {
+        self.view_size(image.width(), image.height())?;
+        Ok((index < self.views()).then(|| self.cut(image, index)))
+    }
+
+    /// The view `index` of an image whose size fits the layout.
+    fn cut(&self, image: &GreyImage, index: usize) -> GreyImage {
+        let (w, h) = self
+            .view_size(image.width(), image.height())
+            .expect("the size was checked");
         let stride = image.width() as usize;
-        let views = self
-            .regions()
-            .iter()
-            .map(|&(column, row)| {
-                let (x0, y0) = ((column * w) as usize, (row * h) as usize);
-                let rows = y0..y0 + h as usize;
-                let cut = |start: usize| start + x0..start + x0 + w as usize;
-                let view = match image.pixels() {
-                    GreyPixels::Eight(p) => GreyImage::from_u8(
-                        w,
-                        h,
-                        rows.flat_map(|y| p[cut(y * stride)].iter().copied())
-                            .collect(),
-                    ),
-                    GreyPixels::Sixteen(p) => GreyImage::from_u16(
-                        w,
-                        h,
-                        rows.flat_map(|y| p[cut(y * stride)].iter().copied())
-                            .collect(),
-                    ),
-                };
-                view.expect("a view of a valid image is a valid image")
-            })
-            .collect();
-        Ok(views)
+        let (column, row) = self.regions()[index];
+        let (x0, y0) = ((column * w) as usize, (row * h) as usize);
+        let rows = y0..y0 + h as usize;
+        let cut = |start: usize| start + x0..start + x0 + w as usize;
+        let view = match image.pixels() {
+            GreyPixels::Eight(p) => GreyImage::from_u8(
+                w,
+                h,
+                rows.flat_map(|y| p[cut(y * stride)].iter().copied())
+                    .collect(),
+            ),
+            GreyPixels::Sixteen(p) => GreyImage::from_u16(
+                w,
+                h,
+                rows.flat_map(|y| p[cut(y * stride)].iter().copied())
+                    .collect(),
+            ),
+        };
+        view.expect("a view of a valid image is a valid image")
     }
 }
 
@@ -204,6 +220,26 @@ mod tests {
         let views = top_bottom.split(&image).unwrap();
         assert_eq!(views[0].pixels(), &GreyPixels::Eight(vec![0, 1, 2, 3]));
         assert_eq!(views[1].pixels(), &GreyPixels::Eight(vec![4, 5, 6, 7]));
+    }
+
+    #[test]
+    fn one_view_is_the_same_as_that_view_of_the_split() {
+        let image = numbered(6, 4);
+        for layout in [
+            SplitterLayout::Quadrants,
+            SplitterLayout::LeftRight,
+            SplitterLayout::TopBottom,
+        ] {
+            let splitter = Splitter { layout };
+            let views = splitter.split(&image).unwrap();
+            for (index, view) in views.iter().enumerate() {
+                let one = splitter.view(&image, index).unwrap().unwrap();
+                assert_eq!(one.pixels(), view.pixels(), "{layout:?} {index}");
+                assert_eq!((one.width(), one.height()), (view.width(), view.height()));
+            }
+            assert!(splitter.view(&image, views.len()).unwrap().is_none());
+        }
+        assert!(Splitter::quadrants().view(&numbered(5, 4), 0).is_err());
     }
 
     #[test]

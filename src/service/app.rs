@@ -12,6 +12,7 @@ use std::time::Duration;
 use tokio::net::TcpListener;
 use tokio::sync::{watch, Notify};
 
+use super::budget::MemoryBudget;
 use super::config::{ServeArgs, WorkerArgs};
 use super::connections::{self, Registry};
 use super::events;
@@ -36,6 +37,10 @@ pub struct AppState {
     pub images: ImageStore,
     /// The CPU threads.
     pub cpu: CpuPool,
+    /// The memory the jobs of this process may hold at once.
+    pub budget: MemoryBudget,
+    /// The sequences whose background a worker of this process computes.
+    pub computing: super::preprocessing::Computing,
     /// Prepared pipelines by sequence.
     pub pipelines: PipelineCache,
     /// Counters for /metrics.
@@ -64,11 +69,15 @@ impl AppState {
         cpu: CpuPool,
         metrics: Arc<Metrics>,
     ) -> Arc<AppState> {
+        let budget =
+            MemoryBudget::new(config.job_limits.memory_budget_mib(), Some(metrics.clone()));
         let state = Arc::new(AppState {
             config,
             store,
             images,
             cpu,
+            budget,
+            computing: Default::default(),
             pipelines: PipelineCache::default(),
             metrics,
             wake: Notify::new(),
@@ -268,6 +277,11 @@ fn start_workers(
     let count = state.config.worker_count();
     let workers = jobs::spawn_workers(state.clone(), kinds, count, stopped.clone());
     if count > 0 {
+        tracing::info!(
+            memory_budget_mib = state.budget.total_mib(),
+            "jobs run within a memory budget of {} MiB (--memory-budget-mb)",
+            state.budget.total_mib()
+        );
         super::tracking::spawn_tracking(state.clone(), stopped);
     }
     workers

@@ -269,6 +269,15 @@ pub struct JobLimits {
     #[arg(long = "job-timeout-factor", env = "PTV_JOB_TIMEOUT_FACTOR",
           default_value_t = JobLimits::FACTOR)]
     pub factor: f64,
+    /// MiB of memory this process's jobs may hold at once: each job
+    /// declares what it needs from its pixels and settings and waits
+    /// until that much is free; a job that needs more than the whole
+    /// budget fails with the reason (see `service::budget`)
+    /// [default: half the memory: MemTotal, or the cgroup's memory.max
+    /// when lower]
+    #[arg(long = "memory-budget-mb", env = "PTV_MEMORY_BUDGET_MB",
+          value_parser = clap::value_parser!(u64).range(1..))]
+    pub memory_budget_mb: Option<u64>,
 }
 
 impl JobLimits {
@@ -276,6 +285,13 @@ impl JobLimits {
     pub const FLOOR_SECS: f64 = 60.0;
     /// Default of `--job-timeout-factor`.
     pub const FACTOR: f64 = 10.0;
+
+    /// The memory budget (MiB): the flag, or its default share of the
+    /// machine's memory.
+    pub fn memory_budget_mib(&self) -> u64 {
+        self.memory_budget_mb
+            .unwrap_or_else(super::budget::default_budget_mib)
+    }
 }
 
 impl Default for JobLimits {
@@ -283,6 +299,7 @@ impl Default for JobLimits {
         JobLimits {
             floor_secs: JobLimits::FLOOR_SECS,
             factor: JobLimits::FACTOR,
+            memory_budget_mb: None,
         }
     }
 }

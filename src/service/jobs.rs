@@ -14,7 +14,10 @@
 //! `--lease-secs` while the attempt runs, reads its inputs (all in the
 //! database and the image directory: nothing of the serving process),
 //! and hands the CPU work to [`CpuPool`] (a rayon pool of the same size),
-//! never computing on the async runtime's threads. An idle worker polls
+//! never computing on the async runtime's threads. Before its work, a
+//! frame, background or calibration job takes the memory it declares
+//! from the process's budget ([`super::budget`]), waiting its turn with
+//! its lease renewed. An idle worker polls
 //! the queue (a read) with a backoff from [`IDLE_POLL_MIN`] to
 //! [`IDLE_POLL_MAX`]; in `ptv serve` an upload also wakes it at once.
 //! A killed, hung or cut-off worker stops renewing: once its lease has
@@ -959,6 +962,25 @@ async fn frame_work(
     }
 }
 
+/// What a frame job needs of the memory budget
+/// ([`super::budget::frame_need`]): its cameras' views detected one at a
+/// time (none for uploaded targets) and their targets matched.
+fn frame_need(
+    input: &super::store::FrameInput,
+    (pipeline, splitter): &Prepared,
+) -> super::budget::MemoryNeed {
+    let views: Vec<(u32, u32)> = pipeline
+        .cameras()
+        .iter()
+        .map(|c| (c.sensor().width, c.sensor().height))
+        .collect();
+    if input.input != FrameInputKind::Images {
+        return super::budget::frame_need(&views, None, false);
+    }
+    let image = splitter.and_then(|s| views.first().and_then(|&(w, h)| s.image_size(w, h)));
+    super::budget::frame_need(&views, image, true)
+}
+
 /// The process_frame job: the frame's images (or uploaded targets) to
 /// particles, stored with the detected targets.
 pub async fn process_frame(state: Arc<AppState>, run: JobRun) -> Result<(), JobError> {
@@ -982,11 +1004,15 @@ pub async fn process_frame(state: Arc<AppState>, run: JobRun) -> Result<(), JobE
                 "the stored calibration",
             )
             .map_err(JobError::failed)?;
+            let sensors: Vec<(u32, u32)> = cameras
+                .iter()
+                .map(|c| (c.sensor().width, c.sensor().height))
+                .collect();
             super::preprocessing::ensure_computed_background(
                 &state,
                 input.sequence_id,
                 computed,
-                cameras.len(),
+                &sensors,
                 splitter,
             )
             .await?;
@@ -1000,7 +1026,11 @@ pub async fn process_frame(state: Arc<AppState>, run: JobRun) -> Result<(), JobE
     let limit = TimeLimit::of(&state.config.job_limits);
     let cancel = Cancel::new();
     let mut size = (0u64, 0u64);
+    // The frame's memory, held from the budget while it is worked on (a
+    // wait here does not count against its time limit).
+    let grant = state.budget.acquire(&frame_need(&input, &prepared)).await?;
     let computed = frame_work(&state, &input, &prepared, &limit, &cancel, &mut size).await;
+    drop(grant);
     let (targets, particles) = match computed {
         Ok(result) => result,
         Err(_) if cancel.is_stopped() || cancel.check().is_err() => {
@@ -1156,6 +1186,36 @@ pub fn solve(
     ))
 }
 
+/// What a solve_calibration job needs of the memory budget: its images
+/// decoded all at once (2 bytes a sample at most) and the largest one's
+/// marks detected ([`super::budget::DETECT_BYTES_PER_PIXEL`]), from the
+/// images' headers; an image whose header does not read fails later in
+/// [`solve`] with the reason.
+fn solve_need(files: &[(JobFile, Vec<u8>)]) -> super::budget::MemoryNeed {
+    let pixels: Vec<u64> = files
+        .iter()
+        .filter(|(file, _)| file.part == "image")
+        .filter_map(|(_, bytes)| {
+            formats::image::probe_image(std::io::Cursor::new(bytes), "an image").ok()
+        })
+        .map(|header| u64::from(header.width) * u64::from(header.height))
+        .collect();
+    let largest = pixels.iter().copied().max().unwrap_or(0);
+    let bytes = pixels
+        .iter()
+        .sum::<u64>()
+        .saturating_mul(2)
+        .saturating_add(largest.saturating_mul(super::budget::DETECT_BYTES_PER_PIXEL));
+    super::budget::MemoryNeed::new(
+        bytes,
+        format!(
+            "solving a calibration from {} image(s) of {} pixels in all",
+            pixels.len(),
+            pixels.iter().sum::<u64>()
+        ),
+    )
+}
+
 /// The solve_calibration job: calibrates from the request's files and
 /// stores the calibration with its report, completing the job in the same
 /// transaction; with `keep_images: false` its files go afterwards.
@@ -1170,12 +1230,14 @@ pub async fn solve_calibration(state: Arc<AppState>, run: JobRun) -> Result<(), 
         })?;
         files.push((file, bytes));
     }
+    let grant = state.budget.acquire(&solve_need(&files)).await?;
     let options = payload.options.clone();
     let (model, cameras, report) = state
         .cpu
         .try_run(move || solve(files, &options))
         .await
         .map_err(JobError::failed)?;
+    drop(grant);
     let (_, released) = state
         .store
         .complete_calibration(

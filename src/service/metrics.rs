@@ -137,6 +137,10 @@ pub struct Metrics {
     connections: AtomicU64,
     connection_limit: AtomicU64,
     evicted: AtomicU64,
+    /// The workers' memory budget and the MiB its jobs hold now
+    /// (`service::budget`).
+    memory_budget: AtomicU64,
+    memory_reserved: AtomicU64,
 }
 
 impl Metrics {
@@ -171,6 +175,21 @@ impl Metrics {
     pub fn connection_evicted(&self, open: usize) {
         self.evicted.fetch_add(1, Ordering::Relaxed);
         self.connections_open(open);
+    }
+
+    /// The workers' memory budget (MiB, `--memory-budget-mb`).
+    pub fn memory_budget(&self, mib: u64) {
+        self.memory_budget.store(mib, Ordering::Relaxed);
+    }
+
+    /// A job took `mib` of the memory budget.
+    pub fn memory_reserved(&self, mib: u64) {
+        self.memory_reserved.fetch_add(mib, Ordering::Relaxed);
+    }
+
+    /// A job gave back `mib` of the memory budget.
+    pub fn memory_released(&self, mib: u64) {
+        self.memory_reserved.fetch_sub(mib, Ordering::Relaxed);
     }
 
     /// Records a finished job attempt.
@@ -224,6 +243,18 @@ impl Metrics {
                 "counter",
                 "Idle connections closed at the limit to let a new one in.",
                 &self.evicted,
+            ),
+            (
+                "ptv_memory_budget_mib",
+                "gauge",
+                "The workers' memory budget (--memory-budget-mb).",
+                &self.memory_budget,
+            ),
+            (
+                "ptv_memory_reserved_mib",
+                "gauge",
+                "MiB of the memory budget held by running jobs.",
+                &self.memory_reserved,
             ),
         ];
         for (name, kind, help, value) in connections {

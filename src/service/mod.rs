@@ -14,6 +14,7 @@
 //! - [`events`]: live progress, a sequence's changes broadcast to its
 //!   event streams (server-sent events).
 //! - [`jobs`]: the workers, the job kinds, the CPU pool.
+//! - [`budget`]: the workers' memory budget, each job's declared need.
 //! - [`store`]: all SQL, one text per query for SQLite (WAL mode, the
 //!   default) and PostgreSQL (`--database`); migrations in `migrations/`.
 //! - [`images`]: uploaded images as content-addressed files, in the data
@@ -30,6 +31,7 @@
 //! The core ([`crate::photogrammetry`]) knows nothing of this module.
 
 pub mod app;
+pub mod budget;
 pub mod codec;
 pub mod config;
 pub mod connections;

@@ -5,24 +5,29 @@
 //! ([`ComputedBackground`]).
 //!
 //! A computed background is made by the first frame job that finds enough
-//! frames uploaded: it decodes the sequence's `frames` lowest-numbered
-//! frames one at a time into a [`BackgroundBuilder`] per camera (memory
-//! independent of the frame count) and stores the backgrounds as PNGs with
-//! their rows; a cached pipeline made without them is then stale
+//! frames uploaded: one camera at a time, it decodes the sequence's
+//! `frames` lowest-numbered frames one at a time into that camera's
+//! [`BackgroundBuilder`] (memory independent of the frame count and of
+//! the number of cameras, taken from the memory budget first: see
+//! [`ensure_computed_background`]) and stores the backgrounds as PNGs
+//! with their rows; a cached pipeline made without them is then stale
 //! ([`super::jobs::PipelineCache`]). Until then frame jobs are deferred ([`JobError::Deferred`]): put
 //! back uncounted, not claimed again for [`WAIT_FOR_BACKGROUND`], so other
-//! sequences' frames go on. Two workers may compute it at once; the first
-//! stored wins and the other's files go.
+//! sequences' frames go on. One worker of a process computes it, the
+//! process's others defer; workers of two processes may compute it at
+//! once: the first stored wins and the other's files go.
 
 use std::sync::Arc;
 use std::time::Duration;
 
 use super::app::AppState;
+use super::budget::MemoryNeed;
 use super::jobs::{JobError, StoredRawLayout};
 use super::parameters::ComputedBackground;
-use super::store::{SequenceId, SequenceImage, SequenceImageKind};
+use super::store::{FrameNumber, SequenceId, SequenceImage, SequenceImageKind};
 use crate::formats;
-use crate::photogrammetry::background::BackgroundBuilder;
+use crate::formats::image::RawLayout;
+use crate::photogrammetry::background::{BackgroundBuilder, BackgroundMode, DEFAULT_MEDIAN_SAMPLE};
 use crate::photogrammetry::{FramePipeline, GreyImage, Mask, Preprocessing, Splitter};
 
 /// How long a frame job waiting for its sequence's background stays
@@ -80,14 +85,31 @@ pub async fn with_stored_images(
 }
 
 /// Makes sure the sequence's computed background exists: computes it if
-/// enough frames have arrived, else defers the job.
+/// enough frames have arrived, else defers the job. `sensors` are the
+/// cameras' (width, height); with a `splitter`, each frame is one image of
+/// every camera's view.
+///
+/// Streamed one camera at a time: for each camera, each frame's image is
+/// read, decoded, cut to the camera's view, added to the camera's
+/// [`BackgroundBuilder`] and dropped, and the camera's background is
+/// written to the image store before the next camera starts. The most
+/// held at once ([`computed_background_need`]) is the builder's kept
+/// frames of one camera at their own sample width (at most
+/// [`DEFAULT_MEDIAN_SAMPLE`] frames for a median, one for a minimum), one
+/// decoded image and its view, the median and its PNG: for one
+/// 8192x8192 16-bit camera, 32 x 128 MiB + 4 x 128 MiB = 4.5 GiB however
+/// many cameras the sequence has (all cameras at once took 8.3 GiB for
+/// two). The job takes that from the memory budget first
+/// ([`super::budget`]). With a splitter every frame's image is decoded
+/// once per camera, the price of holding one camera's frames only.
 pub async fn ensure_computed_background(
     state: &Arc<AppState>,
     sequence_id: SequenceId,
     computed: &ComputedBackground,
-    cameras: usize,
+    sensors: &[(u32, u32)],
     splitter: Option<Splitter>,
 ) -> Result<(), JobError> {
+    let cameras = sensors.len();
     let stored = state.store.sequence_images(sequence_id).await?;
     if stored
         .iter()
@@ -106,7 +128,16 @@ pub async fn ensure_computed_background(
             computed.frames
         )));
     }
-    let mut builders: Vec<Option<BackgroundBuilder>> = (0..cameras).map(|_| None).collect();
+    // One worker of this process computes it; the others wait (in
+    // another process, another worker may compute it too: the first
+    // stored wins).
+    let Some(_computing) = Computing::start(state, sequence_id) else {
+        return Err(JobError::Deferred(
+            "waiting for the sequence's background: another worker computes it".to_owned(),
+        ));
+    };
+    // Each frame's layout and image files (names only).
+    let mut inputs = Vec::with_capacity(frames.len());
     for frame in frames {
         let input = state
             .store
@@ -122,67 +153,82 @@ pub async fn ensure_computed_background(
                     .ok_or_else(|| JobError::Failed(format!("malformed raw layout {text}")))?,
             ),
         };
-        for (camera, sha256) in state.store.frame_images(sequence_id, frame).await? {
-            let bytes = state.images.read(&sha256).await.map_err(|e| {
-                JobError::image(&format!("the image of camera {camera} of frame {frame}"), e)
-            })?;
-            let Some(slot) = usize::try_from(camera).ok().filter(|&c| c < cameras) else {
+        let images = state.store.frame_images(sequence_id, frame).await?;
+        inputs.push((frame, layout, images));
+    }
+    let need = computed_background_need(state, computed, sensors, splitter, &inputs).await?;
+    let _grant = state.budget.acquire(&need).await?;
+    // Another worker of this process may have computed it while this one
+    // waited for the memory.
+    if state
+        .store
+        .sequence_images(sequence_id)
+        .await?
+        .iter()
+        .any(|i| i.kind == SequenceImageKind::Background)
+    {
+        return Ok(());
+    }
+
+    let mut files = Vec::new();
+    for camera in 0..cameras {
+        let mut builder: Option<BackgroundBuilder> = None;
+        for (frame, layout, images) in &inputs {
+            let (frame, layout) = (*frame, *layout);
+            // With a splitter, the one image holds every camera's view.
+            let image = images
+                .iter()
+                .find(|(c, _)| splitter.is_some() || usize::try_from(*c).ok() == Some(camera));
+            let Some((stored_camera, sha256)) = image else {
                 continue;
             };
-            // With a splitter, the one image holds every camera's view.
-            let slots = if splitter.is_some() {
-                0..cameras
-            } else {
-                slot..slot + 1
-            };
-            let taken: Vec<Option<BackgroundBuilder>> =
-                slots.clone().map(|c| builders[c].take()).collect();
+            let stored_camera = *stored_camera;
+            let bytes = state.images.read(sha256).await.map_err(|e| {
+                JobError::image(
+                    &format!("the image of camera {stored_camera} of frame {frame}"),
+                    e,
+                )
+            })?;
+            let taken = builder.take();
             let mode = computed.mode;
             let updated = state
                 .cpu
                 .run(move || {
-                    let source = format!("cam{camera} of frame {frame}");
+                    let source = format!("cam{stored_camera} of frame {frame}");
                     let image = match &layout {
                         Some(layout) => formats::image::decode_raw(&bytes, layout, &source),
                         None => formats::image::decode_image(&bytes, &source),
                     }
                     .map_err(JobError::failed)?;
-                    let views = match splitter {
-                        Some(splitter) => splitter.split(&image).map_err(JobError::failed)?,
-                        None => vec![image],
-                    };
-                    views
-                        .iter()
-                        .zip(taken)
-                        .map(|(view, builder)| {
-                            let mut builder = builder.unwrap_or_else(|| {
-                                BackgroundBuilder::new(
-                                    mode,
-                                    view.width(),
-                                    view.height(),
-                                    view.bit_depth(),
-                                )
-                            });
-                            builder.add(view).map_err(|e| {
+                    drop(bytes);
+                    let view = match splitter {
+                        Some(splitter) => splitter
+                            .view(&image, camera)
+                            .map_err(JobError::failed)?
+                            .ok_or_else(|| {
                                 JobError::Failed(format!(
-                                    "computing the background from {source}: {e}"
+                                    "the calibration has {cameras} cameras but its splitter \
+                                     `{}` cuts {} views",
+                                    splitter.name(),
+                                    splitter.views()
                                 ))
-                            })?;
-                            Ok(builder)
-                        })
-                        .collect::<Result<Vec<_>, JobError>>()
+                            })?,
+                        None => image,
+                    };
+                    let mut builder = taken.unwrap_or_else(|| {
+                        BackgroundBuilder::new(mode, view.width(), view.height(), view.bit_depth())
+                    });
+                    builder.add(&view).map_err(|e| {
+                        JobError::Failed(format!("computing the background from {source}: {e}"))
+                    })?;
+                    Ok::<_, JobError>(builder)
                 })
                 .await
                 .map_err(|e| JobError::Retry(format!("computing the background: {e}")))??;
-            for (c, builder) in slots.zip(updated) {
-                builders[c] = Some(builder);
-            }
+            builder = Some(updated);
         }
-    }
-    let mut rows = Vec::new();
-    for (camera, builder) in builders.into_iter().enumerate() {
         let Some(builder) = builder else { continue };
-        let png = state
+        let (png, bits) = state
             .cpu
             .run(move || {
                 let background: GreyImage = builder.finish().map_err(JobError::failed)?;
@@ -194,25 +240,115 @@ pub async fn ensure_computed_background(
             })
             .await
             .map_err(|e| JobError::Retry(format!("computing the background: {e}")))??;
-        rows.push((camera as i64, png));
+        // Written out at once, so that only one camera's PNG is held.
+        let mut upload = state.images.create_upload().await.map_err(io_error)?;
+        upload.write(&png).await.map_err(io_error)?;
+        drop(png);
+        let file = upload.finish().await.map_err(io_error)?;
+        files.push((camera as i64, file, bits));
     }
-    store_backgrounds(state, sequence_id, rows).await
+    store_backgrounds(state, sequence_id, files).await
 }
 
-/// Writes computed backgrounds (camera, (PNG, bits)) into the image store
-/// and their rows, under the store's lock; files that end up unused (a
-/// background stored meanwhile by another worker) go again.
+/// The sequences whose background a worker of this process computes now.
+#[derive(Debug, Default)]
+pub struct Computing(std::sync::Mutex<std::collections::HashSet<SequenceId>>);
+
+/// A sequence's background being computed, until dropped.
+struct ComputingGuard<'a>(&'a Computing, SequenceId);
+
+impl Computing {
+    /// Marks the sequence's background as being computed, unless it is.
+    fn start(state: &AppState, sequence_id: SequenceId) -> Option<ComputingGuard<'_>> {
+        let mut set = state.computing.0.lock().unwrap_or_else(|e| e.into_inner());
+        set.insert(sequence_id)
+            .then(|| ComputingGuard(&state.computing, sequence_id))
+    }
+}
+
+impl Drop for ComputingGuard<'_> {
+    fn drop(&mut self) {
+        let mut set = self.0 .0.lock().unwrap_or_else(|e| e.into_inner());
+        set.remove(&self.1);
+    }
+}
+
+/// What computing a sequence's background needs at most (see
+/// [`ensure_computed_background`], [`super::budget::background_bytes`]):
+/// its largest camera's kept frames at the depth of the first frame's
+/// images (read to see their headers; frames of another depth are
+/// refused by the builder), one decoded image and its view, the median,
+/// its PNG, and the first frame's largest file.
+async fn computed_background_need(
+    state: &AppState,
+    computed: &ComputedBackground,
+    sensors: &[(u32, u32)],
+    splitter: Option<Splitter>,
+    inputs: &[(FrameNumber, Option<RawLayout>, Vec<(i64, String)>)],
+) -> Result<MemoryNeed, JobError> {
+    let mut sample_bytes = 1;
+    let mut compressed = 0u64;
+    if let Some((frame, layout, images)) = inputs.first() {
+        for (camera, sha256) in images {
+            let bytes = state.images.read(sha256).await.map_err(|e| {
+                JobError::image(&format!("the image of camera {camera} of frame {frame}"), e)
+            })?;
+            compressed = compressed.max(bytes.len() as u64);
+            let source = format!("cam{camera} of frame {frame}");
+            let header = match layout {
+                Some(layout) => formats::image::probe_raw(bytes.len() as u64, layout, &source),
+                None => formats::image::probe_image(std::io::Cursor::new(&bytes), &source),
+            }
+            .map_err(JobError::failed)?;
+            sample_bytes = sample_bytes.max(if header.bit_depth.bits() > 8 { 2 } else { 1 });
+        }
+    }
+    let view = sensors
+        .iter()
+        .map(|&(w, h)| u64::from(w) * u64::from(h))
+        .max()
+        .unwrap_or(0);
+    let image = match splitter {
+        Some(splitter) => sensors
+            .iter()
+            .filter_map(|&(w, h)| splitter.image_size(w, h))
+            .map(|(w, h)| u64::from(w) * u64::from(h))
+            .max()
+            .unwrap_or(0),
+        None => view,
+    };
+    let frames = inputs.len() as u64;
+    let kept = match computed.mode {
+        BackgroundMode::Median => frames.min(DEFAULT_MEDIAN_SAMPLE as u64),
+        BackgroundMode::Min => frames.min(1),
+    };
+    let bytes = super::budget::background_bytes(kept, view, image, sample_bytes, compressed);
+    Ok(MemoryNeed::new(
+        bytes,
+        format!(
+            "the {} background of {} camera(s) of up to {view} pixels at {} bits, one camera \
+             at a time, {kept} frames kept",
+            match computed.mode {
+                BackgroundMode::Median => "median",
+                BackgroundMode::Min => "minimum",
+            },
+            sensors.len(),
+            sample_bytes * 8,
+        ),
+    ))
+}
+
+/// Stores computed backgrounds (camera, written file, bits) in the image
+/// store and their rows, under the store's lock; files that end up unused
+/// (a background stored meanwhile by another worker) go again.
 async fn store_backgrounds(
     state: &AppState,
     sequence_id: SequenceId,
-    backgrounds: Vec<(i64, (Vec<u8>, i64))>,
+    backgrounds: Vec<(i64, super::images::UploadedFile, i64)>,
 ) -> Result<(), JobError> {
     let mut files = Vec::with_capacity(backgrounds.len());
     let mut rows = Vec::with_capacity(backgrounds.len());
-    for (camera, (png, bits)) in backgrounds {
-        let mut upload = state.images.create_upload().await.map_err(io_error)?;
-        upload.write(&png).await.map_err(io_error)?;
-        let file = upload.finish().await.map_err(io_error)?;
+    for (camera, file, bits) in backgrounds {
         rows.push((camera, file.sha256.clone(), file.size as i64, bits));
         files.push(file);
     }

@@ -55,6 +55,7 @@ async fn a_frame_past_its_time_limit_fails_and_frees_the_worker() {
         args.job_limits = JobLimits {
             floor_secs: 0.2,
             factor: 0.0,
+            ..Default::default()
         };
     })
     .await;

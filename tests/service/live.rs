@@ -392,6 +392,7 @@ async fn a_tracked_sequence_announces_failures_and_its_tracking() {
         args.job_limits = ptv::service::JobLimits {
             floor_secs: 0.2,
             factor: 0.0,
+            ..Default::default()
         };
     })
     .await;

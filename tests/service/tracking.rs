@@ -964,6 +964,7 @@ async fn a_failed_frame_is_a_gap_the_trajectories_bridge() {
         args.job_limits = ptv::service::JobLimits {
             floor_secs: 0.2,
             factor: 0.0,
+            ..Default::default()
         };
     })
     .await;

@@ -1,0 +1,474 @@
+//! The workers' memory budget (issue 29): each job declares the memory it
+//! will need from its pixels and settings ([`MemoryNeed`]) before its
+//! work, and takes that many MiB from the process's [`MemoryBudget`] (a
+//! semaphore of MiB) until the work is done, so two large jobs wait for
+//! each other instead of both running and the process being killed for
+//! memory.
+//!
+//! - The budget is `--memory-budget-mb` (`PTV_MEMORY_BUDGET_MB`), by
+//!   default [`DEFAULT_SHARE_PERCENT`] % of the memory this process may use:
+//!   `MemTotal` of `/proc/meminfo`, or the cgroup's `memory.max` when that
+//!   is lower ([`default_budget_mib`]). It is the process's: `ptv serve`'s
+//!   workers share one, and every `ptv worker` process has its own, so
+//!   several processes on one machine are each given their share.
+//! - A job whose need exceeds the whole budget can never run in this
+//!   process: it fails at once with the reason ([`JobError::Failed`], the
+//!   permanent failure; never retried into an out-of-memory crash loop).
+//! - Waiting: the job waits for its MiB inside its attempt, after its
+//!   claim, while the attempt's heartbeat renews its lease (every third of
+//!   `--lease-secs`), so the wait never lets the lease run out and another
+//!   worker take the job. The wait is first come, first served (tokio's
+//!   semaphore is fair, `acquire_many` included): a large job at the head
+//!   of the queue is not overtaken by smaller ones arriving after it, so
+//!   it cannot starve; smaller jobs behind it wait until it got its share
+//!   (head-of-line blocking, the price of no starvation). Every need is at
+//!   most the budget, and every holder releases when its work ends
+//!   (success, failure or panic: the grant is dropped), so every waiter
+//!   is admitted eventually. A job takes at most one grant at a time (a
+//!   frame that first computes its sequence's background releases that
+//!   grant before taking its own), so grants cannot deadlock.
+//! - The needs are estimates on the safe side, from figures measured on
+//!   this code ([`DETECT_BYTES_PER_PIXEL`]); they bound the work's own
+//!   allocations, not the process's baseline (the idle server, caches).
+
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Arc;
+
+use tokio::sync::{OwnedSemaphorePermit, Semaphore};
+
+use super::jobs::JobError;
+use super::metrics::Metrics;
+
+/// One MiB.
+pub const MIB: u64 = 1 << 20;
+
+/// The default budget's share of the memory the process may use (%).
+pub const DEFAULT_SHARE_PERCENT: u64 = 50;
+
+/// The default budget where the machine's memory cannot be read (not
+/// Linux): 4 GiB.
+pub const FALLBACK_BUDGET_MIB: u64 = 4096;
+
+/// Peak bytes per pixel of decoding and detecting one camera's image,
+/// measured with `/usr/bin/time -v ptv detect` (maximum resident set size
+/// less the process's baseline, over the image's pixels) on the worst
+/// image found: an 8192x8192 16-bit 1-px checkerboard with threshold 1
+/// and min_pixels 1 (every other pixel a target), 46 B/px; a real
+/// 1280x1024 8-bit frame of `tests/data/openptv` takes far less. Rounded
+/// up to 48.
+pub const DETECT_BYTES_PER_PIXEL: u64 = 48;
+
+/// Bytes a target takes through matching (the target, its encoding, its
+/// epipolar candidates), per target a camera may have: a frame job's
+/// targets are bounded by `correspond::max_targets` per camera.
+pub const MATCH_BYTES_PER_TARGET: u64 = 256;
+
+/// What a job will allocate, and what for (for the message of a job that
+/// can never fit).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct MemoryNeed {
+    /// Bytes.
+    pub bytes: u64,
+    /// What needs them, e.g. `the median background of 2 cameras of
+    /// 8192x8192 16-bit pixels over 32 frames`.
+    pub what: String,
+}
+
+impl MemoryNeed {
+    /// `bytes` for `what`.
+    pub fn new(bytes: u64, what: impl Into<String>) -> MemoryNeed {
+        MemoryNeed {
+            bytes,
+            what: what.into(),
+        }
+    }
+
+    /// The need in whole MiB, rounded up.
+    pub fn mib(&self) -> u64 {
+        self.bytes.div_ceil(MIB)
+    }
+}
+
+/// A frame job's need: its largest camera's pixels decoded and detected
+/// (one camera at a time), with a splitter the whole image and its views
+/// beside them, and the targets every camera may give through matching.
+/// `cameras` are (width, height) of each camera's view; `image` the
+/// frame's one image with a splitter; without `detect` (uploaded
+/// targets) only the matching.
+pub fn frame_need(cameras: &[(u32, u32)], image: Option<(u32, u32)>, detect: bool) -> MemoryNeed {
+    let pixels = |(w, h): (u32, u32)| u64::from(w) * u64::from(h);
+    let largest = if detect {
+        cameras.iter().map(|&c| pixels(c)).max().unwrap_or(0)
+    } else {
+        0
+    };
+    let detect = largest.saturating_mul(DETECT_BYTES_PER_PIXEL);
+    // The decoded image (at most 2 bytes a sample) and its views.
+    let split = image.map_or(0, |i| pixels(i).saturating_mul(2 * 2));
+    let targets: u64 = cameras
+        .iter()
+        .map(|&(w, h)| {
+            // correspond::max_targets: one per 2x2 pixels, at most 2^20.
+            let most = (u64::from(w.div_ceil(2)) * u64::from(h.div_ceil(2))).min(1 << 20);
+            most.saturating_mul(MATCH_BYTES_PER_TARGET)
+        })
+        .sum();
+    MemoryNeed::new(
+        detect.saturating_add(split).saturating_add(targets),
+        format!(
+            "detecting and matching a frame of {} camera(s), the largest of {largest} pixels \
+             ({DETECT_BYTES_PER_PIXEL} bytes per pixel for detection, \
+             {MATCH_BYTES_PER_TARGET} per possible target for matching)",
+            cameras.len()
+        ),
+    )
+}
+
+/// Bytes a computed background of one camera needs at most: `kept`
+/// frames of `view` pixels at `sample_bytes` (1 or 2) each, the frame's
+/// decoded image (`image` pixels: the whole image with a splitter, else
+/// the view) and one view cut from it, the result, and its PNG encoding
+/// (at most the result again); `compressed` is the largest stored file
+/// read, held while it decodes. See
+/// [`crate::photogrammetry::background`].
+pub fn background_bytes(
+    kept: u64,
+    view: u64,
+    image: u64,
+    sample_bytes: u64,
+    compressed: u64,
+) -> u64 {
+    let frame = view.saturating_mul(sample_bytes);
+    kept.saturating_mul(frame)
+        .saturating_add(image.saturating_mul(sample_bytes))
+        .saturating_add(frame.saturating_mul(3))
+        .saturating_add(compressed)
+}
+
+/// The process's memory budget: a semaphore of MiB (module doc).
+#[derive(Debug)]
+pub struct MemoryBudget {
+    total_mib: u64,
+    permits: Arc<Semaphore>,
+    metrics: Option<Arc<Metrics>>,
+    waiting: AtomicU64,
+}
+
+/// MiB held by a job until dropped.
+#[derive(Debug)]
+pub struct Grant {
+    mib: u64,
+    _permit: Option<OwnedSemaphorePermit>,
+    metrics: Option<Arc<Metrics>>,
+}
+
+impl Grant {
+    /// The MiB held.
+    pub fn mib(&self) -> u64 {
+        self.mib
+    }
+}
+
+impl Drop for Grant {
+    fn drop(&mut self) {
+        if let Some(metrics) = &self.metrics {
+            metrics.memory_released(self.mib);
+        }
+    }
+}
+
+/// The largest budget a semaphore holds (MiB): tokio's limit on permits,
+/// far above any machine's memory.
+const MAX_BUDGET_MIB: u64 = u32::MAX as u64;
+
+impl MemoryBudget {
+    /// A budget of `total_mib` MiB (at least 1), reported to `metrics`.
+    pub fn new(total_mib: u64, metrics: Option<Arc<Metrics>>) -> MemoryBudget {
+        let total_mib = total_mib.clamp(1, MAX_BUDGET_MIB);
+        if let Some(metrics) = &metrics {
+            metrics.memory_budget(total_mib);
+        }
+        MemoryBudget {
+            total_mib,
+            permits: Arc::new(Semaphore::new(total_mib as usize)),
+            metrics,
+            waiting: AtomicU64::new(0),
+        }
+    }
+
+    /// The budget (MiB).
+    pub fn total_mib(&self) -> u64 {
+        self.total_mib
+    }
+
+    /// MiB not held by any job now.
+    pub fn available_mib(&self) -> u64 {
+        self.permits.available_permits() as u64
+    }
+
+    /// Jobs waiting for their MiB now.
+    pub fn waiting(&self) -> u64 {
+        self.waiting.load(Ordering::Relaxed)
+    }
+
+    /// Whether `need` can ever be admitted, or why not.
+    pub fn check(&self, need: &MemoryNeed) -> Result<(), String> {
+        let mib = need.mib();
+        if mib > self.total_mib {
+            return Err(format!(
+                "this job needs about {mib} MiB of memory for {}, more than this worker's whole \
+                 memory budget of {} MiB (--memory-budget-mb), so it can never run here; give \
+                 smaller images or settings that need less, or run the workers with a larger \
+                 --memory-budget-mb (the machine must have that memory)",
+                need.what, self.total_mib
+            ));
+        }
+        Ok(())
+    }
+
+    /// Waits for `need`'s MiB, first come first served; a need larger than
+    /// the whole budget fails at once ([`MemoryBudget::check`]).
+    pub async fn acquire(&self, need: &MemoryNeed) -> Result<Grant, JobError> {
+        self.check(need).map_err(JobError::Failed)?;
+        let mib = need.mib();
+        let permit = if mib == 0 {
+            None
+        } else {
+            self.waiting.fetch_add(1, Ordering::Relaxed);
+            let permit = Arc::clone(&self.permits)
+                .acquire_many_owned(mib as u32)
+                .await;
+            self.waiting.fetch_sub(1, Ordering::Relaxed);
+            // The semaphore is never closed.
+            Some(permit.map_err(|_| JobError::Retry("the memory budget was closed".into()))?)
+        };
+        if let Some(metrics) = &self.metrics {
+            metrics.memory_reserved(mib);
+        }
+        Ok(Grant {
+            mib,
+            _permit: permit,
+            metrics: self.metrics.clone(),
+        })
+    }
+}
+
+/// The default budget (MiB): [`DEFAULT_SHARE_PERCENT`] % of the memory
+/// this process may use ([`memory_limit_bytes`]), or
+/// [`FALLBACK_BUDGET_MIB`] where that cannot be read.
+pub fn default_budget_mib() -> u64 {
+    match memory_limit_bytes() {
+        Some(bytes) => (bytes / 100 * DEFAULT_SHARE_PERCENT / MIB).max(1),
+        None => FALLBACK_BUDGET_MIB,
+    }
+}
+
+/// The memory this process may use: `MemTotal` of `/proc/meminfo`, or its
+/// cgroup's `memory.max` (v2; `memory.limit_in_bytes` in v1) when lower.
+pub fn memory_limit_bytes() -> Option<u64> {
+    let total = std::fs::read_to_string("/proc/meminfo")
+        .ok()
+        .and_then(|text| mem_total_bytes(&text));
+    let cgroup = cgroup_limit_bytes();
+    match (total, cgroup) {
+        (Some(total), Some(cgroup)) => Some(total.min(cgroup)),
+        (total, cgroup) => total.or(cgroup),
+    }
+}
+
+/// `MemTotal` of `/proc/meminfo`'s text, in bytes.
+fn mem_total_bytes(meminfo: &str) -> Option<u64> {
+    let line = meminfo.lines().find(|l| l.starts_with("MemTotal:"))?;
+    let mut words = line["MemTotal:".len()..].split_whitespace();
+    let value: u64 = words.next()?.parse().ok()?;
+    match words.next() {
+        Some("kB") | None => value.checked_mul(1024),
+        Some(_) => None,
+    }
+}
+
+/// A cgroup limit file's value: bytes, or `max` (no limit).
+fn cgroup_value(text: &str) -> Option<u64> {
+    let text = text.trim();
+    // cgroup v1 says "no limit" with a huge number (about i64::MAX).
+    text.parse::<u64>().ok().filter(|&v| v < (1 << 60))
+}
+
+/// The memory limit of this process's cgroup, if it has one.
+fn cgroup_limit_bytes() -> Option<u64> {
+    let own = std::fs::read_to_string("/proc/self/cgroup").unwrap_or_default();
+    let mut candidates = Vec::new();
+    for line in own.lines() {
+        // v2: "0::/path"; v1: "N:memory:/path".
+        let mut parts = line.splitn(3, ':');
+        let (_, controllers, path) = (parts.next(), parts.next(), parts.next());
+        let Some(path) = path else { continue };
+        match controllers {
+            Some("") => candidates.push(format!("/sys/fs/cgroup{path}/memory.max")),
+            Some(c) if c.split(',').any(|c| c == "memory") => {
+                candidates.push(format!("/sys/fs/cgroup/memory{path}/memory.limit_in_bytes"))
+            }
+            _ => {}
+        }
+    }
+    candidates.push("/sys/fs/cgroup/memory.max".to_owned());
+    candidates.push("/sys/fs/cgroup/memory/memory.limit_in_bytes".to_owned());
+    candidates
+        .iter()
+        .filter_map(|path| std::fs::read_to_string(path).ok())
+        .filter_map(|text| cgroup_value(&text))
+        .min()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::time::Duration;
+
+    #[test]
+    fn mem_total_and_cgroup_values_parse() {
+        let meminfo = "MemTotal:       24684092 kB\nMemFree:        21123136 kB\n";
+        assert_eq!(mem_total_bytes(meminfo), Some(24_684_092 * 1024));
+        assert_eq!(mem_total_bytes("MemFree: 1 kB\n"), None);
+        assert_eq!(cgroup_value("max\n"), None);
+        assert_eq!(cgroup_value("6442450944\n"), Some(6 << 30));
+        assert_eq!(cgroup_value("9223372036854771712\n"), None);
+        // Wherever the tests run, the default is a positive share.
+        assert!(default_budget_mib() >= 1);
+    }
+
+    #[test]
+    fn needs_round_up_to_whole_mib() {
+        assert_eq!(MemoryNeed::new(0, "x").mib(), 0);
+        assert_eq!(MemoryNeed::new(1, "x").mib(), 1);
+        assert_eq!(MemoryNeed::new(MIB, "x").mib(), 1);
+        assert_eq!(MemoryNeed::new(MIB + 1, "x").mib(), 2);
+    }
+
+    #[test]
+    fn a_frame_needs_its_largest_camera_detected_and_every_cameras_targets() {
+        let need = frame_need(&[(1280, 1024), (8192, 8192)], None, true);
+        let targets = (640 * 512 + (1 << 20)) * MATCH_BYTES_PER_TARGET;
+        assert_eq!(need.bytes, 8192 * 8192 * DETECT_BYTES_PER_PIXEL + targets);
+        // Uploaded targets are only matched.
+        let matched = frame_need(&[(1280, 1024), (8192, 8192)], None, false);
+        assert_eq!(matched.bytes, targets);
+        // With a splitter the whole image and its views come on top.
+        let split = frame_need(&[(100, 100); 4], Some((200, 200)), true);
+        let plain = frame_need(&[(100, 100); 4], None, true);
+        assert_eq!(split.bytes - plain.bytes, 200 * 200 * 4);
+    }
+
+    #[test]
+    fn a_background_needs_its_kept_frames_and_one_decoded_image() {
+        // 32 frames of one 8192x8192 16-bit camera: 4 GiB of samples, the
+        // decoded frame, the view, the median and its PNG.
+        let px = 8192 * 8192;
+        assert_eq!(
+            background_bytes(32, px, px, 2, 300_000),
+            32 * px * 2 + px * 2 + 3 * px * 2 + 300_000
+        );
+    }
+
+    #[tokio::test]
+    async fn jobs_wait_for_each_other_within_the_budget() {
+        let budget = Arc::new(MemoryBudget::new(100, None));
+        let first = budget
+            .acquire(&MemoryNeed::new(60 * MIB, "a"))
+            .await
+            .unwrap();
+        assert_eq!(budget.available_mib(), 40);
+        // A second 60 MiB job waits until the first is done.
+        let waiter = {
+            let budget = budget.clone();
+            tokio::spawn(async move { budget.acquire(&MemoryNeed::new(60 * MIB, "b")).await })
+        };
+        tokio::time::sleep(Duration::from_millis(50)).await;
+        assert!(!waiter.is_finished());
+        assert_eq!(budget.waiting(), 1);
+        drop(first);
+        let second = tokio::time::timeout(Duration::from_secs(5), waiter)
+            .await
+            .unwrap()
+            .unwrap()
+            .unwrap();
+        assert_eq!(second.mib(), 60);
+        assert_eq!(budget.available_mib(), 40);
+        drop(second);
+        assert_eq!(budget.available_mib(), 100);
+    }
+
+    #[tokio::test]
+    async fn a_large_waiting_job_is_not_overtaken_by_smaller_ones() {
+        let budget = Arc::new(MemoryBudget::new(100, None));
+        let small = budget
+            .acquire(&MemoryNeed::new(30 * MIB, "a"))
+            .await
+            .unwrap();
+        let large = {
+            let budget = budget.clone();
+            tokio::spawn(async move { budget.acquire(&MemoryNeed::new(100 * MIB, "b")).await })
+        };
+        tokio::time::sleep(Duration::from_millis(50)).await;
+        // 70 MiB are free, but a 10 MiB job arriving later queues behind
+        // the large one instead of starving it.
+        let later = {
+            let budget = budget.clone();
+            tokio::spawn(async move { budget.acquire(&MemoryNeed::new(10 * MIB, "c")).await })
+        };
+        tokio::time::sleep(Duration::from_millis(50)).await;
+        assert!(!large.is_finished());
+        assert!(!later.is_finished());
+        drop(small);
+        let large = large.await.unwrap().unwrap();
+        assert_eq!(large.mib(), 100);
+        tokio::time::sleep(Duration::from_millis(50)).await;
+        assert!(!later.is_finished());
+        drop(large);
+        assert_eq!(later.await.unwrap().unwrap().mib(), 10);
+    }
+
+    #[tokio::test]
+    async fn a_job_larger_than_the_budget_fails_for_good_with_the_reason() {
+        let budget = MemoryBudget::new(100, None);
+        let error = budget
+            .acquire(&MemoryNeed::new(101 * MIB, "the median of something"))
+            .await
+            .unwrap_err();
+        let JobError::Failed(message) = error else {
+            panic!("{error:?} is not a permanent failure");
+        };
+        assert!(message.contains("about 101 MiB"), "{message}");
+        assert!(message.contains("the median of something"), "{message}");
+        assert!(message.contains("budget of 100 MiB"), "{message}");
+        // Nothing was taken; a job of exactly the budget fits.
+        assert_eq!(budget.available_mib(), 100);
+        let all = budget
+            .acquire(&MemoryNeed::new(100 * MIB, "x"))
+            .await
+            .unwrap();
+        assert_eq!(budget.available_mib(), 0);
+        drop(all);
+        // A job that needs nothing does not wait.
+        let none = budget.acquire(&MemoryNeed::new(0, "x")).await.unwrap();
+        assert_eq!(none.mib(), 0);
+    }
+
+    #[test]
+    fn metrics_show_the_budget_and_what_is_held() {
+        let metrics = Arc::new(Metrics::default());
+        let budget = MemoryBudget::new(100, Some(metrics.clone()));
+        let runtime = tokio::runtime::Builder::new_current_thread()
+            .build()
+            .unwrap();
+        let grant = runtime
+            .block_on(budget.acquire(&MemoryNeed::new(30 * MIB, "x")))
+            .unwrap();
+        let text = metrics.render(&[]);
+        assert!(text.contains("ptv_memory_budget_mib 100\n"), "{text}");
+        assert!(text.contains("ptv_memory_reserved_mib 30\n"), "{text}");
+        drop(grant);
+        let text = metrics.render(&[]);
+        assert!(text.contains("ptv_memory_reserved_mib 0\n"), "{text}");
+    }
+}
