@@ -5,10 +5,13 @@
 //! flight, from its headers to the end of its answer's body). The accept
 //! loop keeps at most `--max-connections` open: when one more arrives, the
 //! connection that has waited longest without sending a complete request is
-//! closed (an idle kept-alive one, or a slowloris still trickling its
-//! headers), so a new client always gets in while no request in flight is
-//! cut. Only if every connection has a request in flight does the loop stop
-//! accepting until one ends (new clients then wait in the listen backlog).
+//! closed (a lingering one first, then an idle kept-alive one, or a
+//! slowloris still trickling its headers), so a new client always gets in.
+//! A connection that has waited less than a second is spared while another
+//! can go (a client that just connected gets that long to send its
+//! request). Only if every connection has a request in flight (none with a
+//! body too slow, see below) or is that new does the loop stop accepting
+//! until one ends or ages (new clients then wait in the listen backlog).
 //! The default limit is the open-file limit, raised to its hard value at
 //! start, less a reserve for the database, image files and workers, so
 //! that `accept` never fails for want of file descriptors.
@@ -235,11 +238,20 @@ impl Registry {
         }
     }
 
-    /// Whether some connection waits without a request in flight.
-    fn any_idle(&self) -> bool {
-        self.lock()
-            .values()
-            .any(|c| !matches!(c.idle.load(Ordering::Relaxed), BUSY | EVICTED))
+    /// The latest `idle` value of a connection idle for at least `min`.
+    fn idle_cutoff(&self, min: Duration) -> u64 {
+        let min = u64::try_from(min.as_millis()).unwrap_or(u64::MAX);
+        self.now().saturating_sub(min)
+    }
+
+    /// Whether some connection has waited at least `min` without a
+    /// request in flight.
+    fn any_idle_for(&self, min: Duration) -> bool {
+        let cutoff = self.idle_cutoff(min);
+        self.lock().values().any(|c| {
+            let idle = c.idle.load(Ordering::Relaxed);
+            !matches!(idle, BUSY | EVICTED) && idle <= cutoff
+        })
     }
 
     /// The request in flight whose body arrives slowest, below `rate`
@@ -276,9 +288,11 @@ impl Registry {
     }
 
     /// Closes the connection that has waited longest without a complete
-    /// request, other than `except`; false if every other one has a request
-    /// in flight.
-    fn evict_oldest_idle(&self, except: u64) -> bool {
+    /// request, other than `except`, if it has waited at least `min`;
+    /// false if there is none (every other one has a request in flight, or
+    /// has waited less).
+    fn evict_oldest_idle(&self, except: u64, min: Duration) -> bool {
+        let cutoff = self.idle_cutoff(min);
         let mut open = self.lock();
         loop {
             let oldest = open
@@ -286,7 +300,7 @@ impl Registry {
                 .filter(|(id, _)| **id != except)
                 .filter_map(|(id, c)| {
                     let idle = c.idle.load(Ordering::Relaxed);
-                    (!matches!(idle, BUSY | EVICTED)).then_some((idle, *id))
+                    (!matches!(idle, BUSY | EVICTED) && idle <= cutoff).then_some((idle, *id))
                 })
                 .min();
             let Some((idle, id)) = oldest else {
@@ -381,9 +395,11 @@ impl BodyRate {
     }
 }
 
-/// How long a body must have been waited for before it may be ended to
-/// make room for a new connection (at most the rate window): its rate is
-/// not known before.
+/// How long a connection is spared at the limit: a new or idle one for
+/// this long since it became idle (a client that just connected has that
+/// long to send its request before the next arrival may close it), and a
+/// request in flight until its body has been waited for this long (at
+/// most the rate window; its rate is not known before).
 const EVICTION_GRACE: Duration = Duration::from_secs(1);
 
 /// Serves HTTP/1.1 connections on `listener` with hyper until `shutdown`
@@ -412,7 +428,7 @@ pub async fn serve(
         // arriving too slowly: accept nothing until one ends or turns idle
         // (or its body turns out too slow).
         if registry.len() >= registry.max
-            && !registry.any_idle()
+            && !registry.any_idle_for(EVICTION_GRACE)
             && !registry.any_slow_body(rate.as_ref())
         {
             let changed = registry.changed.notified();
@@ -446,11 +462,12 @@ pub async fn serve(
         ));
         let _ = connection.task.set(task.abort_handle());
         if registry.len() > registry.max
-            && !registry.evict_oldest_idle(id)
+            && !registry.evict_oldest_idle(id, EVICTION_GRACE)
             && !registry.evict_slowest_body(rate.as_ref())
+            && !registry.evict_oldest_idle(id, Duration::ZERO)
         {
             // Every other connection turned busy since the check above.
-            registry.evict_oldest_idle(u64::MAX);
+            registry.evict_oldest_idle(u64::MAX, Duration::ZERO);
         }
     }
     drop(listener);
@@ -481,7 +498,7 @@ async fn accept_failed(error: std::io::Error, registry: &Registry) {
     }
     // EMFILE, ENFILE.
     let out_of_files = matches!(error.raw_os_error(), Some(23 | 24));
-    if out_of_files && registry.evict_oldest_idle(u64::MAX) {
+    if out_of_files && registry.evict_oldest_idle(u64::MAX, Duration::ZERO) {
         tracing::warn!(%error, "out of file descriptors: closed the longest idle connection");
         tokio::time::sleep(Duration::from_millis(10)).await;
         return;
@@ -532,6 +549,13 @@ async fn serve_connection(
     if !registered.connection.unread_body.load(Ordering::Relaxed) || stopping {
         return;
     }
+    // Its answer is out: the first to close at the limit.
+    let _ = registered
+        .connection
+        .idle
+        .fetch_update(Ordering::AcqRel, Ordering::Relaxed, |v| {
+            (!matches!(v, BUSY | EVICTED)).then_some(1)
+        });
     let stream = connection.into_parts().io.into_inner().stream;
     let mut settings = Settings::clone(&settings);
     // A body too slow for the service gets to read its answer, no more.
@@ -786,6 +810,11 @@ impl HttpBody for Tracked {
                 }
                 Poll::Ready(Some(Err(error))) => {
                     this.meter.arrived(now, 0, true);
+                    // Read no further: hyper's body ends after an error,
+                    // which would look like a whole body. What the client
+                    // still sends is lingered over.
+                    this.ended = true;
+                    this.connection.unread_body.store(true, Ordering::Relaxed);
                     return Poll::Ready(Some(Err(error.into())));
                 }
             }

@@ -346,6 +346,14 @@ impl BodyProgress {
         self.state() == BodyProgress::COMPLETE
     }
 
+    /// Whether it stalled, was too slow or was cut off.
+    fn failed(&self) -> bool {
+        matches!(
+            self.state(),
+            BodyProgress::STALLED | BodyProgress::TOO_SLOW | BodyProgress::ABORTED
+        )
+    }
+
     /// Records why the body was too slow.
     fn too_slow(&self, reason: String) {
         let _ = self.0 .1.set(reason);
@@ -380,6 +388,8 @@ impl HttpBody for Watched {
     ) -> Poll<Option<Result<Frame<Bytes>, axum::Error>>> {
         let polled = Pin::new(&mut self.body).poll_frame(cx);
         match &polled {
+            // A body that failed stays failed (a reader may poll again).
+            _ if self.progress.failed() => {}
             Poll::Ready(None) => self.progress.set(BodyProgress::COMPLETE),
             Poll::Ready(Some(Ok(frame))) => {
                 let length = frame.data_ref().map_or(0, |data| data.len() as u64);
