@@ -253,7 +253,10 @@ async fn open_and_reap(config: &ServeArgs, readers: u32) -> Result<Store, Servic
             return Err(ServiceError::Database(error));
         }
         let (server, url) = match database {
-            Some(url) => (url.server().unwrap_or_else(|| url.to_string()), url.to_string()),
+            Some(url) => (
+                url.server().unwrap_or_else(|| url.to_string()),
+                url.to_string(),
+            ),
             None => {
                 let file = config.storage.data_dir.join("ptv.sqlite");
                 (file.display().to_string(), "SQLite".to_owned())

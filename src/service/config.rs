@@ -163,9 +163,7 @@ impl clap::builder::TypedValueParser for ApiTokenParser {
             )
             .with_cmd(cmd)
         };
-        let token = value
-            .to_str()
-            .ok_or_else(|| invalid("it is not UTF-8"))?;
+        let token = value.to_str().ok_or_else(|| invalid("it is not UTF-8"))?;
         check_api_token(token).map_err(invalid)?;
         Ok(token.to_owned())
     }
@@ -174,11 +172,15 @@ impl clap::builder::TypedValueParser for ApiTokenParser {
 /// Why `token` cannot be the API token, if it cannot.
 pub fn check_api_token(token: &str) -> Result<(), &'static str> {
     if token.trim().is_empty() {
-        Err("the token is empty, so every /api request would be refused with 401; \
-             give a token, or leave the flag and the variable unset to serve without one")
+        Err(
+            "the token is empty, so every /api request would be refused with 401; \
+             give a token, or leave the flag and the variable unset to serve without one",
+        )
     } else if token.trim() != token {
-        Err("the token has white space around it, which no client can send \
-             (header values are trimmed); remove it")
+        Err(
+            "the token has white space around it, which no client can send \
+             (header values are trimmed); remove it",
+        )
     } else if token.chars().any(|c| c.is_control()) {
         Err("the token has control characters, which no client can send in a header")
     } else {

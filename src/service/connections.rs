@@ -164,10 +164,7 @@ struct Connection {
 
 impl Connection {
     fn meter(&self) -> Option<Arc<Meter>> {
-        self.meter
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
-            .clone()
+        self.meter.lock().unwrap_or_else(|e| e.into_inner()).clone()
     }
 }
 
@@ -622,10 +619,7 @@ impl AsyncWrite for Scanned {
         Pin::new(&mut self.stream).poll_flush(cx)
     }
 
-    fn poll_shutdown(
-        mut self: Pin<&mut Self>,
-        cx: &mut Context<'_>,
-    ) -> Poll<std::io::Result<()>> {
+    fn poll_shutdown(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<std::io::Result<()>> {
         Pin::new(&mut self.stream).poll_shutdown(cx)
     }
 }
@@ -1084,7 +1078,14 @@ mod tests {
         );
         let error = meter.waiting_checked(at(45), &waker, &rate).unwrap_err();
         assert!(
-            matches!(error, BodyTooSlow::Window { bytes: 999, window_secs: 10, .. }),
+            matches!(
+                error,
+                BodyTooSlow::Window {
+                    bytes: 999,
+                    window_secs: 10,
+                    ..
+                }
+            ),
             "{error:?}"
         );
         assert!(error.to_string().contains("--min-body-rate"), "{error}");

@@ -305,12 +305,18 @@ mod tests {
     fn what_it_cannot_follow_stops_the_notes() {
         // A length that does not parse: hyper refuses it and closes.
         assert_eq!(
-            notes(b"POST / HTTP/1.1\r\nContent-Length: x\r\n\r\nGET / HTTP/1.1\r\n\r\n", 5),
+            notes(
+                b"POST / HTTP/1.1\r\nContent-Length: x\r\n\r\nGET / HTTP/1.1\r\n\r\n",
+                5
+            ),
             [false]
         );
         // A bad chunk size.
         assert_eq!(
-            notes(b"POST / HTTP/1.1\r\nTransfer-Encoding: chunked\r\n\r\nzz\r\n", 5),
+            notes(
+                b"POST / HTTP/1.1\r\nTransfer-Encoding: chunked\r\n\r\nzz\r\n",
+                5
+            ),
             [false]
         );
         // A line past the limit.

@@ -491,7 +491,9 @@ async fn watch_body(State(body_secs): State<u64>, request: Request, next: Next) 
                 .into_response();
             }
             BodyProgress::TOO_SLOW => {
-                let reason = progress.too_slow_reason().unwrap_or("the body arrived too slowly");
+                let reason = progress
+                    .too_slow_reason()
+                    .unwrap_or("the body arrived too slowly");
                 response = ApiError::new(
                     StatusCode::REQUEST_TIMEOUT,
                     format!("{reason}; nothing was stored, send the request again"),
@@ -503,8 +505,8 @@ async fn watch_body(State(body_secs): State<u64>, request: Request, next: Next) 
                     "the client closed the connection before its request body was complete; \
                      nothing was stored"
                 );
-                let status = StatusCode::from_u16(CLIENT_CLOSED_REQUEST)
-                    .unwrap_or(StatusCode::BAD_REQUEST);
+                let status =
+                    StatusCode::from_u16(CLIENT_CLOSED_REQUEST).unwrap_or(StatusCode::BAD_REQUEST);
                 response = ApiError::new(
                     status,
                     "the connection closed before the request body was complete; nothing was \

@@ -133,9 +133,20 @@ async fn trickling_uploads_get_408_and_healthz_stays_reachable() {
         &["--max-connections", "20", "--body-rate-window-secs", "2"],
     );
     let address = server.address.clone();
+    // Idle, after one request.
+    assert!(healthz_latency(&address, Duration::from_secs(5))
+        .await
+        .is_some());
+    let idle_mib = server.peak_memory_mib();
     let patience = Duration::from_secs(15);
     let tricklers: Vec<_> = (0..30)
-        .map(|_| tokio::spawn(trickle(address.clone(), Duration::from_millis(250), patience)))
+        .map(|_| {
+            tokio::spawn(trickle(
+                address.clone(),
+                Duration::from_millis(250),
+                patience,
+            ))
+        })
         .collect();
     // /healthz on a new connection every 200 ms while they trickle.
     let healthz_bound = GRACE + Duration::from_millis(100) + SLACK;
@@ -170,6 +181,15 @@ async fn trickling_uploads_get_408_and_healthz_stays_reachable() {
             trickled.after
         );
     }
+    // Memory: each trickler costs at most hyper's largest read buffer
+    // (HYPER_MAX_HEAD_BYTES, 128 KiB), the lingering close's 64 KiB buffer
+    // and an allowance of 64 KiB for its task, request and answer: 256 KiB
+    // each, 7.5 MiB for the 30, over the idle server's peak.
+    let peak_mib = server.peak_memory_mib();
+    assert!(
+        peak_mib <= idle_mib + 30.0 * 0.25,
+        "peak {peak_mib:.1} MiB, idle {idle_mib:.1} MiB"
+    );
     let (timeouts, metrics) = requests_counted(&address, "status=\"408\"").await;
     assert_eq!(timeouts, 30, "{metrics}");
     assert!(!metrics.contains("status=\"5"), "{metrics}");
@@ -185,7 +205,14 @@ fn start_logged(dir: &std::path::Path, more: &[&str]) -> (ServiceProcess, std::p
     let log = dir.join("serve.log");
     let data = dir.join("data");
     let mut child = Command::new(env!("CARGO_BIN_EXE_ptv"))
-        .args(["serve", "--bind", "127.0.0.1:0", "--workers", "0", "--data-dir"])
+        .args([
+            "serve",
+            "--bind",
+            "127.0.0.1:0",
+            "--workers",
+            "0",
+            "--data-dir",
+        ])
         .arg(&data)
         .args(database_args(&data))
         .args(object_store_flags(&data))
@@ -288,9 +315,12 @@ async fn raw_exchange(address: &str, wire: &str) -> String {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn content_length_with_chunked_is_refused_with_400() {
     let app = spawn_app().await;
-    let post = "POST /api/v1/calibrations HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n";
-    let length_first = format!("{post}Content-Length: 5\r\nTransfer-Encoding: chunked\r\n\r\n0\r\n\r\n");
-    let coding_first = format!("{post}transfer-encoding: chunked\r\ncontent-length: 5\r\n\r\n0\r\n\r\n");
+    let post =
+        "POST /api/v1/calibrations HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n";
+    let length_first =
+        format!("{post}Content-Length: 5\r\nTransfer-Encoding: chunked\r\n\r\n0\r\n\r\n");
+    let coding_first =
+        format!("{post}transfer-encoding: chunked\r\ncontent-length: 5\r\n\r\n0\r\n\r\n");
     let kept_alive = format!("GET /healthz HTTP/1.1\r\nHost: x\r\n\r\n{length_first}");
     for (case, wire) in [
         ("length first", &length_first),
@@ -302,12 +332,18 @@ async fn content_length_with_chunked_is_refused_with_400() {
             .find("HTTP/1.1 400 ")
             .map(|at| &answer[at..])
             .unwrap_or_else(|| panic!("{case}: {answer}"));
-        assert!(refused.contains("application/problem+json"), "{case}: {answer}");
+        assert!(
+            refused.contains("application/problem+json"),
+            "{case}: {answer}"
+        );
         assert!(
             refused.contains("both Content-Length and Transfer-Encoding"),
             "{case}: {answer}"
         );
-        assert!(refused.to_ascii_lowercase().contains("connection: close"), "{case}: {answer}");
+        assert!(
+            refused.to_ascii_lowercase().contains("connection: close"),
+            "{case}: {answer}"
+        );
         if case == "after a kept-alive request" {
             assert!(answer.starts_with("HTTP/1.1 200 "), "{answer}");
         }
@@ -329,7 +365,11 @@ async fn content_length_with_chunked_is_refused_with_400() {
 
 /// Runs `ptv` with `args` and `env` until it exits (at most `patience`):
 /// its exit code, standard error, and how long it ran.
-fn run_ptv(args: &[&str], env: &[(&str, &str)], patience: Duration) -> (Option<i32>, String, Duration) {
+fn run_ptv(
+    args: &[&str],
+    env: &[(&str, &str)],
+    patience: Duration,
+) -> (Option<i32>, String, Duration) {
     let start = Instant::now();
     let mut child = Command::new(env!("CARGO_BIN_EXE_ptv"))
         .args(args)
@@ -353,7 +393,12 @@ fn run_ptv(args: &[&str], env: &[(&str, &str)], patience: Duration) -> (Option<i
     };
     let elapsed = start.elapsed();
     let mut stderr = String::new();
-    child.stderr.take().unwrap().read_to_string(&mut stderr).unwrap();
+    child
+        .stderr
+        .take()
+        .unwrap()
+        .read_to_string(&mut stderr)
+        .unwrap();
     (status.and_then(|s| s.code()), stderr, elapsed)
 }
 
@@ -365,10 +410,22 @@ fn an_empty_api_token_is_refused_at_start() {
     let dir = tempfile::tempdir().unwrap();
     let data = dir.path().to_str().unwrap();
     let serve = ["serve", "--bind", "127.0.0.1:0", "--data-dir", data];
-    let cases: [(&str, Vec<&str>, Vec<(&str, &str)>, &str); 4] = [
+    // (case, flags, environment, what the message says)
+    type Case<'a> = (&'a str, Vec<&'a str>, Vec<(&'a str, &'a str)>, &'a str);
+    let cases: [Case; 4] = [
         ("empty flag", vec!["--api-token", ""], vec![], "empty"),
-        ("empty variable", vec![], vec![("PTV_API_TOKEN", "")], "empty"),
-        ("blank variable", vec![], vec![("PTV_API_TOKEN", "  ")], "empty"),
+        (
+            "empty variable",
+            vec![],
+            vec![("PTV_API_TOKEN", "")],
+            "empty",
+        ),
+        (
+            "blank variable",
+            vec![],
+            vec![("PTV_API_TOKEN", "  ")],
+            "empty",
+        ),
         (
             "spaces around",
             vec!["--api-token", " s3cret-token "],
