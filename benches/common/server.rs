@@ -39,6 +39,7 @@ impl Server {
                     fsync: std::env::var("PTV_FSYNC")
                         .is_ok_and(|v| !matches!(v.as_str(), "" | "0" | "false" | "no" | "off")),
                 },
+                database_wait_secs: ptv::service::config::Storage::DATABASE_WAIT_SECS,
             },
             workers,
             max_upload_mb: 256,

@@ -193,10 +193,6 @@ impl Application {
     }
 }
 
-/// How long a starting process waits for a database server that cannot
-/// be reached before it gives up.
-const DATABASE_WAIT: Duration = Duration::from_secs(60);
-
 /// Removes the stored files no row refers to ([`ImageStore::sweep`]),
 /// saying how many.
 async fn sweep(store: &Store, images: &ImageStore) -> Result<(), ServiceError> {
@@ -222,9 +218,13 @@ async fn sweep_every(state: Arc<AppState>, interval: Duration) {
 }
 
 /// Opens the database and ends the leases that processes of this host
-/// left when they died ([`Store::reap`]).
+/// left when they died ([`Store::reap`]). A PostgreSQL server that cannot
+/// be reached (not up yet, restarting, the network) is waited for up to
+/// `--database-wait-secs`, each attempt logged with the server's host and
+/// port and the cause; then the process gives up with the last cause.
 async fn open_and_reap(config: &ServeArgs, readers: u32) -> Result<Store, ServiceError> {
     let started = std::time::Instant::now();
+    let wait = config.storage.database_wait();
     let store = loop {
         let opened = match &config.storage.database {
             None => {
@@ -235,21 +235,59 @@ async fn open_and_reap(config: &ServeArgs, readers: u32) -> Result<Store, Servic
                 };
                 Store::open_sqlite(&config.storage.data_dir, readers, synchronous).await
             }
-            Some(url) => Store::open_postgres(url, readers).await,
-        };
-        match opened {
-            Ok(store) => break store,
-            // A database server that is not up yet (started together with
-            // this process, or restarting) is waited for.
-            Err(error)
-                if store::error_kind(&error) == store::ErrorKind::Unavailable
-                    && started.elapsed() < DATABASE_WAIT =>
-            {
-                tracing::warn!(%error, "the database cannot be reached yet; trying again");
-                tokio::time::sleep(Duration::from_secs(1)).await;
+            Some(url) => {
+                // One connection first: its error says why (the pool's
+                // would only say that it timed out).
+                let left = wait
+                    .saturating_sub(started.elapsed())
+                    .max(Duration::from_secs(1));
+                match Store::reach_postgres(url, left).await {
+                    Ok(()) => Store::open_postgres(url, readers).await,
+                    Err(error) => Err(error),
+                }
             }
-            Err(error) => return Err(ServiceError::Database(error)),
+        };
+        let error = match opened {
+            Ok(store) => break store,
+            Err(error) => error,
+        };
+        // A server not up yet (started together with this process,
+        // restarting), or a network error on the way, is waited for;
+        // anything else (a password refused, a failed migration) ends the
+        // start at once.
+        let database = config.storage.database.as_ref();
+        let unreachable = store::error_kind(&error) == store::ErrorKind::Unavailable
+            || (database.is_some() && matches!(error, sqlx::Error::Io(_)));
+        if !unreachable {
+            return Err(ServiceError::Database(error));
         }
+        let (server, url) = match database {
+            Some(url) => (
+                url.server().unwrap_or_else(|| url.to_string()),
+                url.to_string(),
+            ),
+            None => {
+                let file = config.storage.data_dir.join("ptv.sqlite");
+                (file.display().to_string(), "SQLite".to_owned())
+            }
+        };
+        let waited = started.elapsed();
+        if waited >= wait {
+            return Err(ServiceError::DatabaseUnreachable {
+                server,
+                url,
+                waited_secs: waited.as_secs(),
+                source: error,
+            });
+        }
+        tracing::warn!(
+            %server,
+            cause = %error,
+            waited_secs = waited.as_secs(),
+            database_wait_secs = wait.as_secs(),
+            "cannot reach the database server; trying again until --database-wait-secs"
+        );
+        tokio::time::sleep(Duration::from_secs(1).min(wait - waited)).await;
     };
     let (requeued, failed) = store
         .reap(&host_name(), process_exists)

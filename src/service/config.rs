@@ -29,7 +29,9 @@ pub struct ServeArgs {
     #[arg(long, env = "PTV_MAX_UPLOAD_MB", default_value_t = 256)]
     pub max_upload_mb: u64,
     /// When set, every /api route needs `Authorization: Bearer <token>`.
-    #[arg(long, env = "PTV_API_TOKEN", hide_env_values = true)]
+    /// An empty token (`PTV_API_TOKEN=` left blank) or one with spaces
+    /// around it, which no client could send, is refused at start.
+    #[arg(long, env = "PTV_API_TOKEN", hide_env_values = true, value_parser = ApiTokenParser)]
     pub api_token: Option<String>,
     /// Requests on the CPU-heavy routes (creating a sequence, projecting
     /// points) run at once; more get 503 with Retry-After [default: the
@@ -74,9 +76,19 @@ pub struct Storage {
     /// What an accepted upload survives (`--fsync`).
     #[command(flatten)]
     pub durability: Durability,
+    /// Seconds a starting process waits for a database server it cannot
+    /// reach (PostgreSQL still starting or restarting, the network), each
+    /// attempt logged with the host, port and cause, before it exits with
+    /// the reason.
+    #[arg(long = "database-wait-secs", env = "PTV_DATABASE_WAIT_SECS",
+          default_value_t = Storage::DATABASE_WAIT_SECS)]
+    pub database_wait_secs: u64,
 }
 
 impl Storage {
+    /// Default of `--database-wait-secs`.
+    pub const DATABASE_WAIT_SECS: u64 = 60;
+
     /// SQLite and the image store in `data_dir`, as without any of the
     /// flags but the directory.
     pub fn in_directory(data_dir: impl Into<PathBuf>) -> Storage {
@@ -85,7 +97,13 @@ impl Storage {
             database: None,
             objects: ObjectStoreArgs::default(),
             durability: Durability::default(),
+            database_wait_secs: Storage::DATABASE_WAIT_SECS,
         }
+    }
+
+    /// `--database-wait-secs`.
+    pub fn database_wait(&self) -> Duration {
+        Duration::from_secs(self.database_wait_secs)
     }
 }
 
@@ -116,6 +134,57 @@ impl clap::builder::TypedValueParser for DatabaseUrlParser {
             .ok_or_else(|| invalid("it is not UTF-8".to_owned()))?
             .parse()
             .map_err(invalid)
+    }
+}
+
+/// `--api-token`'s parser: refuses a token no client can send (empty, or
+/// with white space around it, which header parsing strips), without
+/// repeating the value. An empty token most likely means a variable meant
+/// to hold the secret was left blank (`PTV_API_TOKEN=${UNSET}` in a
+/// compose file): starting without a token would open the API the
+/// operator meant to close, and starting with it would answer every /api
+/// call 401, so the process stops with the reason instead.
+#[derive(Clone, Copy, Debug)]
+struct ApiTokenParser;
+
+impl clap::builder::TypedValueParser for ApiTokenParser {
+    type Value = String;
+
+    fn parse_ref(
+        &self,
+        cmd: &clap::Command,
+        _arg: Option<&clap::Arg>,
+        value: &std::ffi::OsStr,
+    ) -> Result<String, clap::Error> {
+        let invalid = |reason: &str| {
+            clap::Error::raw(
+                clap::error::ErrorKind::ValueValidation,
+                format!("invalid value for --api-token (PTV_API_TOKEN): {reason}\n"),
+            )
+            .with_cmd(cmd)
+        };
+        let token = value.to_str().ok_or_else(|| invalid("it is not UTF-8"))?;
+        check_api_token(token).map_err(invalid)?;
+        Ok(token.to_owned())
+    }
+}
+
+/// Why `token` cannot be the API token, if it cannot.
+pub fn check_api_token(token: &str) -> Result<(), &'static str> {
+    if token.trim().is_empty() {
+        Err(
+            "the token is empty, so every /api request would be refused with 401; \
+             give a token, or leave the flag and the variable unset to serve without one",
+        )
+    } else if token.trim() != token {
+        Err(
+            "the token has white space around it, which no client can send \
+             (header values are trimmed); remove it",
+        )
+    } else if token.chars().any(|c| c.is_control()) {
+        Err("the token has control characters, which no client can send in a header")
+    } else {
+        Ok(())
     }
 }
 
@@ -326,6 +395,18 @@ pub struct Timeouts {
     #[arg(long = "request-timeout-secs", env = "PTV_REQUEST_TIMEOUT_SECS",
           default_value_t = Timeouts::REQUEST_SECS, value_parser = clap::value_parser!(u64).range(1..))]
     pub request_secs: u64,
+    /// Bytes per second a request body must arrive at, averaged over
+    /// `--body-rate-window-secs` of waiting for it; a slower one gets 408,
+    /// and at the connection limit the slowest such body makes room for a
+    /// new connection. 0: no minimum.
+    #[arg(long = "min-body-rate", env = "PTV_MIN_BODY_RATE",
+          default_value_t = Timeouts::MIN_BODY_RATE)]
+    pub min_body_rate: u64,
+    /// Seconds over which `--min-body-rate` is averaged.
+    #[arg(long = "body-rate-window-secs", env = "PTV_BODY_RATE_WINDOW_SECS",
+          default_value_t = Timeouts::BODY_RATE_WINDOW_SECS,
+          value_parser = clap::value_parser!(u64).range(1..=3600))]
+    pub body_rate_window_secs: u64,
 }
 
 impl Timeouts {
@@ -335,6 +416,13 @@ impl Timeouts {
     pub const BODY_SECS: u64 = 30;
     /// Default of `--request-timeout-secs`.
     pub const REQUEST_SECS: u64 = 300;
+    /// Default of `--min-body-rate`: 1 KiB/s, which a client on any link
+    /// that could upload a frame in the request timeout passes by far
+    /// (256 MiB in 300 s is 870 KiB/s), and which a client trickling bytes
+    /// to hold a connection does not.
+    pub const MIN_BODY_RATE: u64 = 1024;
+    /// Default of `--body-rate-window-secs`.
+    pub const BODY_RATE_WINDOW_SECS: u64 = 10;
 
     /// `--header-timeout-secs`.
     pub fn header(&self) -> Duration {
@@ -350,6 +438,11 @@ impl Timeouts {
     pub fn request(&self) -> Duration {
         Duration::from_secs(self.request_secs)
     }
+
+    /// `--body-rate-window-secs`.
+    pub fn body_rate_window(&self) -> Duration {
+        Duration::from_secs(self.body_rate_window_secs)
+    }
 }
 
 impl Default for Timeouts {
@@ -358,6 +451,8 @@ impl Default for Timeouts {
             header_secs: Timeouts::HEADER_SECS,
             body_secs: Timeouts::BODY_SECS,
             request_secs: Timeouts::REQUEST_SECS,
+            min_body_rate: Timeouts::MIN_BODY_RATE,
+            body_rate_window_secs: Timeouts::BODY_RATE_WINDOW_SECS,
         }
     }
 }

@@ -5,10 +5,13 @@
 //! flight, from its headers to the end of its answer's body). The accept
 //! loop keeps at most `--max-connections` open: when one more arrives, the
 //! connection that has waited longest without sending a complete request is
-//! closed (an idle kept-alive one, or a slowloris still trickling its
-//! headers), so a new client always gets in while no request in flight is
-//! cut. Only if every connection has a request in flight does the loop stop
-//! accepting until one ends (new clients then wait in the listen backlog).
+//! closed (a lingering one first, then an idle kept-alive one, or a
+//! slowloris still trickling its headers), so a new client always gets in.
+//! A connection that has waited less than a second is spared while another
+//! can go (a client that just connected gets that long to send its
+//! request). Only if every connection has a request in flight (none with a
+//! body too slow, see below) or is that new does the loop stop accepting
+//! until one ends or ages (new clients then wait in the listen backlog).
 //! The default limit is the open-file limit, raised to its hard value at
 //! start, less a reserve for the database, image files and workers, so
 //! that `accept` never fails for want of file descriptors.
@@ -16,6 +19,22 @@
 //! hyper's header read timeout (`--header-timeout-secs`) still closes a
 //! connection that does not complete a request's headers in time, and a
 //! kept-alive one idle that long.
+//!
+//! A request body must arrive at `--min-body-rate` bytes per second,
+//! averaged over `--body-rate-window-secs` of the time the service waits
+//! for it (not the time its handler spends on what already came): a slower
+//! one ends in a [`BodyTooSlow`] error, which `http::layers` answers with a
+//! 408. When every connection has a request in flight, a new one does not
+//! wait for them if one of them is a body arriving below that rate (over
+//! at least a second): the slowest such body is ended the same way (408)
+//! to make room, so that trickling uploads cannot hold every slot.
+//!
+//! The bytes of each connection pass through a [`framing::Framing`] scan
+//! before hyper reads them, which notes each request head that declares
+//! both `Content-Length` and `Transfer-Encoding` (hyper drops the length
+//! before the service could see it); such a request carries a
+//! [`ConflictingFraming`] extension and `http::layers` refuses it with a
+//! 400 (RFC 9112 section 6.1).
 //!
 //! A request refused before its body was read (401, 404, 413, 415 ...)
 //! would leave the client's unread upload in the socket, and closing a
@@ -28,13 +47,15 @@
 //! `--body-timeout-secs` and all within `--request-timeout-secs`, before the
 //! socket closes. A lingering connection counts as idle for the limit.
 
+mod framing;
+
 use std::collections::HashMap;
 use std::convert::Infallible;
 use std::future::Future;
 use std::pin::Pin;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, OnceLock};
-use std::task::{Context, Poll};
+use std::task::{Context, Poll, Waker};
 use std::time::{Duration, Instant};
 
 use axum::body::{Body, Bytes, HttpBody};
@@ -43,7 +64,7 @@ use http_body::{Frame, SizeHint};
 use hyper::body::Incoming;
 use hyper::server::conn::http1;
 use hyper_util::rt::{TokioIo, TokioTimer};
-use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt, ReadBuf};
 use tokio::net::{TcpListener, TcpStream};
 use tokio::sync::{watch, Notify};
 use tokio::task::AbortHandle;
@@ -130,8 +151,21 @@ struct Connection {
     idle: AtomicU64,
     /// Set when a request's body was left unread: close by lingering.
     unread_body: AtomicBool,
+    /// Set when a request's body arrived too slowly: linger for at most
+    /// the rate window.
+    too_slow: AtomicBool,
+    /// The body of the request in flight, if any.
+    meter: Mutex<Option<Arc<Meter>>>,
+    /// The scan of the incoming bytes for conflicting framing.
+    framing: Mutex<framing::Framing>,
     /// Cancels the connection's task.
     task: OnceLock<AbortHandle>,
+}
+
+impl Connection {
+    fn meter(&self) -> Option<Arc<Meter>> {
+        self.meter.lock().unwrap_or_else(|e| e.into_inner()).clone()
+    }
 }
 
 /// The open connections.
@@ -183,6 +217,9 @@ impl Registry {
         let connection = Arc::new(Connection {
             idle: AtomicU64::new(self.now()),
             unread_body: AtomicBool::new(false),
+            too_slow: AtomicBool::new(false),
+            meter: Mutex::new(None),
+            framing: Mutex::default(),
             task: OnceLock::new(),
         });
         let open = {
@@ -198,17 +235,61 @@ impl Registry {
         }
     }
 
-    /// Whether some connection waits without a request in flight.
-    fn any_idle(&self) -> bool {
-        self.lock()
+    /// The latest `idle` value of a connection idle for at least `min`.
+    fn idle_cutoff(&self, min: Duration) -> u64 {
+        let min = u64::try_from(min.as_millis()).unwrap_or(u64::MAX);
+        self.now().saturating_sub(min)
+    }
+
+    /// Whether some connection has waited at least `min` without a
+    /// request in flight.
+    fn any_idle_for(&self, min: Duration) -> bool {
+        let cutoff = self.idle_cutoff(min);
+        self.lock().values().any(|c| {
+            let idle = c.idle.load(Ordering::Relaxed);
+            !matches!(idle, BUSY | EVICTED) && idle <= cutoff
+        })
+    }
+
+    /// The request in flight whose body arrives slowest, below `rate`
+    /// (over at least [`EVICTION_GRACE`] of waiting), if any.
+    fn slowest_body(&self, rate: &BodyRate) -> Option<Arc<Meter>> {
+        let open = self.lock();
+        let slowest = open
             .values()
-            .any(|c| !matches!(c.idle.load(Ordering::Relaxed), BUSY | EVICTED))
+            .filter(|c| c.idle.load(Ordering::Relaxed) == BUSY)
+            .filter_map(|c| c.meter())
+            .filter_map(|meter| Some((meter.slow_rate(rate)?, meter)))
+            .min_by(|(a, _), (b, _)| a.total_cmp(b))
+            .map(|(_, meter)| meter);
+        slowest
+    }
+
+    /// Whether some request in flight has a body arriving below `rate`.
+    fn any_slow_body(&self, rate: Option<&BodyRate>) -> bool {
+        rate.is_some_and(|rate| self.slowest_body(rate).is_some())
+    }
+
+    /// Ends the request whose body arrives slowest below `rate` (its body
+    /// fails with [`BodyTooSlow`], answered 408); false if there is none.
+    fn evict_slowest_body(&self, rate: Option<&BodyRate>) -> bool {
+        let Some(rate) = rate else {
+            return false;
+        };
+        let Some(meter) = self.slowest_body(rate) else {
+            return false;
+        };
+        meter.evict(rate);
+        self.metrics.slow_body_evicted();
+        true
     }
 
     /// Closes the connection that has waited longest without a complete
-    /// request, other than `except`; false if every other one has a request
-    /// in flight.
-    fn evict_oldest_idle(&self, except: u64) -> bool {
+    /// request, other than `except`, if it has waited at least `min`;
+    /// false if there is none (every other one has a request in flight, or
+    /// has waited less).
+    fn evict_oldest_idle(&self, except: u64, min: Duration) -> bool {
+        let cutoff = self.idle_cutoff(min);
         let mut open = self.lock();
         loop {
             let oldest = open
@@ -216,7 +297,7 @@ impl Registry {
                 .filter(|(id, _)| **id != except)
                 .filter_map(|(id, c)| {
                     let idle = c.idle.load(Ordering::Relaxed);
-                    (!matches!(idle, BUSY | EVICTED)).then_some((idle, *id))
+                    (!matches!(idle, BUSY | EVICTED) && idle <= cutoff).then_some((idle, *id))
                 })
                 .min();
             let Some((idle, id)) = oldest else {
@@ -273,19 +354,50 @@ pub struct Settings {
     pub linger_pause: Duration,
     /// ...and all within this.
     pub linger_total: Duration,
+    /// The least rate a request body must arrive at (`None`: any).
+    pub body_rate: Option<BodyRate>,
 }
 
 impl Settings {
     /// From the service's settings.
     pub fn new(config: &ServeArgs) -> Settings {
+        let timeouts = &config.timeouts;
         Settings {
-            header_timeout: config.timeouts.header(),
+            header_timeout: timeouts.header(),
             linger_bytes: config.max_upload_bytes() as u64,
-            linger_pause: config.timeouts.body(),
-            linger_total: config.timeouts.request(),
+            linger_pause: timeouts.body(),
+            linger_total: timeouts.request(),
+            body_rate: (timeouts.min_body_rate > 0).then(|| BodyRate {
+                bytes_per_second: timeouts.min_body_rate,
+                window: timeouts.body_rate_window(),
+            }),
         }
     }
 }
+
+/// The least rate at which a request body must arrive: `--min-body-rate`
+/// averaged over `--body-rate-window-secs`.
+#[derive(Clone, Copy, Debug)]
+pub struct BodyRate {
+    /// Bytes per second.
+    pub bytes_per_second: u64,
+    /// Over how much time waiting for the body it is averaged.
+    pub window: Duration,
+}
+
+impl BodyRate {
+    /// The bytes a window must bring.
+    fn bytes_per_window(&self) -> f64 {
+        self.bytes_per_second as f64 * self.window.as_secs_f64()
+    }
+}
+
+/// How long a connection is spared at the limit: a new or idle one for
+/// this long since it became idle (a client that just connected has that
+/// long to send its request before the next arrival may close it), and a
+/// request in flight until its body has been waited for this long (at
+/// most the rate window; its rate is not known before).
+const EVICTION_GRACE: Duration = Duration::from_secs(1);
 
 /// Serves HTTP/1.1 connections on `listener` with hyper until `shutdown`
 /// completes, within the registry's limit (see the module's
@@ -307,10 +419,15 @@ pub async fn serve(
     let settings = Arc::new(settings);
     let (stop, stopped) = watch::channel(false);
     let mut shutdown = std::pin::pin!(shutdown);
+    let rate = settings.body_rate;
     loop {
-        // Every connection has a request in flight: accept nothing until
-        // one ends or turns idle.
-        if registry.len() >= registry.max && !registry.any_idle() {
+        // Every connection has a request in flight, none of them a body
+        // arriving too slowly: accept nothing until one ends or turns idle
+        // (or its body turns out too slow).
+        if registry.len() >= registry.max
+            && !registry.any_idle_for(EVICTION_GRACE)
+            && !registry.any_slow_body(rate.as_ref())
+        {
             let changed = registry.changed.notified();
             tokio::select! {
                 () = changed => {}
@@ -341,9 +458,13 @@ pub async fn serve(
             stopped.clone(),
         ));
         let _ = connection.task.set(task.abort_handle());
-        if registry.len() > registry.max && !registry.evict_oldest_idle(id) {
+        if registry.len() > registry.max
+            && !registry.evict_oldest_idle(id, EVICTION_GRACE)
+            && !registry.evict_slowest_body(rate.as_ref())
+            && !registry.evict_oldest_idle(id, Duration::ZERO)
+        {
             // Every other connection turned busy since the check above.
-            registry.evict_oldest_idle(u64::MAX);
+            registry.evict_oldest_idle(u64::MAX, Duration::ZERO);
         }
     }
     drop(listener);
@@ -374,7 +495,7 @@ async fn accept_failed(error: std::io::Error, registry: &Registry) {
     }
     // EMFILE, ENFILE.
     let out_of_files = matches!(error.raw_os_error(), Some(23 | 24));
-    if out_of_files && registry.evict_oldest_idle(u64::MAX) {
+    if out_of_files && registry.evict_oldest_idle(u64::MAX, Duration::ZERO) {
         tracing::warn!(%error, "out of file descriptors: closed the longest idle connection");
         tokio::time::sleep(Duration::from_millis(10)).await;
         return;
@@ -395,6 +516,11 @@ async fn serve_connection(
     let service = ConnectionService {
         router,
         registry: registered.registry.clone(),
+        connection: registered.connection.clone(),
+        body_rate: settings.body_rate,
+    };
+    let stream = Scanned {
+        stream,
         connection: registered.connection.clone(),
     };
     let mut connection = http.serve_connection(TokioIo::new(stream), service);
@@ -420,13 +546,89 @@ async fn serve_connection(
     if !registered.connection.unread_body.load(Ordering::Relaxed) || stopping {
         return;
     }
-    let stream = connection.into_parts().io.into_inner();
+    // Its answer is out: the first to close at the limit.
+    let _ = registered
+        .connection
+        .idle
+        .fetch_update(Ordering::AcqRel, Ordering::Relaxed, |v| {
+            (!matches!(v, BUSY | EVICTED)).then_some(1)
+        });
+    let stream = connection.into_parts().io.into_inner().stream;
+    let mut settings = Settings::clone(&settings);
+    // A body too slow for the service gets to read its answer, no more.
+    if let Some(rate) = settings.body_rate {
+        if registered.connection.too_slow.load(Ordering::Relaxed) {
+            settings.linger_total = settings.linger_total.min(rate.window);
+        }
+    }
     // A shutdown cuts the lingering short.
     tokio::select! {
         () = linger(stream, &settings) => {}
         _ = stopped.changed() => {}
     }
 }
+
+/// A connection's socket, its incoming bytes scanned for conflicting
+/// framing ([`framing::Framing`]) before hyper reads them.
+struct Scanned {
+    stream: TcpStream,
+    connection: Arc<Connection>,
+}
+
+impl AsyncRead for Scanned {
+    fn poll_read(
+        mut self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+        buf: &mut ReadBuf<'_>,
+    ) -> Poll<std::io::Result<()>> {
+        let before = buf.filled().len();
+        let polled = Pin::new(&mut self.stream).poll_read(cx, buf);
+        if let Poll::Ready(Ok(())) = polled {
+            self.connection
+                .framing
+                .lock()
+                .unwrap_or_else(|e| e.into_inner())
+                .scan(&buf.filled()[before..]);
+        }
+        polled
+    }
+}
+
+impl AsyncWrite for Scanned {
+    fn poll_write(
+        mut self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+        buf: &[u8],
+    ) -> Poll<std::io::Result<usize>> {
+        Pin::new(&mut self.stream).poll_write(cx, buf)
+    }
+
+    fn poll_write_vectored(
+        mut self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+        bufs: &[std::io::IoSlice<'_>],
+    ) -> Poll<std::io::Result<usize>> {
+        Pin::new(&mut self.stream).poll_write_vectored(cx, bufs)
+    }
+
+    fn is_write_vectored(&self) -> bool {
+        self.stream.is_write_vectored()
+    }
+
+    fn poll_flush(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<std::io::Result<()>> {
+        Pin::new(&mut self.stream).poll_flush(cx)
+    }
+
+    fn poll_shutdown(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<std::io::Result<()>> {
+        Pin::new(&mut self.stream).poll_shutdown(cx)
+    }
+}
+
+/// The extension of a request whose head declared both `Content-Length`
+/// and `Transfer-Encoding` (hyper keeps only the latter): `http::layers`
+/// refuses it with a 400.
+#[derive(Clone, Copy, Debug)]
+pub struct ConflictingFraming;
 
 /// Shuts the write side (the answer is complete) and reads and discards
 /// what the client still sends, within the settings' bounds, so that the
@@ -455,6 +657,7 @@ struct ConnectionService {
     router: Router,
     registry: Arc<Registry>,
     connection: Arc<Connection>,
+    body_rate: Option<BodyRate>,
 }
 
 impl hyper::service::Service<hyper::Request<Incoming>> for ConnectionService {
@@ -472,17 +675,36 @@ impl hyper::service::Service<hyper::Request<Incoming>> for ConnectionService {
                 (v != EVICTED).then_some(BUSY)
             });
         self.connection.unread_body.store(false, Ordering::Relaxed);
+        let meter = Arc::new(Meter::default());
+        *self
+            .connection
+            .meter
+            .lock()
+            .unwrap_or_else(|e| e.into_inner()) = Some(meter.clone());
+        let conflicting = self
+            .connection
+            .framing
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .take_note()
+            == Some(true);
         let busy = Busy {
             registry: self.registry.clone(),
             connection: self.connection.clone(),
         };
-        let request = request.map(|body| {
+        let mut request = request.map(|body| {
             Body::new(Tracked {
                 body,
                 connection: self.connection.clone(),
                 ended: false,
+                meter,
+                rate: self.body_rate,
+                timer: None,
             })
         });
+        if conflicting {
+            request.extensions_mut().insert(ConflictingFraming);
+        }
         let router = self.router.clone();
         Box::pin(async move {
             let response = router.oneshot(request).await?;
@@ -537,30 +759,83 @@ impl HttpBody for Answer {
     }
 }
 
-/// A request's body, noting on its connection whether it was left unread.
+/// A request's body, noting on its connection whether it was left unread,
+/// and holding it to the least rate ([`BodyRate`]).
 struct Tracked {
     body: Incoming,
     connection: Arc<Connection>,
     ended: bool,
+    /// Its arrival, as the connection limit sees it.
+    meter: Arc<Meter>,
+    rate: Option<BodyRate>,
+    /// Wakes the body at the end of the current rate window.
+    timer: Option<Pin<Box<tokio::time::Sleep>>>,
 }
 
 impl HttpBody for Tracked {
     type Data = Bytes;
-    type Error = hyper::Error;
+    type Error = axum::BoxError;
 
     fn poll_frame(
         mut self: Pin<&mut Self>,
         cx: &mut Context<'_>,
-    ) -> Poll<Option<Result<Frame<Bytes>, hyper::Error>>> {
-        let polled = Pin::new(&mut self.body).poll_frame(cx);
-        if matches!(polled, Poll::Ready(None)) {
-            self.ended = true;
+    ) -> Poll<Option<Result<Frame<Bytes>, axum::BoxError>>> {
+        let this = &mut *self;
+        if this.ended {
+            return Poll::Ready(None);
         }
-        polled
+        loop {
+            if let Some(error) = this.meter.evicted() {
+                return this.too_slow(error);
+            }
+            let polled = Pin::new(&mut this.body).poll_frame(cx);
+            let now = Instant::now();
+            match polled {
+                Poll::Pending => {}
+                Poll::Ready(None) => {
+                    this.ended = true;
+                    this.meter.arrived(now, 0, true);
+                    return Poll::Ready(None);
+                }
+                Poll::Ready(Some(Ok(frame))) => {
+                    let length = frame.data_ref().map_or(0, |data| data.len() as u64);
+                    this.meter.arrived(now, length, false);
+                    return Poll::Ready(Some(Ok(frame)));
+                }
+                Poll::Ready(Some(Err(error))) => {
+                    this.meter.arrived(now, 0, true);
+                    // Read no further: hyper's body ends after an error,
+                    // which would look like a whole body. What the client
+                    // still sends is lingered over.
+                    this.ended = true;
+                    this.connection.unread_body.store(true, Ordering::Relaxed);
+                    return Poll::Ready(Some(Err(error.into())));
+                }
+            }
+            let Some(rate) = this.rate else {
+                this.meter.waiting(now, cx.waker());
+                return Poll::Pending;
+            };
+            let left = match this.meter.waiting_checked(now, cx.waker(), &rate) {
+                Ok(left) => left,
+                Err(error) => return this.too_slow(error),
+            };
+            let deadline = tokio::time::Instant::from_std(now + left);
+            let timer = this
+                .timer
+                .get_or_insert_with(|| Box::pin(tokio::time::sleep_until(deadline)));
+            if timer.deadline() != deadline {
+                timer.as_mut().reset(deadline);
+            }
+            if timer.as_mut().poll(cx).is_pending() {
+                return Poll::Pending;
+            }
+            // The window ended meanwhile: look again.
+        }
     }
 
     fn is_end_stream(&self) -> bool {
-        self.body.is_end_stream()
+        self.ended || self.body.is_end_stream()
     }
 
     fn size_hint(&self) -> SizeHint {
@@ -568,11 +843,183 @@ impl HttpBody for Tracked {
     }
 }
 
+impl Tracked {
+    /// Ends the body with `error`, marking the connection for a short
+    /// lingering close.
+    fn too_slow(
+        &mut self,
+        error: BodyTooSlow,
+    ) -> Poll<Option<Result<Frame<Bytes>, axum::BoxError>>> {
+        self.ended = true;
+        self.timer = None;
+        self.meter.arrived(Instant::now(), 0, true);
+        self.connection.too_slow.store(true, Ordering::Relaxed);
+        self.connection.unread_body.store(true, Ordering::Relaxed);
+        Poll::Ready(Some(Err(Box::new(error))))
+    }
+}
+
 impl Drop for Tracked {
     fn drop(&mut self) {
+        self.meter.arrived(Instant::now(), 0, true);
         if !self.ended && !self.body.is_end_stream() {
             self.connection.unread_body.store(true, Ordering::Relaxed);
         }
+    }
+}
+
+/// Why a request body was ended: it arrived below `--min-body-rate`.
+#[derive(Clone, Debug, thiserror::Error)]
+pub enum BodyTooSlow {
+    /// A whole window brought less than the rate asks.
+    #[error(
+        "the body arrived at {bytes} bytes in {window_secs} s, below the service's minimum of \
+         {bytes_per_second} bytes/s (--min-body-rate, averaged over --body-rate-window-secs)"
+    )]
+    Window {
+        /// What the window brought.
+        bytes: u64,
+        /// The window.
+        window_secs: u64,
+        /// The rate asked.
+        bytes_per_second: u64,
+    },
+    /// Ended at the connection limit to let a new connection in.
+    #[error(
+        "the body arrived at {bytes} bytes in {waited_secs:.1} s, below the service's minimum of \
+         {bytes_per_second} bytes/s (--min-body-rate), while every connection was busy; it was \
+         ended to let another client in"
+    )]
+    Evicted {
+        /// What had come.
+        bytes: u64,
+        /// In this much waiting.
+        waited_secs: f64,
+        /// The rate asked.
+        bytes_per_second: u64,
+    },
+}
+
+/// A request body's arrival: what came in how much waiting, shared by the
+/// body and the accept loop (which may end it, [`Meter::evict`]).
+#[derive(Debug, Default)]
+struct Meter(Mutex<MeterState>);
+
+#[derive(Debug, Default)]
+struct MeterState {
+    /// Bytes come.
+    bytes: u64,
+    /// Time spent waiting for them, before the current wait.
+    waited: Duration,
+    /// Since when the body is waited for, if it is.
+    waiting_since: Option<Instant>,
+    /// The bytes and the waiting at the start of the current rate window.
+    window_start: (u64, Duration),
+    /// Ended (whole, failed, dropped, or too slow).
+    ended: bool,
+    /// Why it is to end, set by the accept loop.
+    evicted: Option<BodyTooSlow>,
+    /// Wakes the body's reader, to see that it was evicted.
+    waker: Option<Waker>,
+}
+
+impl MeterState {
+    fn waited_until(&self, now: Instant) -> Duration {
+        self.waited
+            + self
+                .waiting_since
+                .map_or(Duration::ZERO, |since| now.saturating_duration_since(since))
+    }
+}
+
+impl Meter {
+    fn lock(&self) -> std::sync::MutexGuard<'_, MeterState> {
+        self.0.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// `bytes` came at `now` (`ended`: and nothing more will).
+    fn arrived(&self, now: Instant, bytes: u64, ended: bool) {
+        let mut state = self.lock();
+        state.waited = state.waited_until(now);
+        state.waiting_since = None;
+        state.bytes += bytes;
+        state.ended |= ended;
+        if ended {
+            state.waker = None;
+        }
+    }
+
+    /// The body is waited for from `now` on (if not already).
+    fn waiting(&self, now: Instant, waker: &Waker) {
+        let mut state = self.lock();
+        state.waiting_since.get_or_insert(now);
+        if !state.waker.as_ref().is_some_and(|w| w.will_wake(waker)) {
+            state.waker = Some(waker.clone());
+        }
+    }
+
+    /// [`Meter::waiting`], and the rate check: an error if a whole window
+    /// of waiting brought less than `rate` asks, else the waiting left in
+    /// the current window.
+    fn waiting_checked(
+        &self,
+        now: Instant,
+        waker: &Waker,
+        rate: &BodyRate,
+    ) -> Result<Duration, BodyTooSlow> {
+        self.waiting(now, waker);
+        let mut state = self.lock();
+        let waited = state.waited_until(now);
+        let (start_bytes, start_waited) = state.window_start;
+        let in_window = waited.saturating_sub(start_waited);
+        if in_window < rate.window {
+            return Ok(rate.window - in_window);
+        }
+        let bytes = state.bytes - start_bytes;
+        if (bytes as f64) < rate.bytes_per_window() {
+            return Err(BodyTooSlow::Window {
+                bytes,
+                window_secs: rate.window.as_secs(),
+                bytes_per_second: rate.bytes_per_second,
+            });
+        }
+        state.window_start = (state.bytes, waited);
+        Ok(rate.window)
+    }
+
+    /// The rate at which the body arrives, if it is waited for now, has
+    /// been for at least [`EVICTION_GRACE`] (or the window, if shorter),
+    /// and arrives below `rate`: the candidates for [`Meter::evict`].
+    fn slow_rate(&self, rate: &BodyRate) -> Option<f64> {
+        let state = self.lock();
+        if state.ended || state.evicted.is_some() || state.waiting_since.is_none() {
+            return None;
+        }
+        let waited = state.waited_until(Instant::now());
+        if waited < EVICTION_GRACE.min(rate.window) {
+            return None;
+        }
+        let per_second = state.bytes as f64 / waited.as_secs_f64();
+        (per_second < rate.bytes_per_second as f64).then_some(per_second)
+    }
+
+    /// Ends the body at its next read (waking its reader).
+    fn evict(&self, rate: &BodyRate) {
+        let mut state = self.lock();
+        let waited = state.waited_until(Instant::now());
+        state.evicted = Some(BodyTooSlow::Evicted {
+            bytes: state.bytes,
+            waited_secs: waited.as_secs_f64(),
+            bytes_per_second: rate.bytes_per_second,
+        });
+        if let Some(waker) = state.waker.take() {
+            waker.wake();
+        }
+    }
+
+    /// Why the body is to end, if the accept loop chose it.
+    fn evicted(&self) -> Option<BodyTooSlow> {
+        self.lock().evicted.clone()
     }
 }
 
@@ -589,5 +1036,84 @@ mod tests {
         assert_eq!(default_max_connections(Some(1024), 2, 6), 840);
         assert_eq!(default_max_connections(Some(100), 2, 6), 50);
         assert_eq!(default_max_connections(Some(10_000_000), 2, 6), 65_536);
+    }
+
+    fn noop_waker() -> Waker {
+        Waker::noop().clone()
+    }
+
+    /// A window of waiting must bring the rate's bytes: the check passes
+    /// while it runs, fails at its end if it brought less, and starts a
+    /// new window if it brought enough; time spent not waiting (the
+    /// handler busy with what came) does not count.
+    #[test]
+    fn the_rate_is_checked_over_windows_of_waiting() {
+        let rate = BodyRate {
+            bytes_per_second: 100,
+            window: Duration::from_secs(10),
+        };
+        let waker = noop_waker();
+        let t0 = Instant::now();
+        let at = |s: u64| t0 + Duration::from_secs(s);
+        let meter = Meter::default();
+        assert_eq!(
+            meter.waiting_checked(at(0), &waker, &rate).unwrap(),
+            Duration::from_secs(10)
+        );
+        meter.arrived(at(4), 1000, false);
+        // 20 s not waiting: the handler was busy.
+        assert_eq!(
+            meter.waiting_checked(at(24), &waker, &rate).unwrap(),
+            Duration::from_secs(6)
+        );
+        // The window ends with 1,000 bytes: enough; a new one starts.
+        assert_eq!(
+            meter.waiting_checked(at(30), &waker, &rate).unwrap(),
+            Duration::from_secs(10)
+        );
+        meter.arrived(at(35), 999, false);
+        assert_eq!(
+            meter.waiting_checked(at(40), &waker, &rate).unwrap(),
+            Duration::from_secs(5)
+        );
+        let error = meter.waiting_checked(at(45), &waker, &rate).unwrap_err();
+        assert!(
+            matches!(
+                error,
+                BodyTooSlow::Window {
+                    bytes: 999,
+                    window_secs: 10,
+                    ..
+                }
+            ),
+            "{error:?}"
+        );
+        assert!(error.to_string().contains("--min-body-rate"), "{error}");
+    }
+
+    /// Only a body waited for now, for at least the grace, below the rate,
+    /// is a candidate for eviction; once evicted it says why.
+    #[test]
+    fn slow_bodies_waited_for_are_the_candidates_for_eviction() {
+        let rate = BodyRate {
+            bytes_per_second: 1024,
+            window: Duration::from_secs(10),
+        };
+        let waker = noop_waker();
+        let meter = Meter::default();
+        assert!(meter.slow_rate(&rate).is_none(), "not waited for");
+        let long_ago = Instant::now() - Duration::from_secs(5);
+        meter.waiting(long_ago, &waker);
+        let slow = meter.slow_rate(&rate).expect("5 s for nothing");
+        assert!(slow < 1.0, "{slow}");
+        meter.arrived(Instant::now(), 1 << 20, false);
+        meter.waiting(Instant::now(), &waker);
+        assert!(meter.slow_rate(&rate).is_none(), "1 MiB in 5 s is fast");
+        let fresh = Meter::default();
+        fresh.waiting(Instant::now(), &waker);
+        assert!(fresh.slow_rate(&rate).is_none(), "within the grace");
+        meter.evict(&rate);
+        assert!(matches!(meter.evicted(), Some(BodyTooSlow::Evicted { .. })));
+        assert!(meter.slow_rate(&rate).is_none(), "evicted once");
     }
 }

@@ -77,8 +77,8 @@ const PARTICLE_BOUNDS: &[f64] = &[0.0, 10.0, 100.0, 500.0, 1000.0, 2000.0, 5000.
 /// The statuses counted by their own code; any other counts as its class.
 pub const STATUSES: &[u16] = &[
     100, 101, 200, 201, 202, 204, 206, 301, 302, 303, 304, 307, 308, 400, 401, 403, 404, 405, 406,
-    408, 409, 410, 411, 412, 413, 414, 415, 416, 417, 422, 426, 428, 429, 431, 500, 501, 502, 503,
-    504, 505, 507,
+    408, 409, 410, 411, 412, 413, 414, 415, 416, 417, 422, 426, 428, 429, 431, 499, 500, 501, 502,
+    503, 504, 505, 507,
 ];
 
 /// The method's label: its name if it is one of the standard ones, else
@@ -141,6 +141,9 @@ pub struct Metrics {
     /// (`service::budget`).
     memory_budget: AtomicU64,
     memory_reserved: AtomicU64,
+    /// Requests whose body arrived too slowly, ended at the limit to let a
+    /// new connection in.
+    slow_evicted: AtomicU64,
 }
 
 impl Metrics {
@@ -211,6 +214,12 @@ impl Metrics {
         });
     }
 
+    /// A request whose body arrived below `--min-body-rate` ended (408) to
+    /// make room for a new connection.
+    pub fn slow_body_evicted(&self) {
+        self.slow_evicted.fetch_add(1, Ordering::Relaxed);
+    }
+
     /// The text exposition; `jobs` are (kind, state, count) from the store.
     pub fn render(&self, jobs: &[(String, String, i64)]) -> String {
         let mut out = String::new();
@@ -255,6 +264,13 @@ impl Metrics {
                 "gauge",
                 "MiB of the memory budget held by running jobs.",
                 &self.memory_reserved,
+            ),
+            (
+                "ptv_http_slow_bodies_evicted_total",
+                "counter",
+                "Requests whose body arrived below --min-body-rate, ended with 408 at the \
+                 limit to let a new connection in.",
+                &self.slow_evicted,
             ),
         ];
         for (name, kind, help, value) in connections {

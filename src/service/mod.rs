@@ -68,6 +68,22 @@ pub enum ServiceError {
     /// The database could not be opened or migrated.
     #[error("the database: {0}")]
     Database(#[source] sqlx::Error),
+    /// The database server could not be reached within
+    /// `--database-wait-secs`.
+    #[error(
+        "cannot reach the database server at {server} ({url}) after {waited_secs} s of trying \
+         (--database-wait-secs)"
+    )]
+    DatabaseUnreachable {
+        /// `HOST:PORT`.
+        server: String,
+        /// The URL, its password hidden.
+        url: String,
+        /// How long it was tried.
+        waited_secs: u64,
+        /// The last attempt's error.
+        source: sqlx::Error,
+    },
     /// The image store could not be opened (a data directory that cannot
     /// be written, an object store that cannot be reached or refuses the
     /// credentials).

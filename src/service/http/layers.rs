@@ -16,14 +16,20 @@
 //!    `/metrics` (what no layer does).
 //! 6. `RequestBodyTimeoutLayer`: a body that pauses longer than
 //!    `--body-timeout-secs` between two pieces ends in an error.
-//! 7. `watch_body`: records whether the body arrived whole or stalled;
-//!    a stalled one is answered 408, and a refused request whose body is
-//!    partly unread gets `Connection: close` (what no layer does).
+//! 7. `watch_body`: records whether the body arrived whole, stalled,
+//!    arrived below `--min-body-rate` (the connection's body ends it,
+//!    [`crate::service::connections::BodyTooSlow`]) or was cut off by the
+//!    client; a stalled or too slow one is answered 408, one the client
+//!    cut off 499 (counted so in `/metrics`, logged as a warning: the
+//!    client's doing, not a server error), and a refused request whose
+//!    body is partly unread gets `Connection: close` (what no layer does).
 //! 8. `CatchPanicLayer`: a panicking handler is logged and answered with a
 //!    problem+json 500.
 //! 9. `HeadLimits`: a request target over 8 KiB is a 414, header fields
 //!    over 64 KiB or 100 a 431, both problem+json naming the limit (hyper
-//!    would answer larger heads itself, with an empty body).
+//!    would answer larger heads itself, with an empty body); a head that
+//!    declared both `Content-Length` and `Transfer-Encoding` (noted by the
+//!    connection, as hyper drops the length) a 400.
 //! 10. [`bearer_token`], a `ValidateRequestHeaderLayer`: with
 //!     `--api-token`, any path under `/api` without the token is a 401,
 //!     before the route or method is looked at (an unknown route or method
@@ -52,7 +58,7 @@
 use std::any::Any;
 use std::pin::Pin;
 use std::sync::atomic::{AtomicU8, Ordering};
-use std::sync::Arc;
+use std::sync::{Arc, OnceLock};
 use std::task::{Context, Poll};
 
 use axum::body::{Body, Bytes, HttpBody};
@@ -79,6 +85,7 @@ use tracing::{Level, Span};
 
 use super::problem::ApiError;
 use crate::service::config::ServeArgs;
+use crate::service::connections::{BodyTooSlow, ConflictingFraming};
 use crate::service::metrics::Metrics;
 
 /// The routes whose handlers do CPU work before answering.
@@ -155,6 +162,17 @@ impl<B> ValidateRequest<B> for HeadLimits {
     type ResponseBody = Body;
 
     fn validate(&mut self, request: &mut Request<B>) -> Result<(), Response> {
+        if request.extensions().get::<ConflictingFraming>().is_some() {
+            let mut response = ApiError::bad_request(
+                "the request declares both Content-Length and Transfer-Encoding, which frame \
+                 its body differently (RFC 9112 section 6.1); send one of them",
+            )
+            .into_response();
+            response
+                .headers_mut()
+                .insert(header::CONNECTION, HeaderValue::from_static("close"));
+            return Err(response);
+        }
         let uri = request.uri();
         let target = uri.path_and_query().map_or(0, |p| p.as_str().len())
             + uri.authority().map_or(0, |a| a.as_str().len());
@@ -297,30 +315,56 @@ async fn count_request(
 }
 
 /// How far a request's body got, shared by the body and the layers that
-/// answer for it: still arriving, complete, or stalled past the body
-/// timeout.
+/// answer for it: still arriving, complete, stalled past the body
+/// timeout, too slow (with the reason), or cut off by the client.
 #[derive(Clone, Debug)]
-struct BodyProgress(Arc<AtomicU8>);
+struct BodyProgress(Arc<(AtomicU8, OnceLock<String>)>);
 
 impl BodyProgress {
     const ARRIVING: u8 = 0;
     const COMPLETE: u8 = 1;
     const STALLED: u8 = 2;
+    const TOO_SLOW: u8 = 3;
+    const ABORTED: u8 = 4;
 
     fn new() -> BodyProgress {
-        BodyProgress(Arc::new(AtomicU8::new(BodyProgress::ARRIVING)))
+        BodyProgress(Arc::new((
+            AtomicU8::new(BodyProgress::ARRIVING),
+            OnceLock::new(),
+        )))
     }
 
     fn set(&self, state: u8) {
-        self.0.store(state, Ordering::Relaxed);
+        self.0 .0.store(state, Ordering::Relaxed);
+    }
+
+    fn state(&self) -> u8 {
+        self.0 .0.load(Ordering::Relaxed)
     }
 
     fn complete(&self) -> bool {
-        self.0.load(Ordering::Relaxed) == BodyProgress::COMPLETE
+        self.state() == BodyProgress::COMPLETE
     }
 
-    fn stalled(&self) -> bool {
-        self.0.load(Ordering::Relaxed) == BodyProgress::STALLED
+    /// Whether it stalled, was too slow or was cut off.
+    fn failed(&self) -> bool {
+        matches!(
+            self.state(),
+            BodyProgress::STALLED | BodyProgress::TOO_SLOW | BodyProgress::ABORTED
+        )
+    }
+
+    /// Records why the body was too slow.
+    fn too_slow(&self, reason: String) {
+        let _ = self.0 .1.set(reason);
+        self.set(BodyProgress::TOO_SLOW);
+    }
+
+    /// Why the body was too slow, if it was.
+    fn too_slow_reason(&self) -> Option<&str> {
+        (self.state() == BodyProgress::TOO_SLOW)
+            .then(|| self.0 .1.get().map(String::as_str))
+            .flatten()
     }
 }
 
@@ -344,6 +388,8 @@ impl HttpBody for Watched {
     ) -> Poll<Option<Result<Frame<Bytes>, axum::Error>>> {
         let polled = Pin::new(&mut self.body).poll_frame(cx);
         match &polled {
+            // A body that failed stays failed (a reader may poll again).
+            _ if self.progress.failed() => {}
             Poll::Ready(None) => self.progress.set(BodyProgress::COMPLETE),
             Poll::Ready(Some(Ok(frame))) => {
                 let length = frame.data_ref().map_or(0, |data| data.len() as u64);
@@ -354,8 +400,14 @@ impl HttpBody for Watched {
                     }
                 }
             }
-            Poll::Ready(Some(Err(error))) if is_body_timeout(error) => {
-                self.progress.set(BodyProgress::STALLED);
+            Poll::Ready(Some(Err(error))) => {
+                if is_body_timeout(error) {
+                    self.progress.set(BodyProgress::STALLED);
+                } else if let Some(slow) = find_cause::<BodyTooSlow>(error) {
+                    self.progress.too_slow(slow.to_string());
+                } else if is_client_abort(error) {
+                    self.progress.set(BodyProgress::ABORTED);
+                }
             }
             _ => {}
         }
@@ -371,17 +423,42 @@ impl HttpBody for Watched {
     }
 }
 
-/// Whether `error` is the body timeout's.
-fn is_body_timeout(error: &axum::Error) -> bool {
+/// The first of `error`'s causes that is an `E`.
+fn find_cause<E: std::error::Error + 'static>(error: &axum::Error) -> Option<&E> {
     std::iter::successors(std::error::Error::source(error), |e| e.source())
-        .any(|e| e.is::<TimeoutError>())
+        .find_map(|e| e.downcast_ref::<E>())
 }
 
-/// Watches the body: a body that stalled past `--body-timeout-secs` is
-/// answered 408 whatever the handler made of the error, and a refused
-/// request whose body was not read to its end gets `Connection: close`, so
-/// the client does not send another request on a connection that cannot
-/// carry it.
+/// Whether `error` is the body timeout's.
+fn is_body_timeout(error: &axum::Error) -> bool {
+    find_cause::<TimeoutError>(error).is_some()
+}
+
+/// Whether `error` says that the client closed or reset the connection
+/// before its body was complete (hyper's "incomplete message" or an I/O
+/// error of that kind), rather than sending a malformed body.
+fn is_client_abort(error: &axum::Error) -> bool {
+    use std::io::ErrorKind::{BrokenPipe, ConnectionAborted, ConnectionReset, UnexpectedEof};
+    find_cause::<hyper::Error>(error).is_some_and(hyper::Error::is_incomplete_message)
+        || find_cause::<std::io::Error>(error).is_some_and(|io| {
+            matches!(
+                io.kind(),
+                UnexpectedEof | ConnectionReset | ConnectionAborted | BrokenPipe
+            )
+        })
+}
+
+/// Status 499 (nginx's "client closed request"): a request whose client
+/// went away before its body was complete. No one reads the answer; the
+/// status keeps it apart from the server's errors in `/metrics`.
+pub const CLIENT_CLOSED_REQUEST: u16 = 499;
+
+/// Watches the body: a body that stalled past `--body-timeout-secs` or
+/// arrived below `--min-body-rate` is answered 408 whatever the handler
+/// made of the error, one the client cut off 499 (a warning in the log,
+/// not a server error); and a refused request whose body was not read to
+/// its end gets `Connection: close`, so the client does not send another
+/// request on a connection that cannot carry it.
 async fn watch_body(State(body_secs): State<u64>, request: Request, next: Next) -> Response {
     let progress = BodyProgress::new();
     let (mut parts, body) = request.into_parts();
@@ -401,15 +478,44 @@ async fn watch_body(State(body_secs): State<u64>, request: Request, next: Next) 
     });
     let mut response = next.run(Request::from_parts(parts, body)).await;
     let refused = response.status().is_client_error() || response.status().is_server_error();
-    if refused && progress.stalled() {
-        response = ApiError::new(
-            StatusCode::REQUEST_TIMEOUT,
-            format!(
-                "the body stopped arriving for {body_secs} s (--body-timeout-secs); \
-                 nothing was stored, send the request again"
-            ),
-        )
-        .into_response();
+    if refused {
+        match progress.state() {
+            BodyProgress::STALLED => {
+                response = ApiError::new(
+                    StatusCode::REQUEST_TIMEOUT,
+                    format!(
+                        "the body stopped arriving for {body_secs} s (--body-timeout-secs); \
+                         nothing was stored, send the request again"
+                    ),
+                )
+                .into_response();
+            }
+            BodyProgress::TOO_SLOW => {
+                let reason = progress
+                    .too_slow_reason()
+                    .unwrap_or("the body arrived too slowly");
+                response = ApiError::new(
+                    StatusCode::REQUEST_TIMEOUT,
+                    format!("{reason}; nothing was stored, send the request again"),
+                )
+                .into_response();
+            }
+            BodyProgress::ABORTED => {
+                tracing::warn!(
+                    "the client closed the connection before its request body was complete; \
+                     nothing was stored"
+                );
+                let status =
+                    StatusCode::from_u16(CLIENT_CLOSED_REQUEST).unwrap_or(StatusCode::BAD_REQUEST);
+                response = ApiError::new(
+                    status,
+                    "the connection closed before the request body was complete; nothing was \
+                     stored",
+                )
+                .into_response();
+            }
+            _ => {}
+        }
     }
     if refused && !progress.complete() {
         response

@@ -101,6 +101,14 @@ impl PostgresUrl {
     pub fn as_str(&self) -> &str {
         &self.0
     }
+
+    /// The server it names, `HOST:PORT` (as libpq reads the URL: a host
+    /// or port left out is the environment's or the default), for
+    /// messages; `None` if the URL does not parse.
+    pub fn server(&self) -> Option<String> {
+        let options = sqlx::postgres::PgConnectOptions::from_str(&self.0).ok()?;
+        Some(format!("{}:{}", options.get_host(), options.get_port()))
+    }
 }
 
 impl FromStr for PostgresUrl {

@@ -501,6 +501,27 @@ impl Store {
         })
     }
 
+    /// Opens one connection to the PostgreSQL server at `url` and closes it,
+    /// giving up after `within`: the error names the cause (connection
+    /// refused, no such host, a password refused), where the pool's only
+    /// says that it timed out. An attempt without an answer in time is an
+    /// I/O error of kind `TimedOut`.
+    pub async fn reach_postgres(url: &PostgresUrl, within: Duration) -> Result<(), sqlx::Error> {
+        use sqlx::Connection as _;
+        let options = sqlx::postgres::PgConnectOptions::from_str(url.as_str())?;
+        match tokio::time::timeout(within, sqlx::PgConnection::connect_with(&options)).await {
+            Ok(Ok(connection)) => {
+                let _ = connection.close().await;
+                Ok(())
+            }
+            Ok(Err(error)) => Err(error),
+            Err(_) => Err(sqlx::Error::Io(std::io::Error::new(
+                std::io::ErrorKind::TimedOut,
+                format!("no answer within {:.0} s", within.as_secs_f64()),
+            ))),
+        }
+    }
+
     /// Connects to the PostgreSQL database at `url` and brings its schema
     /// up to date. sqlx's migrator takes PostgreSQL's advisory lock for
     /// the run, so processes started together migrate one at a time. One
