@@ -184,7 +184,10 @@ pub(super) fn run(
             args.detection
                 .warn_if_threshold_unsuited(&image, path, stderr)?;
             let found: Vec<Point2<f64>> = if preprocessing[k].is_empty() {
-                calibrate::detect_marks(&image, &parameters)
+                calibrate::detect_marks(&image, &parameters).map_err(|error| CliError::Flag {
+                    flag: "--image",
+                    reason: format!("{}: {error}", path.display()),
+                })?
             } else {
                 let files = super::detect::PreprocessingFiles {
                     background: args.backgrounds.get(k).map(PathBuf::as_path),

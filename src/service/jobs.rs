@@ -1104,6 +1104,14 @@ pub enum SolveError {
     /// The marks' detection parameters are invalid.
     #[error("options.detection")]
     Detection(#[from] InvalidDetectionParameters),
+    /// A camera's image gave more marks than its limit.
+    #[error("the image of camera {camera}: {error}")]
+    Marks {
+        /// The camera, from 0.
+        camera: usize,
+        /// Why.
+        error: crate::photogrammetry::DetectError,
+    },
     /// The calibration itself failed.
     #[error(transparent)]
     Calibration(#[from] CalibrationError),
@@ -1163,10 +1171,14 @@ pub fn solve(
         calibrate::calibrate(&setup, &control_points, &observations, &calibration_options)
     } else {
         let parameters = options.mark_detection()?;
-        let marks: Vec<_> = images
+        let marks = images
             .iter()
-            .map(|image| calibrate::detect_marks(image, &parameters))
-            .collect();
+            .enumerate()
+            .map(|(camera, image)| {
+                calibrate::detect_marks(image, &parameters)
+                    .map_err(|error| SolveError::Marks { camera, error })
+            })
+            .collect::<Result<Vec<_>, _>>()?;
         if references.is_empty() {
             references = vec![Vec::new(); setup.len()];
         }

@@ -16,7 +16,10 @@ use super::{
     MarkObservation, ParameterSet, RigCalibration,
 };
 use crate::photogrammetry::camera::{Camera, CameraParameters};
-use crate::photogrammetry::detect::{detect, DetectionParameters, InvalidDetectionParameters};
+use crate::photogrammetry::correspond::max_targets_of;
+use crate::photogrammetry::detect::{
+    detect_within, DetectError, DetectionParameters, InvalidDetectionParameters, Preprocessing,
+};
 use crate::photogrammetry::image::GreyImage;
 
 /// The detection parameters for calibration marks: as given, but a mark's
@@ -33,12 +36,17 @@ pub fn mark_detection_parameters(
 }
 
 /// The centres (px) of the marks in a calibration image, detected with
-/// parameters from [`mark_detection_parameters`].
-pub fn detect_marks(image: &GreyImage, parameters: &DetectionParameters) -> Vec<Point2<f64>> {
-    detect(image, parameters)
-        .iter()
-        .map(|t| Point2::new(t.x, t.y))
-        .collect()
+/// parameters from [`mark_detection_parameters`]. Detection stops once
+/// the image has more marks than [`max_targets_of`] its size (one per 2x2
+/// pixels, at most 2^20; a real target has hundreds to thousands), so a
+/// hostile image with permissive settings costs no more than a frame.
+pub fn detect_marks(
+    image: &GreyImage,
+    parameters: &DetectionParameters,
+) -> Result<Vec<Point2<f64>>, DetectError> {
+    let limit = max_targets_of(image.width(), image.height());
+    let targets = detect_within(image, &Preprocessing::default(), parameters, limit)?;
+    Ok(targets.iter().map(|t| Point2::new(t.x, t.y)).collect())
 }
 
 /// Assigns `marks` (detected image positions, px) to control points by

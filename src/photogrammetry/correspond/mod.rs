@@ -304,8 +304,14 @@ pub const MAX_TARGETS_PER_CAMERA: usize = 1 << 20;
 /// targets is not one frame of particles of this sensor. (Real frames are
 /// far sparser: 0.005..0.05 particles per pixel.)
 pub fn max_targets(sensor: &Sensor) -> usize {
+    max_targets_of(sensor.width, sensor.height)
+}
+
+/// [`max_targets`] of an image of `width` x `height` pixels (a
+/// calibration image's marks are bounded the same way).
+pub fn max_targets_of(width: u32, height: u32) -> usize {
     let half = |side: u32| side.div_ceil(2) as usize;
-    (half(sensor.width) * half(sensor.height)).min(MAX_TARGETS_PER_CAMERA)
+    (half(width) * half(height)).min(MAX_TARGETS_PER_CAMERA)
 }
 
 /// A particle found in the frame.

@@ -494,3 +494,50 @@ async fn undecodable_images_are_415_naming_the_camera_and_the_reason() {
     assert_eq!(status, 422, "{body}");
     app.stop().await;
 }
+
+/// Defect 4 through `POST /calibrations/solve`: mark detection on a
+/// calibration image stops at the image's target limit too (one per 2x2
+/// pixels; a real target has hundreds of marks). A 1-pixel checkerboard
+/// for every camera of the 1280x1024 rig, with threshold 1, min_pixels 1
+/// and min_snr 0, would be 655,360 marks per image; the job fails naming
+/// the camera and the limit (327,680). Its peak stays within the idle
+/// peak plus the budget's own bound for detecting one such image
+/// (`service::budget::DETECT_BYTES_PER_PIXEL`, 48 bytes a pixel: 60 MiB)
+/// and the four decoded 16-bit images the job holds (2.5 MiB each).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_hostile_calibration_image_stops_mark_detection_at_the_limit() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = ServiceProcess::start(dir.path(), 1);
+    let (client, address) = (reqwest::Client::new(), server.address.clone());
+    let rig = rig();
+    let sensor = rig.cameras[0].sensor().clone();
+    let input = rig.solve_input(60, 0.05, 31);
+    let idle = server.peak_memory_mib();
+    let image = checkerboard_png(sensor.width, sensor.height);
+    let mut form = Form::new()
+        .text("setup", input.setup.clone())
+        .text("control", input.control.clone())
+        .text(
+            "options",
+            json!({"detection": {"threshold": 1, "min_pixels": 1, "min_snr": 0}}).to_string(),
+        );
+    for _ in &rig.cameras {
+        form = form.part("image", Part::bytes(image.clone()).file_name("cal.png"));
+    }
+    let (status, body) = post(&client, &address, "/calibrations/solve", form).await;
+    assert_eq!(status, 202, "{body}");
+    let job = finished_job(&client, &address, body["job_id"].as_i64().unwrap()).await;
+    assert_eq!(job["state"], "failed", "{job}");
+    let error = job["error"].as_str().unwrap();
+    assert!(
+        error.contains("the image of camera 0: detection found more than 327680 targets"),
+        "{error}"
+    );
+    let pixels = f64::from(sensor.width) * f64::from(sensor.height);
+    let bound = idle + (48.0 * pixels + 4.0 * 2.0 * pixels) / f64::from(1 << 20);
+    let peak = server.peak_memory_mib();
+    assert!(
+        peak <= bound,
+        "peak {peak:.0} MiB over {bound:.0} (idle {idle:.0})"
+    );
+}
