@@ -273,6 +273,10 @@ impl Drop for ComputingGuard<'_> {
     }
 }
 
+/// A frame's number, raw layout (if raw) and (camera, SHA-256) of its
+/// image files.
+type FrameFiles = (FrameNumber, Option<RawLayout>, Vec<(i64, String)>);
+
 /// What computing a sequence's background needs at most (see
 /// [`ensure_computed_background`], [`super::budget::background_bytes`]):
 /// its largest camera's kept frames at the depth of the first frame's
@@ -284,7 +288,7 @@ async fn computed_background_need(
     computed: &ComputedBackground,
     sensors: &[(u32, u32)],
     splitter: Option<Splitter>,
-    inputs: &[(FrameNumber, Option<RawLayout>, Vec<(i64, String)>)],
+    inputs: &[FrameFiles],
 ) -> Result<MemoryNeed, JobError> {
     let mut sample_bytes = 1;
     let mut compressed = 0u64;
