@@ -125,7 +125,7 @@ impl Browser {
         let mut child = Command::new("sh")
             .arg("-c")
             .arg(r#"exec "$0" "$@" 3<&0 4>&1 </dev/null >/dev/null"#)
-            .arg(&binary)
+            .arg(binary)
             .args([
                 "--headless",
                 "--no-sandbox",
