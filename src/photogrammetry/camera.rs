@@ -556,7 +556,7 @@ impl CameraParameters {
             ));
         }
         let decentering = 3.0 * (d.p1.abs() + d.p2.abs()) * half;
-        if !(decentering <= 1.0) {
+        if decentering.is_nan() || decentering > 1.0 {
             return Err(InvalidCamera::new(
                 "decentering",
                 format!(
@@ -1189,7 +1189,8 @@ mod tests {
         };
         // The probe's values, each refused naming the field, the value and
         // the range.
-        let cases: Vec<(&dyn Fn(&mut CameraParameters), &str, &str)> = vec![
+        type Change<'a> = &'a dyn Fn(&mut CameraParameters);
+        let cases: Vec<(Change, &str, &str)> = vec![
             (
                 &|p| p.interior.c = 1e308,
                 "principal_distance",

@@ -110,6 +110,7 @@ async fn track_all(
 async fn the_absurd_velocity_is_refused_and_the_largest_legal_one_tracks_in_bounded_time() {
     let dir = tempfile::tempdir().unwrap();
     let server = ServiceProcess::start(dir.path(), 1);
+    let idle = server.peak_memory_mib();
     let api = format!("{}/api/v1", server.address);
     let client = reqwest::Client::new();
     let rig = rig();
@@ -217,6 +218,14 @@ async fn the_absurd_velocity_is_refused_and_the_largest_legal_one_tracks_in_boun
         largest < sane * 3 + Duration::from_secs(5),
         "the largest legal limit took {largest:?}, a sane one {sane:?}"
     );
+    // Memory: the tracker holds its look-ahead and the live trajectories'
+    // windows (report_delay, ~20 frames, of 5,000 particles at ~200 bytes:
+    // 20 MB), a frame's links (32 per particle, 24 bytes each: 4 MB);
+    // matching 4 x 5,000 targets ~250 bytes each (5 MB). 256 MiB over the
+    // idle server is ten times that.
+    let peak = server.peak_memory_mib();
+    println!("server peak {peak:.0} MiB, idle {idle:.0} MiB");
+    assert!(peak < idle + 256.0, "peak {peak} MiB, idle {idle} MiB");
 }
 
 /// The probe's absurd calibrations, and others out of the ranges real
