@@ -64,11 +64,13 @@ pub struct TrackArgs {
     #[command(flatten)]
     pub matching: MatchingFlags,
     /// The largest displacement of a particle between frames (mm per
-    /// frame).
+    /// frame): at most the diagonal of the observation volume (the
+    /// matcher's with --targets, --volume where given) and 10^6 mm.
     #[arg(long, value_name = "MM_PER_FRAME")]
     pub max_velocity: f64,
-    /// The largest change of velocity between frames (mm per frame²)
-    /// [default: half of --max-velocity].
+    /// The largest change of velocity between frames (mm per frame²),
+    /// at most twice the volume's diagonal [default: half of
+    /// --max-velocity].
     #[arg(long, value_name = "MM_PER_FRAME2")]
     pub max_acceleration: Option<f64>,
     /// Frames a trajectory may miss and continue (0 to 2).
@@ -208,10 +210,17 @@ pub(super) fn run(
     }
     let mut tracker = Tracker::new(parameters.clone())?;
     let source = match (&args.particles, &args.calibration) {
-        (Some(pattern), _) => Source::Particles(
-            FramePattern::parse(pattern, WithoutNumber::Refuse)
-                .map_err(|e| flag("--particles", e))?,
-        ),
+        (Some(pattern), _) => {
+            // The limits against the volume, where one is given (as the
+            // service checks them against its sequence's).
+            if let Some(volume) = args.matching.parameters()?.volume {
+                parameters.check_volume(&volume)?;
+            }
+            Source::Particles(
+                FramePattern::parse(pattern, WithoutNumber::Refuse)
+                    .map_err(|e| flag("--particles", e))?,
+            )
+        }
         (None, Some(calibration)) => {
             let cameras = read_calibration(calibration)?;
             check_camera_count(
@@ -225,8 +234,11 @@ pub(super) fn run(
                     .map_err(|e| flag("--tolerance", e.to_string()))?;
                 tracker = Tracker::with_recovery(parameters.clone(), recovery)?;
             }
+            let matcher = Matcher::new(&cameras, &args.matching.parameters()?)?;
+            // The limits against the volume the particles are found in.
+            parameters.check_volume(matcher.volume())?;
             Source::Targets {
-                matcher: Matcher::new(&cameras, &args.matching.parameters()?)?,
+                matcher,
                 patterns: args
                     .targets
                     .iter()

@@ -457,7 +457,12 @@ fn camera_parameters(file: CalibrationFile, source: &str) -> Result<Setup, Forma
 }
 
 /// Validates a list of camera parameters as a calibration:
-/// [`MIN_CAMERAS`]..=[`MAX_CAMERAS`] cameras, each one valid.
+/// [`MIN_CAMERAS`]..=[`MAX_CAMERAS`] cameras, each one valid, its values
+/// within the ranges real cameras have
+/// ([`CameraParameters::check_physical`]; the error names the camera, the
+/// field, the value and the range). Every calibration read from a file or
+/// a request comes through here (the JSON, the OpenPTV import, an
+/// experiment's), for the service and the command line alike.
 pub fn from_parameters(
     parameters: Vec<CameraParameters>,
     source: &str,
@@ -483,9 +488,20 @@ pub fn from_parameters(
         .into_iter()
         .enumerate()
         .map(|(i, p)| {
-            Camera::new(p).map_err(|e| {
-                FormatError::invalid(source, format!("cameras[{i}].{}", e.field), e.reason)
-            })
+            // The camera's name in the message, where it is a name.
+            let label = match check_camera_name(&p.name) {
+                Ok(()) => format!("camera `{}`: ", p.name),
+                Err(_) => String::new(),
+            };
+            Camera::new(p)
+                .and_then(|camera| camera.parameters().check_physical().map(|()| camera))
+                .map_err(|e| {
+                    FormatError::invalid(
+                        source,
+                        format!("cameras[{i}].{}", e.field),
+                        format!("{label}{}", e.reason),
+                    )
+                })
         })
         .collect()
 }

@@ -364,6 +364,257 @@ pub struct CameraParameters {
     pub media: Media,
 }
 
+/// The principal distances a camera may have (mm): 0.1 to 10,000. The
+/// shortest lenses made (fisheyes and endoscope optics for small sensors)
+/// are about 1 mm, the longest (super-telephoto and catadioptric lenses)
+/// about 5,000 mm; a decade of margin below and a factor of 2 above. A
+/// value outside is a unit mistake (metres or pixels for mm) or garbage.
+pub const PRINCIPAL_DISTANCE_RANGE: (f64, f64) = (0.1, 10_000.0);
+
+/// The pixel pitches a sensor may have (mm): 0.1 µm to 1 mm. The smallest
+/// pixels made are about 0.6 µm (phone sensors), the largest about 0.1 mm
+/// (X-ray and thermal detectors); scientific cameras have 3..25 µm.
+pub const PIXEL_SIZE_RANGE: (f64, f64) = (1e-4, 1.0);
+
+/// The largest magnitude of an angle (rad): 100 turns. Rotations repeat
+/// every turn, and solvers wander by whole turns (OpenPTV's test_cavity
+/// has omega -56.5 rad, 9 turns), so angles are not normalised; beyond
+/// 100 turns an angle is garbage (at 10^16 rad a double cannot tell one
+/// turn from the next).
+pub const MAX_ANGLE: f64 = 200.0 * std::f64::consts::PI;
+
+/// The largest magnitude of a coordinate of a camera's position or glass
+/// vector (mm): 10^9, 1,000 km. No rig is that large (even coordinates
+/// of a geodetic frame in mm fit), and a double still resolves 10^-7 mm
+/// there.
+pub const MAX_COORDINATE: f64 = 1e9;
+
+/// The refractive indices a medium may have: 1 (vacuum) to 5. Air is
+/// 1.0003, water 1.33, glasses 1.45..2.0, the densest optical crystals
+/// 2.4 (diamond) to 4.0 (germanium, in the infrared).
+pub const REFRACTIVE_INDEX_RANGE: (f64, f64) = (1.0, 5.0);
+
+/// The thickest wall (mm): 10 m. Tank walls are millimetres to a few
+/// centimetres, the thickest windows (large aquariums) about 0.6 m.
+pub const MAX_WALL_THICKNESS: f64 = 10_000.0;
+
+/// The scales of the x image coordinate (`scx`) a camera may have: 0.5 to
+/// 2. Real sensors' scale differs from 1 by under 1%.
+pub const AFFINE_SCALE_RANGE: (f64, f64) = (0.5, 2.0);
+
+/// The smallest and largest values of `a0 + a1 u + a2 u² + a3 u³` over `0
+/// <= u <= end`: at the ends and where the derivative vanishes.
+fn cubic_range(a: [f64; 4], end: f64) -> (f64, f64) {
+    let value = |u: f64| a[0] + u * (a[1] + u * (a[2] + u * a[3]));
+    let mut points = vec![0.0, end];
+    // The derivative a1 + 2 a2 u + 3 a3 u².
+    let (qa, qb, qc) = (3.0 * a[3], 2.0 * a[2], a[1]);
+    if qa == 0.0 {
+        if qb != 0.0 {
+            points.push(-qc / qb);
+        }
+    } else {
+        let discriminant = qb * qb - 4.0 * qa * qc;
+        if discriminant >= 0.0 {
+            let root = discriminant.sqrt();
+            points.push((-qb + root) / (2.0 * qa));
+            points.push((-qb - root) / (2.0 * qa));
+        }
+    }
+    points
+        .into_iter()
+        .filter(|u| u.is_finite() && (0.0..=end).contains(u))
+        .map(value)
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), v| {
+            (lo.min(v), hi.max(v))
+        })
+}
+
+impl CameraParameters {
+    /// Checks the values against the ranges real cameras have: the
+    /// principal distance ([`PRINCIPAL_DISTANCE_RANGE`]), the pixel pitch
+    /// ([`PIXEL_SIZE_RANGE`]), the principal point (within one sensor
+    /// diagonal of the sensor's centre), the angles ([`MAX_ANGLE`]), the
+    /// position and glass vector ([`MAX_COORDINATE`]), the refractive
+    /// indices ([`REFRACTIVE_INDEX_RANGE`]), the walls
+    /// ([`MAX_WALL_THICKNESS`]), the affine scale
+    /// ([`AFFINE_SCALE_RANGE`]) and the distortion over the sensor (to its
+    /// half-diagonal `R` from the centre: the radial model monotonic,
+    /// `1 + 3 k1 r² + 5 k2 r⁴ + 7 k3 r⁶ > 0`, and moving no point by more
+    /// than its distance from the centre, `|k1 r² + k2 r⁴ + k3 r⁶| <= 1`;
+    /// the decentering terms likewise, `3 (|p1| + |p2|) R <= 1`. Real
+    /// lenses stay far inside: 1..10% at the corner).
+    ///
+    /// [`Camera::new`] checks only what the model needs to compute
+    /// (finite values, positive scales), as the solvers try values on the
+    /// way; this is for the edges that read calibrations
+    /// (`formats::calibration`, the OpenPTV import). The error names the
+    /// field, the value and the range.
+    pub fn check_physical(&self) -> Result<(), InvalidCamera> {
+        let outside = |field: &str, value: f64, range: String| {
+            Err(InvalidCamera::new(
+                field,
+                format!("{} is outside the range {range}", readable(value)),
+            ))
+        };
+        let within = |field: &str, value: f64, (low, high): (f64, f64), unit: &str, why: &str| {
+            if value.is_finite() && (low..=high).contains(&value) {
+                Ok(())
+            } else {
+                outside(field, value, format!("{low}..{high}{unit} {why}"))
+            }
+        };
+        let s = &self.sensor;
+        for (field, value) in [
+            ("pixel_size[0]", s.pixel_size_x),
+            ("pixel_size[1]", s.pixel_size_y),
+        ] {
+            within(
+                field,
+                value,
+                PIXEL_SIZE_RANGE,
+                " mm",
+                "(0.1 µm to 1 mm: real sensors have 0.6 µm to 0.1 mm pixels; give the pitch in mm)",
+            )?;
+        }
+        within(
+            "principal_distance",
+            self.interior.c,
+            PRINCIPAL_DISTANCE_RANGE,
+            " mm",
+            "(real lenses have about 1 to 5,000 mm; give c in mm)",
+        )?;
+        let diagonal =
+            (f64::from(s.width) * s.pixel_size_x).hypot(f64::from(s.height) * s.pixel_size_y);
+        for (field, value) in [
+            ("principal_point[0]", self.interior.xh),
+            ("principal_point[1]", self.interior.yh),
+        ] {
+            within(
+                field,
+                value,
+                (-diagonal, diagonal),
+                " mm",
+                "(within one sensor diagonal of the sensor's centre)",
+            )?;
+        }
+        let e = &self.exterior;
+        for (field, value) in [
+            ("angles[0]", e.omega),
+            ("angles[1]", e.phi),
+            ("angles[2]", e.kappa),
+        ] {
+            within(
+                field,
+                value,
+                (-MAX_ANGLE, MAX_ANGLE),
+                " rad",
+                "(100 turns either way)",
+            )?;
+        }
+        for (i, value) in e.position.iter().enumerate() {
+            within(
+                &format!("position[{i}]"),
+                *value,
+                (-MAX_COORDINATE, MAX_COORDINATE),
+                " mm",
+                "(1,000 km either way)",
+            )?;
+        }
+        let d = &self.distortion;
+        within(
+            "affine[0]",
+            d.scx,
+            AFFINE_SCALE_RANGE,
+            "",
+            "(the x scale of a real sensor differs from 1 by under 1%)",
+        )?;
+        let half = diagonal / 2.0;
+        let end = half * half;
+        if [d.k1, d.k2, d.k3].iter().all(|k| k.is_finite()) {
+            let (slope, _) = cubic_range([1.0, 3.0 * d.k1, 5.0 * d.k2, 7.0 * d.k3], end);
+            let (low, high) = cubic_range([0.0, d.k1, d.k2, d.k3], end);
+            if !(slope > 0.0 && low >= -1.0 && high <= 1.0) {
+                return Err(InvalidCamera::new(
+                    "radial",
+                    format!(
+                        "[{}, {}, {}] is outside the range of real lenses: over the sensor (to \
+                         its half-diagonal, {half:.3} mm) the radial distortion must keep its \
+                         order (1 + 3 k1 r² + 5 k2 r⁴ + 7 k3 r⁶ > 0) and move no point by more \
+                         than its distance from the centre (|k1 r² + k2 r⁴ + k3 r⁶| <= 1); real \
+                         lenses move the corners by 1 to 10%",
+                        readable(d.k1),
+                        readable(d.k2),
+                        readable(d.k3)
+                    ),
+                ));
+            }
+        } else {
+            return Err(InvalidCamera::new(
+                "radial",
+                format!("must be finite numbers, got [{}, {}, {}]", d.k1, d.k2, d.k3),
+            ));
+        }
+        let decentering = 3.0 * (d.p1.abs() + d.p2.abs()) * half;
+        if decentering.is_nan() || decentering > 1.0 {
+            return Err(InvalidCamera::new(
+                "decentering",
+                format!(
+                    "[{}, {}] is outside the range of real lenses: over the sensor (to its \
+                     half-diagonal, {half:.3} mm) the decentering distortion must move no point \
+                     by more than its distance from the centre (3 (|p1| + |p2|) R <= 1, got \
+                     {}); real lenses move the corners by under 1%",
+                    readable(d.p1),
+                    readable(d.p2),
+                    readable(decentering)
+                ),
+            ));
+        }
+        let m = &self.media;
+        let index = |field: &str, value: f64| {
+            within(
+                field,
+                value,
+                REFRACTIVE_INDEX_RANGE,
+                "",
+                "(air 1.0003, water 1.33, glass 1.45 to 2, the densest crystals 4)",
+            )
+        };
+        index("media.n_air", m.n_air)?;
+        index("media.n_object", m.n_object)?;
+        for (i, wall) in m.walls.iter().enumerate() {
+            index(&format!("media.walls[{i}].n"), wall.n)?;
+            within(
+                &format!("media.walls[{i}].thickness"),
+                wall.thickness,
+                (0.0, MAX_WALL_THICKNESS),
+                " mm",
+                "(the thickest windows are about 600 mm)",
+            )?;
+        }
+        for (i, value) in m.glass_vector.iter().enumerate() {
+            within(
+                &format!("media.glass_vector[{i}]"),
+                *value,
+                (-MAX_COORDINATE, MAX_COORDINATE),
+                " mm",
+                "(1,000 km either way)",
+            )?;
+        }
+        Ok(())
+    }
+}
+
+/// A number for a message: as it is, or in exponent form when huge or
+/// tiny.
+fn readable(value: f64) -> String {
+    if value == 0.0 || (1e-4..1e7).contains(&value.abs()) || !value.is_finite() {
+        format!("{value}")
+    } else {
+        format!("{value:e}")
+    }
+}
+
 /// A parameter that cannot describe a real camera.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 #[error("{field}: {reason}")]
@@ -921,5 +1172,120 @@ mod tests {
             let numeric = (d.apply(at + step) - d.apply(at - step)) / (2.0 * h);
             assert!((jac.column(k) - numeric).norm() < 1e-8, "column {k}");
         }
+    }
+
+    #[test]
+    fn physical_ranges_refuse_absurd_values_and_keep_real_ones() {
+        use crate::photogrammetry::simulate::RigSpec;
+        let real = RigSpec::convergent(4).build().unwrap();
+        for camera in &real {
+            camera.parameters().check_physical().unwrap();
+        }
+        let base = real[0].parameters().clone();
+        let physical = |f: &dyn Fn(&mut CameraParameters)| {
+            let mut p = base.clone();
+            f(&mut p);
+            p.check_physical()
+        };
+        // The probe's values, each refused naming the field, the value and
+        // the range.
+        type Change<'a> = &'a dyn Fn(&mut CameraParameters);
+        let cases: Vec<(Change, &str, &str)> = vec![
+            (
+                &|p| p.interior.c = 1e308,
+                "principal_distance",
+                "1e308 is outside the range 0.1..10000 mm",
+            ),
+            (
+                &|p| p.interior.c = 0.01,
+                "principal_distance",
+                "0.01 is outside",
+            ),
+            (
+                &|p| p.sensor.pixel_size_x = 1e-300,
+                "pixel_size[0]",
+                "1e-300 is outside the range 0.0001..1 mm",
+            ),
+            (
+                &|p| p.sensor.pixel_size_y = 2.0,
+                "pixel_size[1]",
+                "2 is outside",
+            ),
+            (&|p| p.distortion.k1 = 1e10, "radial", "[1e10, 0, 0]"),
+            (
+                &|p| p.exterior.omega = 1e300,
+                "angles[0]",
+                "1e300 is outside the range",
+            ),
+            (&|p| p.exterior.kappa = -1e300, "angles[2]", "-1e300"),
+            (&|p| p.exterior.position.y = 1e12, "position[1]", "1e12"),
+            (
+                &|p| p.interior.xh = 1e6,
+                "principal_point[0]",
+                "1000000 is outside",
+            ),
+            (&|p| p.distortion.p1 = 1.0, "decentering", "[1, 0]"),
+            (
+                &|p| p.distortion.scx = 10.0,
+                "affine[0]",
+                "10 is outside the range 0.5..2",
+            ),
+            (
+                &|p| p.media.n_object = 1e9,
+                "media.n_object",
+                "1e9 is outside the range 1..5",
+            ),
+            (&|p| p.media.n_air = 0.5, "media.n_air", "0.5 is outside"),
+        ];
+        for (change, field, needle) in cases {
+            let error = physical(change).unwrap_err();
+            assert_eq!(error.field, field, "{error}");
+            assert!(error.reason.contains(needle), "{error}");
+        }
+        // Walls: thickness and index.
+        let mut walled = base.clone();
+        walled.media = Media {
+            n_air: 1.0,
+            walls: vec![super::super::Wall {
+                n: 1.49,
+                thickness: 1e7,
+            }],
+            n_object: 1.33,
+            glass_vector: Vector3::new(0.0, 0.0, 100.0),
+        };
+        let error = walled.check_physical().unwrap_err();
+        assert_eq!(error.field, "media.walls[0].thickness", "{error}");
+        // At the ends of the ranges, accepted.
+        assert!(physical(&|p| p.interior.c = 10_000.0).is_ok());
+        assert!(physical(&|p| p.sensor.pixel_size_x = 1e-4).is_ok());
+        assert!(
+            physical(&|p| p.exterior.omega = -56.54).is_ok(),
+            "test_cavity's omega"
+        );
+        // Radial distortion: monotonic and within 100% over the sensor
+        // (half-diagonal R); real lenses (1..10% at the corner) pass.
+        let r2 = {
+            let s = &base.sensor;
+            let d =
+                (f64::from(s.width) * s.pixel_size_x).hypot(f64::from(s.height) * s.pixel_size_y);
+            d * d / 4.0
+        };
+        assert!(physical(&|p| p.distortion.k1 = 0.1 / r2).is_ok());
+        assert!(physical(&|p| p.distortion.k1 = -0.1 / r2).is_ok());
+        assert!(
+            physical(&|p| p.distortion.k1 = 1.1 / r2).is_err(),
+            "moves the corner by 110%"
+        );
+        // Folds over before the corner: 1 + 3 k1 R² <= 0.
+        let error = physical(&|p| p.distortion.k1 = -0.34 / r2).unwrap_err();
+        assert!(error.reason.contains("keep its order"), "{error}");
+        // A fold inside the sensor whose slope is positive again at the
+        // corner (1 - 3x + 2.1x², x = r²/R², dips to -0.07 at x = 0.71).
+        let error = physical(&|p| {
+            p.distortion.k1 = -1.0 / r2;
+            p.distortion.k2 = 0.42 / (r2 * r2);
+        })
+        .unwrap_err();
+        assert!(error.reason.contains("keep its order"), "{error}");
     }
 }

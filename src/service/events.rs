@@ -97,7 +97,7 @@ pub enum Change {
     /// A frame's upload was stored and its job queued.
     FrameAccepted {
         /// The frame.
-        #[schema(value_type = i64)]
+        #[schema(value_type = i64, minimum = 0, maximum = 4_294_967_295_u64)]
         frame: FrameNumber,
         /// Its job.
         #[schema(value_type = i64)]
@@ -106,7 +106,7 @@ pub enum Change {
     /// A worker took up a frame's job.
     FrameRunning {
         /// The frame.
-        #[schema(value_type = i64)]
+        #[schema(value_type = i64, minimum = 0, maximum = 4_294_967_295_u64)]
         frame: FrameNumber,
         /// Its job.
         #[schema(value_type = i64)]
@@ -115,7 +115,7 @@ pub enum Change {
     /// A frame's particles are stored.
     FrameProcessed {
         /// The frame.
-        #[schema(value_type = i64)]
+        #[schema(value_type = i64, minimum = 0, maximum = 4_294_967_295_u64)]
         frame: FrameNumber,
         /// Its job.
         #[schema(value_type = i64)]
@@ -125,7 +125,7 @@ pub enum Change {
     /// queues it again).
     FrameFailed {
         /// The frame.
-        #[schema(value_type = i64)]
+        #[schema(value_type = i64, minimum = 0, maximum = 4_294_967_295_u64)]
         frame: FrameNumber,
         /// Its job.
         #[schema(value_type = i64)]
@@ -137,7 +137,7 @@ pub enum Change {
     /// disk, or waiting for the sequence's background).
     FrameRequeued {
         /// The frame.
-        #[schema(value_type = i64)]
+        #[schema(value_type = i64, minimum = 0, maximum = 4_294_967_295_u64)]
         frame: FrameNumber,
         /// Its job.
         #[schema(value_type = i64)]
@@ -162,7 +162,7 @@ pub enum Change {
         #[schema(value_type = i64)]
         run_id: TrackingRunId,
         /// The last frame tracked.
-        #[schema(value_type = i64)]
+        #[schema(value_type = i64, minimum = 0, maximum = 4_294_967_295_u64)]
         tracked_through: FrameNumber,
     },
     /// A tracking run ended: finished, or failed.

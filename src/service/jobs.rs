@@ -1191,8 +1191,12 @@ pub fn solve(
         )
     }?;
     let cameras = result.camera_models()?;
+    let model = formats::calibration::to_json(&cameras);
+    // Stored only if it reads back: a solve that ran out of the ranges
+    // real cameras have (a diverged adjustment) fails, naming the value.
+    formats::calibration::from_json(&model, "the solved calibration")?;
     Ok((
-        formats::calibration::to_json(&cameras),
+        model,
         cameras.len() as i64,
         control::report_to_json(&result.report),
     ))

@@ -28,7 +28,7 @@ use utoipa::ToSchema;
 use super::app::AppState;
 use super::codec;
 use super::jobs::{pipeline_of, sequence_parameters, JobError, JobRun, TimeLimit};
-use super::store::{CalibrationId, FrameNumber, RefinedCalibration, SequenceId};
+use super::store::{CalibrationId, FrameNumber, RefinedCalibration, SequenceId, MAX_FRAME_NUMBER};
 use crate::formats;
 
 use crate::photogrammetry::selfcal::{self, Outcome, SelfCalibrationError, SelfCalibrationOptions};
@@ -48,10 +48,10 @@ pub const MAX_SELF_CALIBRATION_FRAMES: i64 = 1000;
 #[serde(deny_unknown_fields)]
 pub struct FrameSpan {
     /// The first frame.
-    #[schema(value_type = i64)]
+    #[schema(value_type = i64, minimum = 0, maximum = 4_294_967_295_u64)]
     pub first: FrameNumber,
     /// The last frame.
-    #[schema(value_type = i64)]
+    #[schema(value_type = i64, minimum = 0, maximum = 4_294_967_295_u64)]
     pub last: FrameNumber,
 }
 
@@ -91,6 +91,14 @@ pub struct SelfCalibrationRequest {
 /// Why a self-calibration or reprocess request cannot be queued.
 #[derive(Debug, thiserror::Error)]
 pub enum SelfCalibrationRequestError {
+    /// An end of the range that is no frame number.
+    #[error("frames.{field}: {frame} is not a frame number, 0 to {MAX_FRAME_NUMBER}")]
+    FrameNumber {
+        /// `first` or `last`.
+        field: &'static str,
+        /// The value given.
+        frame: FrameNumber,
+    },
     /// The range runs backwards.
     #[error("frames: the first frame ({first}) is after the last ({last}); give first <= last")]
     FrameOrder {
@@ -150,6 +158,11 @@ impl SelfCalibrationRequest {
         volume: Option<Volume>,
     ) -> Result<SelfCalibrationOptions, SelfCalibrationRequestError> {
         if let Some(span) = self.frames {
+            for (field, frame) in [("first", span.first), ("last", span.last)] {
+                if !(0..=MAX_FRAME_NUMBER).contains(&frame.0) {
+                    return Err(SelfCalibrationRequestError::FrameNumber { field, frame });
+                }
+            }
             if span.first > span.last {
                 return Err(SelfCalibrationRequestError::FrameOrder {
                     first: span.first,
@@ -311,6 +324,9 @@ pub async fn self_calibrate_job(state: Arc<AppState>, run: JobRun) -> Result<(),
         .collect::<Result<Vec<_>, _>>()
         .map_err(|e| JobError::Failed(format!("the refined calibration is not a rig: {e}")))?;
     let model = formats::calibration::to_json_with_splitter(&refined, splitter);
+    // Stored only if it reads back (within the ranges real cameras have).
+    formats::calibration::from_json_with_splitter(&model, "the refined calibration")
+        .map_err(|e| JobError::Failed(format!("the refined calibration is not a rig: {e}")))?;
     let report = serde_json::to_string(&result.report)
         .map_err(|e| JobError::Failed(format!("the report did not serialise: {e}")))?;
     let (_, reprocess) = state

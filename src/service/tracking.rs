@@ -10,7 +10,11 @@
 //! /sequences/{id}/tracking`): its largest velocity is the experiment's,
 //! and no default would fit both a 1 mm tank and a 1 m wind tunnel.
 //! [`TrackingSettings`] map onto [`TrackingParameters`], checked by the
-//! core's own validation (a 422 naming the field).
+//! core's own validation (a 422 naming the field), and against the
+//! sequence's observation volume by the rule `ptv track` applies
+//! ([`TrackingParameters::check_volume`]: a velocity limit above the
+//! volume's diagonal is refused, since it describes no motion there and
+//! only widens every search).
 //!
 //! **Image-space recovery, as `ptv track`.** A run recovers the particles
 //! the correspondences missed (Willneff 2003; see
@@ -93,7 +97,7 @@ use super::jobs::{error_chain, CpuError};
 use super::parameters::SequenceParameters;
 use super::store::{
     FrameNumber, FrameReadiness, LeaseToken, PointRow, SequenceId, TrackingRunId, TrackingRunRow,
-    TrackingState,
+    TrackingState, MAX_FRAME_NUMBER,
 };
 use crate::formats;
 use crate::photogrammetry::correspond::Particle;
@@ -102,7 +106,7 @@ use crate::photogrammetry::track::{
     FrameTargets, ImageSpaceRecovery, ParticlePosition, RecoveredParticles, TrackError, TrackPoint,
     Tracker, TrackingParameters,
 };
-use crate::photogrammetry::Target;
+use crate::photogrammetry::{Target, Volume};
 
 /// How to track a sequence (all but `max_velocity` optional; the defaults
 /// are `ptv track`'s).
@@ -110,16 +114,21 @@ use crate::photogrammetry::Target;
 #[serde(deny_unknown_fields)]
 pub struct TrackingSettings {
     /// The largest displacement of a particle between two frames (mm per
-    /// frame), above zero.
+    /// frame): above zero, and at most the diagonal of the sequence's
+    /// observation volume (its `matching.volume`, else its calibration's
+    /// default volume): a larger limit describes no motion in the volume
+    /// and only makes every particle a candidate for every trajectory.
     pub max_velocity: f64,
-    /// The largest change of velocity between two frames (mm per frame²)
-    /// [default: half of max_velocity].
+    /// The largest change of velocity between two frames (mm per frame²),
+    /// at most twice the volume's diagonal [default: half of max_velocity].
     #[serde(default)]
     pub max_acceleration: Option<f64>,
     /// Frames a trajectory may miss and continue, 0 to 2 [default: 1].
     #[serde(default)]
     pub max_gap: Option<usize>,
-    /// The fewest points of a trajectory that is stored [default: 3].
+    /// The fewest points of a trajectory that is stored, 1 to 100
+    /// (trajectories are held in memory until they have that many)
+    /// [default: 3].
     #[serde(default)]
     pub min_length: Option<usize>,
     /// Points on each side of a point in its polynomial fit, 1 to 5
@@ -132,7 +141,7 @@ pub struct TrackingSettings {
     /// The sequence's first frame: tracking starts there and waits for it
     /// [default: 0].
     #[serde(default)]
-    #[schema(value_type = Option<i64>)]
+    #[schema(value_type = Option<i64>, minimum = 0, maximum = 4_294_967_295_u64)]
     pub first_frame: Option<FrameNumber>,
     /// Look in each frame's targets for the particles the correspondences
     /// missed, where a trajectory's prediction has none (Willneff's
@@ -152,8 +161,8 @@ pub enum InvalidTrackingSettings {
     /// A parameter out of range (the core's check).
     #[error("tracking: {0}")]
     Parameter(#[from] TrackError),
-    /// A negative first frame.
-    #[error("tracking: first_frame must be a frame number (0 or more), got {0}")]
+    /// A first frame that is no frame number.
+    #[error("tracking: first_frame must be a frame number, 0 to {MAX_FRAME_NUMBER}, got {0}")]
     FirstFrame(FrameNumber),
 }
 
@@ -176,7 +185,7 @@ impl TrackingSettings {
         let p = self.parameters();
         p.validate()?;
         let first_frame = self.first_frame.unwrap_or(FrameNumber(0));
-        if first_frame.0 < 0 {
+        if !(0..=MAX_FRAME_NUMBER).contains(&first_frame.0) {
             return Err(InvalidTrackingSettings::FirstFrame(first_frame));
         }
         Ok(TrackingSettings {
@@ -189,6 +198,15 @@ impl TrackingSettings {
             first_frame: Some(first_frame),
             recovery: Some(self.recovery.unwrap_or(true)),
         })
+    }
+
+    /// Checks the limits against the sequence's observation volume (its
+    /// matcher's: the `matching.volume` given, else the default volume of
+    /// its calibration), by the rule `ptv track` applies too
+    /// ([`TrackingParameters::check_volume`]: `max_velocity` at most the
+    /// volume's diagonal, `max_acceleration` at most twice that).
+    pub fn check_volume(&self, volume: &Volume) -> Result<(), InvalidTrackingSettings> {
+        Ok(self.parameters().check_volume(volume)?)
     }
 
     fn first_frame(&self) -> FrameNumber {

@@ -189,7 +189,7 @@ async fn bad_inputs_get_their_4xx_and_store_nothing() {
             "`frame` part is missing",
         ),
         (image_form(0, &files).text("frame", "1"), 400, "twice"),
-        (Form::new().text("frame", "-3"), 422, "non-negative"),
+        (Form::new().text("frame", "-3"), 400, "non-negative"),
         (
             Form::new()
                 .text("frame", "0")

@@ -118,6 +118,7 @@ use kinematics::{
 pub use recovery::{FrameTargets, ImageSpaceRecovery};
 
 use super::correspond::Particle;
+use super::volume::Volume;
 
 /// How to track.
 #[derive(Clone, Debug, PartialEq)]
@@ -170,7 +171,11 @@ impl TrackingParameters {
             + 4
     }
 
-    /// Checks every field; the error names it and its range.
+    /// Checks every field; the error names it, its value and its range.
+    ///
+    /// Without a volume to compare with, the limits are bounded by
+    /// [`MAX_DISPLACEMENT`]; where the observation volume is known,
+    /// [`TrackingParameters::check_volume`] bounds them by its size.
     pub fn validate(&self) -> Result<(), TrackError> {
         let invalid = |what: String| Err(TrackError::InvalidParameter(what));
         if !(self.max_velocity.is_finite() && self.max_velocity > 0.0) {
@@ -179,10 +184,29 @@ impl TrackingParameters {
                 self.max_velocity
             ));
         }
+        if self.max_velocity > MAX_DISPLACEMENT {
+            return invalid(format!(
+                "max_velocity {} mm per frame is above the bound of {MAX_DISPLACEMENT} mm (1 km, \
+                 MAX_DISPLACEMENT): no particle tracking volume is that large, and a larger \
+                 limit only makes every particle a candidate for every trajectory; give the \
+                 largest displacement per frame of the flow",
+                readable(self.max_velocity)
+            ));
+        }
         if !(self.max_acceleration.is_finite() && self.max_acceleration > 0.0) {
             return invalid(format!(
                 "max_acceleration must be a positive number of mm per frame², got {}",
                 self.max_acceleration
+            ));
+        }
+        if self.max_acceleration > 2.0 * MAX_DISPLACEMENT {
+            return invalid(format!(
+                "max_acceleration {} mm per frame² is above the bound of {} mm (twice \
+                 MAX_DISPLACEMENT, 1 km): a change of velocity between two frames is at most \
+                 twice the largest displacement; give the largest change of velocity per frame \
+                 of the flow",
+                readable(self.max_acceleration),
+                2.0 * MAX_DISPLACEMENT
             ));
         }
         if self.max_gap > MAX_GAP {
@@ -193,6 +217,15 @@ impl TrackingParameters {
         }
         if self.min_length == 0 {
             return invalid("min_length must be at least 1 point".into());
+        }
+        if self.min_length > MAX_MIN_LENGTH {
+            return invalid(format!(
+                "min_length {} is above the bound of {MAX_MIN_LENGTH} points (MAX_MIN_LENGTH): \
+                 every new trajectory is held in memory until it has min_length points; \
+                 track with a shorter one and keep the long trajectories when reading them \
+                 (the service's `?min_length=`, or filter `ptv track`'s output)",
+                self.min_length
+            ));
         }
         if !(1..=5).contains(&self.fit_half_window) {
             return invalid(format!(
@@ -208,7 +241,90 @@ impl TrackingParameters {
         }
         Ok(())
     }
+
+    /// Checks the limits against the observation volume the particles
+    /// are found in (the matcher's, [`crate::photogrammetry::correspond::Matcher::volume`]):
+    /// `max_velocity` at most the volume's diagonal and `max_acceleration`
+    /// at most twice that. No particle of the volume moves farther than its
+    /// diagonal between two frames, and no velocity changes by more than
+    /// twice that, so a larger limit describes no motion the volume can
+    /// hold: it only widens every search to the whole volume. The bound is
+    /// the diagonal, not the volume's smallest side, so that a flow
+    /// through a thin light sheet or along a long channel keeps whatever
+    /// limit its geometry allows. A volume with an unbounded axis (as
+    /// OpenPTV's depth-only bounds) bounds nothing here: [`MAX_DISPLACEMENT`]
+    /// still holds.
+    pub fn check_volume(&self, volume: &Volume) -> Result<(), TrackError> {
+        let diagonal = (volume.max - volume.min).norm();
+        if !diagonal.is_finite() {
+            return Ok(());
+        }
+        let describe = || {
+            format!(
+                "x {}..{}, y {}..{}, z {}..{} mm",
+                volume.min.x, volume.max.x, volume.min.y, volume.max.y, volume.min.z, volume.max.z
+            )
+        };
+        if self.max_velocity > diagonal {
+            return Err(TrackError::InvalidParameter(format!(
+                "max_velocity {} mm per frame is above the bound of {} mm, the diagonal of the \
+                 observation volume ({}): no particle moves farther than that between two \
+                 frames, and a larger limit only makes every particle a candidate for every \
+                 trajectory; give the largest displacement per frame of the flow",
+                readable(self.max_velocity),
+                readable(diagonal),
+                describe()
+            )));
+        }
+        if self.max_acceleration > 2.0 * diagonal {
+            return Err(TrackError::InvalidParameter(format!(
+                "max_acceleration {} mm per frame² is above the bound of {} mm, twice the \
+                 diagonal of the observation volume ({}): a velocity within the volume changes \
+                 by at most that between two frames; give the largest change of velocity per \
+                 frame of the flow",
+                readable(self.max_acceleration),
+                readable(2.0 * diagonal),
+                describe()
+            )));
+        }
+        Ok(())
+    }
 }
+
+/// A number for a message: as it is, or in exponent form when huge.
+fn readable(value: f64) -> String {
+    if value.abs() < 1e7 {
+        format!("{value}")
+    } else {
+        format!("{value:e}")
+    }
+}
+
+/// The largest `max_velocity` any tracking takes (mm per frame), whatever
+/// its volume: 10^6 mm, a kilometre per frame. The largest volumes
+/// tracked (helium bubbles or snowflakes in the atmospheric surface
+/// layer) are tens of metres across; where the volume is known
+/// ([`TrackingParameters::check_volume`]) its diagonal bounds the limit
+/// far more tightly. `max_acceleration` is bounded by twice this.
+pub const MAX_DISPLACEMENT: f64 = 1e6;
+
+/// The longest `min_length` (points): 100. A new trajectory is held in
+/// memory, about 80 bytes a point, until it has `min_length` points (or
+/// the test for ghosts decided, at [`MAX_DECISION_LENGTH`] points for
+/// the default), so this bounds what each live particle holds at 8 KB
+/// (80 MB at 10,000 particles a frame); longer trajectories are chosen
+/// when reading the result.
+pub const MAX_MIN_LENGTH: usize = 100;
+
+/// The most candidates a trajectory's search keeps in the next frame: the
+/// 32 nearest its prediction (all of them where there are fewer, as at
+/// any sane limit: a limit of the particle spacing puts 4 on average in
+/// the search). With limits as large as the volume every particle is in
+/// every search; this keeps a frame's links at `32 N` and its work at
+/// about `N` searches of a few cells each (each look-ahead is a search for
+/// the single best partner), instead of `N³` (5,000 particles a frame at
+/// 10^308 mm per frame: 85 s a frame before this bound).
+pub const MAX_CANDIDATES: usize = 32;
 
 /// The longest gap bridged.
 pub const MAX_GAP: usize = 2;
@@ -789,16 +905,25 @@ impl Tracker {
             return;
         };
         let mut near = Vec::new();
+        let mut nearest = Vec::new();
         let before = next.particles.len();
         for live in &self.live {
             if live.velocity().is_none() {
                 continue;
             }
             let (predicted, radius) = self.prediction(live, next.number);
-            near.clear();
-            next.grid.within(&predicted, radius, &mut near);
-            if !near.is_empty() {
-                continue;
+            if next.grid.is_small(radius) {
+                near.clear();
+                next.grid.within(&predicted, radius, &mut near);
+                if !near.is_empty() {
+                    continue;
+                }
+            } else {
+                next.grid
+                    .nearest(&predicted, radius, 1, |_| true, &mut nearest);
+                if !nearest.is_empty() {
+                    continue;
+                }
             }
             if let Some(found) = recovery.recover(targets, &predicted, radius) {
                 // Floored as the given particles are, and never below the
@@ -841,7 +966,9 @@ impl Tracker {
         let p = &self.parameters;
         let mut links = Vec::new();
         let mut near = Vec::new();
+        let mut candidates: Vec<(f64, usize)> = Vec::new();
         let mut near_ahead = Vec::new();
+        let mut partner: Vec<(f64, usize)> = Vec::new();
         // What each trajectory's search needs, in one pass over them in
         // memory order. The searches then run in the order of their
         // predictions' cells in `next`'s grid, so that one search reads
@@ -878,20 +1005,37 @@ impl Tracker {
                 floor,
                 source,
             } = searches[l];
-            near.clear();
-            next.grid.within(&predicted, radius, &mut near);
+            // The candidates: within the radius and the velocity limit, at
+            // most MAX_CANDIDATES of them (the nearest the prediction).
+            let moves =
+                |e: usize| ((next.grid.points[e] - from) / dt).norm() <= p.max_velocity + floor;
+            if next.grid.is_small(radius) {
+                near.clear();
+                next.grid.within(&predicted, radius, &mut near);
+                candidates.clear();
+                candidates.extend(near.iter().filter(|&&e| moves(e)).map(|&e| (0.0, e)));
+                if candidates.len() > MAX_CANDIDATES {
+                    for candidate in candidates.iter_mut() {
+                        candidate.0 = (next.grid.points[candidate.1] - predicted).norm_squared();
+                    }
+                    candidates.select_nth_unstable_by(MAX_CANDIDATES - 1, |a, b| {
+                        a.0.total_cmp(&b.0).then(a.1.cmp(&b.1))
+                    });
+                    candidates.truncate(MAX_CANDIDATES);
+                }
+            } else {
+                next.grid
+                    .nearest(&predicted, radius, MAX_CANDIDATES, moves, &mut candidates);
+            }
             // Entries of the grids: each candidate's data is read there, in
             // cell order next to its neighbours', not from the frame's
             // arrays in input order (at 10,000+ particles a cache miss
             // for each).
-            for &e in &near {
+            for &(_, e) in &candidates {
                 let c = next.grid.order[e] as usize;
                 let position = next.grid.points[e];
                 let sigma = next.grid.sigma[e];
                 let step = (position - from) / dt;
-                if step.norm() > p.max_velocity + floor {
-                    continue;
-                }
                 // The acceleration this link implies (none known for a
                 // trajectory of one point).
                 let a1 = velocity.map(|v| (step - v) / dt);
@@ -900,23 +1044,45 @@ impl Tracker {
                     let dt2 = (ahead.number - next.number) as f64;
                     let predicted2 = position + step * dt2;
                     let floor2 = noise_floor(&sigma);
-                    near_ahead.clear();
-                    ahead.grid.within(
-                        &predicted2,
-                        p.max_acceleration * dt2 * dt2 + floor2,
-                        &mut near_ahead,
-                    );
-                    for &d in &near_ahead {
+                    let radius2 = p.max_acceleration * dt2 * dt2 + floor2;
+                    let cost = |d: usize| {
                         let step2 = (ahead.grid.points[d] - position) / dt2;
                         if step2.norm() > p.max_velocity + floor2 {
-                            continue;
+                            return None;
                         }
                         let a2 = (step2 - step) / dt2;
-                        let cost = match a1 {
+                        Some(match a1 {
                             Some(a1) => (a2 - a1).norm(),
                             None => a2.norm(),
-                        };
-                        best = Some(best.map_or(cost, |b: f64| b.min(cost)));
+                        })
+                    };
+                    if ahead.grid.is_small(radius2) {
+                        near_ahead.clear();
+                        ahead.grid.within(&predicted2, radius2, &mut near_ahead);
+                        for &d in &near_ahead {
+                            if let Some(cost) = cost(d) {
+                                best = Some(best.map_or(cost, |b: f64| b.min(cost)));
+                            }
+                        }
+                    } else {
+                        // A partner's cost is its distance from where the
+                        // link's acceleration carries on to, `predicted2 +
+                        // a1 dt2²` (from `predicted2` for a trajectory of
+                        // one point), over dt2²: the best is the nearest
+                        // one there within the radius.
+                        let carried = predicted2 + a1.unwrap_or_else(Vector3::zeros) * dt2 * dt2;
+                        ahead.grid.nearest(
+                            &carried,
+                            (carried - predicted2).norm() + radius2,
+                            1,
+                            |d| {
+                                (ahead.grid.points[d] - predicted2).norm_squared()
+                                    <= radius2 * radius2
+                                    && cost(d).is_some()
+                            },
+                            &mut partner,
+                        );
+                        best = partner.first().and_then(|&(_, d)| cost(d));
                     }
                 }
                 // A candidate missed by some cameras may be a ghost, and so
@@ -1250,14 +1416,33 @@ impl Grid {
         }
         let extent = high - low;
         let limit = (8 * particles.len()).max(64) as f64;
+        // Cells no larger than about 8 particles' share of the box (over
+        // its axes of non-zero extent): a search limit far above the
+        // particle spacing would otherwise make one cell of the whole
+        // frame, and every search ([`Grid::nearest`]) read all of it.
+        let spread: Vec<f64> = extent.iter().copied().filter(|&e| e > 0.0).collect();
         let mut cell = cell;
-        let dims = loop {
-            let dims: [f64; 3] = std::array::from_fn(|i| (extent[i] / cell).floor() + 1.0);
-            let cells = dims[0] * dims[1] * dims[2];
-            if cells <= limit {
-                break dims.map(|d| d as usize);
+        if !spread.is_empty() {
+            let share = (spread.iter().product::<f64>() / particles.len() as f64)
+                .powf(1.0 / spread.len() as f64);
+            if share.is_finite() && share > 0.0 {
+                cell = cell.min(2.0 * share);
             }
-            cell *= (cells / limit).cbrt().max(1.01);
+        }
+        let dims = if extent.iter().all(|e| e.is_finite()) && cell.is_finite() {
+            loop {
+                let dims: [f64; 3] = std::array::from_fn(|i| (extent[i] / cell).floor() + 1.0);
+                let cells = dims[0] * dims[1] * dims[2];
+                if cells <= limit {
+                    break dims.map(|d| d as usize);
+                }
+                cell *= (cells / limit).cbrt().max(1.01);
+            }
+        } else {
+            // Positions so far apart that their differences overflow: one
+            // cell (the searches' distance tests still hold).
+            cell = f64::INFINITY;
+            [1, 1, 1]
         };
         let mut grid = Grid {
             cell,
@@ -1340,6 +1525,105 @@ impl Grid {
                 for e in from..to {
                     if (self.points[e] - centre).norm_squared() <= r2 {
                         out.push(e);
+                    }
+                }
+            }
+        }
+    }
+
+    /// Whether a search of `radius` around a point reads few enough cells
+    /// to read them all ([`Grid::within`]): a box of at most 5 cells a
+    /// side. Larger ones (a limit far above the particle spacing, or a
+    /// search across a gap) go ring by ring ([`Grid::nearest`]).
+    fn is_small(&self, radius: f64) -> bool {
+        radius <= 2.0 * self.cell
+    }
+
+    /// The `k` entries nearest to `centre` among those within `reach` of
+    /// it that `accept` takes, as (squared distance, entry) nearest first
+    /// (ties by entry), replacing `out`'s contents. The cells are read in
+    /// rings of growing Chebyshev distance around `centre`'s cell (clamped
+    /// into the grid, and to the box of `reach`); a point in ring `r` is
+    /// more than `(r - 1) cell` away, so the search stops once that
+    /// exceeds the `k`-th distance found, or `reach`. Its work is the
+    /// cells out to the `k`-th nearest, not the particles within `reach`.
+    fn nearest(
+        &self,
+        centre: &Point3<f64>,
+        reach: f64,
+        k: usize,
+        mut accept: impl FnMut(usize) -> bool,
+        out: &mut Vec<(f64, usize)>,
+    ) {
+        out.clear();
+        if k == 0 {
+            return;
+        }
+        let c = self.cell_of(centre).map(|v| v as isize);
+        let low = self
+            .cell_of(&(centre - Vector3::repeat(reach)))
+            .map(|v| v as isize);
+        let high = self
+            .cell_of(&(centre + Vector3::repeat(reach)))
+            .map(|v| v as isize);
+        let rings = (0..3)
+            .map(|i| (c[i] - low[i]).max(high[i] - c[i]))
+            .max()
+            .unwrap_or(0);
+        let r2 = reach * reach;
+        let mut take = |e: usize, out: &mut Vec<(f64, usize)>| {
+            let d2 = (self.points[e] - centre).norm_squared();
+            if d2 > r2 || (out.len() == k && (d2, e) >= out[k - 1]) || !accept(e) {
+                return;
+            }
+            if out.len() == k {
+                out.pop();
+            }
+            let at = out.partition_point(|&x| x < (d2, e));
+            out.insert(at, (d2, e));
+        };
+        for ring in 0..=rings {
+            let bound = if ring <= 1 {
+                0.0
+            } else {
+                (ring - 1) as f64 * self.cell
+            };
+            if bound > reach || (out.len() == k && bound * bound > out[k - 1].0) {
+                break;
+            }
+            let span = |i: usize| ((c[i] - ring).max(low[i]), (c[i] + ring).min(high[i]));
+            let ((x0, x1), (y0, y1), (z0, z1)) = (span(0), span(1), span(2));
+            for i in x0..=x1 {
+                for j in y0..=y1 {
+                    let edge = (i - c[0]).abs() == ring || (j - c[1]).abs() == ring;
+                    // A column on the ring's side: its whole run; inside
+                    // the ring: its two end cells, where they are on it.
+                    let runs: [(isize, isize); 2] = if edge {
+                        [(z0, z1), (1, 0)]
+                    } else {
+                        [
+                            if c[2] - ring >= z0 {
+                                (c[2] - ring, c[2] - ring)
+                            } else {
+                                (1, 0)
+                            },
+                            if ring > 0 && c[2] + ring <= z1 {
+                                (c[2] + ring, c[2] + ring)
+                            } else {
+                                (1, 0)
+                            },
+                        ]
+                    };
+                    for (from, to) in runs {
+                        if from > to {
+                            continue;
+                        }
+                        let (i, j) = (i as usize, j as usize);
+                        let first = self.starts[self.key(&[i, j, from as usize])] as usize;
+                        let last = self.starts[self.key(&[i, j, to as usize]) + 1] as usize;
+                        for e in first..last {
+                            take(e, out);
+                        }
                     }
                 }
             }

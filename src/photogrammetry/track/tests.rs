@@ -693,3 +693,164 @@ fn lost_particle_is_cut(seed: u64) {
         assert!(other.len() < 5, "seed {seed}: {frames:?}");
     }
 }
+
+/// [`Grid::nearest`] gives the `k` nearest accepted entries within the
+/// reach, as brute force does (ties by entry), whatever the cells' size
+/// against the reach: cells of the search's size, and the cells a limit
+/// of 10^308 mm leaves after the cap by the particles' spacing.
+#[test]
+fn nearest_finds_what_brute_force_finds() {
+    let mut rng = simulate::rng(29);
+    let particles: Vec<ParticlePosition> = (0..2000)
+        .map(|_| {
+            ParticlePosition::new(
+                Point3::from(Vector3::from_fn(|_, _| rng.random_range(-20.0..30.0))),
+                Vector3::repeat(0.01),
+            )
+        })
+        .collect();
+    let missing = vec![0; particles.len()];
+    for cell in [2.5, 1e308] {
+        let grid = Grid::new(&particles, &missing, cell);
+        assert!(
+            grid.cell < 10.0,
+            "cells capped by the spacing: {}",
+            grid.cell
+        );
+        let mut out = Vec::new();
+        for round in 0..300 {
+            let centre = Point3::from(Vector3::from_fn(|_, _| rng.random_range(-35.0..45.0)));
+            let reach = if round % 3 == 0 {
+                f64::INFINITY
+            } else {
+                rng.random_range(0.1..40.0)
+            };
+            let k = rng.random_range(1..40);
+            let accept = |e: usize| grid.order[e] % 3 != 0;
+            grid.nearest(&centre, reach, k, accept, &mut out);
+            let mut expected: Vec<(f64, usize)> = (0..grid.points.len())
+                .map(|e| ((grid.points[e] - centre).norm_squared(), e))
+                .filter(|&(d2, e)| d2 <= reach * reach && accept(e))
+                .collect();
+            expected.sort_by(|a, b| a.partial_cmp(b).unwrap());
+            expected.truncate(k);
+            assert_eq!(out, expected, "cell {cell}, round {round}");
+        }
+    }
+}
+
+/// Limits as large as any volume: every particle is within every
+/// search, and the searches keep the nearest [`MAX_CANDIDATES`]. 2,000
+/// particles a frame in straight lines 5 mm apart (0.4 mm per frame) are
+/// still linked right, each into one trajectory, and in bounded work: the
+/// whole run takes about the time of one at a sane limit, where all
+/// candidates before this bound made it `N³` a frame (8·10^9 link costs).
+#[test]
+fn limits_as_large_as_any_volume_track_right_in_bounded_work() {
+    let mut rng = simulate::rng(8);
+    let count = 2000;
+    let starts: Vec<Point3<f64>> = (0..count)
+        .map(|_| Point3::from(Vector3::from_fn(|_, _| rng.random_range(0.0..60.0))))
+        .collect();
+    let velocities: Vec<Vector3<f64>> = (0..count)
+        .map(|_| Vector3::from_fn(|_, _| rng.random_range(-0.23..0.23)))
+        .collect();
+    let frames: Vec<(i64, Vec<ParticlePosition>)> = (0..6)
+        .map(|f| {
+            let mut particles: Vec<(usize, ParticlePosition)> = starts
+                .iter()
+                .zip(&velocities)
+                .enumerate()
+                .map(|(i, (s, v))| {
+                    (
+                        i,
+                        ParticlePosition::new(s + v * f as f64, Vector3::repeat(0.005)),
+                    )
+                })
+                .collect();
+            particles.shuffle(&mut rng);
+            (f, particles.into_iter().map(|(_, p)| p).collect())
+        })
+        .collect();
+    let run = |parameters: TrackingParameters| {
+        let started = std::time::Instant::now();
+        let trajectories = track(frames.clone(), parameters).unwrap();
+        (trajectories, started.elapsed())
+    };
+    let (sane, sane_time) = run(TrackingParameters::new(0.5));
+    let (largest, largest_time) = run(TrackingParameters::new(MAX_DISPLACEMENT));
+    println!("sane limit {sane_time:?}, the largest {largest_time:?}");
+    for trajectories in [&sane, &largest] {
+        assert_eq!(trajectories.len(), count, "one trajectory per particle");
+        assert!(trajectories.iter().all(|t| t.points.len() == 6));
+        // Each trajectory moves in a straight line: its points are one
+        // particle's.
+        for t in trajectories.iter() {
+            let step = t.points[1].position - t.points[0].position;
+            for pair in t.points.windows(2) {
+                let d = pair[1].position - pair[0].position - step;
+                assert!(d.norm() < 1e-9, "a link to another particle");
+            }
+        }
+    }
+    // The searches at the largest limit read a few hundred cells and
+    // MAX_CANDIDATES look-aheads where the sane ones read a few cells and
+    // one or two: within 100 times the time, where all candidates took
+    // 2,000² = 4·10^6 times the work of one each.
+    assert!(
+        largest_time < sane_time * 100 + std::time::Duration::from_secs(1),
+        "sane {sane_time:?}, largest {largest_time:?}"
+    );
+}
+
+#[test]
+fn limits_are_bounded_by_the_volume_and_the_largest_one() {
+    let volume = Volume {
+        min: Point3::new(-30.0, -30.0, -10.0),
+        max: Point3::new(30.0, 30.0, 10.0),
+    };
+    let diagonal = (volume.max - volume.min).norm(); // 87.2 mm
+    let at = |v: f64, a: f64| TrackingParameters {
+        max_velocity: v,
+        max_acceleration: a,
+        ..TrackingParameters::new(v)
+    };
+    assert!(at(diagonal, 2.0 * diagonal).check_volume(&volume).is_ok());
+    assert!(at(2.0, 1.0).check_volume(&volume).is_ok());
+    let error = at(1e308, 1.0).validate().unwrap_err().to_string();
+    assert!(
+        error.contains("max_velocity 1e308") && error.contains("1000000 mm"),
+        "{error}"
+    );
+    let error = at(diagonal * 1.01, 1.0)
+        .check_volume(&volume)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        error.contains("max_velocity 88.")
+            && error.contains("the diagonal of the observation volume")
+            && error.contains("x -30..30, y -30..30, z -10..10 mm"),
+        "{error}"
+    );
+    let error = at(1.0, 2.0 * diagonal * 1.01)
+        .check_volume(&volume)
+        .unwrap_err()
+        .to_string();
+    assert!(error.contains("max_acceleration 176."), "{error}");
+    let error = at(1.0, 2.0e6 * 1.5).validate().unwrap_err().to_string();
+    assert!(error.contains("max_acceleration 3000000"), "{error}");
+    // An unbounded axis (OpenPTV's depth-only bounds) bounds nothing.
+    let open = Volume {
+        min: Point3::new(-30.0, f64::NEG_INFINITY, -10.0),
+        ..volume
+    };
+    assert!(at(1e5, 1.0).check_volume(&open).is_ok());
+    let error = TrackingParameters {
+        min_length: MAX_MIN_LENGTH + 1,
+        ..TrackingParameters::new(1.0)
+    }
+    .validate()
+    .unwrap_err()
+    .to_string();
+    assert!(error.contains("min_length 101"), "{error}");
+}

@@ -354,8 +354,7 @@ pub async fn openptv_file(
         ))
     };
     let (stem, extension) = file.rsplit_once('.').ok_or_else(unknown)?;
-    let camera = stem
-        .parse::<usize>()
+    let camera = super::decimal::parse::<usize>(stem)
         .ok()
         .and_then(|c| cameras.get(c))
         .ok_or_else(unknown)?;

@@ -142,8 +142,7 @@ async fn missed(
     let last = value
         .to_str()
         .ok()
-        .and_then(|text| text.trim().parse::<i64>().ok())
-        .filter(|last| *last >= 0)
+        .and_then(|text| super::decimal::parse::<i64>(text).ok())
         .map(EventId)
         .ok_or_else(|| {
             ApiError::bad_request(

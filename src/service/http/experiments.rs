@@ -68,8 +68,10 @@ pub struct ImportedExperiment {
     /// printf-style `%d` for the frame number, relative to its directory.
     pub images: Vec<String>,
     /// Its first frame.
+    #[schema(value_type = i64, minimum = 0, maximum = 4_294_967_295_u64)]
     pub first_frame: u64,
     /// Its last frame.
+    #[schema(value_type = i64, minimum = 0, maximum = 4_294_967_295_u64)]
     pub last_frame: u64,
     /// The settings `ptv` does not use, and why.
     pub unmapped: Vec<UnmappedView>,
@@ -110,6 +112,16 @@ pub async fn import(
         .await
         .map_err(ApiError::internal)?
         .map_err(|e| experiment_error(e, &scratch.dir))?;
+    // Its frames are uploaded as frame numbers, 0 to MAX_FRAME_NUMBER.
+    if experiment.sequence.last > crate::service::store::MAX_FRAME_NUMBER as u64 {
+        return Err(ApiError::unprocessable(format!(
+            "sequence.last: {} is above the largest frame number, {}; number the frames from \
+             0 to {}",
+            experiment.sequence.last,
+            crate::service::store::MAX_FRAME_NUMBER,
+            crate::service::store::MAX_FRAME_NUMBER
+        )));
+    }
     let sequence_json = settings_json(&experiment)?;
     let masks = mask_files(&state, &experiment, &scratch.dir).await?;
 

@@ -28,6 +28,7 @@
 //!   counts for `/metrics`.
 
 pub mod calibrations;
+pub mod decimal;
 pub mod docs;
 pub mod events;
 pub mod experiments;

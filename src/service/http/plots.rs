@@ -224,7 +224,7 @@ pub async fn disparity(
     get, path = "/api/v1/sequences/{id}/frames/{frame}/overlay.png", tag = "plots",
     params(
         ("id" = i64, Path, description = "Sequence id"),
-        ("frame" = i64, Path, description = "Frame number"),
+        ("frame" = i64, Path, description = "Frame number", minimum = 0, maximum = 4_294_967_295_u64),
         OverlayQuery,
     ),
     responses(
@@ -236,9 +236,10 @@ pub async fn disparity(
 )]
 pub async fn overlay(
     State(state): Shared,
-    ApiPath((id, frame)): ApiPath<(SequenceId, FrameNumber)>,
+    ApiPath((id, frame)): ApiPath<(SequenceId, u32)>,
     ApiQuery(query): ApiQuery<OverlayQuery>,
 ) -> Result<Response, ApiError> {
+    let frame = FrameNumber(frame.into());
     let (cameras_n, particles, made_by) = load_particles(&state, id, frame).await?;
     let stored = state.store.frame_targets(id, frame).await?;
     let Some((_, _, blob)) = stored.iter().find(|(c, _, _)| *c == query.camera as i64) else {
@@ -341,7 +342,7 @@ pub async fn overlay(
     get, path = "/api/v1/sequences/{id}/frames/{frame}/particles.png", tag = "plots",
     params(
         ("id" = i64, Path, description = "Sequence id"),
-        ("frame" = i64, Path, description = "Frame number"),
+        ("frame" = i64, Path, description = "Frame number", minimum = 0, maximum = 4_294_967_295_u64),
         PlotQuery,
     ),
     responses(
@@ -353,9 +354,10 @@ pub async fn overlay(
 )]
 pub async fn particles(
     State(state): Shared,
-    ApiPath((id, frame)): ApiPath<(SequenceId, FrameNumber)>,
+    ApiPath((id, frame)): ApiPath<(SequenceId, u32)>,
     ApiQuery(query): ApiQuery<PlotQuery>,
 ) -> Result<Response, ApiError> {
+    let frame = FrameNumber(frame.into());
     let (_, particles, _) = load_particles(&state, id, frame).await?;
     let format = query.format;
     let bytes = state

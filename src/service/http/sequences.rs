@@ -17,6 +17,7 @@ use serde::{Deserialize, Serialize};
 use utoipa::{IntoParams, ToSchema};
 
 use super::calibrations::stored_rig;
+use super::decimal;
 use super::jobs::JobStateView;
 use super::links;
 use super::problem::{ApiError, ApiJson, ApiMultipart, ApiPath, ApiQuery};
@@ -245,7 +246,7 @@ pub async fn create(
     }
     parameters.background = request.background;
     let tracking = match &request.tracking {
-        Some(settings) => Some(serde_json::to_string(&settings.with_defaults()?)?),
+        Some(settings) => Some(settings.with_defaults()?),
         None => None,
     };
     // Dropped with this handler (client gone, request timeout): the
@@ -254,6 +255,14 @@ pub async fn create(
     let _stop = StopOnDrop(cancel.clone());
     let (pipeline, splitter) =
         prepare_pipeline(&state, &calibration.model, &parameters, &cancel).await?;
+    // The tracking limits against the volume the particles are found in.
+    let tracking = match tracking {
+        Some(settings) => {
+            settings.check_volume(pipeline.volume())?;
+            Some(serde_json::to_string(&settings)?)
+        }
+        None => None,
+    };
     let stored = serde_json::to_string(&parameters)?;
     let row = state
         .store
@@ -389,8 +398,8 @@ pub struct FramePageQuery {
     pub limit: Option<u32>,
     /// Only frames with a higher number (the `next` link sets it).
     #[serde(default)]
-    #[param(value_type = Option<i64>)]
-    pub after: Option<FrameNumber>,
+    #[param(value_type = Option<i64>, minimum = 0, maximum = 4_294_967_295_u64)]
+    pub after: Option<u32>,
 }
 
 /// Longest page of the frame list.
@@ -400,7 +409,7 @@ const MAX_FRAME_PAGE: u32 = 1000;
 #[derive(Debug, Serialize, ToSchema)]
 pub struct FrameSummaryView {
     /// The frame.
-    #[schema(value_type = i64)]
+    #[schema(value_type = i64, minimum = 0, maximum = 4_294_967_295_u64)]
     pub frame: FrameNumber,
     /// Its job.
     #[schema(value_type = i64)]
@@ -446,7 +455,8 @@ pub async fn frames(
         }
     };
     sequence(&state, id).await?;
-    let rows = state.store.frames_page(id, query.after, limit).await?;
+    let after = query.after.map(|frame| FrameNumber(frame.into()));
+    let rows = state.store.frames_page(id, after, limit).await?;
     let next = (rows.len() == limit as usize)
         .then(|| {
             rows.last().map(|r| {
@@ -476,7 +486,7 @@ pub async fn frames(
 #[derive(Debug, Serialize, ToSchema)]
 pub struct FrameAccepted {
     /// The frame number.
-    #[schema(value_type = i64)]
+    #[schema(value_type = i64, minimum = 0, maximum = 4_294_967_295_u64)]
     pub frame: FrameNumber,
     /// The job that processes it.
     #[schema(value_type = i64)]
@@ -487,17 +497,22 @@ pub struct FrameAccepted {
     pub particles: String,
 }
 
-/// A numeric part: `frame`, `width`, `height`, `bits`.
-async fn number_part<T: std::str::FromStr>(
-    field: &mut Field<'_>,
-    name: &str,
-) -> Result<T, ApiError> {
+/// A numeric part: `frame`, `width`, `height`, `bits`, each 0 to
+/// 4,294,967,295 in the one accepted form ([`decimal`]): text in another
+/// form is a 400 naming the part and the form, a number above the range
+/// a 422.
+async fn number_part(field: &mut Field<'_>, name: &str) -> Result<u32, ApiError> {
     let text = text_part(field, name, 64).await?;
-    text.trim().parse().map_err(|_| {
-        ApiError::unprocessable(format!(
-            "part `{name}` is `{}`, not a non-negative integer",
-            text.escape_debug()
-        ))
+    decimal::parse::<u32>(&text).map_err(|refused| match refused {
+        decimal::Refused::Form => ApiError::bad_request(format!(
+            "part `{name}` is `{}`, not a non-negative integer in the accepted form: {}",
+            text.escape_debug(),
+            decimal::FORM
+        )),
+        decimal::Refused::Range => ApiError::unprocessable(format!(
+            "part `{name}` is {text}, above the largest accepted, {}",
+            u32::MAX
+        )),
     })
 }
 
@@ -511,18 +526,22 @@ pub(super) fn camera_of(
     if digits.is_empty() || !digits.bytes().all(|b| b.is_ascii_digit()) {
         return None;
     }
-    Some(
-        digits
-            .parse::<usize>()
-            .ok()
-            .filter(|&c| c < cameras)
-            .ok_or_else(|| {
-                ApiError::unprocessable(format!(
-                    "part `{name}`: the calibration has {cameras} cameras, {prefix}0 to {prefix}{}",
-                    cameras - 1
-                ))
-            }),
-    )
+    let beyond = || {
+        ApiError::unprocessable(format!(
+            "part `{name}`: the calibration has {cameras} cameras, {prefix}0 to {prefix}{}",
+            cameras - 1
+        ))
+    };
+    Some(match decimal::parse::<usize>(digits) {
+        Ok(c) if c < cameras => Ok(c),
+        Ok(_) | Err(decimal::Refused::Range) => Err(beyond()),
+        // `cam00` is not `cam0`: one name per camera.
+        Err(decimal::Refused::Form) => Err(ApiError::bad_request(format!(
+            "part `{name}`: the camera index is written as {}: {prefix}0 to {prefix}{}",
+            decimal::FORM,
+            cameras - 1
+        ))),
+    })
 }
 
 /// The parts of a frame upload, as read.
@@ -564,7 +583,7 @@ async fn read_parts(
             if parts.frame.is_some() {
                 return Err(repeated());
             }
-            let number = FrameNumber(number_part::<u32>(&mut field, &name).await?.into());
+            let number = FrameNumber(number_part(&mut field, &name).await?.into());
             if state.store.frame_exists(id, number).await? {
                 return Err(InsertFrameError::Exists {
                     sequence_id: id,
@@ -574,11 +593,11 @@ async fn read_parts(
             }
             parts.frame = Some(number);
         } else if name == "width" {
-            parts.width = Some(number_part::<u32>(&mut field, &name).await?);
+            parts.width = Some(number_part(&mut field, &name).await?);
         } else if name == "height" {
-            parts.height = Some(number_part::<u32>(&mut field, &name).await?);
+            parts.height = Some(number_part(&mut field, &name).await?);
         } else if name == "bits" {
-            parts.bits = Some(number_part::<u32>(&mut field, &name).await?);
+            parts.bits = Some(number_part(&mut field, &name).await?);
         } else if name == "image" && splitter.is_some() {
             if parts.whole.is_some() {
                 return Err(repeated());
@@ -683,7 +702,7 @@ pub(super) async fn sequence_cameras_and_row(
 #[utoipa::path(
     post, path = "/api/v1/sequences/{id}/frames", tag = "sequences",
     params(("id" = i64, Path, description = "Sequence id")),
-    request_body(content_type = "multipart/form-data", description = "Parts: `frame` (integer); `cam0`..`camN-1` (images) or `targets0`..`targetsN-1` (CSV x,y,... or OpenPTV _targets); for raw images `width`, `height`, `bits` (8 or 16)."),
+    request_body(content_type = "multipart/form-data", description = "Parts: `frame` (an integer 0 to 4294967295 in decimal digits, without sign, spaces or leading zeros); `cam0`..`camN-1` (images) or `targets0`..`targetsN-1` (CSV x,y,... or OpenPTV _targets); for raw images `width`, `height`, `bits` (8 or 16)."),
     responses(
         (status = 202, body = FrameAccepted),
         (status = 400, description = "Malformed or truncated multipart, unknown or repeated part", body = super::problem::Problem, content_type = "application/problem+json"),
@@ -905,7 +924,7 @@ pub struct FrameParticles {
     #[schema(value_type = i64)]
     pub sequence_id: SequenceId,
     /// The frame.
-    #[schema(value_type = i64)]
+    #[schema(value_type = i64, minimum = 0, maximum = 4_294_967_295_u64)]
     pub frame: FrameNumber,
     /// The calibration that made these particles (the sequence's, or the
     /// one it had when the frame was processed, until reprocessed).
@@ -961,7 +980,7 @@ pub(super) async fn no_results(state: &AppState, id: SequenceId, frame: FrameNum
     get, path = "/api/v1/sequences/{id}/frames/{frame}/particles", tag = "sequences",
     params(
         ("id" = i64, Path, description = "Sequence id"),
-        ("frame" = i64, Path, description = "Frame number"),
+        ("frame" = i64, Path, description = "Frame number", minimum = 0, maximum = 4_294_967_295_u64),
         ParticleQuery,
     ),
     responses(
@@ -973,9 +992,10 @@ pub(super) async fn no_results(state: &AppState, id: SequenceId, frame: FrameNum
 )]
 pub async fn frame_particles(
     State(state): Shared,
-    ApiPath((id, frame)): ApiPath<(SequenceId, FrameNumber)>,
+    ApiPath((id, frame)): ApiPath<(SequenceId, u32)>,
     ApiQuery(query): ApiQuery<ParticleQuery>,
 ) -> Result<Response, ApiError> {
+    let frame = FrameNumber(frame.into());
     let (cameras, particles, made_by) = load_particles(&state, id, frame).await?;
     let provenance = [(CALIBRATION_HEADER, made_by.to_string())];
     Ok(match query.format {
@@ -1064,7 +1084,7 @@ pub struct TargetView {
 #[derive(Debug, Serialize, ToSchema)]
 pub struct FrameTargets {
     /// The frame.
-    #[schema(value_type = i64)]
+    #[schema(value_type = i64, minimum = 0, maximum = 4_294_967_295_u64)]
     pub frame: FrameNumber,
     /// The camera.
     pub camera: usize,
@@ -1077,7 +1097,7 @@ pub struct FrameTargets {
     get, path = "/api/v1/sequences/{id}/frames/{frame}/targets", tag = "sequences",
     params(
         ("id" = i64, Path, description = "Sequence id"),
-        ("frame" = i64, Path, description = "Frame number"),
+        ("frame" = i64, Path, description = "Frame number", minimum = 0, maximum = 4_294_967_295_u64),
         TargetQuery,
     ),
     responses(
@@ -1089,9 +1109,10 @@ pub struct FrameTargets {
 )]
 pub async fn frame_targets(
     State(state): Shared,
-    ApiPath((id, frame)): ApiPath<(SequenceId, FrameNumber)>,
+    ApiPath((id, frame)): ApiPath<(SequenceId, u32)>,
     ApiQuery(query): ApiQuery<TargetQuery>,
 ) -> Result<Response, ApiError> {
+    let frame = FrameNumber(frame.into());
     sequence(&state, id).await?;
     let stored = state.store.frame_targets(id, frame).await?;
     if stored.is_empty() {

@@ -18,7 +18,11 @@ use super::problem::{ApiError, ApiJson, ApiPath, ApiQuery};
 use super::sequences::sequence;
 use super::Shared;
 use crate::formats::frames::FrameRange;
+use crate::photogrammetry::correspond::default_volume;
+use crate::photogrammetry::Volume;
 use crate::service::app::AppState;
+use crate::service::parameters::SequenceParameters;
+use crate::service::store::SequenceRow;
 use crate::service::store::{
     CalibrationId, FrameNumber, PointRow, SequenceId, TrackingRunId, TrackingRunRow, TrackingState,
     TrajectoryRow,
@@ -65,7 +69,7 @@ pub struct TrackingRunView {
     /// The last frame tracked: trajectories are final up to a few frames
     /// before it (the fit window and look-ahead), and all of them once the
     /// run is finished. Null before the first frame.
-    #[schema(value_type = Option<i64>)]
+    #[schema(value_type = Option<i64>, minimum = 0, maximum = 4_294_967_295_u64)]
     pub tracked_through: Option<FrameNumber>,
     /// Whether the sequence was said to have all its frames (`POST
     /// /sequences/{id}/tracking/finish`).
@@ -114,7 +118,7 @@ pub(super) async fn run_view(
         (status = 201, body = TrackingRunView),
         (status = 400, description = "Not JSON", body = super::problem::Problem, content_type = "application/problem+json"),
         (status = 404, body = super::problem::Problem, content_type = "application/problem+json"),
-        (status = 422, description = "Invalid settings (a velocity limit that is not positive, ...)", body = super::problem::Problem, content_type = "application/problem+json"),
+        (status = 422, description = "Invalid settings (a velocity limit that is not positive, or larger than the diagonal of the sequence's volume, ...)", body = super::problem::Problem, content_type = "application/problem+json"),
     )
 )]
 pub async fn start(
@@ -122,8 +126,11 @@ pub async fn start(
     ApiPath(id): ApiPath<SequenceId>,
     ApiJson(settings): ApiJson<TrackingSettings>,
 ) -> Result<Response, ApiError> {
-    sequence(&state, id).await?;
+    let row = sequence(&state, id).await?;
     let settings = settings.with_defaults()?;
+    if let Some(volume) = observation_volume(&state, &row).await? {
+        settings.check_volume(&volume)?;
+    }
     let previous = state.store.current_tracking_run(id).await?;
     let row = state
         .store
@@ -135,6 +142,24 @@ pub async fn start(
     }
     kick(&state, id);
     Ok((StatusCode::CREATED, Json(run_view(&state, row).await?)).into_response())
+}
+
+/// The volume a sequence's particles are found in: its `matching.volume`,
+/// else the default volume of its calibration (as its matcher's); `None`
+/// where its cameras have none (parallel axes: such a sequence matches
+/// nothing anyway).
+async fn observation_volume(
+    state: &AppState,
+    row: &SequenceRow,
+) -> Result<Option<Volume>, ApiError> {
+    let parameters: SequenceParameters = serde_json::from_str(&row.parameters)?;
+    if let Some(volume) = parameters.matching().volume {
+        return Ok(Some(volume));
+    }
+    let calibration = super::calibrations::calibration(state, row.calibration_id).await?;
+    Ok(default_volume(&super::calibrations::stored_cameras(
+        &calibration,
+    )?))
 }
 
 /// A sequence's tracking runs, oldest first; the last is the current one.
@@ -236,8 +261,8 @@ pub struct TrajectoriesQuery {
     /// run stored, which have at least its `min_length`].
     #[serde(default)]
     pub min_length: Option<u32>,
-    /// Only points within `FIRST..LAST` (both included), of trajectories
-    /// with a point there.
+    /// Only points within `FIRST..LAST` (both included, each 0 to
+    /// 4294967295 in decimal digits), of trajectories with a point there.
     #[serde(default)]
     pub frames: Option<String>,
     /// A tracking run of the sequence [default: its current one].
@@ -261,7 +286,7 @@ pub struct TrajectoryQuery {
 #[derive(Debug, Serialize, ToSchema)]
 pub struct TrajectoryPointView {
     /// The frame.
-    #[schema(value_type = i64)]
+    #[schema(value_type = i64, minimum = 0, maximum = 4_294_967_295_u64)]
     pub frame: FrameNumber,
     /// The particle's index in the frame's particles; at or above their
     /// count, a particle the tracker recovered from the frame's targets
@@ -287,10 +312,10 @@ pub struct TrajectoryView {
     /// Its number within the run.
     pub id: i64,
     /// Its first frame.
-    #[schema(value_type = i64)]
+    #[schema(value_type = i64, minimum = 0, maximum = 4_294_967_295_u64)]
     pub first_frame: FrameNumber,
     /// Its last frame.
-    #[schema(value_type = i64)]
+    #[schema(value_type = i64, minimum = 0, maximum = 4_294_967_295_u64)]
     pub last_frame: FrameNumber,
     /// Its points (all of them, also where `points` is cut by `frames`).
     pub length: i64,
@@ -431,6 +456,23 @@ pub async fn trajectories(
     let frames = match &query.frames {
         None => (FrameNumber(i64::MIN), FrameNumber(i64::MAX)),
         Some(text) => {
+            // Each end a frame number in the one accepted form.
+            let ends = match text.split_once("..") {
+                Some((first, last)) => [first, last.strip_prefix('=').unwrap_or(last)],
+                None => [text.as_str(), text.as_str()],
+            };
+            for end in ends {
+                if super::decimal::parse::<u32>(end).is_err() {
+                    return Err(ApiError::bad_request(format!(
+                        "frames: `{}` in `{}` is not a frame number; give FIRST..LAST, each 0 \
+                         to {} written as {}",
+                        end.escape_debug(),
+                        text.escape_debug(),
+                        u32::MAX,
+                        super::decimal::FORM
+                    )));
+                }
+            }
             let range = FrameRange::parse(text)
                 .map_err(|e| ApiError::bad_request(format!("frames: {e}")))?;
             let number = |f: u64| i64::try_from(f).map(FrameNumber);

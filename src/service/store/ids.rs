@@ -77,6 +77,13 @@ id!(
     /// A frame's number within its sequence (from 0).
     FrameNumber
 );
+/// The largest frame number: 4,294,967,295 (`u32::MAX`). Frames are
+/// numbered 0 to this in every route (the OpenAPI document says so:
+/// `int64`, minimum 0, maximum 4294967295); 4 billion frames are 50 days
+/// at 1,000 frames a second, and numbers this small leave the tracker's
+/// frame arithmetic (`i64`) far from overflow.
+pub const MAX_FRAME_NUMBER: i64 = u32::MAX as i64;
+
 id!(
     /// A tracking run's id.
     TrackingRunId

@@ -94,6 +94,7 @@ pub use self::dialect::{error_kind, Dialect, ErrorKind, PostgresUrl};
 pub use self::events::EventRow;
 pub use self::ids::{
     CalibrationId, EventId, FrameNumber, JobId, LeaseToken, SequenceId, TrackingRunId,
+    MAX_FRAME_NUMBER,
 };
 pub use self::jobs::{
     enqueue, expire_leases, finish, ClaimOutcome, ClaimedJob, JobClaim, JobFile, JobResult, JobRow,
