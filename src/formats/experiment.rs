@@ -412,27 +412,152 @@ fn check_yaml_flow(text: &str, path: &Path) -> Result<(), ExperimentError> {
     Ok(())
 }
 
-/// How deep `value` nests: a scalar 0, a collection one more than its
-/// deepest item.
-fn yaml_depth(value: &serde_norway::Value) -> usize {
-    match value {
-        serde_norway::Value::Sequence(items) => 1 + items.iter().map(yaml_depth).max().unwrap_or(0),
-        serde_norway::Value::Mapping(map) => {
-            1 + map
-                .iter()
-                .map(|(k, v)| yaml_depth(k).max(yaml_depth(v)))
-                .max()
-                .unwrap_or(0)
+/// The most items (scalars, lists and mappings) a pyptv YAML may have,
+/// an alias counted each time it is used: 32,768. pyptv's has about 400;
+/// 64 KiB of text without aliases hold at most about 32k (`1,` each), so
+/// this bounds what aliases may expand to (15 KB of `&a [1,1,...]` and
+/// `[*a,*a,...]` made 640 MiB and 4 s of values) at what the largest plain
+/// YAML costs.
+pub const MAX_YAML_ITEMS: usize = 32_768;
+
+/// Walks a YAML document as its parsers will (aliases expanded), building
+/// nothing, and stops as soon as it has more than [`MAX_YAML_ITEMS`] items
+/// or nests deeper than [`MAX_YAML_DEPTH`].
+#[derive(Clone, Copy)]
+struct YamlBudget<'a> {
+    items: &'a std::cell::Cell<usize>,
+    depth: usize,
+}
+
+/// The start of [`YamlBudget`]'s refusals (the YAML library appends the
+/// position).
+const YAML_LIMIT: &str = "beyond the limits of a pyptv YAML: ";
+
+impl YamlBudget<'_> {
+    fn item<E: serde::de::Error>(self) -> Result<(), E> {
+        self.items.set(self.items.get() + 1);
+        if self.items.get() > MAX_YAML_ITEMS {
+            return Err(E::custom(format!(
+                "{YAML_LIMIT}more than {MAX_YAML_ITEMS} items (values, lists and mappings, an \
+                 alias counted each time it is used; pyptv's YAML has some 400)"
+            )));
         }
-        serde_norway::Value::Tagged(tagged) => yaml_depth(&tagged.value),
-        _ => 0,
+        Ok(())
+    }
+
+    fn inner<E: serde::de::Error>(self) -> Result<Self, E> {
+        self.item()?;
+        if self.depth >= MAX_YAML_DEPTH {
+            return Err(E::custom(format!(
+                "{YAML_LIMIT}nested more than {MAX_YAML_DEPTH} levels deep (pyptv's nests 3: \
+                 section, key, list)"
+            )));
+        }
+        Ok(YamlBudget {
+            depth: self.depth + 1,
+            ..self
+        })
+    }
+}
+
+impl<'de> serde::de::DeserializeSeed<'de> for YamlBudget<'_> {
+    type Value = ();
+
+    fn deserialize<D: serde::Deserializer<'de>>(self, deserializer: D) -> Result<(), D::Error> {
+        deserializer.deserialize_any(self)
+    }
+}
+
+impl<'de> serde::de::Visitor<'de> for YamlBudget<'_> {
+    type Value = ();
+
+    fn expecting(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+        f.write_str("any YAML value")
+    }
+
+    fn visit_bool<E: serde::de::Error>(self, _: bool) -> Result<(), E> {
+        self.item()
+    }
+
+    fn visit_i64<E: serde::de::Error>(self, _: i64) -> Result<(), E> {
+        self.item()
+    }
+
+    fn visit_u64<E: serde::de::Error>(self, _: u64) -> Result<(), E> {
+        self.item()
+    }
+
+    fn visit_f64<E: serde::de::Error>(self, _: f64) -> Result<(), E> {
+        self.item()
+    }
+
+    fn visit_i128<E: serde::de::Error>(self, _: i128) -> Result<(), E> {
+        self.item()
+    }
+
+    fn visit_u128<E: serde::de::Error>(self, _: u128) -> Result<(), E> {
+        self.item()
+    }
+
+    fn visit_char<E: serde::de::Error>(self, _: char) -> Result<(), E> {
+        self.item()
+    }
+
+    fn visit_str<E: serde::de::Error>(self, _: &str) -> Result<(), E> {
+        self.item()
+    }
+
+    fn visit_bytes<E: serde::de::Error>(self, _: &[u8]) -> Result<(), E> {
+        self.item()
+    }
+
+    fn visit_unit<E: serde::de::Error>(self) -> Result<(), E> {
+        self.item()
+    }
+
+    fn visit_none<E: serde::de::Error>(self) -> Result<(), E> {
+        self.item()
+    }
+
+    fn visit_some<D: serde::Deserializer<'de>>(self, deserializer: D) -> Result<(), D::Error> {
+        deserializer.deserialize_any(self)
+    }
+
+    fn visit_newtype_struct<D: serde::Deserializer<'de>>(
+        self,
+        deserializer: D,
+    ) -> Result<(), D::Error> {
+        deserializer.deserialize_any(self)
+    }
+
+    fn visit_seq<A: serde::de::SeqAccess<'de>>(self, mut seq: A) -> Result<(), A::Error> {
+        let inner = self.inner()?;
+        while seq.next_element_seed(inner)?.is_some() {}
+        Ok(())
+    }
+
+    fn visit_map<A: serde::de::MapAccess<'de>>(self, mut map: A) -> Result<(), A::Error> {
+        let inner = self.inner()?;
+        while map.next_key_seed(inner)?.is_some() {
+            map.next_value_seed(inner)?;
+        }
+        Ok(())
+    }
+
+    fn visit_enum<A: serde::de::EnumAccess<'de>>(self, data: A) -> Result<(), A::Error> {
+        // A tagged value (`!tag value`): the tag, then the value.
+        use serde::de::VariantAccess;
+        let ((), variant) = data.variant_seed(self)?;
+        variant.newtype_variant_seed(self)
     }
 }
 
 /// The YAML library's message for nesting beyond its own limit (128), in
 /// this importer's words.
 fn yaml_reason(message: String) -> String {
-    if message.starts_with("recursion limit exceeded") {
+    if let Some(limit) = message.find(YAML_LIMIT) {
+        message[limit + YAML_LIMIT.len()..].to_owned()
+    } else if message.starts_with("recursion limit exceeded") {
         format!(
             "nested more than {MAX_YAML_DEPTH} levels deep, the most a pyptv YAML may be \
              (pyptv's nests 3: section, key, list)"
@@ -494,8 +619,9 @@ fn read_yaml(
 ) -> Result<Experiment, ExperimentError> {
     let text = files.read_text(path)?;
     check_yaml_flow(&text, path)?;
-    // The whole text as a value first: its depth is checked before the
-    // sections are read (they skip what they ignore at any depth).
+    // The items and depth first, aliases expanded, nothing built: the
+    // sections skip what they ignore at any depth, and the value would
+    // expand aliases without bound.
     let yaml_error = |error: serde_norway::Error| {
         let line = error.location().map(|l| l.line());
         let mut reason = yaml_reason(error.to_string());
@@ -508,20 +634,26 @@ fn read_yaml(
             reason,
         }
     };
+    let items = std::cell::Cell::new(0);
+    serde::de::DeserializeSeed::deserialize(
+        YamlBudget {
+            items: &items,
+            depth: 0,
+        },
+        serde_norway::Deserializer::from_str(&text),
+    )
+    .or_else(|error| {
+        // A text that does not parse fails before any item is walked: the
+        // sections' own reading names the key where it breaks. Anything
+        // else (a limit passed, a value the walk cannot take) is refused
+        // here, before a parser that expands aliases runs.
+        if items.get() == 0 && !error.to_string().contains(YAML_LIMIT) {
+            Ok(())
+        } else {
+            Err(yaml_error(error))
+        }
+    })?;
     let value = serde_norway::from_str::<serde_norway::Value>(&text);
-    match &value {
-        Err(error) if error.to_string().starts_with("recursion limit exceeded") => {
-            return Err(yaml_error(value.unwrap_err()));
-        }
-        Ok(value) if yaml_depth(value) > MAX_YAML_DEPTH => {
-            return Err(ExperimentError::Invalid {
-                file: path.to_owned(),
-                location: "the whole file".to_owned(),
-                reason: yaml_reason("recursion limit exceeded".to_owned()),
-            });
-        }
-        _ => {}
-    }
     let deserializer = serde_norway::Deserializer::from_str(&text);
     let sections: Sections = serde_path_to_error::deserialize(deserializer).map_err(|err| {
         let key = err.path().to_string();

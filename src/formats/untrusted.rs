@@ -637,3 +637,55 @@ fn escaping_names_in_each_place_are_refused_with_file_line_and_name() {
         }
     }
 }
+
+#[test]
+fn a_key_given_twice_where_the_sections_ignore_it_is_an_error_not_a_panic() {
+    // The sections skip `plugins`; the whole value refuses the duplicate
+    // (this was an `expect`: a panic, and a 500 from the service).
+    let yaml = RECORDING_YAML.replacen(
+        "  selected_tracking: default\n",
+        "  selected_tracking: default\n  selected_tracking: other\n",
+        1,
+    );
+    assert_ne!(yaml, RECORDING_YAML);
+    let mut files = UploadedFiles::new();
+    files
+        .insert_bytes("parameters_Run1.yaml", yaml.into_bytes())
+        .unwrap();
+    for (path, text) in RECORDING_CAL {
+        files.insert_bytes(path, text.as_bytes().to_vec()).unwrap();
+    }
+    let error = experiment::read_experiment_from(&files, std::path::Path::new(""))
+        .unwrap_err()
+        .to_string();
+    assert!(
+        error.starts_with("parameters_Run1.yaml: line ") && error.contains("duplicate"),
+        "{error}"
+    );
+}
+
+#[test]
+fn yaml_aliases_expand_within_the_item_limit_or_are_refused() {
+    let refused = |yaml: String| {
+        let mut files = UploadedFiles::new();
+        files.insert_bytes("parameters_Run1.yaml", yaml.into_bytes()).unwrap();
+        let started = std::time::Instant::now();
+        let error = experiment::read_experiment_from(&files, std::path::Path::new(""))
+            .unwrap_err()
+            .to_string();
+        // Refused by the walk, not after expanding 25M items (seconds, GiB).
+        assert!(started.elapsed() < std::time::Duration::from_secs(2));
+        error
+    };
+    let bomb = format!("a: &a [{}1]\nb: [{}*a]\n", "1,".repeat(5_000), "*a,".repeat(5_000));
+    let error = refused(bomb);
+    assert!(error.contains("more than 32768 items"), "{error}");
+    // Hidden in a tagged value, and in a section the importer ignores.
+    let bomb = format!("a: &a [{}1]\nplugins: !x [{}*a]\n", "1,".repeat(5_000), "*a,".repeat(5_000));
+    let error = refused(bomb);
+    assert!(error.contains("more than 32768 items"), "{error}");
+    // Within the limits the sections are read as ever.
+    let small = RECORDING_YAML.replacen("plugins:\n", "anchors: &a [1, 2]\nmore: [*a, *a]\nplugins:\n", 1);
+    let error = refused(small);
+    assert!(error.contains("cal/cam1.tif.ori"), "{error}");
+}

@@ -27,11 +27,13 @@ use std::path::{Component, Path, PathBuf};
 use crate::formats::FormatError;
 
 /// The largest parameter file (`.par`, `.yaml`, `.ori`, `.addpar`) read:
-/// 256 KiB. OpenPTV's `.par`, `.ori` and `.addpar` files are under 1 KB
+/// 64 KiB. OpenPTV's `.par`, `.ori` and `.addpar` files are under 1 KB
 /// and pyptv's `parameters_*.yaml` 3-5 KB (the test_cavity one is 3.3 KB),
-/// so this leaves 50 times the largest; it bounds what parsing one file may
-/// cost (pyptv's YAML costs about 65 times its size to parse, 17 MiB here).
-pub const MAX_TEXT_BYTES: u64 = 256 * 1024;
+/// so this leaves 13 times the largest; it bounds what parsing one file may
+/// cost: a YAML's events and value take a few hundred bytes per item, up to
+/// about 220 times the text for a list of one-digit numbers (14 MiB here;
+/// the 60 MB list of issue 29 took 3.7 GiB).
+pub const MAX_TEXT_BYTES: u64 = 64 * 1024;
 
 /// Why a name written in an experiment's file is not followed.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -432,10 +434,10 @@ mod tests {
             .read_text(Path::new("parameters_Run1.yaml"))
             .unwrap_err()
             .to_string();
-        assert!(error.contains("256 KiB"), "{error}");
+        assert!(error.contains("64 KiB"), "{error}");
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("ptv.par");
         std::fs::write(&path, vec![b' '; MAX_TEXT_BYTES as usize + 1]).unwrap();
-        assert!(LocalFiles.read_text(&path).unwrap_err().to_string().contains("256 KiB"));
+        assert!(LocalFiles.read_text(&path).unwrap_err().to_string().contains("64 KiB"));
     }
 }

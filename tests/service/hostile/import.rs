@@ -262,12 +262,21 @@ async fn yaml_bombs_are_refused_within_memory_and_time() {
         (
             "a flat list of 60 MB",
             yaml_part(format!("x: [{}1]\n", "1,".repeat(30_000_000))),
-            "larger than 256 KiB",
+            "larger than 64 KiB",
         ),
         (
             "block nesting 100k deep (200 KB)",
             yaml_part(format!("x:\n{}1\n", "- ".repeat(100_000))),
             "nested more than 16 levels deep",
+        ),
+        (
+            "aliases expanding to 25M items (25 KB)",
+            yaml_part(format!(
+                "a: &a [{}1]\nb: [{}*a]\n",
+                "1,".repeat(5_000),
+                "*a,".repeat(5_000)
+            )),
+            "more than 32768 items",
         ),
         (
             "block nesting 17 deep",
