@@ -67,12 +67,12 @@ use super::frames::{FramePattern, WithoutNumber};
 use super::{calibration, openptv, FormatError};
 
 pub mod files;
-pub use files::{ExperimentFiles, LocalFiles, Refused, UploadedFiles};
 use crate::photogrammetry::correspond::MatchingParameters;
 use crate::photogrammetry::{
     Camera, CameraParameters, Centroid, DetectionParameters, Distortion, Media, Sensor, Splitter,
     Volume, Wall,
 };
+pub use files::{ExperimentFiles, LocalFiles, Refused, UploadedFiles};
 
 /// The high-pass radius `hp_flag` stands for: liboptv's
 /// `preprocess_image(img, 0, cpar, 25)` as pyptv calls it subtracts a box
@@ -1388,14 +1388,15 @@ fn map(
             let mut list = Vec::with_capacity(n);
             for camera in 0..n {
                 let name = pattern.format(camera as u64 + 1);
-                let path = files.resolve(root, &name).map_err(|reason| {
-                    ExperimentError::Refused {
-                        file: at.file_of("masking.mask_base_name"),
-                        location: at.location("masking.mask_base_name"),
-                        name: name.clone(),
-                        reason,
-                    }
-                })?;
+                let path =
+                    files
+                        .resolve(root, &name)
+                        .map_err(|reason| ExperimentError::Refused {
+                            file: at.file_of("masking.mask_base_name"),
+                            location: at.location("masking.mask_base_name"),
+                            name: name.clone(),
+                            reason,
+                        })?;
                 if !files.is_file(&path) {
                     return Err(ExperimentError::Missing {
                         file: at.file_of("masking.mask_base_name"),

@@ -361,24 +361,66 @@ fn mutations_reach_every_kind_of_edit() {
 use super::experiment::{self, ExperimentError, ExperimentFiles, UploadedFiles};
 
 const RECORDING: &[(&str, &str)] = &[
-    ("parameters/ptv.par", include_str!("../../tests/data/openptv/test_cavity_recording/parameters/ptv.par")),
-    ("parameters/criteria.par", include_str!("../../tests/data/openptv/test_cavity_recording/parameters/criteria.par")),
-    ("parameters/targ_rec.par", include_str!("../../tests/data/openptv/test_cavity_recording/parameters/targ_rec.par")),
-    ("parameters/sequence.par", include_str!("../../tests/data/openptv/test_cavity_recording/parameters/sequence.par")),
-    ("parameters/cal_ori.par", include_str!("../../tests/data/openptv/test_cavity_recording/parameters/cal_ori.par")),
-    ("parameters/track.par", include_str!("../../tests/data/openptv/test_cavity_recording/parameters/track.par")),
+    (
+        "parameters/ptv.par",
+        include_str!("../../tests/data/openptv/test_cavity_recording/parameters/ptv.par"),
+    ),
+    (
+        "parameters/criteria.par",
+        include_str!("../../tests/data/openptv/test_cavity_recording/parameters/criteria.par"),
+    ),
+    (
+        "parameters/targ_rec.par",
+        include_str!("../../tests/data/openptv/test_cavity_recording/parameters/targ_rec.par"),
+    ),
+    (
+        "parameters/sequence.par",
+        include_str!("../../tests/data/openptv/test_cavity_recording/parameters/sequence.par"),
+    ),
+    (
+        "parameters/cal_ori.par",
+        include_str!("../../tests/data/openptv/test_cavity_recording/parameters/cal_ori.par"),
+    ),
+    (
+        "parameters/track.par",
+        include_str!("../../tests/data/openptv/test_cavity_recording/parameters/track.par"),
+    ),
 ];
 const RECORDING_YAML: &str =
     include_str!("../../tests/data/openptv/test_cavity_recording/parameters_Run1.yaml");
 const RECORDING_CAL: &[(&str, &str)] = &[
-    ("cal/cam1.tif.ori", include_str!("../../tests/data/openptv/test_cavity_recording/cal/cam1.tif.ori")),
-    ("cal/cam1.tif.addpar", include_str!("../../tests/data/openptv/test_cavity_recording/cal/cam1.tif.addpar")),
-    ("cal/cam2.tif.ori", include_str!("../../tests/data/openptv/test_cavity_recording/cal/cam2.tif.ori")),
-    ("cal/cam2.tif.addpar", include_str!("../../tests/data/openptv/test_cavity_recording/cal/cam2.tif.addpar")),
-    ("cal/cam3.tif.ori", include_str!("../../tests/data/openptv/test_cavity_recording/cal/cam3.tif.ori")),
-    ("cal/cam3.tif.addpar", include_str!("../../tests/data/openptv/test_cavity_recording/cal/cam3.tif.addpar")),
-    ("cal/cam4.tif.ori", include_str!("../../tests/data/openptv/test_cavity_recording/cal/cam4.tif.ori")),
-    ("cal/cam4.tif.addpar", include_str!("../../tests/data/openptv/test_cavity_recording/cal/cam4.tif.addpar")),
+    (
+        "cal/cam1.tif.ori",
+        include_str!("../../tests/data/openptv/test_cavity_recording/cal/cam1.tif.ori"),
+    ),
+    (
+        "cal/cam1.tif.addpar",
+        include_str!("../../tests/data/openptv/test_cavity_recording/cal/cam1.tif.addpar"),
+    ),
+    (
+        "cal/cam2.tif.ori",
+        include_str!("../../tests/data/openptv/test_cavity_recording/cal/cam2.tif.ori"),
+    ),
+    (
+        "cal/cam2.tif.addpar",
+        include_str!("../../tests/data/openptv/test_cavity_recording/cal/cam2.tif.addpar"),
+    ),
+    (
+        "cal/cam3.tif.ori",
+        include_str!("../../tests/data/openptv/test_cavity_recording/cal/cam3.tif.ori"),
+    ),
+    (
+        "cal/cam3.tif.addpar",
+        include_str!("../../tests/data/openptv/test_cavity_recording/cal/cam3.tif.addpar"),
+    ),
+    (
+        "cal/cam4.tif.ori",
+        include_str!("../../tests/data/openptv/test_cavity_recording/cal/cam4.tif.ori"),
+    ),
+    (
+        "cal/cam4.tif.addpar",
+        include_str!("../../tests/data/openptv/test_cavity_recording/cal/cam4.tif.addpar"),
+    ),
 ];
 
 /// The secret a planted file holds.
@@ -392,7 +434,9 @@ fn planted() -> &'static std::path::Path {
     DIR.get_or_init(|| {
         let dir = tempfile::tempdir().expect("a temporary directory");
         std::fs::write(dir.path().join("secret"), format!("{PLANTED_SECRET} 1 2\n")).unwrap();
-        let ori = RECORDING_CAL[0].1.replacen("80.9960491", &PLANTED_X0.to_string(), 1);
+        let ori = RECORDING_CAL[0]
+            .1
+            .replacen("80.9960491", &PLANTED_X0.to_string(), 1);
         assert!(ori.contains(&PLANTED_X0.to_string()));
         std::fs::write(dir.path().join("cam1.tif.ori"), ori).unwrap();
         std::fs::write(dir.path().join("mask.1"), PLANTED_SECRET).unwrap();
@@ -498,11 +542,13 @@ impl HostileUpload {
                 }
             }
             if let Some(mask) = &self.mask {
-                yaml = yaml.replacen("mask_flag: false", "mask_flag: true", 1).replacen(
-                    "mask_base_name: ''",
-                    &format!("mask_base_name: {}", yaml_quoted(mask)),
-                    1,
-                );
+                yaml = yaml
+                    .replacen("mask_flag: false", "mask_flag: true", 1)
+                    .replacen(
+                        "mask_base_name: ''",
+                        &format!("mask_base_name: {}", yaml_quoted(mask)),
+                        1,
+                    );
             }
             parts.push(("parameters_Run1.yaml".to_owned(), yaml.into_bytes()));
         } else {
@@ -622,10 +668,19 @@ fn escaping_names_in_each_place_are_refused_with_file_line_and_name() {
             let error = experiment::read_experiment_from(&files, std::path::Path::new(""))
                 .expect_err("refused");
             let message = error.to_string();
-            assert!(matches!(error, ExperimentError::Refused { .. }), "{message}");
+            assert!(
+                matches!(error, ExperimentError::Refused { .. }),
+                "{message}"
+            );
             let (file, key) = match (yaml, mask) {
-                (false, _) => ("parameters/cal_ori.par: line 3, cal_ori.img_ori[0]", name.clone()),
-                (true, false) => ("parameters_Run1.yaml: line 22, cal_ori.img_ori[0]", name.clone()),
+                (false, _) => (
+                    "parameters/cal_ori.par: line 3, cal_ori.img_ori[0]",
+                    name.clone(),
+                ),
+                (true, false) => (
+                    "parameters_Run1.yaml: line 22, cal_ori.img_ori[0]",
+                    name.clone(),
+                ),
                 (true, true) => (
                     "parameters_Run1.yaml: line 228, masking.mask_base_name",
                     format!("{name}.1"),
@@ -668,7 +723,9 @@ fn a_key_given_twice_where_the_sections_ignore_it_is_an_error_not_a_panic() {
 fn yaml_aliases_expand_within_the_item_limit_or_are_refused() {
     let refused = |yaml: String| {
         let mut files = UploadedFiles::new();
-        files.insert_bytes("parameters_Run1.yaml", yaml.into_bytes()).unwrap();
+        files
+            .insert_bytes("parameters_Run1.yaml", yaml.into_bytes())
+            .unwrap();
         let started = std::time::Instant::now();
         let error = experiment::read_experiment_from(&files, std::path::Path::new(""))
             .unwrap_err()
@@ -677,15 +734,27 @@ fn yaml_aliases_expand_within_the_item_limit_or_are_refused() {
         assert!(started.elapsed() < std::time::Duration::from_secs(2));
         error
     };
-    let bomb = format!("a: &a [{}1]\nb: [{}*a]\n", "1,".repeat(5_000), "*a,".repeat(5_000));
+    let bomb = format!(
+        "a: &a [{}1]\nb: [{}*a]\n",
+        "1,".repeat(5_000),
+        "*a,".repeat(5_000)
+    );
     let error = refused(bomb);
     assert!(error.contains("more than 32768 items"), "{error}");
     // Hidden in a tagged value, and in a section the importer ignores.
-    let bomb = format!("a: &a [{}1]\nplugins: !x [{}*a]\n", "1,".repeat(5_000), "*a,".repeat(5_000));
+    let bomb = format!(
+        "a: &a [{}1]\nplugins: !x [{}*a]\n",
+        "1,".repeat(5_000),
+        "*a,".repeat(5_000)
+    );
     let error = refused(bomb);
     assert!(error.contains("more than 32768 items"), "{error}");
     // Within the limits the sections are read as ever.
-    let small = RECORDING_YAML.replacen("plugins:\n", "anchors: &a [1, 2]\nmore: [*a, *a]\nplugins:\n", 1);
+    let small = RECORDING_YAML.replacen(
+        "plugins:\n",
+        "anchors: &a [1, 2]\nmore: [*a, *a]\nplugins:\n",
+        1,
+    );
     let error = refused(small);
     assert!(error.contains("cal/cam1.tif.ori"), "{error}");
 }

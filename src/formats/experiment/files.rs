@@ -85,11 +85,7 @@ fn too_large(path: &Path, limit: u64) -> FormatError {
     )
 }
 
-fn read_up_to(
-    mut reader: impl Read,
-    path: &Path,
-    limit: u64,
-) -> Result<Vec<u8>, FormatError> {
+fn read_up_to(mut reader: impl Read, path: &Path, limit: u64) -> Result<Vec<u8>, FormatError> {
     let mut bytes = Vec::new();
     reader
         .by_ref()
@@ -321,10 +317,10 @@ impl ExperimentFiles for UploadedFiles {
         };
         let dir = dir.trim_end_matches('/');
         dir.is_empty()
-            || self
-                .files
-                .keys()
-                .any(|key| key.strip_prefix(dir).is_some_and(|rest| rest.starts_with('/')))
+            || self.files.keys().any(|key| {
+                key.strip_prefix(dir)
+                    .is_some_and(|rest| rest.starts_with('/'))
+            })
     }
 
     fn list(&self, dir: &Path) -> Vec<String> {
@@ -367,8 +363,14 @@ mod tests {
 
     #[test]
     fn keys_are_plain_relative_paths() {
-        assert_eq!(UploadedFiles::key("parameters/ptv.par").unwrap(), "parameters/ptv.par");
-        assert_eq!(UploadedFiles::key("./cal//cam1.tif.ori").unwrap(), "cal/cam1.tif.ori");
+        assert_eq!(
+            UploadedFiles::key("parameters/ptv.par").unwrap(),
+            "parameters/ptv.par"
+        );
+        assert_eq!(
+            UploadedFiles::key("./cal//cam1.tif.ori").unwrap(),
+            "cal/cam1.tif.ori"
+        );
         for name in [
             "",
             "/proc/self/environ",
@@ -390,13 +392,19 @@ mod tests {
     #[test]
     fn an_uploaded_set_reads_only_its_files() {
         let mut files = UploadedFiles::new();
-        assert!(files.insert_bytes("parameters/ptv.par", b"4\n".to_vec()).unwrap());
-        assert!(!files.insert_bytes("./parameters/ptv.par", Vec::new()).unwrap());
+        assert!(files
+            .insert_bytes("parameters/ptv.par", b"4\n".to_vec())
+            .unwrap());
+        assert!(!files
+            .insert_bytes("./parameters/ptv.par", Vec::new())
+            .unwrap());
         let root = Path::new("");
         let ptv = files.resolve(root, "parameters/ptv.par").unwrap();
         assert_eq!(files.read_text(&ptv).unwrap(), "4\n");
         assert!(files.resolve(root, "/etc/passwd").is_err());
-        assert!(files.resolve(root, "parameters/../parameters/ptv.par").is_err());
+        assert!(files
+            .resolve(root, "parameters/../parameters/ptv.par")
+            .is_err());
         // A clean name that was not sent is missing, and reading it reads
         // nothing from the disk, whatever is there.
         let missing = files.resolve(root, "etc/passwd").unwrap();
@@ -438,6 +446,10 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("ptv.par");
         std::fs::write(&path, vec![b' '; MAX_TEXT_BYTES as usize + 1]).unwrap();
-        assert!(LocalFiles.read_text(&path).unwrap_err().to_string().contains("64 KiB"));
+        assert!(LocalFiles
+            .read_text(&path)
+            .unwrap_err()
+            .to_string()
+            .contains("64 KiB"));
     }
 }
