@@ -34,6 +34,9 @@ const TOKEN: &str = "hostile-import-token-7d1e";
 /// What the planted file holds.
 const SECRET: &str = "CANARY-SECRET-0b4f7c2a";
 
+/// An upload's files: (path inside the experiment, bytes).
+type Upload = Vec<(String, Vec<u8>)>;
+
 fn recording() -> std::path::PathBuf {
     repository().join("tests/data/openptv/test_cavity_recording")
 }
@@ -171,7 +174,7 @@ async fn names_inside_an_experiment_never_reach_the_servers_disk() {
     let par = "parameters/cal_ori.par: line 3, cal_ori.img_ori[0]";
     let img_ori = "parameters_Run1.yaml: line 22, cal_ori.img_ori[0]";
     let mask = "parameters_Run1.yaml: line 228, masking.mask_base_name";
-    let cases: Vec<(Vec<(String, Vec<u8>)>, &str, String)> = vec![
+    let cases: Vec<(Upload, &str, String)> = vec![
         (
             legacy("/proc/self/environ"),
             par,
@@ -283,7 +286,7 @@ async fn yaml_bombs_are_refused_within_memory_and_time() {
     let idle = server.peak_memory_mib();
 
     let yaml_part = |text: String| vec![("parameters_Run1.yaml".to_owned(), text.into_bytes())];
-    let bombs: Vec<(&str, Vec<(String, Vec<u8>)>, &str)> = vec![
+    let bombs: Vec<(&str, Upload, &str)> = vec![
         (
             "flow nesting 100k deep (200 KB)",
             yaml_part(format!(
