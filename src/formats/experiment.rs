@@ -15,6 +15,14 @@
 //! - a directory with exactly one `parameters_*.yaml` and no `parameters/`:
 //!   that YAML. With several, the error lists them: give the file's path.
 //!
+//! Every file is opened through an [`ExperimentFiles`] the caller picks
+//! ([`read_experiment_from`]): the command line's [`LocalFiles`] follow the
+//! user's own paths; the service's [`UploadedFiles`] resolve a name only to
+//! a file uploaded with it, and refuse absolute names and `..`
+//! ([`ExperimentError::Refused`]). Parameter files are read up to
+//! [`files::MAX_TEXT_BYTES`]; a YAML may hold [`MAX_YAML_FLOW`] `[`/`{`
+//! and nest [`MAX_YAML_DEPTH`] levels, for both.
+//!
 //! Both forms are first read into one set of sections named as pyptv's YAML
 //! names them, then mapped, so the two give the same settings. The mapping
 //! (design paper, sections 6.1 and 6.2):
@@ -57,11 +65,14 @@ use serde::Deserialize;
 
 use super::frames::{FramePattern, WithoutNumber};
 use super::{calibration, openptv, FormatError};
+
+pub mod files;
 use crate::photogrammetry::correspond::MatchingParameters;
 use crate::photogrammetry::{
     Camera, CameraParameters, Centroid, DetectionParameters, Distortion, Media, Sensor, Splitter,
     Volume, Wall,
 };
+pub use files::{ExperimentFiles, LocalFiles, Refused, UploadedFiles};
 
 /// The high-pass radius `hp_flag` stands for: liboptv's
 /// `preprocess_image(img, 0, cpar, 25)` as pyptv calls it subtracts a box
@@ -153,6 +164,25 @@ pub enum ExperimentError {
         location: String,
         /// The missing file.
         missing: PathBuf,
+    },
+    /// A name written in the experiment's files that may not be followed:
+    /// from an uploaded set ([`UploadedFiles`]), an absolute path, one with
+    /// `..`, or one that is no plain relative path.
+    #[error(
+        "{}: {location}: names `{}`, which is {}; an uploaded experiment may name only the \
+         files sent with it, by their paths inside the experiment directory (e.g. \
+         cal/cam1.tif.ori)",
+        file.display(), name.escape_debug(), reason.0
+    )]
+    Refused {
+        /// The parameter file.
+        file: PathBuf,
+        /// Where it names it.
+        location: String,
+        /// The name as written.
+        name: String,
+        /// Why it is refused.
+        reason: Refused,
     },
     /// The directory holds no experiment, or several YAMLs.
     #[error("{}: {reason}", dir.display())]
@@ -286,11 +316,22 @@ impl Locator {
 /// Reads an experiment: a directory (the legacy `parameters/` folder, or
 /// its one `parameters_*.yaml`) or a pyptv YAML file.
 pub fn read_experiment(dir: &Path) -> Result<Experiment, ExperimentError> {
-    if dir.is_file() {
+    read_experiment_from(&LocalFiles, dir)
+}
+
+/// Reads an experiment from `files` (the local file system, or an uploaded
+/// set whose root is the empty path): every file the importer opens is
+/// opened through it, so names inside the experiment's files resolve only
+/// where `files` lets them.
+pub fn read_experiment_from(
+    files: &dyn ExperimentFiles,
+    dir: &Path,
+) -> Result<Experiment, ExperimentError> {
+    if files.is_file(dir) {
         let root = dir.parent().unwrap_or(Path::new(".")).to_owned();
-        return read_yaml(dir, &root);
+        return read_yaml(files, dir, &root);
     }
-    if !dir.is_dir() {
+    if !files.is_dir(dir) {
         return Err(ExperimentError::NotAnExperiment {
             dir: dir.to_owned(),
             reason: "no such file or directory; give an OpenPTV experiment directory (with \
@@ -298,24 +339,18 @@ pub fn read_experiment(dir: &Path) -> Result<Experiment, ExperimentError> {
                 .into(),
         });
     }
-    if dir.join("parameters").join("ptv.par").is_file() {
-        return read_legacy(dir);
+    if files.is_file(&dir.join("parameters").join("ptv.par")) {
+        return read_legacy(files, dir);
     }
-    let mut yamls: Vec<PathBuf> = std::fs::read_dir(dir)
-        .map_err(|reason| FormatError::Io {
-            path: dir.to_owned(),
-            reason,
-        })?
-        .filter_map(|entry| entry.ok().map(|e| e.path()))
-        .filter(|path| {
-            path.file_name().and_then(|n| n.to_str()).is_some_and(|n| {
-                n.starts_with("parameters") && (n.ends_with(".yaml") || n.ends_with(".yml"))
-            })
-        })
+    let yamls: Vec<PathBuf> = files
+        .list(dir)
+        .into_iter()
+        .filter(|n| n.starts_with("parameters") && (n.ends_with(".yaml") || n.ends_with(".yml")))
+        .map(|n| dir.join(n))
+        .filter(|path| files.is_file(path))
         .collect();
-    yamls.sort();
     match yamls.as_slice() {
-        [one] => read_yaml(one, dir),
+        [one] => read_yaml(files, one, dir),
         [] => Err(ExperimentError::NotAnExperiment {
             dir: dir.to_owned(),
             reason: "has neither parameters/ptv.par nor a parameters_*.yaml; give an OpenPTV \
@@ -338,33 +373,287 @@ pub fn read_experiment(dir: &Path) -> Result<Experiment, ExperimentError> {
 
 // --- pyptv's YAML ---------------------------------------------------------
 
-/// The line (1-based) of `key:` inside the top-level `section:` of a YAML
-/// text, for errors found after parsing.
-fn yaml_line(text: &str, section: &str, key: &str) -> Option<usize> {
-    let mut inside = false;
+/// The most `[` and `{` a pyptv YAML may hold: 256. The YAML parser
+/// (libyaml) scans every token against each flow collection open around it,
+/// so flow nesting costs quadratic time before any depth check can run (a
+/// 200 KB `[[[[...` took 20 s); counting the characters, in the text as
+/// written, bounds that whatever the nesting. pyptv writes its lists as
+/// `- item` lines (no brackets); a hand-written `[a, b]` per list of its
+/// some 30 lists stays far below.
+pub const MAX_YAML_FLOW: usize = 256;
+
+/// The deepest nesting a pyptv YAML may have: 16 levels (sections are the
+/// first, their keys' mappings or lists the second and third; pyptv's YAML
+/// nests 3 deep).
+pub const MAX_YAML_DEPTH: usize = 16;
+
+/// Refuses a YAML text with more than [`MAX_YAML_FLOW`] flow brackets,
+/// before it is parsed. Every `[` and `{` counts (inside strings too: an
+/// over-count can only refuse, never let a nesting through), except on
+/// comment lines, which the parser skips whatever they hold.
+fn check_yaml_flow(text: &str, path: &Path) -> Result<(), ExperimentError> {
+    let mut count = 0;
     for (i, line) in text.lines().enumerate() {
-        let indented = line.starts_with(' ') || line.starts_with('\t');
-        let trimmed = line.trim_start();
-        if !indented && !trimmed.is_empty() {
-            if inside && key.is_empty() {
-                return None;
-            }
-            inside = trimmed.strip_suffix(':').unwrap_or(trimmed) == section
-                || trimmed.starts_with(&format!("{section}:"));
-            if inside && key.is_empty() {
-                return Some(i + 1);
-            }
+        if line.trim_start().starts_with('#') {
             continue;
         }
-        if inside && indented && trimmed.starts_with(&format!("{key}:")) {
-            return Some(i + 1);
+        count += line.bytes().filter(|&b| b == b'[' || b == b'{').count();
+        if count > MAX_YAML_FLOW {
+            return Err(ExperimentError::Invalid {
+                file: path.to_owned(),
+                location: format!("line {}", i + 1),
+                reason: format!(
+                    "more than {MAX_YAML_FLOW} `[` and `{{` (flow lists and mappings), the most a \
+                     pyptv YAML may have; write lists as `- item` lines, as pyptv does"
+                ),
+            });
         }
     }
-    None
+    Ok(())
 }
 
-fn read_yaml(path: &Path, root: &Path) -> Result<Experiment, ExperimentError> {
-    let text = super::read_text(path)?;
+/// The most items (scalars, lists and mappings) a pyptv YAML may have,
+/// an alias counted each time it is used: 32,768. pyptv's has about 400;
+/// 64 KiB of text without aliases hold at most about 32k (`1,` each), so
+/// this bounds what aliases may expand to (15 KB of `&a [1,1,...]` and
+/// `[*a,*a,...]` made 640 MiB and 4 s of values) at what the largest plain
+/// YAML costs.
+pub const MAX_YAML_ITEMS: usize = 32_768;
+
+/// Walks a YAML document as its parsers will (aliases expanded), building
+/// nothing, and stops as soon as it has more than [`MAX_YAML_ITEMS`] items
+/// or nests deeper than [`MAX_YAML_DEPTH`].
+#[derive(Clone, Copy)]
+struct YamlBudget<'a> {
+    items: &'a std::cell::Cell<usize>,
+    depth: usize,
+}
+
+/// The start of [`YamlBudget`]'s refusals (the YAML library appends the
+/// position).
+const YAML_LIMIT: &str = "beyond the limits of a pyptv YAML: ";
+
+impl YamlBudget<'_> {
+    fn item<E: serde::de::Error>(self) -> Result<(), E> {
+        self.items.set(self.items.get() + 1);
+        if self.items.get() > MAX_YAML_ITEMS {
+            return Err(E::custom(format!(
+                "{YAML_LIMIT}more than {MAX_YAML_ITEMS} items (values, lists and mappings, an \
+                 alias counted each time it is used; pyptv's YAML has some 400)"
+            )));
+        }
+        Ok(())
+    }
+
+    fn inner<E: serde::de::Error>(self) -> Result<Self, E> {
+        self.item()?;
+        if self.depth >= MAX_YAML_DEPTH {
+            return Err(E::custom(format!(
+                "{YAML_LIMIT}nested more than {MAX_YAML_DEPTH} levels deep (pyptv's nests 3: \
+                 section, key, list)"
+            )));
+        }
+        Ok(YamlBudget {
+            depth: self.depth + 1,
+            ..self
+        })
+    }
+}
+
+impl<'de> serde::de::DeserializeSeed<'de> for YamlBudget<'_> {
+    type Value = ();
+
+    fn deserialize<D: serde::Deserializer<'de>>(self, deserializer: D) -> Result<(), D::Error> {
+        deserializer.deserialize_any(self)
+    }
+}
+
+impl<'de> serde::de::Visitor<'de> for YamlBudget<'_> {
+    type Value = ();
+
+    fn expecting(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+        f.write_str("any YAML value")
+    }
+
+    fn visit_bool<E: serde::de::Error>(self, _: bool) -> Result<(), E> {
+        self.item()
+    }
+
+    fn visit_i64<E: serde::de::Error>(self, _: i64) -> Result<(), E> {
+        self.item()
+    }
+
+    fn visit_u64<E: serde::de::Error>(self, _: u64) -> Result<(), E> {
+        self.item()
+    }
+
+    fn visit_f64<E: serde::de::Error>(self, _: f64) -> Result<(), E> {
+        self.item()
+    }
+
+    fn visit_i128<E: serde::de::Error>(self, _: i128) -> Result<(), E> {
+        self.item()
+    }
+
+    fn visit_u128<E: serde::de::Error>(self, _: u128) -> Result<(), E> {
+        self.item()
+    }
+
+    fn visit_char<E: serde::de::Error>(self, _: char) -> Result<(), E> {
+        self.item()
+    }
+
+    fn visit_str<E: serde::de::Error>(self, _: &str) -> Result<(), E> {
+        self.item()
+    }
+
+    fn visit_bytes<E: serde::de::Error>(self, _: &[u8]) -> Result<(), E> {
+        self.item()
+    }
+
+    fn visit_unit<E: serde::de::Error>(self) -> Result<(), E> {
+        self.item()
+    }
+
+    fn visit_none<E: serde::de::Error>(self) -> Result<(), E> {
+        self.item()
+    }
+
+    fn visit_some<D: serde::Deserializer<'de>>(self, deserializer: D) -> Result<(), D::Error> {
+        deserializer.deserialize_any(self)
+    }
+
+    fn visit_newtype_struct<D: serde::Deserializer<'de>>(
+        self,
+        deserializer: D,
+    ) -> Result<(), D::Error> {
+        deserializer.deserialize_any(self)
+    }
+
+    fn visit_seq<A: serde::de::SeqAccess<'de>>(self, mut seq: A) -> Result<(), A::Error> {
+        let inner = self.inner()?;
+        while seq.next_element_seed(inner)?.is_some() {}
+        Ok(())
+    }
+
+    fn visit_map<A: serde::de::MapAccess<'de>>(self, mut map: A) -> Result<(), A::Error> {
+        let inner = self.inner()?;
+        while map.next_key_seed(inner)?.is_some() {
+            map.next_value_seed(inner)?;
+        }
+        Ok(())
+    }
+
+    fn visit_enum<A: serde::de::EnumAccess<'de>>(self, data: A) -> Result<(), A::Error> {
+        // A tagged value (`!tag value`): the tag, then the value.
+        use serde::de::VariantAccess;
+        let ((), variant) = data.variant_seed(self)?;
+        variant.newtype_variant_seed(self)
+    }
+}
+
+/// The YAML library's message for nesting beyond its own limit (128), in
+/// this importer's words.
+fn yaml_reason(message: String) -> String {
+    if let Some(limit) = message.find(YAML_LIMIT) {
+        message[limit + YAML_LIMIT.len()..].to_owned()
+    } else if message.starts_with("recursion limit exceeded") {
+        format!(
+            "nested more than {MAX_YAML_DEPTH} levels deep, the most a pyptv YAML may be \
+             (pyptv's nests 3: section, key, list)"
+        )
+    } else {
+        message
+    }
+}
+
+/// The lines (1-based) of a YAML text's top-level `section:` lines and of
+/// the `key:` lines inside each, found in one pass (the first of each).
+#[derive(Default)]
+struct YamlLines {
+    sections: BTreeMap<String, usize>,
+    keys: BTreeMap<(String, String), usize>,
+}
+
+impl YamlLines {
+    fn new(text: &str) -> Self {
+        let mut lines = YamlLines::default();
+        let mut section: Option<String> = None;
+        for (i, line) in text.lines().enumerate() {
+            let indented = line.starts_with(' ') || line.starts_with('\t');
+            let trimmed = line.trim_start();
+            if trimmed.is_empty() {
+                continue;
+            }
+            if !indented {
+                let name = trimmed.split(':').next().unwrap_or(trimmed).to_owned();
+                lines.sections.entry(name.clone()).or_insert(i + 1);
+                section = Some(name);
+            } else if let (Some(section), Some((key, _))) = (&section, trimmed.split_once(':')) {
+                lines
+                    .keys
+                    .entry((section.clone(), key.to_owned()))
+                    .or_insert(i + 1);
+            }
+        }
+        lines
+    }
+
+    /// The line of `key:` inside `section:`, or of `section:` itself for an
+    /// empty key.
+    fn line(&self, section: &str, key: &str) -> Option<usize> {
+        if key.is_empty() {
+            self.sections.get(section).copied()
+        } else {
+            self.keys
+                .get(&(section.to_owned(), key.to_owned()))
+                .copied()
+        }
+    }
+}
+
+fn read_yaml(
+    files: &dyn ExperimentFiles,
+    path: &Path,
+    root: &Path,
+) -> Result<Experiment, ExperimentError> {
+    let text = files.read_text(path)?;
+    check_yaml_flow(&text, path)?;
+    // The items and depth first, aliases expanded, nothing built: the
+    // sections skip what they ignore at any depth, and the value would
+    // expand aliases without bound.
+    let yaml_error = |error: serde_norway::Error| {
+        let line = error.location().map(|l| l.line());
+        let mut reason = yaml_reason(error.to_string());
+        if let Some(at) = reason.find(" at line ") {
+            reason.truncate(at);
+        }
+        ExperimentError::Invalid {
+            file: path.to_owned(),
+            location: line.map_or_else(|| "the whole file".to_owned(), |l| format!("line {l}")),
+            reason,
+        }
+    };
+    let items = std::cell::Cell::new(0);
+    serde::de::DeserializeSeed::deserialize(
+        YamlBudget {
+            items: &items,
+            depth: 0,
+        },
+        serde_norway::Deserializer::from_str(&text),
+    )
+    .or_else(|error| {
+        // A text that does not parse fails before any item is walked: the
+        // sections' own reading names the key where it breaks. Anything
+        // else (a limit passed, a value the walk cannot take) is refused
+        // here, before a parser that expands aliases runs.
+        if items.get() == 0 && !error.to_string().contains(YAML_LIMIT) {
+            Ok(())
+        } else {
+            Err(yaml_error(error))
+        }
+    })?;
+    let value = serde_norway::from_str::<serde_norway::Value>(&text);
     let deserializer = serde_norway::Deserializer::from_str(&text);
     let sections: Sections = serde_path_to_error::deserialize(deserializer).map_err(|err| {
         let key = err.path().to_string();
@@ -372,7 +661,7 @@ fn read_yaml(path: &Path, root: &Path) -> Result<Experiment, ExperimentError> {
         let line = inner.location().map(|l| l.line());
         // The YAML library's message ends with its own position; the
         // location says it once.
-        let mut reason = inner.to_string();
+        let mut reason = yaml_reason(inner.to_string());
         if let Some(at) = reason.find(" at line ") {
             reason.truncate(at);
         }
@@ -392,8 +681,10 @@ fn read_yaml(path: &Path, root: &Path) -> Result<Experiment, ExperimentError> {
     })?;
     let mut places = BTreeMap::new();
     let mut section_files = BTreeMap::new();
-    let value: serde_norway::Value =
-        serde_norway::from_str(&text).expect("a YAML that deserialised into sections parses");
+    // The sections read, the value may still have failed: a key given
+    // twice in a section they ignore.
+    let value = value.map_err(yaml_error)?;
+    let lines = YamlLines::new(&text);
     let mut unmapped = Vec::new();
     if let serde_norway::Value::Mapping(top) = &value {
         for (section, body) in top {
@@ -401,7 +692,7 @@ fn read_yaml(path: &Path, root: &Path) -> Result<Experiment, ExperimentError> {
                 continue;
             };
             section_files.insert(section.to_owned(), path.to_owned());
-            if let Some(line) = yaml_line(&text, section, "") {
+            if let Some(line) = lines.line(section, "") {
                 places.insert(section.to_owned(), (path.to_owned(), line));
             }
             let per_key = matches!(
@@ -413,7 +704,7 @@ fn read_yaml(path: &Path, root: &Path) -> Result<Experiment, ExperimentError> {
                     for (key, value) in keys {
                         let Some(key) = key.as_str() else { continue };
                         let full = format!("{section}.{key}");
-                        if let Some(line) = yaml_line(&text, section, key) {
+                        if let Some(line) = lines.line(section, key) {
                             places.insert(full.clone(), (path.to_owned(), line));
                         }
                         if let Some(reason) = unmapped_reason(section, key) {
@@ -446,7 +737,7 @@ fn read_yaml(path: &Path, root: &Path) -> Result<Experiment, ExperimentError> {
         places,
         section_files,
     };
-    map(sections, root, &locator, unmapped)
+    map(files, sections, root, &locator, unmapped)
 }
 
 fn yaml_value_text(value: &serde_norway::Value) -> String {
@@ -567,13 +858,14 @@ struct ParFile<'a> {
 
 impl<'a> ParFile<'a> {
     fn open(
+        files: &dyn ExperimentFiles,
         dir: &Path,
         name: &str,
         section: &'static str,
         places: &'a mut BTreeMap<String, (PathBuf, usize)>,
     ) -> Result<Self, ExperimentError> {
         let path = dir.join("parameters").join(name);
-        let text = super::read_text(&path)?;
+        let text = files.read_text(&path)?;
         let lines =
             openptv::ParLines::new(&text, &path.display().to_string(), &format!("{section}."));
         Ok(ParFile {
@@ -617,7 +909,7 @@ impl<'a> ParFile<'a> {
     }
 }
 
-fn read_legacy(dir: &Path) -> Result<Experiment, ExperimentError> {
+fn read_legacy(files: &dyn ExperimentFiles, dir: &Path) -> Result<Experiment, ExperimentError> {
     let mut places = BTreeMap::new();
     let mut section_files = BTreeMap::new();
     let mut unmapped = Vec::new();
@@ -636,7 +928,7 @@ fn read_legacy(dir: &Path) -> Result<Experiment, ExperimentError> {
     // ptv.par: OpenPTV's one reader of it, keys as pyptv's YAML names them.
     let ptv_path = par("ptv.par");
     let ptv_par = openptv::read_ptv_par(
-        &super::read_text(&ptv_path)?,
+        &files.read_text(&ptv_path)?,
         &ptv_path.display().to_string(),
         "ptv.",
     )?;
@@ -678,7 +970,7 @@ fn read_legacy(dir: &Path) -> Result<Experiment, ExperimentError> {
             .into(),
     });
 
-    let mut f = ParFile::open(dir, "cal_ori.par", "cal_ori", &mut places)?;
+    let mut f = ParFile::open(files, dir, "cal_ori.par", "cal_ori", &mut places)?;
     let fixp_name = f.text("fixp_name")?;
     let mut img_ori = Vec::new();
     for i in 0..n {
@@ -696,7 +988,7 @@ fn read_legacy(dir: &Path) -> Result<Experiment, ExperimentError> {
     });
     let cal_ori = CalOriSection { img_ori };
 
-    let mut f = ParFile::open(dir, "criteria.par", "criteria", &mut places)?;
+    let mut f = ParFile::open(files, dir, "criteria.par", "criteria", &mut places)?;
     let mut lay = [[0.0; 3]; 2];
     for (i, layer) in lay.iter_mut().enumerate() {
         layer[0] = f.number(&format!("X_lay[{i}]"))?;
@@ -724,7 +1016,7 @@ fn read_legacy(dir: &Path) -> Result<Experiment, ExperimentError> {
     }
 
     // liboptv reads four thresholds whatever the camera count.
-    let mut f = ParFile::open(dir, "targ_rec.par", "targ_rec", &mut places)?;
+    let mut f = ParFile::open(files, dir, "targ_rec.par", "targ_rec", &mut places)?;
     let mut gvthres = Vec::new();
     for i in 0..n.max(4) {
         gvthres.push(f.integer(&format!("gvthres[{i}]"))?);
@@ -750,7 +1042,7 @@ fn read_legacy(dir: &Path) -> Result<Experiment, ExperimentError> {
             .into(),
     });
 
-    let mut f = ParFile::open(dir, "sequence.par", "sequence", &mut places)?;
+    let mut f = ParFile::open(files, dir, "sequence.par", "sequence", &mut places)?;
     let mut base_name = Vec::new();
     for i in 0..n {
         base_name.push(f.text(&format!("base_name[{i}]"))?);
@@ -762,8 +1054,8 @@ fn read_legacy(dir: &Path) -> Result<Experiment, ExperimentError> {
     };
 
     // Tracking is read only to report it.
-    if par("track.par").is_file() {
-        let mut f = ParFile::open(dir, "track.par", "track", &mut places)?;
+    if files.is_file(&par("track.par")) {
+        let mut f = ParFile::open(files, dir, "track.par", "track", &mut places)?;
         for key in [
             "dvxmin",
             "dvxmax",
@@ -785,27 +1077,22 @@ fn read_legacy(dir: &Path) -> Result<Experiment, ExperimentError> {
         }
     }
     // The other files are calibration's or the GUI's.
-    let mut others: Vec<String> = std::fs::read_dir(dir.join("parameters"))
-        .map(|entries| {
-            entries
-                .filter_map(|e| e.ok())
-                .filter_map(|e| e.file_name().to_str().map(str::to_owned))
-                .filter(|name| name.ends_with(".par"))
-                .filter(|name| {
-                    ![
-                        "ptv.par",
-                        "cal_ori.par",
-                        "criteria.par",
-                        "targ_rec.par",
-                        "sequence.par",
-                        "track.par",
-                    ]
-                    .contains(&name.as_str())
-                })
-                .collect()
+    let others: Vec<String> = files
+        .list(&dir.join("parameters"))
+        .into_iter()
+        .filter(|name| name.ends_with(".par"))
+        .filter(|name| {
+            ![
+                "ptv.par",
+                "cal_ori.par",
+                "criteria.par",
+                "targ_rec.par",
+                "sequence.par",
+                "track.par",
+            ]
+            .contains(&name.as_str())
         })
-        .unwrap_or_default();
-    others.sort();
+        .collect();
     for name in others {
         let section = name.trim_end_matches(".par").to_owned();
         unmapped.push(UnmappedSetting {
@@ -829,12 +1116,13 @@ fn read_legacy(dir: &Path) -> Result<Experiment, ExperimentError> {
         places,
         section_files,
     };
-    map(sections, dir, &locator, unmapped)
+    map(files, sections, dir, &locator, unmapped)
 }
 
 // --- The mapping ----------------------------------------------------------
 
 fn map(
+    files: &dyn ExperimentFiles,
     s: Sections,
     root: &Path,
     at: &Locator,
@@ -903,8 +1191,15 @@ fn map(
     let mut parameters = Vec::with_capacity(n);
     for (i, ori) in s.cal_ori.img_ori.iter().enumerate() {
         let key = format!("cal_ori.img_ori[{i}]");
-        let ori_path = root.join(ori);
-        if !ori_path.is_file() {
+        let ori_path = files
+            .resolve(root, ori)
+            .map_err(|reason| ExperimentError::Refused {
+                file: at.file_of(&key),
+                location: at.location(&key),
+                name: ori.clone(),
+                reason,
+            })?;
+        if !files.is_file(&ori_path) {
             return Err(ExperimentError::Missing {
                 file: at.file_of(&key),
                 location: at.location(&key),
@@ -913,10 +1208,10 @@ fn map(
         }
         let source = ori_path.display().to_string();
         let (exterior, interior, glass_vector) =
-            openptv::parse_ori(&super::read_text(&ori_path)?, &source)?;
+            openptv::parse_ori(&files.read_text(&ori_path)?, &source)?;
         let addpar = openptv::addpar_path(&ori_path);
-        let distortion = if addpar.is_file() {
-            openptv::parse_addpar(&super::read_text(&addpar)?, &addpar.display().to_string())?
+        let distortion = if files.is_file(&addpar) {
+            openptv::parse_addpar(&files.read_text(&addpar)?, &addpar.display().to_string())?
         } else {
             Distortion::default()
         };
@@ -1092,8 +1387,17 @@ fn map(
                 .map_err(|reason| at.invalid("masking.mask_base_name", reason))?;
             let mut list = Vec::with_capacity(n);
             for camera in 0..n {
-                let path = root.join(pattern.path(camera as u64 + 1));
-                if !path.is_file() {
+                let name = pattern.format(camera as u64 + 1);
+                let path =
+                    files
+                        .resolve(root, &name)
+                        .map_err(|reason| ExperimentError::Refused {
+                            file: at.file_of("masking.mask_base_name"),
+                            location: at.location("masking.mask_base_name"),
+                            name: name.clone(),
+                            reason,
+                        })?;
+                if !files.is_file(&path) {
                     return Err(ExperimentError::Missing {
                         file: at.file_of("masking.mask_base_name"),
                         location: at.location("masking.mask_base_name"),
@@ -1158,8 +1462,9 @@ mod tests {
     #[test]
     fn yaml_lines_are_found_inside_their_section() {
         let text = "ptv:\n  imx: 1\ntarg_rec:\n  disco: 100\n  nnmin: 4\nsequence:\n  first: 1\n";
-        assert_eq!(yaml_line(text, "targ_rec", "nnmin"), Some(5));
-        assert_eq!(yaml_line(text, "targ_rec", ""), Some(3));
-        assert_eq!(yaml_line(text, "ptv", "nnmin"), None);
+        let lines = YamlLines::new(text);
+        assert_eq!(lines.line("targ_rec", "nnmin"), Some(5));
+        assert_eq!(lines.line("targ_rec", ""), Some(3));
+        assert_eq!(lines.line("ptv", "nnmin"), None);
     }
 }

@@ -343,3 +343,418 @@ fn mutations_reach_every_kind_of_edit() {
         b"line one\nline one\nline two\n\n"
     );
 }
+
+// --- An uploaded experiment (issue 29) ------------------------------------
+//
+// The importer reading an uploaded set ([`experiment::UploadedFiles`]) with
+// hostile names where the experiment's files name other files (`cal_ori`'s
+// `.ori` files, pyptv's `img_ori` and `mask_base_name`), hostile part
+// names, and mutated contents in any of its files. Planted on this machine
+// are a file holding a secret and a valid `.ori` with a position no
+// experiment has; names point at them (absolute, through `..`), at
+// `/proc/self/environ` and `/etc/passwd`. What must hold: the importer
+// returns; nothing outside the set is read (the secret, this process's
+// environment and the planted camera never show, in an error or in what is
+// imported); a name that is absolute or has `..` is refused, never missing;
+// a refusal names its file, line and name.
+
+use super::experiment::{self, ExperimentError, ExperimentFiles, UploadedFiles};
+
+const RECORDING: &[(&str, &str)] = &[
+    (
+        "parameters/ptv.par",
+        include_str!("../../tests/data/openptv/test_cavity_recording/parameters/ptv.par"),
+    ),
+    (
+        "parameters/criteria.par",
+        include_str!("../../tests/data/openptv/test_cavity_recording/parameters/criteria.par"),
+    ),
+    (
+        "parameters/targ_rec.par",
+        include_str!("../../tests/data/openptv/test_cavity_recording/parameters/targ_rec.par"),
+    ),
+    (
+        "parameters/sequence.par",
+        include_str!("../../tests/data/openptv/test_cavity_recording/parameters/sequence.par"),
+    ),
+    (
+        "parameters/cal_ori.par",
+        include_str!("../../tests/data/openptv/test_cavity_recording/parameters/cal_ori.par"),
+    ),
+    (
+        "parameters/track.par",
+        include_str!("../../tests/data/openptv/test_cavity_recording/parameters/track.par"),
+    ),
+];
+const RECORDING_YAML: &str =
+    include_str!("../../tests/data/openptv/test_cavity_recording/parameters_Run1.yaml");
+const RECORDING_CAL: &[(&str, &str)] = &[
+    (
+        "cal/cam1.tif.ori",
+        include_str!("../../tests/data/openptv/test_cavity_recording/cal/cam1.tif.ori"),
+    ),
+    (
+        "cal/cam1.tif.addpar",
+        include_str!("../../tests/data/openptv/test_cavity_recording/cal/cam1.tif.addpar"),
+    ),
+    (
+        "cal/cam2.tif.ori",
+        include_str!("../../tests/data/openptv/test_cavity_recording/cal/cam2.tif.ori"),
+    ),
+    (
+        "cal/cam2.tif.addpar",
+        include_str!("../../tests/data/openptv/test_cavity_recording/cal/cam2.tif.addpar"),
+    ),
+    (
+        "cal/cam3.tif.ori",
+        include_str!("../../tests/data/openptv/test_cavity_recording/cal/cam3.tif.ori"),
+    ),
+    (
+        "cal/cam3.tif.addpar",
+        include_str!("../../tests/data/openptv/test_cavity_recording/cal/cam3.tif.addpar"),
+    ),
+    (
+        "cal/cam4.tif.ori",
+        include_str!("../../tests/data/openptv/test_cavity_recording/cal/cam4.tif.ori"),
+    ),
+    (
+        "cal/cam4.tif.addpar",
+        include_str!("../../tests/data/openptv/test_cavity_recording/cal/cam4.tif.addpar"),
+    ),
+];
+
+/// The secret a planted file holds.
+const PLANTED_SECRET: &str = "PLANTED-SECRET-5c0f9e1d";
+/// X0 of the planted `.ori` (no experiment's camera is there).
+const PLANTED_X0: f64 = 4242.4242;
+
+/// The planted files' directory (made once): `secret` and `cam1.tif.ori`.
+fn planted() -> &'static std::path::Path {
+    static DIR: std::sync::OnceLock<tempfile::TempDir> = std::sync::OnceLock::new();
+    DIR.get_or_init(|| {
+        let dir = tempfile::tempdir().expect("a temporary directory");
+        std::fs::write(dir.path().join("secret"), format!("{PLANTED_SECRET} 1 2\n")).unwrap();
+        let ori = RECORDING_CAL[0]
+            .1
+            .replacen("80.9960491", &PLANTED_X0.to_string(), 1);
+        assert!(ori.contains(&PLANTED_X0.to_string()));
+        std::fs::write(dir.path().join("cam1.tif.ori"), ori).unwrap();
+        std::fs::write(dir.path().join("mask.1"), PLANTED_SECRET).unwrap();
+        dir
+    })
+    .path()
+}
+
+/// A path segment: plain, `.`, `..`, empty, unicode, NUL, long.
+fn segment() -> impl Strategy<Value = String> {
+    prop_oneof![
+        Just("..".to_owned()),
+        Just(".".to_owned()),
+        Just(String::new()),
+        Just("cal".to_owned()),
+        Just("cam1.tif.ori".to_owned()),
+        Just("parameters".to_owned()),
+        Just("ptv.par".to_owned()),
+        Just("\0".to_owned()),
+        Just("kamera-ü-相机".to_owned()),
+        Just("x".repeat(300)),
+        "[a-z0-9._-]{1,12}",
+        "\\PC{1,6}",
+    ]
+}
+
+/// A name an attacker writes where the experiment names a file.
+fn hostile_name() -> impl Strategy<Value = String> {
+    let planted = planted().display().to_string();
+    prop_oneof![
+        3 => prop_oneof![
+            Just(format!("{planted}/secret")),
+            Just(format!("{planted}/cam1.tif.ori")),
+            Just(format!("{planted}/./cal/../cam1.tif.ori")),
+            Just("/proc/self/environ".to_owned()),
+            Just("/proc/self/cmdline".to_owned()),
+            Just("/etc/passwd".to_owned()),
+            Just(format!("{}{planted}/cam1.tif.ori", "../".repeat(12))),
+            Just("cal/../../../../../../etc/passwd".to_owned()),
+            Just("cal/cam1.tif.ori".to_owned()),
+            Just("cal/cam9.tif.ori".to_owned()),
+        ],
+        3 => (any::<bool>(), prop::collection::vec(segment(), 1..7)).prop_map(|(absolute, parts)| {
+            format!("{}{}", if absolute { "/" } else { "" }, parts.join("/"))
+        }),
+        1 => ".{0,40}",
+        1 => Just("a/".repeat(400)),
+    ]
+}
+
+/// A YAML single-quoted scalar.
+fn yaml_quoted(text: &str) -> String {
+    format!("'{}'", text.replace('\'', "''"))
+}
+
+/// Whether `name` is absolute or has a `..` component.
+fn escapes(name: &str) -> bool {
+    name.starts_with('/') || name.split('/').any(|part| part == "..")
+}
+
+/// One hostile case: which form, names written in the files, parts'
+/// names, and mutations of one file.
+#[derive(Clone, Debug)]
+struct HostileUpload {
+    yaml: bool,
+    /// Per camera 0..4, a name replacing its `.ori`'s (none: kept).
+    oris: Vec<Option<String>>,
+    /// pyptv's masking on, with this `mask_base_name` (YAML form only).
+    mask: Option<String>,
+    /// Extra parts, named so, holding the planted `.ori`'s text.
+    extra_parts: Vec<String>,
+    /// Which file to mutate (an index into the upload) and how.
+    mutated: Option<(usize, Vec<Mutation>)>,
+}
+
+fn hostile_upload() -> impl Strategy<Value = HostileUpload> {
+    (
+        any::<bool>(),
+        prop::collection::vec(prop::option::weighted(0.4, hostile_name()), 4),
+        prop::option::of(hostile_name()),
+        prop::collection::vec(hostile_name(), 0..3),
+        prop::option::weighted(0.4, (0usize..16, prop::collection::vec(mutation(), 1..8))),
+    )
+        .prop_map(|(yaml, oris, mask, extra_parts, mutated)| HostileUpload {
+            yaml,
+            oris,
+            mask,
+            extra_parts,
+            mutated,
+        })
+}
+
+impl HostileUpload {
+    /// The parts (path, bytes) as a client would send them.
+    fn parts(&self) -> Vec<(String, Vec<u8>)> {
+        let mut parts: Vec<(String, Vec<u8>)> = Vec::new();
+        if self.yaml {
+            let mut yaml = RECORDING_YAML.to_owned();
+            for (k, name) in self.oris.iter().enumerate() {
+                if let Some(name) = name {
+                    let line = format!("  - cal/cam{}.tif.ori\n", k + 1);
+                    yaml = yaml.replacen(&line, &format!("  - {}\n", yaml_quoted(name)), 1);
+                }
+            }
+            if let Some(mask) = &self.mask {
+                yaml = yaml
+                    .replacen("mask_flag: false", "mask_flag: true", 1)
+                    .replacen(
+                        "mask_base_name: ''",
+                        &format!("mask_base_name: {}", yaml_quoted(mask)),
+                        1,
+                    );
+            }
+            parts.push(("parameters_Run1.yaml".to_owned(), yaml.into_bytes()));
+        } else {
+            for (path, text) in RECORDING {
+                let mut text = (*text).to_owned();
+                if *path == "parameters/cal_ori.par" {
+                    let mut lines: Vec<String> = text.lines().map(str::to_owned).collect();
+                    for (k, name) in self.oris.iter().enumerate() {
+                        if let Some(name) = name {
+                            // A line holds one name: what follows a line
+                            // break would be the next line's.
+                            lines[2 + 2 * k] = name.replace(['\n', '\r'], " ");
+                        }
+                    }
+                    text = lines.join("\n") + "\n";
+                }
+                parts.push(((*path).to_owned(), text.into_bytes()));
+            }
+        }
+        for (path, text) in RECORDING_CAL {
+            parts.push(((*path).to_owned(), text.as_bytes().to_vec()));
+        }
+        let planted_ori = std::fs::read(planted().join("cam1.tif.ori")).unwrap();
+        for name in &self.extra_parts {
+            parts.push((name.clone(), planted_ori.clone()));
+        }
+        if let Some((index, mutations)) = &self.mutated {
+            let index = index % parts.len();
+            parts[index].1 = mutate(&parts[index].1, mutations);
+        }
+        parts
+    }
+}
+
+/// This process's environment as `NAME=value` texts worth finding (values
+/// of 6 bytes or more).
+fn environment() -> &'static [String] {
+    static VARS: std::sync::OnceLock<Vec<String>> = std::sync::OnceLock::new();
+    VARS.get_or_init(|| {
+        std::env::vars()
+            .filter(|(_, value)| value.len() >= 6)
+            .map(|(name, value)| format!("{name}={value}"))
+            .collect()
+    })
+}
+
+proptest! {
+    #[test]
+    fn an_uploaded_experiment_reads_nothing_outside_its_files(upload in hostile_upload()) {
+        let mut files = UploadedFiles::new();
+        let parts = upload.parts();
+        let extras_from = parts.len() - upload.extra_parts.len();
+        let mut sent_planted = false;
+        for (index, (name, bytes)) in parts.into_iter().enumerate() {
+            // The service refuses such a part (400) before the importer runs.
+            let added = files.insert_bytes(&name, bytes).unwrap_or(false);
+            sent_planted |= added && index >= extras_from;
+        }
+        match experiment::read_experiment_from(&files, std::path::Path::new("")) {
+            Ok(imported) => {
+                for camera in &imported.cameras {
+                    let x0 = camera.parameters().exterior.position.x;
+                    // The planted camera may come only from a part sent.
+                    prop_assert!(x0 != PLANTED_X0 || sent_planted, "the planted .ori was imported");
+                }
+                for mask in imported.masks.iter().flatten() {
+                    prop_assert!(files.is_file(mask), "mask {} is not in the set", mask.display());
+                }
+            }
+            Err(error) => {
+                let message = error.to_string();
+                prop_assert!(!message.contains(PLANTED_SECRET), "{message}");
+                prop_assert!(!message.contains("root:x:0:0"), "{message}");
+                prop_assert!(!message.contains(&planted().display().to_string()) || message.contains("names `"),
+                    "a planted path shows other than as the name written: {message}");
+                for var in environment() {
+                    prop_assert!(!message.contains(var.as_str()), "the environment shows: {message}");
+                }
+                match &error {
+                    ExperimentError::Refused { location, name, .. } => {
+                        prop_assert!(location.starts_with("line "), "{message}");
+                        prop_assert!(message.contains(&format!("`{}`", name.escape_debug())), "{message}");
+                    }
+                    ExperimentError::Missing { missing, .. } => {
+                        let missing = missing.to_str().unwrap_or_default();
+                        prop_assert!(!escapes(missing) && UploadedFiles::key(missing).is_ok(),
+                            "an escaping name counted as missing: {message}");
+                    }
+                    _ => {}
+                }
+            }
+        }
+    }
+}
+
+#[test]
+fn escaping_names_in_each_place_are_refused_with_file_line_and_name() {
+    let planted = planted().display().to_string();
+    for name in [
+        "/proc/self/environ".to_owned(),
+        format!("{planted}/cam1.tif.ori"),
+        "../../etc/passwd".to_owned(),
+        "cal/../cal/cam1.tif.ori".to_owned(),
+    ] {
+        for (yaml, mask) in [(false, false), (true, false), (true, true)] {
+            let upload = HostileUpload {
+                yaml,
+                oris: vec![(!mask).then(|| name.clone()), None, None, None],
+                mask: mask.then(|| name.clone()),
+                extra_parts: Vec::new(),
+                mutated: None,
+            };
+            let mut files = UploadedFiles::new();
+            for (path, bytes) in upload.parts() {
+                assert!(files.insert_bytes(&path, bytes).unwrap());
+            }
+            let error = experiment::read_experiment_from(&files, std::path::Path::new(""))
+                .expect_err("refused");
+            let message = error.to_string();
+            assert!(
+                matches!(error, ExperimentError::Refused { .. }),
+                "{message}"
+            );
+            let (file, key) = match (yaml, mask) {
+                (false, _) => (
+                    "parameters/cal_ori.par: line 3, cal_ori.img_ori[0]",
+                    name.clone(),
+                ),
+                (true, false) => (
+                    "parameters_Run1.yaml: line 22, cal_ori.img_ori[0]",
+                    name.clone(),
+                ),
+                (true, true) => (
+                    "parameters_Run1.yaml: line 228, masking.mask_base_name",
+                    format!("{name}.1"),
+                ),
+            };
+            assert!(message.starts_with(file), "{message}");
+            assert!(message.contains(&format!("`{key}`")), "{message}");
+            assert!(!message.contains(PLANTED_SECRET));
+        }
+    }
+}
+
+#[test]
+fn a_key_given_twice_where_the_sections_ignore_it_is_an_error_not_a_panic() {
+    // The sections skip `plugins`; the whole value refuses the duplicate
+    // (this was an `expect`: a panic, and a 500 from the service).
+    let yaml = RECORDING_YAML.replacen(
+        "  selected_tracking: default\n",
+        "  selected_tracking: default\n  selected_tracking: other\n",
+        1,
+    );
+    assert_ne!(yaml, RECORDING_YAML);
+    let mut files = UploadedFiles::new();
+    files
+        .insert_bytes("parameters_Run1.yaml", yaml.into_bytes())
+        .unwrap();
+    for (path, text) in RECORDING_CAL {
+        files.insert_bytes(path, text.as_bytes().to_vec()).unwrap();
+    }
+    let error = experiment::read_experiment_from(&files, std::path::Path::new(""))
+        .unwrap_err()
+        .to_string();
+    assert!(
+        error.starts_with("parameters_Run1.yaml: line ") && error.contains("duplicate"),
+        "{error}"
+    );
+}
+
+#[test]
+fn yaml_aliases_expand_within_the_item_limit_or_are_refused() {
+    let refused = |yaml: String| {
+        let mut files = UploadedFiles::new();
+        files
+            .insert_bytes("parameters_Run1.yaml", yaml.into_bytes())
+            .unwrap();
+        let started = std::time::Instant::now();
+        let error = experiment::read_experiment_from(&files, std::path::Path::new(""))
+            .unwrap_err()
+            .to_string();
+        // Refused by the walk, not after expanding 25M items (seconds, GiB).
+        assert!(started.elapsed() < std::time::Duration::from_secs(2));
+        error
+    };
+    let bomb = format!(
+        "a: &a [{}1]\nb: [{}*a]\n",
+        "1,".repeat(5_000),
+        "*a,".repeat(5_000)
+    );
+    let error = refused(bomb);
+    assert!(error.contains("more than 32768 items"), "{error}");
+    // Hidden in a tagged value, and in a section the importer ignores.
+    let bomb = format!(
+        "a: &a [{}1]\nplugins: !x [{}*a]\n",
+        "1,".repeat(5_000),
+        "*a,".repeat(5_000)
+    );
+    let error = refused(bomb);
+    assert!(error.contains("more than 32768 items"), "{error}");
+    // Within the limits the sections are read as ever.
+    let small = RECORDING_YAML.replacen(
+        "plugins:\n",
+        "anchors: &a [1, 2]\nmore: [*a, *a]\nplugins:\n",
+        1,
+    );
+    let error = refused(small);
+    assert!(error.contains("cal/cam1.tif.ori"), "{error}");
+}

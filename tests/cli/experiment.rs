@@ -668,3 +668,39 @@ fn process_sequence_subtracts_pyptvs_masks_and_the_background() {
         "{with} {without}"
     );
 }
+
+/// The command line reads a user's own files where the experiment names
+/// them, absolute paths included (the service's confinement is the
+/// service's); the YAML limits are the same as the service's.
+#[test]
+fn the_cli_follows_a_users_own_paths_and_applies_the_yaml_limits() {
+    let dir = copy_experiment();
+    let elsewhere = tempfile::tempdir().unwrap();
+    for ext in ["ori", "addpar"] {
+        std::fs::rename(
+            dir.path().join(format!("cal/cam1.tif.{ext}")),
+            elsewhere.path().join(format!("cam1.tif.{ext}")),
+        )
+        .unwrap();
+    }
+    let ori = elsewhere.path().join("cam1.tif.ori");
+    replace_line(
+        &dir.path().join("parameters/cal_ori.par"),
+        3,
+        ori.to_str().unwrap(),
+    );
+    run(&["experiment", "import", ".", "-o", "out"], dir.path());
+    let calibration = read_json(&dir.path().join("out/calibration.json"));
+    assert_eq!(calibration["cameras"].as_array().map(Vec::len), Some(4));
+
+    let yaml = yaml_experiment(&format!("x: {}1{}\n", "[".repeat(300), "]".repeat(300)));
+    fails(
+        &ptv(&["experiment", "import", "."], yaml.path()),
+        &["line 1: more than 256 `[` and `{`"],
+    );
+    let yaml = yaml_experiment(&format!("x:\n{}1\n", "- ".repeat(1000)));
+    fails(
+        &ptv(&["experiment", "import", "."], yaml.path()),
+        &["nested more than 16 levels deep"],
+    );
+}

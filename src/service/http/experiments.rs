@@ -5,8 +5,16 @@
 //! `cal/cam1.tif.ori`, `cal/cam1.tif.addpar`, or a pyptv
 //! `parameters_Run1.yaml`, and masks where its masking is on: with curl,
 //! `-F 'file=@parameters/ptv.par;filename=parameters/ptv.par'`); they are
-//! written into a scratch directory and read by the same importer as
-//! `ptv experiment import` ([`crate::formats::experiment::read_experiment`]).
+//! written into a scratch directory under names of the service's own
+//! (never the client's paths) and read by the same importer as `ptv
+//! experiment import`, through the uploaded set
+//! ([`crate::formats::experiment::UploadedFiles`]): a name inside the
+//! experiment's files (`cal_ori`'s `.ori` files, pyptv's `img_ori` and
+//! `mask_base_name`) resolves only to a file sent with it. An absolute
+//! name, one with `..` or one that is no plain path is refused (400, the
+//! file, line and name said); a clean name that was not sent is missing
+//! (422). Nothing else on the server's disk is opened, and errors name the
+//! files as the client sent them.
 //! The calibration (with its splitter), a sequence with every detection and
 //! matching setting the experiment has, and its masking images are stored
 //! in one transaction. pyptv subtracts its masking images from the frames
@@ -15,7 +23,7 @@
 //! The answer lists the settings `ptv` does not use and the image names
 //! and frames the experiment records, for the uploader.
 
-use std::path::{Component, Path, PathBuf};
+use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use axum::extract::{Multipart, State};
@@ -32,7 +40,9 @@ use super::problem::{ApiError, ApiMultipart};
 use super::upload::{check_images, or_drain, persist_and_commit, text_part};
 use super::Shared;
 use crate::formats;
-use crate::formats::experiment::{read_experiment, Experiment, ExperimentError};
+use crate::formats::experiment::{
+    read_experiment_from, Experiment, ExperimentError, ExperimentFiles, UploadedFiles,
+};
 use crate::photogrammetry::{Cancel, StopOnDrop};
 use crate::service::app::AppState;
 use crate::service::images::UploadedFile;
@@ -42,10 +52,6 @@ use crate::service::store::{CalibrationId, SequenceId};
 
 /// Files an experiment upload may have.
 const MAX_FILES: usize = 128;
-/// Directory levels of a file's path.
-const MAX_DEPTH: usize = 8;
-/// Longest path.
-const MAX_PATH: usize = 512;
 
 pub(super) fn router() -> Router<Arc<AppState>> {
     Router::new().route("/experiments/openptv", post(import))
@@ -96,7 +102,7 @@ pub struct UnmappedView {
     request_body(content_type = "multipart/form-data", description = "One part `file` per file of the experiment, its file name the path inside the experiment directory: `parameters/ptv.par`, `parameters/criteria.par`, `parameters/targ_rec.par`, `parameters/sequence.par`, `parameters/cal_ori.par`, ... (or one pyptv `parameters_NAME.yaml`), the `.ori` and `.addpar` files the calibration names (`cal/cam1.tif.ori`, ...), and the masking images where masking is on (they become the sequence's backgrounds: pyptv subtracts them). Optional text parts `name` (the sequence's) and `keep_images` (`true`/`false`)."),
     responses(
         (status = 201, body = ImportedExperiment),
-        (status = 400, description = "Malformed multipart, a path that leaves the directory, a file given twice", body = super::problem::Problem, content_type = "application/problem+json"),
+        (status = 400, description = "Malformed multipart, a path that leaves the directory, a file given twice, a name inside the experiment's files that is absolute, has `..` or is no plain relative path (the file, line and name said)", body = super::problem::Problem, content_type = "application/problem+json"),
         (status = 422, description = "A file that does not parse (file, line and key named), a file the experiment names that was not sent, settings that do not work together", body = super::problem::Problem, content_type = "application/problem+json"),
     )
 )]
@@ -106,12 +112,14 @@ pub async fn import(
 ) -> Result<Response, ApiError> {
     let scratch = Scratch::new(&state).await?;
     let read = read_files(&scratch.dir, &mut multipart).await;
-    let (name, keep_images) = or_drain(read, &mut multipart).await?;
-    let dir = scratch.dir.clone();
-    let experiment = tokio::task::spawn_blocking(move || read_experiment(&dir))
-        .await
-        .map_err(ApiError::internal)?
-        .map_err(|e| experiment_error(e, &scratch.dir))?;
+    let (files, name, keep_images) = or_drain(read, &mut multipart).await?;
+    let files = Arc::new(files);
+    let uploaded = files.clone();
+    let experiment =
+        tokio::task::spawn_blocking(move || read_experiment_from(&*uploaded, Path::new("")))
+            .await
+            .map_err(ApiError::internal)?
+            .map_err(experiment_error)?;
     // Its frames are uploaded as frame numbers, 0 to MAX_FRAME_NUMBER.
     if experiment.sequence.last > crate::service::store::MAX_FRAME_NUMBER as u64 {
         return Err(ApiError::unprocessable(format!(
@@ -123,7 +131,7 @@ pub async fn import(
         )));
     }
     let sequence_json = settings_json(&experiment)?;
-    let masks = mask_files(&state, &experiment, &scratch.dir).await?;
+    let masks = mask_files(&state, &experiment, &files).await?;
 
     // The same checks as `POST /sequences`: the parameters must work with
     // the cameras.
@@ -167,7 +175,7 @@ pub async fn import(
             .unmapped
             .into_iter()
             .map(|u| UnmappedView {
-                file: strip(&u.file, &scratch_prefix(&experiment.root)),
+                file: u.file,
                 key: u.key,
                 value: u.value,
                 reason: u.reason,
@@ -211,13 +219,15 @@ impl Drop for Scratch {
     }
 }
 
-/// Writes the file parts into `dir` under their paths; the `name` and
+/// The file parts as an uploaded set, each written into `dir` under its
+/// number (the client's path is only the set's key); the `name` and
 /// `keep_images` text parts.
 async fn read_files(
     dir: &Path,
     multipart: &mut Multipart,
-) -> Result<(Option<String>, bool), ApiError> {
+) -> Result<(UploadedFiles, Option<String>, bool), ApiError> {
     let (mut name, mut keep_images, mut files) = (None, true, 0);
+    let mut set = UploadedFiles::new();
     while let Some(mut field) = multipart.next_field().await? {
         let part = field.name().unwrap_or("").to_owned();
         match part.as_str() {
@@ -244,16 +254,22 @@ async fn read_files(
                     )));
                 }
                 let name = field.file_name().unwrap_or("").to_owned();
-                let path = dir.join(relative_path(&name)?);
-                if tokio::fs::try_exists(&path).await? {
+                let path = dir.join(files.to_string());
+                let added = set.insert_stored(&name, path.clone()).map_err(|why| {
+                    ApiError::bad_request(format!(
+                        "file `{}`: {}; give each `file` part its path inside the experiment \
+                         directory as its file name, e.g. `parameters/ptv.par`",
+                        name.escape_debug(),
+                        why.0
+                    ))
+                })?;
+                if !added {
                     return Err(ApiError::bad_request(format!(
-                        "file `{name}` is given twice"
+                        "file `{}` is given twice",
+                        name.escape_debug()
                     )));
                 }
-                if let Some(parent) = path.parent() {
-                    tokio::fs::create_dir_all(parent).await?;
-                }
-                let mut file = tokio::fs::File::create(&path).await?;
+                let mut file = tokio::fs::File::create_new(&path).await?;
                 while let Some(chunk) = field.chunk().await? {
                     file.write_all(&chunk).await?;
                 }
@@ -275,54 +291,29 @@ async fn read_files(
              their paths, e.g. `parameters/ptv.par` and `cal/cam1.tif.ori`",
         ));
     }
-    Ok((name, keep_images))
+    Ok((set, name, keep_images))
 }
 
-/// A part's name as a path inside the experiment directory: relative, of
-/// plain components, no `..`.
-fn relative_path(name: &str) -> Result<PathBuf, ApiError> {
-    let refuse = |why: &str| {
-        ApiError::bad_request(format!(
-            "file `{}`: {why}; give each `file` part its path inside the experiment \
-             directory as its file name, e.g. `parameters/ptv.par`",
-            name.escape_debug()
-        ))
-    };
-    if name.is_empty() || name.len() > MAX_PATH {
-        return Err(refuse("empty or too long a path"));
-    }
-    if name.chars().any(|c| c.is_control() || c == '\\') {
-        return Err(refuse("control characters or backslashes"));
-    }
-    let path = Path::new(name);
-    let mut depth = 0;
-    for component in path.components() {
-        match component {
-            Component::Normal(_) => depth += 1,
-            Component::CurDir => {}
-            _ => return Err(refuse("the path leaves the experiment directory")),
+/// An importer's error as a 400 (a name the upload may not follow) or a
+/// 422, naming the files as sent.
+fn experiment_error(error: ExperimentError) -> ApiError {
+    match error {
+        ExperimentError::Refused { .. } => ApiError::bad_request(error.to_string()),
+        ExperimentError::Missing {
+            file,
+            location,
+            missing,
+        } => ApiError::unprocessable(format!(
+            "{}: {location}: names `{}`, which was not sent; send it as a part `file` with that \
+             file name, or correct the name",
+            file.display(),
+            missing.display().to_string().escape_debug()
+        )),
+        ExperimentError::NotAnExperiment { reason, .. } => {
+            ApiError::unprocessable(format!("the files sent: {reason}"))
         }
+        error => ApiError::unprocessable(crate::service::jobs::error_chain(&error)),
     }
-    if depth == 0 || depth > MAX_DEPTH {
-        return Err(refuse("not a file path, or too deep"));
-    }
-    Ok(path.to_owned())
-}
-
-/// `text` with the scratch directory's prefix taken off, so that messages
-/// name files as the client sent them.
-fn strip(text: &str, prefix: &str) -> String {
-    text.replace(prefix, "")
-}
-
-fn scratch_prefix(dir: &Path) -> String {
-    format!("{}/", dir.display())
-}
-
-/// An importer's error as a 422 that names the file as sent.
-fn experiment_error(error: ExperimentError, dir: &Path) -> ApiError {
-    let text = crate::service::jobs::error_chain(&error);
-    ApiError::unprocessable(strip(&text, &scratch_prefix(dir)))
 }
 
 /// The sequence's parameters, defaults filled in, as stored JSON.
@@ -338,14 +329,17 @@ fn settings_json(experiment: &Experiment) -> Result<String, ApiError> {
 async fn mask_files(
     state: &AppState,
     experiment: &Experiment,
-    scratch: &Path,
+    uploaded: &Arc<UploadedFiles>,
 ) -> Result<Vec<(UploadedFile, (i64, String, i64, i64))>, ApiError> {
     let Some(masks) = &experiment.masks else {
         return Ok(Vec::new());
     };
     let mut files = Vec::with_capacity(masks.len());
     for path in masks {
-        let bytes = tokio::fs::read(path).await?;
+        let (set, key) = (uploaded.clone(), path.clone());
+        let bytes = tokio::task::spawn_blocking(move || set.read(&key))
+            .await
+            .map_err(ApiError::internal)??;
         let mut upload = state.images.create_upload().await?;
         upload.write(&bytes).await?;
         files.push(upload.finish().await?);
@@ -355,10 +349,7 @@ async fn mask_files(
         .iter()
         .map(|c| c.sensor().clone())
         .collect();
-    let names: Vec<String> = masks
-        .iter()
-        .map(|p| strip(&p.display().to_string(), &scratch_prefix(scratch)))
-        .collect();
+    let names: Vec<String> = masks.iter().map(|p| p.display().to_string()).collect();
     let headers = check_images(&files, &sensors, None, move |c| {
         format!("mask `{}`", names[c])
     })
