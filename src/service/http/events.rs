@@ -154,7 +154,7 @@ async fn missed(
     // past it (ids rise by one, whatever their sequence; a gap left by a
     // rolled-back write only costs a snapshot), or when none is kept.
     match state.store.oldest_event_id().await? {
-        Some(oldest) if oldest.0 <= last.0 + 1 => {}
+        Some(oldest) if oldest.0 <= last.0.saturating_add(1) => {}
         _ => return Ok(None),
     }
     let rows = state
