@@ -21,7 +21,8 @@
 //! a file uploaded with it, and refuse absolute names and `..`
 //! ([`ExperimentError::Refused`]). Parameter files are read up to
 //! [`files::MAX_TEXT_BYTES`]; a YAML may hold [`MAX_YAML_FLOW`] `[`/`{`
-//! and nest [`MAX_YAML_DEPTH`] levels, for both.
+//! and nest [`MAX_YAML_DEPTH`] levels with at most [`MAX_YAML_ITEMS`]
+//! items (an alias counted at each use), for both.
 //!
 //! Both forms are first read into one set of sections named as pyptv's YAML
 //! names them, then mapped, so the two give the same settings. The mapping
