@@ -84,15 +84,31 @@ impl Api {
         format!("{}/api/v1{path}", self.address)
     }
 
+    /// A POST, sent again after `Retry-After` while the answer is a 503
+    /// (the database busy for now: several processes on one SQLite file,
+    /// on a loaded machine), as a client does, within [`PATIENCE`].
     async fn post(&self, path: &str, body: &Value) -> (u16, Value) {
-        let response = self
-            .client
-            .post(self.url(path))
-            .json(body)
-            .send()
-            .await
-            .unwrap();
-        status_and_json(response).await
+        let start = Instant::now();
+        loop {
+            let response = self
+                .client
+                .post(self.url(path))
+                .json(body)
+                .send()
+                .await
+                .unwrap();
+            let retry_after = response
+                .headers()
+                .get("retry-after")
+                .and_then(|v| v.to_str().ok()?.parse::<u64>().ok());
+            let (status, body) = status_and_json(response).await;
+            match retry_after {
+                Some(secs) if status == 503 && start.elapsed() < PATIENCE => {
+                    tokio::time::sleep(Duration::from_secs(secs.min(5))).await;
+                }
+                _ => return (status, body),
+            }
+        }
     }
 
     async fn get(&self, path: &str) -> (u16, Value) {

@@ -165,7 +165,10 @@ pub enum ErrorKind {
     StorageFull,
     /// The database cannot be reached for now: connection refused or
     /// broken, the pool timed out, PostgreSQL restarting or shutting down
-    /// (SQLSTATE 57P01, 57P02, 57P03, class 08). A 503 with
+    /// (SQLSTATE 57P01, 57P02, 57P03, class 08), SQLite still busy or
+    /// locked by another process's writer after its busy timeout
+    /// (SQLITE_BUSY, SQLITE_LOCKED and their extended codes: `ptv worker`
+    /// processes on one data directory, on a loaded machine). A 503 with
     /// `Retry-After`; a job attempt given back uncounted; workers and the
     /// tracker wait and try again.
     Unavailable,
@@ -177,6 +180,14 @@ pub enum ErrorKind {
 /// extended codes).
 const SQLITE_FULL: &str = "13";
 
+/// Whether `code` is SQLite's SQLITE_BUSY (5) or SQLITE_LOCKED (6), or
+/// one of their extended codes (the primary code in the low byte).
+/// SQLite's codes are decimal numbers of at most four digits;
+/// PostgreSQL's SQLSTATEs have five characters, so none is taken for one.
+fn sqlite_busy(code: &str) -> bool {
+    code.len() < 5 && code.parse::<u32>().is_ok_and(|n| matches!(n & 0xff, 5 | 6))
+}
+
 /// What `error` means (see [`ErrorKind`]).
 pub fn error_kind(error: &sqlx::Error) -> ErrorKind {
     match error {
@@ -184,6 +195,7 @@ pub fn error_kind(error: &sqlx::Error) -> ErrorKind {
             Some(SQLITE_FULL | "53100") => ErrorKind::StorageFull,
             Some("57P01" | "57P02" | "57P03") => ErrorKind::Unavailable,
             Some(code) if code.len() == 5 && code.starts_with("08") => ErrorKind::Unavailable,
+            Some(code) if sqlite_busy(code) => ErrorKind::Unavailable,
             _ => ErrorKind::Other,
         },
         sqlx::Error::Io(io) if crate::service::images::is_storage_full(io) => {
@@ -211,6 +223,20 @@ pub fn error_kind(error: &sqlx::Error) -> ErrorKind {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn sqlite_busy_and_locked_are_told_from_other_codes() {
+        // SQLITE_BUSY, SQLITE_BUSY_RECOVERY, SQLITE_BUSY_SNAPSHOT,
+        // SQLITE_LOCKED, SQLITE_LOCKED_SHAREDCACHE.
+        for code in ["5", "261", "517", "6", "262"] {
+            assert!(sqlite_busy(code), "{code}");
+        }
+        // SQLITE_FULL, SQLITE_CONSTRAINT_UNIQUE, SQLITE_IOERR_READ, and
+        // PostgreSQL's serialization failure and disk full.
+        for code in ["13", "2067", "266", "40001", "53100", "00005"] {
+            assert!(!sqlite_busy(code), "{code}");
+        }
+    }
 
     #[test]
     fn a_postgres_url_is_taken_and_shown_without_its_password() {
