@@ -262,7 +262,7 @@ pub enum MatchError {
 }
 
 /// A number for a message: as it is, or in exponent form when huge.
-fn readable(value: f64) -> String {
+pub(crate) fn readable(value: f64) -> String {
     if value.abs() < 1e7 {
         format!("{value}")
     } else {

@@ -117,7 +117,7 @@ use kinematics::{
 };
 pub use recovery::{FrameTargets, ImageSpaceRecovery};
 
-use super::correspond::Particle;
+use super::correspond::{readable, Particle};
 use super::volume::Volume;
 
 /// How to track.
@@ -288,15 +288,6 @@ impl TrackingParameters {
             )));
         }
         Ok(())
-    }
-}
-
-/// A number for a message: as it is, or in exponent form when huge.
-fn readable(value: f64) -> String {
-    if value.abs() < 1e7 {
-        format!("{value}")
-    } else {
-        format!("{value:e}")
     }
 }
 
