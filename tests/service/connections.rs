@@ -44,10 +44,21 @@ async fn metric(app: &TestApp, name: &str) -> u64 {
 /// 40 idle connections (nothing sent, and kept alive after a request)
 /// against a limit of 20: `/healthz` answers on a new connection each
 /// time, the oldest idle ones are closed to make room, and a request whose
-/// body is still arriving meanwhile is not cut.
+/// body is still arriving meanwhile, fast enough, is not cut.
+///
+/// The body is sent at 1,000 bytes/s (100 bytes every 100 ms). The
+/// service's default least rate is 1,024 bytes/s, under which a body may
+/// be ended to make room (`hostile::edges` tests that with trickling
+/// uploads), so this service asks for 200 bytes/s: the body stays above
+/// it even if the loaded machine stretches every 100 ms sleep five times. (CI once cut it with the default: the
+/// 40 connections came within the 1 s grace, so no idle one could go.)
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn idle_connections_past_the_limit_do_not_lock_out_a_client() {
-    let app = spawn_app_configured(|args| args.max_connections = Some(20)).await;
+    let app = spawn_app_configured(|args| {
+        args.max_connections = Some(20);
+        args.timeouts.min_body_rate = 200;
+    })
+    .await;
     // A request in flight: its body arrives over 2 s.
     let mut busy = connect(&app).await;
     let body = vec![b' '; 2000];
