@@ -477,7 +477,7 @@ pub async fn check_disparity_picture(app: &TestApp, id: i64, report: &Value) {
     }
     assert!(cells > 0);
     let svg = svg_picture(app, &format!("{path}?format=svg")).await;
-    assert!(svg.contains("DISPARITY MAPS"));
+    assert!(svg.contains("Disparity maps"));
     refused(
         app,
         &format!("/calibrations/{id}/residuals.png"),

@@ -296,7 +296,7 @@ pub async fn overlay(
     let format = query.format;
     let index = query.camera;
     let title = format!(
-        "SEQUENCE {id} FRAME {frame} CAMERA {index} ({})",
+        "Sequence {id}, frame {frame}, camera {index} ({})",
         camera.name()
     );
     let bytes = state
@@ -370,7 +370,7 @@ pub async fn particles(
                     cameras: p.camera_count(),
                 })
                 .collect();
-            particles_plot(&format!("SEQUENCE {id} FRAME {frame}"), &points, format)
+            particles_plot(&format!("Sequence {id}, frame {frame}"), &points, format)
         })
         .await??;
     Ok(picture(format, bytes))
@@ -435,14 +435,14 @@ pub async fn trajectories(
     }
     let note = if full {
         format!(
-            "THE FIRST {} OF {total} TRAJECTORIES (AT MOST {MAX_TRAJECTORY_POINTS} POINTS)",
+            "The first {} of {total} trajectories (at most {MAX_TRAJECTORY_POINTS} points)",
             trajectories.len()
         )
     } else {
         String::new()
     };
     let format = query.format;
-    let title = format!("SEQUENCE {id} TRACKING RUN {}", run.id);
+    let title = format!("Sequence {id}, tracking run {}", run.id);
     let bytes = state
         .cpu
         .run(move || trajectories_plot(&title, &note, &trajectories, format))
