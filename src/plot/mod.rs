@@ -633,6 +633,30 @@ pub fn to_png(image: &RgbImage) -> Result<Vec<u8>, image::ImageError> {
     Ok(bytes)
 }
 
+/// A grey image as an 8-bit grey PNG, a 12 or 16-bit image by the top 8
+/// bits of its depth (as [`Draw::grey_image`] shows it).
+pub fn grey_png(image: &GreyImage) -> Result<Vec<u8>, image::ImageError> {
+    let shift = image.bit_depth().bits().saturating_sub(8);
+    let samples: Vec<u8> = match image.pixels() {
+        GreyPixels::Eight(p) => p.clone(),
+        GreyPixels::Sixteen(p) => p.iter().map(|&v| (v >> shift).min(255) as u8).collect(),
+    };
+    let mut bytes = Vec::with_capacity(samples.len() / 2);
+    let encoder = image::codecs::png::PngEncoder::new_with_quality(
+        &mut bytes,
+        image::codecs::png::CompressionType::Fast,
+        image::codecs::png::FilterType::Sub,
+    );
+    image::ImageEncoder::write_image(
+        encoder,
+        &samples,
+        image.width(),
+        image.height(),
+        image::ExtendedColorType::L8,
+    )?;
+    Ok(bytes)
+}
+
 /// A round value for a scale bar: 1, 2 or 5 times a power of ten, at
 /// most `max` (1 for a `max` that is not positive and finite).
 pub fn nice(max: f64) -> f64 {
