@@ -51,8 +51,10 @@ mod process_sequence;
 mod project;
 mod selfcalibrate;
 mod simulate;
+mod simulate_wand;
 mod track;
 mod upload;
+mod wand;
 
 use std::io::{self, Write};
 use std::path::{Path, PathBuf};
@@ -300,6 +302,9 @@ pub enum CliError {
     /// Self-calibration could not run.
     #[error("cannot self-calibrate")]
     SelfCalibrate(#[from] crate::photogrammetry::selfcal::SelfCalibrationError),
+    /// The wand calibration could not be done.
+    #[error("cannot calibrate with the wand")]
+    Wand(#[from] crate::photogrammetry::selfcal::wand::WandError),
     /// The simulator built a camera that the camera model refuses.
     #[error("the simulated rig is invalid")]
     Simulation(#[from] InvalidCamera),

@@ -21,9 +21,15 @@ pub struct CalibrateArgs {
     /// with --image and no --reference, as starting values to identify marks.
     #[arg(long, value_name = "SETUP_JSON")]
     pub calibration: PathBuf,
-    /// The control points (OpenPTV calibration block: `id X Y Z` per line, mm).
-    #[arg(long, value_name = "CALBLOCK")]
-    pub control: PathBuf,
+    /// The control points (OpenPTV calibration block: `id X Y Z` per line,
+    /// mm); not with --wand.
+    #[arg(
+        long,
+        value_name = "CALBLOCK",
+        required_unless_present = "wand",
+        conflicts_with = "wand"
+    )]
+    pub control: Option<PathBuf>,
     /// Measured image coordinates of control points, `id x y` per line
     /// (pixels); once per camera, in camera order.
     #[arg(long, value_name = "FILE")]
@@ -67,6 +73,9 @@ pub struct CalibrateArgs {
     /// non-zero = use); once per camera, in camera order, or not at all.
     #[arg(long = "mask", value_name = "FILE", requires = "image")]
     pub masks: Vec<PathBuf>,
+    /// Wand calibration instead (`--wand`).
+    #[command(flatten)]
+    pub wand: super::wand::WandFlags,
 }
 
 fn flag(flag: &'static str, reason: impl Into<String>) -> CliError {
@@ -116,6 +125,12 @@ pub(super) fn run(
     stdout: &mut dyn Write,
     stderr: &mut dyn Write,
 ) -> Result<(), CliError> {
+    if args.wand.wand {
+        return super::wand::run(args, stdout, stderr);
+    }
+    let Some(control_path) = &args.control else {
+        return Err(flag("--control", "give the control points, or --wand"));
+    };
     let formats::calibration::Setup {
         cameras: setup,
         unknown,
@@ -124,8 +139,8 @@ pub(super) fn run(
         &args.calibration.display().to_string(),
     )?;
     let control_points = control::parse_control_points(
-        &formats::read_text(&args.control)?,
-        &args.control.display().to_string(),
+        &formats::read_text(control_path)?,
+        &control_path.display().to_string(),
     )?;
     let options = CalibrationOptions {
         unknown,

@@ -81,6 +81,7 @@ mod bundle;
 mod gauge;
 pub mod report;
 mod vote;
+pub mod wand;
 
 use nalgebra::{DMatrix, Point2, Point3, Vector2};
 
