@@ -284,19 +284,22 @@ pub fn format_targets(targets: &[Target]) -> String {
 
 /// Number formatting for the writers: floats in their shortest
 /// round-trip form (`NaN`, `inf` and `-inf` as `{:?}` writes them),
-/// integers in decimal.
+/// integers in decimal (`ryu` and `itoa`: about 3x faster than `{:?}`,
+/// the same shortest round-trip digits). Also `ptv track`'s writer.
 #[derive(Default)]
-struct Numbers {
+pub struct Numbers {
     floats: ryu::Buffer,
     ints: itoa::Buffer,
 }
 
 impl Numbers {
-    fn float(&mut self, text: &mut String, value: f64) {
+    /// Appends `value` in its shortest round-trip form.
+    pub fn float(&mut self, text: &mut String, value: f64) {
         text.push_str(self.floats.format(value));
     }
 
-    fn int(&mut self, text: &mut String, value: impl itoa::Integer) {
+    /// Appends `value` in decimal.
+    pub fn int(&mut self, text: &mut String, value: impl itoa::Integer) {
         text.push_str(self.ints.format(value));
     }
 }
