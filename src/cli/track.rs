@@ -510,8 +510,6 @@ struct Rows {
     points: usize,
     /// Per trajectory, its last point written (frame, particle).
     last: std::collections::HashMap<u64, (i64, usize)>,
-    /// The number formatting (shortest round-trip floats, as `{:?}`).
-    numbers: formats::csv::Numbers,
 }
 
 impl Rows {
@@ -578,49 +576,45 @@ impl Rows {
                 ));
             };
             let d = &p.derivatives;
-            let n = &mut self.numbers;
-            n.int(&mut text, p.trajectory);
-            text.push(',');
-            n.int(&mut text, p.frame);
-            for value in [
+            let _ = write!(
+                text,
+                "{},{},{:?},{:?},{:?},{:?},{:?},{:?}",
+                p.trajectory,
+                p.frame,
                 p.position.x,
                 p.position.y,
                 p.position.z,
                 d.velocity.x,
                 d.velocity.y,
-                d.velocity.z,
-            ] {
-                text.push(',');
-                n.float(&mut text, value);
-            }
+                d.velocity.z
+            );
             match d.acceleration {
                 Some(a) => {
-                    for value in [a.x, a.y, a.z] {
-                        text.push(',');
-                        n.float(&mut text, value);
-                    }
+                    let _ = write!(text, ",{:?},{:?},{:?}", a.x, a.y, a.z);
                 }
                 None => text.push_str(",,,"),
             }
             let s = d.velocity_sigma;
-            for value in [s.x, s.y, s.z] {
-                text.push(',');
-                n.float(&mut text, value);
-            }
-            if cameras > 0 {
-                text.push(',');
-                n.int(&mut text, row.targets.iter().flatten().count());
-                for t in &row.targets {
-                    match t {
-                        Some(t) => {
-                            text.push(',');
-                            n.int(&mut text, *t);
+            let _ = write!(text, ",{:?},{:?},{:?}", s.x, s.y, s.z);
+            match Some(row) {
+                Some(row) if cameras > 0 => {
+                    let seen = row.targets.iter().flatten().count();
+                    let _ = write!(text, ",{seen}");
+                    for t in &row.targets {
+                        match t {
+                            Some(t) => {
+                                let _ = write!(text, ",{t}");
+                            }
+                            None => text.push_str(",-1"),
                         }
-                        None => text.push_str(",-1"),
                     }
                 }
-            } else {
-                text.push(',');
+                _ => {
+                    text.push(',');
+                    for _ in 0..cameras {
+                        text.push(',');
+                    }
+                }
             }
             text.push('\n');
         }

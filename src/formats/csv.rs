@@ -284,22 +284,19 @@ pub fn format_targets(targets: &[Target]) -> String {
 
 /// Number formatting for the writers: floats in their shortest
 /// round-trip form (`NaN`, `inf` and `-inf` as `{:?}` writes them),
-/// integers in decimal (`ryu` and `itoa`: about 3x faster than `{:?}`,
-/// the same shortest round-trip digits). Also `ptv track`'s writer.
+/// integers in decimal.
 #[derive(Default)]
-pub struct Numbers {
+struct Numbers {
     floats: ryu::Buffer,
     ints: itoa::Buffer,
 }
 
 impl Numbers {
-    /// Appends `value` in its shortest round-trip form.
-    pub fn float(&mut self, text: &mut String, value: f64) {
+    fn float(&mut self, text: &mut String, value: f64) {
         text.push_str(self.floats.format(value));
     }
 
-    /// Appends `value` in decimal.
-    pub fn int(&mut self, text: &mut String, value: impl itoa::Integer) {
+    fn int(&mut self, text: &mut String, value: impl itoa::Integer) {
         text.push_str(self.ints.format(value));
     }
 }

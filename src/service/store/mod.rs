@@ -691,31 +691,38 @@ fn placeholders(dialect: Dialect, rows: usize, columns: usize) -> String {
     sql
 }
 
-/// The most rows one multi-row insert writes.
-const ROWS_PER_STATEMENT: usize = 128;
+/// The most rows one multi-row insert writes: on SQLite (in this
+/// process, no round trip) 128; on PostgreSQL, where each statement is a
+/// round trip to the server, 512 (8,704 values of a trajectory point's
+/// 17, within its 65,535).
+fn rows_per_statement(dialect: Dialect) -> usize {
+    match dialect {
+        Dialect::Sqlite => 128,
+        Dialect::Postgres => 512,
+    }
+}
 
 /// The row counts of the statements that insert `rows` rows: full ones of
-/// [`ROWS_PER_STATEMENT`], the rest in powers of two (100 rows as 64, 32
-/// and 4). A table's inserts then have at most eight statement texts,
+/// [`rows_per_statement`], the rest in powers of two (100 rows as 64, 32
+/// and 4). A table's inserts then have at most ten statement texts,
 /// each prepared once per connection and kept in sqlx's statement cache,
 /// where a text per row count would prepare each insert anew; and no
 /// statement is so long that a slow-statement log of it (sqlx logs the
 /// whole text) floods the log.
-fn statement_rows(rows: usize) -> impl Iterator<Item = usize> {
-    let rest = rows % ROWS_PER_STATEMENT;
-    std::iter::repeat(ROWS_PER_STATEMENT)
-        .take(rows / ROWS_PER_STATEMENT)
-        .chain(
-            (0..usize::BITS)
-                .rev()
-                .map(|bit| 1usize << bit)
-                .filter(move |size| rest & size != 0),
-        )
+fn statement_rows(dialect: Dialect, rows: usize) -> impl Iterator<Item = usize> {
+    let most = rows_per_statement(dialect);
+    let rest = rows % most;
+    std::iter::repeat(most).take(rows / most).chain(
+        (0..usize::BITS)
+            .rev()
+            .map(|bit| 1usize << bit)
+            .filter(move |size| rest & size != 0),
+    )
 }
 
 /// `items` in the slices [`statement_rows`] gives.
-fn statement_chunks<T>(mut items: &[T]) -> impl Iterator<Item = &[T]> {
-    statement_rows(items.len()).map(move |n| {
+fn statement_chunks<T>(dialect: Dialect, mut items: &[T]) -> impl Iterator<Item = &[T]> {
+    statement_rows(dialect, items.len()).map(move |n| {
         let (chunk, rest) = items.split_at(n);
         items = rest;
         chunk
@@ -742,21 +749,25 @@ mod tests {
     use sqlx::sqlite::{SqliteConnectOptions, SqlitePoolOptions};
 
     /// Multi-row inserts: every row once, in order, in at most eight
-    /// distinct statement sizes per table, none above the bound.
+    /// (SQLite) or ten (PostgreSQL) distinct statement sizes per table,
+    /// none above the bound.
     #[test]
     fn inserts_are_cut_into_a_few_statement_sizes() {
-        let mut sizes = std::collections::BTreeSet::new();
-        for rows in [0, 1, 2, 3, 100, 127, 128, 129, 255, 2000, 15_001] {
-            let items: Vec<usize> = (0..rows).collect();
-            let chunks: Vec<&[usize]> = statement_chunks(&items).collect();
-            assert_eq!(chunks.concat(), items, "{rows} rows");
-            assert!(chunks
-                .iter()
-                .all(|c| !c.is_empty() && c.len() <= ROWS_PER_STATEMENT));
-            sizes.extend(chunks.iter().map(|c| c.len()));
+        for (dialect, most, texts) in [(Dialect::Sqlite, 128, 8), (Dialect::Postgres, 512, 10)] {
+            let mut sizes = std::collections::BTreeSet::new();
+            for rows in [0, 1, 2, 3, 100, 127, 128, 129, 255, 511, 513, 2000, 15_001] {
+                let items: Vec<usize> = (0..rows).collect();
+                let chunks: Vec<&[usize]> = statement_chunks(dialect, &items).collect();
+                assert_eq!(chunks.concat(), items, "{rows} rows");
+                assert!(chunks.iter().all(|c| !c.is_empty() && c.len() <= most));
+                sizes.extend(chunks.iter().map(|c| c.len()));
+            }
+            assert!(sizes.len() <= texts, "{sizes:?}");
         }
-        assert!(sizes.len() <= 8, "{sizes:?}");
-        assert_eq!(statement_rows(100).collect::<Vec<_>>(), [64, 32, 4]);
+        assert_eq!(
+            statement_rows(Dialect::Sqlite, 100).collect::<Vec<_>>(),
+            [64, 32, 4]
+        );
         assert_eq!(placeholders(Dialect::Sqlite, 2, 2), "(?, ?), (?, ?)");
         assert_eq!(placeholders(Dialect::Postgres, 2, 2), "($1, $2), ($3, $4)");
     }

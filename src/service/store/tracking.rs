@@ -578,14 +578,14 @@ pub(super) async fn insert_run(
 /// A frame's points are those that frame made final (the tracker hands
 /// each point out once), so a frame adds rows and rewrites none; its
 /// trajectories' extents are upserted. Both in statements of at most
-/// [`super::ROWS_PER_STATEMENT`] rows ([`super::statement_chunks`]).
+/// [`super::rows_per_statement`] rows ([`super::statement_chunks`]).
 async fn insert_points(
     tx: &mut Transaction<'_, Any>,
     dialect: super::Dialect,
     id: TrackingRunId,
     points: &[PointRow],
 ) -> Result<(), sqlx::Error> {
-    for chunk in super::statement_chunks(points) {
+    for chunk in super::statement_chunks(dialect, points) {
         let sql = format!(
             "INSERT INTO trajectory_points (run_id, {POINT_COLUMNS}) VALUES {}",
             super::placeholders(dialect, chunk.len(), 17)
@@ -626,7 +626,7 @@ async fn insert_points(
         e.2 += 1;
     }
     let extents: Vec<_> = extents.into_iter().collect();
-    for chunk in super::statement_chunks(&extents) {
+    for chunk in super::statement_chunks(dialect, &extents) {
         let sql = format!(
             "INSERT INTO trajectories (run_id, id, first_frame, last_frame, length) VALUES {} \
              ON CONFLICT (run_id, id) DO UPDATE SET \
