@@ -48,10 +48,13 @@
 //! - [`selfcal`](photogrammetry::selfcal): volume self-calibration from
 //!   the particles (Wieneke 2008): wide-band matching, confident particles,
 //!   a robust bundle adjustment through the walls with the gauge fixed from
-//!   the input calibration, narrowing bands; disparity report.
+//!   the input calibration, narrowing bands; disparity report; wand
+//!   calibration on the same adjustment.
 //! - [`track`](photogrammetry::track): tracking in time (Malik et al.
 //!   1993): particles of successive frames linked into trajectories with
 //!   velocities and accelerations, and particles recovered in image space.
+//! - [`health`](photogrammetry::health): calibration health during a run:
+//!   per camera the disparity of well-matched particles, and a drift alarm.
 //! - [`background`](photogrammetry::background): a recording's background
 //!   (median or minimum per pixel over frames).
 //! - [`splitter`](photogrammetry::splitter): cameras that are views of one
@@ -70,6 +73,8 @@
 //! - [`csv`](formats::csv): the command line's point, observation, target,
 //!   particle and trajectory tables.
 //! - [`image`](formats::image): greyscale PNG, TIFF and raw buffers.
+//! - [`vtk`](formats::vtk) and [`hdf5`](formats::hdf5): particles and
+//!   trajectories for ParaView and HDF5 tools.
 //!
 //! [`plot`]: pictures of results as PNG or SVG, drawn once against one
 //! drawing interface with a raster and an SVG backend: a calibration's
