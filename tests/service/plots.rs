@@ -14,7 +14,7 @@ use serde_json::Value;
 
 use ptv::plot::overlay::{self, LEGEND, MATCHED, MATCHED_RADIUS, UNMATCHED, UNMATCHED_RADIUS};
 use ptv::plot::residuals::{ResidualLayout, ResidualReport, EXCLUDED, SENSOR, USED};
-use ptv::plot::views::{ParticlePoint, TrajectoryPoint, ViewsLayout, PANEL};
+use ptv::plot::views::{ParticlePoint, TrajectoryPoint, ViewsLayout, PANEL, VIEWS};
 use ptv::plot::{cameras_colour, WHITE};
 
 use crate::helpers::{content_type, image_form, png, raw8, rig, spawn_app, targets_form, TestApp};
@@ -611,5 +611,11 @@ pub async fn check_trajectories_picture(app: &TestApp, sequence: i64, run: i64) 
         }
     }
     let svg = svg_picture(app, &format!("{path}&format=svg")).await;
-    assert_eq!(svg.matches("<line").count(), 3 * segments);
+    // Every segment once in each of the three views, besides one tick mark
+    // per tick of each view's two axes.
+    let ticks: usize = VIEWS
+        .iter()
+        .map(|(_, a, b)| layout.ticks(*a).1.len() + layout.ticks(*b).1.len())
+        .sum();
+    assert_eq!(svg.matches("<line").count(), 3 * segments + ticks);
 }
