@@ -86,7 +86,7 @@ pub struct ProcessSequenceArgs {
     /// With --track, also export the particles and trajectories for
     /// ParaView (`vtk`: `particles.<frame>.vtp`, `trajectories.vtp` and
     /// `particles.pvd`) or as one HDF5 file (`hdf5`: `sequence.h5`), into
-    /// the output directory (see `ptv export`).
+    /// the output directory (docs/exports.md).
     #[arg(long, value_enum, requires = "track")]
     pub export: Vec<super::export::ExportFormat>,
 }

@@ -162,7 +162,11 @@ impl ViewsLayout {
         let at = |step: f64| {
             let mut ticks = Vec::new();
             let mut i = (low / step).ceil();
-            while i * step <= high && ticks.len() < 24 {
+            // At most 64 steps looked at: a step too small for the
+            // coordinates' precision (i + 1 == i) cannot loop for ever.
+            let mut looked = 0;
+            while i * step <= high && ticks.len() < 24 && looked < 64 {
+                looked += 1;
                 let value = i * step;
                 let along = (value - low) * self.scale;
                 if along >= CORNER && along <= PANEL as f64 - CORNER {

@@ -46,8 +46,9 @@
 //! and never read) ends the connection, so a client that stops reading
 //! holds its slot for that long at most; and at the limit, a connection
 //! whose write has been stalled for a second (after the idle ones) is
-//! closed to let a new one in. A slow reader that keeps reading is never
-//! cut off: every bit of progress restarts the timeout.
+//! closed to let a new one in. A slow reader that keeps reading is not
+//! cut off by the timeout (every bit of progress restarts it), only by
+//! that eviction at the limit.
 //!
 //! A request refused before its body was read (401, 404, 413, 415 ...)
 //! would leave the client's unread upload in the socket, and closing a

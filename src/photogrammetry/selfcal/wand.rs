@@ -101,8 +101,8 @@ impl WandOptions {
 /// Why a wand calibration cannot run.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum WandError {
-    /// Too few cameras.
-    #[error("wand calibration needs at least 2 cameras, the calibration has {0}")]
+    /// Too few or too many cameras.
+    #[error("wand calibration needs 2 to {max} cameras, the calibration has {0}", max = crate::photogrammetry::correspond::MAX_CAMERAS)]
     TooFewCameras(usize),
     /// A camera of the start is not a camera.
     #[error("camera {camera} of the starting calibration: {source}")]
@@ -282,7 +282,9 @@ pub fn check_inputs(
     frames: &[Vec<Vec<Target>>],
     options: &WandOptions,
 ) -> Result<(), WandError> {
-    if cameras.len() < 2 {
+    // The pairing tries 2^(cameras - 1) flips of the marks: bounded by the
+    // cameras any calibration may have.
+    if !(2..=crate::photogrammetry::correspond::MAX_CAMERAS).contains(&cameras.len()) {
         return Err(WandError::TooFewCameras(cameras.len()));
     }
     for (camera, p) in cameras.iter().enumerate() {

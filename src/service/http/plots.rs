@@ -414,7 +414,8 @@ pub async fn kept_image(
         )));
     }
     let hint = format!(
-        "its targets are at /sequences/{id}/frames/{frame}/targets?camera={}",
+        "its targets are at {}/frames/{frame}/targets?camera={}",
+        super::links::sequence(id),
         query.camera
     );
     let stored = stored_image(&state, (id, frame, query.camera), splitter.is_some(), &hint).await?;
