@@ -333,11 +333,12 @@ impl MemoryBudget {
         let permit = if mib == 0 {
             None
         } else {
-            self.waiting.fetch_add(1, Ordering::Relaxed);
+            // Counted as waiting until the permit comes or the wait is
+            // dropped (a job cancelled while it waits).
+            let _waiting = Waiting::count(&self.waiting);
             let permit = Arc::clone(&self.permits)
                 .acquire_many_owned(mib as u32)
                 .await;
-            self.waiting.fetch_sub(1, Ordering::Relaxed);
             // The semaphore is never closed.
             Some(permit.map_err(|_| JobError::Retry("the memory budget was closed".into()))?)
         };
@@ -364,6 +365,22 @@ impl MemoryBudget {
             metrics: self.metrics.clone(),
             logged,
         })
+    }
+}
+
+/// One job in the budget's `waiting` count, for as long as it lives.
+struct Waiting<'a>(&'a AtomicU64);
+
+impl<'a> Waiting<'a> {
+    fn count(waiting: &'a AtomicU64) -> Waiting<'a> {
+        waiting.fetch_add(1, Ordering::Relaxed);
+        Waiting(waiting)
+    }
+}
+
+impl Drop for Waiting<'_> {
+    fn drop(&mut self) {
+        self.0.fetch_sub(1, Ordering::Relaxed);
     }
 }
 
@@ -510,6 +527,23 @@ mod tests {
         assert_eq!(budget.available_mib(), 40);
         drop(second);
         assert_eq!(budget.available_mib(), 100);
+    }
+
+    #[tokio::test]
+    async fn a_wait_given_up_is_no_longer_counted_as_waiting() {
+        let budget = MemoryBudget::new(100, None);
+        let _held = budget
+            .acquire(&MemoryNeed::new(60 * MIB, "a"))
+            .await
+            .unwrap();
+        // A job cancelled while it waits (its future dropped at the timeout).
+        let gave_up = tokio::time::timeout(
+            Duration::from_millis(50),
+            budget.acquire(&MemoryNeed::new(60 * MIB, "b")),
+        )
+        .await;
+        assert!(gave_up.is_err());
+        assert_eq!(budget.waiting(), 0);
     }
 
     #[tokio::test]
