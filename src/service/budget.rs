@@ -156,6 +156,42 @@ pub fn background_bytes(
         .saturating_add(compressed)
 }
 
+/// The fewest frames a median background may keep when the budget is too
+/// small for more: the builder keeps between half its bound and its bound
+/// ([`crate::photogrammetry::background`]), so a bound of 6 keeps at least
+/// 3 frames, the fewest whose lower median rejects a particle that covers
+/// a pixel in one of them.
+pub const LEAST_MEDIAN_SAMPLE: u64 = 6;
+
+/// The sample bound `K` a median background of `frames` frames may use
+/// within `budget_bytes`: the largest even `K` of at most `most` whose
+/// [`background_bytes`] (with `min(frames, K)` frames kept) fits, or
+/// `None` when not even [`LEAST_MEDIAN_SAMPLE`] does. So a large sensor
+/// on a small budget gets a median of fewer frames rather than a job that
+/// can never run (issue 29: one camera at a time, `K` bounded by the
+/// memory it would need).
+pub fn median_sample_within(
+    budget_bytes: u64,
+    most: u64,
+    frames: u64,
+    view: u64,
+    image: u64,
+    sample_bytes: u64,
+    compressed: u64,
+) -> Option<u64> {
+    let fits = |k: u64| {
+        background_bytes(frames.min(k), view, image, sample_bytes, compressed) <= budget_bytes
+    };
+    let mut k = most - most % 2;
+    while k >= LEAST_MEDIAN_SAMPLE {
+        if fits(k) {
+            return Some(k);
+        }
+        k -= 2;
+    }
+    None
+}
+
 /// Most parameters one camera may have adjusted in a self-calibration:
 /// its exterior orientation (6) and every interior one OpenPTV names
 /// (xh, yh, c, k1, k2, k3, p1, p2, scx, she: 10).
@@ -499,6 +535,36 @@ mod tests {
             background_bytes(32, px, px, 2, 300_000),
             32 * px * 2 + px * 2 + 3 * px * 2 + 300_000
         );
+    }
+
+    #[test]
+    fn a_median_background_keeps_fewer_frames_on_a_small_budget() {
+        let px = 8192 * 8192;
+        let need = |k| background_bytes(k, px, px, 2, 0);
+        // The whole sample fits a large budget; a short recording keeps
+        // all its frames whatever the bound.
+        assert_eq!(
+            median_sample_within(need(32), 32, 100, px, px, 2, 0),
+            Some(32)
+        );
+        assert_eq!(
+            median_sample_within(need(10), 32, 10, px, px, 2, 0),
+            Some(32)
+        );
+        // One byte short of 32 frames: the next even bound, 30.
+        assert_eq!(
+            median_sample_within(need(32) - 1, 32, 100, px, px, 2, 0),
+            Some(30)
+        );
+        // 2 GiB holds 12 frames of 128 MiB beside the 4 images of 128 MiB.
+        assert_eq!(
+            median_sample_within(2 << 30, 32, 100, px, px, 2, 0),
+            Some(12)
+        );
+        // Less than the least sample: no median at all.
+        let least = need(LEAST_MEDIAN_SAMPLE);
+        assert_eq!(median_sample_within(least, 32, 100, px, px, 2, 0), Some(6));
+        assert_eq!(median_sample_within(least - 1, 32, 100, px, px, 2, 0), None);
     }
 
     #[tokio::test]
