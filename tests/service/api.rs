@@ -522,7 +522,7 @@ async fn openapi_document_is_committed_and_served() {
 /// job's error; a kind nobody registered fails with a message.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn job_kinds_plug_in_with_one_call() {
-    use ptv::service::jobs::{JobError, JobRun};
+    use ptv::service::ops::jobs::attempt::{JobError, JobRun};
     use ptv::service::{AppState, Application};
     use std::sync::Arc;
 
@@ -735,7 +735,7 @@ async fn a_calibration_is_solved_from_images_and_reference_points() {
 /// reading it says it is missing.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_large_file_round_trips_through_the_image_store() {
-    use ptv::service::images::{ImageStore, ImageStoreError, MULTIPART_ABOVE};
+    use ptv::service::ops::images::{ImageStore, ImageStoreError, MULTIPART_ABOVE};
     let data_dir = tempfile::tempdir().unwrap();
     let objects = object_store_args(data_dir.path());
     let images = ImageStore::open_shared(data_dir.path(), objects.location())

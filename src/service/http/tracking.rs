@@ -1,4 +1,4 @@
-//! A sequence's tracking ([`crate::service::tracking`]): its runs, a new
+//! A sequence's tracking ([`crate::service::ops::tracking`]): its runs, a new
 //! run with other settings, the finish request, and the trajectories, as
 //! CSV (the header of `ptv track`) or JSON, streamed a page of
 //! trajectories at a time.
@@ -14,20 +14,21 @@ use axum::{Json, Router};
 use serde::{Deserialize, Serialize};
 use utoipa::{IntoParams, ToSchema};
 
+use super::extract::Shared;
+use super::lookups::sequence;
 use super::problem::{ApiError, ApiJson, ApiPath, ApiQuery};
-use super::sequences::sequence;
-use super::Shared;
 use crate::formats::frames::FrameRange;
 use crate::photogrammetry::correspond::default_volume;
 use crate::photogrammetry::Volume;
-use crate::service::app::AppState;
-use crate::service::parameters::SequenceParameters;
+use crate::service::model::parameters::SequenceParameters;
+use crate::service::model::tracking_settings::TrackingSettings;
+use crate::service::ops::state::AppState;
+use crate::service::ops::tracking::kick;
 use crate::service::store::SequenceRow;
 use crate::service::store::{
     CalibrationId, FrameNumber, PointRow, SequenceId, TrackingRunId, TrackingRunRow, TrackingState,
     TrajectoryRow,
 };
-use crate::service::tracking::{kick, TrackingSettings};
 
 pub(super) fn router() -> Router<Arc<AppState>> {
     Router::new()

@@ -7,9 +7,7 @@ use super::calibrations::insert_calibration;
 use super::jobs::{enqueue, finish, ClaimedJob};
 use super::{CalibrationId, CompleteError, FrameNumber, JobId, SequenceId, Store};
 
-/// The kind of the job that re-matches a sequence's frames with a
-/// calibration (the name is the service's; the store only enqueues it).
-pub const REPROCESS_SEQUENCE: &str = "reprocess_sequence";
+use crate::service::model::job_kind::REPROCESS_SEQUENCE;
 
 /// A refined calibration to store when its self-calibration job completes.
 #[derive(Clone, Copy, Debug)]

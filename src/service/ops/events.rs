@@ -46,13 +46,38 @@ use serde::{Deserialize, Serialize};
 use tokio::sync::{broadcast, mpsc, watch, Notify};
 use utoipa::ToSchema;
 
-use super::app::AppState;
-use super::http::jobs::JobStateView;
-use super::jobs::{JobError, PROCESS_FRAME};
-use super::store::{
-    ClaimedJob, EventId, EventRow, FrameNumber, JobId, SequenceId, Store, TrackingRunId,
+use crate::service::model::job_kind::PROCESS_FRAME;
+use crate::service::ops::jobs::attempt::JobError;
+use crate::service::store::{
+    ClaimedJob, EventId, EventRow, FrameNumber, JobId, JobState, SequenceId, Store, TrackingRunId,
     MAX_ATTEMPTS,
 };
+
+/// A job's state.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, serde::Deserialize, ToSchema)]
+#[serde(rename_all = "snake_case")]
+#[schema(as = JobState)]
+pub enum JobStateView {
+    /// Waiting for a worker.
+    Queued,
+    /// A worker has it.
+    Running,
+    /// Done; its result is stored.
+    Succeeded,
+    /// Given up; `error` says why.
+    Failed,
+}
+
+impl From<JobState> for JobStateView {
+    fn from(state: JobState) -> Self {
+        match state {
+            JobState::Queued => JobStateView::Queued,
+            JobState::Running => JobStateView::Running,
+            JobState::Succeeded => JobStateView::Succeeded,
+            JobState::Failed => JobStateView::Failed,
+        }
+    }
+}
 
 /// Events a subscriber may fall behind by before it loses the oldest.
 pub const CAPACITY: usize = 1024;
@@ -466,7 +491,7 @@ impl JobOutcome {
 }
 
 /// Announces that a worker took up `job` (its claim is committed).
-pub fn job_running(state: &AppState, job: &ClaimedJob) {
+pub fn job_running(events: &Events, job: &ClaimedJob) {
     let Some((sequence_id, frame)) = subject(job) else {
         return;
     };
@@ -481,11 +506,11 @@ pub fn job_running(state: &AppState, job: &ClaimedJob) {
             state: JobStateView::Running,
         },
     };
-    state.events.send(sequence_id, change);
+    events.send(sequence_id, change);
 }
 
 /// Announces how `job`'s attempt ended, once the worker recorded it.
-pub fn job_ended(state: &AppState, job: &ClaimedJob, outcome: JobOutcome) {
+pub fn job_ended(events: &Events, job: &ClaimedJob, outcome: JobOutcome) {
     let Some((sequence_id, frame)) = subject(job) else {
         return;
     };
@@ -515,7 +540,7 @@ pub fn job_ended(state: &AppState, job: &ClaimedJob, outcome: JobOutcome) {
             },
         },
     };
-    state.events.send(sequence_id, change);
+    events.send(sequence_id, change);
 }
 
 #[cfg(test)]

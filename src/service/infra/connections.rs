@@ -84,8 +84,8 @@ use tokio::sync::{watch, Notify};
 use tokio::task::AbortHandle;
 use tower::ServiceExt;
 
-use super::config::ServeArgs;
-use super::metrics::Metrics;
+use crate::service::infra::config::ServeArgs;
+use crate::service::infra::metrics::Metrics;
 
 /// The largest request head hyper buffers (request line and header
 /// fields); the service's own limits (`http::layers`: 8 KiB of request

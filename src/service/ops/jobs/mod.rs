@@ -16,7 +16,7 @@
 //! and hands the CPU work to [`CpuPool`] (a rayon pool of the same size),
 //! never computing on the async runtime's threads. Before its work, a
 //! frame, background or calibration job takes the memory it declares
-//! from the process's budget ([`super::budget`]), waiting its turn with
+//! from the process's budget ([`crate::service::infra::budget`]), waiting its turn with
 //! its lease renewed. An idle worker polls
 //! the queue (a read) with a backoff from [`IDLE_POLL_MIN`] to
 //! [`IDLE_POLL_MAX`]; in `ptv serve` an upload also wakes it at once.
@@ -30,166 +30,50 @@
 //! Kinds today: [`PROCESS_FRAME`] ([`process_frame`]),
 //! [`SOLVE_CALIBRATION`] ([`solve_calibration`]: calibration by resection
 //! from the files of a `/calibrations/solve` request, kept in the image
-//! store and listed in `job_files`), and in [`super::selfcal`]
+//! store and listed in `job_files`), and in [`crate::service::ops::selfcal`]
 //! `self_calibrate` (a sequence's calibration refined from its stored
 //! targets) and `reprocess_sequence` (its frames matched again with
 //! another calibration).
 
 use std::collections::HashMap;
 use std::future::Future;
-use std::panic::AssertUnwindSafe;
 use std::pin::Pin;
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use serde::Deserialize;
-use tokio::sync::{oneshot, watch};
+use tokio::sync::watch;
 
-use super::app::AppState;
-use super::codec;
-use super::codec::DamagedBlob;
-use super::parameters::SequenceParameters;
-use super::parameters::SolveOptions;
-use super::store::{
-    CalibrationId, ClaimedJob, CompleteError, FrameInputKind, FrameNumber, JobFile, SequenceId,
-    Store, MAX_ATTEMPTS,
-};
+pub mod attempt;
+pub mod cache;
+pub mod pipelines;
+pub mod pool;
+
+use self::attempt::{JobError, JobRun, TimeLimit, STORAGE_FULL_PAUSE, UNAVAILABLE_PAUSE};
+use self::cache::Prepared;
+use self::pipelines::{pipeline_of, sequence_parameters};
+use self::pool::CpuError;
 use crate::formats::control::{self, OptionError};
-use crate::formats::image::RawLayout;
 use crate::formats::{self, FormatError};
 use crate::photogrammetry::calibrate::{self, CalibrationError};
 use crate::photogrammetry::correspond::{MatchError, Particle};
-use crate::photogrammetry::{
-    BitDepth, Cancel, FramePipeline, InvalidDetectionParameters, PipelineError, Splitter,
-    SplitterError,
+use crate::photogrammetry::{Cancel, InvalidDetectionParameters, PipelineError, SplitterError};
+use crate::service::infra::codec;
+use crate::service::infra::codec::DamagedBlob;
+use crate::service::model::job_kind::{PROCESS_FRAME, SOLVE_CALIBRATION};
+use crate::service::model::parameters::SolveOptions;
+use crate::service::model::raw_layout::StoredRawLayout;
+use crate::service::ops::state::AppState;
+use crate::service::store::{
+    ClaimedJob, CompleteError, FrameInputKind, FrameNumber, JobFile, SequenceId, Store,
+    MAX_ATTEMPTS,
 };
-use crate::service::config::JobLimits;
-
-/// The kind of the job that processes one uploaded frame.
-pub const PROCESS_FRAME: &str = "process_frame";
-
-/// The kind of the job that solves a calibration by resection.
-pub const SOLVE_CALIBRATION: &str = "solve_calibration";
-
-/// Why a job attempt did not succeed.
-#[derive(Debug, thiserror::Error)]
-pub enum JobError {
-    /// The job cannot succeed (bad input): it fails, with this message.
-    #[error("{0}")]
-    Failed(String),
-    /// A passing failure (I/O, database): the job is queued again, up to
-    /// [`MAX_ATTEMPTS`] claims.
-    #[error("{0}")]
-    Retry(String),
-    /// The disk is full (the database's or the image store's): not the
-    /// job's fault, so the attempt is given back uncounted and the job
-    /// queued again, however often, the worker pausing
-    /// [`STORAGE_FULL_PAUSE`] before its next claim.
-    #[error("{0}")]
-    StorageFull(String),
-    /// The database or the object store cannot be reached for now
-    /// (PostgreSQL or the S3 server restarting, the network): not the
-    /// job's fault, so the attempt is given back uncounted however often,
-    /// and the job is not claimed again for [`UNAVAILABLE_PAUSE`].
-    #[error("{0}")]
-    Unavailable(String),
-    /// The job waits for other work (its sequence's computed background):
-    /// given back uncounted, not claimed again for a while
-    /// ([`super::preprocessing::WAIT_FOR_BACKGROUND`]); the message says
-    /// what it waits for and shows as the job's `error` meanwhile.
-    #[error("{0}")]
-    Deferred(String),
-    /// The worker no longer holds the job (its lease ran out and another
-    /// worker took it): its result is dropped.
-    #[error("lost the job's lease")]
-    LostLease,
-}
-
-/// How long a worker waits after an attempt that found the disk full
-/// before it claims again (or tries again to give the job back).
-pub const STORAGE_FULL_PAUSE: Duration = Duration::from_secs(2);
-
-/// How long a job whose attempt found the database or the object store
-/// out of reach waits before it is claimed again.
-pub const UNAVAILABLE_PAUSE: Duration = Duration::from_secs(5);
-
-impl JobError {
-    /// An image store error while reading `what` (`the image of camera
-    /// 2`): out of reach, the attempt is given back; a full disk waits for
-    /// space; a missing file that a committed row names fails the job
-    /// (the store lost it: nothing a retry mends); other I/O is retried.
-    pub fn image(what: &str, error: super::images::ImageStoreError) -> JobError {
-        use super::images::ImageStoreError;
-        match error {
-            ImageStoreError::Unavailable(message) => {
-                JobError::Unavailable(format!("{what}: {message}"))
-            }
-            ImageStoreError::Io(error) if super::images::is_storage_full(&error) => {
-                JobError::StorageFull(format!("the disk is full; waiting for space: {error}"))
-            }
-            ImageStoreError::Missing { sha256 } => JobError::Failed(format!(
-                "{what} is missing from the image store (image {sha256}), although a \
-                 committed row refers to it: the store lost it"
-            )),
-            error => JobError::Retry(format!("{what}: {error}")),
-        }
-    }
-
-    /// The job cannot succeed: it fails with `error` and its causes as
-    /// its message.
-    pub fn failed(error: impl std::error::Error + 'static) -> JobError {
-        JobError::Failed(error_chain(&error))
-    }
-}
-
-impl From<sqlx::Error> for JobError {
-    /// A full disk, or a database that cannot be reached for now, is not
-    /// the job's fault: its attempt is given back uncounted
-    /// (the worker pausing before its next claim); any other database error a passing failure.
-    fn from(error: sqlx::Error) -> Self {
-        use super::store::ErrorKind;
-        match super::store::error_kind(&error) {
-            ErrorKind::StorageFull => {
-                JobError::StorageFull(format!("the disk is full; waiting for space: {error}"))
-            }
-            ErrorKind::Unavailable => JobError::Unavailable(format!(
-                "the database cannot be reached; waiting for it: {error}"
-            )),
-            ErrorKind::Other => JobError::Retry(format!("database: {error}")),
-        }
-    }
-}
-
-impl From<CompleteError> for JobError {
-    fn from(error: CompleteError) -> Self {
-        match error {
-            CompleteError::LostLease(_) => JobError::LostLease,
-            CompleteError::Database(e) => e.into(),
-        }
-    }
-}
-
-/// A claimed job and when its attempt started.
-#[derive(Clone, Debug)]
-pub struct JobRun {
-    /// The claim.
-    pub job: ClaimedJob,
-    /// When the attempt started.
-    pub started: Instant,
-}
-
-impl JobRun {
-    /// Seconds since the attempt started.
-    pub fn elapsed_s(&self) -> f64 {
-        self.started.elapsed().as_secs_f64()
-    }
-}
 
 /// The future a handler returns.
 pub type JobFuture = Pin<Box<dyn Future<Output = Result<(), JobError>> + Send>>;
 
 /// Runs one kind of job: reads the payload, does the work, and completes
-/// the job with its results in one transaction ([`super::store::finish`]).
+/// the job with its results in one transaction ([`crate::service::store::finish`]).
 pub type JobHandler = Arc<dyn Fn(Arc<AppState>, JobRun) -> JobFuture + Send + Sync>;
 
 /// The job kinds the workers run, by name.
@@ -205,12 +89,12 @@ impl JobKinds {
         kinds.register(PROCESS_FRAME, process_frame);
         kinds.register(SOLVE_CALIBRATION, solve_calibration);
         kinds.register(
-            super::selfcal::SELF_CALIBRATE,
-            super::selfcal::self_calibrate_job,
+            crate::service::ops::selfcal::SELF_CALIBRATE,
+            crate::service::ops::selfcal::self_calibrate_job,
         );
         kinds.register(
-            super::selfcal::REPROCESS_SEQUENCE,
-            super::selfcal::reprocess_sequence,
+            crate::service::ops::selfcal::REPROCESS_SEQUENCE,
+            crate::service::ops::selfcal::reprocess_sequence,
         );
         kinds
     }
@@ -230,220 +114,6 @@ impl JobKinds {
     fn get(&self, kind: &str) -> Option<&JobHandler> {
         self.handlers.get(kind)
     }
-}
-
-/// Why work handed to the [`CpuPool`] gave no result.
-#[derive(Debug, thiserror::Error)]
-pub enum CpuError {
-    /// The work panicked, with this message.
-    #[error("panicked: {0}")]
-    Panicked(String),
-    /// The pool dropped the work without running it to its end.
-    #[error("the CPU pool dropped the work")]
-    Dropped,
-    /// The work ran past its deadline and did not stop when told to.
-    #[error("ran past its time limit of {:.1} s and did not stop", .0.as_secs_f64())]
-    Overran(Duration),
-}
-
-/// How long work past its deadline gets to notice its [`Cancel`] token
-/// before the waiter sets it itself, and then to return, before the waiter
-/// gives up on it.
-const STOP_GRACE: Duration = Duration::from_secs(5);
-
-/// A bounded pool of CPU threads for detection and matching.
-#[derive(Debug)]
-pub struct CpuPool {
-    pool: rayon::ThreadPool,
-}
-
-impl CpuPool {
-    /// A pool of `threads` threads.
-    pub fn new(threads: usize) -> Result<CpuPool, rayon::ThreadPoolBuildError> {
-        let pool = rayon::ThreadPoolBuilder::new()
-            .num_threads(threads.max(1))
-            .thread_name(|i| format!("ptv-cpu-{i}"))
-            .build()?;
-        Ok(CpuPool { pool })
-    }
-
-    /// Runs `work` on the pool and waits for it without blocking the async
-    /// runtime; a panic in `work` comes back as [`CpuError::Panicked`].
-    pub async fn run<T, F>(&self, work: F) -> Result<T, CpuError>
-    where
-        T: Send + 'static,
-        F: FnOnce() -> T + Send + 'static,
-    {
-        let (sender, receiver) = oneshot::channel();
-        self.pool.spawn(move || {
-            let result = std::panic::catch_unwind(AssertUnwindSafe(work));
-            let _ = sender.send(result);
-        });
-        match receiver.await {
-            Ok(Ok(value)) => Ok(value),
-            Ok(Err(panic)) => Err(CpuError::Panicked(
-                panic
-                    .downcast_ref::<&str>()
-                    .map(|s| s.to_string())
-                    .or_else(|| panic.downcast_ref::<String>().cloned())
-                    .unwrap_or_else(|| "a panic".to_owned()),
-            )),
-            Err(_) => Err(CpuError::Dropped),
-        }
-    }
-
-    /// [`CpuPool::run`] for work that checks `cancel` (a deadline, or a
-    /// waiter that may go away): the token's deadline is its own to notice;
-    /// `STOP_GRACE` after it the token is stopped from here, and if the
-    /// work has still not returned after another grace, the wait ends with
-    /// [`CpuError::Overran`] (the thread stays busy until the work's next
-    /// check; every loop of the core checks within milliseconds).
-    pub async fn run_until<T, F>(&self, cancel: &Cancel, work: F) -> Result<T, CpuError>
-    where
-        T: Send + 'static,
-        F: FnOnce() -> T + Send + 'static,
-    {
-        let run = self.run(work);
-        tokio::pin!(run);
-        let limit = loop {
-            let Some(deadline) = cancel.deadline() else {
-                return run.await;
-            };
-            let at = tokio::time::Instant::from_std(deadline + STOP_GRACE);
-            match tokio::time::timeout_at(at, &mut run).await {
-                Ok(result) => return result,
-                // The limit grew meanwhile: wait on.
-                Err(_) if cancel.deadline() > Some(deadline) => continue,
-                Err(_) => break cancel.limit().unwrap_or_default(),
-            }
-        };
-        cancel.stop();
-        tokio::time::timeout(STOP_GRACE, &mut run)
-            .await
-            .unwrap_or(Err(CpuError::Overran(limit)))
-    }
-
-    /// [`CpuPool::run`] for work that can fail: its error, or the pool's
-    /// turned into it.
-    pub async fn try_run<T, E, F>(&self, work: F) -> Result<T, E>
-    where
-        T: Send + 'static,
-        E: From<CpuError> + Send + 'static,
-        F: FnOnce() -> Result<T, E> + Send + 'static,
-    {
-        self.run(work).await?
-    }
-}
-
-/// Prepared frame pipelines by sequence (preparing one builds the
-/// matcher's refraction tables, far more work than a frame), each with the
-/// number of the sequence's stored backgrounds and masks it was made with:
-/// a sequence's images are only ever added, so a pipeline made with fewer
-/// than there are now is stale, whoever added them and when; and with the
-/// calibration it was made with (reprocessing switches a sequence's).
-#[derive(Debug, Default)]
-pub struct PipelineCache {
-    pipelines: Mutex<HashMap<SequenceId, (CalibrationId, usize, Prepared)>>,
-}
-
-/// A sequence's prepared frame pipeline and its calibration's splitter
-/// (whether a frame is one image of several views).
-pub type Prepared = (Arc<FramePipeline>, Option<Splitter>);
-
-/// Pipelines kept at most; beyond, the cache starts afresh.
-const CACHED_PIPELINES: usize = 32;
-
-impl PipelineCache {
-    /// The sequence's pipeline, if prepared with `calibration_id` and
-    /// `images` stored backgrounds and masks.
-    pub fn get(
-        &self,
-        sequence_id: SequenceId,
-        calibration_id: CalibrationId,
-        images: usize,
-    ) -> Option<Prepared> {
-        let map = self.pipelines.lock().unwrap_or_else(|e| e.into_inner());
-        map.get(&sequence_id)
-            .filter(|(calibration, made_with, _)| {
-                *calibration == calibration_id && *made_with == images
-            })
-            .map(|(_, _, prepared)| prepared.clone())
-    }
-
-    /// Keeps a pipeline prepared with `calibration_id` and `images` stored
-    /// backgrounds and masks.
-    pub fn insert(
-        &self,
-        sequence_id: SequenceId,
-        calibration_id: CalibrationId,
-        images: usize,
-        prepared: Prepared,
-    ) {
-        let mut map = self.pipelines.lock().unwrap_or_else(|e| e.into_inner());
-        if map.len() >= CACHED_PIPELINES {
-            map.clear();
-        }
-        map.insert(sequence_id, (calibration_id, images, prepared));
-    }
-}
-
-/// Why a frame pipeline could not be prepared.
-#[derive(Debug, thiserror::Error)]
-pub enum PrepareError {
-    /// The stored calibration does not read.
-    #[error(transparent)]
-    Calibration(#[from] FormatError),
-    /// The parameters do not work with the calibration.
-    #[error(transparent)]
-    Pipeline(#[from] PipelineError),
-    /// The preparation did not finish.
-    #[error("preparing the frame pipeline {0}")]
-    Cpu(#[from] CpuError),
-}
-
-/// Prepares the frame pipeline of a calibration and parameters, on the CPU
-/// pool; not started if `cancel` fired while it waited for a thread (a
-/// request whose client has gone). The preparation itself is bounded by
-/// the cameras a calibration may have. Also the calibration's splitter.
-pub async fn prepare_pipeline(
-    state: &AppState,
-    calibration_model: &str,
-    parameters: &SequenceParameters,
-    cancel: &Cancel,
-) -> Result<(FramePipeline, Option<Splitter>), PrepareError> {
-    let (cameras, splitter) = formats::calibration::stored_from_json_with_splitter(
-        calibration_model,
-        "the stored calibration",
-    )?;
-    let detection = parameters.detection();
-    let matching = parameters.matching();
-    let cancel = cancel.clone();
-    state
-        .cpu
-        .try_run(move || {
-            cancel.check().map_err(PipelineError::from)?;
-            Ok((
-                FramePipeline::new(&cameras, &detection, &matching)?,
-                splitter,
-            ))
-        })
-        .await
-}
-
-/// An error and its sources as one line, `: `-separated, a cause the text
-/// already ends with written once.
-pub fn error_chain(error: &(dyn std::error::Error + 'static)) -> String {
-    let mut text = error.to_string();
-    let mut source = error.source();
-    while let Some(cause) = source {
-        let cause_text = cause.to_string();
-        if !text.ends_with(&cause_text) {
-            text.push_str(": ");
-            text.push_str(&cause_text);
-        }
-        source = cause.source();
-    }
-    text
 }
 
 /// Runs `workers` workers until `shutdown` turns true; each finishes its
@@ -508,7 +178,7 @@ async fn worker_loop(
     }
 }
 
-/// Renews a held job's lease every [`crate::service::config::Lease::heartbeat`]
+/// Renews a held job's lease every [`crate::service::infra::config::Lease::heartbeat`]
 /// until dropped; stops (and says so) once the job is no longer held.
 struct Heartbeat(tokio::task::JoinHandle<()>);
 
@@ -566,7 +236,7 @@ async fn execute(state: &Arc<AppState>, kinds: &JobKinds, job: ClaimedJob) {
         started: Instant::now(),
     };
     let kind = job.kind.clone();
-    super::events::job_running(state, &job);
+    crate::service::ops::events::job_running(&state.events, &job);
     let heartbeat = Heartbeat::start(state, &job);
     if let Some(delay) = fault_job_delay() {
         tokio::time::sleep(delay).await;
@@ -579,7 +249,7 @@ async fn execute(state: &Arc<AppState>, kinds: &JobKinds, job: ClaimedJob) {
     };
     drop(heartbeat);
     let seconds = run.elapsed_s();
-    let announced = super::events::JobOutcome::of(&outcome, job.attempts);
+    let announced = crate::service::ops::events::JobOutcome::of(&outcome, job.attempts);
     let fenced = |error: CompleteError| match error {
         CompleteError::LostLease(_) => tracing::warn!(
             job = %job.id,
@@ -657,7 +327,7 @@ async fn execute(state: &Arc<AppState>, kinds: &JobKinds, job: ClaimedJob) {
             }
         }
         Err(JobError::Deferred(note)) => {
-            let delay = super::preprocessing::WAIT_FOR_BACKGROUND.as_secs_f64();
+            let delay = crate::service::ops::preprocessing::WAIT_FOR_BACKGROUND.as_secs_f64();
             if let Err(error) = state.store.defer(&job, &note, delay).await {
                 fenced(error);
             }
@@ -665,12 +335,12 @@ async fn execute(state: &Arc<AppState>, kinds: &JobKinds, job: ClaimedJob) {
         }
     };
     state.metrics.job(&kind, label, seconds);
-    super::events::job_ended(state, &job, announced);
+    crate::service::ops::events::job_ended(&state.events, &job, announced);
     if kind == PROCESS_FRAME {
         // A frame done (or failed: a gap) may let its sequence's tracking
         // advance.
         if let Ok(payload) = serde_json::from_str::<FramePayload>(&job.payload) {
-            super::tracking::kick(state, payload.sequence_id);
+            crate::service::ops::tracking::kick(state, payload.sequence_id);
         }
     }
 }
@@ -680,129 +350,6 @@ async fn execute(state: &Arc<AppState>, kinds: &JobKinds, job: ClaimedJob) {
 struct FramePayload {
     sequence_id: SequenceId,
     frame: FrameNumber,
-}
-
-/// The raw layout as stored with a frame.
-#[derive(Debug, Deserialize, serde::Serialize)]
-pub struct StoredRawLayout {
-    /// Width (px).
-    pub width: u32,
-    /// Height (px).
-    pub height: u32,
-    /// 8 or 16.
-    pub bits: u32,
-}
-
-impl StoredRawLayout {
-    /// The layout for the decoder.
-    pub fn layout(&self) -> Option<RawLayout> {
-        Some(RawLayout {
-            width: self.width,
-            height: self.height,
-            bit_depth: BitDepth::from_bits(self.bits)?,
-        })
-    }
-}
-
-/// A sequence's stored parameters.
-pub(super) async fn sequence_parameters(
-    state: &AppState,
-    sequence_id: SequenceId,
-) -> Result<SequenceParameters, JobError> {
-    let sequence = state
-        .store
-        .sequence(sequence_id)
-        .await?
-        .ok_or_else(|| JobError::Failed(format!("sequence {sequence_id} does not exist")))?;
-    serde_json::from_str(&sequence.parameters)
-        .map_err(|e| JobError::Failed(format!("the sequence's stored parameters: {e}")))
-}
-
-/// The sequence's pipeline, from the cache or prepared now, with its
-/// backgrounds and masks.
-pub(super) async fn pipeline_of(
-    state: &AppState,
-    sequence_id: SequenceId,
-    calibration_id: CalibrationId,
-) -> Result<Prepared, JobError> {
-    let images = state.store.sequence_images(sequence_id).await?;
-    if let Some(prepared) = state
-        .pipelines
-        .get(sequence_id, calibration_id, images.len())
-    {
-        return Ok(prepared);
-    }
-    let count = images.len();
-    let parameters = sequence_parameters(state, sequence_id).await?;
-    let calibration = state
-        .store
-        .calibration(calibration_id)
-        .await?
-        .ok_or_else(|| JobError::Failed(format!("calibration {calibration_id} does not exist")))?;
-    let (pipeline, splitter) =
-        prepare_pipeline(state, &calibration.model, &parameters, &Cancel::new())
-            .await
-            .map_err(JobError::failed)?;
-    let pipeline =
-        Arc::new(super::preprocessing::with_stored_images(state, images, pipeline).await?);
-    let prepared = (pipeline, splitter);
-    state
-        .pipelines
-        .insert(sequence_id, calibration_id, count, prepared.clone());
-    Ok(prepared)
-}
-
-/// Expected single-core time to decode and detect one pixel (ns): `ptv
-/// detect` on a 1280x1024 8-bit PNG takes 30-50 ms with process start-up
-/// in the dev profile (at most 25 ns a pixel), a release build less.
-const NS_PER_PIXEL: f64 = 25.0;
-
-/// Expected single-core time to match one target (ns): 4 cameras of 10,000
-/// targets match in about 40 ms (`benches/correspond.rs`), 1 us per target,
-/// doubled for denser frames.
-const NS_PER_TARGET: f64 = 2_000.0;
-
-/// A job's time limit from its size (`--job-timeout-secs`,
-/// `--job-timeout-factor`): the floor plus the factor times the expected
-/// single-core time of its pixels and targets.
-#[derive(Clone, Copy, Debug)]
-pub struct TimeLimit {
-    floor_secs: f64,
-    factor: f64,
-}
-
-impl TimeLimit {
-    /// The service's settings.
-    pub fn of(limits: &JobLimits) -> TimeLimit {
-        TimeLimit {
-            floor_secs: limits.floor_secs.max(0.0),
-            factor: limits.factor.max(0.0),
-        }
-    }
-
-    /// The limit for work on `pixels` pixels and `targets` targets.
-    pub fn for_work(&self, pixels: u64, targets: u64) -> Duration {
-        let expected = (pixels as f64 * NS_PER_PIXEL + targets as f64 * NS_PER_TARGET) * 1e-9;
-        Duration::try_from_secs_f64(self.floor_secs + self.factor * expected)
-            .unwrap_or(Duration::MAX)
-    }
-
-    /// The limit for work expected to take `seconds` on one core.
-    pub fn for_expected(&self, seconds: f64) -> Duration {
-        Duration::try_from_secs_f64(self.floor_secs + self.factor * seconds.max(0.0))
-            .unwrap_or(Duration::MAX)
-    }
-
-    /// The rule, for messages.
-    fn describe(&self, pixels: u64, targets: u64) -> String {
-        format!(
-            "{:.1} s = --job-timeout-secs {} + --job-timeout-factor {} x the expected {:.2} s              for {pixels} pixels and {targets} targets",
-            self.for_work(pixels, targets).as_secs_f64(),
-            self.floor_secs,
-            self.factor,
-            (pixels as f64 * NS_PER_PIXEL + targets as f64 * NS_PER_TARGET) * 1e-9,
-        )
-    }
 }
 
 /// Why a frame could not be processed.
@@ -836,7 +383,7 @@ pub enum FrameError {
 /// carries.
 async fn frame_work(
     state: &AppState,
-    input: &super::store::FrameInput,
+    input: &crate::service::store::FrameInput,
     (pipeline, splitter): &Prepared,
     limit: &TimeLimit,
     cancel: &Cancel,
@@ -965,22 +512,22 @@ async fn frame_work(
 }
 
 /// What a frame job needs of the memory budget
-/// ([`super::budget::frame_need`]): its cameras' views detected one at a
+/// ([`crate::service::infra::budget::frame_need`]): its cameras' views detected one at a
 /// time (none for uploaded targets) and their targets matched.
 fn frame_need(
-    input: &super::store::FrameInput,
+    input: &crate::service::store::FrameInput,
     (pipeline, splitter): &Prepared,
-) -> super::budget::MemoryNeed {
+) -> crate::service::infra::budget::MemoryNeed {
     let views: Vec<(u32, u32)> = pipeline
         .cameras()
         .iter()
         .map(|c| (c.sensor().width, c.sensor().height))
         .collect();
     if input.input != FrameInputKind::Images {
-        return super::budget::frame_need(&views, None, false);
+        return crate::service::infra::budget::frame_need(&views, None, false);
     }
     let image = splitter.and_then(|s| views.first().and_then(|&(w, h)| s.image_size(w, h)));
-    super::budget::frame_need(&views, image, true)
+    crate::service::infra::budget::frame_need(&views, image, true)
 }
 
 /// The process_frame job: the frame's images (or uploaded targets) to
@@ -1010,7 +557,7 @@ pub async fn process_frame(state: Arc<AppState>, run: JobRun) -> Result<(), JobE
                 .iter()
                 .map(|c| (c.sensor().width, c.sensor().height))
                 .collect();
-            super::preprocessing::ensure_computed_background(
+            crate::service::ops::preprocessing::ensure_computed_background(
                 &state,
                 input.sequence_id,
                 computed,
@@ -1206,10 +753,10 @@ pub fn solve(
 
 /// What a solve_calibration job needs of the memory budget: its images
 /// decoded all at once (2 bytes a sample at most) and the largest one's
-/// marks detected ([`super::budget::DETECT_BYTES_PER_PIXEL`]), from the
+/// marks detected ([`crate::service::infra::budget::DETECT_BYTES_PER_PIXEL`]), from the
 /// images' headers; an image whose header does not read fails later in
 /// [`solve`] with the reason.
-fn solve_need(files: &[(JobFile, Vec<u8>)]) -> super::budget::MemoryNeed {
+fn solve_need(files: &[(JobFile, Vec<u8>)]) -> crate::service::infra::budget::MemoryNeed {
     let pixels: Vec<u64> = files
         .iter()
         .filter(|(file, _)| file.part == "image")
@@ -1219,12 +766,10 @@ fn solve_need(files: &[(JobFile, Vec<u8>)]) -> super::budget::MemoryNeed {
         .map(|header| u64::from(header.width) * u64::from(header.height))
         .collect();
     let largest = pixels.iter().copied().max().unwrap_or(0);
-    let bytes = pixels
-        .iter()
-        .sum::<u64>()
-        .saturating_mul(2)
-        .saturating_add(largest.saturating_mul(super::budget::DETECT_BYTES_PER_PIXEL));
-    super::budget::MemoryNeed::new(
+    let bytes = pixels.iter().sum::<u64>().saturating_mul(2).saturating_add(
+        largest.saturating_mul(crate::service::infra::budget::DETECT_BYTES_PER_PIXEL),
+    );
+    crate::service::infra::budget::MemoryNeed::new(
         bytes,
         format!(
             "solving a calibration from {} image(s) of {} pixels in all",
@@ -1275,7 +820,7 @@ pub async fn solve_calibration(state: Arc<AppState>, run: JobRun) -> Result<(), 
 /// checked under the image store's lock against what is committed.
 pub(super) async fn remove_unused_images(
     store: &Store,
-    images: &super::images::ImageStore,
+    images: &crate::service::ops::images::ImageStore,
     hashes: &[String],
 ) {
     if hashes.is_empty() {
