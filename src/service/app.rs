@@ -18,8 +18,8 @@ use crate::service::infra::metrics::Metrics;
 use crate::service::infra::process::{host_name, process_exists};
 use crate::service::ops::events;
 use crate::service::ops::images::{ImageStore, SweepError, SWEEP_INTERVAL};
+use crate::service::ops::jobs;
 use crate::service::ops::jobs::pool::CpuPool;
-use crate::service::ops::jobs::{self, JobKinds};
 use crate::service::ops::state::AppState;
 use crate::service::store::{self, Store};
 use crate::service::{http, ServiceError};
@@ -33,7 +33,6 @@ pub struct Application {
     listener: TcpListener,
     connections: Arc<Registry>,
     state: Arc<AppState>,
-    kinds: JobKinds,
 }
 
 impl Application {
@@ -75,7 +74,6 @@ impl Application {
             listener,
             connections,
             state,
-            kinds: JobKinds::standard(),
         })
     }
 
@@ -87,12 +85,6 @@ impl Application {
     /// What handlers and workers share (the store, to enqueue jobs).
     pub fn state(&self) -> Arc<AppState> {
         self.state.clone()
-    }
-
-    /// The job kinds the workers run; register new kinds here before
-    /// [`Application::run_until`].
-    pub fn kinds_mut(&mut self) -> &mut JobKinds {
-        &mut self.kinds
     }
 
     /// Serves until `shutdown` completes: then stops taking connections,
@@ -107,10 +99,9 @@ impl Application {
             listener,
             connections,
             state,
-            kinds,
         } = self;
         let (stop_workers, stopped) = watch::channel(false);
-        let workers = start_workers(&state, kinds, stopped);
+        let workers = start_workers(&state, stopped);
         tokio::spawn(events::follow(state.events.clone(), state.store.clone()));
         let sweeper = tokio::spawn(sweep_every(state.clone(), SWEEP_INTERVAL));
         let router = http::router(state.clone());
@@ -247,11 +238,10 @@ async fn open_and_reap(config: &ServeArgs, readers: u32) -> Result<Store, Servic
 /// work, left to the processes that have workers).
 fn start_workers(
     state: &Arc<AppState>,
-    kinds: JobKinds,
     stopped: watch::Receiver<bool>,
 ) -> tokio::task::JoinSet<()> {
     let count = state.config.worker_count();
-    let workers = jobs::spawn_workers(state.clone(), kinds, count, stopped.clone());
+    let workers = jobs::spawn_workers(state.clone(), count, stopped.clone());
     if count > 0 {
         tracing::info!(
             memory_budget_mib = state.budget.total_mib(),
@@ -292,7 +282,6 @@ async fn drain(state: &AppState, mut workers: tokio::task::JoinSet<()>) {
 /// IMMEDIATE`; with `--database postgres://...` they may run on any host).
 pub async fn run_worker(
     args: WorkerArgs,
-    kinds: JobKinds,
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> Result<(), ServiceError> {
     let config = args.serve_args();
@@ -311,7 +300,7 @@ pub async fn run_worker(
     tracing::info!(instance = %state.instance, workers, "worker started");
     // Its changes reach the serving processes' streams through the log.
     let (stop_workers, stopped) = watch::channel(false);
-    let running = start_workers(&state, kinds, stopped);
+    let running = start_workers(&state, stopped);
     shutdown.await;
     let _ = stop_workers.send(true);
     drain(&state, running).await;

@@ -128,11 +128,7 @@ pub fn run(args: ServeArgs, stdout: &mut dyn Write) -> Result<(), ServiceError> 
 
 /// Runs `ptv worker` until SIGINT or SIGTERM (see [`app::run_worker`]).
 pub fn run_worker(args: WorkerArgs) -> Result<(), ServiceError> {
-    runtime()?.block_on(app::run_worker(
-        args,
-        ops::jobs::JobKinds::standard(),
-        shutdown_signal(),
-    ))
+    runtime()?.block_on(app::run_worker(args, shutdown_signal()))
 }
 
 /// Completes at the first SIGINT (Ctrl-C) or SIGTERM.

@@ -19,7 +19,7 @@ use super::upload::{accepted, check_images, or_drain, persist_and_commit, stream
 use crate::formats::{self, control, openptv::OriTexts};
 use crate::photogrammetry::calibrate;
 use crate::photogrammetry::{intersect, Camera, Cancel, Observation, Sensor, Splitter, StopOnDrop};
-use crate::service::model::job_kind::SOLVE_CALIBRATION;
+use crate::service::model::job_kind::JobKind;
 use crate::service::model::parameters::SolveOptions;
 use crate::service::ops::images::UploadedFile;
 use crate::service::ops::jobs::{part_source, SolvePayload};
@@ -788,7 +788,7 @@ pub async fn solve(
     let job_id = persist_and_commit(&state, uploads, || {
         state
             .store
-            .enqueue_with_files(SOLVE_CALIBRATION, &payload, &files)
+            .enqueue_with_files(JobKind::SolveCalibration.as_str(), &payload, &files)
     })
     .await?;
     let body = SolveAccepted {

@@ -16,10 +16,11 @@ use super::lookups::sequence;
 use super::problem::{ApiError, ApiJson, ApiPath};
 use super::upload::accepted;
 use crate::formats;
+use crate::service::model::job_kind::JobKind;
 use crate::service::model::parameters::SequenceParameters;
 use crate::service::ops::links;
 use crate::service::ops::selfcal::{
-    SelfCalibrationPayload, SelfCalibrationRequest, SelfCalibrationRequestError, SELF_CALIBRATE,
+    SelfCalibrationPayload, SelfCalibrationRequest, SelfCalibrationRequestError,
 };
 use crate::service::ops::state::AppState;
 use crate::service::store::{CalibrationId, JobId, SequenceId};
@@ -105,7 +106,10 @@ pub async fn self_calibrate(
         calibration_id: calibration.id,
         options: request,
     })?;
-    let job_id = state.store.enqueue(SELF_CALIBRATE, &payload).await?;
+    let job_id = state
+        .store
+        .enqueue(JobKind::SelfCalibrate.as_str(), &payload)
+        .await?;
     Ok(accepted(
         &state,
         job_id,

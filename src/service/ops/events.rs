@@ -46,7 +46,7 @@ use serde::{Deserialize, Serialize};
 use tokio::sync::{broadcast, mpsc, watch, Notify};
 use utoipa::ToSchema;
 
-use crate::service::model::job_kind::PROCESS_FRAME;
+use crate::service::model::job_kind::JobKind;
 use crate::service::ops::jobs::attempt::JobError;
 use crate::service::store::{
     ClaimedJob, EventId, EventRow, FrameNumber, JobId, JobState, SequenceId, Store, TrackingRunId,
@@ -495,8 +495,8 @@ pub fn job_running(events: &Events, job: &ClaimedJob) {
     let Some((sequence_id, frame)) = subject(job) else {
         return;
     };
-    let change = match (job.kind.as_str(), frame) {
-        (PROCESS_FRAME, Some(frame)) => Change::FrameRunning {
+    let change = match (job.kind.parse::<JobKind>(), frame) {
+        (Ok(JobKind::ProcessFrame), Some(frame)) => Change::FrameRunning {
             frame,
             job_id: job.id,
         },
@@ -514,25 +514,29 @@ pub fn job_ended(events: &Events, job: &ClaimedJob, outcome: JobOutcome) {
     let Some((sequence_id, frame)) = subject(job) else {
         return;
     };
-    let change = match (job.kind.as_str(), frame, outcome) {
+    let change = match (job.kind.parse::<JobKind>(), frame, outcome) {
         (_, _, JobOutcome::Lost) => return,
-        (PROCESS_FRAME, Some(frame), JobOutcome::Succeeded) => Change::FrameProcessed {
+        (Ok(JobKind::ProcessFrame), Some(frame), JobOutcome::Succeeded) => Change::FrameProcessed {
             frame,
             job_id: job.id,
         },
-        (PROCESS_FRAME, Some(frame), JobOutcome::Failed(error)) => Change::FrameFailed {
-            frame,
+        (Ok(JobKind::ProcessFrame), Some(frame), JobOutcome::Failed(error)) => {
+            Change::FrameFailed {
+                frame,
+                job_id: job.id,
+                error,
+            }
+        }
+        (Ok(JobKind::ProcessFrame), Some(frame), JobOutcome::Requeued(reason)) => {
+            Change::FrameRequeued {
+                frame,
+                job_id: job.id,
+                reason,
+            }
+        }
+        (_, _, outcome) => Change::Job {
             job_id: job.id,
-            error,
-        },
-        (PROCESS_FRAME, Some(frame), JobOutcome::Requeued(reason)) => Change::FrameRequeued {
-            frame,
-            job_id: job.id,
-            reason,
-        },
-        (kind, _, outcome) => Change::Job {
-            job_id: job.id,
-            kind: kind.to_owned(),
+            kind: job.kind.clone(),
             state: match outcome {
                 JobOutcome::Succeeded => JobStateView::Succeeded,
                 JobOutcome::Failed(_) => JobStateView::Failed,

@@ -1,7 +1,7 @@
 //! Self-calibration of a sequence's calibration from its stored targets,
 //! and reprocessing of its frames with another calibration (issue 14).
 //!
-//! - [`SELF_CALIBRATE`] ([`self_calibrate_job`]): the targets of the
+//! - [`JobKind::SelfCalibrate`](crate::service::model::job_kind::JobKind::SelfCalibrate) ([`self_calibrate_job`]): the targets of the
 //!   sequence's frames in the asked range, stored by their frame jobs
 //!   (detected or uploaded), go through
 //!   [`crate::photogrammetry::selfcal::self_calibrate`] (Wieneke 2008: match
@@ -13,7 +13,7 @@
 //!   job; with `reprocess`, the same transaction switches the sequence to
 //!   it and enqueues its reprocess job. A diverged adjustment stores
 //!   nothing: the job fails saying why, and the input calibration stays.
-//! - [`REPROCESS_SEQUENCE`] ([`reprocess_sequence`]): every processed frame
+//! - [`JobKind::ReprocessSequence`](crate::service::model::job_kind::JobKind::ReprocessSequence) ([`reprocess_sequence`]): every processed frame
 //!   whose particles another calibration made is matched again from its
 //!   stored targets (no detection) with the sequence's pipeline for the new
 //!   calibration, its particles replaced in one statement per frame (the
@@ -40,8 +40,6 @@ use crate::service::store::{
 
 use crate::photogrammetry::selfcal::{self, Outcome, SelfCalibrationError, SelfCalibrationOptions};
 use crate::photogrammetry::{Camera, CameraParameters, Cancel, Target, Volume};
-
-pub use crate::service::model::job_kind::{REPROCESS_SEQUENCE, SELF_CALIBRATE};
 
 /// Most frames one self-calibration reads (their targets are held in
 /// memory together: 1,000 frames of 4 cameras x 10,000 targets is 1.6 GB).

@@ -351,7 +351,7 @@ impl Store {
             serde_json::json!({"sequence_id": frame.sequence_id, "frame": frame.frame}).to_string();
         let job_id = enqueue(
             &mut tx,
-            crate::service::model::job_kind::PROCESS_FRAME,
+            crate::service::model::job_kind::JobKind::ProcessFrame.as_str(),
             &payload,
         )
         .await?;

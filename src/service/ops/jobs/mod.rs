@@ -5,8 +5,9 @@
 //! RETURNING` in one write transaction; see the store's `jobs` module),
 //! and completed in the same transaction that stores their results,
 //! fenced by the claim's token, so a job's results exist exactly once.
-//! Each kind of job is a [`JobHandler`] registered in [`JobKinds`] under
-//! its name; the workers do not know the kinds.
+//! Each kind of job is a [`JobKind`]; a worker parses the claimed row's
+//! kind and runs its function by `match` (a kind this release does not
+//! know fails the job with a message).
 //!
 //! Workers are async tasks, one per `--workers`, in `ptv serve` or in any
 //! number of `ptv worker` processes on the same data directory. Each
@@ -27,17 +28,14 @@
 //! the reaper ([`Store::reap`]) ends at once the leases of processes of
 //! this host that no longer exist.
 //!
-//! Kinds today: [`PROCESS_FRAME`] ([`process_frame`]),
-//! [`SOLVE_CALIBRATION`] ([`solve_calibration`]: calibration by resection
+//! Kinds today: [`JobKind::ProcessFrame`] ([`process_frame`]),
+//! [`JobKind::SolveCalibration`] ([`solve_calibration`]: calibration by resection
 //! from the files of a `/calibrations/solve` request, kept in the image
 //! store and listed in `job_files`), and in [`crate::service::ops::selfcal`]
 //! `self_calibrate` (a sequence's calibration refined from its stored
 //! targets) and `reprocess_sequence` (its frames matched again with
 //! another calibration).
 
-use std::collections::HashMap;
-use std::future::Future;
-use std::pin::Pin;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -60,79 +58,27 @@ use crate::photogrammetry::correspond::{MatchError, Particle};
 use crate::photogrammetry::{Cancel, InvalidDetectionParameters, PipelineError, SplitterError};
 use crate::service::infra::codec;
 use crate::service::infra::codec::DamagedBlob;
-use crate::service::model::job_kind::{PROCESS_FRAME, SOLVE_CALIBRATION};
+use crate::service::model::job_kind::JobKind;
 use crate::service::model::parameters::SolveOptions;
 use crate::service::model::raw_layout::StoredRawLayout;
+use crate::service::ops::selfcal;
 use crate::service::ops::state::AppState;
 use crate::service::store::{
     ClaimedJob, CompleteError, FrameInputKind, FrameNumber, JobFile, SequenceId, Store,
     MAX_ATTEMPTS,
 };
 
-/// The future a handler returns.
-pub type JobFuture = Pin<Box<dyn Future<Output = Result<(), JobError>> + Send>>;
-
-/// Runs one kind of job: reads the payload, does the work, and completes
-/// the job with its results in one transaction ([`crate::service::store::finish`]).
-pub type JobHandler = Arc<dyn Fn(Arc<AppState>, JobRun) -> JobFuture + Send + Sync>;
-
-/// The job kinds the workers run, by name.
-#[derive(Clone, Default)]
-pub struct JobKinds {
-    handlers: HashMap<&'static str, JobHandler>,
-}
-
-impl JobKinds {
-    /// The kinds the service has today.
-    pub fn standard() -> JobKinds {
-        let mut kinds = JobKinds::default();
-        kinds.register(PROCESS_FRAME, process_frame);
-        kinds.register(SOLVE_CALIBRATION, solve_calibration);
-        kinds.register(
-            crate::service::ops::selfcal::SELF_CALIBRATE,
-            crate::service::ops::selfcal::self_calibrate_job,
-        );
-        kinds.register(
-            crate::service::ops::selfcal::REPROCESS_SEQUENCE,
-            crate::service::ops::selfcal::reprocess_sequence,
-        );
-        kinds
-    }
-
-    /// Registers a kind: `handler(state, run)`.
-    pub fn register<F, Fut>(&mut self, kind: &'static str, handler: F)
-    where
-        F: Fn(Arc<AppState>, JobRun) -> Fut + Send + Sync + 'static,
-        Fut: Future<Output = Result<(), JobError>> + Send + 'static,
-    {
-        self.handlers.insert(
-            kind,
-            Arc::new(move |state, run| Box::pin(handler(state, run))),
-        );
-    }
-
-    fn get(&self, kind: &str) -> Option<&JobHandler> {
-        self.handlers.get(kind)
-    }
-}
-
 /// Runs `workers` workers until `shutdown` turns true; each finishes its
 /// running job first.
 pub fn spawn_workers(
     state: Arc<AppState>,
-    kinds: JobKinds,
     workers: usize,
     shutdown: watch::Receiver<bool>,
 ) -> tokio::task::JoinSet<()> {
     let mut set = tokio::task::JoinSet::new();
     for index in 0..workers {
         let worker = format!("{}/{index}", state.instance);
-        set.spawn(worker_loop(
-            state.clone(),
-            kinds.clone(),
-            worker,
-            shutdown.clone(),
-        ));
+        set.spawn(worker_loop(state.clone(), worker, shutdown.clone()));
     }
     set
 }
@@ -143,12 +89,7 @@ pub const IDLE_POLL_MIN: Duration = Duration::from_millis(50);
 /// The longest: the wait doubles while the queue stays empty.
 pub const IDLE_POLL_MAX: Duration = Duration::from_secs(1);
 
-async fn worker_loop(
-    state: Arc<AppState>,
-    kinds: JobKinds,
-    worker: String,
-    mut shutdown: watch::Receiver<bool>,
-) {
+async fn worker_loop(state: Arc<AppState>, worker: String, mut shutdown: watch::Receiver<bool>) {
     let mut idle = IDLE_POLL_MIN;
     loop {
         if *shutdown.borrow() {
@@ -161,7 +102,7 @@ async fn worker_loop(
         {
             Ok(Some(job)) => {
                 idle = IDLE_POLL_MIN;
-                execute(&state, &kinds, job).await;
+                execute(&state, job).await;
             }
             Ok(None) => {
                 tokio::select! {
@@ -230,7 +171,7 @@ fn fault_job_delay() -> Option<Duration> {
 
 /// Runs one claimed job, its lease renewed meanwhile, and records its
 /// outcome (fenced on the claim's token).
-async fn execute(state: &Arc<AppState>, kinds: &JobKinds, job: ClaimedJob) {
+async fn execute(state: &Arc<AppState>, job: ClaimedJob) {
     let run = JobRun {
         job: job.clone(),
         started: Instant::now(),
@@ -241,11 +182,14 @@ async fn execute(state: &Arc<AppState>, kinds: &JobKinds, job: ClaimedJob) {
     if let Some(delay) = fault_job_delay() {
         tokio::time::sleep(delay).await;
     }
-    let outcome = match kinds.get(&kind) {
-        Some(handler) => handler(state.clone(), run.clone()).await,
-        None => Err(JobError::Failed(format!(
-            "this service does not know jobs of kind `{kind}`"
-        ))),
+    let outcome = match kind.parse::<JobKind>() {
+        Ok(JobKind::ProcessFrame) => process_frame(state.clone(), run.clone()).await,
+        Ok(JobKind::SolveCalibration) => solve_calibration(state.clone(), run.clone()).await,
+        Ok(JobKind::SelfCalibrate) => selfcal::self_calibrate_job(state.clone(), run.clone()).await,
+        Ok(JobKind::ReprocessSequence) => {
+            selfcal::reprocess_sequence(state.clone(), run.clone()).await
+        }
+        Err(unknown) => Err(JobError::Failed(unknown.to_string())),
     };
     drop(heartbeat);
     let seconds = run.elapsed_s();
@@ -336,7 +280,7 @@ async fn execute(state: &Arc<AppState>, kinds: &JobKinds, job: ClaimedJob) {
     };
     state.metrics.job(&kind, label, seconds);
     crate::service::ops::events::job_ended(&state.events, &job, announced);
-    if kind == PROCESS_FRAME {
+    if kind == JobKind::ProcessFrame.as_str() {
         // A frame done (or failed: a gap) may let its sequence's tracking
         // advance.
         if let Ok(payload) = serde_json::from_str::<FramePayload>(&job.payload) {
