@@ -22,7 +22,7 @@ use crate::photogrammetry::{intersect, Camera, Cancel, Observation, Sensor, Spli
 use crate::service::model::job_kind::JobKind;
 use crate::service::model::parameters::SolveOptions;
 use crate::service::ops::images::UploadedFile;
-use crate::service::ops::jobs::{part_source, SolvePayload};
+use crate::service::ops::jobs::solve::{part_source, SolvePayload};
 use crate::service::ops::links;
 use crate::service::ops::state::AppState;
 use crate::service::store::{CalibrationId, CalibrationRow, JobFile, JobId};

@@ -740,6 +740,33 @@ impl Drop for Upload {
     }
 }
 
+/// Deletes the files of `hashes` that nothing refers to any more, each
+/// checked under the image store's lock against what is committed.
+pub async fn remove_unused_images(store: &Store, images: &ImageStore, hashes: &[String]) {
+    if hashes.is_empty() {
+        return;
+    }
+    let _guard = match images.lock(store).await {
+        Ok(guard) => guard,
+        Err(error) => {
+            // The files stay; the next sweep removes them.
+            tracing::warn!(%error, "cannot lock the image store to delete unused files");
+            return;
+        }
+    };
+    for hash in hashes {
+        match store.image_in_use(hash).await {
+            Ok(false) => {
+                if let Err(error) = images.remove(hash).await {
+                    tracing::warn!(%error, hash, "cannot delete an image file");
+                }
+            }
+            Ok(true) => {}
+            Err(error) => tracing::warn!(%error, "cannot check an image's use"),
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

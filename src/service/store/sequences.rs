@@ -497,7 +497,7 @@ impl Store {
     /// removal of the frame's image rows. Returns the hashes of the removed
     /// rows: their files go where nothing else refers to them, which the
     /// caller checks after the commit under the image store's lock
-    /// (`jobs::remove_unused_images`). A check here, inside the
+    /// (`images::remove_unused_images`). A check here, inside the
     /// transaction, would miss on PostgreSQL (read committed) when two
     /// frames of the same images complete at once: each would still see
     /// the other's rows, and neither delete the file.
