@@ -67,7 +67,7 @@ fn runtime() -> tokio::runtime::Runtime {
 }
 
 fn main() {
-    ptv::service::connections::raise_open_file_limit();
+    ptv::service::infra::connections::raise_open_file_limit();
     let args: Vec<String> = std::env::args().collect();
     if args.get(1).map(String::as_str) == Some("--hold") {
         let count = args[2].parse().unwrap();

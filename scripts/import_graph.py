@@ -2,6 +2,7 @@
 """The import graph of ptv's sources, from their `use` lines.
 
     python3 scripts/import_graph.py [FOLDER ...]      # default: src/service
+    python3 scripts/import_graph.py src/service --floors app,http,ops,store,model,infra
 
 A file is a node (its module: `src/service/http/mod.rs` is
 `crate::service::http`); an arrow A -> B means a `use` in A names an item
@@ -17,6 +18,18 @@ floors are the longest-path layering of the graph once a feedback arc set
 the arrows of that set are the ones that point up. Each is listed as
 `from -> to (names)`, so that a restructuring can be checked by rerunning
 this before and after it.
+
+With `--floors A,B,...` (highest first) each file is on the floor of the
+first folder below the FOLDER that holds it (a file directly in the
+FOLDER is on floor `A` if A is not a folder there, e.g. `app` for
+`app.rs` and `mod.rs`); an arrow from a lower floor to a higher one is
+listed as `against the floors`. A floor may import its own floor and
+those below it.
+
+Re-exports: a module's `pub use` of an item of its own sub-module is
+followed to the sub-module that defines it, and is no arrow of the
+parent's unless the parent's own code names the item. In an inline module
+(`mod tests { ... }`) `super` names the file's own module.
 """
 
 import re
@@ -41,11 +54,33 @@ def strip_comments(text: str) -> str:
     return re.sub(r"//[^\n]*", "", text)
 
 
+def inline_depth(text: str):
+    """For each offset, how many inline modules (`mod tests { ... }`) it is
+    in: there `super` names the file's own module, not its parent."""
+    depth = [0] * (len(text) + 1)
+    starts = [m.end() - 1 for m in re.finditer(r"\bmod\s+\w+\s*\{", text)]
+    for start in starts:
+        level, i = 0, start
+        while i < len(text):
+            if text[i] == "{":
+                level += 1
+            elif text[i] == "}":
+                level -= 1
+                if level == 0:
+                    break
+            i += 1
+        for j in range(start, min(i + 1, len(text))):
+            depth[j] += 1
+    return depth
+
+
 def use_statements(text: str):
-    """The bodies of the `use` statements (`pub use`, `pub(crate) use` too)."""
-    for match in re.finditer(r"(?:^|[;{}\s])(?:pub(?:\([^)]*\))?\s+)?use\s+([^;]+);", text):
-        body = re.sub(r"\s+as\s+\w+", "", match.group(1))
-        yield re.sub(r"\s+", "", body)
+    """The `use` statements (`pub use`, `pub(crate) use` too): their
+    bodies, whether they are `pub`, and their inline-module depth."""
+    depth = inline_depth(text)
+    for match in re.finditer(r"(?:^|[;{}\s])((?:pub(?:\([^)]*\))?\s+)?)use\s+([^;]+);", text):
+        body = re.sub(r"\s+as\s+\w+", "", match.group(2))
+        yield re.sub(r"\s+", "", body), bool(match.group(1)), depth[match.start(2)]
 
 
 def expand(tree: str) -> list:
@@ -78,19 +113,24 @@ def expand(tree: str) -> list:
     return [tree]
 
 
-def resolve(path: str, here: tuple, modules: set):
-    """The file module a `use` path names, or None (std, other crates)."""
+def resolve(path: str, here: tuple, modules: set, inline: int = 0):
+    """The file module a `use` path names, or None (std, other crates).
+    `inline`: how many inline modules of the file (`mod tests { ... }`)
+    the path is written in; each takes one `super` (and `self` there names
+    the inline module, which is part of the file)."""
     segments = [s for s in path.split("::") if s]
     if not segments:
         return None
     if segments[0] == "crate":
         base, rest = (), segments[1:]
     elif segments[0] in ("super", "self"):
-        base = here
-        rest = segments
+        base, rest = here, segments
         while rest and rest[0] in ("super", "self"):
             if rest[0] == "super":
-                base = base[:-1]
+                if inline:
+                    inline -= 1
+                else:
+                    base = base[:-1]
             rest = rest[1:]
     elif segments[0] == "ptv":
         base, rest = (), segments[1:]
@@ -101,6 +141,16 @@ def resolve(path: str, here: tuple, modules: set):
         if full[:n] in modules:
             return full[:n]
     return None
+
+
+def through_reexports(target: tuple, name: str, reexports: dict) -> tuple:
+    """Where `name`, taken from `target`, is defined: a module's `pub use`
+    of an item of its own sub-module is followed to that sub-module."""
+    seen = set()
+    while (target, name) in reexports and (target, name) not in seen:
+        seen.add((target, name))
+        target = reexports[(target, name)]
+    return target
 
 
 def feedback_arcs(nodes, edges):
@@ -175,8 +225,23 @@ def cycles(nodes, edges):
     return found
 
 
+def floor_of(path: Path, folder: Path, floors: list):
+    """The floor a file stands on (see the module docs)."""
+    parts = path.relative_to(folder).parts
+    if len(parts) > 1 and parts[0] in floors:
+        return parts[0]
+    stem = Path(parts[0]).stem
+    return stem if stem in floors else floors[0]
+
+
 def main():
-    folders = [ROOT / f for f in (sys.argv[1:] or ["src/service"])]
+    args = sys.argv[1:]
+    floors = []
+    if "--floors" in args:
+        i = args.index("--floors")
+        floors = args[i + 1].split(",")
+        args = args[:i] + args[i + 2 :]
+    folders = [ROOT / f for f in (args or ["src/service"])]
     files = sorted(p for p in SRC.rglob("*.rs"))
     modules = {module_of(p): p for p in files}
     chosen = {
@@ -184,17 +249,52 @@ def main():
         for p in files
         if any(folder == p or folder in p.parents for folder in folders)
     }
+    # A module's `pub use` of an item of its own sub-module (a facade:
+    # `pub use self::calibrations::CalibrationRow;` in store/mod.rs) is
+    # followed: importing the item through the parent is an arrow to the
+    # sub-module that defines it, and the re-export itself is no arrow of
+    # the parent's unless the parent's own code names the item.
+    known = set(modules)
+    texts = {m: strip_comments(modules[m].read_text()) for m in modules}
+    statements = {m: list(use_statements(texts[m])) for m in modules}
+    reexports = {}
+    for module, found in statements.items():
+        for body, public, inline in found:
+            if not public or inline:
+                continue
+            for path in expand(body):
+                target = resolve(path, module, known)
+                name = path.split("::")[-1]
+                if target and target[: len(module)] == module and target != module and name != "*":
+                    reexports[(module, name)] = target
     edges, names = set(), defaultdict(set)
     for module in sorted(chosen):
-        text = strip_comments(modules[module].read_text())
-        paths = [p for statement in use_statements(text) for p in expand(statement)]
+        text = texts[module]
+        code = re.sub(r"(?:pub(?:\([^)]*\))?\s+)?use\s+[^;]+;", "", text)
+        depth = inline_depth(text)
+        paths = []
+        for body, public, inline in statements[module]:
+            for path in expand(body):
+                name = path.split("::")[-1]
+                if (
+                    public
+                    and (module, name) in reexports
+                    and not re.search(r"\b%s\b" % re.escape(name), code)
+                ):
+                    continue  # a facade's re-export, not used by its own code
+                paths.append((path, inline))
         # Paths written inline (`crate::service::jobs::PROCESS_FRAME`).
-        paths += re.findall(r"(?<![\w:])(?:crate|super)(?:::\w+)+", text)
-        for path in paths:
-            target = resolve(path, module, set(modules))
-            if target and target != module and target in chosen:
+        for match in re.finditer(r"(?<![\w:])(?:crate|super)(?:::\w+)+", text):
+            paths.append((match.group(0), depth[match.start()]))
+        for path, inline in paths:
+            target = resolve(path, module, known, inline)
+            if target is None:
+                continue
+            name = path.split("::")[-1]
+            target = through_reexports(target, name, reexports)
+            if target != module and target in chosen:
                 edges.add((module, target))
-                names[(module, target)].add(path.split("::")[-1])
+                names[(module, target)].add(name)
     up = feedback_arcs(chosen, edges)
     loops = cycles(chosen, edges)
     show = lambda m: str(modules[m].relative_to(ROOT))
@@ -207,6 +307,21 @@ def main():
         print("  cycle: " + ", ".join(show(m) for m in component))
     for a, b in sorted(up, key=lambda e: (show(e[0]), show(e[1]))):
         print(f"  up: {show(a)} -> {show(b)} ({', '.join(sorted(names[(a, b)]))})")
+    if floors:
+        folder = folders[0]
+        level = {}
+        for m in chosen:
+            level[m] = floor_of(modules[m], folder, floors)
+        against = sorted(
+            (show(a), show(b), names[(a, b)])
+            for a, b in edges
+            if floors.index(level[a]) > floors.index(level[b])
+        )
+        count = {f: sum(1 for m in chosen if level[m] == f) for f in floors}
+        print("floors: " + ", ".join(f"{f} ({count[f]} files)" for f in floors))
+        print(f"arrows against the floors: {len(against)}")
+        for a, b, n in against:
+            print(f"  against: {a} -> {b} ({', '.join(sorted(n))})")
 
 
 if __name__ == "__main__":

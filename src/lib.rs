@@ -97,21 +97,17 @@
 //! - [`http`](service::http): the API under `/api/v1`, one router per
 //!   resource; the one error type, problem+json; the one multipart upload
 //!   path; the tower layers every request passes through.
-//! - [`jobs`](service::jobs), [`tracking`](service::tracking),
-//!   [`selfcal`](service::selfcal),
-//!   [`preprocessing`](service::preprocessing): the workers (leased jobs
-//!   on a CPU pool: frames, solves, self-calibration, reprocessing), the
-//!   tracking runs, backgrounds and masks.
+//! - [`ops`](service::ops): what handlers and workers both call: the
+//!   shared state, the job runtime and its kinds (frames, solves,
+//!   self-calibration, reprocessing, backgrounds and masks), the tracking
+//!   runs, the event log and its streams, the stored images.
 //! - [`store`](service::store): all SQL, one text per query for both
-//!   engines, one file per table group, with the typed ids.
-//! - [`images`](service::images): stored files, content-addressed, on disk
-//!   or in S3.
-//! - [`budget`](service::budget), [`connections`](service::connections),
-//!   [`metrics`](service::metrics), [`events`](service::events): the memory
-//!   budget, HTTP/1.1 within a connection limit, `/metrics`, the event log
-//!   and its streams.
-//! - [`config`](service::config) and [`app`](service::app): the flags, and
-//!   start-up, serving and shutdown.
+//!   engines, one file per table group.
+//! - [`model`](service::model): the types the rows carry (typed ids, a
+//!   sequence's parameters, tracking settings, job kinds).
+//! - [`infra`](service::infra): the flags, HTTP/1.1 within a connection
+//!   limit, the memory budget, `/metrics`, the blob codec.
+//! - [`app`](service::app): start-up, serving and shutdown.
 //!
 //! `ARCHITECTURE.md` has the layering rule and the invariants.
 

@@ -22,12 +22,12 @@ impl Server {
     pub async fn start(data_dir: &Path, workers: Option<usize>, database: Option<&str>) -> Server {
         let args = ServeArgs {
             bind: "127.0.0.1:0".parse().unwrap(),
-            storage: ptv::service::config::Storage {
+            storage: ptv::service::infra::config::Storage {
                 data_dir: data_dir.to_owned(),
                 database: database.map(|url| url.parse().expect("a postgres:// URL")),
                 // As `ptv serve` reads them: images in an object store when
                 // PTV_OBJECT_STORE is set (endpoint: AWS_ENDPOINT_URL).
-                objects: ptv::service::config::ObjectStoreArgs {
+                objects: ptv::service::infra::config::ObjectStoreArgs {
                     url: std::env::var("PTV_OBJECT_STORE")
                         .ok()
                         .map(|url| url.parse().expect("PTV_OBJECT_STORE is s3://bucket/prefix")),
@@ -35,11 +35,11 @@ impl Server {
                 },
                 // `--fsync` as `ptv serve` reads PTV_FSYNC (the worker
                 // processes inherit it).
-                durability: ptv::service::config::Durability {
+                durability: ptv::service::infra::config::Durability {
                     fsync: std::env::var("PTV_FSYNC")
                         .is_ok_and(|v| !matches!(v.as_str(), "" | "0" | "false" | "no" | "off")),
                 },
-                database_wait_secs: ptv::service::config::Storage::DATABASE_WAIT_SECS,
+                database_wait_secs: ptv::service::infra::config::Storage::DATABASE_WAIT_SECS,
             },
             workers,
             max_upload_mb: 256,

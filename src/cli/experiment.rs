@@ -30,7 +30,7 @@ use super::{write_stderr_line, CliError};
 use crate::formats::experiment::{read_experiment, UnmappedSetting};
 use crate::formats::{self, FormatError};
 use crate::photogrammetry::Splitter;
-use crate::service::parameters::{experiment_settings, DetectionSettings, MatchingSettings};
+use crate::service::model::parameters::{experiment_settings, DetectionSettings, MatchingSettings};
 
 /// The `experiment` subcommands.
 #[derive(Debug, Subcommand)]

@@ -665,11 +665,7 @@ impl Rows {
         let cameras = self.camera_count.unwrap_or(0);
         let mut text = String::new();
         if !self.header_written {
-            text.push_str("trajectory,frame,x,y,z,u,v,w,ax,ay,az,su,sv,sw,cameras");
-            for c in 0..cameras {
-                let _ = write!(text, ",t{c}");
-            }
-            text.push('\n');
+            text.push_str(&formats::csv::trajectory_header(cameras));
             self.header_written = true;
         }
         for p in points {
@@ -719,47 +715,16 @@ impl Rows {
                     },
                 );
             }
-            let _ = write!(
-                text,
-                "{},{},{:?},{:?},{:?},{:?},{:?},{:?}",
-                p.trajectory,
-                p.frame,
-                p.position.x,
-                p.position.y,
-                p.position.z,
-                d.velocity.x,
-                d.velocity.y,
-                d.velocity.z
-            );
-            match d.acceleration {
-                Some(a) => {
-                    let _ = write!(text, ",{:?},{:?},{:?}", a.x, a.y, a.z);
-                }
-                None => text.push_str(",,,"),
-            }
-            let s = d.velocity_sigma;
-            let _ = write!(text, ",{:?},{:?},{:?}", s.x, s.y, s.z);
-            match Some(row) {
-                Some(row) if cameras > 0 => {
-                    let seen = row.targets.iter().flatten().count();
-                    let _ = write!(text, ",{seen}");
-                    for t in &row.targets {
-                        match t {
-                            Some(t) => {
-                                let _ = write!(text, ",{t}");
-                            }
-                            None => text.push_str(",-1"),
-                        }
-                    }
-                }
-                _ => {
-                    text.push(',');
-                    for _ in 0..cameras {
-                        text.push(',');
-                    }
-                }
-            }
-            text.push('\n');
+            let point = formats::csv::TrajectoryPointLine {
+                trajectory: p.trajectory as i64,
+                frame: p.frame,
+                position: [p.position.x, p.position.y, p.position.z],
+                velocity: Some([d.velocity.x, d.velocity.y, d.velocity.z]),
+                acceleration: d.acceleration.map(|a| [a.x, a.y, a.z]),
+                velocity_sigma: Some([d.velocity_sigma.x, d.velocity_sigma.y, d.velocity_sigma.z]),
+                targets: (cameras > 0).then_some(&row.targets[..]),
+            };
+            formats::csv::write_trajectory_point(&mut text, &point, cameras);
         }
         // A trajectory whose last point is before every held frame (and
         // not just before the oldest, whose point may still link back) has

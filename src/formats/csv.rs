@@ -397,6 +397,78 @@ pub fn format_intersections(points: &[(u64, Intersection)]) -> String {
     text
 }
 
+/// The columns of a trajectories table before the per-camera target
+/// columns `t0,t1,...`.
+pub const TRAJECTORY_COLUMNS: &str = "trajectory,frame,x,y,z,u,v,w,ax,ay,az,su,sv,sw,cameras";
+
+/// The header line of a trajectories table for `cameras` cameras, as
+/// `ptv track` writes it and the service serves it, with its line break.
+pub fn trajectory_header(cameras: usize) -> String {
+    let mut line = String::from(TRAJECTORY_COLUMNS);
+    for c in 0..cameras {
+        let _ = write!(line, ",t{c}");
+    }
+    line.push('\n');
+    line
+}
+
+/// One point of a trajectories table.
+#[derive(Clone, Copy, Debug)]
+pub struct TrajectoryPointLine<'a> {
+    /// The trajectory's number.
+    pub trajectory: i64,
+    /// The frame.
+    pub frame: i64,
+    /// Position (mm).
+    pub position: [f64; 3],
+    /// Velocity (mm per frame); written as `NaN` where the fit gives none.
+    pub velocity: Option<[f64; 3]>,
+    /// Acceleration (mm per frame²); empty fields where there is none.
+    pub acceleration: Option<[f64; 3]>,
+    /// The velocity's standard deviations; `NaN` where there are none.
+    pub velocity_sigma: Option<[f64; 3]>,
+    /// The particle's target per camera (`-1` where it has none): the
+    /// `cameras` count and the `tC` columns; `None` leaves them all empty.
+    pub targets: Option<&'a [Option<usize>]>,
+}
+
+/// Appends a point of a trajectories table of `cameras` cameras, numbers
+/// as `{:?}` writes them (shortest round trip), with its line break.
+pub fn write_trajectory_point(out: &mut String, p: &TrajectoryPointLine<'_>, cameras: usize) {
+    let [x, y, z] = p.position;
+    let _ = write!(out, "{},{},{x:?},{y:?},{z:?}", p.trajectory, p.frame);
+    let [u, v, w] = p.velocity.unwrap_or([f64::NAN; 3]);
+    let _ = write!(out, ",{u:?},{v:?},{w:?}");
+    match p.acceleration {
+        Some([a, b, c]) => {
+            let _ = write!(out, ",{a:?},{b:?},{c:?}");
+        }
+        None => out.push_str(",,,"),
+    }
+    let [su, sv, sw] = p.velocity_sigma.unwrap_or([f64::NAN; 3]);
+    let _ = write!(out, ",{su:?},{sv:?},{sw:?}");
+    match p.targets {
+        Some(targets) => {
+            let _ = write!(out, ",{}", targets.iter().flatten().count());
+            for t in targets {
+                match t {
+                    Some(t) => {
+                        let _ = write!(out, ",{t}");
+                    }
+                    None => out.push_str(",-1"),
+                }
+            }
+        }
+        None => {
+            out.push(',');
+            for _ in 0..cameras {
+                out.push(',');
+            }
+        }
+    }
+    out.push('\n');
+}
+
 /// The columns of a particles table before the per-camera target columns
 /// `t0,t1,...`.
 pub const PARTICLE_COLUMNS: [&str; 8] = ["x", "y", "z", "sx", "sy", "sz", "rms_px", "cameras"];

@@ -10,92 +10,29 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use tokio::net::TcpListener;
-use tokio::sync::{watch, Notify};
+use tokio::sync::watch;
 
-use super::budget::MemoryBudget;
-use super::config::{ServeArgs, WorkerArgs};
-use super::connections::{self, Registry};
-use super::events;
-use super::images::{ImageStore, SweepError, SWEEP_INTERVAL};
-use super::jobs::{self, CpuPool, JobKinds, PipelineCache};
-use super::metrics::Metrics;
-use super::store::{self, Store, WorkerId};
-use super::{http, ServiceError};
+use crate::service::infra::config::{ServeArgs, WorkerArgs};
+use crate::service::infra::connections::{self, Registry};
+use crate::service::infra::metrics::Metrics;
+use crate::service::infra::process::{host_name, process_exists};
+use crate::service::ops::events;
+use crate::service::ops::images::{ImageStore, SweepError, SWEEP_INTERVAL};
+use crate::service::ops::jobs;
+use crate::service::ops::jobs::pool::CpuPool;
+use crate::service::ops::state::AppState;
+use crate::service::store::{self, Store};
+use crate::service::{http, ServiceError};
 
 /// How long a shutdown waits for running jobs before returning them to the
 /// queue.
 const SHUTDOWN_GRACE: Duration = Duration::from_secs(30);
-
-/// What handlers and workers share.
-#[derive(Debug)]
-pub struct AppState {
-    /// The settings.
-    pub config: ServeArgs,
-    /// The database.
-    pub store: Store,
-    /// The image files.
-    pub images: ImageStore,
-    /// The CPU threads.
-    pub cpu: CpuPool,
-    /// The memory the jobs of this process may hold at once.
-    pub budget: MemoryBudget,
-    /// The sequences whose background a worker of this process computes.
-    pub computing: super::preprocessing::Computing,
-    /// Prepared pipelines by sequence.
-    pub pipelines: PipelineCache,
-    /// Counters for /metrics.
-    pub metrics: Arc<Metrics>,
-    /// Wakes a waiting worker of this process when a job is enqueued
-    /// (workers in other processes poll).
-    pub wake: Notify,
-    /// This process's name in job claims and leases
-    /// (`HOST:PID:RANDOM`, [`WorkerId`]).
-    pub instance: String,
-    /// The tracking runs' trackers.
-    pub trackers: super::tracking::Trackers,
-    /// Live progress for `GET /sequences/{id}/events`.
-    pub events: super::events::Events,
-}
-
-impl AppState {
-    /// The state of a process (`ptv serve` or `ptv worker`) on its opened
-    /// stores, with empty caches and its own worker name, and the recorder
-    /// of its events running (`service::events`; it ends with the
-    /// runtime).
-    fn start(
-        config: ServeArgs,
-        store: Store,
-        images: ImageStore,
-        cpu: CpuPool,
-        metrics: Arc<Metrics>,
-    ) -> Arc<AppState> {
-        let budget =
-            MemoryBudget::new(config.job_limits.memory_budget_mib(), Some(metrics.clone()));
-        let state = Arc::new(AppState {
-            config,
-            store,
-            images,
-            cpu,
-            budget,
-            computing: Default::default(),
-            pipelines: PipelineCache::default(),
-            metrics,
-            wake: Notify::new(),
-            instance: WorkerId::instance(&host_name()),
-            trackers: Default::default(),
-            events: Default::default(),
-        });
-        tokio::spawn(events::record(state.events.clone(), state.store.clone()));
-        state
-    }
-}
 
 /// The built service, bound and ready to run.
 pub struct Application {
     listener: TcpListener,
     connections: Arc<Registry>,
     state: Arc<AppState>,
-    kinds: JobKinds,
 }
 
 impl Application {
@@ -137,7 +74,6 @@ impl Application {
             listener,
             connections,
             state,
-            kinds: JobKinds::standard(),
         })
     }
 
@@ -149,12 +85,6 @@ impl Application {
     /// What handlers and workers share (the store, to enqueue jobs).
     pub fn state(&self) -> Arc<AppState> {
         self.state.clone()
-    }
-
-    /// The job kinds the workers run; register new kinds here before
-    /// [`Application::run_until`].
-    pub fn kinds_mut(&mut self) -> &mut JobKinds {
-        &mut self.kinds
     }
 
     /// Serves until `shutdown` completes: then stops taking connections,
@@ -169,10 +99,9 @@ impl Application {
             listener,
             connections,
             state,
-            kinds,
         } = self;
         let (stop_workers, stopped) = watch::channel(false);
-        let workers = start_workers(&state, kinds, stopped);
+        let workers = start_workers(&state, stopped);
         tokio::spawn(events::follow(state.events.clone(), state.store.clone()));
         let sweeper = tokio::spawn(sweep_every(state.clone(), SWEEP_INTERVAL));
         let router = http::router(state.clone());
@@ -309,18 +238,17 @@ async fn open_and_reap(config: &ServeArgs, readers: u32) -> Result<Store, Servic
 /// work, left to the processes that have workers).
 fn start_workers(
     state: &Arc<AppState>,
-    kinds: JobKinds,
     stopped: watch::Receiver<bool>,
 ) -> tokio::task::JoinSet<()> {
     let count = state.config.worker_count();
-    let workers = jobs::spawn_workers(state.clone(), kinds, count, stopped.clone());
+    let workers = jobs::spawn_workers(state.clone(), count, stopped.clone());
     if count > 0 {
         tracing::info!(
             memory_budget_mib = state.budget.total_mib(),
             "jobs run within a memory budget of {} MiB (--memory-budget-mb)",
             state.budget.total_mib()
         );
-        super::tracking::spawn_tracking(state.clone(), stopped);
+        crate::service::ops::tracking::spawn_tracking(state.clone(), stopped);
     }
     workers
 }
@@ -354,7 +282,6 @@ async fn drain(state: &AppState, mut workers: tokio::task::JoinSet<()>) {
 /// IMMEDIATE`; with `--database postgres://...` they may run on any host).
 pub async fn run_worker(
     args: WorkerArgs,
-    kinds: JobKinds,
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> Result<(), ServiceError> {
     let config = args.serve_args();
@@ -373,43 +300,10 @@ pub async fn run_worker(
     tracing::info!(instance = %state.instance, workers, "worker started");
     // Its changes reach the serving processes' streams through the log.
     let (stop_workers, stopped) = watch::channel(false);
-    let running = start_workers(&state, kinds, stopped);
+    let running = start_workers(&state, stopped);
     shutdown.await;
     let _ = stop_workers.send(true);
     drain(&state, running).await;
     state.store.close().await;
     Ok(())
-}
-
-/// This host's name, as leases name their owners' hosts.
-pub fn host_name() -> String {
-    std::fs::read_to_string("/proc/sys/kernel/hostname")
-        .ok()
-        .or_else(|| std::env::var("HOSTNAME").ok())
-        .map(|name| name.trim().to_owned())
-        .filter(|name| !name.is_empty())
-        .unwrap_or_else(|| "localhost".to_owned())
-}
-
-/// Whether a process of this host runs with this id (signal 0); where
-/// this cannot be told, it is assumed to run (its leases then run out).
-pub(crate) fn process_exists(pid: u32) -> bool {
-    #[cfg(unix)]
-    {
-        let Some(pid) = i32::try_from(pid)
-            .ok()
-            .and_then(rustix::process::Pid::from_raw)
-        else {
-            return false;
-        };
-        match rustix::process::test_kill_process(pid) {
-            Ok(()) => true,
-            Err(error) => error != rustix::io::Errno::SRCH,
-        }
-    }
-    #[cfg(not(unix))]
-    {
-        let _ = pid;
-        true
-    }
 }

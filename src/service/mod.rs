@@ -2,57 +2,42 @@
 //! with a pool of workers, and SQLite (or PostgreSQL) plus an image
 //! directory for storage.
 //!
-//! - [`config`]: `ptv serve`'s flags (each also an environment variable).
+//! Floors, each importing only its own and those below it (checked by
+//! `python3 scripts/import_graph.py src/service --floors
+//! app,http,ops,store,model,infra`):
+//!
 //! - [`app`]: builds the service from its settings, binds, serves until a
 //!   shutdown signal, drains the workers; `ptv worker`'s loop without HTTP.
-//! - [`connections`]: serves HTTP/1.1 with hyper within a connection limit
-//!   (the longest-idle connection makes room for a new one) and closes a
-//!   connection whose upload was refused unread by lingering.
 //! - [`http`]: axum routers per resource under `/api/v1`, one error type
 //!   rendered as RFC 9457 problem+json, the OpenAPI document and docs page,
 //!   and the tower layers every request passes through.
-//! - [`events`]: live progress, a sequence's changes broadcast to its
-//!   event streams (server-sent events).
-//! - [`jobs`]: the workers, the job kinds, the CPU pool.
-//! - [`budget`]: the workers' memory budget, each job's declared need.
+//! - [`ops`]: what handlers and workers both call: the shared state, the
+//!   workers and the job kinds, the CPU pool, self-calibration,
+//!   backgrounds, live tracking, the event streams, the stored images.
 //! - [`store`]: all SQL, one text per query for SQLite (WAL mode, the
 //!   default) and PostgreSQL (`--database`); migrations in `migrations/`.
-//! - [`images`]: uploaded images as content-addressed files, in the data
-//!   directory or an S3-compatible object store (`--object-store`).
-//! - [`codec`]: the compact blobs in which targets and particles are stored.
-//! - [`parameters`]: a sequence's detection and matching parameters.
-//! - [`metrics`]: the counters behind `/metrics`.
-//! - [`selfcal`]: a sequence's calibration refined from its stored targets
-//!   (self-calibration), and its frames reprocessed with another one.
-//! - [`tracking`]: a sequence's frames linked into trajectories as they
-//!   complete, in frame order; the tracker rebuilt by replay after a
-//!   restart.
+//! - [`model`]: the types rows carry: typed ids, a sequence's parameters,
+//!   tracking settings, the stored raw layout, the job kinds.
+//! - [`infra`]: `ptv serve`'s flags, HTTP/1.1 connections within a limit,
+//!   the memory budget, the counters behind `/metrics`, the blob codec,
+//!   file locks, error and process helpers.
 //!
 //! The core ([`crate::photogrammetry`]) knows nothing of this module.
 
 pub mod app;
-pub mod budget;
-pub mod codec;
-pub mod config;
-pub mod connections;
-pub mod events;
-pub mod file_lock;
 pub mod http;
-pub mod images;
-pub mod jobs;
-pub mod metrics;
-pub mod parameters;
-pub mod preprocessing;
-pub mod selfcal;
+pub mod infra;
+pub mod model;
+pub mod ops;
 pub mod store;
-pub mod tracking;
 
 use std::io::Write;
 use std::net::SocketAddr;
 use std::path::Path;
 
-pub use app::{AppState, Application};
-pub use config::{JobLimits, Lease, ServeArgs, Timeouts, WorkerArgs};
+pub use app::Application;
+pub use infra::config::{JobLimits, Lease, ServeArgs, Timeouts, WorkerArgs};
+pub use ops::state::AppState;
 
 /// Why the service could not start or stopped with an error.
 #[derive(Debug, thiserror::Error)]
@@ -88,7 +73,7 @@ pub enum ServiceError {
     /// be written, an object store that cannot be reached or refuses the
     /// credentials).
     #[error("{0}")]
-    Images(#[source] images::ImageStoreError),
+    Images(#[source] ops::images::ImageStoreError),
     /// The address could not be bound.
     #[error("cannot listen on {0}: {1}")]
     Bind(SocketAddr, #[source] std::io::Error),
@@ -143,11 +128,7 @@ pub fn run(args: ServeArgs, stdout: &mut dyn Write) -> Result<(), ServiceError> 
 
 /// Runs `ptv worker` until SIGINT or SIGTERM (see [`app::run_worker`]).
 pub fn run_worker(args: WorkerArgs) -> Result<(), ServiceError> {
-    runtime()?.block_on(app::run_worker(
-        args,
-        jobs::JobKinds::standard(),
-        shutdown_signal(),
-    ))
+    runtime()?.block_on(app::run_worker(args, shutdown_signal()))
 }
 
 /// Completes at the first SIGINT (Ctrl-C) or SIGTERM.

@@ -12,7 +12,7 @@ use std::path::{Path, PathBuf};
 
 use ptv::formats::{calibration, image::read_image, openptv, vtk};
 use ptv::photogrammetry::{Centroid, GreyPixels, Splitter};
-use ptv::service::parameters::{DetectionSettings, MatchingSettings};
+use ptv::service::model::parameters::{DetectionSettings, MatchingSettings};
 use serde_json::Value;
 
 use crate::common::{fails, ptv, text};

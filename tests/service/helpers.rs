@@ -42,10 +42,10 @@ pub struct TestApp {
 pub fn test_args(data_dir: &Path, api_token: Option<&str>) -> ServeArgs {
     ServeArgs {
         bind: "127.0.0.1:0".parse().unwrap(),
-        storage: ptv::service::config::Storage {
+        storage: ptv::service::infra::config::Storage {
             database: crate::postgres::database_url(data_dir).map(|url| url.parse().unwrap()),
             objects: object_store_args(data_dir),
-            ..ptv::service::config::Storage::in_directory(data_dir)
+            ..ptv::service::infra::config::Storage::in_directory(data_dir)
         },
         workers: Some(2),
         max_upload_mb: 64,
@@ -204,9 +204,9 @@ impl Drop for S3Server {
 }
 
 /// The object store settings of an in-process server on `data_dir`.
-pub fn object_store_args(data_dir: &Path) -> ptv::service::config::ObjectStoreArgs {
+pub fn object_store_args(data_dir: &Path) -> ptv::service::infra::config::ObjectStoreArgs {
     let url = object_store_url(data_dir);
-    ptv::service::config::ObjectStoreArgs {
+    ptv::service::infra::config::ObjectStoreArgs {
         s3_endpoint: url.as_ref().map(|_| s3_server().endpoint.clone()),
         url: url.map(|url| url.parse().unwrap()),
     }
@@ -231,7 +231,7 @@ pub fn object_store_flags(data_dir: &Path) -> Vec<String> {
 /// the test bucket's prefix).
 pub async fn stored_images(data_dir: &Path) -> Vec<String> {
     let args = object_store_args(data_dir);
-    let store = ptv::service::images::ImageStore::open_shared(data_dir, args.location())
+    let store = ptv::service::ops::images::ImageStore::open_shared(data_dir, args.location())
         .await
         .expect("the image store opens");
     let mut stored = store.stored().await.expect("the image store lists");

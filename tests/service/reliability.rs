@@ -719,7 +719,7 @@ async fn an_object_store_outage_during_uploads_loses_no_accepted_frame() {
 /// second process waits until the first lets go.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_image_lock_holds_across_hosts() {
-    use ptv::service::images::ImageStore;
+    use ptv::service::ops::images::ImageStore;
     use std::time::Duration;
     let (first_dir, other_dir) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
     // SQLite's processes share one host, and so one data directory.

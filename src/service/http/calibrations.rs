@@ -13,17 +13,18 @@ use nalgebra::Point2;
 use serde::{Deserialize, Serialize};
 use utoipa::ToSchema;
 
-use super::links;
+use super::extract::Shared;
 use super::problem::{parse_json, ApiError, ApiJson, ApiMultipart, ApiPath, ApiQuery, JsonText};
 use super::upload::{accepted, check_images, or_drain, persist_and_commit, stream_part, text_part};
-use super::Shared;
 use crate::formats::{self, control, openptv::OriTexts};
 use crate::photogrammetry::calibrate;
 use crate::photogrammetry::{intersect, Camera, Cancel, Observation, Sensor, Splitter, StopOnDrop};
-use crate::service::app::AppState;
-use crate::service::images::UploadedFile;
-use crate::service::jobs::{part_source, SolvePayload, SOLVE_CALIBRATION};
-use crate::service::parameters::SolveOptions;
+use crate::service::model::job_kind::JobKind;
+use crate::service::model::parameters::SolveOptions;
+use crate::service::ops::images::UploadedFile;
+use crate::service::ops::jobs::solve::{part_source, SolvePayload};
+use crate::service::ops::links;
+use crate::service::ops::state::AppState;
 use crate::service::store::{CalibrationId, CalibrationRow, JobFile, JobId};
 
 /// Largest OpenPTV text file accepted (bytes).
@@ -152,7 +153,7 @@ pub struct CalibrationList {
 /// and reports: `GET /calibrations/{id}` has those).
 #[utoipa::path(
     get, path = "/api/v1/calibrations", tag = "calibrations",
-    params(super::PageQuery),
+    params(super::extract::PageQuery),
     responses(
         (status = 200, body = CalibrationList),
         (status = 400, description = "A bad query", body = super::problem::Problem, content_type = "application/problem+json"),
@@ -160,7 +161,7 @@ pub struct CalibrationList {
 )]
 pub async fn list(
     State(state): Shared,
-    ApiQuery(query): ApiQuery<super::PageQuery>,
+    ApiQuery(query): ApiQuery<super::extract::PageQuery>,
 ) -> Result<Json<CalibrationList>, ApiError> {
     let limit = query.limit()?;
     let rows = state
@@ -787,7 +788,7 @@ pub async fn solve(
     let job_id = persist_and_commit(&state, uploads, || {
         state
             .store
-            .enqueue_with_files(SOLVE_CALIBRATION, &payload, &files)
+            .enqueue_with_files(JobKind::SolveCalibration.as_str(), &payload, &files)
     })
     .await?;
     let body = SolveAccepted {

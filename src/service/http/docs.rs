@@ -13,8 +13,8 @@ use super::{
     calibrations, events, experiments, jobs, plots, problem, selfcal, sequence_images, sequences,
     tracking,
 };
-use crate::service::app::AppState;
-use crate::service::parameters;
+use crate::service::model::parameters;
+use crate::service::ops::state::AppState;
 
 /// The API's description.
 #[derive(OpenApi)]
@@ -61,14 +61,14 @@ use crate::service::parameters;
         plots::kept_image,
         jobs::read,
         jobs::retry,
-        super::healthz,
-        super::readyz,
-        super::metrics,
+        super::health::healthz,
+        super::health::readyz,
+        super::health::metrics,
     ),
     components(schemas(
         problem::Problem,
-        crate::service::events::SequenceEvent,
-        crate::service::events::Change,
+        crate::service::ops::events::SequenceEvent,
+        crate::service::ops::events::Change,
         events::Snapshot,
         events::Lagged,
         parameters::DetectionSettings,
@@ -76,9 +76,9 @@ use crate::service::parameters;
         parameters::SequenceParameters,
         parameters::ComputedBackground,
         parameters::SolveOptions,
-        crate::service::selfcal::SelfCalibrationRequest,
-        crate::service::selfcal::FrameSpan,
-        crate::service::tracking::TrackingSettings,
+        crate::service::ops::selfcal::SelfCalibrationRequest,
+        crate::service::ops::selfcal::FrameSpan,
+        crate::service::model::tracking_settings::TrackingSettings,
         crate::formats::calibration::CalibrationFile,
         crate::formats::calibration::CameraJson,
         crate::formats::calibration::MediaJson,

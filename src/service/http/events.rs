@@ -1,6 +1,6 @@
 //! `/sequences/{id}/events`: a sequence's live progress as server-sent
 //! events (the WHATWG HTML standard's `text/event-stream`), from
-//! [`crate::service::events`].
+//! [`crate::service::ops::events`].
 //!
 //! Each event is `id:` (the event's id in the event log), `event:` (the
 //! change's `type`) and `data:` (the change as one line of JSON, with
@@ -37,11 +37,12 @@ use serde::Serialize;
 use tokio::sync::broadcast::error::RecvError;
 use utoipa::ToSchema;
 
+use super::extract::Shared;
+use super::lookups::sequence;
 use super::problem::{ApiError, ApiPath};
-use super::sequences::{sequence, FrameCountsView};
-use super::Shared;
-use crate::service::app::AppState;
-use crate::service::events::{logged, SequenceEvent};
+use super::sequences::FrameCountsView;
+use crate::service::ops::events::{logged, SequenceEvent};
+use crate::service::ops::state::AppState;
 use crate::service::store::{EventId, SequenceId};
 
 /// How often an idle stream sends a comment line.

@@ -35,19 +35,19 @@ use serde::Serialize;
 use tokio::io::AsyncWriteExt;
 use utoipa::ToSchema;
 
-use super::links;
+use super::extract::Shared;
 use super::problem::{ApiError, ApiMultipart};
 use super::upload::{check_images, or_drain, persist_and_commit, text_part};
-use super::Shared;
 use crate::formats;
 use crate::formats::experiment::{
     read_experiment_from, Experiment, ExperimentError, ExperimentFiles, UploadedFiles,
 };
 use crate::photogrammetry::{Cancel, StopOnDrop};
-use crate::service::app::AppState;
-use crate::service::images::UploadedFile;
-use crate::service::jobs::prepare_pipeline;
-use crate::service::parameters::{experiment_settings, SequenceParameters};
+use crate::service::model::parameters::{experiment_settings, SequenceParameters};
+use crate::service::ops::images::UploadedFile;
+use crate::service::ops::jobs::pipelines::prepare_pipeline;
+use crate::service::ops::links;
+use crate::service::ops::state::AppState;
 use crate::service::store::{CalibrationId, SequenceId};
 
 /// Files an experiment upload may have.
@@ -156,7 +156,7 @@ pub async fn import(
     let tracking = match &experiment.tracking {
         Some(t) => {
             let p = &t.parameters;
-            let settings = crate::service::tracking::TrackingSettings {
+            let settings = crate::service::model::tracking_settings::TrackingSettings {
                 max_velocity: p.max_velocity,
                 max_acceleration: Some(p.max_acceleration),
                 max_gap: Some(p.max_gap),
@@ -200,7 +200,7 @@ pub async fn import(
             .await?
             .ok_or_else(|| ApiError::internal("the sequence just created is gone"))?;
         tracking_run_id = Some(run.id);
-        crate::service::tracking::kick(&state, sequence.id);
+        crate::service::ops::tracking::kick(&state, sequence.id);
     }
     let body = ImportedExperiment {
         tracking_run_id,
@@ -359,7 +359,7 @@ fn experiment_error(error: ExperimentError) -> ApiError {
         ExperimentError::NotAnExperiment { reason, .. } => {
             ApiError::unprocessable(format!("the files sent: {reason}"))
         }
-        error => ApiError::unprocessable(crate::service::jobs::error_chain(&error)),
+        error => ApiError::unprocessable(crate::service::infra::errors::error_chain(&error)),
     }
 }
 

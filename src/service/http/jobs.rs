@@ -10,38 +10,13 @@ use axum::{Json, Router};
 use serde::Serialize;
 use utoipa::ToSchema;
 
-use super::links;
+use super::extract::Shared;
 use super::problem::{ApiError, ApiPath};
 use super::upload;
-use super::Shared;
-use crate::service::app::AppState;
+use crate::service::ops::events::JobStateView;
+use crate::service::ops::links;
+use crate::service::ops::state::AppState;
 use crate::service::store::{ClaimOutcome, JobClaim, JobId, JobRow, JobState, RetryOutcome};
-
-/// A job's state.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, serde::Deserialize, ToSchema)]
-#[serde(rename_all = "snake_case")]
-#[schema(as = JobState)]
-pub enum JobStateView {
-    /// Waiting for a worker.
-    Queued,
-    /// A worker has it.
-    Running,
-    /// Done; its result is stored.
-    Succeeded,
-    /// Given up; `error` says why.
-    Failed,
-}
-
-impl From<JobState> for JobStateView {
-    fn from(state: JobState) -> Self {
-        match state {
-            JobState::Queued => JobStateView::Queued,
-            JobState::Running => JobStateView::Running,
-            JobState::Succeeded => JobStateView::Succeeded,
-            JobState::Failed => JobStateView::Failed,
-        }
-    }
-}
 
 pub(super) fn router() -> Router<Arc<AppState>> {
     Router::new()

@@ -18,7 +18,7 @@
 //!    `--body-timeout-secs` between two pieces ends in an error.
 //! 7. `watch_body`: records whether the body arrived whole, stalled,
 //!    arrived below `--min-body-rate` (the connection's body ends it,
-//!    [`crate::service::connections::BodyTooSlow`]) or was cut off by the
+//!    [`crate::service::infra::connections::BodyTooSlow`]) or was cut off by the
 //!    client; a stalled or too slow one is answered 408, one the client
 //!    cut off 499 (counted so in `/metrics`, logged as a warning: the
 //!    client's doing, not a server error), and a refused request whose
@@ -53,7 +53,7 @@
 //! answers alike, so all of the above applies to every request. Header read
 //! and idle connection timeouts are hyper's, the connection limit and the
 //! lingering close after a refused upload are
-//! [`crate::service::connections`]'s.
+//! [`crate::service::infra::connections`]'s.
 
 use std::any::Any;
 use std::pin::Pin;
@@ -84,9 +84,9 @@ use tower_http::LatencyUnit;
 use tracing::{Level, Span};
 
 use super::problem::ApiError;
-use crate::service::config::ServeArgs;
-use crate::service::connections::{BodyTooSlow, RefusedFraming};
-use crate::service::metrics::Metrics;
+use crate::service::infra::config::ServeArgs;
+use crate::service::infra::connections::{BodyTooSlow, RefusedFraming};
+use crate::service::infra::metrics::Metrics;
 
 /// The routes whose handlers do CPU work before answering.
 const CPU_ROUTES: [(Method, &str); 3] = [
@@ -153,7 +153,7 @@ pub const MAX_HEADER_FIELDS: usize = 100;
 /// Refuses a request head past the service's limits ([`MAX_TARGET_BYTES`],
 /// [`MAX_HEADER_BYTES`], [`MAX_HEADER_FIELDS`]) with a 414 or 431 problem
 /// that names the limit. Hyper's own limits lie above these (see
-/// [`crate::service::connections::HYPER_MAX_HEAD_BYTES`]), so a head between
+/// [`crate::service::infra::connections::HYPER_MAX_HEAD_BYTES`]), so a head between
 /// the two gets this problem rather than hyper's empty answer.
 #[derive(Clone, Copy, Debug)]
 struct HeadLimits;
@@ -630,12 +630,12 @@ mod tests {
     use tower::ServiceExt;
 
     use super::*;
-    use crate::service::config::Timeouts;
+    use crate::service::infra::config::Timeouts;
 
     fn config(request_secs: u64, max_cpu_requests: u32) -> ServeArgs {
         ServeArgs {
             bind: "127.0.0.1:0".parse().unwrap(),
-            storage: crate::service::config::Storage::in_directory("unused"),
+            storage: crate::service::infra::config::Storage::in_directory("unused"),
             workers: Some(1),
             max_upload_mb: 1,
             api_token: None,

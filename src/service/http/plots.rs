@@ -22,10 +22,10 @@ use serde::Deserialize;
 use utoipa::IntoParams;
 
 use super::calibrations::{calibration, stored_rig};
+use super::extract::Shared;
 use super::problem::{ApiError, ApiPath, ApiQuery};
 use super::sequences::{load_particles, no_results};
 use super::tracking::current_run;
-use super::Shared;
 use crate::formats;
 use crate::photogrammetry::image::GreyImage;
 use crate::plot::disparity::{disparity_plot, DisparityMaps};
@@ -33,9 +33,9 @@ use crate::plot::overlay::{overlay_plot, Overlay};
 use crate::plot::residuals::{residual_plot, ResidualReport};
 use crate::plot::views::{particles_plot, trajectories_plot, ParticlePoint, TrajectoryPoint};
 use crate::plot::PlotFormat;
-use crate::service::app::AppState;
-use crate::service::codec;
-use crate::service::jobs::StoredRawLayout;
+use crate::service::infra::codec;
+use crate::service::model::raw_layout::StoredRawLayout;
+use crate::service::ops::state::AppState;
 use crate::service::store::{CalibrationId, FrameNumber, SequenceId, TrackingRunId};
 
 /// The most trajectory points a trajectories picture draws (the first
@@ -356,7 +356,7 @@ async fn stored_image(
     let (_, sha256) = images.get(wanted).ok_or_else(not_kept)?;
     let bytes = match state.images.read(sha256).await {
         Ok(bytes) => bytes,
-        Err(crate::service::images::ImageStoreError::Missing { .. }) => return Err(not_kept()),
+        Err(crate::service::ops::images::ImageStoreError::Missing { .. }) => return Err(not_kept()),
         Err(e) => return Err(e.into()),
     };
     let layout = state
@@ -398,7 +398,7 @@ pub async fn kept_image(
     ApiQuery(query): ApiQuery<ImageQuery>,
 ) -> Result<Response, ApiError> {
     let frame = FrameNumber(frame.into());
-    let sequence = super::sequences::sequence(&state, id).await?;
+    let sequence = super::lookups::sequence(&state, id).await?;
     let calibration = calibration(&state, sequence.calibration_id).await?;
     let (cameras, splitter) = stored_rig(&calibration)?;
     if query.camera >= cameras.len() {
@@ -415,7 +415,7 @@ pub async fn kept_image(
     }
     let hint = format!(
         "its targets are at {}/frames/{frame}/targets?camera={}",
-        super::links::sequence(id),
+        crate::service::ops::links::sequence(id),
         query.camera
     );
     let stored = stored_image(&state, (id, frame, query.camera), splitter.is_some(), &hint).await?;

@@ -29,9 +29,11 @@ use crate::photogrammetry::calibrate::CalibrationError;
 use crate::photogrammetry::{
     IntersectionError, InvalidDetectionParameters, PipelineError, SensorMismatch,
 };
-use crate::service::codec::DamagedBlob;
-use crate::service::images;
-use crate::service::jobs::{error_chain, CpuError, PrepareError};
+use crate::service::infra::codec::DamagedBlob;
+use crate::service::infra::errors::error_chain;
+use crate::service::ops::images;
+use crate::service::ops::jobs::pipelines::PrepareError;
+use crate::service::ops::jobs::pool::CpuError;
 use crate::service::store::{self, InsertFrameError};
 
 /// An RFC 9457 problem document.
@@ -180,18 +182,18 @@ status_of!(|error| ApiError::unprocessable(error_chain(&error)) =>
     SensorMismatch,
 );
 
-impl From<crate::service::selfcal::SelfCalibrationRequestError> for ApiError {
+impl From<crate::service::ops::selfcal::SelfCalibrationRequestError> for ApiError {
     /// Options, frames or a calibration that do not work for a
     /// self-calibration or reprocessing: a 422 with the reason.
-    fn from(error: crate::service::selfcal::SelfCalibrationRequestError) -> Self {
+    fn from(error: crate::service::ops::selfcal::SelfCalibrationRequestError) -> Self {
         ApiError::unprocessable(error_chain(&error))
     }
 }
 
-impl From<crate::service::tracking::InvalidTrackingSettings> for ApiError {
+impl From<crate::service::model::tracking_settings::InvalidTrackingSettings> for ApiError {
     /// Tracking settings the tracker refuses (a velocity limit that is not
     /// positive, ...): a 422 naming the field and its range.
-    fn from(error: crate::service::tracking::InvalidTrackingSettings) -> Self {
+    fn from(error: crate::service::model::tracking_settings::InvalidTrackingSettings) -> Self {
         ApiError::unprocessable(error_chain(&error))
     }
 }
@@ -229,7 +231,7 @@ impl From<sqlx::Error> for ApiError {
 impl From<std::io::Error> for ApiError {
     /// A full disk (ENOSPC) is a 507; any other I/O error a 500.
     fn from(error: std::io::Error) -> Self {
-        if images::is_storage_full(&error) {
+        if crate::service::infra::errors::is_storage_full(&error) {
             ApiError::storage_full(error)
         } else {
             ApiError::internal(error)

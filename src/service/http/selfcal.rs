@@ -1,6 +1,6 @@
 //! Self-calibration of a sequence's calibration from its stored targets,
 //! reprocessing a sequence with another calibration, and a calibration's
-//! report ([`crate::service::selfcal`] has the jobs).
+//! report ([`crate::service::ops::selfcal`] has the jobs).
 
 use std::sync::Arc;
 
@@ -11,17 +11,18 @@ use axum::{Json, Router};
 use serde::{Deserialize, Serialize};
 use utoipa::ToSchema;
 
-use super::links;
+use super::extract::Shared;
+use super::lookups::sequence;
 use super::problem::{ApiError, ApiJson, ApiPath};
-use super::sequences::sequence;
 use super::upload::accepted;
-use super::Shared;
 use crate::formats;
-use crate::service::app::AppState;
-use crate::service::parameters::SequenceParameters;
-use crate::service::selfcal::{
-    SelfCalibrationPayload, SelfCalibrationRequest, SelfCalibrationRequestError, SELF_CALIBRATE,
+use crate::service::model::job_kind::JobKind;
+use crate::service::model::parameters::SequenceParameters;
+use crate::service::ops::links;
+use crate::service::ops::selfcal::{
+    SelfCalibrationPayload, SelfCalibrationRequest, SelfCalibrationRequestError,
 };
+use crate::service::ops::state::AppState;
 use crate::service::store::{CalibrationId, JobId, SequenceId};
 
 pub(super) fn router() -> Router<Arc<AppState>> {
@@ -105,7 +106,10 @@ pub async fn self_calibrate(
         calibration_id: calibration.id,
         options: request,
     })?;
-    let job_id = state.store.enqueue(SELF_CALIBRATE, &payload).await?;
+    let job_id = state
+        .store
+        .enqueue(JobKind::SelfCalibrate.as_str(), &payload)
+        .await?;
     Ok(accepted(
         &state,
         job_id,

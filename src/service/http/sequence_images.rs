@@ -7,7 +7,7 @@
 //! frame is processed alike, and once: a sequence's images never change.
 //! A background can also be computed by the service from the sequence's
 //! own frames (`background` in `POST /sequences`, see
-//! [`crate::service::parameters::ComputedBackground`]).
+//! [`crate::service::model::parameters::ComputedBackground`]).
 
 use std::sync::Arc;
 
@@ -17,15 +17,15 @@ use axum::response::{IntoResponse, Response};
 use axum::routing::post;
 use axum::{Json, Router};
 
-use super::links;
+use super::extract::Shared;
 use super::problem::{ApiError, ApiMultipart, ApiPath};
 use super::sequences::{camera_of, sequence_cameras_and_row, view, SequenceView};
 use super::upload::{check_images, or_drain, persist_and_commit, stream_part};
-use super::Shared;
 use crate::photogrammetry::Sensor;
-use crate::service::app::AppState;
-use crate::service::images::UploadedFile;
-use crate::service::parameters::SequenceParameters;
+use crate::service::model::parameters::SequenceParameters;
+use crate::service::ops::images::UploadedFile;
+use crate::service::ops::links;
+use crate::service::ops::state::AppState;
 use crate::service::store::{SequenceId, SequenceImageKind, SequenceImagesError};
 
 pub(super) fn router() -> Router<Arc<AppState>> {
@@ -152,7 +152,7 @@ async fn upload(
         state.store.insert_sequence_images(id, kind, &rows)
     })
     .await?;
-    let row = super::sequences::sequence(&state, id).await?;
+    let row = super::lookups::sequence(&state, id).await?;
     Ok((
         StatusCode::CREATED,
         [(header::LOCATION, links::sequence(id))],

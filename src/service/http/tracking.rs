@@ -1,4 +1,4 @@
-//! A sequence's tracking ([`crate::service::tracking`]): its runs, a new
+//! A sequence's tracking ([`crate::service::ops::tracking`]): its runs, a new
 //! run with other settings, the finish request, and the trajectories, as
 //! CSV (the header of `ptv track`) or JSON, streamed a page of
 //! trajectories at a time.
@@ -14,20 +14,22 @@ use axum::{Json, Router};
 use serde::{Deserialize, Serialize};
 use utoipa::{IntoParams, ToSchema};
 
+use super::extract::Shared;
+use super::lookups::sequence;
 use super::problem::{ApiError, ApiJson, ApiPath, ApiQuery};
-use super::sequences::sequence;
-use super::Shared;
+use crate::formats;
 use crate::formats::frames::FrameRange;
 use crate::photogrammetry::correspond::default_volume;
 use crate::photogrammetry::Volume;
-use crate::service::app::AppState;
-use crate::service::parameters::SequenceParameters;
+use crate::service::model::parameters::SequenceParameters;
+use crate::service::model::tracking_settings::TrackingSettings;
+use crate::service::ops::state::AppState;
+use crate::service::ops::tracking::kick;
 use crate::service::store::SequenceRow;
 use crate::service::store::{
     CalibrationId, FrameNumber, PointRow, SequenceId, TrackingRunId, TrackingRunRow, TrackingState,
     TrajectoryRow,
 };
-use crate::service::tracking::{kick, TrackingSettings};
 
 pub(super) fn router() -> Router<Arc<AppState>> {
     Router::new()
@@ -343,43 +345,25 @@ fn point_view(p: &PointRow) -> TrajectoryPointView {
     }
 }
 
-/// The CSV header of `ptv track` for `cameras` cameras.
-pub fn csv_header(cameras: usize) -> String {
-    let mut line = String::from("trajectory,frame,x,y,z,u,v,w,ax,ay,az,su,sv,sw,cameras");
-    for c in 0..cameras {
-        line.push_str(&format!(",t{c}"));
-    }
-    line.push('\n');
-    line
-}
-
-/// A point as `ptv track` writes it (an absent velocity as NaN, an absent
-/// acceleration as empty fields).
+/// A point as `ptv track` writes it ([`formats::csv::write_trajectory_point`]:
+/// an absent velocity as NaN, an absent acceleration as empty fields).
 fn csv_row(p: &PointRow, out: &mut String) {
-    use std::fmt::Write as _;
-    let [x, y, z] = p.position;
-    let _ = write!(out, "{},{},{x:?},{y:?},{z:?}", p.trajectory, p.frame);
-    let [u, v, w] = p.velocity.unwrap_or([f64::NAN; 3]);
-    let _ = write!(out, ",{u:?},{v:?},{w:?}");
-    match p.acceleration {
-        Some([a, b, c]) => {
-            let _ = write!(out, ",{a:?},{b:?},{c:?}");
-        }
-        None => out.push_str(",,,"),
-    }
-    let [su, sv, sw] = p.velocity_sigma.unwrap_or([f64::NAN; 3]);
-    let _ = write!(out, ",{su:?},{sv:?},{sw:?}");
-    let seen = p
+    let targets: Vec<Option<usize>> = p
         .targets
         .split(',')
-        .filter(|t| !t.is_empty() && !t.starts_with('-'))
-        .count();
-    let _ = write!(out, ",{seen}");
-    if !p.targets.is_empty() {
-        out.push(',');
-        out.push_str(&p.targets);
-    }
-    out.push('\n');
+        .filter(|t| !t.is_empty())
+        .map(|t| t.parse().ok())
+        .collect();
+    let point = formats::csv::TrajectoryPointLine {
+        trajectory: p.trajectory,
+        frame: p.frame.0,
+        position: p.position,
+        velocity: p.velocity,
+        acceleration: p.acceleration,
+        velocity_sigma: p.velocity_sigma,
+        targets: Some(&targets),
+    };
+    formats::csv::write_trajectory_point(out, &point, targets.len());
 }
 
 /// A page of trajectories and their points, formatted.
@@ -498,7 +482,11 @@ pub async fn trajectories(
     let min_length = i64::from(query.min_length.unwrap_or(1));
     let format = query.format;
     let (content_type, head, tail) = match format {
-        TrajectoryFormat::Csv => ("text/csv", csv_header(cameras), String::new()),
+        TrajectoryFormat::Csv => (
+            "text/csv",
+            formats::csv::trajectory_header(cameras),
+            String::new(),
+        ),
         TrajectoryFormat::Json => (
             "application/json",
             format!("{{\"run_id\":{},\"trajectories\":[", run.id),

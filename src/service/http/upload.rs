@@ -29,12 +29,12 @@ use axum::Json;
 use futures_util::future::try_join_all;
 use serde::Serialize;
 
-use super::links;
 use super::problem::ApiError;
 use crate::formats::image::{decode_image, read_header, ImageHeader, RawLayout};
 use crate::photogrammetry::{Sensor, SensorMismatch};
-use crate::service::app::AppState;
-use crate::service::images::{ImageStore, UploadedFile};
+use crate::service::ops::images::{ImageStore, UploadedFile};
+use crate::service::ops::links;
+use crate::service::ops::state::AppState;
 use crate::service::store::JobId;
 
 /// Reads a small text part whole, up to `limit` bytes.

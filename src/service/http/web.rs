@@ -30,7 +30,7 @@ use axum::Router;
 use sha2::{Digest, Sha256};
 
 use super::problem::ApiError;
-use crate::service::app::AppState;
+use crate::service::ops::state::AppState;
 
 /// A file of the page.
 #[derive(Debug)]

@@ -14,8 +14,9 @@
 //! Timestamps stay text in both, in one format, so that they compare as
 //! text and read back the same whatever the engine.
 
-use std::fmt;
-use std::str::FromStr;
+use sqlx::{Any, Transaction};
+
+use crate::service::model::ids::SequenceId;
 
 /// Which engine a [`super::Store`] runs on.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -91,69 +92,6 @@ impl Dialect {
     }
 }
 
-/// A PostgreSQL connection URL (`postgres://` or `postgresql://`), as
-/// `--database` / `PTV_DATABASE_URL` give it. Shown without its password.
-#[derive(Clone, PartialEq, Eq)]
-pub struct PostgresUrl(String);
-
-impl PostgresUrl {
-    /// The URL, password included, for connecting.
-    pub fn as_str(&self) -> &str {
-        &self.0
-    }
-
-    /// The server it names, `HOST:PORT` (as libpq reads the URL: a host
-    /// or port left out is the environment's or the default), for
-    /// messages; `None` if the URL does not parse.
-    pub fn server(&self) -> Option<String> {
-        let options = sqlx::postgres::PgConnectOptions::from_str(&self.0).ok()?;
-        Some(format!("{}:{}", options.get_host(), options.get_port()))
-    }
-}
-
-impl FromStr for PostgresUrl {
-    type Err = String;
-
-    fn from_str(url: &str) -> Result<Self, Self::Err> {
-        if url.starts_with("postgres://") || url.starts_with("postgresql://") {
-            Ok(PostgresUrl(url.to_owned()))
-        } else {
-            Err(format!(
-                "`{}` is not a PostgreSQL URL (postgres://USER@HOST:PORT/DATABASE); \
-                 leave --database out for SQLite in the data directory",
-                redacted(url)
-            ))
-        }
-    }
-}
-
-impl fmt::Debug for PostgresUrl {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        write!(f, "PostgresUrl({})", redacted(&self.0))
-    }
-}
-
-impl fmt::Display for PostgresUrl {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        f.write_str(&redacted(&self.0))
-    }
-}
-
-/// A URL with the password of its user part replaced by `***`.
-fn redacted(url: &str) -> String {
-    let Some((scheme, rest)) = url.split_once("://") else {
-        return url.to_owned();
-    };
-    let (authority, path) = rest.split_at(rest.find('/').unwrap_or(rest.len()));
-    match authority.rsplit_once('@') {
-        Some((user, host)) => match user.split_once(':') {
-            Some((name, _)) => format!("{scheme}://{name}:***@{host}{path}"),
-            None => url.to_owned(),
-        },
-        None => url.to_owned(),
-    }
-}
-
 /// What a database error means for its caller, whatever the engine: the
 /// HTTP layer maps it to a status, the workers to what happens to the job
 /// attempt (the one place that looks at engine codes).
@@ -198,7 +136,7 @@ pub fn error_kind(error: &sqlx::Error) -> ErrorKind {
             Some(code) if sqlite_busy(code) => ErrorKind::Unavailable,
             _ => ErrorKind::Other,
         },
-        sqlx::Error::Io(io) if crate::service::images::is_storage_full(io) => {
+        sqlx::Error::Io(io) if crate::service::infra::errors::is_storage_full(io) => {
             ErrorKind::StorageFull
         }
         sqlx::Error::Io(io) => {
@@ -220,6 +158,26 @@ pub fn error_kind(error: &sqlx::Error) -> ErrorKind {
     }
 }
 
+/// Holds the sequence's row until the transaction ends, so that its
+/// checks (no frames yet, no background yet) stay true until it commits:
+/// on PostgreSQL `FOR UPDATE` (a frame's insert, whose foreign key takes a
+/// share lock on the row, waits; so does another such transaction); on
+/// SQLite the write lock already holds everything.
+pub async fn lock_sequence(
+    tx: &mut Transaction<'_, Any>,
+    dialect: Dialect,
+    sequence_id: SequenceId,
+) -> Result<(), sqlx::Error> {
+    sqlx::query(&format!(
+        "SELECT id FROM sequences WHERE id = $1{}",
+        dialect.for_update()
+    ))
+    .bind(sequence_id)
+    .execute(&mut **tx)
+    .await?;
+    Ok(())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -236,19 +194,6 @@ mod tests {
         for code in ["13", "2067", "266", "40001", "53100", "00005"] {
             assert!(!sqlite_busy(code), "{code}");
         }
-    }
-
-    #[test]
-    fn a_postgres_url_is_taken_and_shown_without_its_password() {
-        let url: PostgresUrl = "postgres://ptv:secret@db.lab:5432/ptv".parse().unwrap();
-        assert_eq!(url.as_str(), "postgres://ptv:secret@db.lab:5432/ptv");
-        assert_eq!(url.to_string(), "postgres://ptv:***@db.lab:5432/ptv");
-        assert!(!format!("{url:?}").contains("secret"));
-        let error = "mysql://ptv:secret@db/ptv"
-            .parse::<PostgresUrl>()
-            .unwrap_err();
-        assert!(error.contains("not a PostgreSQL URL"), "{error}");
-        assert!(!error.contains("secret"), "{error}");
     }
 
     #[test]

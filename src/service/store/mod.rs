@@ -68,7 +68,6 @@
 mod calibrations;
 mod dialect;
 mod events;
-mod ids;
 mod jobs;
 mod selfcal;
 mod sequences;
@@ -89,23 +88,25 @@ use sqlx::migrate::{Migration, MigrationSource, MigrationType, Migrator};
 use sqlx::{Any, Database, Executor, Row, TransactionManager};
 use sqlx::{AnyConnection, AnyPool};
 
+use crate::service::infra::urls::PostgresUrl;
+
 pub use self::calibrations::{insert_calibration, CalibrationRow, CalibrationSummary};
-pub use self::dialect::{error_kind, Dialect, ErrorKind, PostgresUrl};
+pub use self::dialect::{error_kind, Dialect, ErrorKind};
 pub use self::events::EventRow;
-pub use self::ids::{
-    CalibrationId, EventId, FrameNumber, JobId, LeaseToken, SequenceId, TrackingRunId,
-    MAX_FRAME_NUMBER,
-};
 pub use self::jobs::{
     enqueue, expire_leases, finish, ClaimOutcome, ClaimedJob, JobClaim, JobFile, JobResult, JobRow,
     JobState, RetryOutcome, WorkerId, MAX_ATTEMPTS,
 };
-pub use self::selfcal::{reprocess_payload, RefinedCalibration, REPROCESS_SEQUENCE};
+pub use self::selfcal::{reprocess_payload, RefinedCalibration};
 pub use self::sequences::{
     FrameCounts, FrameInput, FrameInputKind, FrameSummary, NewFrame, SequenceImage,
     SequenceImageKind, SequenceImagesError, SequenceRow,
 };
 pub use self::tracking::{FrameReadiness, PointRow, TrackingRunRow, TrackingState, TrajectoryRow};
+pub use crate::service::model::ids::{
+    CalibrationId, EventId, FrameNumber, JobId, LeaseToken, SequenceId, TrackingRunId,
+    MAX_FRAME_NUMBER,
+};
 
 /// The database.
 #[derive(Clone, Debug)]
@@ -460,9 +461,10 @@ impl Store {
         synchronous: Synchronous,
     ) -> Result<Store, sqlx::Error> {
         sqlx::any::install_default_drivers();
-        let _opening = crate::service::file_lock::exclusive(data_dir.join("ptv.sqlite.lock"))
-            .await
-            .map_err(sqlx::Error::Io)?;
+        let _opening =
+            crate::service::infra::file_lock::exclusive(data_dir.join("ptv.sqlite.lock"))
+                .await
+                .map_err(sqlx::Error::Io)?;
         let page_limit = Arc::new(AtomicU32::new(0));
         let limit = page_limit.clone();
         let writer = AnyPoolOptions::new()
@@ -744,292 +746,4 @@ async fn file_in_use(conn: &mut AnyConnection, sha256: &str) -> Result<bool, sql
 }
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-    use sqlx::sqlite::{SqliteConnectOptions, SqlitePoolOptions};
-
-    /// Multi-row inserts: every row once, in order, in at most eight
-    /// (SQLite) or ten (PostgreSQL) distinct statement sizes per table,
-    /// none above the bound.
-    #[test]
-    fn inserts_are_cut_into_a_few_statement_sizes() {
-        for (dialect, most, texts) in [(Dialect::Sqlite, 128, 8), (Dialect::Postgres, 512, 10)] {
-            let mut sizes = std::collections::BTreeSet::new();
-            for rows in [0, 1, 2, 3, 100, 127, 128, 129, 255, 511, 513, 2000, 15_001] {
-                let items: Vec<usize> = (0..rows).collect();
-                let chunks: Vec<&[usize]> = statement_chunks(dialect, &items).collect();
-                assert_eq!(chunks.concat(), items, "{rows} rows");
-                assert!(chunks.iter().all(|c| !c.is_empty() && c.len() <= most));
-                sizes.extend(chunks.iter().map(|c| c.len()));
-            }
-            assert!(sizes.len() <= texts, "{sizes:?}");
-        }
-        assert_eq!(
-            statement_rows(Dialect::Sqlite, 100).collect::<Vec<_>>(),
-            [64, 32, 4]
-        );
-        assert_eq!(placeholders(Dialect::Sqlite, 2, 2), "(?, ?), (?, ?)");
-        assert_eq!(placeholders(Dialect::Postgres, 2, 2), "($1, $2), ($3, $4)");
-    }
-
-    /// `--fsync` reaches every connection: SQLite's `synchronous` is FULL
-    /// (2) on the writer and the readers with it, NORMAL (1) without.
-    #[tokio::test]
-    async fn commits_are_flushed_as_asked() {
-        for (synchronous, expected) in [(Synchronous::Normal, 1), (Synchronous::Full, 2)] {
-            let dir = tempfile::tempdir().unwrap();
-            let store = Store::open_sqlite(dir.path(), 1, synchronous)
-                .await
-                .unwrap();
-            for pool in [&store.writer, &store.reader] {
-                let (found,): (i64,) = sqlx::query_as("PRAGMA synchronous")
-                    .fetch_one(pool)
-                    .await
-                    .unwrap();
-                assert_eq!(found, expected, "{synchronous:?}");
-            }
-            store.close().await;
-        }
-    }
-
-    /// The database in `data_dir` (created where missing) with its first
-    /// `version` migrations run, on one connection.
-    async fn migrated_to(data_dir: &Path, version: usize) -> sqlx::SqlitePool {
-        let pool = SqlitePoolOptions::new()
-            .max_connections(1)
-            .connect_with(
-                SqliteConnectOptions::new()
-                    .filename(data_dir.join("ptv.sqlite"))
-                    .create_if_missing(true),
-            )
-            .await
-            .unwrap();
-        Migrator::new(Migrations(&MIGRATIONS[..version]))
-            .await
-            .unwrap()
-            .run(&pool)
-            .await
-            .unwrap();
-        pool
-    }
-
-    /// A database as the version before migration 3 left it: a calibration
-    /// stored from the API, one solved by a job, a processed frame and one
-    /// still queued, a job of a plug-in kind; the results as they stored
-    /// them, as paths.
-    async fn database_of_version_2(data_dir: &Path) {
-        let pool = migrated_to(data_dir, 2).await;
-        sqlx::raw_sql(
-            "INSERT INTO calibrations (id, model, cameras) VALUES (1, '{}', 2), (2, '{}', 2);
-             INSERT INTO jobs (id, kind, payload, state, result) VALUES
-                 (1, 'solve_calibration', '{}', 'succeeded', '/api/v1/calibrations/2'),
-                 (2, 'process_frame', '{}', 'succeeded', '/api/v1/sequences/1/frames/0/particles'),
-                 (3, 'process_frame', '{}', 'queued', NULL),
-                 (4, 'echo', '{}', 'succeeded', '/echo'),
-                 (5, 'solve_calibration', '{}', 'failed', NULL);
-             INSERT INTO sequences (id, calibration_id, name, parameters, keep_images)
-                 VALUES (1, 1, '', '{}', 1);
-             INSERT INTO frames (sequence_id, frame, job_id, input) VALUES
-                 (1, 0, 2, 'images'), (1, 1, 3, 'targets');",
-        )
-        .execute(&pool)
-        .await
-        .unwrap();
-        pool.close().await;
-    }
-
-    /// A calibration row of `size` bytes.
-    async fn write(store: &Store, size: usize) -> Result<CalibrationRow, sqlx::Error> {
-        store.insert_calibration(&"x".repeat(size), 2, None).await
-    }
-
-    /// SQLite ended the transaction behind sqlx's back (as it may on a
-    /// full disk): sqlx's queued ROLLBACK then fails and its depth stays
-    /// at 1, which made every later write fail with "attempted to call
-    /// begin_with at non-zero transaction depth".
-    #[tokio::test]
-    async fn a_transaction_sqlite_ended_itself_does_not_block_later_writes() {
-        let dir = tempfile::tempdir().unwrap();
-        let store = Store::open(dir.path(), 1).await.unwrap();
-        let mut tx = store.write_transaction().await.unwrap();
-        sqlx::query("ROLLBACK").execute(&mut *tx).await.unwrap();
-        drop(tx);
-        for _ in 0..3 {
-            write(&store, 10).await.unwrap();
-        }
-        store.close().await;
-    }
-
-    /// The other way round: SQLite inside a transaction that sqlx does not
-    /// know of.
-    #[tokio::test]
-    async fn a_transaction_left_open_does_not_block_later_writes() {
-        let dir = tempfile::tempdir().unwrap();
-        let store = Store::open(dir.path(), 1).await.unwrap();
-        sqlx::query("BEGIN").execute(&store.writer).await.unwrap();
-        for _ in 0..3 {
-            write(&store, 10).await.unwrap();
-        }
-        store.close().await;
-    }
-
-    /// Ready while the writer can take the write lock; not while another
-    /// process holds it.
-    #[tokio::test]
-    async fn ready_means_the_write_lock_can_be_taken() {
-        let dir = tempfile::tempdir().unwrap();
-        let store = Store::open(dir.path(), 1).await.unwrap();
-        store.ready(Duration::from_secs(5)).await.unwrap();
-        let other = SqlitePoolOptions::new()
-            .max_connections(1)
-            .connect_with(SqliteConnectOptions::new().filename(dir.path().join("ptv.sqlite")))
-            .await
-            .unwrap();
-        let lock = other.begin_with("BEGIN IMMEDIATE").await.unwrap();
-        assert!(store.ready(Duration::from_millis(300)).await.is_err());
-        lock.rollback().await.unwrap();
-        store.ready(Duration::from_secs(5)).await.unwrap();
-        other.close().await;
-        store.close().await;
-    }
-
-    /// The page limit fails writes with SQLITE_FULL as a full disk does;
-    /// once lifted, writes succeed again on the same store.
-    #[tokio::test]
-    async fn writes_fail_as_storage_full_at_the_page_limit_and_recover_when_lifted() {
-        let dir = tempfile::tempdir().unwrap();
-        let store = Store::open(dir.path(), 1).await.unwrap();
-        let limit = store.set_max_page_count(Some(0)).await.unwrap();
-        assert!(limit > 0);
-        let mut failure = None;
-        for _ in 0..1000 {
-            if let Err(error) = write(&store, 3000).await {
-                failure = Some(error);
-                break;
-            }
-        }
-        let failure = failure.expect("the page limit was reached");
-        assert!(is_storage_full(&failure), "{failure:?}");
-        // Still full, and still failing as full (not as a stuck
-        // transaction), on every write.
-        for _ in 0..3 {
-            let error = write(&store, 3000).await.unwrap_err();
-            assert!(is_storage_full(&error), "{error:?}");
-        }
-        store.set_max_page_count(None).await.unwrap();
-        for _ in 0..3 {
-            write(&store, 3000).await.unwrap();
-        }
-        store.close().await;
-    }
-
-    #[tokio::test]
-    async fn results_stored_as_paths_are_read_as_the_rows_they_name() {
-        let dir = tempfile::tempdir().unwrap();
-        database_of_version_2(dir.path()).await;
-        let store = Store::open(dir.path(), 1).await.unwrap();
-        let result = |id| {
-            let store = store.clone();
-            async move { store.job(JobId(id)).await.unwrap().unwrap().result }
-        };
-        assert_eq!(
-            result(1).await,
-            Some(JobResult::Calibration(CalibrationId(2)))
-        );
-        assert_eq!(
-            result(2).await,
-            Some(JobResult::Frame {
-                sequence_id: SequenceId(1),
-                frame: FrameNumber(0)
-            })
-        );
-        assert_eq!(result(3).await, None);
-        assert_eq!(result(4).await, Some(JobResult::Link("/echo".to_owned())));
-        assert_eq!(result(5).await, None);
-        // The paths are gone from the jobs the rows now name; a plug-in
-        // kind's link stays.
-        let links: Vec<(i64, Option<String>)> =
-            sqlx::query_as("SELECT id, result FROM jobs ORDER BY id")
-                .fetch_all(&store.reader)
-                .await
-                .unwrap();
-        assert_eq!(
-            links,
-            vec![
-                (1, None),
-                (2, None),
-                (3, None),
-                (4, Some("/echo".to_owned())),
-                (5, None)
-            ]
-        );
-        store.close().await;
-    }
-
-    /// Migration 5 names the calibration that made each stored particle
-    /// set: before it, the sequence's one calibration did.
-    #[tokio::test]
-    async fn particles_stored_before_migration_5_name_their_sequences_calibration() {
-        let dir = tempfile::tempdir().unwrap();
-        database_of_version_2(dir.path()).await;
-        let pool = migrated_to(dir.path(), 4).await;
-        sqlx::raw_sql(
-            "INSERT INTO sequences (id, calibration_id, name, parameters, keep_images)
-                 VALUES (2, 2, '', '{}', 1);
-             INSERT INTO jobs (id, kind, payload, state) VALUES (6, 'process_frame', '{}', 'succeeded');
-             INSERT INTO frames (sequence_id, frame, job_id, input) VALUES (2, 0, 6, 'targets');
-             INSERT INTO particles (sequence_id, frame, count, data) VALUES
-                 (1, 0, 0, x''), (2, 0, 0, x'');",
-        )
-        .execute(&pool)
-        .await
-        .unwrap();
-        pool.close().await;
-        let store = Store::open(dir.path(), 1).await.unwrap();
-        let made_by = |sequence| {
-            let store = store.clone();
-            async move {
-                store
-                    .frame_particles(SequenceId(sequence), FrameNumber(0))
-                    .await
-                    .unwrap()
-                    .map(|(_, _, calibration)| calibration)
-            }
-        };
-        assert_eq!(made_by(1).await, Some(CalibrationId(1)));
-        assert_eq!(made_by(2).await, Some(CalibrationId(2)));
-        let origin = store.calibration(CalibrationId(2)).await.unwrap().unwrap();
-        assert_eq!(origin.origin, None);
-        store.close().await;
-    }
-
-    /// Migration 7 records the calibration a tracking run's recovery
-    /// projects with: a run stored before has none (and its settings no
-    /// `recovery`: it goes on without), a new run gets its sequence's.
-    #[tokio::test]
-    async fn tracking_runs_before_migration_7_have_no_calibration_and_new_ones_their_sequences() {
-        let dir = tempfile::tempdir().unwrap();
-        database_of_version_2(dir.path()).await;
-        let pool = migrated_to(dir.path(), 6).await;
-        let old_settings = r#"{"max_velocity":2.0,"max_acceleration":1.0,"max_gap":1,"min_length":3,"fit_half_window":2,"fit_order":2,"first_frame":0}"#;
-        sqlx::query("INSERT INTO tracking_runs (id, sequence_id, parameters) VALUES (1, 1, $1)")
-            .bind(old_settings)
-            .execute(&pool)
-            .await
-            .unwrap();
-        pool.close().await;
-        let store = Store::open(dir.path(), 1).await.unwrap();
-        let old = store.tracking_run(TrackingRunId(1)).await.unwrap().unwrap();
-        assert_eq!(old.calibration_id, None);
-        let settings: crate::service::tracking::TrackingSettings =
-            serde_json::from_str(&old.parameters).unwrap();
-        assert!(!settings.recovers());
-        let new = store
-            .insert_tracking_run(SequenceId(1), old_settings)
-            .await
-            .unwrap()
-            .unwrap();
-        assert_eq!(new.calibration_id, Some(CalibrationId(1)));
-        store.close().await;
-    }
-}
+mod tests;

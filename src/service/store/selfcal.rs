@@ -7,9 +7,7 @@ use super::calibrations::insert_calibration;
 use super::jobs::{enqueue, finish, ClaimedJob};
 use super::{CalibrationId, CompleteError, FrameNumber, JobId, SequenceId, Store};
 
-/// The kind of the job that re-matches a sequence's frames with a
-/// calibration (the name is the service's; the store only enqueues it).
-pub const REPROCESS_SEQUENCE: &str = "reprocess_sequence";
+use crate::service::model::job_kind::JobKind;
 
 /// A refined calibration to store when its self-calibration job completes.
 #[derive(Clone, Copy, Debug)]
@@ -65,7 +63,8 @@ impl Store {
                 .execute(&mut *tx)
                 .await?;
             let payload = reprocess_payload(sequence_id, row.id);
-            reprocess_job = Some(enqueue(&mut tx, REPROCESS_SEQUENCE, &payload).await?);
+            reprocess_job =
+                Some(enqueue(&mut tx, JobKind::ReprocessSequence.as_str(), &payload).await?);
         }
         tx.commit().await?;
         Ok((row.id, reprocess_job))
@@ -90,7 +89,7 @@ impl Store {
             return Ok(None);
         }
         let payload = reprocess_payload(sequence_id, calibration_id);
-        let job = enqueue(&mut tx, REPROCESS_SEQUENCE, &payload).await?;
+        let job = enqueue(&mut tx, JobKind::ReprocessSequence.as_str(), &payload).await?;
         tx.commit().await?;
         Ok(Some(job))
     }

@@ -349,7 +349,12 @@ impl Store {
         let mut tx = self.write_transaction().await?;
         let payload =
             serde_json::json!({"sequence_id": frame.sequence_id, "frame": frame.frame}).to_string();
-        let job_id = enqueue(&mut tx, crate::service::jobs::PROCESS_FRAME, &payload).await?;
+        let job_id = enqueue(
+            &mut tx,
+            crate::service::model::job_kind::JobKind::ProcessFrame.as_str(),
+            &payload,
+        )
+        .await?;
         sqlx::query(
             "INSERT INTO frames (sequence_id, frame, job_id, input, raw_layout) \
              VALUES ($1, $2, $3, $4, $5)",
@@ -492,7 +497,7 @@ impl Store {
     /// removal of the frame's image rows. Returns the hashes of the removed
     /// rows: their files go where nothing else refers to them, which the
     /// caller checks after the commit under the image store's lock
-    /// (`jobs::remove_unused_images`). A check here, inside the
+    /// (`images::remove_unused_images`). A check here, inside the
     /// transaction, would miss on PostgreSQL (read committed) when two
     /// frames of the same images complete at once: each would still see
     /// the other's rows, and neither delete the file.
@@ -563,7 +568,7 @@ impl Store {
         images: &[(i64, String, i64, i64)],
     ) -> Result<(), SequenceImagesError> {
         let mut tx = self.write_transaction().await?;
-        lock_sequence(&mut tx, self.dialect, sequence_id).await?;
+        super::dialect::lock_sequence(&mut tx, self.dialect, sequence_id).await?;
         let (frames,): (i64,) =
             sqlx::query_as("SELECT count(*) FROM frames WHERE sequence_id = $1")
                 .bind(sequence_id)
@@ -600,7 +605,7 @@ impl Store {
         images: &[(i64, String, i64, i64)],
     ) -> Result<Vec<String>, sqlx::Error> {
         let mut tx = self.write_transaction().await?;
-        lock_sequence(&mut tx, self.dialect, sequence_id).await?;
+        super::dialect::lock_sequence(&mut tx, self.dialect, sequence_id).await?;
         let (existing,): (i64,) = sqlx::query_as(
             "SELECT count(*) FROM sequence_images WHERE sequence_id = $1 AND kind = 'background'",
         )
@@ -696,26 +701,6 @@ async fn insert_sequence_image(
     .bind(sha256)
     .bind(size)
     .bind(bits)
-    .execute(&mut **tx)
-    .await?;
-    Ok(())
-}
-
-/// Holds the sequence's row until the transaction ends, so that its
-/// checks (no frames yet, no background yet) stay true until it commits:
-/// on PostgreSQL `FOR UPDATE` (a frame's insert, whose foreign key takes a
-/// share lock on the row, waits; so does another such transaction); on
-/// SQLite the write lock already holds everything.
-pub(super) async fn lock_sequence(
-    tx: &mut Transaction<'_, Any>,
-    dialect: super::Dialect,
-    sequence_id: SequenceId,
-) -> Result<(), sqlx::Error> {
-    sqlx::query(&format!(
-        "SELECT id FROM sequences WHERE id = $1{}",
-        dialect.for_update()
-    ))
-    .bind(sequence_id)
     .execute(&mut **tx)
     .await?;
     Ok(())

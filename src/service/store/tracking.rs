@@ -287,7 +287,7 @@ impl Store {
         let mut tx = self.write_transaction().await?;
         // Held to the end: two new runs at once supersede one another in
         // turn, never both stay tracking.
-        super::sequences::lock_sequence(&mut tx, self.dialect, sequence_id).await?;
+        super::dialect::lock_sequence(&mut tx, self.dialect, sequence_id).await?;
         let exists: Option<(i64,)> = sqlx::query_as("SELECT 1 FROM sequences WHERE id = $1")
             .bind(sequence_id)
             .fetch_optional(&mut *tx)

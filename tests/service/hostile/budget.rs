@@ -367,7 +367,7 @@ async fn self_calibrations_queued_at_once_run_one_after_the_other_within_the_bud
     };
     // The need the service declares: every stored target of the frames.
     let log = dir.path().join("server.log");
-    let need = ptv::service::budget::selfcal_need(targets, 4, FRAMES as usize).mib();
+    let need = ptv::service::infra::budget::selfcal_need(targets, 4, FRAMES as usize).mib();
     assert!(need >= 4, "{targets} targets: {need} MiB");
     // One fits, two do not.
     let budget_mib = need + need / 2;

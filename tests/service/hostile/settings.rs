@@ -232,10 +232,11 @@ async fn the_absurd_velocity_is_refused_and_the_largest_legal_one_tracks_in_boun
         .iter()
         .map(|c| (c.sensor().width, c.sensor().height))
         .collect();
-    let frame_need = ptv::service::budget::frame_need(&views, None, false).bytes;
+    let frame_need = ptv::service::infra::budget::frame_need(&views, None, false).bytes;
     let particles = PARTICLES as u64;
     let tracking_need =
-        ptv::service::budget::tracking_need(FRAMES, FRAMES as u64 * particles, particles, 0).bytes;
+        ptv::service::infra::budget::tracking_need(FRAMES, FRAMES as u64 * particles, particles, 0)
+            .bytes;
     let upload = 2 * (1 << 20) + 4 * particles * 80;
     let bound = idle + (frame_need + tracking_need + upload) as f64 / (1 << 20) as f64;
     let peak = server.peak_memory_mib();

@@ -12,7 +12,7 @@
 //!   workers share one, and every `ptv worker` process has its own, so
 //!   several processes on one machine are each given their share.
 //! - A job whose need exceeds the whole budget can never run in this
-//!   process: it fails at once with the reason ([`JobError::Failed`], the
+//!   process: it fails at once with the reason ([`BudgetError::TooLarge`], the
 //!   permanent failure; never retried into an out-of-memory crash loop).
 //! - Waiting: the job waits for its MiB inside its attempt, after its
 //!   claim, while the attempt's heartbeat renews its lease (every third of
@@ -47,8 +47,7 @@ use std::sync::Arc;
 
 use tokio::sync::{OwnedSemaphorePermit, Semaphore};
 
-use super::jobs::JobError;
-use super::metrics::Metrics;
+use crate::service::infra::metrics::Metrics;
 
 /// One MiB.
 pub const MIB: u64 = 1 << 20;
@@ -264,6 +263,19 @@ pub fn tracking_need(frame: i64, held: u64, particles: u64, targets: u64) -> Mem
     )
 }
 
+/// Why memory could not be granted.
+#[derive(Debug, thiserror::Error)]
+pub enum BudgetError {
+    /// The need is larger than the whole budget: it never fits (a job
+    /// fails for good with this reason).
+    #[error("{0}")]
+    TooLarge(String),
+    /// The budget was closed (it never is while the process runs; a job
+    /// is tried again).
+    #[error("the memory budget was closed")]
+    Closed,
+}
+
 /// The process's memory budget: a semaphore of MiB (module doc).
 #[derive(Debug)]
 pub struct MemoryBudget {
@@ -362,8 +374,8 @@ impl MemoryBudget {
 
     /// Waits for `need`'s MiB, first come first served; a need larger than
     /// the whole budget fails at once ([`MemoryBudget::check`]).
-    pub async fn acquire(&self, need: &MemoryNeed) -> Result<Grant, JobError> {
-        self.check(need).map_err(JobError::Failed)?;
+    pub async fn acquire(&self, need: &MemoryNeed) -> Result<Grant, BudgetError> {
+        self.check(need).map_err(BudgetError::TooLarge)?;
         let mib = need.mib();
         let asked = std::time::Instant::now();
         let permit = if mib == 0 {
@@ -376,7 +388,7 @@ impl MemoryBudget {
                 .acquire_many_owned(mib as u32)
                 .await;
             // The semaphore is never closed.
-            Some(permit.map_err(|_| JobError::Retry("the memory budget was closed".into()))?)
+            Some(permit.map_err(|_| BudgetError::Closed)?)
         };
         if let Some(metrics) = &self.metrics {
             metrics.memory_reserved(mib);
@@ -649,7 +661,7 @@ mod tests {
             .acquire(&MemoryNeed::new(101 * MIB, "the median of something"))
             .await
             .unwrap_err();
-        let JobError::Failed(message) = error else {
+        let BudgetError::TooLarge(message) = error else {
             panic!("{error:?} is not a permanent failure");
         };
         assert!(message.contains("about 101 MiB"), "{message}");

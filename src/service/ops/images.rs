@@ -38,7 +38,7 @@
 //!   and put it again from the temporary file, still kept, if not) and
 //!   commit the rows;
 //! - *deleting*: holding the lock, check that no row refers to the hash
-//!   ([`super::store::Store::image_in_use`]), then [`ImageStore::remove`].
+//!   ([`crate::service::store::Store::image_in_use`]), then [`ImageStore::remove`].
 //!
 //! Why this is enough: a deletion of hash `h` either ends before a storing
 //! section for `h` starts, and then that section finds the object missing
@@ -80,29 +80,8 @@ use sha2::{Digest, Sha256};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::sync::{Mutex, MutexGuard};
 
-use super::store::{HostsLock, Store};
-
-/// The operating system's "no space left on device" (ENOSPC: 28 on Linux
-/// and the BSDs) and "disk quota exceeded" (EDQUOT) codes;
-/// `io::ErrorKind::StorageFull` would say it by kind, but needs a newer
-/// Rust than this crate's minimum.
-#[cfg(target_os = "linux")]
-const STORAGE_FULL_CODES: &[i32] = &[28, 122];
-#[cfg(all(unix, not(target_os = "linux")))]
-const STORAGE_FULL_CODES: &[i32] = &[28, 69];
-/// Windows' ERROR_HANDLE_DISK_FULL and ERROR_DISK_FULL.
-#[cfg(windows)]
-const STORAGE_FULL_CODES: &[i32] = &[39, 112];
-#[cfg(not(any(unix, windows)))]
-const STORAGE_FULL_CODES: &[i32] = &[];
-
-/// Whether an I/O error means that the disk is full (or the quota used
-/// up): what an upload or the database answers with a 507.
-pub fn is_storage_full(error: &io::Error) -> bool {
-    error
-        .raw_os_error()
-        .is_some_and(|code| STORAGE_FULL_CODES.contains(&code))
-}
+use crate::service::infra::urls::ObjectStoreUrl;
+use crate::service::store::{HostsLock, Store};
 
 /// Files larger than this go to S3 as multipart uploads, in parts of this
 /// size (S3's smallest part is 5 MiB); smaller ones in one request, read
@@ -155,7 +134,7 @@ impl ImageStoreError {
                 sha256: sha256.to_owned(),
             };
         }
-        let message = super::jobs::error_chain(&error);
+        let message = crate::service::infra::errors::error_chain(&error);
         if unreachable(&error) {
             ImageStoreError::Unavailable(message)
         } else {
@@ -205,59 +184,6 @@ fn unreachable(error: &object_store::Error) -> bool {
         source = error.source();
     }
     false
-}
-
-/// Where images are stored: `--object-store`.
-#[derive(Clone, Debug, PartialEq, Eq)]
-pub struct ObjectStoreUrl {
-    /// The bucket.
-    pub bucket: String,
-    /// The prefix within it, without slashes at either end (may be empty).
-    pub prefix: String,
-}
-
-impl std::str::FromStr for ObjectStoreUrl {
-    type Err = String;
-
-    /// `s3://bucket` or `s3://bucket/prefix/of/any/depth`.
-    fn from_str(text: &str) -> Result<Self, Self::Err> {
-        let rest = text.strip_prefix("s3://").ok_or_else(|| {
-            format!(
-                "`{text}` is not an s3:// URL; give s3://bucket/prefix (leave the option out \
-                 for images in the data directory)"
-            )
-        })?;
-        let (bucket, prefix) = rest.split_once('/').unwrap_or((rest, ""));
-        let valid_bucket = (3..=63).contains(&bucket.len())
-            && bucket
-                .bytes()
-                .all(|b| b.is_ascii_lowercase() || b.is_ascii_digit() || b == b'-' || b == b'.');
-        if !valid_bucket {
-            return Err(format!(
-                "`{bucket}` is not an S3 bucket name (3 to 63 lower-case letters, digits, \
-                 dots and hyphens): give s3://bucket/prefix"
-            ));
-        }
-        let prefix = prefix.trim_matches('/');
-        if prefix.split('/').any(|p| p == "." || p == "..")
-            || prefix.contains("//")
-            || prefix.chars().any(char::is_control)
-        {
-            return Err(format!(
-                "`{prefix}` is not a usable prefix: no empty, `.` or `..` parts"
-            ));
-        }
-        Ok(ObjectStoreUrl {
-            bucket: bucket.to_owned(),
-            prefix: prefix.to_owned(),
-        })
-    }
-}
-
-impl std::fmt::Display for ObjectStoreUrl {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(f, "s3://{}/{}", self.bucket, self.prefix)
-    }
 }
 
 /// Where the bytes live.
@@ -384,7 +310,7 @@ fn s3_client(
         .with_retry(retry)
         .with_client_options(options)
         .build()
-        .map_err(|e| ImageStoreError::Other(super::jobs::error_chain(&e)))?;
+        .map_err(|e| ImageStoreError::Other(crate::service::infra::errors::error_chain(&e)))?;
     Ok(Arc::new(store))
 }
 
@@ -397,7 +323,10 @@ impl ImageStore {
         data_dir: &Path,
         objects: Option<(&ObjectStoreUrl, Option<&str>)>,
     ) -> Result<ImageStore, ImageStoreError> {
-        remove_abandoned(&data_dir.join("tmp"), super::app::process_exists)?;
+        remove_abandoned(
+            &data_dir.join("tmp"),
+            crate::service::infra::process::process_exists,
+        )?;
         ImageStore::open_shared(data_dir, objects).await
     }
 
@@ -505,7 +434,7 @@ impl ImageStore {
     /// taken (PostgreSQL out of reach).
     pub async fn lock(&self, database: &Store) -> Result<ImageLock<'_>, sqlx::Error> {
         let guard = self.lock.lock().await;
-        let file = match super::file_lock::exclusive(self.lock_file.clone()).await {
+        let file = match crate::service::infra::file_lock::exclusive(self.lock_file.clone()).await {
             Ok(file) => Some(file),
             Err(error) => {
                 tracing::warn!(%error, "cannot lock the image store across processes");
@@ -811,9 +740,37 @@ impl Drop for Upload {
     }
 }
 
+/// Deletes the files of `hashes` that nothing refers to any more, each
+/// checked under the image store's lock against what is committed.
+pub async fn remove_unused_images(store: &Store, images: &ImageStore, hashes: &[String]) {
+    if hashes.is_empty() {
+        return;
+    }
+    let _guard = match images.lock(store).await {
+        Ok(guard) => guard,
+        Err(error) => {
+            // The files stay; the next sweep removes them.
+            tracing::warn!(%error, "cannot lock the image store to delete unused files");
+            return;
+        }
+    };
+    for hash in hashes {
+        match store.image_in_use(hash).await {
+            Ok(false) => {
+                if let Err(error) = images.remove(hash).await {
+                    tracing::warn!(%error, hash, "cannot delete an image file");
+                }
+            }
+            Ok(true) => {}
+            Err(error) => tracing::warn!(%error, "cannot check an image's use"),
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::service::infra::errors::is_storage_full;
 
     /// A starting `ptv serve` removes what stopped processes left in
     /// `tmp/` and keeps what running ones (a `ptv worker` on the same data
@@ -846,27 +803,6 @@ mod tests {
         let file = upload.finish().await.unwrap();
         again.persist(file).await.unwrap();
         assert!(!tmp.join("upload-9-0").exists());
-    }
-
-    #[test]
-    fn object_store_urls_are_parsed_or_refused_saying_why() {
-        let url: ObjectStoreUrl = "s3://ptv-images/lab/campaign-7/".parse().unwrap();
-        assert_eq!(url.bucket, "ptv-images");
-        assert_eq!(url.prefix, "lab/campaign-7");
-        let bare: ObjectStoreUrl = "s3://ptv-images".parse().unwrap();
-        assert_eq!(bare.prefix, "");
-        for (bad, says) in [
-            ("/data/images", "not an s3:// URL"),
-            ("gs://bucket/x", "not an s3:// URL"),
-            ("s3://", "not an S3 bucket name"),
-            ("s3://Upper/x", "not an S3 bucket name"),
-            ("s3://ab/x", "not an S3 bucket name"),
-            ("s3://bucket/a/../b", "not a usable prefix"),
-            ("s3://bucket/a//b", "not a usable prefix"),
-        ] {
-            let error = bad.parse::<ObjectStoreUrl>().unwrap_err();
-            assert!(error.contains(says), "{bad}: {error}");
-        }
     }
 
     #[test]
@@ -930,13 +866,6 @@ mod tests {
             matches!(error, ImageStoreError::Unavailable(_)),
             "{error:?}"
         );
-    }
-
-    #[test]
-    fn a_full_disk_is_told_from_other_io_errors() {
-        assert!(is_storage_full(&io::Error::from_raw_os_error(28)));
-        assert!(!is_storage_full(&io::Error::from_raw_os_error(13)));
-        assert!(!is_storage_full(&io::Error::other("no space")));
     }
 
     /// Writes to `/dev/full` fail with ENOSPC, as on a full disk.

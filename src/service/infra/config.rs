@@ -7,8 +7,7 @@ use std::time::Duration;
 
 use clap::Args;
 
-use super::images::ObjectStoreUrl;
-use super::store::PostgresUrl;
+use crate::service::infra::urls::{ObjectStoreUrl, PostgresUrl};
 
 /// Arguments of `ptv serve` (and of `ptv` without a subcommand).
 #[derive(Clone, Debug, Args)]
@@ -359,7 +358,7 @@ impl JobLimits {
     /// machine's memory.
     pub fn memory_budget_mib(&self) -> u64 {
         self.memory_budget_mb
-            .unwrap_or_else(super::budget::default_budget_mib)
+            .unwrap_or_else(crate::service::infra::budget::default_budget_mib)
     }
 }
 

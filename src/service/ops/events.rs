@@ -46,13 +46,38 @@ use serde::{Deserialize, Serialize};
 use tokio::sync::{broadcast, mpsc, watch, Notify};
 use utoipa::ToSchema;
 
-use super::app::AppState;
-use super::http::jobs::JobStateView;
-use super::jobs::{JobError, PROCESS_FRAME};
-use super::store::{
-    ClaimedJob, EventId, EventRow, FrameNumber, JobId, SequenceId, Store, TrackingRunId,
+use crate::service::model::job_kind::JobKind;
+use crate::service::ops::jobs::attempt::JobError;
+use crate::service::store::{
+    ClaimedJob, EventId, EventRow, FrameNumber, JobId, JobState, SequenceId, Store, TrackingRunId,
     MAX_ATTEMPTS,
 };
+
+/// A job's state.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, serde::Deserialize, ToSchema)]
+#[serde(rename_all = "snake_case")]
+#[schema(as = JobState)]
+pub enum JobStateView {
+    /// Waiting for a worker.
+    Queued,
+    /// A worker has it.
+    Running,
+    /// Done; its result is stored.
+    Succeeded,
+    /// Given up; `error` says why.
+    Failed,
+}
+
+impl From<JobState> for JobStateView {
+    fn from(state: JobState) -> Self {
+        match state {
+            JobState::Queued => JobStateView::Queued,
+            JobState::Running => JobStateView::Running,
+            JobState::Succeeded => JobStateView::Succeeded,
+            JobState::Failed => JobStateView::Failed,
+        }
+    }
+}
 
 /// Events a subscriber may fall behind by before it loses the oldest.
 pub const CAPACITY: usize = 1024;
@@ -466,12 +491,12 @@ impl JobOutcome {
 }
 
 /// Announces that a worker took up `job` (its claim is committed).
-pub fn job_running(state: &AppState, job: &ClaimedJob) {
+pub fn job_running(events: &Events, job: &ClaimedJob) {
     let Some((sequence_id, frame)) = subject(job) else {
         return;
     };
-    let change = match (job.kind.as_str(), frame) {
-        (PROCESS_FRAME, Some(frame)) => Change::FrameRunning {
+    let change = match (job.kind.parse::<JobKind>(), frame) {
+        (Ok(JobKind::ProcessFrame), Some(frame)) => Change::FrameRunning {
             frame,
             job_id: job.id,
         },
@@ -481,33 +506,37 @@ pub fn job_running(state: &AppState, job: &ClaimedJob) {
             state: JobStateView::Running,
         },
     };
-    state.events.send(sequence_id, change);
+    events.send(sequence_id, change);
 }
 
 /// Announces how `job`'s attempt ended, once the worker recorded it.
-pub fn job_ended(state: &AppState, job: &ClaimedJob, outcome: JobOutcome) {
+pub fn job_ended(events: &Events, job: &ClaimedJob, outcome: JobOutcome) {
     let Some((sequence_id, frame)) = subject(job) else {
         return;
     };
-    let change = match (job.kind.as_str(), frame, outcome) {
+    let change = match (job.kind.parse::<JobKind>(), frame, outcome) {
         (_, _, JobOutcome::Lost) => return,
-        (PROCESS_FRAME, Some(frame), JobOutcome::Succeeded) => Change::FrameProcessed {
+        (Ok(JobKind::ProcessFrame), Some(frame), JobOutcome::Succeeded) => Change::FrameProcessed {
             frame,
             job_id: job.id,
         },
-        (PROCESS_FRAME, Some(frame), JobOutcome::Failed(error)) => Change::FrameFailed {
-            frame,
+        (Ok(JobKind::ProcessFrame), Some(frame), JobOutcome::Failed(error)) => {
+            Change::FrameFailed {
+                frame,
+                job_id: job.id,
+                error,
+            }
+        }
+        (Ok(JobKind::ProcessFrame), Some(frame), JobOutcome::Requeued(reason)) => {
+            Change::FrameRequeued {
+                frame,
+                job_id: job.id,
+                reason,
+            }
+        }
+        (_, _, outcome) => Change::Job {
             job_id: job.id,
-            error,
-        },
-        (PROCESS_FRAME, Some(frame), JobOutcome::Requeued(reason)) => Change::FrameRequeued {
-            frame,
-            job_id: job.id,
-            reason,
-        },
-        (kind, _, outcome) => Change::Job {
-            job_id: job.id,
-            kind: kind.to_owned(),
+            kind: job.kind.clone(),
             state: match outcome {
                 JobOutcome::Succeeded => JobStateView::Succeeded,
                 JobOutcome::Failed(_) => JobStateView::Failed,
@@ -515,7 +544,7 @@ pub fn job_ended(state: &AppState, job: &ClaimedJob, outcome: JobOutcome) {
             },
         },
     };
-    state.events.send(sequence_id, change);
+    events.send(sequence_id, change);
 }
 
 #[cfg(test)]

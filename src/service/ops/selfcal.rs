@@ -1,7 +1,7 @@
 //! Self-calibration of a sequence's calibration from its stored targets,
 //! and reprocessing of its frames with another calibration (issue 14).
 //!
-//! - [`SELF_CALIBRATE`] ([`self_calibrate_job`]): the targets of the
+//! - [`JobKind::SelfCalibrate`](crate::service::model::job_kind::JobKind::SelfCalibrate) ([`self_calibrate_job`]): the targets of the
 //!   sequence's frames in the asked range, stored by their frame jobs
 //!   (detected or uploaded), go through
 //!   [`crate::photogrammetry::selfcal::self_calibrate`] (Wieneke 2008: match
@@ -13,7 +13,7 @@
 //!   job; with `reprocess`, the same transaction switches the sequence to
 //!   it and enqueues its reprocess job. A diverged adjustment stores
 //!   nothing: the job fails saying why, and the input calibration stays.
-//! - [`REPROCESS_SEQUENCE`] ([`reprocess_sequence`]): every processed frame
+//! - [`JobKind::ReprocessSequence`](crate::service::model::job_kind::JobKind::ReprocessSequence) ([`reprocess_sequence`]): every processed frame
 //!   whose particles another calibration made is matched again from its
 //!   stored targets (no detection) with the sequence's pipeline for the new
 //!   calibration, its particles replaced in one statement per frame (the
@@ -21,27 +21,25 @@
 //!   stopped: it picks frames by the calibration their particles name).
 //!
 //! Both take their memory from the process's budget
-//! ([`super::budget::selfcal_need`] for all the frames' targets at once,
-//! [`super::budget::reprocess_need`] for each frame in turn).
+//! ([`crate::service::infra::budget::selfcal_need`] for all the frames' targets at once,
+//! [`crate::service::infra::budget::reprocess_need`] for each frame in turn).
 
 use std::sync::Arc;
 
 use serde::{Deserialize, Serialize};
 use utoipa::ToSchema;
 
-use super::app::AppState;
-use super::codec;
-use super::jobs::{pipeline_of, sequence_parameters, JobError, JobRun, TimeLimit};
-use super::store::{CalibrationId, FrameNumber, RefinedCalibration, SequenceId, MAX_FRAME_NUMBER};
 use crate::formats;
+use crate::service::infra::codec;
+use crate::service::ops::jobs::attempt::{JobError, JobRun, TimeLimit};
+use crate::service::ops::jobs::pipelines::{pipeline_of, sequence_parameters};
+use crate::service::ops::state::AppState;
+use crate::service::store::{
+    CalibrationId, FrameNumber, RefinedCalibration, SequenceId, MAX_FRAME_NUMBER,
+};
 
 use crate::photogrammetry::selfcal::{self, Outcome, SelfCalibrationError, SelfCalibrationOptions};
 use crate::photogrammetry::{Camera, CameraParameters, Cancel, Target, Volume};
-
-pub use super::store::REPROCESS_SEQUENCE;
-
-/// The kind of the job that self-calibrates a sequence's calibration.
-pub const SELF_CALIBRATE: &str = "self_calibrate";
 
 /// Most frames one self-calibration reads (their targets are held in
 /// memory together: 1,000 frames of 4 cameras x 10,000 targets is 1.6 GB).
@@ -294,7 +292,7 @@ pub async fn self_calibrate_job(state: Arc<AppState>, run: JobRun) -> Result<(),
     // stored counts, taken before the targets are read.
     let span = (frames[0], frames[frames.len() - 1]);
     let stored = state.store.target_count(payload.sequence_id, span).await?;
-    let need = super::budget::selfcal_need(
+    let need = crate::service::infra::budget::selfcal_need(
         u64::try_from(stored).unwrap_or(0),
         parameters.len(),
         frames.len(),
@@ -412,7 +410,11 @@ pub async fn reprocess_sequence(state: Arc<AppState>, run: JobRun) -> Result<(),
             let stored_bytes = stored.iter().map(|(_, _, b)| b.len() as u64).sum();
             let _grant = state
                 .budget
-                .acquire(&super::budget::reprocess_need(frame.0, count, stored_bytes))
+                .acquire(&crate::service::infra::budget::reprocess_need(
+                    frame.0,
+                    count,
+                    stored_bytes,
+                ))
                 .await?;
             let cancel = Cancel::with_limit(limit.for_work(0, count));
             let work_cancel = cancel.clone();
@@ -445,7 +447,7 @@ pub async fn reprocess_sequence(state: Arc<AppState>, run: JobRun) -> Result<(),
             done += 1;
         }
     }
-    let link = super::http::links::sequence(sequence_id);
+    let link = crate::service::ops::links::sequence(sequence_id);
     state
         .store
         .succeed(&run.job, &link, run.elapsed_s())

@@ -81,432 +81,26 @@
 //! points so far stay readable (`?run=`); frames of a finished run
 //! uploaded after it finished are not in it (start a new run).
 
-use std::collections::{HashMap, VecDeque};
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 use std::time::Duration;
 
 use tokio::sync::watch;
 
-use serde::{Deserialize, Serialize};
-use utoipa::ToSchema;
+pub mod live;
 
-use super::app::AppState;
-use super::codec::{self, DamagedBlob};
-use super::events::Change;
-use super::jobs::{error_chain, CpuError};
-use super::parameters::SequenceParameters;
-use super::store::{
-    FrameNumber, FrameReadiness, LeaseToken, PointRow, SequenceId, TrackingRunId, TrackingRunRow,
-    TrackingState, MAX_FRAME_NUMBER,
-};
+use self::live::{hold_recovered, rows, FrameInput, Live, TrackingError};
 use crate::formats;
-use crate::photogrammetry::correspond::Particle;
-use crate::photogrammetry::track::recovery::FrameTargetsError;
-use crate::photogrammetry::track::{
-    FrameTargets, ImageSpaceRecovery, ParticlePosition, RecoveredParticles, TrackError, TrackPoint,
-    Tracker, TrackingParameters,
+use crate::photogrammetry::track::ImageSpaceRecovery;
+use crate::service::infra::codec;
+use crate::service::infra::errors::error_chain;
+use crate::service::model::parameters::SequenceParameters;
+use crate::service::model::tracking_settings::TrackingSettings;
+use crate::service::ops::events::Change;
+use crate::service::ops::state::AppState;
+use crate::service::store::{
+    FrameNumber, FrameReadiness, LeaseToken, SequenceId, TrackingRunId, TrackingRunRow,
+    TrackingState,
 };
-use crate::photogrammetry::{Target, Volume};
-
-/// How to track a sequence (all but `max_velocity` optional; the defaults
-/// are `ptv track`'s).
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, ToSchema)]
-#[serde(deny_unknown_fields)]
-pub struct TrackingSettings {
-    /// The largest displacement of a particle between two frames (mm per
-    /// frame): above zero, and at most the diagonal of the sequence's
-    /// observation volume (its `matching.volume`, else its calibration's
-    /// default volume): a larger limit describes no motion in the volume
-    /// and only makes every particle a candidate for every trajectory.
-    pub max_velocity: f64,
-    /// The largest change of velocity between two frames (mm per frame²),
-    /// at most twice the volume's diagonal [default: half of max_velocity].
-    #[serde(default)]
-    pub max_acceleration: Option<f64>,
-    /// Frames a trajectory may miss and continue, 0 to 2 [default: 1].
-    #[serde(default)]
-    pub max_gap: Option<usize>,
-    /// The fewest points of a trajectory that is stored, 1 to 100
-    /// (trajectories are held in memory until they have that many)
-    /// [default: 3].
-    #[serde(default)]
-    pub min_length: Option<usize>,
-    /// Points on each side of a point in its polynomial fit, 1 to 5
-    /// [default: 2].
-    #[serde(default)]
-    pub fit_half_window: Option<usize>,
-    /// The fit's order, 1 to 3 [default: 2].
-    #[serde(default)]
-    pub fit_order: Option<usize>,
-    /// The sequence's first frame: tracking starts there and waits for it
-    /// [default: 0].
-    #[serde(default)]
-    #[schema(value_type = Option<i64>, minimum = 0, maximum = 4_294_967_295_u64)]
-    pub first_frame: Option<FrameNumber>,
-    /// Look in each frame's targets for the particles the correspondences
-    /// missed, where a trajectory's prediction has none (Willneff's
-    /// image-space recovery, as `ptv track` does unless `--no-recovery`;
-    /// within the sequence's matching `tolerance`, with the calibration
-    /// the sequence has when the run starts) [default: true]. A recovered
-    /// particle is a point of its trajectory whose `particle` index is at
-    /// or above its frame's particle count. Runs stored before this
-    /// setting existed show false: they were tracked without.
-    #[serde(default)]
-    pub recovery: Option<bool>,
-}
-
-/// Settings the tracker refuses.
-#[derive(Debug, thiserror::Error)]
-pub enum InvalidTrackingSettings {
-    /// A parameter out of range (the core's check).
-    #[error("tracking: {0}")]
-    Parameter(#[from] TrackError),
-    /// A first frame that is no frame number.
-    #[error("tracking: first_frame must be a frame number, 0 to {MAX_FRAME_NUMBER}, got {0}")]
-    FirstFrame(FrameNumber),
-}
-
-impl TrackingSettings {
-    /// The core's parameters.
-    pub fn parameters(&self) -> TrackingParameters {
-        let defaults = TrackingParameters::new(self.max_velocity);
-        TrackingParameters {
-            max_acceleration: self.max_acceleration.unwrap_or(defaults.max_acceleration),
-            max_gap: self.max_gap.unwrap_or(defaults.max_gap),
-            min_length: self.min_length.unwrap_or(defaults.min_length),
-            fit_half_window: self.fit_half_window.unwrap_or(defaults.fit_half_window),
-            fit_order: self.fit_order.unwrap_or(defaults.fit_order),
-            ..defaults
-        }
-    }
-
-    /// The settings with every default filled in, checked.
-    pub fn with_defaults(&self) -> Result<TrackingSettings, InvalidTrackingSettings> {
-        let p = self.parameters();
-        p.validate()?;
-        let first_frame = self.first_frame.unwrap_or(FrameNumber(0));
-        if !(0..=MAX_FRAME_NUMBER).contains(&first_frame.0) {
-            return Err(InvalidTrackingSettings::FirstFrame(first_frame));
-        }
-        Ok(TrackingSettings {
-            max_velocity: p.max_velocity,
-            max_acceleration: Some(p.max_acceleration),
-            max_gap: Some(p.max_gap),
-            min_length: Some(p.min_length),
-            fit_half_window: Some(p.fit_half_window),
-            fit_order: Some(p.fit_order),
-            first_frame: Some(first_frame),
-            recovery: Some(self.recovery.unwrap_or(true)),
-        })
-    }
-
-    /// Checks the limits against the sequence's observation volume (its
-    /// matcher's: the `matching.volume` given, else the default volume of
-    /// its calibration), by the rule `ptv track` applies too
-    /// ([`TrackingParameters::check_volume`]: `max_velocity` at most the
-    /// volume's diagonal, `max_acceleration` at most twice that).
-    pub fn check_volume(&self, volume: &Volume) -> Result<(), InvalidTrackingSettings> {
-        Ok(self.parameters().check_volume(volume)?)
-    }
-
-    fn first_frame(&self) -> FrameNumber {
-        self.first_frame.unwrap_or(FrameNumber(0))
-    }
-
-    /// Whether a stored run recovers particles from the images. Every run
-    /// is stored with its settings filled in ([`TrackingSettings::with_defaults`]:
-    /// true unless switched off), so `recovery` is absent only from runs
-    /// stored before the setting existed, which were tracked without it:
-    /// those go on without it (a replay with it would not give what they
-    /// stored).
-    pub fn recovers(&self) -> bool {
-        self.recovery.unwrap_or(false)
-    }
-
-    /// The settings of a stored run as the API shows them (`recovery`
-    /// as [`TrackingSettings::recovers`] reads it).
-    pub fn as_stored(self) -> TrackingSettings {
-        TrackingSettings {
-            recovery: Some(self.recovers()),
-            ..self
-        }
-    }
-}
-
-/// A run's tracker in memory, with what it needs between frames.
-struct Live {
-    /// The last frame it took (as stored).
-    through: Option<FrameNumber>,
-    /// Out of its slot while it works on the CPU pool (gone if that
-    /// panicked).
-    tracker: Option<Tracker>,
-    /// Whether it recovers particles from the images: frames are then
-    /// given with their targets.
-    recovers: bool,
-    /// The recent frames' particles' targets (`t0,t1,...` per particle,
-    /// those recovered after the frame's own), for the points that become
-    /// final later.
-    targets: VecDeque<(FrameNumber, Vec<String>)>,
-    /// Frames kept in `targets`.
-    keep: i64,
-}
-
-/// A frame as the tracker takes it: its particles (none for a gap) and,
-/// for a tracker that recovers, its targets per camera.
-struct FrameInput {
-    particles: Vec<Particle>,
-    targets: Option<Vec<Vec<Target>>>,
-}
-
-impl Live {
-    fn new(
-        parameters: &TrackingParameters,
-        recovery: Option<ImageSpaceRecovery>,
-    ) -> Result<Live, TrackError> {
-        let recovers = recovery.is_some();
-        let tracker = match recovery {
-            Some(recovery) => Tracker::with_recovery(parameters.clone(), recovery)?,
-            None => Tracker::new(parameters.clone())?,
-        };
-        Ok(Live {
-            through: None,
-            tracker: Some(tracker),
-            recovers,
-            targets: VecDeque::new(),
-            // A point becomes final at most this many frames after its own
-            // (as `ptv track` holds frames); a frame's recovered particles
-            // come sooner, when it leaves the tracker's look-ahead.
-            keep: parameters.report_delay() as i64,
-        })
-    }
-
-    /// Takes `frame`: the tracker's new final points. Particles it
-    /// recovered meanwhile are added to their frames' targets.
-    async fn push(
-        &mut self,
-        state: &AppState,
-        frame: FrameNumber,
-        input: FrameInput,
-    ) -> Result<Vec<TrackPoint>, TrackingError> {
-        let FrameInput { particles, targets } = input;
-        // The memory of this step, from the particles held and the frame's
-        // (module `budget`), held while the tracker works on it only.
-        let held: usize = self.targets.iter().map(|(_, p)| p.len()).sum();
-        let target_count: usize = targets.iter().flatten().map(Vec::len).sum();
-        let need = super::budget::tracking_need(
-            frame.0,
-            held as u64,
-            particles.len() as u64,
-            target_count as u64,
-        );
-        let _grant = state.budget.acquire(&need).await.map_err(|e| match e {
-            super::jobs::JobError::Failed(message) => TrackingError::Memory(message),
-            other => TrackingError::Interrupted(other.to_string()),
-        })?;
-        self.targets.push_back((
-            frame,
-            particles.iter().map(|p| targets_text(&p.targets)).collect(),
-        ));
-        while self
-            .targets
-            .front()
-            .is_some_and(|(f, _)| f.0 + self.keep < frame.0)
-        {
-            self.targets.pop_front();
-        }
-        let tracker = self
-            .tracker
-            .take()
-            .ok_or_else(|| TrackingError::Internal("the tracker was lost to a panic".to_owned()))?;
-        let (tracker, pushed) = state
-            .cpu
-            .run(move || {
-                let mut tracker = tracker;
-                let positions: Vec<ParticlePosition> = particles
-                    .iter()
-                    .map(|p| ParticlePosition::seen_by(p.position, p.sigma, p.camera_count()))
-                    .collect();
-                let pushed = match targets {
-                    // The same frame targets and noise as `ptv track`.
-                    Some(targets) => FrameTargets::of_particles(&targets, &particles)
-                        .map_err(|error| TrackingError::Targets { frame, error })
-                        .and_then(|targets| {
-                            Ok(tracker.push_with_targets(frame.0, positions, targets)?)
-                        }),
-                    None => tracker.push(frame.0, positions).map_err(Into::into),
-                };
-                let recovered = tracker.take_recovered();
-                (tracker, pushed.map(|points| (points, recovered)))
-            })
-            .await?;
-        self.tracker = Some(tracker);
-        self.through = Some(frame);
-        let (points, recovered) = pushed?;
-        hold_recovered(&mut self.targets, recovered)?;
-        Ok(points)
-    }
-
-    /// The points as rows, with their particles' targets.
-    fn rows(&self, points: &[TrackPoint]) -> Result<Vec<PointRow>, TrackingError> {
-        rows(&self.targets, points)
-    }
-}
-
-/// Adds the particles the tracker recovered to their frames' targets in
-/// `held` (numbered after the frame's own, as the tracker numbers them).
-fn hold_recovered(
-    held: &mut VecDeque<(FrameNumber, Vec<String>)>,
-    recovered: Vec<RecoveredParticles>,
-) -> Result<(), TrackingError> {
-    for frame in recovered {
-        let (_, targets) = held
-            .iter_mut()
-            .find(|(f, t)| f.0 == frame.frame && t.len() == frame.first)
-            .ok_or_else(|| {
-                TrackingError::Internal(format!(
-                    "frame {}'s recovered particles came after the frame was let go",
-                    frame.frame
-                ))
-            })?;
-        targets.extend(frame.particles.iter().map(|p| targets_text(&p.targets)));
-    }
-    Ok(())
-}
-
-/// Points as rows, with their particles' targets from `held`.
-fn rows(
-    held: &VecDeque<(FrameNumber, Vec<String>)>,
-    points: &[TrackPoint],
-) -> Result<Vec<PointRow>, TrackingError> {
-    points
-        .iter()
-        .map(|p| {
-            let targets = held
-                .iter()
-                .find(|(f, _)| f.0 == p.frame)
-                .and_then(|(_, t)| t.get(p.particle))
-                .ok_or(TrackingError::Internal(format!(
-                    "frame {}'s particles were let go before trajectory {} was stored",
-                    p.frame, p.trajectory
-                )))?;
-            Ok(point_row(p, targets.clone()))
-        })
-        .collect()
-}
-
-/// `t0,t1,...`: each camera's target, -1 for none.
-fn targets_text(targets: &[Option<usize>]) -> String {
-    targets
-        .iter()
-        .map(|t| t.map_or_else(|| "-1".to_owned(), |t| t.to_string()))
-        .collect::<Vec<_>>()
-        .join(",")
-}
-
-fn point_row(p: &TrackPoint, targets: String) -> PointRow {
-    let d = &p.derivatives;
-    let finite =
-        |v: nalgebra::Vector3<f64>| v.iter().all(|x| x.is_finite()).then(|| [v.x, v.y, v.z]);
-    PointRow {
-        trajectory: p.trajectory as i64,
-        frame: FrameNumber(p.frame),
-        particle: p.particle as i64,
-        position: [p.position.x, p.position.y, p.position.z],
-        velocity: finite(d.velocity),
-        acceleration: d.acceleration.and_then(finite),
-        velocity_sigma: finite(d.velocity_sigma),
-        targets,
-    }
-}
-
-/// Why a run did not advance.
-#[derive(Debug, thiserror::Error)]
-pub enum TrackingError {
-    /// The database failed (the next kick tries again).
-    #[error("database: {0}")]
-    Database(#[from] sqlx::Error),
-    /// The CPU pool failed.
-    #[error("tracking {0}")]
-    Cpu(#[from] CpuError),
-    /// The tracker refused the input (the run fails).
-    #[error(transparent)]
-    Track(#[from] TrackError),
-    /// A stored particle blob does not read (the run fails).
-    #[error(transparent)]
-    Blob(#[from] DamagedBlob),
-    /// The stored settings do not read (the run fails).
-    #[error("the stored tracking settings: {0}")]
-    Settings(#[from] serde_json::Error),
-    /// The stored frames no longer give what was tracked (the run fails).
-    #[error("{0}")]
-    Diverged(String),
-    /// A frame's stored particles name targets it does not have (the run
-    /// fails).
-    #[error("frame {frame}'s particles do not fit its stored targets: {error}")]
-    Targets {
-        /// The frame.
-        frame: FrameNumber,
-        /// What does not fit.
-        error: FrameTargetsError,
-    },
-    /// The image-space recovery cannot be set up with the run's
-    /// calibration and the sequence's tolerance (the run fails).
-    #[error("the image-space recovery: {0}; start a new run with \"recovery\": false")]
-    Recovery(String),
-    /// A frame needs more memory than the whole budget (the run fails).
-    #[error("{0}")]
-    Memory(String),
-    /// A broken invariant (the run fails).
-    #[error("internal: {0}; please report this")]
-    Internal(String),
-    /// A frame's store did not run to its end (a shutdown; the next
-    /// advance finds what was stored).
-    #[error("storing a frame was interrupted: {0}")]
-    Interrupted(String),
-    /// Another advance moved the run meanwhile (nothing to do).
-    #[error("the run was advanced elsewhere")]
-    Moved,
-}
-
-impl TrackingError {
-    /// Whether the run cannot go on (rather than a passing failure).
-    fn is_fatal(&self) -> bool {
-        !matches!(
-            self,
-            TrackingError::Database(_)
-                | TrackingError::Cpu(_)
-                | TrackingError::Interrupted(_)
-                | TrackingError::Moved
-        )
-    }
-}
-
-/// The runs' trackers in memory, one slot per run.
-#[derive(Default)]
-pub struct Trackers {
-    slots: Mutex<HashMap<TrackingRunId, Arc<tokio::sync::Mutex<Option<Live>>>>>,
-}
-
-impl std::fmt::Debug for Trackers {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        let runs = self.slots.lock().map(|s| s.len()).unwrap_or_default();
-        f.debug_struct("Trackers").field("runs", &runs).finish()
-    }
-}
-
-impl Trackers {
-    fn slot(&self, id: TrackingRunId) -> Arc<tokio::sync::Mutex<Option<Live>>> {
-        let mut slots = self.slots.lock().unwrap_or_else(|e| e.into_inner());
-        slots.entry(id).or_default().clone()
-    }
-
-    /// Drops a run's tracker (a run superseded or ended); an advance still
-    /// holding it finds the run's state changed when it stores.
-    pub fn forget(&self, id: TrackingRunId) {
-        let mut slots = self.slots.lock().unwrap_or_else(|e| e.into_inner());
-        slots.remove(&id);
-    }
-}
 
 /// Advances the sequence's current run in the background (after a frame
 /// job, a finish request, a new run).
@@ -764,7 +358,7 @@ async fn take_frames(
                 }
             };
             let previous = live.through;
-            let points = live.push(state, frame, input).await?;
+            let points = live.push(&state.budget, &state.cpu, frame, input).await?;
             let rows = live.rows(&points)?;
             if !settle(storing).await? {
                 return Err(TrackingError::Moved);
@@ -835,7 +429,7 @@ async fn rebuild(
                 input
             }
         };
-        live.push(state, frame, input).await?;
+        live.push(&state.budget, &state.cpu, frame, input).await?;
     }
     Ok(live)
 }
@@ -940,7 +534,9 @@ async fn load_frame(
 
 #[cfg(test)]
 mod tests {
+    use super::live::targets_text;
     use super::*;
+    use crate::photogrammetry::track::TrackingParameters;
 
     fn settings(json: &str) -> TrackingSettings {
         serde_json::from_str(json).unwrap()

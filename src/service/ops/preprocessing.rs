@@ -11,7 +11,7 @@
 //! the number of cameras, taken from the memory budget first: see
 //! [`ensure_computed_background`]) and stores the backgrounds as PNGs
 //! with their rows; a cached pipeline made without them is then stale
-//! ([`super::jobs::PipelineCache`]). Until then frame jobs are deferred ([`JobError::Deferred`]): put
+//! ([`crate::service::ops::jobs::cache::PipelineCache`]). Until then frame jobs are deferred ([`JobError::Deferred`]): put
 //! back uncounted, not claimed again for [`WAIT_FOR_BACKGROUND`], so other
 //! sequences' frames go on. One worker of a process computes it, the
 //! process's others defer; workers of two processes may compute it at
@@ -20,22 +20,23 @@
 use std::sync::Arc;
 use std::time::Duration;
 
-use super::app::AppState;
-use super::budget::MemoryNeed;
-use super::jobs::{JobError, StoredRawLayout};
-use super::parameters::ComputedBackground;
-use super::store::{FrameNumber, SequenceId, SequenceImage, SequenceImageKind};
 use crate::formats;
 use crate::formats::image::RawLayout;
 use crate::photogrammetry::background::{BackgroundBuilder, BackgroundMode, DEFAULT_MEDIAN_SAMPLE};
 use crate::photogrammetry::{FramePipeline, GreyImage, Mask, Preprocessing, Splitter};
+use crate::service::infra::budget::{self, MemoryNeed};
+use crate::service::model::parameters::ComputedBackground;
+use crate::service::model::raw_layout::StoredRawLayout;
+use crate::service::ops::jobs::attempt::JobError;
+use crate::service::ops::state::AppState;
+use crate::service::store::{FrameNumber, SequenceId, SequenceImage, SequenceImageKind};
 
 /// How long a frame job waiting for its sequence's background stays
 /// unclaimed before it looks again.
 pub const WAIT_FOR_BACKGROUND: Duration = Duration::from_secs(2);
 
 /// `pipeline` with a sequence's stored backgrounds and masks (`stored`,
-/// [`super::store::Store::sequence_images`]), if it has any. A stored
+/// [`crate::service::store::Store::sequence_images`]), if it has any. A stored
 /// image that no longer decodes, or does not fit its camera, fails the job
 /// with the reason.
 pub async fn with_stored_images(
@@ -100,10 +101,11 @@ pub async fn with_stored_images(
 /// 8192x8192 16-bit camera, 32 x 128 MiB + 4 x 128 MiB = 4.5 GiB however
 /// many cameras the sequence has (all cameras at once took 8.3 GiB for
 /// two). The job takes that from the memory budget first
-/// ([`super::budget`]). Where the budget is smaller, the median keeps
-/// fewer frames, as many as fit
-/// ([`super::budget::median_sample_within`]; 12 of 128 MiB in 2 GiB),
-/// and only a budget below the least sample fails the job. With a splitter every frame's image is decoded
+/// ([`crate::service::infra::budget`]). Where the budget is smaller, the
+/// median keeps fewer frames, as many as fit
+/// ([`budget::median_sample_within`]; 12 of 128 MiB in 2 GiB), and only a
+/// budget below the least sample fails the job. With a splitter every
+/// frame's image is decoded
 /// once per camera, the price of holding one camera's frames only.
 pub async fn ensure_computed_background(
     state: &Arc<AppState>,
@@ -134,7 +136,7 @@ pub async fn ensure_computed_background(
     // One worker of this process computes it; the others wait (in
     // another process, another worker may compute it too: the first
     // stored wins).
-    let Some(_computing) = Computing::start(state, sequence_id) else {
+    let Some(_computing) = state.computing.start(sequence_id) else {
         return Err(JobError::Deferred(
             "waiting for the sequence's background: another worker computes it".to_owned(),
         ));
@@ -262,35 +264,12 @@ pub async fn ensure_computed_background(
     store_backgrounds(state, sequence_id, files).await
 }
 
-/// The sequences whose background a worker of this process computes now.
-#[derive(Debug, Default)]
-pub struct Computing(std::sync::Mutex<std::collections::HashSet<SequenceId>>);
-
-/// A sequence's background being computed, until dropped.
-struct ComputingGuard<'a>(&'a Computing, SequenceId);
-
-impl Computing {
-    /// Marks the sequence's background as being computed, unless it is.
-    fn start(state: &AppState, sequence_id: SequenceId) -> Option<ComputingGuard<'_>> {
-        let mut set = state.computing.0.lock().unwrap_or_else(|e| e.into_inner());
-        set.insert(sequence_id)
-            .then(|| ComputingGuard(&state.computing, sequence_id))
-    }
-}
-
-impl Drop for ComputingGuard<'_> {
-    fn drop(&mut self) {
-        let mut set = self.0 .0.lock().unwrap_or_else(|e| e.into_inner());
-        set.remove(&self.1);
-    }
-}
-
 /// A frame's number, raw layout (if raw) and (camera, SHA-256) of its
 /// image files.
 type FrameFiles = (FrameNumber, Option<RawLayout>, Vec<(i64, String)>);
 
 /// What computing a sequence's background needs at most (see
-/// [`ensure_computed_background`], [`super::budget::background_bytes`]):
+/// [`ensure_computed_background`], [`budget::background_bytes`]):
 /// its largest camera's kept frames at the depth of the first frame's
 /// images (read to see their headers; frames of another depth are
 /// refused by the builder), one decoded image and its view, the median,
@@ -337,8 +316,8 @@ async fn computed_background_need(
     let (kept, sample) = match computed.mode {
         BackgroundMode::Median => {
             // As many frames as the budget holds, up to the default.
-            let budget = state.budget.total_mib().saturating_mul(super::budget::MIB);
-            let sample = super::budget::median_sample_within(
+            let budget = state.budget.total_mib().saturating_mul(budget::MIB);
+            let sample = budget::median_sample_within(
                 budget,
                 DEFAULT_MEDIAN_SAMPLE as u64,
                 frames,
@@ -349,12 +328,12 @@ async fn computed_background_need(
             )
             // Not even the least sample fits: the need of that sample,
             // which the budget refuses with the reason.
-            .unwrap_or(super::budget::LEAST_MEDIAN_SAMPLE);
+            .unwrap_or(budget::LEAST_MEDIAN_SAMPLE);
             (frames.min(sample), sample)
         }
         BackgroundMode::Min => (frames.min(1), DEFAULT_MEDIAN_SAMPLE as u64),
     };
-    let bytes = super::budget::background_bytes(kept, view, image, sample_bytes, compressed);
+    let bytes = budget::background_bytes(kept, view, image, sample_bytes, compressed);
     let need = MemoryNeed::new(
         bytes,
         format!(
@@ -377,7 +356,7 @@ async fn computed_background_need(
 async fn store_backgrounds(
     state: &AppState,
     sequence_id: SequenceId,
-    backgrounds: Vec<(i64, super::images::UploadedFile, i64)>,
+    backgrounds: Vec<(i64, crate::service::ops::images::UploadedFile, i64)>,
 ) -> Result<(), JobError> {
     let mut files = Vec::with_capacity(backgrounds.len());
     let mut rows = Vec::with_capacity(backgrounds.len());
@@ -415,7 +394,7 @@ async fn store_backgrounds(
 /// An image store error as a job error: a full disk waits for space,
 /// anything else is tried again.
 fn io_error(error: std::io::Error) -> JobError {
-    if super::images::is_storage_full(&error) {
+    if crate::service::infra::errors::is_storage_full(&error) {
         JobError::StorageFull(format!("the disk is full; waiting for space: {error}"))
     } else {
         JobError::Retry(format!("the image store: {error}"))
