@@ -213,7 +213,7 @@ fn linearise(
 }
 
 /// Sum of squared residuals (px²), or `None` where a point does not image.
-fn cost(parameters: &CameraParameters, equations: &[Equation]) -> Option<f64> {
+pub(crate) fn cost(parameters: &CameraParameters, equations: &[Equation]) -> Option<f64> {
     let camera = Camera::new(parameters.clone()).ok()?;
     equations.iter().try_fold(0.0, |sum, e| {
         let pixel = camera.project(&e.point).ok()?;

@@ -16,7 +16,7 @@
 
 use std::collections::HashSet;
 
-use nalgebra::{Point3, Vector2};
+use nalgebra::{Point3, Vector2, Vector3};
 
 use super::adjustment::{self, from_vector, to_vector, Equation, Statistics};
 use super::prepare::Prepared;
@@ -38,12 +38,15 @@ pub(super) fn resect_camera(
     let equations = observation_equations(k, &setup.name, observed, prepared)?;
     check_point_count(k, setup, &equations, prepared.fixed)?;
     let coplanar = in_one_plane(k, setup, &equations, prepared.fixed)?;
-    let start = closed_form_start(k, setup, &equations, coplanar, prepared.fixed)?;
+    let unknown = options.unknown.get(k).copied().unwrap_or_default();
+    let priors = priors(setup, unknown) - prepared.fixed;
+    let start = closed_form_start(k, setup, &equations, coplanar, prepared.fixed | priors)?;
     let mut resection = Resection {
         camera: k,
         setup,
         options,
         fixed: prepared.fixed,
+        priors,
         active: equations,
         parameters: start,
         free: prepared.fixed.complement(),
@@ -52,11 +55,91 @@ pub(super) fn resect_camera(
         excluded: Vec::new(),
         iterations: 0,
     };
+    // Before the adjustment: the exterior orientation (and the interior
+    // parameters the setup has no value for) with the setup's values for
+    // the rest, then, at that estimate, which parameters the observations
+    // can determine at all.
+    let first = (ParameterSet::exterior() | (ParameterSet::interior() - priors)) - prepared.fixed;
+    // The start of the exterior orientation: the closed form's and, for a
+    // setup with the orientation (e.g. OpenPTV's .ori), the setup's, often
+    // the better one on a shallow target; the one that fits the
+    // observations better is kept.
+    let oriented = (ParameterSet::exterior() | ParameterSet::interior())
+        .iter()
+        .all(|p| !unknown.contains(p));
+    let equations = resection.equations();
+    let from_setup = if oriented {
+        valid_start(setup.clone())
+            .and_then(|s| adjustment::adjust(&s, first, &equations, options.max_iterations))
+    } else {
+        None
+    };
+    let from_closed_form = adjustment::adjust(
+        &resection.parameters,
+        first,
+        &equations,
+        options.max_iterations,
+    );
+    let cost = |a: &adjustment::Adjusted| {
+        adjustment::cost(&a.parameters, &equations).unwrap_or(f64::INFINITY)
+    };
+    let best = [from_closed_form, from_setup]
+        .into_iter()
+        .flatten()
+        .min_by(|a, b| cost(a).total_cmp(&cost(b)))
+        .ok_or_else(|| resection.no_convergence())?;
+    resection.iterations += best.iterations;
+    resection.parameters = best.parameters;
+    resection.hold_undeterminable()?;
+    let mut before = resection.statistics(resection.free)?;
+    while resection.hold_implausible(&before, robust_sigma0(&before)) {
+        // What is left free, at the same estimate.
+        before = resection.statistics(resection.free)?;
+    }
     // Step 2: the exterior and interior orientation through the strict
     // model, from which all free parameters start.
-    resection.adjust((ParameterSet::exterior() | ParameterSet::interior()) - prepared.fixed)?;
+    resection.adjust(
+        (ParameterSet::exterior() | ParameterSet::interior()) - resection.free.complement(),
+    )?;
     let stats = resection.adjust_all()?;
+    resection.check_geometry(&stats)?;
     Ok(resection.finish(&stats))
+}
+
+/// The parameters whose setup values are a prior the observations can be
+/// judged against (see [`Parameter::plausible_range`]): all but the
+/// exterior orientation and the values the setup leaves out; and not the
+/// principal distance where the setup's is a placeholder, shorter than half
+/// the sensor's half-diagonal (a diagonal field of view over 127°: no PTV
+/// lens, e.g. the `c = 1` of a setup written without an orientation).
+fn priors(setup: &CameraParameters, unknown: ParameterSet) -> ParameterSet {
+    let mut priors = ParameterSet::all() - ParameterSet::exterior() - unknown;
+    let s = &setup.sensor;
+    let r = 0.5 * (f64::from(s.width) * s.pixel_size_x).hypot(f64::from(s.height) * s.pixel_size_y);
+    if !(setup.interior.c.abs() > 0.5 * r) {
+        priors.remove(Parameter::C);
+    }
+    priors
+}
+
+/// sigma0 from the median absolute residual (`1.4826 median |v|`, the
+/// normal distribution's sigma), scaled by `sqrt(2n / r)` as `vᵀv / r` is:
+/// the image noise as the bulk of the points show it, unspoilt by gross
+/// errors not yet excluded, for judging what the observations determine
+/// before they are snooped.
+fn robust_sigma0(stats: &Statistics) -> f64 {
+    let mut v: Vec<f64> = stats
+        .residuals
+        .iter()
+        .flat_map(|r| [r.x.abs(), r.y.abs()])
+        .collect();
+    if v.is_empty() || stats.redundancy == 0 {
+        return stats.sigma0;
+    }
+    v.sort_by(f64::total_cmp);
+    let median = v[v.len() / 2];
+    let scale = (v.len() as f64 / stats.redundancy as f64).sqrt();
+    (1.4826 * median * scale).min(stats.sigma0)
 }
 
 /// Checks one camera's observations and turns the usable ones (control
@@ -215,6 +298,9 @@ pub(super) struct Resection<'a> {
     pub(super) options: &'a CalibrationOptions,
     /// The parameters the user fixed.
     pub(super) fixed: ParameterSet,
+    /// The free parameters whose setup values are a prior: held there when
+    /// the observations cannot determine them within their plausible range.
+    priors: ParameterSet,
     /// The observation equations in use, with their points' ids (gross
     /// errors taken out).
     pub(super) active: Vec<(u64, Equation)>,
@@ -275,7 +361,10 @@ impl Resection<'_> {
             // adjustment, after snooping, must have converged.
             let converged = self.adjust(self.free)?;
             let stats = self.statistics(self.free)?;
-            if self.hold_correlated(&stats) || self.snoop(&stats) {
+            if self.snoop(&stats)
+                || self.hold_implausible(&stats, stats.sigma0)
+                || self.hold_correlated(&stats)
+            {
                 continue;
             }
             return if converged {
@@ -312,6 +401,107 @@ impl Resection<'_> {
         };
         self.hold(p, reason, true);
         true
+    }
+
+    /// Holds, at the setup's value, the parameter first in
+    /// [`Parameter::range_order`] among those with a prior whose standard
+    /// deviation (`sigma0` times the cofactor's root) is more than a third
+    /// of their plausible range: the 3-sigma interval the observations
+    /// leave is wider than the values a real camera plausibly takes, so
+    /// the setup's value is better than the estimate; whether one was held.
+    fn hold_implausible(&mut self, stats: &Statistics, sigma0: f64) -> bool {
+        let Some(q) = &stats.cofactor else {
+            return false;
+        };
+        let worst = self
+            .free
+            .iter()
+            .enumerate()
+            .filter(|(_, p)| self.priors.contains(*p) && p.holdable())
+            .filter_map(|(k, p)| {
+                let sigma = sigma0 * q[(k, k)].max(0.0).sqrt();
+                let range = p.plausible_range(self.setup)?;
+                (3.0 * sigma > range).then_some((p, sigma, range))
+            })
+            .min_by_key(|(p, _, _)| p.range_order());
+        let Some((p, sigma, range)) = worst else {
+            return false;
+        };
+        self.free.remove(p);
+        let mut v = to_vector(&self.parameters);
+        v[p.index()] = to_vector(self.setup)[p.index()];
+        self.parameters = from_vector(&self.parameters, &v);
+        self.held.push((
+            p,
+            format!(
+                "the observations do not determine it: its standard deviation {sigma:.3e} is more \
+                 than a third of its plausible range ±{range:.3e} around the setup's value \
+                 (held there, in the order distortion, affine terms and principal point, then c)"
+            ),
+        ));
+        true
+    }
+
+    /// A result whose geometry the observations do not fix is an error:
+    /// a projective centre whose standard deviation is over a third of 10%
+    /// of its distance to the control points (the rig's scale, which c
+    /// trades with, as undetermined as c's test would hold c), or a principal distance estimated more than its plausible
+    /// range away from the setup's.
+    fn check_geometry(&self, stats: &Statistics) -> Result<(), CalibrationError> {
+        let free_names = || {
+            (self.free - ParameterSet::exterior())
+                .iter()
+                .map(|p| p.name())
+                .collect::<Vec<_>>()
+                .join(", ")
+        };
+        let centroid = self
+            .active
+            .iter()
+            .fold(Vector3::zeros(), |sum, (_, e)| sum + e.point.coords)
+            / self.active.len().max(1) as f64;
+        let distance = (self.parameters.exterior.position - centroid).norm();
+        if let Some(q) = &stats.cofactor {
+            let sigma = self
+                .free
+                .iter()
+                .enumerate()
+                .filter(|(_, p)| ParameterSet::position().contains(*p))
+                .map(|(k, _)| stats.sigma0 * q[(k, k)].max(0.0).sqrt())
+                .fold(0.0, f64::max);
+            // The position's relative uncertainty is the rig's scale's,
+            // the one c trades with (sigma_c / c = sigma_z / distance): over
+            // a third of c's plausible 10% is what holds c.
+            if 3.0 * sigma > 0.1 * distance {
+                return Err(CalibrationError::ImplausibleGeometry {
+                    camera: self.camera,
+                    name: self.setup.name.clone(),
+                    reason: format!(
+                        "its position has a standard deviation of {sigma:.1} mm at {distance:.0} \
+                         mm from the control points (3 sigma over 10%: the rig's scale is not \
+                         determined), with {} free",
+                        free_names()
+                    ),
+                });
+            }
+        }
+        let c = Parameter::C;
+        if self.free.contains(c) && self.priors.contains(c) {
+            let range = c.plausible_range(self.setup).unwrap_or(f64::INFINITY);
+            let (estimate, nominal) = (self.parameters.interior.c, self.setup.interior.c);
+            if (estimate - nominal).abs() > range {
+                return Err(CalibrationError::ImplausibleGeometry {
+                    camera: self.camera,
+                    name: self.setup.name.clone(),
+                    reason: format!(
+                        "its principal distance came out {estimate:.2} mm against the setup's \
+                         {nominal:.2} mm (more than 10% apart), with {} free",
+                        free_names()
+                    ),
+                });
+            }
+        }
+        Ok(())
     }
 
     /// Stops estimating `p`: distortion and affine terms go back to the
