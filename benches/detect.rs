@@ -190,11 +190,204 @@ fn real_frame(c: &mut Criterion) {
     group.finish();
 }
 
+/// The experiment's own detection settings for camera 3 of test_cavity
+/// (`parameters/targ_rec.par` as `ptv experiment import` maps it: grey
+/// threshold 9, `discont` 100, 4..500 pixels, 2..100 px in x and y, sum of
+/// grey at least 150, no significance test).
+fn experiment_settings() -> DetectionParameters {
+    DetectionParameters {
+        threshold: 9,
+        highpass_radius: 25,
+        min_pixels: 4,
+        max_pixels: 500,
+        min_nx: 2,
+        max_nx: 100,
+        min_ny: 2,
+        max_ny: 100,
+        min_sumg: 150,
+        split: true,
+        split_depth: Some(100),
+        centroid: Centroid::Weighted,
+        min_snr: 0,
+    }
+}
+
+/// The per-image table of issue 30: each frame with its parameters, and the
+/// same parameters cut down step by step, so that the steps' shares are the
+/// differences: `high-pass` (a threshold nothing passes: the filter, and
+/// the noise estimate where a rule needs it), `+ segmentation, centroids`
+/// (no splitting: every blob flooded and measured as one target), `+
+/// splitting` (the parameters as given). Frames: the real one of
+/// [`real_frame`] with the experiment's settings and with the defaults, and
+/// rendered 1280x1024 8-bit frames of 2.5 px particles at 0.001 and 0.01
+/// particles per pixel (defaults). One core: run pinned, e.g. `taskset -c
+/// 1 target/release/deps/detect-<hash> --bench stages`.
+fn stages(c: &mut Criterion) {
+    let path = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/tests/data/openptv/test_cavity_recording/img/cam3.10001"
+    );
+    let real = ptv::formats::image::read_image(std::path::Path::new(path), None)
+        .expect("the test_cavity recording's frame");
+    let rendered = |ppp: f64, seed: u64| {
+        let mut rng = simulate::rng(seed);
+        let count = (ppp * f64::from(WIDTH * HEIGHT)) as usize;
+        let positions: Vec<Point2<f64>> = (0..count)
+            .map(|_| {
+                Point2::new(
+                    rng.random_range(0.0..f64::from(WIDTH)),
+                    rng.random_range(0.0..f64::from(HEIGHT)),
+                )
+            })
+            .collect();
+        simulate::render(
+            WIDTH,
+            HEIGHT,
+            &positions,
+            &RenderSpec::eight_bit(2.5),
+            &mut rng,
+        )
+    };
+    let frames = [
+        (
+            "real cam3.10001, experiment",
+            real.clone(),
+            experiment_settings(),
+        ),
+        (
+            "real cam3.10001, defaults",
+            real,
+            DetectionParameters::default(),
+        ),
+        (
+            "0.001 ppp, defaults",
+            rendered(0.001, 5),
+            DetectionParameters::default(),
+        ),
+        (
+            "0.01 ppp, defaults",
+            rendered(0.01, 6),
+            DetectionParameters::default(),
+        ),
+    ];
+    let mut group = c.benchmark_group("detect stages");
+    for (name, image, parameters) in &frames {
+        let highpass = DetectionParameters {
+            threshold: u16::MAX,
+            ..parameters.clone()
+        };
+        let unsplit = DetectionParameters {
+            split: false,
+            ..parameters.clone()
+        };
+        for (stage, parameters) in [
+            ("high-pass", highpass),
+            ("+ segmentation, centroids", unsplit),
+            ("+ splitting", parameters.clone()),
+        ] {
+            group.bench_function(format!("{name}: {stage}"), |b| {
+                b.iter(|| black_box(detect(black_box(image), &parameters)))
+            });
+        }
+    }
+    group.finish();
+}
+
+/// Decoding a real frame (camera 3 of test_cavity, frame 10001: 1280x1024
+/// 8-bit, 171 LZW strips of 6 rows) against the raw-samples floor (the
+/// same samples as a raw file: one copy). `decode_image` is what every
+/// reader calls; `image crate` is `image`'s TIFF decoder, which it used
+/// before for every TIFF and still uses for the rest. The 16-bit TIFF is
+/// the frame times 257, written by the `tiff` crate with LZW in strips of 6
+/// rows; the PNGs are `encode_png`'s. Pinned to one core the strips are
+/// decoded one after another; with more, in parallel.
+fn decoding(c: &mut Criterion) {
+    use ptv::formats::image::{decode_image, decode_raw, encode_png, RawLayout};
+    use ptv::photogrammetry::{BitDepth, GreyPixels};
+    let path = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/tests/data/openptv/test_cavity_recording/img/cam3.10001"
+    );
+    let lzw8 = std::fs::read(path).expect("the test_cavity recording's frame");
+    let image = decode_image(&lzw8, "cam3.10001").expect("decodes");
+    let GreyPixels::Eight(samples) = image.pixels() else {
+        panic!("an 8-bit frame")
+    };
+    let wide: Vec<u16> = samples.iter().map(|&g| u16::from(g) * 257).collect();
+    let sixteen = GreyImage::from_u16(image.width(), image.height(), wide.clone()).unwrap();
+    let lzw16 = {
+        use tiff::encoder::{colortype, Compression, TiffEncoder};
+        let mut bytes = std::io::Cursor::new(Vec::new());
+        let mut encoder = TiffEncoder::new(&mut bytes)
+            .unwrap()
+            .with_compression(Compression::Lzw);
+        let mut tiff = encoder
+            .new_image::<colortype::Gray16>(image.width(), image.height())
+            .unwrap();
+        tiff.rows_per_strip(6).unwrap();
+        tiff.write_data(&wide).unwrap();
+        bytes.into_inner()
+    };
+    let png8 = encode_png(&image, "png").unwrap();
+    let png16 = encode_png(&sixteen, "png").unwrap();
+    let raw8 = samples.clone();
+    let raw16: Vec<u8> = wide.iter().flat_map(|v| v.to_le_bytes()).collect();
+    let layout = |bit_depth| RawLayout {
+        width: image.width(),
+        height: image.height(),
+        bit_depth,
+    };
+    let mut group = c.benchmark_group("decode test_cavity cam3.10001, 1280x1024");
+    group.bench_function("8-bit LZW TIFF (decode_image)", |b| {
+        b.iter(|| black_box(decode_image(black_box(&lzw8), "f")))
+    });
+    group.bench_function("8-bit LZW TIFF (image crate)", |b| {
+        b.iter(|| {
+            black_box(image::load_from_memory_with_format(
+                black_box(&lzw8),
+                image::ImageFormat::Tiff,
+            ))
+        })
+    });
+    group.bench_function("8-bit raw (floor)", |b| {
+        b.iter(|| black_box(decode_raw(black_box(&raw8), &layout(BitDepth::Eight), "f")))
+    });
+    group.bench_function("16-bit LZW TIFF (decode_image)", |b| {
+        b.iter(|| black_box(decode_image(black_box(&lzw16), "f")))
+    });
+    group.bench_function("16-bit LZW TIFF (image crate)", |b| {
+        b.iter(|| {
+            black_box(image::load_from_memory_with_format(
+                black_box(&lzw16),
+                image::ImageFormat::Tiff,
+            ))
+        })
+    });
+    group.bench_function("16-bit raw (floor)", |b| {
+        b.iter(|| {
+            black_box(decode_raw(
+                black_box(&raw16),
+                &layout(BitDepth::Sixteen),
+                "f",
+            ))
+        })
+    });
+    group.bench_function("8-bit PNG (decode_image)", |b| {
+        b.iter(|| black_box(decode_image(black_box(&png8), "f")))
+    });
+    group.bench_function("16-bit PNG (decode_image)", |b| {
+        b.iter(|| black_box(decode_image(black_box(&png16), "f")))
+    });
+    group.finish();
+}
+
 criterion_group!(
     benches,
     single_frame,
     several_cameras,
     background,
-    real_frame
+    real_frame,
+    stages,
+    decoding
 );
 criterion_main!(benches);

@@ -7,12 +7,20 @@
 //! ```sh
 //! cargo bench --bench service_load                # raw 8-bit images
 //! cargo bench --bench service_load -- --png       # PNG images
+//! cargo bench --bench service_load -- --real      # test_cavity's real LZW TIFFs
 //! cargo bench --bench service_load -- --frames 400 --clients 8 --workers 2
 //! cargo bench --bench service_load -- --worker-processes 2 --workers 1
 //! cargo bench --bench service_load -- --database postgres://ptv@127.0.0.1:5432/ptv
 //! AWS_ENDPOINT_URL=http://127.0.0.1:9014 AWS_ALLOW_HTTP=true AWS_ACCESS_KEY_ID=k \
 //!   AWS_SECRET_ACCESS_KEY=s cargo bench --bench service_load -- --object-store s3://ptv/load
 //! ```
+//!
+//! With `--real` the frame sets are the four real ones of
+//! `tests/data/openptv/test_cavity_recording` (4 cameras, 1280x1024 8-bit
+//! LZW TIFFs as the acquisition PC writes them, ~1,000 particles a set),
+//! uploaded in turn, to a sequence the experiment's own files create
+//! (`POST /experiments/openptv`: its calibration, detection and matching
+//! settings); `--particles` does not apply.
 //!
 //! Each client polls its job's state every `--poll-ms` (default 2 ms): 4
 //! clients make some 2,000 reads a second, cheap in SQLite in this process,
@@ -59,6 +67,7 @@ struct Options {
     particles: usize,
     distinct: usize,
     png: bool,
+    real: bool,
     worker_processes: usize,
     database: Option<String>,
     poll_ms: u64,
@@ -72,6 +81,7 @@ fn options() -> Options {
         particles: 2000,
         distinct: 8,
         png: false,
+        real: false,
         worker_processes: 0,
         database: None,
         poll_ms: 2,
@@ -89,6 +99,7 @@ fn options() -> Options {
             "--workers" => options.workers = Some(number("--workers")),
             "--particles" => options.particles = number("--particles"),
             "--png" => options.png = true,
+            "--real" => options.real = true,
             "--worker-processes" => options.worker_processes = number("--worker-processes"),
             "--database" => options.database = args.next(),
             // Read where `ptv serve` reads it (and the worker processes
@@ -116,6 +127,40 @@ fn main() {
 }
 
 /// The percentile `p` (0..100) of sorted values.
+/// The real recording of the test data.
+fn recording() -> std::path::PathBuf {
+    std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/data/openptv/test_cavity_recording")
+}
+
+/// The recording's experiment (its parameter and calibration files) for
+/// `POST /experiments/openptv`.
+fn experiment_form() -> Form {
+    let mut form = Form::new().text("name", "test_cavity");
+    let mut paths: Vec<String> = [
+        "ptv.par",
+        "criteria.par",
+        "targ_rec.par",
+        "sequence.par",
+        "cal_ori.par",
+        "track.par",
+        "detect_plate.par",
+    ]
+    .iter()
+    .map(|name| format!("parameters/{name}"))
+    .collect();
+    for camera in 1..=4 {
+        for ext in ["ori", "addpar"] {
+            paths.push(format!("cal/cam{camera}.tif.{ext}"));
+        }
+    }
+    for path in paths {
+        let bytes = std::fs::read(recording().join(&path)).unwrap();
+        form = form.part("file", Part::bytes(bytes).file_name(path));
+    }
+    form
+}
+
 fn percentile(sorted: &[f64], p: f64) -> f64 {
     let index = ((p / 100.0) * (sorted.len() - 1) as f64).round() as usize;
     sorted[index.min(sorted.len() - 1)]
@@ -128,29 +173,41 @@ async fn run(options: Options) {
         "rendering {} distinct frame sets of 4 x 1280x1024 with {} particles...",
         options.distinct, options.particles
     );
-    let frame_sets: Vec<Vec<Vec<u8>>> = (0..options.distinct)
-        .map(|k| {
-            let mut rng = simulate::rng(9000 + k as u64);
-            let points = simulate::particles(&spec.volume, options.particles, &mut rng);
-            simulate::render_frame(&cameras, &points, &RenderSpec::eight_bit(2.5), &mut rng)
-                .into_iter()
-                .map(|rendered| {
-                    let GreyPixels::Eight(samples) = rendered.image.pixels() else {
-                        unreachable!("8-bit rendering")
-                    };
-                    if options.png {
-                        let mut bytes = Vec::new();
-                        image::codecs::png::PngEncoder::new(&mut bytes)
-                            .write_image(samples, 1280, 1024, ExtendedColorType::L8)
-                            .unwrap();
-                        bytes
-                    } else {
-                        samples.clone()
-                    }
-                })
-                .collect()
-        })
-        .collect();
+    let frame_sets: Vec<Vec<Vec<u8>>> = if options.real {
+        (10001..=10004)
+            .map(|frame| {
+                (1..=4)
+                    .map(|camera| {
+                        std::fs::read(recording().join(format!("img/cam{camera}.{frame}"))).unwrap()
+                    })
+                    .collect()
+            })
+            .collect()
+    } else {
+        (0..options.distinct)
+            .map(|k| {
+                let mut rng = simulate::rng(9000 + k as u64);
+                let points = simulate::particles(&spec.volume, options.particles, &mut rng);
+                simulate::render_frame(&cameras, &points, &RenderSpec::eight_bit(2.5), &mut rng)
+                    .into_iter()
+                    .map(|rendered| {
+                        let GreyPixels::Eight(samples) = rendered.image.pixels() else {
+                            unreachable!("8-bit rendering")
+                        };
+                        if options.png {
+                            let mut bytes = Vec::new();
+                            image::codecs::png::PngEncoder::new(&mut bytes)
+                                .write_image(samples, 1280, 1024, ExtendedColorType::L8)
+                                .unwrap();
+                            bytes
+                        } else {
+                            samples.clone()
+                        }
+                    })
+                    .collect()
+            })
+            .collect()
+    };
 
     let data_dir = tempfile::tempdir().unwrap();
     let (server, worker_processes) = if options.worker_processes == 0 {
@@ -207,25 +264,46 @@ async fn run(options: Options) {
         .await
         .unwrap();
     let v = &spec.volume;
-    let sequence: Value = client
-        .post(api("/sequences"))
-        .json(&json!({
-            "calibration_id": calibration["id"],
-            "name": "load",
-            "matching": {"volume": [v.min.x, v.max.x, v.min.y, v.max.y, v.min.z, v.max.z]},
-            "keep_images": false,
-        }))
-        .send()
-        .await
-        .unwrap()
-        .json()
-        .await
-        .unwrap();
-    let sequence = sequence["id"].as_i64().unwrap();
+    let sequence = if options.real {
+        let imported: Value = client
+            .post(api("/experiments/openptv"))
+            .multipart(experiment_form())
+            .send()
+            .await
+            .unwrap()
+            .json()
+            .await
+            .unwrap();
+        imported["sequence_id"]
+            .as_i64()
+            .unwrap_or_else(|| panic!("the experiment imports: {imported}"))
+    } else {
+        let sequence: Value = client
+            .post(api("/sequences"))
+            .json(&json!({
+                "calibration_id": calibration["id"],
+                "name": "load",
+                "matching": {"volume": [v.min.x, v.max.x, v.min.y, v.max.y, v.min.z, v.max.z]},
+                "keep_images": false,
+            }))
+            .send()
+            .await
+            .unwrap()
+            .json()
+            .await
+            .unwrap();
+        sequence["id"].as_i64().unwrap()
+    };
     eprintln!(
         "{} frame sets ({}), {} clients, {workers} workers",
         options.frames,
-        if options.png { "PNG" } else { "raw 8-bit" },
+        if options.real {
+            "test_cavity's real LZW TIFFs"
+        } else if options.png {
+            "PNG"
+        } else {
+            "raw 8-bit"
+        },
         options.clients
     );
 
@@ -236,7 +314,7 @@ async fn run(options: Options) {
     for _ in 0..options.clients {
         let (frame_sets, next, address) = (frame_sets.clone(), next.clone(), address.clone());
         let total = options.frames;
-        let raw = !options.png;
+        let raw = !options.png && !options.real;
         let poll_ms = options.poll_ms;
         tasks.spawn(async move {
             let client = reqwest::Client::new();

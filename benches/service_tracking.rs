@@ -9,10 +9,18 @@
 //! cargo bench --bench service_tracking
 //! cargo bench --bench service_tracking -- --frames 200 --particles 2000 --clients 4 --workers 2
 //! cargo bench --bench service_tracking -- --no-recovery
+//! cargo bench --bench service_tracking -- --untracked          # the same frames, no tracking
+//! cargo bench --bench service_tracking -- --database postgres://postgres@127.0.0.1:5432/ptv
 //! ```
 //!
 //! The run tracks with the image-space recovery (the service's default),
-//! or without it with `--no-recovery` (`"recovery": false`).
+//! or without it with `--no-recovery` (`"recovery": false`). With
+//! `--untracked` the sequence has no tracking: the time to process the
+//! same frames without it, the yardstick of what tracking adds (issue 30:
+//! a tracked frame should cost at most 1.5 times an untracked one). With
+//! `--database URL` the service keeps its state in that PostgreSQL
+//! database (empty or created by `ptv serve`), else SQLite in the
+//! temporary data directory.
 //!
 //! The service runs in this process on a temporary data directory; the
 //! uploads are open loop (every client sends its frames as fast as the
@@ -37,6 +45,8 @@ struct Options {
     clients: usize,
     workers: Option<usize>,
     recovery: bool,
+    tracked: bool,
+    database: Option<String>,
 }
 
 fn options() -> Options {
@@ -46,6 +56,8 @@ fn options() -> Options {
         clients: 4,
         workers: None,
         recovery: true,
+        tracked: true,
+        database: None,
     };
     let mut args = std::env::args().skip(1);
     while let Some(arg) = args.next() {
@@ -60,6 +72,8 @@ fn options() -> Options {
             "--clients" => options.clients = number("--clients").max(1),
             "--workers" => options.workers = Some(number("--workers")),
             "--no-recovery" => options.recovery = false,
+            "--untracked" => options.tracked = false,
+            "--database" => options.database = args.next(),
             _ => {}
         }
     }
@@ -124,7 +138,8 @@ async fn run(options: Options) {
     forms.shuffle(&mut rng);
 
     let data_dir = tempfile::tempdir().unwrap();
-    let server = Server::start(data_dir.path(), options.workers, None).await;
+    let database = options.database.as_deref();
+    let server = Server::start(data_dir.path(), options.workers, database).await;
     let address = server.address.clone();
     let client = reqwest::Client::new();
     let api = |address: &str, path: &str| format!("{address}/api/v1{path}");
@@ -138,13 +153,17 @@ async fn run(options: Options) {
         .await
         .unwrap();
     let v = &volume;
+    let mut settings = json!({
+        "calibration_id": calibration["id"],
+        "matching": {"volume": [v.min.x, v.max.x, v.min.y, v.max.y, v.min.z, v.max.z]},
+    });
+    if options.tracked {
+        settings["tracking"] =
+            json!({"max_velocity": 1.5 * velocity.norm(), "recovery": options.recovery});
+    }
     let sequence: Value = client
         .post(api(&address, "/sequences"))
-        .json(&json!({
-            "calibration_id": calibration["id"],
-            "matching": {"volume": [v.min.x, v.max.x, v.min.y, v.max.y, v.min.z, v.max.z]},
-            "tracking": {"max_velocity": 1.5 * velocity.norm(), "recovery": options.recovery},
-        }))
+        .json(&settings)
         .send()
         .await
         .unwrap()
@@ -186,6 +205,9 @@ async fn run(options: Options) {
         let body = view(&client, &address, sequence).await;
         if processed.is_none() && body["frames"]["done"] == options.frames as i64 {
             processed = Some(started.elapsed());
+            if !options.tracked {
+                tracked = processed;
+            }
         }
         if body["tracking"]["tracked_through"] == last {
             tracked = Some(started.elapsed());
@@ -195,10 +217,34 @@ async fn run(options: Options) {
     }
     let processed = processed.unwrap_or(tracked.unwrap());
     let tracked = tracked.unwrap();
+    let n = options.frames as f64;
+    if !options.tracked {
+        let workers = server.workers;
+        server.stop().await;
+        println!(
+            "{} frames of {} particles, {} clients, {} workers, untracked, on {}",
+            options.frames,
+            options.particles,
+            options.clients,
+            workers,
+            if database.is_some() {
+                "PostgreSQL"
+            } else {
+                "SQLite"
+            }
+        );
+        println!("uploaded in {:.2} s", uploaded.as_secs_f64());
+        println!(
+            "all processed after {:.2} s ({:.1} frames/s)",
+            processed.as_secs_f64(),
+            n / processed.as_secs_f64()
+        );
+        return;
+    }
     // Stop before finishing: the restarted service rebuilds the tracker.
     server.stop().await;
 
-    let server = Server::start(data_dir.path(), options.workers, None).await;
+    let server = Server::start(data_dir.path(), options.workers, database).await;
     let address = server.address.clone();
     let restarted = Instant::now();
     let response = client
@@ -237,9 +283,8 @@ async fn run(options: Options) {
     let workers = server.workers;
     server.stop().await;
 
-    let n = options.frames as f64;
     println!(
-        "{} frames of {} particles, {} clients, {} workers, {}",
+        "{} frames of {} particles, {} clients, {} workers, {}, on {}",
         options.frames,
         options.particles,
         options.clients,
@@ -248,6 +293,11 @@ async fn run(options: Options) {
             "with the image-space recovery"
         } else {
             "without the image-space recovery"
+        },
+        if database.is_some() {
+            "PostgreSQL"
+        } else {
+            "SQLite"
         }
     );
     println!("uploaded in {:.2} s", uploaded.as_secs_f64());

@@ -42,6 +42,7 @@ mod calibrate;
 mod calibration;
 mod detect;
 mod experiment;
+mod export;
 mod intersect;
 mod match_targets;
 mod plot;
@@ -50,8 +51,10 @@ mod process_sequence;
 mod project;
 mod selfcalibrate;
 mod simulate;
+mod simulate_wand;
 mod track;
 mod upload;
+mod wand;
 
 use std::io::{self, Write};
 use std::path::{Path, PathBuf};
@@ -62,6 +65,7 @@ pub use self::background::{BackgroundArgs, ModeArg};
 pub use self::calibrate::CalibrateArgs;
 pub use self::detect::{DetectArgs, DetectionFlags, RawImageFlags, TargetFormat};
 pub use self::experiment::{ExperimentCommand, ImportExperimentArgs};
+pub use self::export::ExportFormat;
 pub use self::match_targets::{MatchArgs, MatchingFlags};
 pub use self::plot::PlotCommand;
 pub use self::process::ProcessArgs;
@@ -298,6 +302,9 @@ pub enum CliError {
     /// Self-calibration could not run.
     #[error("cannot self-calibrate")]
     SelfCalibrate(#[from] crate::photogrammetry::selfcal::SelfCalibrationError),
+    /// The wand calibration could not be done.
+    #[error("cannot calibrate with the wand")]
+    Wand(#[from] crate::photogrammetry::selfcal::wand::WandError),
     /// The simulator built a camera that the camera model refuses.
     #[error("the simulated rig is invalid")]
     Simulation(#[from] InvalidCamera),

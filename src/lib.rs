@@ -48,9 +48,19 @@
 //! - [`selfcal`](photogrammetry::selfcal): volume self-calibration from
 //!   the particles (Wieneke 2008): wide-band matching, confident particles,
 //!   a robust bundle adjustment through the walls with the gauge fixed from
-//!   the input calibration, narrowing bands; disparity report.
+//!   the input calibration, narrowing bands; disparity report; wand
+//!   calibration on the same adjustment.
+//! - [`track`](photogrammetry::track): tracking in time (Malik et al.
+//!   1993): particles of successive frames linked into trajectories with
+//!   velocities and accelerations, and particles recovered in image space.
+//! - [`health`](photogrammetry::health): calibration health during a run:
+//!   per camera the disparity of well-matched particles, and a drift alarm.
+//! - [`background`](photogrammetry::background): a recording's background
+//!   (median or minimum per pixel over frames).
+//! - [`splitter`](photogrammetry::splitter): cameras that are views of one
+//!   sensor.
 //! - [`simulate`](photogrammetry::simulate): synthetic rigs, particles,
-//!   targets and images, the ground truth of tests and benchmarks.
+//!   flows, targets and images, the ground truth of tests and benchmarks.
 //!
 //! [`formats`]: files people already have, parsed into validated core
 //! values; every error names the file, line or field.
@@ -63,6 +73,8 @@
 //! - [`csv`](formats::csv): the command line's point, observation, target,
 //!   particle and trajectory tables.
 //! - [`image`](formats::image): greyscale PNG, TIFF and raw buffers.
+//! - [`vtk`](formats::vtk) and [`hdf5`](formats::hdf5): particles and
+//!   trajectories for ParaView and HDF5 tools.
 //!
 //! [`plot`]: pictures of results as PNG or SVG, drawn once against one
 //! drawing interface with a raster and an SVG backend: a calibration's
@@ -70,34 +82,38 @@
 //! targets and reprojections, particles and trajectories in three views
 //! (`ptv plot` and the service's `*.png` routes). Outside the core.
 //!
-//! [`cli`]: the `ptv` command line, one subcommand per task (`calibration`
-//! import and export, `calibrate`, `project`, `intersect`, `detect`,
-//! `match`, `process`, `simulate`, `plot`, `serve`). It wires [`formats`] to
+//! [`cli`]: the `ptv` command line, one subcommand per task: `calibration`
+//! (import and export), `calibrate`, `selfcalibrate`, `project`,
+//! `intersect`, `detect`, `match`, `process`, `experiment`,
+//! `process-sequence`, `track`, `simulate`, `plot`, `background`,
+//! `upload`, `serve` and `worker`. It wires [`formats`] to
 //! [`photogrammetry`] and has no numerics of its own.
 //!
-//! [`service`]: the HTTP service (`ptv serve`). The core knows nothing of
-//! it.
+//! [`service`]: the HTTP service (`ptv serve`, `ptv worker`). The core
+//! knows nothing of it. State and the job queue in SQLite (embedded, the
+//! default) or PostgreSQL; images in the data directory or an
+//! S3-compatible object store.
 //!
 //! - [`http`](service::http): the API under `/api/v1`, one router per
-//!   resource; the one error type, problem+json, with statuses by the
-//!   errors' types; the one multipart upload path; the tower layers every
-//!   request passes through (request ids, tracing, compression, timeouts,
-//!   body limits, the panic guard, load shedding, the bearer token).
-//! - [`jobs`](service::jobs): the durable job queue's workers, which run the
-//!   core on a CPU pool: frames to particles (one camera at a time, under a
-//!   time limit), calibrations solved.
-//! - [`store`](service::store): all SQL (SQLite), one file per table group,
-//!   with the typed ids.
-//! - [`images`](service::images): uploaded files, content-addressed.
-//! - [`codec`](service::codec): the blobs targets and particles are stored
-//!   in.
-//! - [`parameters`](service::parameters): a sequence's detection and
-//!   matching parameters, a solve's options.
-//! - [`metrics`](service::metrics): `/metrics`.
-//! - [`connections`](service::connections): HTTP/1.1 with hyper within a
-//!   connection limit, and the lingering close of refused uploads.
+//!   resource; the one error type, problem+json; the one multipart upload
+//!   path; the tower layers every request passes through.
+//! - [`jobs`](service::jobs), [`tracking`](service::tracking),
+//!   [`selfcal`](service::selfcal),
+//!   [`preprocessing`](service::preprocessing): the workers (leased jobs
+//!   on a CPU pool: frames, solves, self-calibration, reprocessing), the
+//!   tracking runs, backgrounds and masks.
+//! - [`store`](service::store): all SQL, one text per query for both
+//!   engines, one file per table group, with the typed ids.
+//! - [`images`](service::images): stored files, content-addressed, on disk
+//!   or in S3.
+//! - [`budget`](service::budget), [`connections`](service::connections),
+//!   [`metrics`](service::metrics), [`events`](service::events): the memory
+//!   budget, HTTP/1.1 within a connection limit, `/metrics`, the event log
+//!   and its streams.
 //! - [`config`](service::config) and [`app`](service::app): the flags, and
 //!   start-up, serving and shutdown.
+//!
+//! `ARCHITECTURE.md` has the layering rule and the invariants.
 
 pub mod cli;
 pub mod formats;

@@ -25,8 +25,14 @@ pub struct CalibrateArgs {
         required_unless_present = "experiment"
     )]
     pub calibration: Option<PathBuf>,
-    /// The control points (OpenPTV calibration block: `id X Y Z` per line, mm).
-    #[arg(long, value_name = "CALBLOCK", required_unless_present = "experiment")]
+    /// The control points (OpenPTV calibration block: `id X Y Z` per line,
+    /// mm); not with --wand.
+    #[arg(
+        long,
+        value_name = "CALBLOCK",
+        required_unless_present_any = ["wand", "experiment"],
+        conflicts_with = "wand"
+    )]
     pub control: Option<PathBuf>,
     /// Calibrate an OpenPTV experiment (a directory with parameters/*.par,
     /// or a pyptv YAML) from its own calibration images as OpenPTV would:
@@ -38,7 +44,7 @@ pub struct CalibrateArgs {
     #[arg(
         long,
         value_name = "DIR",
-        conflicts_with_all = ["calibration", "control", "observations", "image", "reference", "fix"]
+        conflicts_with_all = ["calibration", "control", "observations", "image", "reference", "fix", "wand"]
     )]
     pub experiment: Option<PathBuf>,
     /// Measured image coordinates of control points, `id x y` per line
@@ -85,6 +91,9 @@ pub struct CalibrateArgs {
     /// non-zero = use); once per camera, in camera order, or not at all.
     #[arg(long = "mask", value_name = "FILE", requires = "image")]
     pub masks: Vec<PathBuf>,
+    /// Wand calibration instead (`--wand`).
+    #[command(flatten)]
+    pub wand: super::wand::WandFlags,
 }
 
 fn flag(flag: &'static str, reason: impl Into<String>) -> CliError {
@@ -141,10 +150,13 @@ pub(super) fn run(
     if let Some(dir) = &args.experiment {
         return run_experiment(args, dir, stdout, stderr);
     }
+    if args.wand.wand {
+        return super::wand::run(args, stdout, stderr);
+    }
     let (Some(calibration), Some(control_path)) = (&args.calibration, &args.control) else {
         return Err(flag(
-            "--calibration",
-            "give --calibration and --control, or --experiment",
+            "--control",
+            "give --calibration and --control, or --wand, or --experiment",
         ));
     };
     let formats::calibration::Setup {

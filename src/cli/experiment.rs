@@ -10,8 +10,9 @@
 //!   matching settings;
 //! - `experiment.json`: what the images are: the experiment's directory
 //!   (absolute), per camera the image name pattern (`%d` = frame), the
-//!   first and last frame, the masks, the splitter, and the settings not
-//!   mapped.
+//!   first and last frame, the masks, the splitter, the tracking settings
+//!   of `track.par` (the body of `POST /api/v1/sequences/{id}/tracking`),
+//!   and the settings not mapped.
 //!
 //! `ptv process-sequence` and `ptv upload --experiment` read the OpenPTV
 //! experiment itself (the directory or YAML given here), so that there is
@@ -72,6 +73,10 @@ struct ExperimentFile<'a> {
     splitter: Option<Splitter>,
     calibration: &'static str,
     sequence: &'static str,
+    /// The tracking settings of track.par (the body of `POST
+    /// /api/v1/sequences/{id}/tracking`, and what `ptv process-sequence
+    /// --track` uses), where the experiment has them.
+    tracking: Option<serde_json::Value>,
     unmapped: &'a [UnmappedSetting],
 }
 
@@ -112,6 +117,19 @@ pub(super) fn import(args: &ImportExperimentArgs, stderr: &mut dyn Write) -> Res
         splitter: experiment.splitter,
         calibration: "calibration.json",
         sequence: "sequence.json",
+        tracking: experiment.tracking.as_ref().map(|t| {
+            let p = &t.parameters;
+            serde_json::json!({
+                "max_velocity": p.max_velocity,
+                "max_acceleration": p.max_acceleration,
+                "max_gap": p.max_gap,
+                "min_length": p.min_length,
+                "fit_half_window": p.fit_half_window,
+                "fit_order": p.fit_order,
+                "first_frame": experiment.sequence.first,
+                "recovery": t.recovery,
+            })
+        }),
         unmapped: &experiment.unmapped,
     };
     let json = |value: &dyn erased::Json| value.pretty() + "\n";

@@ -193,7 +193,7 @@ pub(super) fn run(command: &PlotCommand) -> Result<(), CliError> {
             let title = args
                 .particles
                 .file_name()
-                .map_or_else(String::new, |n| n.to_string_lossy().to_uppercase());
+                .map_or_else(String::new, |n| n.to_string_lossy().into_owned());
             (
                 &args.output.output,
                 particles_plot(&title, &points, format)?,
@@ -226,7 +226,7 @@ pub(super) fn run(command: &PlotCommand) -> Result<(), CliError> {
             let title = args
                 .trajectories
                 .file_name()
-                .map_or_else(String::new, |n| n.to_string_lossy().to_uppercase());
+                .map_or_else(String::new, |n| n.to_string_lossy().into_owned());
             (
                 &args.output.output,
                 trajectories_plot(&title, "", &trajectories, format)?,
@@ -289,14 +289,14 @@ fn overlay(args: &OverlayArgs) -> Result<Vec<u8>, CliError> {
         image.as_ref(),
     );
     overlay.title = format!(
-        "CAMERA {} ({}): {}",
+        "Camera {} ({}): {}",
         args.camera,
         camera.name(),
         args.image
             .as_deref()
             .or(Some(args.targets.as_path()))
             .and_then(Path::file_name)
-            .map_or_else(String::new, |n| n.to_string_lossy().to_uppercase())
+            .map_or_else(String::new, |n| n.to_string_lossy().into_owned())
     );
     Ok(overlay_plot(&overlay, format)?)
 }

@@ -73,6 +73,22 @@ pub struct ProcessSequenceArgs {
     /// subtracted before detection.
     #[arg(long, value_enum, default_value_t = BackgroundChoice::None)]
     pub background: BackgroundChoice,
+    /// Then track the processed frames with the experiment's tracking
+    /// settings (track.par, or the YAML's `track:`), writing
+    /// `trajectories.csv` (as `ptv track` writes it) into the output
+    /// directory.
+    #[arg(long)]
+    pub track: bool,
+    /// With --track, also write OpenPTV's linkage files `ptv_is.<frame>`
+    /// into the output directory, as OpenPTV's tracker does.
+    #[arg(long, requires = "track")]
+    pub ptv_is: bool,
+    /// With --track, also export the particles and trajectories for
+    /// ParaView (`vtk`: `particles.<frame>.vtp`, `trajectories.vtp` and
+    /// `particles.pvd`) or as one HDF5 file (`hdf5`: `sequence.h5`), into
+    /// the output directory (docs/exports.md).
+    #[arg(long, value_enum, requires = "track")]
+    pub export: Vec<super::export::ExportFormat>,
 }
 
 /// `a + b`, saturating, pixel by pixel; `None` if the sizes or depths
@@ -249,6 +265,26 @@ struct Summary {
     /// Index k: particles seen by k cameras.
     particles_by_cameras: Vec<usize>,
     median_residual_px: Option<f64>,
+    /// With --track: what tracking found.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    tracking: Option<TrackingSummary>,
+}
+
+/// The tracking part of the summary.
+#[derive(Serialize)]
+struct TrackingSummary {
+    /// The limits used (mm per frame, mm per frame²) and where from.
+    max_velocity: f64,
+    max_acceleration: f64,
+    max_gap: usize,
+    min_length: usize,
+    recovery: bool,
+    trajectories: u64,
+    points: usize,
+    recovered_particles: usize,
+    output: String,
+    ptv_is: bool,
+    exports: Vec<String>,
 }
 
 fn process_frame(
@@ -313,6 +349,16 @@ fn process_frame(
 /// Runs `ptv process-sequence`.
 pub(super) fn run(args: &ProcessSequenceArgs, stdout: &mut dyn Write) -> Result<(), CliError> {
     let experiment = read_experiment(&args.experiment)?;
+    if args.track && experiment.tracking.is_none() {
+        return Err(CliError::Flag {
+            flag: "--track",
+            reason: format!(
+                "the experiment {} has no tracking settings (parameters/track.par or the YAML's \
+                 `track:`); add them, or track the particles with `ptv track --particles`",
+                args.experiment.display()
+            ),
+        });
+    }
     let sequence = FrameRange {
         first: experiment.sequence.first,
         last: experiment.sequence.last,
@@ -412,11 +458,109 @@ pub(super) fn run(args: &ProcessSequenceArgs, stdout: &mut dyn Write) -> Result<
         particles: by_cameras.iter().sum(),
         particles_by_cameras: by_cameras,
         median_residual_px: median,
+        tracking: None,
+    };
+    let summary = Summary {
+        tracking: if args.track {
+            Some(track(args, &experiment, &output, range)?)
+        } else {
+            None
+        },
+        ..summary
     };
     write_stdout(
         stdout,
         &(serde_json::to_string_pretty(&summary).expect("plain data serialises") + "\n"),
     )
+}
+
+/// Tracks the processed frames with the experiment's settings: from the
+/// particle files, or, with `flagNewParticles` (the image-space recovery),
+/// from every camera's target files matched again as the pipeline matched
+/// them (the recovery needs the targets the correspondences left).
+fn track(
+    args: &ProcessSequenceArgs,
+    experiment: &Experiment,
+    output: &Path,
+    range: FrameRange,
+) -> Result<TrackingSummary, CliError> {
+    use crate::formats::frames::{FramePattern, WithoutNumber};
+    use crate::photogrammetry::correspond::Matcher;
+    use crate::photogrammetry::track::{ImageSpaceRecovery, Tracker};
+    let settings = experiment
+        .tracking
+        .as_ref()
+        .expect("checked before processing");
+    let parameters = &settings.parameters;
+    let pattern = |name: &str| {
+        // `%` in the directory's own name is written `%%` for the pattern.
+        let path = output.join(name).display().to_string();
+        let escaped = path[..path.len() - name.len()].replace('%', "%%") + name;
+        FramePattern::parse(&escaped, WithoutNumber::Refuse).map_err(|reason| CliError::Flag {
+            flag: "--output",
+            reason,
+        })
+    };
+    let matcher = Matcher::new(&experiment.cameras, &experiment.matching)?;
+    parameters.check_volume(matcher.volume())?;
+    let (tracker, source) = if settings.recovery {
+        let recovery =
+            ImageSpaceRecovery::new(experiment.cameras.clone(), experiment.matching.tolerance)
+                .map_err(|e| CliError::Flag {
+                    flag: "criteria.eps0",
+                    reason: e.to_string(),
+                })?;
+        let patterns = experiment
+            .cameras
+            .iter()
+            .map(|c| pattern(&format!("{}.%d_targets", c.name())))
+            .collect::<Result<Vec<_>, _>>()?;
+        (
+            Tracker::with_recovery(parameters.clone(), recovery)?,
+            super::track::Source::targets(matcher, patterns),
+        )
+    } else {
+        (
+            Tracker::new(parameters.clone())?,
+            super::track::Source::particles(pattern("particles.%d.csv")?),
+        )
+    };
+    let csv_path = output.join("trajectories.csv");
+    let mut csv = Vec::new();
+    let counts = super::track::track_source(
+        parameters,
+        tracker,
+        &source,
+        range,
+        false,
+        None,
+        args.ptv_is.then_some(output),
+        !args.export.is_empty(),
+        &mut csv,
+    )?;
+    std::fs::write(&csv_path, &csv).map_err(|reason| FormatError::Io {
+        path: csv_path.clone(),
+        reason,
+    })?;
+    let mut exports = Vec::new();
+    if let Some(collector) = &counts.export {
+        for format in &args.export {
+            exports.extend(collector.write(*format, output)?);
+        }
+    }
+    Ok(TrackingSummary {
+        max_velocity: parameters.max_velocity,
+        max_acceleration: parameters.max_acceleration,
+        max_gap: parameters.max_gap,
+        min_length: parameters.min_length,
+        recovery: settings.recovery,
+        trajectories: counts.trajectories,
+        points: counts.points,
+        recovered_particles: counts.recovered,
+        output: csv_path.display().to_string(),
+        ptv_is: args.ptv_is,
+        exports: exports.iter().map(|p| p.display().to_string()).collect(),
+    })
 }
 
 fn frame_error(experiment: &Path, frame: u64, failure: FrameFailure) -> CliError {

@@ -95,8 +95,8 @@ pub struct SimulateArgs {
     #[arg(long, value_name = "N")]
     pub cameras: usize,
     /// Number of particles, drawn uniformly in the volume (at most 200000).
-    #[arg(long, value_name = "COUNT")]
-    pub particles: usize,
+    #[arg(long, value_name = "COUNT", required_unless_present = "wand")]
+    pub particles: Option<usize>,
     /// The directory to write into (created if missing).
     #[arg(long, value_name = "DIR")]
     pub out: PathBuf,
@@ -151,6 +151,24 @@ pub struct SimulateArgs {
     /// Write no rendered images (targets, truth and calibration only).
     #[arg(long)]
     pub no_images: bool,
+    /// Simulate a wand calibration instead: a wand with two marks MM apart
+    /// at --wand-positions positions, one per frame, on a rig with lens
+    /// distortion, and a plate calibration's marks (see `ptv simulate`'s
+    /// module documentation).
+    #[arg(long, value_name = "MM", conflicts_with_all = ["particles", "frames", "flow"])]
+    pub wand: Option<f64>,
+    /// The wand's positions (frames), with --wand.
+    #[arg(long, value_name = "N", default_value_t = 1000, requires = "wand")]
+    pub wand_positions: usize,
+    /// The fraction of wand frames with one mark of one camera displaced by
+    /// 5-20 px (a gross error), with --wand.
+    #[arg(
+        long,
+        value_name = "FRACTION",
+        default_value_t = 0.0,
+        requires = "wand"
+    )]
+    pub wand_gross: f64,
 }
 
 impl SimulateArgs {
@@ -164,8 +182,11 @@ impl SimulateArgs {
             ),
             (
                 "--particles",
-                self.particles <= MAX_PARTICLES,
-                format!("at most {MAX_PARTICLES}, got {}", self.particles),
+                self.particles.unwrap_or(0) <= MAX_PARTICLES,
+                format!(
+                    "at most {MAX_PARTICLES}, got {}",
+                    self.particles.unwrap_or(0)
+                ),
             ),
             (
                 "--noise",
@@ -208,13 +229,16 @@ impl SimulateArgs {
 /// volume on standard error.
 pub(super) fn run(args: &SimulateArgs, stderr: &mut dyn Write) -> Result<(), CliError> {
     args.validate()?;
+    if let Some(length) = args.wand {
+        return super::simulate_wand::run(args, length, stderr);
+    }
     let spec = RigSpec::convergent(args.cameras);
     let cameras = spec.build()?;
     if let (Some(frames), Some(flow)) = (args.frames, args.flow) {
         return run_sequence(args, frames, flow.into(), &spec, &cameras, stderr);
     }
     let mut rng = simulate::rng(args.seed);
-    let points = simulate::particles(&spec.volume, args.particles, &mut rng);
+    let points = simulate::particles(&spec.volume, args.particles.unwrap_or(0), &mut rng);
     let frame = simulate::target_frame(&cameras, &points, args.noise, args.drop, &mut rng);
     let rendered = simulate::render_frame(
         &cameras,
@@ -269,7 +293,8 @@ fn run_sequence(
     stderr: &mut dyn Write,
 ) -> Result<(), CliError> {
     let extent = spec.volume.max - spec.volume.min;
-    let spacing = (extent.x * extent.y * extent.z / args.particles.max(1) as f64).cbrt();
+    let spacing =
+        (extent.x * extent.y * extent.z / args.particles.unwrap_or(0).max(1) as f64).cbrt();
     let speed = match args.displacement {
         Some(speed) => speed,
         None => (0.5 * spacing).min(extent.min() / 4.0),
@@ -280,7 +305,7 @@ fn run_sequence(
     })?;
     let max_speed = flow.speed_bound();
     let mut rng = simulate::rng(args.seed);
-    let mut seeding = Seeding::new(flow, args.particles, &mut rng);
+    let mut seeding = Seeding::new(flow, args.particles.unwrap_or(0), &mut rng);
 
     std::fs::create_dir_all(&args.out).map_err(|reason| FormatError::Io {
         path: args.out.clone(),
@@ -430,7 +455,7 @@ fn format_sequence_truth(states: &[TracerState], truth: &[Vec<usize>]) -> String
 }
 
 /// Writes a grey image as a PNG of its bit depth.
-fn write_png(path: &Path, image: &GreyImage) -> Result<(), FormatError> {
+pub(super) fn write_png(path: &Path, image: &GreyImage) -> Result<(), FormatError> {
     let bytes = formats::image::encode_png(image, &path.display().to_string())?;
     std::fs::write(path, bytes).map_err(|reason| FormatError::Io {
         path: path.to_owned(),

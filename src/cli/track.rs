@@ -89,6 +89,14 @@ pub struct TrackArgs {
     /// more cameras, intersected and accepted within --tolerance).
     #[arg(long)]
     pub no_recovery: bool,
+    /// Also export the particles and trajectories (repeatable): `vtk` for
+    /// ParaView (`particles.<frame>.vtp`, `particles.pvd`,
+    /// `trajectories.vtp`), `hdf5` (`sequence.h5`); into --export-dir.
+    #[arg(long, value_enum, requires = "export_dir")]
+    pub export: Vec<super::export::ExportFormat>,
+    /// The directory of the exports (created if missing).
+    #[arg(long, value_name = "DIR", requires = "export")]
+    pub export_dir: Option<PathBuf>,
     /// Track across frames whose files are missing (as gaps: a trajectory
     /// bridges up to --max-gap of them) instead of refusing the range; the
     /// summary names the files.
@@ -117,7 +125,7 @@ struct FrameInput {
 }
 
 /// Where the particles come from.
-enum Source {
+pub(super) enum Source {
     Particles(FramePattern),
     Targets {
         matcher: Matcher,
@@ -256,7 +264,88 @@ pub(super) fn run(
             ))
         }
     };
-    let range = args.frames;
+    let counts = track_source(
+        &parameters,
+        tracker,
+        &source,
+        args.frames,
+        args.allow_gaps,
+        args.sigma,
+        args.ptv_is.as_deref(),
+        !args.export.is_empty(),
+        stdout,
+    )?;
+    if let (Some(collector), Some(dir)) = (&counts.export, &args.export_dir) {
+        for format in &args.export {
+            collector.write(*format, dir)?;
+        }
+    }
+    write_stderr_line(stderr, &counts.summary(&parameters))
+}
+
+/// What a tracking pass counted.
+pub(super) struct TrackCounts {
+    /// Frames in the range.
+    pub frames: u64,
+    /// Of those, frames without files (tracked as gaps).
+    pub gaps: u64,
+    /// The missing files' description (empty for none).
+    pub missing: String,
+    /// Particles read.
+    pub particles: usize,
+    /// Particles recovered from the images.
+    pub recovered: usize,
+    /// Trajectories written.
+    pub trajectories: u64,
+    /// Points written.
+    pub points: usize,
+    /// What the exports need, where asked.
+    pub export: Option<super::export::Collector>,
+}
+
+impl TrackCounts {
+    /// `ptv track`'s summary line.
+    pub(super) fn summary(&self, parameters: &TrackingParameters) -> String {
+        format!(
+            "{} frames ({} without files, tracked as gaps{}), {} particles and {} recovered from the images; {} trajectories of at least {} points hold {} of them",
+            self.frames - self.gaps,
+            self.gaps,
+            self.missing,
+            self.particles,
+            self.recovered,
+            self.trajectories,
+            parameters.min_length,
+            self.points
+        )
+    }
+}
+
+impl Source {
+    /// The particle files of `pattern` (as `ptv match` writes them).
+    pub(super) fn particles(pattern: FramePattern) -> Source {
+        Source::Particles(pattern)
+    }
+
+    /// Every camera's target files, matched frame by frame by `matcher`.
+    pub(super) fn targets(matcher: Matcher, patterns: Vec<FramePattern>) -> Source {
+        Source::Targets { matcher, patterns }
+    }
+}
+
+/// Tracks the frames of `range` from `source`, writing the CSV to
+/// `stdout` (and `ptv_is` files where given).
+#[allow(clippy::too_many_arguments)]
+pub(super) fn track_source(
+    parameters: &TrackingParameters,
+    mut tracker: Tracker,
+    source: &Source,
+    range: FrameRange,
+    allow_gaps: bool,
+    sigma: Option<f64>,
+    ptv_is: Option<&std::path::Path>,
+    collect: bool,
+    stdout: &mut dyn Write,
+) -> Result<TrackCounts, CliError> {
     for pattern in source.patterns() {
         if !(range.first..=range.last).any(|f| pattern.path(f).is_file()) {
             return Err(flag(
@@ -281,7 +370,7 @@ pub(super) fn run(
             }
         }
     }
-    if !missing.is_empty() && !args.allow_gaps {
+    if !missing.is_empty() && !allow_gaps {
         return Err(flag(
             "--frames",
             format!(
@@ -303,7 +392,7 @@ pub(super) fn run(
     );
     // A frame's particles are needed until its points are handed out.
     let keep = parameters.report_delay() as u64;
-    if let Some(dir) = &args.ptv_is {
+    if let Some(dir) = ptv_is {
         std::fs::create_dir_all(dir).map_err(|e| {
             flag(
                 "--ptv-is",
@@ -312,7 +401,10 @@ pub(super) fn run(
         })?;
     }
     let mut window: VecDeque<Held> = VecDeque::new();
-    let mut writer = Rows::default();
+    let mut writer = Rows {
+        export: collect.then(super::export::Collector::default),
+        ..Rows::default()
+    };
     let mut gaps = 0u64;
     let mut particles = 0usize;
     let mut recovered = 0usize;
@@ -327,7 +419,7 @@ pub(super) fn run(
             .iter()
             .enumerate()
             .map(|(i, row)| {
-                let sigma = match (row.sigma, args.sigma) {
+                let sigma = match (row.sigma, sigma) {
                     (Some(s), _) => s,
                     (None, Some(s)) => Vector3::repeat(s),
                     (None, None) => {
@@ -350,10 +442,12 @@ pub(super) fn run(
             })
             .collect::<Result<Vec<_>, _>>()?;
         particles += rows.len();
-        window.push_back(Held::new(frame, rows));
+        let sigmas = positions.iter().map(|p| p.sigma).collect();
+        window.push_back(Held::new(frame, rows, sigmas));
         while window.front().is_some_and(|h| h.frame + keep < frame) {
             let held = window.pop_front().expect("a frame");
-            held.write_ptv_is(args.ptv_is.as_deref())?;
+            held.write_ptv_is(ptv_is)?;
+            writer.release(held);
         }
         let points = match targets {
             Some(targets) => tracker.push_with_targets(frame as i64, positions, targets)?,
@@ -366,24 +460,24 @@ pub(super) fn run(
     recovered += hold_recovered(last, &mut window)?;
     writer.write(&points, &mut window, stdout)?;
     for held in window {
-        held.write_ptv_is(args.ptv_is.as_deref())?;
+        held.write_ptv_is(ptv_is)?;
+        writer.release(held);
     }
     bar.finish_and_clear();
-    let gaps_named = if missing.is_empty() {
-        String::new()
-    } else {
-        format!(" ({})", describe_missing(&missing))
-    };
-    write_stderr_line(
-        stderr,
-        &format!(
-            "{} frames ({gaps} without files, tracked as gaps{gaps_named}), {particles} particles and {recovered} recovered from the images; {} trajectories of at least {} points hold {} of them",
-            range.last - range.first + 1 - gaps,
-            writer.trajectories,
-            parameters.min_length,
-            writer.points
-        ),
-    )
+    Ok(TrackCounts {
+        frames: range.last - range.first + 1,
+        gaps,
+        missing: if missing.is_empty() {
+            String::new()
+        } else {
+            format!(" ({})", describe_missing(&missing))
+        },
+        particles,
+        recovered,
+        trajectories: writer.trajectories,
+        points: writer.points,
+        export: writer.export,
+    })
 }
 
 /// Adds the particles the tracker recovered from the images to their
@@ -416,6 +510,8 @@ fn hold_recovered(
             });
             held.prev.push(-1);
             held.next.push(-2);
+            held.sigma.push(particle.sigma);
+            held.trajectory.push(-1);
             count += 1;
         }
     }
@@ -470,14 +566,21 @@ struct Held {
     prev: Vec<i64>,
     /// Per particle, its row in the next frame (-2 for none).
     next: Vec<i64>,
+    /// Per particle, the position sigmas tracking took (the files' or
+    /// --sigma).
+    sigma: Vec<Vector3<f64>>,
+    /// Per particle, its trajectory (-1 for none).
+    trajectory: Vec<i64>,
 }
 
 impl Held {
-    fn new(frame: u64, rows: Vec<ParticleRow>) -> Held {
+    fn new(frame: u64, rows: Vec<ParticleRow>, sigma: Vec<Vector3<f64>>) -> Held {
         Held {
             frame,
             prev: vec![-1; rows.len()],
             next: vec![-2; rows.len()],
+            trajectory: vec![-1; rows.len()],
+            sigma,
             rows,
         }
     }
@@ -510,9 +613,30 @@ struct Rows {
     points: usize,
     /// Per trajectory, its last point written (frame, particle).
     last: std::collections::HashMap<u64, (i64, usize)>,
+    /// What the exports need, where asked.
+    export: Option<super::export::Collector>,
 }
 
 impl Rows {
+    /// A frame let go: its particles to the exports.
+    fn release(&mut self, held: Held) {
+        let Some(export) = &mut self.export else {
+            return;
+        };
+        let particles = held
+            .rows
+            .iter()
+            .enumerate()
+            .map(|(i, row)| crate::formats::vtk::ParticleRecord {
+                position: row.position,
+                sigma: held.sigma[i],
+                cameras: row.targets.iter().flatten().count() as u32,
+                trajectory: held.trajectory[i],
+            })
+            .collect();
+        export.frames.push((held.frame as i64, particles));
+    }
+
     fn cameras(&mut self, rows: &[ParticleRow], source: &'static str) -> Result<(), CliError> {
         for row in rows {
             match self.camera_count {
@@ -562,10 +686,15 @@ impl Rows {
                     }
                 }
             }
-            let Some(row) = window
+            if let Some(held) = window.iter_mut().find(|h| h.frame as i64 == p.frame) {
+                if let Some(t) = held.trajectory.get_mut(p.particle) {
+                    *t = p.trajectory as i64;
+                }
+            }
+            let Some((row, sigma)) = window
                 .iter()
                 .find(|h| h.frame as i64 == p.frame)
-                .and_then(|h| h.rows.get(p.particle))
+                .and_then(|h| Some((h.rows.get(p.particle)?, *h.sigma.get(p.particle)?)))
             else {
                 return Err(flag(
                     "--max-gap",
@@ -576,6 +705,20 @@ impl Rows {
                 ));
             };
             let d = &p.derivatives;
+            if let Some(export) = &mut self.export {
+                export.trajectories.entry(p.trajectory).or_default().push(
+                    crate::formats::vtk::TrajectoryPointRecord {
+                        frame: p.frame,
+                        position: p.position,
+                        sigma,
+                        velocity: d.velocity,
+                        velocity_sigma: d.velocity_sigma,
+                        acceleration: d.acceleration,
+                        acceleration_sigma: d.acceleration_sigma,
+                        cameras: row.targets.iter().flatten().count() as u32,
+                    },
+                );
+            }
             let _ = write!(
                 text,
                 "{},{},{:?},{:?},{:?},{:?},{:?},{:?}",

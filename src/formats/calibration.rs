@@ -364,9 +364,46 @@ pub fn from_json_with_splitter(
     text: &str,
     source: &str,
 ) -> Result<(Vec<Camera>, Option<Splitter>), FormatError> {
+    with_splitter(text, source, Ranges::Physical)
+}
+
+/// [`from_json_with_splitter`] for a calibration the service stored
+/// itself: checked as a rig (what the model needs to compute, the
+/// splitter) but not against [`CameraParameters::check_physical`]'s
+/// ranges, which are checked when a calibration comes in (a request, a
+/// file, a solve): a calibration stored before those checks existed, or
+/// before a range was narrowed, still loads, and its sequences keep
+/// working. Stored data is never refused for a rule it was not stored
+/// under.
+pub fn stored_from_json_with_splitter(
+    text: &str,
+    source: &str,
+) -> Result<(Vec<Camera>, Option<Splitter>), FormatError> {
+    with_splitter(text, source, Ranges::Unchecked)
+}
+
+/// Whether a calibration's values are checked against the ranges real
+/// cameras have.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Ranges {
+    /// Input: [`CameraParameters::check_physical`].
+    Physical,
+    /// Stored by the service: only [`Camera::new`]'s checks.
+    Unchecked,
+}
+
+fn with_splitter(
+    text: &str,
+    source: &str,
+    ranges: Ranges,
+) -> Result<(Vec<Camera>, Option<Splitter>), FormatError> {
     let file = parse_file(text, source)?;
     let splitter = file.splitter;
-    let cameras = from_parameters(oriented(camera_parameters(file, source)?, source)?, source)?;
+    let cameras = checked_parameters(
+        oriented(camera_parameters(file, source)?, source)?,
+        source,
+        ranges,
+    )?;
     if let Some(splitter) = splitter {
         if splitter.views() != cameras.len() {
             return Err(FormatError::invalid(
@@ -467,6 +504,14 @@ pub fn from_parameters(
     parameters: Vec<CameraParameters>,
     source: &str,
 ) -> Result<Vec<Camera>, FormatError> {
+    checked_parameters(parameters, source, Ranges::Physical)
+}
+
+fn checked_parameters(
+    parameters: Vec<CameraParameters>,
+    source: &str,
+    ranges: Ranges,
+) -> Result<Vec<Camera>, FormatError> {
     if parameters.len() > MAX_CAMERAS {
         return Err(FormatError::invalid(
             source,
@@ -494,7 +539,10 @@ pub fn from_parameters(
                 Err(_) => String::new(),
             };
             Camera::new(p)
-                .and_then(|camera| camera.parameters().check_physical().map(|()| camera))
+                .and_then(|camera| match ranges {
+                    Ranges::Physical => camera.parameters().check_physical().map(|()| camera),
+                    Ranges::Unchecked => Ok(camera),
+                })
                 .map_err(|e| {
                     FormatError::invalid(
                         source,
@@ -540,6 +588,34 @@ mod tests {
 
     fn error_of(text: &str) -> String {
         from_json(text, "cal.json").unwrap_err().to_string()
+    }
+
+    /// Issue 29: the physical ranges are checked on input only. A
+    /// calibration the service stored before they existed (here a
+    /// principal distance of 20 m, past the 10 m the range allows, which
+    /// the model computes with) must still load from the store, or every
+    /// sequence on it would fail; the same document as input is refused.
+    #[test]
+    fn stored_calibrations_load_without_the_input_ranges() {
+        let old = TWO_CAMERAS.replacen(
+            "\"principal_distance\": 50",
+            "\"principal_distance\": 20000",
+            1,
+        );
+        assert_ne!(old, TWO_CAMERAS);
+        let error = from_json_with_splitter(&old, "the body")
+            .unwrap_err()
+            .to_string();
+        assert!(error.contains("principal_distance"), "{error}");
+        let (cameras, splitter) = stored_from_json_with_splitter(&old, "the stored calibration")
+            .expect("a stored calibration loads");
+        assert_eq!(cameras.len(), 2);
+        assert_eq!(cameras[0].parameters().interior.c, 20000.0);
+        assert!(splitter.is_none());
+        // What the model cannot compute with is refused even when stored.
+        let broken =
+            TWO_CAMERAS.replacen("\"principal_distance\": 50", "\"principal_distance\": 0", 1);
+        assert!(stored_from_json_with_splitter(&broken, "the stored calibration").is_err());
     }
 
     #[test]

@@ -14,6 +14,14 @@
 //!   others); paths are relative to the directory;
 //! - a directory with exactly one `parameters_*.yaml` and no `parameters/`:
 //!   that YAML. With several, the error lists them: give the file's path.
+//! - a directory with both forms: the one that describes the experiment
+//!   ([`choose_form`]). A `sequence.par` naming `--` for a camera is
+//!   pyptv's splitter (its cameras are views of the first camera's image),
+//!   which only the YAML says (`ptv.splitter`): the YAML. Otherwise the form
+//!   whose files (calibration, first frame's images) are all there; where
+//!   both are and they give the same settings, the `.par` folder; where
+//!   they differ, an error naming both files and the first difference.
+//! - the `parameters/` folder itself: the legacy form of its parent.
 //!
 //! Every file is opened through an [`ExperimentFiles`] the caller picks
 //! ([`read_experiment_from`]): the command line's [`LocalFiles`] follow the
@@ -43,6 +51,11 @@
 //! | `sequence.base_name`, `first`, `last` | [`SequenceFrames`] |
 //! | `ptv.splitter` (pyptv) | [`Splitter::quadrants`] |
 //! | `masking.mask_base_name` (pyptv, `%d` = camera 1..N) | `masks`: images pyptv subtracts from every frame (clipped at 0), and so does `ptv process-sequence` |
+//! | `track.par`'s `dvxmin..dvzmax` (mm per frame, the search box per axis) | tracking's `max_velocity`: the radius of the sphere around the box, so every link OpenPTV can make ptv can make ([`map_tracking`]) |
+//! | `track.dacc` (mm per frame²) | `max_acceleration`, the same bound |
+//! | `track.flagNewParticles` | the image-space recovery (OpenPTV adds particles found in the images near a prediction; so does `ptv track` with targets) |
+//! | `track.angle` (gon) | none: ptv ranks links by the change of acceleration (Malik et al. 1993) within `max_acceleration`, and has no angle limit |
+//! | (none) | `max_gap` 1, `min_length` 3, the 5-point quadratic fit: `ptv`'s defaults. OpenPTV links adjacent frames only and keeps every trajectory; `ptv` bridges one missed frame and reports trajectories of 3 points or more |
 //!
 //! **The volume.** OpenPTV bounds depth only: between `X_lay[0]` and
 //! `X_lay[1]` the range `Zmin..Zmax` is interpolated linearly in X, and Y is
@@ -61,7 +74,7 @@
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
-use nalgebra::{Point2, Point3};
+use nalgebra::{Point2, Point3, Vector3};
 use serde::Deserialize;
 
 use super::frames::{FramePattern, WithoutNumber};
@@ -70,6 +83,7 @@ use super::{calibration, openptv, FormatError};
 pub mod calibration_settings;
 pub mod files;
 use crate::photogrammetry::correspond::MatchingParameters;
+use crate::photogrammetry::track::TrackingParameters;
 use crate::photogrammetry::{
     Camera, CameraParameters, Centroid, DetectionParameters, Distortion, Media, Sensor, Splitter,
     Volume, Wall,
@@ -102,8 +116,22 @@ pub struct Experiment {
     /// subtracts them from each frame (clipped at 0), like a background;
     /// they are not "non-zero = use the pixel" masks.
     pub masks: Option<Vec<PathBuf>>,
+    /// The tracking settings of `track.par` (pyptv's `track:`), where the
+    /// experiment has them.
+    pub tracking: Option<ExperimentTracking>,
     /// The settings `ptv` cannot map, and why.
     pub unmapped: Vec<UnmappedSetting>,
+}
+
+/// An experiment's tracking, from `track.par` (see the module's table).
+#[derive(Clone, Debug, PartialEq)]
+pub struct ExperimentTracking {
+    /// The limits: `max_velocity` from the `dv*` box, `max_acceleration`
+    /// from `dacc`; the rest `ptv`'s defaults ([`TrackingParameters::new`]).
+    pub parameters: TrackingParameters,
+    /// `flagNewParticles`: look in the images for the particles the
+    /// correspondences missed ([`crate::photogrammetry::track::ImageSpaceRecovery`]).
+    pub recovery: bool,
 }
 
 /// The frames of an experiment.
@@ -213,6 +241,44 @@ struct Sections {
     sequence: SequenceSection,
     #[serde(default)]
     masking: Option<MaskingSection>,
+    #[serde(default)]
+    track: Option<TrackSection>,
+}
+
+/// OpenPTV's `track.par` (pyptv's `track:`): the search box of the
+/// velocity (mm per frame, per axis), the turning angle (gon), the largest
+/// acceleration (mm per frame²) and whether to add particles found in the
+/// images.
+#[allow(non_snake_case)]
+#[derive(Debug, Deserialize)]
+struct TrackSection {
+    dvxmin: f64,
+    dvxmax: f64,
+    dvymin: f64,
+    dvymax: f64,
+    dvzmin: f64,
+    dvzmax: f64,
+    #[serde(default)]
+    #[allow(dead_code)]
+    angle: Option<f64>,
+    dacc: f64,
+    #[serde(default, deserialize_with = "flag")]
+    flagNewParticles: bool,
+}
+
+/// A flag written `true`/`false` (pyptv's YAML) or `0`/`1` (the `.par`
+/// files' way, also seen in hand-written YAMLs).
+fn flag<'de, D: serde::Deserializer<'de>>(deserializer: D) -> Result<bool, D::Error> {
+    #[derive(Deserialize)]
+    #[serde(untagged)]
+    enum Flag {
+        Bool(bool),
+        Number(i64),
+    }
+    Ok(match Flag::deserialize(deserializer)? {
+        Flag::Bool(b) => b,
+        Flag::Number(n) => n != 0,
+    })
 }
 
 #[derive(Debug, Deserialize)]
@@ -342,9 +408,12 @@ pub fn read_experiment_from(
                 .into(),
         });
     }
-    if files.is_file(&dir.join("parameters").join("ptv.par")) {
-        return read_legacy(files, dir);
+    // `DIR/parameters` given: the legacy form of DIR.
+    if dir.file_name().is_some_and(|n| n == "parameters") && files.is_file(&dir.join("ptv.par")) {
+        let parent = dir.parent().unwrap_or(Path::new("")).to_owned();
+        return read_legacy(files, &parent);
     }
+    let legacy = files.is_file(&dir.join("parameters").join("ptv.par"));
     let yamls: Vec<PathBuf> = files
         .list(dir)
         .into_iter()
@@ -352,6 +421,27 @@ pub fn read_experiment_from(
         .map(|n| dir.join(n))
         .filter(|path| files.is_file(path))
         .collect();
+    if legacy {
+        return match yamls.as_slice() {
+            [] => read_legacy(files, dir),
+            [yaml] => choose_form(files, dir, yaml),
+            several => {
+                if names_splitter_placeholder(files, dir) {
+                    Err(ExperimentError::NotAnExperiment {
+                        dir: dir.to_owned(),
+                        reason: format!(
+                            "parameters/sequence.par names `--` for a camera (pyptv's splitter, \
+                             which only its YAML describes) and there are several YAMLs ({}); \
+                             give the path of the one to use",
+                            file_names(several)
+                        ),
+                    })
+                } else {
+                    read_legacy(files, dir)
+                }
+            }
+        };
+    }
     match yamls.as_slice() {
         [one] => read_yaml(files, one, dir),
         [] => Err(ExperimentError::NotAnExperiment {
@@ -364,13 +454,117 @@ pub fn read_experiment_from(
             dir: dir.to_owned(),
             reason: format!(
                 "has several pyptv YAMLs ({}); give the path of the one to use",
-                several
-                    .iter()
-                    .filter_map(|p| p.file_name().map(|n| n.to_string_lossy().into_owned()))
-                    .collect::<Vec<_>>()
-                    .join(", ")
+                file_names(several)
             ),
         }),
+    }
+}
+
+fn file_names(paths: &[PathBuf]) -> String {
+    paths
+        .iter()
+        .filter_map(|p| p.file_name().map(|n| n.to_string_lossy().into_owned()))
+        .collect::<Vec<_>>()
+        .join(", ")
+}
+
+/// Whether the legacy `sequence.par` names `--` for a camera: pyptv's
+/// splitter placeholder (cameras 2..N are views of camera 1's image).
+fn names_splitter_placeholder(files: &dyn ExperimentFiles, dir: &Path) -> bool {
+    files
+        .read_text(&dir.join("parameters").join("sequence.par"))
+        .is_ok_and(|text| text.lines().any(|line| line.trim() == "--"))
+}
+
+/// Whether every file an experiment reads at run time is there: its first
+/// frame's images (the calibration files were read already).
+fn images_present(files: &dyn ExperimentFiles, experiment: &Experiment) -> bool {
+    let views = if experiment.splitter.is_some() {
+        1
+    } else {
+        experiment.cameras.len()
+    };
+    (0..views).all(|camera| {
+        files.is_file(&experiment.sequence.image_path(
+            &experiment.root,
+            camera,
+            experiment.sequence.first,
+        ))
+    })
+}
+
+/// The first setting two readings of an experiment differ in, if any.
+fn first_difference(a: &Experiment, b: &Experiment) -> Option<&'static str> {
+    let cameras = |e: &Experiment| calibration::to_json_with_splitter(&e.cameras, e.splitter);
+    if cameras(a) != cameras(b) {
+        return Some("the cameras (ptv.par, cal_ori and the .ori files)");
+    }
+    if a.sequence != b.sequence {
+        return Some("the sequence (sequence.base_name, first, last)");
+    }
+    if format!("{:?}", a.detection) != format!("{:?}", b.detection) {
+        return Some("the detection (targ_rec, ptv.hp_flag)");
+    }
+    if format!("{:?}", a.matching) != format!("{:?}", b.matching) {
+        return Some("the correspondences (criteria, ptv.allcam_flag)");
+    }
+    if a.tracking != b.tracking {
+        return Some("the tracking (track)");
+    }
+    if a.masks != b.masks {
+        return Some("the masking");
+    }
+    None
+}
+
+/// A directory with both the `parameters/` folder and one
+/// `parameters_*.yaml`: the form that describes the experiment (see the
+/// module's docs), or an error naming both files.
+fn choose_form(
+    files: &dyn ExperimentFiles,
+    dir: &Path,
+    yaml: &Path,
+) -> Result<Experiment, ExperimentError> {
+    let ptv_par = dir.join("parameters").join("ptv.par");
+    if names_splitter_placeholder(files, dir) {
+        // Only the YAML can say the cameras are views of one image.
+        return read_yaml(files, yaml, dir);
+    }
+    let both = || {
+        format!(
+            "both {} (the .par folder) and {} (pyptv's YAML)",
+            ptv_par.display(),
+            yaml.display()
+        )
+    };
+    let give = || {
+        format!(
+            "give {} for the .par files or {} for the YAML",
+            dir.join("parameters").display(),
+            yaml.display()
+        )
+    };
+    match (read_legacy(files, dir), read_yaml(files, yaml, dir)) {
+        (Ok(legacy), Ok(from_yaml)) => {
+            match (
+                images_present(files, &legacy),
+                images_present(files, &from_yaml),
+            ) {
+                (true, false) => return Ok(legacy),
+                (false, true) => return Ok(from_yaml),
+                _ => {}
+            }
+            match first_difference(&legacy, &from_yaml) {
+                None => Ok(legacy),
+                Some(what) => Err(ExperimentError::NotAnExperiment {
+                    dir: dir.to_owned(),
+                    reason: format!("has {} and they differ in {what}; {}", both(), give()),
+                }),
+            }
+        }
+        (Ok(legacy), Err(_)) => Ok(legacy),
+        (Err(_), Ok(from_yaml)) => Ok(from_yaml),
+        (Err(legacy), Err(_)) => Err(legacy),
     }
 }
 
@@ -787,6 +981,17 @@ fn unmapped_reason(section: &str, key: &str) -> Option<&'static str> {
         ),
         "sequence" => matches!(key, "base_name" | "first" | "last"),
         "masking" => matches!(key, "mask_flag" | "mask_base_name"),
+        "track" => matches!(
+            key,
+            "dvxmin"
+                | "dvxmax"
+                | "dvymin"
+                | "dvymax"
+                | "dvzmin"
+                | "dvzmax"
+                | "dacc"
+                | "flagNewParticles"
+        ),
         _ => false,
     };
     if used {
@@ -818,7 +1023,15 @@ fn unmapped_reason(section: &str, key: &str) -> Option<&'static str> {
         ("targ_rec", "cr_sz") => {
             "the size of the cross OpenPTV draws on targets in its GUI; nothing to detect"
         }
-        ("track", _) => "tracking (linking particles over frames) is not part of ptv yet",
+        ("track", "angle") => {
+            "OpenPTV's largest turning angle of a link (gon); ptv has no angle limit: it ranks a \
+             trajectory's candidates by the change of acceleration over four positions (Malik et \
+             al. 1993) within max_acceleration (dacc), which already refuses sharp turns at speed"
+        }
+        ("track", "") => {
+            "the tracking settings (dv*, dacc, flagNewParticles are read; see the others' reasons)"
+        }
+        ("track", _) => "ptv's tracking has no such setting",
         (
             "cal_ori"
             | "detect_plate"
@@ -1048,7 +1261,19 @@ fn read_legacy(files: &dyn ExperimentFiles, dir: &Path) -> Result<Experiment, Ex
     let mut f = ParFile::open(files, dir, "sequence.par", "sequence", &mut places)?;
     let mut base_name = Vec::new();
     for i in 0..n {
-        base_name.push(f.text(&format!("base_name[{i}]"))?);
+        let name = f.text(&format!("base_name[{i}]"))?;
+        if name == "--" {
+            return Err(ExperimentError::Invalid {
+                file: f.path.clone(),
+                location: format!("base_name[{i}]"),
+                reason: "names `--` for this camera: pyptv's splitter, whose cameras are views \
+                         of the first camera's image, which the .par files cannot say; give \
+                         pyptv's YAML of the experiment (parameters_*.yaml, with ptv.splitter: \
+                         true)"
+                    .into(),
+            });
+        }
+        base_name.push(name);
     }
     let sequence = SequenceSection {
         base_name,
@@ -1056,29 +1281,40 @@ fn read_legacy(files: &dyn ExperimentFiles, dir: &Path) -> Result<Experiment, Ex
         last: f.unsigned("last")?,
     };
 
-    // Tracking is read only to report it.
-    if files.is_file(&par("track.par")) {
+    // track.par: nine values, liboptv's `read_track_par` (pyptv's later
+    // lines, one per camera, are not read by liboptv either).
+    let track = if files.is_file(&par("track.par")) {
         let mut f = ParFile::open(files, dir, "track.par", "track", &mut places)?;
-        for key in [
-            "dvxmin",
-            "dvxmax",
-            "dvymin",
-            "dvymax",
-            "dvzmin",
-            "dvzmax",
-            "angle",
-            "dacc",
-            "flagNewParticles",
-        ] {
-            let value = f.number(key)?;
-            unmapped.push(UnmappedSetting {
-                file: f.path.display().to_string(),
-                key: format!("track.{key}"),
-                value: value.to_string(),
-                reason: unmapped_reason("track", key).unwrap_or_default().into(),
-            });
+        let mut dv = [0.0; 6];
+        for (value, key) in dv
+            .iter_mut()
+            .zip(["dvxmin", "dvxmax", "dvymin", "dvymax", "dvzmin", "dvzmax"])
+        {
+            *value = f.number(key)?;
         }
-    }
+        let angle = f.number("angle")?;
+        let dacc = f.number("dacc")?;
+        let new_particles = f.integer("flagNewParticles")?;
+        unmapped.push(UnmappedSetting {
+            file: f.path.display().to_string(),
+            key: "track.angle".into(),
+            value: angle.to_string(),
+            reason: unmapped_reason("track", "angle").unwrap_or_default().into(),
+        });
+        Some(TrackSection {
+            dvxmin: dv[0],
+            dvxmax: dv[1],
+            dvymin: dv[2],
+            dvymax: dv[3],
+            dvzmin: dv[4],
+            dvzmax: dv[5],
+            angle: Some(angle),
+            dacc,
+            flagNewParticles: new_particles != 0,
+        })
+    } else {
+        None
+    };
     // The other files are calibration's or the GUI's.
     let others: Vec<String> = files
         .list(&dir.join("parameters"))
@@ -1114,6 +1350,7 @@ fn read_legacy(files: &dyn ExperimentFiles, dir: &Path) -> Result<Experiment, Ex
         targ_rec,
         sequence,
         masking: None,
+        track,
     };
     let locator = Locator {
         places,
@@ -1414,12 +1651,15 @@ fn map(
         _ => None,
     };
 
+    let tracking = s.track.as_ref().map(|t| map_tracking(t, at)).transpose()?;
+
     Ok(Experiment {
         root: root.to_owned(),
         cameras,
         splitter,
         detection,
         matching,
+        tracking,
         sequence: SequenceFrames {
             base_names,
             first: s.sequence.first,
@@ -1427,6 +1667,54 @@ fn map(
         },
         masks,
         unmapped,
+    })
+}
+
+/// `track.par` in `ptv`'s terms (the module's table).
+///
+/// OpenPTV searches a trajectory's next particle in the box `dvmin..dvmax`
+/// (per axis, mm per frame) around its position (a new trajectory) or its
+/// prediction; `ptv` searches a new trajectory's first link within the
+/// sphere of `max_velocity` around it. `max_velocity` is the radius of the
+/// sphere around the box, `|(max(|dvxmin|, |dvxmax|), ...)|`: every link
+/// OpenPTV can make, ptv can too (the box's corners are the farthest).
+/// `dacc` is the same bound in both: the largest change of velocity
+/// between two frames (mm per frame²), `ptv`'s `max_acceleration`.
+fn map_tracking(t: &TrackSection, at: &Locator) -> Result<ExperimentTracking, ExperimentError> {
+    let axes = [
+        ("dvxmin", t.dvxmin, "dvxmax", t.dvxmax),
+        ("dvymin", t.dvymin, "dvymax", t.dvymax),
+        ("dvzmin", t.dvzmin, "dvzmax", t.dvzmax),
+    ];
+    let mut reach = Vector3::zeros();
+    for (i, (min_key, min, max_key, max)) in axes.into_iter().enumerate() {
+        if min > max {
+            return Err(at.invalid(
+                &format!("track.{min_key}"),
+                format!(
+                    "{min_key} ({min}) is above {max_key} ({max}); give the smallest and largest \
+                     displacement per frame along the axis (mm), e.g. -{0} and {0}",
+                    max.abs().max(min.abs())
+                ),
+            ));
+        }
+        reach[i] = min.abs().max(max.abs());
+    }
+    let parameters = TrackingParameters {
+        max_acceleration: t.dacc,
+        ..TrackingParameters::new(reach.norm())
+    };
+    parameters.validate().map_err(|e| {
+        let key = if e.to_string().contains("max_acceleration") {
+            "track.dacc"
+        } else {
+            "track.dvxmax"
+        };
+        at.invalid(key, e.to_string())
+    })?;
+    Ok(ExperimentTracking {
+        parameters,
+        recovery: t.flagNewParticles,
     })
 }
 

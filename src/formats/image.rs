@@ -402,8 +402,130 @@ fn sniff(bytes: &[u8]) -> Option<ImageFormat> {
     }
 }
 
+/// A classic greyscale TIFF of strips, uncompressed or LZW without a
+/// predictor (what cameras and OpenPTV's recordings write; test_cavity's
+/// frames are 171 LZW strips of 6 rows), decoded straight into the image's
+/// samples: each strip's bytes are sliced from the file and inflated by
+/// `weezl` (the LZW decoder the `tiff` crate itself uses, with the same
+/// configuration) into its rows of the final buffer, in parallel where
+/// rayon has idle threads. The `tiff` crate reads the tags. The general
+/// path (`image`'s decoder) reads each strip through a buffered reader
+/// into its own row buffer; this one makes no copy beside the output.
+/// `None` for anything else and for any strip that does not decode to
+/// exactly its rows, which the general path then decodes or reports: the
+/// samples are the same (the unit test
+/// `tiff_strips_decode_as_the_general_decoder_does`).
+fn decode_tiff_strips(bytes: &[u8]) -> Option<GreyImage> {
+    use rayon::prelude::*;
+    use tiff::decoder::{ChunkType, Decoder};
+    use tiff::tags::{ByteOrder, Tag};
+
+    let mut decoder = Decoder::new(Cursor::new(bytes)).ok()?;
+    let (width, height) = decoder.dimensions().ok()?;
+    check_image_size(width, height, "").ok()?;
+    let unsigned = |decoder: &mut Decoder<_>, tag, default: u64| {
+        decoder
+            .find_tag_unsigned::<u64>(tag)
+            .ok()
+            .map(|v| v.unwrap_or(default))
+    };
+    let bits = unsigned(&mut decoder, Tag::BitsPerSample, 1)?;
+    let compression = unsigned(&mut decoder, Tag::Compression, 1)?;
+    let plain = unsigned(&mut decoder, Tag::SamplesPerPixel, 1)? == 1
+        && unsigned(&mut decoder, Tag::PhotometricInterpretation, 2)? == 1
+        && unsigned(&mut decoder, Tag::Predictor, 1)? == 1
+        && unsigned(&mut decoder, Tag::FillOrder, 1)? == 1
+        && unsigned(&mut decoder, Tag::SampleFormat, 1)? == 1
+        && matches!(decoder.get_chunk_type(), ChunkType::Strip)
+        && matches!(bits, 8 | 16)
+        && matches!(compression, 1 | 5);
+    if !plain {
+        return None;
+    }
+    let rows_per_strip = unsigned(&mut decoder, Tag::RowsPerStrip, u64::from(height))?
+        .clamp(1, u64::from(height)) as usize;
+    let offsets = decoder.get_tag_u64_vec(Tag::StripOffsets).ok()?;
+    let counts = decoder.get_tag_u64_vec(Tag::StripByteCounts).ok()?;
+    let (width, height) = (width as usize, height as usize);
+    let strips = height.div_ceil(rows_per_strip);
+    if offsets.len() != strips || counts.len() != strips {
+        return None;
+    }
+    let mut inputs = Vec::with_capacity(strips);
+    for (&offset, &count) in offsets.iter().zip(&counts) {
+        let start = usize::try_from(offset).ok()?;
+        let end = start.checked_add(usize::try_from(count).ok()?)?;
+        inputs.push(bytes.get(start..end)?);
+    }
+    let sample_bytes = (bits / 8) as usize;
+    let strip_bytes = rows_per_strip * width * sample_bytes;
+    // Each strip into its rows of `out`; false if one is not exactly its
+    // rows' bytes.
+    let inflate = |out: &mut [u8]| -> bool {
+        out.par_chunks_mut(strip_bytes)
+            .zip(&inputs)
+            .try_for_each_init(
+                || {
+                    weezl::decode::Configuration::with_tiff_size_switch(weezl::BitOrder::Msb, 8)
+                        .build()
+                },
+                |lzw, (rows, input)| {
+                    if compression == 1 {
+                        let data = input.get(..rows.len()).ok_or(())?;
+                        rows.copy_from_slice(data);
+                        return Ok(());
+                    }
+                    lzw.reset();
+                    let (mut input, mut done) = (*input, 0);
+                    while done < rows.len() {
+                        let result = lzw.decode_bytes(input, &mut rows[done..]);
+                        done += result.consumed_out;
+                        input = &input[result.consumed_in..];
+                        let progress = result.consumed_in + result.consumed_out > 0;
+                        match result.status {
+                            _ if done == rows.len() => {}
+                            Ok(weezl::LzwStatus::Ok) if progress => {}
+                            _ => return Err(()),
+                        }
+                    }
+                    Ok(())
+                },
+            )
+            .is_ok()
+    };
+    let (w, h) = (width as u32, height as u32);
+    if sample_bytes == 1 {
+        let mut samples = vec![0u8; width * height];
+        inflate(&mut samples).then_some(())?;
+        GreyImage::from_u8(w, h, samples).ok()
+    } else {
+        let mut samples = vec![0u16; width * height];
+        inflate(bytemuck::cast_slice_mut(&mut samples)).then_some(())?;
+        let big = decoder.byte_order() == ByteOrder::BigEndian;
+        for sample in &mut samples {
+            *sample = if big {
+                u16::from_be(*sample)
+            } else {
+                u16::from_le(*sample)
+            };
+        }
+        GreyImage::from_u16(w, h, samples).ok()
+    }
+}
+
 /// Decodes a greyscale PNG or TIFF file's bytes.
 pub fn decode_image(bytes: &[u8], source: &str) -> Result<GreyImage, FormatError> {
+    if sniff(bytes).is_some_and(|format| format == ImageFormat::Tiff) && !is_bigtiff(bytes) {
+        if let Some(image) = decode_tiff_strips(bytes) {
+            return Ok(image);
+        }
+    }
+    decode_image_general(bytes, source)
+}
+
+/// [`decode_image`] by the general decoders: the `png` crate's, `image`'s
+/// TIFF decoder.
+fn decode_image_general(bytes: &[u8], source: &str) -> Result<GreyImage, FormatError> {
     let (header, name, opened) = open_image(Cursor::new(bytes), source)?;
     let ImageHeader {
         width,
@@ -613,6 +735,84 @@ mod tests {
         );
         let empty = RawLayout { width: 0, ..layout };
         assert!(decode_raw(&[], &empty, "x").is_err());
+    }
+
+    /// A TIFF of `samples` (`width` wide, 8- or 16-bit) with `rows` rows a
+    /// strip, by the `tiff` crate's encoder.
+    fn tiff_of(
+        samples: &GreyPixels,
+        width: u32,
+        rows: u32,
+        compression: tiff::encoder::Compression,
+        predictor: tiff::tags::Predictor,
+    ) -> Vec<u8> {
+        use tiff::encoder::{colortype, TiffEncoder};
+        let mut bytes = Cursor::new(Vec::new());
+        let mut encoder = TiffEncoder::new(&mut bytes)
+            .unwrap()
+            .with_compression(compression)
+            .with_predictor(predictor);
+        match samples {
+            GreyPixels::Eight(p) => {
+                let height = p.len() as u32 / width;
+                let mut image = encoder
+                    .new_image::<colortype::Gray8>(width, height)
+                    .unwrap();
+                image.rows_per_strip(rows).unwrap();
+                image.write_data(p).unwrap();
+            }
+            GreyPixels::Sixteen(p) => {
+                let height = p.len() as u32 / width;
+                let mut image = encoder
+                    .new_image::<colortype::Gray16>(width, height)
+                    .unwrap();
+                image.rows_per_strip(rows).unwrap();
+                image.write_data(p).unwrap();
+            }
+        }
+        bytes.into_inner()
+    }
+
+    #[test]
+    fn tiff_strips_decode_as_the_general_decoder_does() {
+        use rand::{Rng, SeedableRng};
+        use tiff::encoder::Compression;
+        use tiff::tags::Predictor;
+        let mut rng = rand::rngs::StdRng::seed_from_u64(30);
+        let (width, height) = (37u32, 29u32);
+        let n = (width * height) as usize;
+        // Noise with runs, so that LZW codes grow past 9 bits.
+        let eight: Vec<u8> = (0..n)
+            .map(|i| if i % 7 < 3 { 9 } else { rng.random() })
+            .collect();
+        let sixteen: Vec<u16> = (0..n).map(|_| rng.random()).collect();
+        for samples in [GreyPixels::Eight(eight), GreyPixels::Sixteen(sixteen)] {
+            for rows in [1, 6, height, 1000] {
+                for (compression, name) in [
+                    (Compression::Lzw, "LZW"),
+                    (Compression::Uncompressed, "uncompressed"),
+                ] {
+                    let bytes = tiff_of(&samples, width, rows, compression, Predictor::None);
+                    let general = decode_image_general(&bytes, "t.tif").unwrap();
+                    assert_eq!(general.pixels(), &samples);
+                    let strips = decode_tiff_strips(&bytes);
+                    assert_eq!(strips.as_ref(), Some(&general), "{rows} rows, {name}");
+                }
+                // With a predictor the general decoder decodes it.
+                let bytes = tiff_of(&samples, width, 6, Compression::Lzw, Predictor::Horizontal);
+                assert!(decode_tiff_strips(&bytes).is_none());
+                assert_eq!(decode_image(&bytes, "t.tif").unwrap().pixels(), &samples);
+            }
+            // A strip cut short: not decoded here, and the general decoder's
+            // error stands.
+            let bytes = tiff_of(&samples, width, 6, Compression::Lzw, Predictor::None);
+            let cut = &bytes[..bytes.len() / 2];
+            assert!(decode_tiff_strips(cut).is_none());
+            assert_eq!(
+                decode_image(cut, "t.tif").unwrap_err().to_string(),
+                decode_image_general(cut, "t.tif").unwrap_err().to_string()
+            );
+        }
     }
 
     /// A `width` x `height` image of `color` encoded as `format`.

@@ -8,6 +8,8 @@
 //!   folder or pyptv's YAML) in `ptv`'s settings.
 //! - [`csv`]: point, observation and target tables of the command line.
 //! - [`image`]: camera images (greyscale PNG, TIFF, raw buffers).
+//! - [`vtk`] and [`hdf5`]: exports of particles and trajectories for
+//!   ParaView and for HDF5 readers (h5py, pandas).
 //!
 //! [`parse_targets`] reads targets in either format;
 //! [`targets::TargetsReader`] reads them as their bytes arrive, with a
@@ -22,11 +24,13 @@ pub mod control;
 pub mod csv;
 pub mod experiment;
 pub mod frames;
+pub mod hdf5;
 pub mod image;
 pub mod openptv;
 pub mod targets;
 #[cfg(test)]
 mod untrusted;
+pub mod vtk;
 
 use std::path::{Path, PathBuf};
 

@@ -27,6 +27,7 @@ pub mod cancel;
 pub mod centroid;
 pub mod correspond;
 pub mod detect;
+pub mod health;
 pub mod image;
 pub mod intersect;
 pub mod media;

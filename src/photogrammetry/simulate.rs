@@ -42,6 +42,7 @@ use super::volume::Volume;
 
 mod background;
 pub mod flow;
+pub mod wand;
 pub use background::{BackgroundField, StructuredBackground};
 pub use flow::{Flow, FlowError, FlowKind, Seeding, Tracer, TracerState};
 

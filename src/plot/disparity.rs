@@ -131,6 +131,8 @@ const MARGIN: u32 = 20;
 const PANEL_GAP: u32 = 8;
 const LAYER_GAP: u32 = 24;
 const ROW_GAP: u32 = 28;
+/// The narrowest picture: its explanation's lines fit.
+const MIN_WIDTH: u64 = 760;
 
 /// Why there is no picture.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -208,9 +210,10 @@ impl DisparityLayout {
                 .map(|name| text_width(name, 2))
                 .max()
                 .unwrap_or(0)
-                .max(text_width("CAMERA", 1))
+                .max(text_width("Camera", 1))
             + 12;
-        let top = MARGIN + 2 * text_height(2) + 3 * text_height(1) + 60;
+        // Title, three lines, the scale row, the z layers' headers.
+        let top = MARGIN + text_height(2) + 5 * text_height(1) + 60;
         let panel_w = grid[0] as u64 * cell_px as u64;
         let panel_h = grid[1] as u64 * cell_px as u64;
         let width = left as u64
@@ -218,7 +221,13 @@ impl DisparityLayout {
             + MARGIN as u64;
         let row_height = panel_h + text_height(1) as u64 + 6 + ROW_GAP as u64;
         let height = top as u64 + names.len() as u64 * row_height + MARGIN as u64;
-        let width = width.max(720);
+        // The line of the cameras' RMS before and after fits (the digits
+        // are all one width in the font).
+        let stats: u64 = names
+            .iter()
+            .map(|n| text_width(&format!("{n}: RMS 00.00 → 00.00 px   "), 1) as u64)
+            .sum();
+        let width = width.max(MIN_WIDTH).max(2 * MARGIN as u64 + stats);
         if width > MAX_SIDE as u64 || height > MAX_SIDE as u64 {
             return Err(DisparityPictureError::TooLarge {
                 grid,
@@ -304,7 +313,7 @@ pub fn draw_disparity(canvas: &mut dyn Draw, report: &DisparityMaps, layout: &Di
     canvas.text(
         m,
         y,
-        "DISPARITY MAPS, BEFORE AND AFTER SELF-CALIBRATION",
+        "Disparity maps, before and after self-calibration",
         2,
         BLACK,
     );
@@ -314,7 +323,7 @@ pub fn draw_disparity(canvas: &mut dyn Draw, report: &DisparityMaps, layout: &Di
         .iter()
         .map(|c| {
             format!(
-                "{}: RMS {:.2} -> {:.2} PX",
+                "{}: RMS {:.2} → {:.2} px",
                 c.name, c.before.rms_px, c.after.rms_px
             )
         })
@@ -324,7 +333,15 @@ pub fn draw_disparity(canvas: &mut dyn Draw, report: &DisparityMaps, layout: &Di
     canvas.text(
         m,
         y,
-        "PER SUB-VOLUME: ARROW = MEAN DISPARITY VECTOR IN THE IMAGE (X RIGHT, Y DOWN), COLOUR = ITS LENGTH. CELLS: VOLUME X RIGHT, Y UP",
+        "Per sub-volume: arrow = the mean disparity vector in the image (x right, y down),",
+        1,
+        BLACK,
+    );
+    y += text_height(1) as i64 + 6;
+    canvas.text(
+        m,
+        y,
+        "colour = its length. Cells: the volume's x right, y up.",
         1,
         BLACK,
     );
@@ -332,29 +349,30 @@ pub fn draw_disparity(canvas: &mut dyn Draw, report: &DisparityMaps, layout: &Di
     // Scale bar.
     let bar = nice(layout.max_disparity_px);
     let bar_px = bar * layout.arrow_scale;
-    canvas.text(m, y, "SCALE:", 1, BLACK);
-    let x0 = m as f64 + text_width("SCALE: ", 1) as f64;
-    let yc = y as f64 + 3.0;
+    canvas.text(m, y, "Scale:", 1, BLACK);
+    let x0 = m as f64 + text_width("Scale: ", 1) as f64;
+    let yc = y as f64 + (text_height(1) / 2) as f64;
     canvas.arrow((x0, yc), (x0 + bar_px, yc), 2.0, 6.0, ARROW);
-    canvas.text(
-        (x0 + bar_px + 8.0) as i64,
-        y,
-        &format!("= {} PX", format_value(bar)),
-        1,
-        BLACK,
-    );
+    let label = format!("= {} px", format_value(bar));
+    canvas.text((x0 + bar_px + 8.0) as i64, y, &label, 1, BLACK);
     // Colour bar.
-    let cx = (x0 + bar_px + 8.0) as i64 + text_width("= 0000000 PX", 1) as i64 + 30;
-    canvas.text(cx, y, "LENGTH: 0", 1, BLACK);
-    let gx = cx + text_width("LENGTH: 0 ", 1) as i64;
+    let cx = (x0 + bar_px + 8.0) as i64 + text_width(&label, 1) as i64 + 30;
+    canvas.text(cx, y, "Length: 0", 1, BLACK);
+    let gx = cx + text_width("Length: 0 ", 1) as i64;
     let gw = 160;
     for i in 0..gw {
-        canvas.fill_rect(gx + i, y - 2, 1, 11, heat(i as f64 / (gw - 1) as f64));
+        canvas.fill_rect(
+            gx + i,
+            y + 3,
+            1,
+            text_height(1) as i64 - 6,
+            heat(i as f64 / (gw - 1) as f64),
+        );
     }
     canvas.text(
         gx + gw + 6,
         y,
-        &format!("{} PX", format_value(layout.max_disparity_px)),
+        &format!("{} px", format_value(layout.max_disparity_px)),
         1,
         BLACK,
     );
@@ -368,7 +386,7 @@ pub fn draw_disparity(canvas: &mut dyn Draw, report: &DisparityMaps, layout: &Di
         canvas.text(
             px as i64,
             header_y,
-            &format!("Z {:.0}..{:.0} MM", z0, z1),
+            &format!("z {:.0} to {:.0} mm", z0, z1),
             1,
             BLACK,
         );
@@ -390,7 +408,7 @@ pub fn draw_disparity(canvas: &mut dyn Draw, report: &DisparityMaps, layout: &Di
                 canvas.text(
                     px as i64,
                     py as i64 - text_height(1) as i64 - 4,
-                    if after { "AFTER" } else { "BEFORE" },
+                    if after { "After" } else { "Before" },
                     1,
                     BLACK,
                 );
@@ -484,6 +502,54 @@ mod tests {
             let layout = DisparityLayout::new([4, 4, 4], &["cam1", "cam2"], max).unwrap();
             assert_eq!(layout.max_disparity_px, 1.0);
             assert!(layout.arrow_scale.is_finite());
+        }
+    }
+
+    #[test]
+    fn every_label_fits_and_none_overlap() {
+        // Four cameras on grids from coarse to the finest the picture
+        // allows, with a long camera name and large disparities.
+        for grid in [[1, 1, 1], [4, 4, 2], [8, 6, 4]] {
+            let cells = |scale: f64| Map {
+                cells: (0..grid[0] * grid[1] * grid[2])
+                    .map(|i| Cell {
+                        index: [
+                            i % grid[0],
+                            (i / grid[0]) % grid[1],
+                            i / (grid[0] * grid[1]),
+                        ],
+                        mean_dx_px: scale * (i as f64).sin(),
+                        mean_dy_px: scale * (i as f64).cos(),
+                    })
+                    .collect(),
+            };
+            let maps = DisparityMaps {
+                volume: serde_json::from_value(serde_json::json!({
+                    "min": [-50.0, -50.0, -120.5], "max": [50.0, 50.0, 20.0]
+                }))
+                .unwrap(),
+                grid,
+                cameras: ["cam1", "a long camera name 2", "cam3", "cam4"]
+                    .into_iter()
+                    .map(|name| CameraMaps {
+                        name: name.to_owned(),
+                        before: Rms { rms_px: 12.345 },
+                        after: Rms { rms_px: 0.067 },
+                        map_before: cells(12.3),
+                        map_after: cells(0.07),
+                    })
+                    .collect(),
+            };
+            let layout = DisparityLayout::of(&maps).unwrap();
+            let boxes = super::super::TextBoxes::of((layout.width, layout.height), |d| {
+                draw_disparity(d, &maps, &layout)
+            });
+            boxes.assert_fit();
+            assert!(
+                boxes.has("After") && boxes.has("Before"),
+                "{:?}",
+                boxes.texts
+            );
         }
     }
 }

@@ -1,344 +1,141 @@
-//! A 5x7 bitmap font, drawn for this project: uppercase letters, digits
-//! and punctuation (lowercase is drawn as uppercase). No font file and no
-//! system font: nothing is loaded at build or run time.
+//! The plots' text: DejaVu Sans (`assets/fonts/DejaVuSans.ttf`, the
+//! Bitstream Vera licence with DejaVu's changes in the public domain, in
+//! `assets/fonts/LICENSE-DejaVu.txt`), built into the binary with
+//! `include_bytes!` and rasterised by `ab_glyph` (anti-aliased outlines,
+//! the font's kerning). Nothing is loaded at build or run time: no font
+//! file beside the binary, no system font, no download.
+//!
+//! Sizes: a text's `scale` is a size class, 1 for labels (14 px, about
+//! 10 px capitals, the size of a browser's small print), 2 for titles
+//! (22 px) and so on by 8 px. A line of text is [`line_height`] tall from
+//! its top: the font's ascent above the baseline and its descent below,
+//! so that every glyph's ink (accents and descenders too) lies within
+//! the line's box.
 
-/// Glyph width and height (pixels, before scaling).
-pub const GLYPH: (u32, u32) = (5, 7);
+use std::sync::OnceLock;
 
-/// Each glyph's rows, top first, the leftmost pixel in bit 4.
-const GLYPHS: &[(char, [u8; 7])] = &[
-    (
-        ' ',
-        [
-            0b00000, 0b00000, 0b00000, 0b00000, 0b00000, 0b00000, 0b00000,
-        ],
-    ),
-    (
-        '%',
-        [
-            0b11000, 0b11001, 0b00010, 0b00100, 0b01000, 0b10011, 0b00011,
-        ],
-    ),
-    (
-        '\'',
-        [
-            0b00100, 0b00100, 0b00000, 0b00000, 0b00000, 0b00000, 0b00000,
-        ],
-    ),
-    (
-        '(',
-        [
-            0b00010, 0b00100, 0b01000, 0b01000, 0b01000, 0b00100, 0b00010,
-        ],
-    ),
-    (
-        ')',
-        [
-            0b01000, 0b00100, 0b00010, 0b00010, 0b00010, 0b00100, 0b01000,
-        ],
-    ),
-    (
-        '+',
-        [
-            0b00000, 0b00100, 0b00100, 0b11111, 0b00100, 0b00100, 0b00000,
-        ],
-    ),
-    (
-        ',',
-        [
-            0b00000, 0b00000, 0b00000, 0b00000, 0b01100, 0b00100, 0b01000,
-        ],
-    ),
-    (
-        '-',
-        [
-            0b00000, 0b00000, 0b00000, 0b11111, 0b00000, 0b00000, 0b00000,
-        ],
-    ),
-    (
-        '.',
-        [
-            0b00000, 0b00000, 0b00000, 0b00000, 0b00000, 0b01100, 0b01100,
-        ],
-    ),
-    (
-        '/',
-        [
-            0b00000, 0b00001, 0b00010, 0b00100, 0b01000, 0b10000, 0b00000,
-        ],
-    ),
-    (
-        '0',
-        [
-            0b01110, 0b10001, 0b10011, 0b10101, 0b11001, 0b10001, 0b01110,
-        ],
-    ),
-    (
-        '1',
-        [
-            0b00100, 0b01100, 0b00100, 0b00100, 0b00100, 0b00100, 0b01110,
-        ],
-    ),
-    (
-        '2',
-        [
-            0b01110, 0b10001, 0b00001, 0b00010, 0b00100, 0b01000, 0b11111,
-        ],
-    ),
-    (
-        '3',
-        [
-            0b11111, 0b00010, 0b00100, 0b00010, 0b00001, 0b10001, 0b01110,
-        ],
-    ),
-    (
-        '4',
-        [
-            0b00010, 0b00110, 0b01010, 0b10010, 0b11111, 0b00010, 0b00010,
-        ],
-    ),
-    (
-        '5',
-        [
-            0b11111, 0b10000, 0b11110, 0b00001, 0b00001, 0b10001, 0b01110,
-        ],
-    ),
-    (
-        '6',
-        [
-            0b00110, 0b01000, 0b10000, 0b11110, 0b10001, 0b10001, 0b01110,
-        ],
-    ),
-    (
-        '7',
-        [
-            0b11111, 0b00001, 0b00010, 0b00100, 0b01000, 0b01000, 0b01000,
-        ],
-    ),
-    (
-        '8',
-        [
-            0b01110, 0b10001, 0b10001, 0b01110, 0b10001, 0b10001, 0b01110,
-        ],
-    ),
-    (
-        '9',
-        [
-            0b01110, 0b10001, 0b10001, 0b01111, 0b00001, 0b00010, 0b01100,
-        ],
-    ),
-    (
-        ':',
-        [
-            0b00000, 0b01100, 0b01100, 0b00000, 0b01100, 0b01100, 0b00000,
-        ],
-    ),
-    (
-        ';',
-        [
-            0b00000, 0b01100, 0b01100, 0b00000, 0b01100, 0b00100, 0b01000,
-        ],
-    ),
-    (
-        '<',
-        [
-            0b00010, 0b00100, 0b01000, 0b10000, 0b01000, 0b00100, 0b00010,
-        ],
-    ),
-    (
-        '=',
-        [
-            0b00000, 0b00000, 0b11111, 0b00000, 0b11111, 0b00000, 0b00000,
-        ],
-    ),
-    (
-        '>',
-        [
-            0b10000, 0b01000, 0b00100, 0b00010, 0b00100, 0b01000, 0b10000,
-        ],
-    ),
-    (
-        '?',
-        [
-            0b01110, 0b10001, 0b00001, 0b00010, 0b00100, 0b00000, 0b00100,
-        ],
-    ),
-    (
-        'A',
-        [
-            0b01110, 0b10001, 0b10001, 0b11111, 0b10001, 0b10001, 0b10001,
-        ],
-    ),
-    (
-        'B',
-        [
-            0b11110, 0b10001, 0b10001, 0b11110, 0b10001, 0b10001, 0b11110,
-        ],
-    ),
-    (
-        'C',
-        [
-            0b01110, 0b10001, 0b10000, 0b10000, 0b10000, 0b10001, 0b01110,
-        ],
-    ),
-    (
-        'D',
-        [
-            0b11100, 0b10010, 0b10001, 0b10001, 0b10001, 0b10010, 0b11100,
-        ],
-    ),
-    (
-        'E',
-        [
-            0b11111, 0b10000, 0b10000, 0b11110, 0b10000, 0b10000, 0b11111,
-        ],
-    ),
-    (
-        'F',
-        [
-            0b11111, 0b10000, 0b10000, 0b11110, 0b10000, 0b10000, 0b10000,
-        ],
-    ),
-    (
-        'G',
-        [
-            0b01110, 0b10001, 0b10000, 0b10111, 0b10001, 0b10001, 0b01111,
-        ],
-    ),
-    (
-        'H',
-        [
-            0b10001, 0b10001, 0b10001, 0b11111, 0b10001, 0b10001, 0b10001,
-        ],
-    ),
-    (
-        'I',
-        [
-            0b01110, 0b00100, 0b00100, 0b00100, 0b00100, 0b00100, 0b01110,
-        ],
-    ),
-    (
-        'J',
-        [
-            0b00111, 0b00010, 0b00010, 0b00010, 0b00010, 0b10010, 0b01100,
-        ],
-    ),
-    (
-        'K',
-        [
-            0b10001, 0b10010, 0b10100, 0b11000, 0b10100, 0b10010, 0b10001,
-        ],
-    ),
-    (
-        'L',
-        [
-            0b10000, 0b10000, 0b10000, 0b10000, 0b10000, 0b10000, 0b11111,
-        ],
-    ),
-    (
-        'M',
-        [
-            0b10001, 0b11011, 0b10101, 0b10101, 0b10001, 0b10001, 0b10001,
-        ],
-    ),
-    (
-        'N',
-        [
-            0b10001, 0b10001, 0b11001, 0b10101, 0b10011, 0b10001, 0b10001,
-        ],
-    ),
-    (
-        'O',
-        [
-            0b01110, 0b10001, 0b10001, 0b10001, 0b10001, 0b10001, 0b01110,
-        ],
-    ),
-    (
-        'P',
-        [
-            0b11110, 0b10001, 0b10001, 0b11110, 0b10000, 0b10000, 0b10000,
-        ],
-    ),
-    (
-        'Q',
-        [
-            0b01110, 0b10001, 0b10001, 0b10001, 0b10101, 0b10010, 0b01101,
-        ],
-    ),
-    (
-        'R',
-        [
-            0b11110, 0b10001, 0b10001, 0b11110, 0b10100, 0b10010, 0b10001,
-        ],
-    ),
-    (
-        'S',
-        [
-            0b01111, 0b10000, 0b10000, 0b01110, 0b00001, 0b00001, 0b11110,
-        ],
-    ),
-    (
-        'T',
-        [
-            0b11111, 0b00100, 0b00100, 0b00100, 0b00100, 0b00100, 0b00100,
-        ],
-    ),
-    (
-        'U',
-        [
-            0b10001, 0b10001, 0b10001, 0b10001, 0b10001, 0b10001, 0b01110,
-        ],
-    ),
-    (
-        'V',
-        [
-            0b10001, 0b10001, 0b10001, 0b10001, 0b10001, 0b01010, 0b00100,
-        ],
-    ),
-    (
-        'W',
-        [
-            0b10001, 0b10001, 0b10001, 0b10101, 0b10101, 0b10101, 0b01010,
-        ],
-    ),
-    (
-        'X',
-        [
-            0b10001, 0b10001, 0b01010, 0b00100, 0b01010, 0b10001, 0b10001,
-        ],
-    ),
-    (
-        'Y',
-        [
-            0b10001, 0b10001, 0b01010, 0b00100, 0b00100, 0b00100, 0b00100,
-        ],
-    ),
-    (
-        'Z',
-        [
-            0b11111, 0b00001, 0b00010, 0b00100, 0b01000, 0b10000, 0b11111,
-        ],
-    ),
-    (
-        '_',
-        [
-            0b00000, 0b00000, 0b00000, 0b00000, 0b00000, 0b00000, 0b11111,
-        ],
-    ),
-    (
-        '|',
-        [
-            0b00100, 0b00100, 0b00100, 0b00100, 0b00100, 0b00100, 0b00100,
-        ],
-    ),
-];
+use ab_glyph::{point, Font, FontRef, GlyphId, OutlinedGlyph, PxScale, ScaleFont};
 
-/// The rows of `c`'s glyph (`?` for a character the font lacks).
-pub fn glyph(c: char) -> [u8; 7] {
-    let c = c.to_ascii_uppercase();
-    GLYPHS
+/// The font file.
+static DEJAVU_SANS: &[u8] = include_bytes!("../../assets/fonts/DejaVuSans.ttf");
+
+/// The parsed font (parsed once: a table lookup, no copy).
+fn font() -> &'static FontRef<'static> {
+    static FONT: OnceLock<FontRef<'static>> = OnceLock::new();
+    FONT.get_or_init(|| {
+        // The file is part of the binary and checked by the tests below:
+        // it cannot fail at run time unless the build embedded another.
+        FontRef::try_from_slice(DEJAVU_SANS).expect("the embedded DejaVu Sans parses")
+    })
+}
+
+/// The font size (pixels per em) of size class `scale`.
+pub fn px(scale: u32) -> f32 {
+    6.0 + 8.0 * scale.max(1) as f32
+}
+
+/// The height of a line of text at `scale` (pixels): ascent plus descent,
+/// rounded up.
+pub fn line_height(scale: u32) -> u32 {
+    let scaled = font().as_scaled(PxScale::from(px(scale)));
+    (scaled.ascent() - scaled.descent() + 2.0 * headroom(scale)).ceil() as u32
+}
+
+/// Room above the font's ascent (and below its descent) in a line: a
+/// capital's ring or accent (Å, É) reaches a little above the ascent.
+fn headroom(scale: u32) -> f32 {
+    (0.06 * px(scale)).ceil()
+}
+
+/// The glyphs of `text` and where each starts along the line (pixels
+/// from the text's left edge), with the advance of the whole text.
+fn layout(text: &str, scale: u32) -> (Vec<(GlyphId, f32)>, f32) {
+    let scaled = font().as_scaled(PxScale::from(px(scale)));
+    let mut caret = 0.0f32;
+    let mut previous: Option<GlyphId> = None;
+    let mut glyphs = Vec::with_capacity(text.len());
+    for c in text.chars() {
+        let c = if c.is_control() { ' ' } else { c };
+        let id = scaled.glyph_id(c);
+        if let Some(previous) = previous {
+            caret += scaled.kern(previous, id);
+        }
+        glyphs.push((id, caret));
+        caret += scaled.h_advance(id);
+        previous = Some(id);
+    }
+    (glyphs, caret)
+}
+
+/// The width of `text` at `scale` (pixels, its advance rounded up).
+pub fn width(text: &str, scale: u32) -> u32 {
+    layout(text, scale).1.ceil() as u32
+}
+
+/// The outlines of `text` drawn with its line's top-left corner at
+/// (`x`, `y`): glyphs without ink (spaces) are left out.
+pub fn outlines(text: &str, x: f32, y: f32, scale: u32) -> Vec<OutlinedGlyph> {
+    let size = PxScale::from(px(scale));
+    let baseline = y + ascent(scale);
+    layout(text, scale)
+        .0
+        .into_iter()
+        .filter_map(|(id, dx)| {
+            font().outline_glyph(id.with_scale_and_position(size, point(x + dx, baseline)))
+        })
+        .collect()
+}
+
+/// The box of the pixels that `text` at (`x`, `y`) inks: (left, top,
+/// right, bottom), right and bottom exclusive; `None` for text without
+/// ink.
+pub fn ink_bounds(text: &str, x: f32, y: f32, scale: u32) -> Option<(f32, f32, f32, f32)> {
+    outlines(text, x, y, scale)
         .iter()
-        .find(|(g, _)| *g == c)
-        .or_else(|| GLYPHS.iter().find(|(g, _)| *g == '?'))
-        .map_or([0; 7], |(_, rows)| *rows)
+        .map(OutlinedGlyph::px_bounds)
+        .map(|b| (b.min.x, b.min.y, b.max.x, b.max.y))
+        .reduce(|a, b| (a.0.min(b.0), a.1.min(b.1), a.2.max(b.2), a.3.max(b.3)))
+}
+
+/// The SVG font stack: DejaVu Sans where the viewer has it (the widths
+/// then agree with the PNG's), else a near one; `textLength` keeps the
+/// layout whichever is used.
+pub const SVG_FAMILY: &str = "'DejaVu Sans', Verdana, sans-serif";
+
+/// The baseline at `scale`: pixels from a line's top.
+pub fn ascent(scale: u32) -> f32 {
+    font().as_scaled(PxScale::from(px(scale))).ascent() + headroom(scale)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_embedded_font_parses_and_has_the_plots_characters() {
+        // Every character the plots write (labels, units, sigma, minus,
+        // times) has its own glyph, not the font's "missing" box.
+        for c in "AZaz09 .,:;()[]%+-−/×σ₀µ·…≤≥'\"_=".chars() {
+            assert_ne!(font().glyph_id(c), GlyphId(0), "{c:?} has no glyph");
+        }
+        assert_eq!(px(1), 14.0);
+        assert_eq!(px(2), 22.0);
+    }
+
+    #[test]
+    fn ink_lies_within_the_line_and_the_width() {
+        for scale in [1, 2, 3] {
+            for text in ["Sequence 12, frame 3", "Ågjpqy|(ÉÇ)", "σ₀ 0.05 px", "W"] {
+                let (l, t, r, b) = ink_bounds(text, 10.0, 20.0, scale).unwrap();
+                assert!(l >= 9.0 && t >= 20.0, "{text} at {scale}: {l} {t}");
+                let w = width(text, scale) as f32;
+                assert!(r <= 10.0 + w + 1.0, "{text} at {scale}: {r} > {}", 10.0 + w);
+                let h = line_height(scale) as f32;
+                assert!(b <= 20.0 + h, "{text} at {scale}: {b} > {}", 20.0 + h);
+            }
+        }
+        assert!(ink_bounds("   ", 0.0, 0.0, 1).is_none());
+        // Kerning and proportional widths: "ii" is narrower than "WW".
+        assert!(width("ii", 1) * 2 < width("WW", 1));
+    }
 }

@@ -1,6 +1,6 @@
 //! Pictures of results, as PNG or SVG: a small drawing interface
-//! ([`Draw`]: filled rectangles, lines, discs, rings, arrows, text in a
-//! built-in 5x7 bitmap font, a grey image) with two backends, a raster
+//! ([`Draw`]: filled rectangles, lines, discs, rings, arrows, text in
+//! DejaVu Sans built into the binary ([`font`]), a grey image) with two backends, a raster
 //! [`Canvas`] on `image`'s RGB buffer and an [`Svg`] document, and the
 //! plots, each written once against [`Draw`]:
 //!
@@ -18,10 +18,13 @@
 //! Drawn with `image` directly rather than a plotting crate: the pictures
 //! are panels of markers, arrows, bars and labels, a few hundred lines of
 //! drawing; `image` (with its PNG encoder) is already a dependency, so
-//! nothing is added to the build, and the built-in font needs no font
-//! file, system font or download (`plotters`' bitmap text needs a font
-//! file or the system's fonts). In SVG, text is `<text>` stretched to the
-//! bitmap font's width, so the two layouts agree. Outside the pure core
+//! nothing is added to the build but `ab_glyph` (a small pure-Rust
+//! rasteriser of TrueType outlines) for the text; the font is a file of
+//! the repository built into the binary, so no font file, system font or
+//! download is needed at run time (`plotters` would bring its own text
+//! stack and want the system's fonts). In SVG, text is `<text>` in the
+//! same font and size, stretched to the PNG's width, so the two layouts
+//! agree. Outside the pure core
 //! (`src/photogrammetry`), which it only reads; no tokio or axum.
 //!
 //! Coordinates: a point (`f64`) names a pixel's centre at integer values
@@ -32,7 +35,7 @@
 //! `y - 0.5`) of a picture drawn at the sensor's scale.
 
 pub mod disparity;
-mod font;
+pub mod font;
 pub mod overlay;
 pub mod residuals;
 pub mod views;
@@ -188,8 +191,9 @@ pub trait Draw {
     /// A ring: the circle of radius `r` around (`cx`, `cy`), `width`
     /// pixels wide.
     fn ring(&mut self, cx: f64, cy: f64, r: f64, width: f64, colour: Colour);
-    /// Writes `text` with its top-left corner at (`x`, `y`), each font
-    /// pixel `scale` pixels ([`text_width`], [`text_height`]).
+    /// Writes `text` with its line's top-left corner at (`x`, `y`), in
+    /// size class `scale` (1 labels, 2 titles: [`font::px`]); it takes
+    /// [`text_width`] x [`text_height`] pixels.
     fn text(&mut self, x: i64, y: i64, text: &str, scale: u32, colour: Colour);
     /// A grey image with its top-left corner at (`x`, `y`), one pixel a
     /// sample, 16-bit samples shown by their top 8 bits of the image's
@@ -253,6 +257,19 @@ impl Canvas {
         if x >= 0 && y >= 0 && (x as u64) < self.image.width() as u64 {
             if let Some(p) = self.image.get_pixel_mut_checked(x as u32, y as u32) {
                 *p = colour;
+            }
+        }
+    }
+
+    /// Mixes `colour` into a pixel by `coverage` (0 leaves it, 1
+    /// replaces it): anti-aliased text; off the canvas is ignored.
+    fn blend(&mut self, x: i64, y: i64, colour: Colour, coverage: f32) {
+        let coverage = coverage.clamp(0.0, 1.0);
+        if x >= 0 && y >= 0 && (x as u64) < self.image.width() as u64 {
+            if let Some(p) = self.image.get_pixel_mut_checked(x as u32, y as u32) {
+                for (old, new) in p.0.iter_mut().zip(colour.0) {
+                    *old = (*old as f32 + (new as f32 - *old as f32) * coverage).round() as u8;
+                }
             }
         }
     }
@@ -342,23 +359,15 @@ impl Draw for Canvas {
     }
 
     fn text(&mut self, x: i64, y: i64, text: &str, scale: u32, colour: Colour) {
-        let scale = scale.max(1) as i64;
-        for (i, c) in text.chars().enumerate() {
-            let rows = font::glyph(c);
-            let left = x + i as i64 * text_advance(scale as u32) as i64;
-            for (row, bits) in rows.iter().enumerate() {
-                for column in 0..font::GLYPH.0 as i64 {
-                    if bits & (1 << (4 - column)) != 0 {
-                        self.fill_rect(
-                            left + column * scale,
-                            y + row as i64 * scale,
-                            scale,
-                            scale,
-                            colour,
-                        );
-                    }
-                }
-            }
+        if x.unsigned_abs() > 4 * MAX_SIDE as u64 || y.unsigned_abs() > 4 * MAX_SIDE as u64 {
+            return;
+        }
+        for glyph in font::outlines(text, x as f32, y as f32, scale) {
+            let bounds = glyph.px_bounds();
+            let (left, top) = (bounds.min.x as i64, bounds.min.y as i64);
+            glyph.draw(|gx, gy, coverage| {
+                self.blend(left + gx as i64, top + gy as i64, colour, coverage);
+            });
         }
     }
 
@@ -517,7 +526,6 @@ impl Draw for Svg {
         if text.is_empty() {
             return;
         }
-        let scale = scale.max(1);
         let mut escaped = String::with_capacity(text.len());
         for c in text.chars() {
             match c {
@@ -529,15 +537,15 @@ impl Draw for Svg {
                 c => escaped.push(c),
             }
         }
-        // The bitmap font's cap height is 7 font pixels: a font size of
-        // 10 makes monospace capitals about that tall; the text is
-        // stretched to the bitmap font's width.
-        let width = text_width(text, scale).saturating_sub(scale);
+        // At the baseline, in the PNG's font and size; stretched to the
+        // PNG's advance so that the layout holds in another font.
         let _ = writeln!(
             self.body,
-            "<text x=\"{x}\" y=\"{}\" font-family=\"monospace\" font-size=\"{}\" textLength=\"{width}\" lengthAdjust=\"spacingAndGlyphs\" fill=\"{}\">{escaped}</text>",
-            y + text_height(scale) as i64,
-            10 * scale,
+            "<text x=\"{x}\" y=\"{}\" font-family=\"{}\" font-size=\"{}\" textLength=\"{}\" lengthAdjust=\"spacingAndGlyphs\" fill=\"{}\">{escaped}</text>",
+            num(y as f64 + font::ascent(scale) as f64),
+            font::SVG_FAMILY,
+            font::px(scale),
+            text_width(text, scale),
             hex(colour)
         );
     }
@@ -579,19 +587,16 @@ impl Draw for Svg {
     }
 }
 
-/// The horizontal advance of one character at `scale`.
-pub fn text_advance(scale: u32) -> u32 {
-    (font::GLYPH.0 + 1) * scale.max(1)
-}
-
-/// The width of `text` at `scale` (pixels).
+/// The width of `text` at `scale` (pixels): its advance in the plots'
+/// font ([`font`]), rounded up.
 pub fn text_width(text: &str, scale: u32) -> u32 {
-    text.chars().count() as u32 * text_advance(scale)
+    font::width(text, scale)
 }
 
-/// The height of a line of text at `scale` (pixels).
+/// The height of a line of text at `scale` (pixels): every glyph's ink
+/// lies within it, from the line's top.
 pub fn text_height(scale: u32) -> u32 {
-    font::GLYPH.1 * scale.max(1)
+    font::line_height(scale)
 }
 
 /// A light sequential colour map for `t` in [0, 1] (clamped): pale yellow
@@ -624,6 +629,30 @@ pub fn to_png(image: &RgbImage) -> Result<Vec<u8>, image::ImageError> {
         image.width(),
         image.height(),
         image::ExtendedColorType::Rgb8,
+    )?;
+    Ok(bytes)
+}
+
+/// A grey image as an 8-bit grey PNG, a 12 or 16-bit image by the top 8
+/// bits of its depth (as [`Draw::grey_image`] shows it).
+pub fn grey_png(image: &GreyImage) -> Result<Vec<u8>, image::ImageError> {
+    let shift = image.bit_depth().bits().saturating_sub(8);
+    let samples: Vec<u8> = match image.pixels() {
+        GreyPixels::Eight(p) => p.clone(),
+        GreyPixels::Sixteen(p) => p.iter().map(|&v| (v >> shift).min(255) as u8).collect(),
+    };
+    let mut bytes = Vec::with_capacity(samples.len() / 2);
+    let encoder = image::codecs::png::PngEncoder::new_with_quality(
+        &mut bytes,
+        image::codecs::png::CompressionType::Fast,
+        image::codecs::png::FilterType::Sub,
+    );
+    image::ImageEncoder::write_image(
+        encoder,
+        &samples,
+        image.width(),
+        image.height(),
+        image::ExtendedColorType::L8,
     )?;
     Ok(bytes)
 }
@@ -699,6 +728,72 @@ pub fn cameras_colour(cameras: usize) -> Colour {
     }
 }
 
+/// A [`Draw`] that keeps only where text is inked: the plots' tests check
+/// with it that every label lies inside its picture and that no two
+/// labels overlap.
+#[cfg(test)]
+pub(crate) struct TextBoxes {
+    size: (u32, u32),
+    /// Each text and its ink box (left, top, right, bottom; right and
+    /// bottom exclusive).
+    pub texts: Vec<(String, (f32, f32, f32, f32))>,
+}
+
+#[cfg(test)]
+impl TextBoxes {
+    /// Draws with `draw` on a picture of `size`; the texts written.
+    pub fn of(size: (u32, u32), draw: impl FnOnce(&mut dyn Draw)) -> TextBoxes {
+        let mut boxes = TextBoxes {
+            size,
+            texts: Vec::new(),
+        };
+        draw(&mut boxes);
+        boxes
+    }
+
+    /// Panics unless every text's ink lies within the picture and no two
+    /// texts' boxes overlap.
+    pub fn assert_fit(&self) {
+        let (w, h) = (self.size.0 as f32, self.size.1 as f32);
+        assert!(!self.texts.is_empty(), "no text");
+        for (text, (l, t, r, b)) in &self.texts {
+            assert!(
+                *l >= 0.0 && *t >= 0.0 && *r <= w && *b <= h,
+                "{text:?} at ({l}, {t})..({r}, {b}) is clipped by the {w}x{h} picture"
+            );
+        }
+        for (i, (a, p)) in self.texts.iter().enumerate() {
+            for (b, q) in &self.texts[i + 1..] {
+                let apart = p.2 <= q.0 || q.2 <= p.0 || p.3 <= q.1 || q.3 <= p.1;
+                assert!(apart, "{a:?} {p:?} overlaps {b:?} {q:?}");
+            }
+        }
+    }
+
+    /// Whether some text is exactly `text`.
+    pub fn has(&self, text: &str) -> bool {
+        self.texts.iter().any(|(t, _)| t == text)
+    }
+}
+
+#[cfg(test)]
+impl Draw for TextBoxes {
+    fn size(&self) -> (u32, u32) {
+        self.size
+    }
+    fn fill_rect(&mut self, _: i64, _: i64, _: i64, _: i64, _: Colour) {}
+    fn rect(&mut self, _: i64, _: i64, _: i64, _: i64, _: Colour) {}
+    fn line(&mut self, _: (f64, f64), _: (f64, f64), _: f64, _: Colour) {}
+    fn disc(&mut self, _: f64, _: f64, _: f64, _: Colour) {}
+    fn ring(&mut self, _: f64, _: f64, _: f64, _: f64, _: Colour) {}
+    fn text(&mut self, x: i64, y: i64, text: &str, scale: u32, _: Colour) {
+        if let Some(ink) = font::ink_bounds(text, x as f32, y as f32, scale) {
+            self.texts.push((text.to_owned(), ink));
+        }
+    }
+    fn grey_image(&mut self, _: i64, _: i64, _: &GreyImage) {}
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -743,6 +838,37 @@ mod tests {
             "{svg}"
         );
         assert!(svg.contains(">A&lt;&amp;&gt;</text>"), "{svg}");
+        assert!(svg.contains("font-family=\"'DejaVu Sans'"), "{svg}");
+    }
+
+    #[test]
+    fn text_is_inked_where_its_box_says() {
+        let text = "Sequence 3, frame 12: 1,204 particles";
+        let (w, h) = (text_width(text, 1), text_height(1));
+        let png = render(PlotFormat::Png, (w + 20, h + 20), |d| {
+            d.text(10, 10, text, 1, BLACK)
+        })
+        .unwrap();
+        let image = image::load_from_memory(&png).unwrap().to_rgb8();
+        let inked: Vec<(u32, u32)> = image
+            .enumerate_pixels()
+            .filter(|(_, _, p)| **p != WHITE)
+            .map(|(x, y, _)| (x, y))
+            .collect();
+        // Ink, anti-aliased (greys between black and white), all within
+        // the text's box.
+        assert!(inked.len() > 200, "{} inked pixels", inked.len());
+        assert!(image.pixels().any(|p| p.0[0] > 40 && p.0[0] < 215));
+        assert!(image.pixels().any(|p| p.0[0] < 40));
+        for (x, y) in inked {
+            assert!(
+                x >= 9 && x < 10 + w + 1 && y >= 10 && y < 10 + h,
+                "({x}, {y})"
+            );
+        }
+        // A label of 14 px: capitals about 10 px tall, readable at 100%.
+        let (_, top, _, bottom) = font::ink_bounds("H", 0.0, 0.0, 1).unwrap();
+        assert!((9.0..=11.0).contains(&(bottom - top)), "{}", bottom - top);
     }
 
     #[test]

@@ -32,7 +32,7 @@ pub const UNMATCHED_RADIUS: f64 = 7.0;
 /// from the point, so the particle's image shows in its hollow centre.
 pub const CROSS: (f64, f64) = (1.5, 3.0);
 /// The legend's height under the image.
-pub const LEGEND: u32 = 2 * 7 + 3 * 8 + 6;
+pub const LEGEND: u32 = 84;
 
 const MATCHED_WIDTH: f64 = 1.5;
 const UNMATCHED_WIDTH: f64 = 2.0;
@@ -172,7 +172,7 @@ pub fn draw_overlay(d: &mut dyn Draw, overlay: &Overlay<'_>) {
     let mut x = 6;
     let key =
         |d: &mut dyn Draw, x: &mut i64, mark: &dyn Fn(&mut dyn Draw, f64, f64), label: &str| {
-            mark(d, *x as f64 + 6.0, y as f64 + 3.0);
+            mark(d, *x as f64 + 6.0, y as f64 + (text_height(1) / 2) as f64);
             d.text(*x + 16, y, label, 1, BLACK);
             *x += 16 + text_width(label, 1) as i64 + 12;
         };
@@ -180,23 +180,23 @@ pub fn draw_overlay(d: &mut dyn Draw, overlay: &Overlay<'_>) {
         d,
         &mut x,
         &|d, cx, cy| d.ring(cx, cy, 4.0, MATCHED_WIDTH, MATCHED),
-        &format!("{} MATCHED", overlay.targets.len() - overlay.unmatched()),
+        &format!("{} matched", overlay.targets.len() - overlay.unmatched()),
     );
     key(
         d,
         &mut x,
         &|d, cx, cy| d.ring(cx, cy, 5.0, UNMATCHED_WIDTH, UNMATCHED),
-        &format!("{} UNMATCHED TARGETS", overlay.unmatched()),
+        &format!("{} unmatched targets", overlay.unmatched()),
     );
     y += line;
     let mut x = 6;
-    let label = format!("{} PARTICLES, SEEN BY:", overlay.reprojections.len());
+    let label = format!("{} particles, seen by:", overlay.reprojections.len());
     d.text(x, y, &label, 1, BLACK);
     x += text_width(&label, 1) as i64 + 10;
-    for (cameras, name) in [(2, "2"), (3, "3"), (4, "4"), (5, "5+ CAMERAS")] {
+    for (cameras, name) in [(2, "2"), (3, "3"), (4, "4"), (5, "5+ cameras")] {
         d.cross(
             x as f64 + 4.0,
-            y as f64 + 3.0,
+            y as f64 + (text_height(1) / 2) as f64,
             CROSS,
             1.0,
             cameras_colour(cameras),
@@ -256,6 +256,15 @@ mod tests {
         assert_eq!(at(px + 2.5, py), cameras_colour(2));
         assert_eq!(at(px, py - 2.5), cameras_colour(2));
         assert_eq!(at(px, py), BLANK, "the cross's centre is hollow");
+        let (w, h) = overlay.size().unwrap();
+        let boxes = crate::plot::TextBoxes::of((w, h), |d| draw_overlay(d, &overlay));
+        boxes.assert_fit();
+        for (_, (_, top, _, _)) in &boxes.texts {
+            assert!(
+                *top >= sensor.height as f32,
+                "the legend is under the sensor"
+            );
+        }
         let svg = String::from_utf8(overlay_plot(&overlay, PlotFormat::Svg).unwrap()).unwrap();
         assert_eq!(
             svg.matches("stroke=\"#ff00ff\"").count(),

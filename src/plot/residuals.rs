@@ -268,7 +268,7 @@ pub fn draw_residuals(
     d.text(
         m,
         y,
-        &format!("CALIBRATION RESIDUALS, CAMERA {}", camera.name),
+        &format!("Calibration residuals, camera {}", camera.name),
         2,
         BLACK,
     );
@@ -278,7 +278,7 @@ pub fn draw_residuals(
         m,
         y,
         &format!(
-            "{} POINTS USED, SIGMA0 {} PX, RMS {} PX, {} LEFT OUT AS GROSS ERRORS (RED, RINGED)",
+            "{} points used, σ₀ {} px, RMS {} px, {} left out as gross errors (red, ringed)",
             camera.residuals.len(),
             format_value(camera.sigma0_px),
             format_value(rms),
@@ -292,7 +292,7 @@ pub fn draw_residuals(
         m,
         y,
         &format!(
-            "ARROWS: OBSERVED MINUS COMPUTED, FROM WHERE EACH POINT WAS MEASURED ON THE {}x{} PX SENSOR",
+            "Arrows: observed minus computed, from where each point was measured on the {}×{} px sensor",
             sensor.0, sensor.1
         ),
         1,
@@ -302,8 +302,8 @@ pub fn draw_residuals(
     // Scale bar.
     let bar = nice(layout.longest_px.max(f64::MIN_POSITIVE));
     let bar_px = bar * layout.arrow_scale;
-    d.text(m, y, "SCALE:", 1, BLACK);
-    let x0 = m as f64 + text_width("SCALE: ", 1) as f64;
+    d.text(m, y, "Scale:", 1, BLACK);
+    let x0 = m as f64 + text_width("Scale: ", 1) as f64;
     d.arrow(
         (x0, y as f64 + 3.0),
         (x0 + bar_px, y as f64 + 3.0),
@@ -314,7 +314,7 @@ pub fn draw_residuals(
     d.text(
         (x0 + bar_px + 8.0) as i64,
         y,
-        &format!("= {} PX OF RESIDUAL", format_value(bar)),
+        &format!("= {} px of residual", format_value(bar)),
         1,
         BLACK,
     );
@@ -356,7 +356,7 @@ pub fn draw_residuals(
     // The histogram of the used residuals' lengths.
     let left = sx + sw + 60;
     let mut top = sy;
-    d.text(left, top, "RESIDUAL LENGTHS (PX), POINTS USED", 1, BLACK);
+    d.text(left, top, "Residual lengths (px), points used", 1, BLACK);
     top += line;
     let lengths: Vec<f64> = camera
         .residuals
@@ -394,7 +394,7 @@ pub fn draw_residuals(
         );
     }
     d.text(left, top + SIDE_H + 4, "0", 1, BLACK);
-    let edge = format!("{} PX", format_value(top_edge));
+    let edge = format!("{} px", format_value(top_edge));
     d.text(
         left + SIDE_W - text_width(&edge, 1) as i64,
         top + SIDE_H + 4,
@@ -405,18 +405,18 @@ pub fn draw_residuals(
     d.text(
         left,
         top + SIDE_H + 4 + line,
-        &format!("TALLEST BAR: {most} POINTS; RED LINE: RMS"),
+        &format!("Tallest bar: {most} points; red line: RMS"),
         1,
         BLACK,
     );
     top += SIDE_H + 3 * line + 10;
 
     // The check points.
-    d.text(left, top, "CHECK POINTS: 3D ERROR (MM)", 1, BLACK);
+    d.text(left, top, "Check points: 3D error (mm)", 1, BLACK);
     top += line;
     let Some(check) = check_points.filter(|c| !c.points.is_empty()) else {
         d.rect(left, top, SIDE_W, SIDE_H, GREY);
-        d.text(left + 10, top + SIDE_H / 2, "NO CHECK POINTS", 1, BLACK);
+        d.text(left + 10, top + SIDE_H / 2, "No check points", 1, BLACK);
         return;
     };
     let errors: Vec<f64> = check
@@ -445,7 +445,7 @@ pub fn draw_residuals(
         left,
         top + SIDE_H + 4,
         &format!(
-            "{} POINTS, LARGEST {} MM",
+            "{} points, largest {} mm",
             errors.len(),
             format_value(largest)
         ),
@@ -456,7 +456,7 @@ pub fn draw_residuals(
         left,
         top + SIDE_H + 4 + line,
         &format!(
-            "RMSE X {} Y {} Z {} MM",
+            "RMSE x {}, y {}, z {} mm",
             format_value(check.rmse_x_mm),
             format_value(check.rmse_y_mm),
             format_value(check.rmse_z_mm)
@@ -468,7 +468,7 @@ pub fn draw_residuals(
         left,
         top + SIDE_H + 4 + 2 * line,
         &format!(
-            "RELATIVE ACCURACY 1 : {}",
+            "Relative accuracy 1 : {}",
             format_value(check.relative_accuracy.round())
         ),
         1,
@@ -540,7 +540,7 @@ mod tests {
         assert_eq!(*image.get_pixel(empty.0 as u32, empty.1 as u32), SENSOR);
         let svg = residual_plot(&report, 0, (1024, 1024), PlotFormat::Svg).unwrap();
         let svg = String::from_utf8(svg).unwrap();
-        assert!(svg.starts_with("<svg") && svg.contains("CAMERA cam1"));
+        assert!(svg.starts_with("<svg") && svg.contains("camera cam1"));
     }
 
     #[test]
@@ -563,5 +563,23 @@ mod tests {
         assert!(error.to_string().contains("self-calibration"), "{error}");
         let error = ResidualReport::from_json("{\"cameras\": 3}", "s.json").unwrap_err();
         assert!(error.to_string().starts_with("s.json: "), "{error}");
+    }
+
+    #[test]
+    fn every_label_fits_and_none_overlap() {
+        let report = ResidualReport::from_json(&report_json(), "r.json").unwrap();
+        for sensor in [(1024, 1024), (2560, 600), (320, 1200)] {
+            let camera = &report.cameras[0];
+            let layout = ResidualLayout::new(camera, sensor);
+            let boxes = crate::plot::TextBoxes::of((layout.width, layout.height), |d| {
+                draw_residuals(d, camera, report.check_points.as_ref(), sensor, &layout)
+            });
+            boxes.assert_fit();
+            // And without check points.
+            crate::plot::TextBoxes::of((layout.width, layout.height), |d| {
+                draw_residuals(d, camera, None, sensor, &layout)
+            })
+            .assert_fit();
+        }
     }
 }

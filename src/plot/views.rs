@@ -20,11 +20,20 @@ use super::{
 /// A view's side (pixels).
 pub const PANEL: i64 = 400;
 const MARGIN: i64 = 20;
-const GAP: i64 = 50;
+/// Right of the last view: room for half of its last tick label.
+const RIGHT: i64 = 36;
+/// Between a view and the next one's tick labels.
+const GAP: i64 = 24;
 const PAD: f64 = 12.0;
+/// A tick mark's length (pixels, outside the view's frame).
+const TICK: i64 = 5;
+/// Ticks closer than this to a view's corner are left out, so that the
+/// two axes' labels cannot meet at the corner.
+const CORNER: f64 = 10.0;
 
 /// The three views.
 pub const VIEWS: [(&str, usize, usize); 3] = [("XY", 0, 1), ("XZ", 0, 2), ("YZ", 1, 2)];
+const AXES: [&str; 3] = ["x", "y", "z"];
 
 /// Where the views are.
 #[derive(Clone, Debug, PartialEq)]
@@ -40,6 +49,44 @@ pub struct ViewsLayout {
     /// Pixels per mm.
     pub scale: f64,
     top: i64,
+    /// The width of the column of a view's vertical tick labels.
+    column: i64,
+}
+
+/// A round step between ticks for an axis `span` long: 1, 2 or 5 times a
+/// power of ten, the smallest that gives at most `most` steps.
+pub fn tick_step(span: f64, most: usize) -> f64 {
+    if !(span.is_finite() && span > 0.0) {
+        return 1.0;
+    }
+    let raw = span / most.max(1) as f64;
+    let power = 10f64.powf(raw.log10().floor());
+    [1.0, 2.0, 5.0, 10.0]
+        .into_iter()
+        .map(|m| m * power)
+        .find(|v| *v >= raw * (1.0 - 1e-12))
+        .unwrap_or(10.0 * power)
+}
+
+/// A tick's label: as many decimals as the step needs (a step of 0.05
+/// gives two), no more, and no "-0".
+pub fn tick_label(value: f64, step: f64) -> String {
+    // Steps are 1, 2 or 5 times 10^e: -e decimals below 1.
+    let decimals = if step.is_finite() && step > 0.0 && step < 1.0 {
+        (-step.log10().floor()).min(12.0) as usize
+    } else {
+        0
+    };
+    let text = format!("{value:.decimals$}");
+    if text
+        .trim_start_matches('-')
+        .chars()
+        .all(|c| c == '0' || c == '.')
+    {
+        text.trim_start_matches('-').to_owned()
+    } else {
+        text.replace('-', "−")
+    }
 }
 
 impl ViewsLayout {
@@ -51,15 +98,33 @@ impl ViewsLayout {
             (Point3::origin(), Point3::new(1.0, 1.0, 1.0))
         };
         let extent = (max - min).max().max(1e-9);
-        let top = MARGIN + text_height(2) as i64 + 3 * (text_height(1) as i64 + 6) + 20;
-        ViewsLayout {
-            width: (2 * MARGIN + 3 * PANEL + 2 * GAP) as u32,
-            height: (top + PANEL + 3 * (text_height(1) as i64 + 6) + MARGIN) as u32,
+        let line = text_height(1) as i64 + 6;
+        // The title, three lines, the views' names.
+        let top = MARGIN + text_height(2) as i64 + 8 + 3 * line + line + 4;
+        let mut layout = ViewsLayout {
+            width: 0,
+            height: (top + PANEL + TICK + 4 + 2 * line + MARGIN) as u32,
             min,
             max,
             scale: (PANEL as f64 - 2.0 * PAD) / extent,
             top,
-        }
+            column: 0,
+        };
+        // The widest vertical tick label, or axis name, sets the column.
+        layout.column = VIEWS
+            .iter()
+            .flat_map(|(_, _, b)| {
+                let (step, ticks) = layout.ticks(*b);
+                ticks.into_iter().map(move |(v, _)| tick_label(v, step))
+            })
+            .chain(AXES.iter().map(|a| format!("{a} (mm)")))
+            .map(|label| text_width(&label, 1) as i64)
+            .max()
+            .unwrap_or(0)
+            + TICK
+            + 6;
+        layout.width = (layout.panel(2).0 + PANEL + RIGHT) as u32;
+        layout
     }
 
     /// The layout for these points (their bounding box).
@@ -75,7 +140,68 @@ impl ViewsLayout {
 
     /// The top-left corner of view `view` (0 XY, 1 XZ, 2 YZ).
     pub fn panel(&self, view: usize) -> (i64, i64) {
-        (MARGIN + view as i64 * (PANEL + GAP), self.top)
+        (
+            MARGIN + self.column + view as i64 * (PANEL + GAP + self.column),
+            self.top,
+        )
+    }
+
+    /// The range (mm) of axis `k` across a view.
+    fn range(&self, k: usize) -> (f64, f64) {
+        let half = PANEL as f64 / 2.0 / self.scale;
+        let c = (self.min[k] + self.max[k]) / 2.0;
+        (c - half, c + half)
+    }
+
+    /// The ticks of axis `k`: their step and, for each, its value (mm)
+    /// and its distance along the view from the axis' low end (pixels).
+    /// The largest round step that gives at least four ticks whose labels
+    /// stand apart, else the finest whose labels do (at least two).
+    pub fn ticks(&self, k: usize) -> (f64, Vec<(f64, f64)>) {
+        let (low, high) = self.range(k);
+        let at = |step: f64| {
+            let mut ticks = Vec::new();
+            let mut i = (low / step).ceil();
+            // At most 64 steps looked at: a step too small for the
+            // coordinates' precision (i + 1 == i) cannot loop for ever.
+            let mut looked = 0;
+            while i * step <= high && ticks.len() < 24 && looked < 64 {
+                looked += 1;
+                let value = i * step;
+                let along = (value - low) * self.scale;
+                if along >= CORNER && along <= PANEL as f64 - CORNER {
+                    ticks.push((value, along));
+                }
+                i += 1.0;
+            }
+            ticks
+        };
+        let apart = |step: f64, ticks: &[(f64, f64)]| {
+            let widest = ticks
+                .iter()
+                .map(|(v, _)| text_width(&tick_label(*v, step), 1))
+                .max()
+                .unwrap_or(0);
+            (widest + 12) as f64 <= step * self.scale
+        };
+        let mut fallback = None;
+        for most in 3..=12 {
+            let step = tick_step(high - low, most);
+            let ticks = at(step);
+            if !apart(step, &ticks) {
+                break;
+            }
+            if ticks.len() >= 4 {
+                return (step, ticks);
+            }
+            if ticks.len() >= 2 {
+                fallback = Some((step, ticks));
+            }
+        }
+        fallback.unwrap_or_else(|| {
+            let step = tick_step(high - low, 3);
+            (step, at(step))
+        })
     }
 
     /// Where a point (mm) is drawn in view `view`.
@@ -90,9 +216,11 @@ impl ViewsLayout {
         )
     }
 
-    /// Draws the title lines, the views' frames and their axes' ranges.
+    /// Draws the title lines, the views' frames and their axes: ticks
+    /// with round values (mm) and the axes' names.
     fn frame(&self, d: &mut dyn Draw, title: &str, lines: &[String]) {
-        let line = text_height(1) as i64 + 6;
+        let h = text_height(1) as i64;
+        let line = h + 6;
         let mut y = MARGIN;
         d.text(MARGIN, y, title, 2, BLACK);
         y += text_height(2) as i64 + 8;
@@ -100,43 +228,71 @@ impl ViewsLayout {
             d.text(MARGIN, y, text, 1, BLACK);
             y += line;
         }
-        let names = ["X", "Y", "Z"];
         for (view, (name, a, b)) in VIEWS.iter().enumerate() {
             let (x0, y0) = self.panel(view);
             d.rect(x0, y0, PANEL, PANEL, GREY);
-            d.text(x0, y0 - line, name, 1, BLACK);
-            let range = |k: usize| {
-                let half = PANEL as f64 / 2.0 / self.scale;
-                let c = (self.min[k] + self.max[k]) / 2.0;
-                (c - half, c + half)
-            };
-            let (a0, a1) = range(*a);
-            let (b0, b1) = range(*b);
-            let below = y0 + PANEL + 4;
             d.text(
-                x0,
-                below,
-                &format!("{} {}", names[*a], format_value(a0)),
+                x0 + (PANEL - text_width(name, 1) as i64) / 2,
+                y0 - line,
+                name,
                 1,
                 BLACK,
             );
-            let right = format!("{} MM", format_value(a1));
+            // The horizontal axis: ticks below the frame, labels centred
+            // under them, its name under the labels.
+            let (step, ticks) = self.ticks(*a);
+            for (value, along) in ticks {
+                let x = x0 as f64 + along;
+                d.line(
+                    (x, (y0 + PANEL) as f64),
+                    (x, (y0 + PANEL + TICK) as f64),
+                    1.0,
+                    BLACK,
+                );
+                let label = tick_label(value, step);
+                let w = text_width(&label, 1) as i64;
+                d.text(
+                    x.round() as i64 - w / 2,
+                    y0 + PANEL + TICK + 2,
+                    &label,
+                    1,
+                    BLACK,
+                );
+            }
+            let axis = format!("{} (mm)", AXES[*a]);
             d.text(
-                x0 + PANEL - text_width(&right, 1) as i64,
-                below,
-                &right,
+                x0 + (PANEL - text_width(&axis, 1) as i64) / 2,
+                y0 + PANEL + TICK + 2 + line,
+                &axis,
                 1,
                 BLACK,
             );
+            // The vertical axis (up): ticks left of the frame, labels
+            // right-aligned to them, its name above the labels.
+            let (step, ticks) = self.ticks(*b);
+            for (value, along) in ticks {
+                let y = (y0 + PANEL) as f64 - along;
+                d.line(
+                    (x0 as f64 - TICK as f64 - 1.0, y),
+                    (x0 as f64 - 1.0, y),
+                    1.0,
+                    BLACK,
+                );
+                let label = tick_label(value, step);
+                let w = text_width(&label, 1) as i64;
+                d.text(
+                    x0 - TICK - 4 - w,
+                    y.round() as i64 - h / 2,
+                    &label,
+                    1,
+                    BLACK,
+                );
+            }
+            let axis = format!("{} (mm)", AXES[*b]);
             d.text(
-                x0,
-                below + line,
-                &format!(
-                    "{} {}..{} MM (UP)",
-                    names[*b],
-                    format_value(b0),
-                    format_value(b1)
-                ),
+                x0 - TICK - 4 - text_width(&axis, 1) as i64,
+                y0 - line,
+                &axis,
                 1,
                 BLACK,
             );
@@ -182,9 +338,9 @@ pub fn draw_particles(
         .enumerate()
         .filter(|(_, n)| **n > 0)
         .map(|(c, n)| match c {
-            0 | 1 => format!("{n} UNKNOWN"),
-            5 => format!("{n} BY 5+"),
-            c => format!("{n} BY {c}"),
+            0 | 1 => format!("{n} unknown"),
+            5 => format!("{n} by 5+"),
+            c => format!("{n} by {c}"),
         })
         .collect::<Vec<_>>()
         .join(", ");
@@ -192,8 +348,8 @@ pub fn draw_particles(
         d,
         title,
         &[
-            format!("{} PARTICLES, SEEN BY CAMERAS: {by}", particles.len()),
-            "COLOUR: 2 ORANGE, 3 YELLOW, 4 GREEN, 5+ CYAN".to_owned(),
+            format!("{} particles, seen by cameras: {by}", particles.len()),
+            "Colour: 2 orange, 3 yellow, 4 green, 5+ cyan".to_owned(),
         ],
     );
     // The best-seen particles on top.
@@ -274,26 +430,30 @@ pub fn draw_trajectories(
     let points: usize = trajectories.iter().map(Vec::len).sum();
     let top = speed_scale(trajectories);
     let mut lines = vec![format!(
-        "{} TRAJECTORIES, {points} POINTS; COLOUR: SPEED (MM PER FRAME)",
+        "{} trajectories, {points} points; colour: speed (mm per frame)",
         trajectories.len()
     )];
     if !note.is_empty() {
         lines.push(note.to_owned());
     }
     layout.frame(d, title, &lines);
-    // The colour bar, right of the title.
-    let (bx, by) = (layout.width as i64 - MARGIN - 200 - 60, MARGIN + 4);
+    // The colour bar, right of the title, its label's whole width inside
+    // the picture.
+    let label = format!("{} mm/frame", format_value(top));
+    let bar = 200;
+    let bx = layout.width as i64 - RIGHT - text_width(&label, 1) as i64 - 6 - bar;
+    let by = MARGIN + 4;
     d.text(bx - text_width("0 ", 1) as i64, by, "0", 1, BLACK);
-    for i in 0..200 {
-        d.fill_rect(bx + i, by - 2, 1, 11, speed_colour(i as f64 / 199.0));
+    for i in 0..bar {
+        d.fill_rect(
+            bx + i,
+            by + 2,
+            1,
+            text_height(1) as i64 - 4,
+            speed_colour(i as f64 / (bar - 1) as f64),
+        );
     }
-    d.text(
-        bx + 206,
-        by,
-        &format!("{} MM/FRAME", format_value(top)),
-        1,
-        BLACK,
-    );
+    d.text(bx + bar + 6, by, &label, 1, BLACK);
     for view in 0..3 {
         for t in trajectories {
             for w in t.windows(2) {
@@ -372,5 +532,87 @@ mod tests {
             *image.get_pixel(x.round() as u32, y.round() as u32),
             speed_colour(1.0)
         );
+    }
+
+    #[test]
+    fn ticks_are_round_and_labelled() {
+        assert_eq!(tick_step(100.0, 5), 20.0);
+        assert_eq!(tick_step(7.3, 5), 2.0);
+        assert_eq!(tick_step(0.37, 5), 0.1);
+        assert_eq!(tick_step(f64::NAN, 5), 1.0);
+        assert_eq!(tick_label(-20.0, 20.0), "−20");
+        assert_eq!(tick_label(-0.0, 20.0), "0");
+        assert_eq!(tick_label(0.30000000000000004, 0.1), "0.3");
+        assert_eq!(tick_label(1.5, 0.05), "1.50");
+        // A view 40 mm across: ticks every 10 mm, at the values' places.
+        let layout = ViewsLayout::new(Point3::new(-20.0, -20.0, 0.0), Point3::new(20.0, 20.0, 1.0));
+        let (step, ticks) = layout.ticks(0);
+        assert_eq!(step, 10.0);
+        let values: Vec<f64> = ticks.iter().map(|t| t.0).collect();
+        assert_eq!(values, vec![-20.0, -10.0, 0.0, 10.0, 20.0]);
+        for (value, along) in ticks {
+            let (x, _) = layout.point(0, &Point3::new(value, 0.0, 0.0));
+            let x0 = layout.panel(0).0 as f64;
+            assert!((x - x0 - along).abs() < 1e-9);
+        }
+    }
+
+    #[test]
+    fn every_label_fits_and_none_overlap() {
+        let cases = [
+            (
+                Point3::new(-20.0, -20.0, -5.0),
+                Point3::new(20.0, 25.0, 5.0),
+            ),
+            (
+                Point3::new(-1234.5, 0.0, 1000.0),
+                Point3::new(-1100.0, 0.004, 1000.5),
+            ),
+            (
+                Point3::new(0.001, 0.002, 0.003),
+                Point3::new(0.0012, 0.0021, 0.0035),
+            ),
+            (
+                Point3::new(-15000.0, -5.0, -7.0),
+                Point3::new(15000.0, 5.0, 7.0),
+            ),
+        ];
+        for (min, max) in cases {
+            let particles = vec![
+                ParticlePoint {
+                    position: min,
+                    cameras: 4,
+                },
+                ParticlePoint {
+                    position: max,
+                    cameras: 2,
+                },
+            ];
+            let layout = ViewsLayout::of(particles.iter().map(|p| p.position));
+            let boxes = crate::plot::TextBoxes::of((layout.width, layout.height), |d| {
+                draw_particles(d, "Sequence 12345, frame 4294967295", &particles, &layout)
+            });
+            boxes.assert_fit();
+            // Every axis has at least three labelled ticks.
+            for k in 0..3 {
+                let (step, ticks) = layout.ticks(k);
+                assert!(ticks.len() >= 4, "{min} {max}: axis {k}: {ticks:?}");
+                for (value, _) in ticks {
+                    assert!(boxes.has(&tick_label(value, step)), "{value}");
+                }
+            }
+            let point = |frame, position, speed: f64| TrajectoryPoint {
+                frame,
+                position,
+                velocity: Some(Vector3::new(speed, 0.0, 0.0)),
+            };
+            let all = vec![vec![point(0, min, 2.577), point(1, max, 2.577)]];
+            let note = "The first 1 of 123456 trajectories (at most 200000 points)";
+            let boxes = crate::plot::TextBoxes::of((layout.width, layout.height), |d| {
+                draw_trajectories(d, "Sequence 12345, tracking run 678", note, &all, &layout)
+            });
+            boxes.assert_fit();
+            assert!(boxes.has("2.577 mm/frame"), "{:?}", boxes.texts);
+        }
     }
 }

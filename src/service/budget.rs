@@ -30,6 +30,17 @@
 //! - The needs are estimates on the safe side, from figures measured on
 //!   this code ([`DETECT_BYTES_PER_PIXEL`]); they bound the work's own
 //!   allocations, not the process's baseline (the idle server, caches).
+//! - Which work takes a grant, and its need: a frame ([`frame_need`]), a
+//!   computed background ([`background_bytes`]), a calibration solve
+//!   (`jobs::solve_need`), a self-calibration ([`selfcal_need`], from the
+//!   stored target counts of its frames, before they are read), a
+//!   reprocessing (one frame at a time, [`reprocess_need`]) and a tracking
+//!   run (each frame it takes, [`tracking_need`], from the particles the
+//!   tracker holds and the frame's). A tracking run holds no grant between
+//!   frames, so a run waiting for frames never keeps their jobs waiting for
+//!   memory.
+//! - Grants of a quarter of the budget or more are logged when taken
+//!   (with the wait) and released, numbered: when the large jobs ran.
 
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
@@ -145,6 +156,114 @@ pub fn background_bytes(
         .saturating_add(compressed)
 }
 
+/// The fewest frames a median background may keep when the budget is too
+/// small for more: the builder keeps between half its bound and its bound
+/// ([`crate::photogrammetry::background`]), so a bound of 6 keeps at least
+/// 3 frames, the fewest whose lower median rejects a particle that covers
+/// a pixel in one of them.
+pub const LEAST_MEDIAN_SAMPLE: u64 = 6;
+
+/// The sample bound `K` a median background of `frames` frames may use
+/// within `budget_bytes`: the largest even `K` of at most `most` whose
+/// [`background_bytes`] (with `min(frames, K)` frames kept) fits, or
+/// `None` when not even [`LEAST_MEDIAN_SAMPLE`] does. So a large sensor
+/// on a small budget gets a median of fewer frames rather than a job that
+/// can never run (issue 29: one camera at a time, `K` bounded by the
+/// memory it would need).
+pub fn median_sample_within(
+    budget_bytes: u64,
+    most: u64,
+    frames: u64,
+    view: u64,
+    image: u64,
+    sample_bytes: u64,
+    compressed: u64,
+) -> Option<u64> {
+    let fits = |k: u64| {
+        background_bytes(frames.min(k), view, image, sample_bytes, compressed) <= budget_bytes
+    };
+    let mut k = most - most % 2;
+    while k >= LEAST_MEDIAN_SAMPLE {
+        if fits(k) {
+            return Some(k);
+        }
+        k -= 2;
+    }
+    None
+}
+
+/// Most parameters one camera may have adjusted in a self-calibration:
+/// its exterior orientation (6) and every interior one OpenPTV names
+/// (xh, yh, c, k1, k2, k3, p1, p2, scx, she: 10).
+const SELFCAL_PARAMETERS_PER_CAMERA: u64 = 16;
+
+/// A self-calibration's need: every frame's targets held at once
+/// (`targets` of them, `size_of::<Target>()` each), each matched
+/// ([`MATCH_BYTES_PER_TARGET`]: every frame's matches are kept for the
+/// adjustment), and the bundle adjustment's share per target: a particle
+/// has 3 unknowns and a normal-equation block of 3 x (3 + 16 per camera)
+/// f64 against itself and the cameras' parameters, and at least two
+/// targets, so half that per target. See
+/// [`crate::photogrammetry::selfcal`].
+pub fn selfcal_need(targets: u64, cameras: usize, frames: usize) -> MemoryNeed {
+    let target = std::mem::size_of::<crate::photogrammetry::Target>() as u64;
+    let adjust = 3 * (3 + SELFCAL_PARAMETERS_PER_CAMERA * cameras as u64) * 8 / 2;
+    let per_target = target + MATCH_BYTES_PER_TARGET + adjust;
+    MemoryNeed::new(
+        targets.saturating_mul(per_target),
+        format!(
+            "self-calibrating {cameras} camera(s) from {targets} targets of {frames} frame(s) \
+             ({per_target} bytes per target: the target, its matching, its share of the \
+             adjustment)"
+        ),
+    )
+}
+
+/// Reprocessing one frame's need: its stored targets (`targets`, their
+/// stored encoding `stored_bytes`) decoded and matched again
+/// ([`MATCH_BYTES_PER_TARGET`] each), one frame at a time.
+pub fn reprocess_need(frame: i64, targets: u64, stored_bytes: u64) -> MemoryNeed {
+    let target = std::mem::size_of::<crate::photogrammetry::Target>() as u64;
+    MemoryNeed::new(
+        targets
+            .saturating_mul(target + MATCH_BYTES_PER_TARGET)
+            .saturating_add(stored_bytes),
+        format!("matching frame {frame}'s {targets} stored targets again"),
+    )
+}
+
+/// Bytes a particle takes in the tracker, per frame it is held: its
+/// position and uncertainty, its place in a trajectory (the trajectory's
+/// points and polynomial fits over the decision window), its spatial
+/// index entry and its text of targets for the stored rows.
+pub const TRACK_BYTES_PER_PARTICLE: u64 = 512;
+
+/// Bytes of one candidate link the tracker weighs for a particle (the
+/// pair, its cost, and its look-ahead partner).
+pub const TRACK_BYTES_PER_LINK: u64 = 48;
+
+/// A tracking step's need: the particles of the frames the tracker holds
+/// (`held`, the frames within its report delay), the new frame's
+/// `particles` with their candidate links (at most
+/// [`crate::photogrammetry::track::MAX_CANDIDATES`] each), and with
+/// image-space recovery the frame's `targets` matched
+/// ([`MATCH_BYTES_PER_TARGET`]).
+pub fn tracking_need(frame: i64, held: u64, particles: u64, targets: u64) -> MemoryNeed {
+    let links = particles
+        .saturating_mul(crate::photogrammetry::track::MAX_CANDIDATES as u64)
+        .saturating_mul(TRACK_BYTES_PER_LINK);
+    MemoryNeed::new(
+        held.saturating_add(particles)
+            .saturating_mul(TRACK_BYTES_PER_PARTICLE)
+            .saturating_add(links)
+            .saturating_add(targets.saturating_mul(MATCH_BYTES_PER_TARGET)),
+        format!(
+            "tracking frame {frame}: {particles} particles, {held} held from earlier frames, \
+             {targets} targets for recovery"
+        ),
+    )
+}
+
 /// The process's memory budget: a semaphore of MiB (module doc).
 #[derive(Debug)]
 pub struct MemoryBudget {
@@ -152,6 +271,7 @@ pub struct MemoryBudget {
     permits: Arc<Semaphore>,
     metrics: Option<Arc<Metrics>>,
     waiting: AtomicU64,
+    granted: AtomicU64,
 }
 
 /// MiB held by a job until dropped.
@@ -160,6 +280,10 @@ pub struct Grant {
     mib: u64,
     _permit: Option<OwnedSemaphorePermit>,
     metrics: Option<Arc<Metrics>>,
+    /// The grant's number in this process and what it is for, when its
+    /// taking was logged (a large share of the budget): its release is
+    /// logged too.
+    logged: Option<(u64, String)>,
 }
 
 impl Grant {
@@ -174,8 +298,17 @@ impl Drop for Grant {
         if let Some(metrics) = &self.metrics {
             metrics.memory_released(self.mib);
         }
+        if let Some((number, what)) = &self.logged {
+            tracing::info!(
+                "memory released: grant {number}, {} MiB, for {what}",
+                self.mib
+            );
+        }
     }
 }
+
+/// Grants of at least 1/this of the budget are logged (taken, released).
+const LOGGED_SHARE: u64 = 4;
 
 /// The largest budget a semaphore holds (MiB): tokio's limit on permits,
 /// far above any machine's memory.
@@ -193,6 +326,7 @@ impl MemoryBudget {
             permits: Arc::new(Semaphore::new(total_mib as usize)),
             metrics,
             waiting: AtomicU64::new(0),
+            granted: AtomicU64::new(0),
         }
     }
 
@@ -231,25 +365,58 @@ impl MemoryBudget {
     pub async fn acquire(&self, need: &MemoryNeed) -> Result<Grant, JobError> {
         self.check(need).map_err(JobError::Failed)?;
         let mib = need.mib();
+        let asked = std::time::Instant::now();
         let permit = if mib == 0 {
             None
         } else {
-            self.waiting.fetch_add(1, Ordering::Relaxed);
+            // Counted as waiting until the permit comes or the wait is
+            // dropped (a job cancelled while it waits).
+            let _waiting = Waiting::count(&self.waiting);
             let permit = Arc::clone(&self.permits)
                 .acquire_many_owned(mib as u32)
                 .await;
-            self.waiting.fetch_sub(1, Ordering::Relaxed);
             // The semaphore is never closed.
             Some(permit.map_err(|_| JobError::Retry("the memory budget was closed".into()))?)
         };
         if let Some(metrics) = &self.metrics {
             metrics.memory_reserved(mib);
         }
+        // The grants that make others wait (a quarter of the budget or
+        // more) are logged when taken and when released: when the large
+        // jobs ran, and for how long they waited.
+        let logged = (mib > 0 && mib.saturating_mul(LOGGED_SHARE) >= self.total_mib).then(|| {
+            let number = self.granted.fetch_add(1, Ordering::Relaxed);
+            tracing::info!(
+                "memory granted: grant {number}, {mib} MiB of {} MiB, after {:.1} s waiting, \
+                 for {}",
+                self.total_mib,
+                asked.elapsed().as_secs_f64(),
+                need.what
+            );
+            (number, need.what.clone())
+        });
         Ok(Grant {
             mib,
             _permit: permit,
             metrics: self.metrics.clone(),
+            logged,
         })
+    }
+}
+
+/// One job in the budget's `waiting` count, for as long as it lives.
+struct Waiting<'a>(&'a AtomicU64);
+
+impl<'a> Waiting<'a> {
+    fn count(waiting: &'a AtomicU64) -> Waiting<'a> {
+        waiting.fetch_add(1, Ordering::Relaxed);
+        Waiting(waiting)
+    }
+}
+
+impl Drop for Waiting<'_> {
+    fn drop(&mut self) {
+        self.0.fetch_sub(1, Ordering::Relaxed);
     }
 }
 
@@ -370,6 +537,36 @@ mod tests {
         );
     }
 
+    #[test]
+    fn a_median_background_keeps_fewer_frames_on_a_small_budget() {
+        let px = 8192 * 8192;
+        let need = |k| background_bytes(k, px, px, 2, 0);
+        // The whole sample fits a large budget; a short recording keeps
+        // all its frames whatever the bound.
+        assert_eq!(
+            median_sample_within(need(32), 32, 100, px, px, 2, 0),
+            Some(32)
+        );
+        assert_eq!(
+            median_sample_within(need(10), 32, 10, px, px, 2, 0),
+            Some(32)
+        );
+        // One byte short of 32 frames: the next even bound, 30.
+        assert_eq!(
+            median_sample_within(need(32) - 1, 32, 100, px, px, 2, 0),
+            Some(30)
+        );
+        // 2 GiB holds 12 frames of 128 MiB beside the 4 images of 128 MiB.
+        assert_eq!(
+            median_sample_within(2 << 30, 32, 100, px, px, 2, 0),
+            Some(12)
+        );
+        // Less than the least sample: no median at all.
+        let least = need(LEAST_MEDIAN_SAMPLE);
+        assert_eq!(median_sample_within(least, 32, 100, px, px, 2, 0), Some(6));
+        assert_eq!(median_sample_within(least - 1, 32, 100, px, px, 2, 0), None);
+    }
+
     #[tokio::test]
     async fn jobs_wait_for_each_other_within_the_budget() {
         let budget = Arc::new(MemoryBudget::new(100, None));
@@ -396,6 +593,23 @@ mod tests {
         assert_eq!(budget.available_mib(), 40);
         drop(second);
         assert_eq!(budget.available_mib(), 100);
+    }
+
+    #[tokio::test]
+    async fn a_wait_given_up_is_no_longer_counted_as_waiting() {
+        let budget = MemoryBudget::new(100, None);
+        let _held = budget
+            .acquire(&MemoryNeed::new(60 * MIB, "a"))
+            .await
+            .unwrap();
+        // A job cancelled while it waits (its future dropped at the timeout).
+        let gave_up = tokio::time::timeout(
+            Duration::from_millis(50),
+            budget.acquire(&MemoryNeed::new(60 * MIB, "b")),
+        )
+        .await;
+        assert!(gave_up.is_err());
+        assert_eq!(budget.waiting(), 0);
     }
 
     #[tokio::test]

@@ -407,6 +407,14 @@ pub struct Timeouts {
           default_value_t = Timeouts::BODY_RATE_WINDOW_SECS,
           value_parser = clap::value_parser!(u64).range(1..=3600))]
     pub body_rate_window_secs: u64,
+    /// Seconds an answer's write may make no progress (the client reads
+    /// none of it); then the connection is closed. A client that reads a
+    /// large answer slowly is never cut off by it, only one that stops
+    /// reading; at the connection limit such a connection stalled for a
+    /// second makes room for a new one.
+    #[arg(long = "write-timeout-secs", env = "PTV_WRITE_TIMEOUT_SECS",
+          default_value_t = Timeouts::WRITE_SECS, value_parser = clap::value_parser!(u64).range(1..))]
+    pub write_secs: u64,
 }
 
 impl Timeouts {
@@ -423,6 +431,13 @@ impl Timeouts {
     pub const MIN_BODY_RATE: u64 = 1024;
     /// Default of `--body-rate-window-secs`.
     pub const BODY_RATE_WINDOW_SECS: u64 = 10;
+    /// Default of `--write-timeout-secs`: as a body's pause.
+    pub const WRITE_SECS: u64 = 30;
+
+    /// `--write-timeout-secs`.
+    pub fn write(&self) -> Duration {
+        Duration::from_secs(self.write_secs)
+    }
 
     /// `--header-timeout-secs`.
     pub fn header(&self) -> Duration {
@@ -453,6 +468,7 @@ impl Default for Timeouts {
             request_secs: Timeouts::REQUEST_SECS,
             min_body_rate: Timeouts::MIN_BODY_RATE,
             body_rate_window_secs: Timeouts::BODY_RATE_WINDOW_SECS,
+            write_secs: Timeouts::WRITE_SECS,
         }
     }
 }

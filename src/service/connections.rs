@@ -33,8 +33,22 @@
 //! before hyper reads them, which notes each request head that declares
 //! both `Content-Length` and `Transfer-Encoding` (hyper drops the length
 //! before the service could see it); such a request carries a
-//! [`ConflictingFraming`] extension and `http::layers` refuses it with a
-//! 400 (RFC 9112 section 6.1).
+//! [`RefusedFraming`] extension and `http::layers` refuses it with a 400
+//! and closes the connection (RFC 9112 section 6.1). The scan fails
+//! closed: a request it has no note for (it stopped following the
+//! connection) is refused the same way, and so is a `CONNECT` (the
+//! service is no proxy). An `Upgrade:` header is followed as plain HTTP:
+//! the service never answers 101, so hyper reads what follows as the next
+//! request, and so does the scan.
+//!
+//! An answer's write that makes no progress for `--write-timeout-secs`
+//! (the client reads none of it: a large particles CSV or PNG asked for
+//! and never read) ends the connection, so a client that stops reading
+//! holds its slot for that long at most; and at the limit, a connection
+//! whose write has been stalled for a second (after the idle ones) is
+//! closed to let a new one in. A slow reader that keeps reading is not
+//! cut off by the timeout (every bit of progress restarts it), only by
+//! that eviction at the limit.
 //!
 //! A request refused before its body was read (401, 404, 413, 415 ...)
 //! would leave the client's unread upload in the socket, and closing a
@@ -158,6 +172,9 @@ struct Connection {
     meter: Mutex<Option<Arc<Meter>>>,
     /// The scan of the incoming bytes for conflicting framing.
     framing: Mutex<framing::Framing>,
+    /// Since when a write to the client has made no progress, if one is
+    /// waiting (the client reads none of its answer).
+    write_stalled: Mutex<Option<Instant>>,
     /// Cancels the connection's task.
     task: OnceLock<AbortHandle>,
 }
@@ -165,6 +182,10 @@ struct Connection {
 impl Connection {
     fn meter(&self) -> Option<Arc<Meter>> {
         self.meter.lock().unwrap_or_else(|e| e.into_inner()).clone()
+    }
+
+    fn write_stalled(&self) -> std::sync::MutexGuard<'_, Option<Instant>> {
+        self.write_stalled.lock().unwrap_or_else(|e| e.into_inner())
     }
 }
 
@@ -220,6 +241,7 @@ impl Registry {
             too_slow: AtomicBool::new(false),
             meter: Mutex::new(None),
             framing: Mutex::default(),
+            write_stalled: Mutex::new(None),
             task: OnceLock::new(),
         });
         let open = {
@@ -281,6 +303,42 @@ impl Registry {
         };
         meter.evict(rate);
         self.metrics.slow_body_evicted();
+        true
+    }
+
+    /// The connection whose write has made no progress longest, for at
+    /// least `min`, other than `except`, if any.
+    fn longest_stalled_writer(&self, except: u64, min: Duration) -> Option<u64> {
+        let now = Instant::now();
+        self.lock()
+            .iter()
+            .filter(|(id, c)| **id != except && c.idle.load(Ordering::Relaxed) != EVICTED)
+            .filter_map(|(id, c)| {
+                let stalled = now.saturating_duration_since((*c.write_stalled())?);
+                (stalled >= min).then_some((stalled, *id))
+            })
+            .max()
+            .map(|(_, id)| id)
+    }
+
+    /// Closes the connection whose answer has been stalled longest (its
+    /// client reads none of it), for at least `min`, other than `except`;
+    /// false if there is none.
+    fn evict_stalled_writer(&self, except: u64, min: Duration) -> bool {
+        let Some(id) = self.longest_stalled_writer(except, min) else {
+            return false;
+        };
+        let mut open = self.lock();
+        let Some(connection) = open.remove(&id) else {
+            return false;
+        };
+        connection.idle.store(EVICTED, Ordering::Release);
+        if let Some(task) = connection.task.get() {
+            task.abort();
+        }
+        let len = open.len();
+        drop(open);
+        self.metrics.connection_evicted(len);
         true
     }
 
@@ -356,6 +414,8 @@ pub struct Settings {
     pub linger_total: Duration,
     /// The least rate a request body must arrive at (`None`: any).
     pub body_rate: Option<BodyRate>,
+    /// How long a write to the client may make no progress.
+    pub write_timeout: Duration,
 }
 
 impl Settings {
@@ -371,6 +431,7 @@ impl Settings {
                 bytes_per_second: timeouts.min_body_rate,
                 window: timeouts.body_rate_window(),
             }),
+            write_timeout: timeouts.write(),
         }
     }
 }
@@ -427,6 +488,9 @@ pub async fn serve(
         if registry.len() >= registry.max
             && !registry.any_idle_for(EVICTION_GRACE)
             && !registry.any_slow_body(rate.as_ref())
+            && registry
+                .longest_stalled_writer(u64::MAX, EVICTION_GRACE)
+                .is_none()
         {
             let changed = registry.changed.notified();
             tokio::select! {
@@ -460,6 +524,7 @@ pub async fn serve(
         let _ = connection.task.set(task.abort_handle());
         if registry.len() > registry.max
             && !registry.evict_oldest_idle(id, EVICTION_GRACE)
+            && !registry.evict_stalled_writer(id, EVICTION_GRACE)
             && !registry.evict_slowest_body(rate.as_ref())
             && !registry.evict_oldest_idle(id, Duration::ZERO)
         {
@@ -522,6 +587,8 @@ async fn serve_connection(
     let stream = Scanned {
         stream,
         connection: registered.connection.clone(),
+        write_timeout: settings.write_timeout,
+        stall_timer: None,
     };
     let mut connection = http.serve_connection(TokioIo::new(stream), service);
     let mut stopping = *stopped.borrow();
@@ -569,10 +636,50 @@ async fn serve_connection(
 }
 
 /// A connection's socket, its incoming bytes scanned for conflicting
-/// framing ([`framing::Framing`]) before hyper reads them.
+/// framing ([`framing::Framing`]) before hyper reads them, its writes
+/// bounded: one that makes no progress for the write timeout fails
+/// (`TimedOut`), which ends the connection.
 struct Scanned {
     stream: TcpStream,
     connection: Arc<Connection>,
+    write_timeout: Duration,
+    /// Ends the stalled write, from its first `Pending`.
+    stall_timer: Option<Pin<Box<tokio::time::Sleep>>>,
+}
+
+impl Scanned {
+    /// A write's outcome, with the stall noted: a `Pending` write starts
+    /// (or goes on) the stall, which fails once it lasts the write
+    /// timeout; any progress ends it.
+    fn bounded<T>(
+        &mut self,
+        cx: &mut Context<'_>,
+        polled: Poll<std::io::Result<T>>,
+    ) -> Poll<std::io::Result<T>> {
+        if polled.is_ready() {
+            if self.stall_timer.take().is_some() {
+                *self.connection.write_stalled() = None;
+            }
+            return polled;
+        }
+        let timeout = self.write_timeout;
+        let timer = self.stall_timer.get_or_insert_with(|| {
+            self.connection
+                .write_stalled()
+                .get_or_insert_with(Instant::now);
+            Box::pin(tokio::time::sleep(timeout))
+        });
+        if timer.as_mut().poll(cx).is_ready() {
+            return Poll::Ready(Err(std::io::Error::new(
+                std::io::ErrorKind::TimedOut,
+                format!(
+                    "the client read none of its answer for {} s (--write-timeout-secs)",
+                    timeout.as_secs()
+                ),
+            )));
+        }
+        Poll::Pending
+    }
 }
 
 impl AsyncRead for Scanned {
@@ -600,7 +707,8 @@ impl AsyncWrite for Scanned {
         cx: &mut Context<'_>,
         buf: &[u8],
     ) -> Poll<std::io::Result<usize>> {
-        Pin::new(&mut self.stream).poll_write(cx, buf)
+        let polled = Pin::new(&mut self.stream).poll_write(cx, buf);
+        self.bounded(cx, polled)
     }
 
     fn poll_write_vectored(
@@ -608,7 +716,8 @@ impl AsyncWrite for Scanned {
         cx: &mut Context<'_>,
         bufs: &[std::io::IoSlice<'_>],
     ) -> Poll<std::io::Result<usize>> {
-        Pin::new(&mut self.stream).poll_write_vectored(cx, bufs)
+        let polled = Pin::new(&mut self.stream).poll_write_vectored(cx, bufs);
+        self.bounded(cx, polled)
     }
 
     fn is_write_vectored(&self) -> bool {
@@ -624,11 +733,57 @@ impl AsyncWrite for Scanned {
     }
 }
 
-/// The extension of a request whose head declared both `Content-Length`
-/// and `Transfer-Encoding` (hyper keeps only the latter): `http::layers`
-/// refuses it with a 400.
-#[derive(Clone, Copy, Debug)]
-pub struct ConflictingFraming;
+/// The extension of a request whose framing the service refuses:
+/// `http::layers` answers it with a 400 and closes the connection. The
+/// scan fails closed: a request it has no note for is refused too.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum RefusedFraming {
+    /// Its head declared both `Content-Length` and `Transfer-Encoding`
+    /// (hyper keeps only the latter).
+    Conflicting,
+    /// The scan stopped following the connection's bytes before its head
+    /// ([`framing::Framing`] lost), so whether it declared both is not
+    /// known.
+    Unfollowed,
+    /// A `CONNECT`: the service is no proxy, and what follows a `CONNECT`
+    /// is not followed by the scan.
+    Connect,
+}
+
+impl RefusedFraming {
+    /// What is wrong and what to do, for the 400's detail.
+    pub fn reason(self) -> &'static str {
+        match self {
+            RefusedFraming::Conflicting => {
+                "the request declares both Content-Length and Transfer-Encoding, which frame \
+                 its body differently (RFC 9112 section 6.1); send one of them"
+            }
+            RefusedFraming::Unfollowed => {
+                "an earlier request on this connection was framed in a way the service does \
+                 not follow (a Content-Length it cannot parse, such as a list), so it cannot \
+                 tell where this request begins; send it again on a new connection, with one \
+                 plain Content-Length or Transfer-Encoding: chunked"
+            }
+            RefusedFraming::Connect => {
+                "the service is not a proxy and does not take CONNECT; send the request itself \
+                 to the service"
+            }
+        }
+    }
+
+    /// The verdict on a request with method `method`, given the scan's
+    /// note for its head (`None`: the scan has none).
+    fn of(method: &hyper::Method, note: Option<bool>) -> Option<RefusedFraming> {
+        if method == hyper::Method::CONNECT {
+            return Some(RefusedFraming::Connect);
+        }
+        match note {
+            Some(false) => None,
+            Some(true) => Some(RefusedFraming::Conflicting),
+            None => Some(RefusedFraming::Unfollowed),
+        }
+    }
+}
 
 /// Shuts the write side (the answer is complete) and reads and discards
 /// what the client still sends, within the settings' bounds, so that the
@@ -681,13 +836,13 @@ impl hyper::service::Service<hyper::Request<Incoming>> for ConnectionService {
             .meter
             .lock()
             .unwrap_or_else(|e| e.into_inner()) = Some(meter.clone());
-        let conflicting = self
+        let note = self
             .connection
             .framing
             .lock()
             .unwrap_or_else(|e| e.into_inner())
-            .take_note()
-            == Some(true);
+            .take_note();
+        let refused = RefusedFraming::of(request.method(), note);
         let busy = Busy {
             registry: self.registry.clone(),
             connection: self.connection.clone(),
@@ -702,8 +857,8 @@ impl hyper::service::Service<hyper::Request<Incoming>> for ConnectionService {
                 timer: None,
             })
         });
-        if conflicting {
-            request.extensions_mut().insert(ConflictingFraming);
+        if let Some(refused) = refused {
+            request.extensions_mut().insert(refused);
         }
         let router = self.router.clone();
         Box::pin(async move {
@@ -1036,6 +1191,149 @@ mod tests {
         assert_eq!(default_max_connections(Some(1024), 2, 6), 840);
         assert_eq!(default_max_connections(Some(100), 2, 6), 50);
         assert_eq!(default_max_connections(Some(10_000_000), 2, 6), 65_536);
+    }
+
+    /// Fail closed: a request without a note (the scan stopped
+    /// following) is refused, as is every CONNECT.
+    #[test]
+    fn requests_the_scan_cannot_vouch_for_are_refused() {
+        use hyper::Method;
+        assert_eq!(RefusedFraming::of(&Method::POST, Some(false)), None);
+        assert_eq!(
+            RefusedFraming::of(&Method::POST, Some(true)),
+            Some(RefusedFraming::Conflicting)
+        );
+        assert_eq!(
+            RefusedFraming::of(&Method::GET, None),
+            Some(RefusedFraming::Unfollowed)
+        );
+        assert_eq!(
+            RefusedFraming::of(&Method::CONNECT, Some(false)),
+            Some(RefusedFraming::Connect)
+        );
+    }
+
+    /// Serves `router` on a new port with `max` connections and a write
+    /// timeout of `write_timeout`: its address, registry, and its stop.
+    async fn serve_for_test(
+        router: Router,
+        max: usize,
+        write_timeout: Duration,
+    ) -> (
+        std::net::SocketAddr,
+        Arc<Registry>,
+        tokio::sync::oneshot::Sender<()>,
+    ) {
+        let listener = TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let address = listener.local_addr().unwrap();
+        let registry = Arc::new(Registry::new(max, Arc::new(Metrics::default())));
+        let settings = Settings {
+            header_timeout: Duration::from_secs(30),
+            linger_bytes: 0,
+            linger_pause: Duration::from_secs(1),
+            linger_total: Duration::from_secs(1),
+            body_rate: None,
+            write_timeout,
+        };
+        let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
+        tokio::spawn(serve(listener, router, registry.clone(), settings, async {
+            let _ = stopped.await;
+        }));
+        (address, registry, stop)
+    }
+
+    /// A router with a large answer streamed in 1 MiB pieces (64 MiB:
+    /// more than the socket buffers of both ends hold, so a client that
+    /// reads none of it stalls the write while the answer is still in
+    /// flight, as a particles CSV's) and a small one.
+    fn large_and_small() -> Router {
+        Router::new()
+            .route(
+                "/large",
+                axum::routing::get(|| async {
+                    let pieces = (0..64).map(|_| Ok::<_, Infallible>(vec![b'x'; 1 << 20]));
+                    Body::from_stream(futures_util::stream::iter(pieces))
+                }),
+            )
+            .route("/small", axum::routing::get(|| async { "small" }))
+    }
+
+    /// Sends `GET path` on a new connection and reads nothing.
+    async fn ask_and_never_read(address: std::net::SocketAddr, path: &str) -> TcpStream {
+        let mut stream = TcpStream::connect(address).await.unwrap();
+        let request = format!("GET {path} HTTP/1.1\r\nHost: x\r\n\r\n");
+        stream.write_all(request.as_bytes()).await.unwrap();
+        stream
+    }
+
+    /// Reads `GET /small`'s whole answer on a new connection.
+    async fn small_answer(address: std::net::SocketAddr) -> String {
+        let mut stream = TcpStream::connect(address).await.unwrap();
+        let request = "GET /small HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n";
+        stream.write_all(request.as_bytes()).await.unwrap();
+        let mut answer = Vec::new();
+        stream.read_to_end(&mut answer).await.unwrap();
+        String::from_utf8_lossy(&answer).into_owned()
+    }
+
+    /// Issue 29, slow readers: a client that asks for a large answer and
+    /// reads none of it holds its connection for the write timeout (here
+    /// 1 s) and no longer; the connection is then closed.
+    #[tokio::test]
+    async fn a_client_that_never_reads_its_answer_is_closed_after_the_write_timeout() {
+        let timeout = Duration::from_secs(1);
+        let (address, registry, _stop) = serve_for_test(large_and_small(), 100, timeout).await;
+        let _client = ask_and_never_read(address, "/large").await;
+        // The write stalls once the socket buffers are full...
+        let started = Instant::now();
+        while registry
+            .longest_stalled_writer(u64::MAX, Duration::ZERO)
+            .is_none()
+        {
+            assert!(
+                started.elapsed() < Duration::from_secs(30),
+                "no write stalled"
+            );
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+        assert_eq!(registry.len(), 1);
+        // ...then fails after the timeout, closing the connection
+        // (patience 30 s for a loaded machine).
+        let stalled = Instant::now();
+        while !registry.is_empty() {
+            assert!(
+                stalled.elapsed() < Duration::from_secs(30),
+                "the stalled connection is still open"
+            );
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    }
+
+    /// At the connection limit (here 1) a connection whose answer has
+    /// been stalled for the eviction grace is closed to let a new client
+    /// in, long before its write timeout (here 600 s).
+    #[tokio::test]
+    async fn a_stalled_reader_makes_room_at_the_connection_limit() {
+        let timeout = Duration::from_secs(600);
+        let (address, registry, _stop) = serve_for_test(large_and_small(), 1, timeout).await;
+        let _client = ask_and_never_read(address, "/large").await;
+        // Until its write has stalled.
+        let started = Instant::now();
+        while registry
+            .longest_stalled_writer(u64::MAX, Duration::ZERO)
+            .is_none()
+        {
+            assert!(
+                started.elapsed() < Duration::from_secs(30),
+                "no write stalled"
+            );
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+        let answer = tokio::time::timeout(Duration::from_secs(60), small_answer(address))
+            .await
+            .expect("the new client got in");
+        assert!(answer.starts_with("HTTP/1.1 200 "), "{answer}");
+        assert!(answer.ends_with("small"), "{answer}");
     }
 
     fn noop_waker() -> Waker {

@@ -411,8 +411,10 @@ pub async fn prepare_pipeline(
     parameters: &SequenceParameters,
     cancel: &Cancel,
 ) -> Result<(FramePipeline, Option<Splitter>), PrepareError> {
-    let (cameras, splitter) =
-        formats::calibration::from_json_with_splitter(calibration_model, "the stored calibration")?;
+    let (cameras, splitter) = formats::calibration::stored_from_json_with_splitter(
+        calibration_model,
+        "the stored calibration",
+    )?;
     let detection = parameters.detection();
     let matching = parameters.matching();
     let cancel = cancel.clone();
@@ -999,7 +1001,7 @@ pub async fn process_frame(state: Arc<AppState>, run: JobRun) -> Result<(), JobE
                 .calibration(input.calibration_id)
                 .await?
                 .ok_or_else(|| JobError::Failed("the sequence's calibration is gone".into()))?;
-            let (cameras, splitter) = formats::calibration::from_json_with_splitter(
+            let (cameras, splitter) = formats::calibration::stored_from_json_with_splitter(
                 &calibration.model,
                 "the stored calibration",
             )

@@ -100,7 +100,10 @@ pub async fn with_stored_images(
 /// 8192x8192 16-bit camera, 32 x 128 MiB + 4 x 128 MiB = 4.5 GiB however
 /// many cameras the sequence has (all cameras at once took 8.3 GiB for
 /// two). The job takes that from the memory budget first
-/// ([`super::budget`]). With a splitter every frame's image is decoded
+/// ([`super::budget`]). Where the budget is smaller, the median keeps
+/// fewer frames, as many as fit
+/// ([`super::budget::median_sample_within`]; 12 of 128 MiB in 2 GiB),
+/// and only a budget below the least sample fails the job. With a splitter every frame's image is decoded
 /// once per camera, the price of holding one camera's frames only.
 pub async fn ensure_computed_background(
     state: &Arc<AppState>,
@@ -156,7 +159,8 @@ pub async fn ensure_computed_background(
         let images = state.store.frame_images(sequence_id, frame).await?;
         inputs.push((frame, layout, images));
     }
-    let need = computed_background_need(state, computed, sensors, splitter, &inputs).await?;
+    let (need, sample) =
+        computed_background_need(state, computed, sensors, splitter, &inputs).await?;
     let _grant = state.budget.acquire(&need).await?;
     // Another worker of this process may have computed it while this one
     // waited for the memory.
@@ -215,9 +219,17 @@ pub async fn ensure_computed_background(
                             })?,
                         None => image,
                     };
-                    let mut builder = taken.unwrap_or_else(|| {
-                        BackgroundBuilder::new(mode, view.width(), view.height(), view.bit_depth())
-                    });
+                    let mut builder = match taken {
+                        Some(builder) => builder,
+                        None => BackgroundBuilder::new(
+                            mode,
+                            view.width(),
+                            view.height(),
+                            view.bit_depth(),
+                        )
+                        .with_sample_limit(sample)
+                        .map_err(JobError::failed)?,
+                    };
                     builder.add(&view).map_err(|e| {
                         JobError::Failed(format!("computing the background from {source}: {e}"))
                     })?;
@@ -289,7 +301,7 @@ async fn computed_background_need(
     sensors: &[(u32, u32)],
     splitter: Option<Splitter>,
     inputs: &[FrameFiles],
-) -> Result<MemoryNeed, JobError> {
+) -> Result<(MemoryNeed, usize), JobError> {
     let mut sample_bytes = 1;
     let mut compressed = 0u64;
     if let Some((frame, layout, images)) = inputs.first() {
@@ -322,12 +334,28 @@ async fn computed_background_need(
         None => view,
     };
     let frames = inputs.len() as u64;
-    let kept = match computed.mode {
-        BackgroundMode::Median => frames.min(DEFAULT_MEDIAN_SAMPLE as u64),
-        BackgroundMode::Min => frames.min(1),
+    let (kept, sample) = match computed.mode {
+        BackgroundMode::Median => {
+            // As many frames as the budget holds, up to the default.
+            let budget = state.budget.total_mib().saturating_mul(super::budget::MIB);
+            let sample = super::budget::median_sample_within(
+                budget,
+                DEFAULT_MEDIAN_SAMPLE as u64,
+                frames,
+                view,
+                image,
+                sample_bytes,
+                compressed,
+            )
+            // Not even the least sample fits: the need of that sample,
+            // which the budget refuses with the reason.
+            .unwrap_or(super::budget::LEAST_MEDIAN_SAMPLE);
+            (frames.min(sample), sample)
+        }
+        BackgroundMode::Min => (frames.min(1), DEFAULT_MEDIAN_SAMPLE as u64),
     };
     let bytes = super::budget::background_bytes(kept, view, image, sample_bytes, compressed);
-    Ok(MemoryNeed::new(
+    let need = MemoryNeed::new(
         bytes,
         format!(
             "the {} background of {} camera(s) of up to {view} pixels at {} bits, one camera \
@@ -339,7 +367,8 @@ async fn computed_background_need(
             sensors.len(),
             sample_bytes * 8,
         ),
-    ))
+    );
+    Ok((need, sample as usize))
 }
 
 /// Stores computed backgrounds (camera, written file, bits) in the image

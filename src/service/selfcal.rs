@@ -19,6 +19,10 @@
 //!   calibration, its particles replaced in one statement per frame (the
 //!   old ones stay until then, and a job stopped midway resumes where it
 //!   stopped: it picks frames by the calibration their particles name).
+//!
+//! Both take their memory from the process's budget
+//! ([`super::budget::selfcal_need`] for all the frames' targets at once,
+//! [`super::budget::reprocess_need`] for each frame in turn).
 
 use std::sync::Arc;
 
@@ -258,9 +262,11 @@ pub async fn self_calibrate_job(state: Arc<AppState>, run: JobRun) -> Result<(),
                 payload.calibration_id
             ))
         })?;
-    let (cameras, splitter) =
-        formats::calibration::from_json_with_splitter(&calibration.model, "the stored calibration")
-            .map_err(JobError::failed)?;
+    let (cameras, splitter) = formats::calibration::stored_from_json_with_splitter(
+        &calibration.model,
+        "the stored calibration",
+    )
+    .map_err(JobError::failed)?;
     let parameters: Vec<CameraParameters> =
         cameras.iter().map(|c| c.parameters().clone()).collect();
     let sequence_parameters = sequence_parameters(&state, payload.sequence_id).await?;
@@ -284,6 +290,16 @@ pub async fn self_calibrate_job(state: Arc<AppState>, run: JobRun) -> Result<(),
             cameras: calibration.cameras,
         }));
     }
+    // The memory of every frame's targets and their adjustment, from the
+    // stored counts, taken before the targets are read.
+    let span = (frames[0], frames[frames.len() - 1]);
+    let stored = state.store.target_count(payload.sequence_id, span).await?;
+    let need = super::budget::selfcal_need(
+        u64::try_from(stored).unwrap_or(0),
+        parameters.len(),
+        frames.len(),
+    );
+    let _grant = state.budget.acquire(&need).await?;
     let targets = read_frames(&state, payload.sequence_id, &frames).await?;
     let count: u64 = targets.iter().flatten().map(|t| t.len() as u64).sum();
     let limit = TimeLimit::of(&state.config.job_limits);
@@ -392,6 +408,12 @@ pub async fn reprocess_sequence(state: Arc<AppState>, run: JobRun) -> Result<(),
                 .iter()
                 .map(|(_, n, _)| u64::try_from(*n).unwrap_or(0))
                 .sum();
+            // One frame's memory at a time, released before the next.
+            let stored_bytes = stored.iter().map(|(_, _, b)| b.len() as u64).sum();
+            let _grant = state
+                .budget
+                .acquire(&super::budget::reprocess_need(frame.0, count, stored_bytes))
+                .await?;
             let cancel = Cancel::with_limit(limit.for_work(0, count));
             let work_cancel = cancel.clone();
             let particles = state

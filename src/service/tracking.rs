@@ -289,6 +289,20 @@ impl Live {
         input: FrameInput,
     ) -> Result<Vec<TrackPoint>, TrackingError> {
         let FrameInput { particles, targets } = input;
+        // The memory of this step, from the particles held and the frame's
+        // (module `budget`), held while the tracker works on it only.
+        let held: usize = self.targets.iter().map(|(_, p)| p.len()).sum();
+        let target_count: usize = targets.iter().flatten().map(Vec::len).sum();
+        let need = super::budget::tracking_need(
+            frame.0,
+            held as u64,
+            particles.len() as u64,
+            target_count as u64,
+        );
+        let _grant = state.budget.acquire(&need).await.map_err(|e| match e {
+            super::jobs::JobError::Failed(message) => TrackingError::Memory(message),
+            other => TrackingError::Interrupted(other.to_string()),
+        })?;
         self.targets.push_back((
             frame,
             particles.iter().map(|p| targets_text(&p.targets)).collect(),
@@ -439,6 +453,9 @@ pub enum TrackingError {
     /// calibration and the sequence's tolerance (the run fails).
     #[error("the image-space recovery: {0}; start a new run with \"recovery\": false")]
     Recovery(String),
+    /// A frame needs more memory than the whole budget (the run fails).
+    #[error("{0}")]
+    Memory(String),
     /// A broken invariant (the run fails).
     #[error("internal: {0}; please report this")]
     Internal(String),
@@ -846,9 +863,11 @@ async fn recovery(
         .calibration(calibration_id)
         .await?
         .ok_or_else(|| TrackingError::Internal(format!("calibration {calibration_id} is gone")))?;
-    let (cameras, _) =
-        formats::calibration::from_json_with_splitter(&calibration.model, "the stored calibration")
-            .map_err(|e| TrackingError::Recovery(e.to_string()))?;
+    let (cameras, _) = formats::calibration::stored_from_json_with_splitter(
+        &calibration.model,
+        "the stored calibration",
+    )
+    .map_err(|e| TrackingError::Recovery(e.to_string()))?;
     let sequence = state
         .store
         .sequence(run.sequence_id)

@@ -10,7 +10,7 @@
 
 use std::path::{Path, PathBuf};
 
-use ptv::formats::{calibration, image::read_image, openptv};
+use ptv::formats::{calibration, image::read_image, openptv, vtk};
 use ptv::photogrammetry::{Centroid, GreyPixels, Splitter};
 use ptv::service::parameters::{DetectionSettings, MatchingSettings};
 use serde_json::Value;
@@ -111,10 +111,14 @@ fn the_legacy_folder_and_its_yaml_give_the_same_settings() {
     assert_eq!(splitter, None);
     // What cannot be mapped is said, with the reason.
     for stderr in [&legacy_stderr, &yaml_stderr] {
+        // track.par maps but for its turning angle, which ptv has no
+        // counterpart of.
         assert!(
             stderr.contains("criteria.corrmin = 33")
-                && stderr.contains("track.dacc = 2.8")
-                && stderr.contains("tracking (linking particles over frames) is not part"),
+                && stderr.contains("track.angle = 100")
+                && stderr.contains("no angle limit")
+                && !stderr.contains("track.dacc")
+                && !stderr.contains("track.dvx"),
             "{stderr}"
         );
         assert!(
@@ -129,6 +133,18 @@ fn the_legacy_folder_and_its_yaml_give_the_same_settings() {
         (Some(10001), Some(10004))
     );
     assert_eq!(experiment["masks"], Value::Null);
+    // track.par: the sphere around the -15.5..15.5 mm box, dacc, and
+    // flagNewParticles as the image-space recovery; the same from the YAML.
+    let tracking = &experiment["tracking"];
+    let reach = 15.5 * 3f64.sqrt();
+    assert!(
+        (tracking["max_velocity"].as_f64().unwrap() - reach).abs() < 1e-9,
+        "{tracking}"
+    );
+    assert_eq!(tracking["max_acceleration"], 2.8);
+    assert_eq!(tracking["recovery"], true);
+    assert_eq!(tracking["first_frame"], 10001);
+    assert_eq!(tracking, &file("yaml", "experiment.json")["tracking"]);
 }
 
 /// A pyptv YAML for two cameras, with the given `ptv`, `criteria` and
@@ -202,7 +218,9 @@ fn a_yaml_written_here_maps_every_setting() {
     let yaml = two_camera_yaml(
         "",
         SLOPED,
-        "masking:\n  mask_flag: true\n  mask_base_name: masks/m%d.png\ntrack:\n  dacc: 3.5\n",
+        "masking:\n  mask_flag: true\n  mask_base_name: masks/m%d.png\ntrack:\n  dvxmin: -2\n  \
+         dvxmax: 3\n  dvymin: -1\n  dvymax: 1\n  dvzmin: -1\n  dvzmax: 0.5\n  angle: 90\n  \
+         dacc: 3.5\n  flagNewParticles: 0\n",
     );
     let dir = yaml_experiment(&yaml);
     std::fs::create_dir(dir.path().join("masks")).unwrap();
@@ -211,7 +229,19 @@ fn a_yaml_written_here_maps_every_setting() {
     }
     // The directory's one YAML is found.
     let (_, stderr) = run(&["experiment", "import", ".", "-o", "out"], dir.path());
-    assert!(stderr.contains("track.dacc = 3.5"), "{stderr}");
+    assert!(stderr.contains("track.angle = 90"), "{stderr}");
+    assert!(!stderr.contains("track.dacc"), "{stderr}");
+    let tracking = read_json(&dir.path().join("out/experiment.json"))["tracking"].clone();
+    // The sphere around the box: its farthest corner (3, 1, 1).
+    assert_eq!(tracking["max_velocity"], 11f64.sqrt(), "{tracking}");
+    assert_eq!(tracking["max_acceleration"], 3.5, "{tracking}");
+    assert_eq!(tracking["recovery"], false, "{tracking}");
+    // A track section without its box is refused, naming the key.
+    let partial = yaml_experiment(&two_camera_yaml("", SLOPED, "track:\n  dacc: 3.5\n"));
+    fails(
+        &ptv(&["experiment", "import", "."], partial.path()),
+        &["parameters_Test.yaml", "track", "dvxmin"],
+    );
     let sequence = read_json(&dir.path().join("out/sequence.json"));
     let detection: DetectionSettings =
         serde_json::from_value(sequence["detection"].clone()).unwrap();
@@ -703,4 +733,384 @@ fn the_cli_follows_a_users_own_paths_and_applies_the_yaml_limits() {
         &ptv(&["experiment", "import", "."], yaml.path()),
         &["nested more than 16 levels deep"],
     );
+}
+
+/// Checks a VTK XML file strictly: well-formed XML (every tag closed, in
+/// order; quick-xml's reader with end-name checks), a `VTKFile` of `kind`,
+/// every inline binary `DataArray` decoding to exactly `NumberOfPoints`
+/// (point data, `Points`), `NumberOfLines`/`NumberOfVerts` (cell data,
+/// offsets) or their points (connectivity) values of its components.
+/// Returns the arrays by name, as bytes, and the piece's counts.
+fn strict_vtk(text: &str, kind: &str) -> (std::collections::BTreeMap<String, Vec<u8>>, [usize; 3]) {
+    use quick_xml::events::Event;
+    let mut reader = quick_xml::Reader::from_str(text);
+    reader.config_mut().check_end_names = true;
+    let mut stack: Vec<String> = Vec::new();
+    let mut arrays = std::collections::BTreeMap::new();
+    let mut counts = [0usize; 3];
+    let mut current: Option<(String, usize, usize)> = None;
+    let attr = |e: &quick_xml::events::BytesStart, name: &str| -> Option<String> {
+        e.try_get_attribute(name)
+            .unwrap()
+            .map(|a| a.unescape_value().unwrap().into_owned())
+    };
+    loop {
+        match reader.read_event().expect("well-formed XML") {
+            Event::Start(e) => {
+                let name = String::from_utf8(e.name().as_ref().to_vec()).unwrap();
+                match name.as_str() {
+                    "VTKFile" => {
+                        assert_eq!(attr(&e, "type").as_deref(), Some(kind));
+                        assert_eq!(attr(&e, "byte_order").as_deref(), Some("LittleEndian"));
+                        assert_eq!(attr(&e, "header_type").as_deref(), Some("UInt32"));
+                    }
+                    "Piece" => {
+                        let n = |k: &str| attr(&e, k).unwrap().parse::<usize>().unwrap();
+                        counts = [n("NumberOfPoints"), n("NumberOfVerts"), n("NumberOfLines")];
+                    }
+                    "DataArray" => {
+                        assert_eq!(attr(&e, "format").as_deref(), Some("binary"));
+                        let size = match attr(&e, "type").unwrap().as_str() {
+                            "Float64" | "Int64" => 8,
+                            "UInt32" => 4,
+                            other => panic!("type {other}"),
+                        };
+                        let components: usize =
+                            attr(&e, "NumberOfComponents").unwrap().parse().unwrap();
+                        current = Some((attr(&e, "Name").unwrap(), size, components));
+                    }
+                    _ => {}
+                }
+                stack.push(name);
+            }
+            Event::Text(t) => {
+                if let Some((name, size, components)) = &current {
+                    let bytes = vtk::decode_binary(&t.decode().unwrap()).expect("binary array");
+                    let parent = stack[stack.len() - 2].as_str();
+                    let cells = counts[1] + counts[2];
+                    let expected = match (parent, name.as_str()) {
+                        ("PointData" | "Points", _) => counts[0],
+                        ("CellData", _) | ("Verts" | "Lines", "offsets") => cells,
+                        ("Verts" | "Lines", "connectivity") => counts[0],
+                        other => panic!("array {other:?}"),
+                    };
+                    assert_eq!(bytes.len(), expected * size * components, "{parent}/{name}");
+                    arrays.insert(format!("{parent}/{name}"), bytes);
+                }
+            }
+            Event::End(e) => {
+                let name = String::from_utf8(e.name().as_ref().to_vec()).unwrap();
+                assert_eq!(stack.pop().as_deref(), Some(name.as_str()));
+                current = None;
+            }
+            Event::Empty(e) => {
+                let name = String::from_utf8(e.name().as_ref().to_vec()).unwrap();
+                assert_eq!(
+                    name, "DataSet",
+                    "only the series' entries are empty elements"
+                );
+                assert!(attr(&e, "timestep").is_some() && attr(&e, "file").is_some());
+            }
+            Event::Eof => break,
+            _ => {}
+        }
+    }
+    assert!(stack.is_empty(), "{stack:?}");
+    (arrays, counts)
+}
+
+fn f64s(bytes: &[u8]) -> Vec<f64> {
+    bytes
+        .chunks_exact(8)
+        .map(|c| f64::from_le_bytes(c.try_into().unwrap()))
+        .collect()
+}
+
+fn i64s(bytes: &[u8]) -> Vec<i64> {
+    bytes
+        .chunks_exact(8)
+        .map(|c| i64::from_le_bytes(c.try_into().unwrap()))
+        .collect()
+}
+
+#[test]
+fn process_sequence_tracks_the_recording_with_its_track_par_and_exports() {
+    let out = tempfile::tempdir().unwrap();
+    let (stdout, _) = run(
+        &[
+            "process-sequence",
+            "--experiment",
+            RECORDING,
+            "-o",
+            "res",
+            "--track",
+            "--ptv-is",
+            "--export",
+            "vtk",
+            "--export",
+            "hdf5",
+        ],
+        out.path(),
+    );
+    let summary: Value = serde_json::from_str(&stdout).unwrap();
+    let tracking = &summary["tracking"];
+    assert!(
+        (tracking["max_velocity"].as_f64().unwrap() - 15.5 * 3f64.sqrt()).abs() < 1e-9,
+        "{tracking}"
+    );
+    assert_eq!(tracking["max_acceleration"], 2.8);
+    assert_eq!(tracking["recovery"], true);
+    let res = out.path().join("res");
+    let csv = std::fs::read_to_string(res.join("trajectories.csv")).unwrap();
+    let points = ptv::formats::csv::parse_trajectories(&csv, "trajectories.csv").expect("a table");
+    let trajectories: std::collections::BTreeSet<u64> =
+        points.iter().map(|p| p.trajectory).collect();
+    assert_eq!(tracking["points"], points.len());
+    assert_eq!(tracking["trajectories"], trajectories.len());
+    // Four frames of a few hundred particles: most are tracked through.
+    let particles = summary["particles"].as_u64().unwrap() as usize;
+    assert!(
+        points.len() * 2 > particles,
+        "{} of {particles}",
+        points.len()
+    );
+    // ptv_is: per frame its particles, with links both ways that agree.
+    let links = |frame: u64| -> Vec<(i64, i64)> {
+        let text = std::fs::read_to_string(res.join(format!("ptv_is.{frame}"))).unwrap();
+        let mut lines = text.lines();
+        let n: usize = lines.next().unwrap().trim().parse().unwrap();
+        let rows: Vec<(i64, i64)> = lines
+            .map(|l| {
+                let f: Vec<&str> = l.split_whitespace().collect();
+                (f[0].parse().unwrap(), f[1].parse().unwrap())
+            })
+            .collect();
+        assert_eq!(rows.len(), n);
+        rows
+    };
+    let (a, b) = (links(10001), links(10002));
+    let forward = a.iter().filter(|(_, next)| *next >= 0).count();
+    assert!(forward > 0);
+    for (i, (_, next)) in a.iter().enumerate() {
+        if *next >= 0 {
+            assert_eq!(b[*next as usize].0, i as i64);
+        }
+    }
+
+    // ParaView: the per-frame files, the series and the polylines.
+    let pvd = std::fs::read_to_string(res.join("particles.pvd")).unwrap();
+    strict_vtk(&pvd, "Collection");
+    for frame in 10001..=10004 {
+        assert!(pvd.contains(&format!(
+            "timestep=\"{frame}\" group=\"\" part=\"0\" file=\"particles.{frame}.vtp\""
+        )));
+        let text = std::fs::read_to_string(res.join(format!("particles.{frame}.vtp"))).unwrap();
+        let (arrays, counts) = strict_vtk(&text, "PolyData");
+        let rt_is = first_count(&res.join(format!("rt_is.{frame}")));
+        // The frame's particles and those recovered from its images.
+        assert!(
+            counts[0] >= rt_is && counts[0] == counts[1],
+            "{counts:?} {rt_is}"
+        );
+        let sigma = f64s(&arrays["PointData/sigma"]);
+        assert!(sigma.iter().all(|s| *s > 0.0 && s.is_finite()));
+    }
+    let text = std::fs::read_to_string(res.join("trajectories.vtp")).unwrap();
+    let (arrays, counts) = strict_vtk(&text, "PolyData");
+    assert_eq!(counts, [points.len(), 0, trajectories.len()]);
+    let offsets = i64s(&arrays["Lines/offsets"]);
+    assert_eq!(*offsets.last().unwrap() as usize, points.len());
+    // The polylines' points are the table's, trajectory by trajectory.
+    let position = f64s(&arrays["Points/position"]);
+    let mut sorted = points.clone();
+    sorted.sort_by_key(|p| (p.trajectory, p.frame));
+    for (i, p) in sorted.iter().enumerate() {
+        assert_eq!(&position[3 * i..3 * i + 3], p.position.coords.as_slice());
+        let v = f64s(&arrays["PointData/velocity"]);
+        assert_eq!(&v[3 * i..3 * i + 3], p.velocity.unwrap().as_slice());
+    }
+
+    // HDF5: read back with the writer's own reader (h5py's reading is
+    // shown in the docs and the closing note).
+    let file = hdf5_pure::File::open(res.join("sequence.h5")).unwrap();
+    assert_eq!(
+        file.root().attrs().unwrap()["length_unit"],
+        hdf5_pure::AttrValue::String("mm".into())
+    );
+    let column = |name: &str| file.dataset(&format!("trajectories/{name}")).unwrap();
+    let ids = column("trajectory").read_i64().unwrap();
+    let x = column("x").read_f64().unwrap();
+    let u = column("u").read_f64().unwrap();
+    assert_eq!(ids.len(), points.len());
+    for (i, p) in sorted.iter().enumerate() {
+        assert_eq!(ids[i] as u64, p.trajectory);
+        assert_eq!(x[i], p.position.x);
+        assert_eq!(u[i], p.velocity.unwrap().x);
+    }
+    assert_eq!(
+        column("u").attrs().unwrap()["units"],
+        hdf5_pure::AttrValue::String("mm/frame".into())
+    );
+    let frames = file
+        .dataset("particles/frames")
+        .unwrap()
+        .read_i64()
+        .unwrap();
+    assert_eq!(frames, vec![10001, 10002, 10003, 10004]);
+    let z = file
+        .dataset("particles/frame_10002/z")
+        .unwrap()
+        .read_f64()
+        .unwrap();
+    assert!(z.len() >= first_count(&res.join("rt_is.10002")));
+}
+
+/// pyptv's test_splitter laid out as pyptv ships it (its parameters, YAML
+/// and calibration copied unchanged into tests/data; its five 1 MB
+/// recordings are not: frames of the same size are written here), run
+/// from its folder: the `--` names of sequence.par mean the YAML.
+#[test]
+fn pyptvs_splitter_experiment_runs_from_its_folder() {
+    let fixture = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/openptv/test_splitter");
+    let dir = tempfile::tempdir().unwrap();
+    let copy = |from: &Path, to: &Path| {
+        std::fs::create_dir_all(to).unwrap();
+        for entry in std::fs::read_dir(from).unwrap() {
+            let entry = entry.unwrap();
+            if entry.file_type().unwrap().is_file() {
+                std::fs::copy(entry.path(), to.join(entry.file_name())).unwrap();
+            }
+        }
+    };
+    copy(&fixture, dir.path());
+    for sub in ["parameters", "cal"] {
+        copy(&fixture.join(sub), &dir.path().join(sub));
+    }
+    // The recording's cameras' frames, each cut to a 512x512 quadrant of
+    // one 1024x1024 sensor image, as the splitter's camera sees it.
+    std::fs::create_dir(dir.path().join("img")).unwrap();
+    for frame in 1..=2u32 {
+        let mut whole = image::GrayImage::new(1024, 1024);
+        for (c, (col, row)) in [(0u32, 0u32), (1, 0), (1, 1), (0, 1)].iter().enumerate() {
+            let view =
+                read_image(&recording(&format!("img/cam{}.1000{frame}", c + 1)), None).unwrap();
+            let GreyPixels::Eight(p) = view.pixels() else {
+                panic!("8-bit")
+            };
+            for y in 0..512u32 {
+                for x in 0..512u32 {
+                    let v = p[((y + 256) * 1280 + x + 384) as usize];
+                    whole.put_pixel(col * 512 + x, row * 512 + y, image::Luma([v]));
+                }
+            }
+        }
+        whole
+            .save(
+                dir.path()
+                    .join(format!("img/C001H001S000100000{frame}.tif")),
+            )
+            .unwrap();
+    }
+    let (stdout, _) = run(
+        &[
+            "process-sequence",
+            "--experiment",
+            ".",
+            "--frames",
+            "1000001..1000002",
+            "-o",
+            "res",
+        ],
+        dir.path(),
+    );
+    let summary: Value = serde_json::from_str(&stdout).unwrap();
+    // The YAML was read: one image per frame, cut into four cameras.
+    assert_eq!(summary["cameras"].as_array().unwrap().len(), 4, "{summary}");
+    for targets in summary["targets_per_camera"].as_array().unwrap() {
+        assert!(targets.as_u64().unwrap() > 0, "{summary}");
+    }
+    // The .par folder alone cannot say so: the error says what to give.
+    std::fs::remove_file(dir.path().join("parameters_Run1.yaml")).unwrap();
+    fails(
+        &ptv(&["process-sequence", "--experiment", "."], dir.path()),
+        &[
+            "sequence.par",
+            "base_name[1]",
+            "`--`",
+            "splitter",
+            "parameters_*.yaml",
+        ],
+    );
+}
+
+#[test]
+fn both_forms_that_differ_are_an_error_naming_both_files() {
+    let dir = copy_experiment();
+    let yaml = std::fs::read_to_string(recording("parameters_Run1.yaml")).unwrap();
+    // Without images either form describes the experiment as well: the
+    // same settings are one experiment, read once.
+    std::fs::write(dir.path().join("parameters_Run1.yaml"), &yaml).unwrap();
+    let out = tempfile::tempdir().unwrap();
+    run(
+        &[
+            "experiment",
+            "import",
+            dir.path().to_str().unwrap(),
+            "-o",
+            ".",
+        ],
+        out.path(),
+    );
+    std::fs::write(
+        dir.path().join("parameters_Run1.yaml"),
+        yaml.replace("  dacc: 2.8", "  dacc: 1.5"),
+    )
+    .unwrap();
+    fails(
+        &ptv(
+            &["experiment", "import", dir.path().to_str().unwrap()],
+            out.path(),
+        ),
+        &[
+            "parameters/ptv.par (the .par folder)",
+            "parameters_Run1.yaml (pyptv's YAML)",
+            "the tracking (track)",
+            "give",
+        ],
+    );
+    // Either is chosen by its path.
+    let legacy = dir.path().join("parameters");
+    run(
+        &["experiment", "import", legacy.to_str().unwrap(), "-o", "l"],
+        out.path(),
+    );
+    let tracking = read_json(&out.path().join("l/experiment.json"))["tracking"].clone();
+    assert_eq!(tracking["max_acceleration"], 2.8);
+    // Where only one form's images are there, that one describes it.
+    std::fs::create_dir(dir.path().join("img")).unwrap();
+    for c in 1..=4 {
+        std::fs::copy(
+            recording(&format!("img/cam{c}.10001")),
+            dir.path().join(format!("img/cam{c}.10001")),
+        )
+        .unwrap();
+    }
+    std::fs::write(
+        dir.path().join("parameters_Run1.yaml"),
+        yaml.replace("  dacc: 2.8", "  dacc: 1.5")
+            .replace("img/cam", "elsewhere/cam"),
+    )
+    .unwrap();
+    run(
+        &[
+            "experiment",
+            "import",
+            dir.path().to_str().unwrap(),
+            "-o",
+            "c",
+        ],
+        out.path(),
+    );
+    let tracking = read_json(&out.path().join("c/experiment.json"))["tracking"].clone();
+    assert_eq!(tracking["max_acceleration"], 2.8);
 }

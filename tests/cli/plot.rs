@@ -322,7 +322,7 @@ fn residual_pictures_from_ptv_calibrate_and_bad_reports() {
         "-o",
         "r.svg",
     ]);
-    assert!(svg(&d.join("r.svg")).contains("CHECK POINTS"));
+    assert!(svg(&d.join("r.svg")).contains("Check points"));
 
     let bad =
         |args: &[&str], needles: &[&str]| fails(&ptv(&[&["plot"], args].concat(), d), needles);

@@ -153,6 +153,62 @@ async fn the_recording_imports_from_its_par_files_and_its_yaml_and_a_frame_proce
         "{quadruplets} four-camera particles of {}",
         particles.len()
     );
+
+    // track.par made the sequence's tracking run: the sphere around its
+    // -15.5..15.5 mm box, dacc 2.8, flagNewParticles as the recovery, from
+    // the first frame. The other frames uploaded, the run finished, its
+    // trajectories are there.
+    let run = legacy["tracking_run_id"].as_i64().expect("a tracking run");
+    assert_eq!(
+        legacy["trajectories"],
+        format!("/api/v1/sequences/{sequence}/trajectories")
+    );
+    let (_, runs) = app
+        .get_json(&format!("/sequences/{sequence}/tracking"))
+        .await;
+    let settings = &runs[0]["settings"];
+    assert_eq!(runs[0]["run_id"], run, "{runs}");
+    assert!(
+        (settings["max_velocity"].as_f64().unwrap() - 15.5 * 3f64.sqrt()).abs() < 1e-9,
+        "{runs}"
+    );
+    assert_eq!(settings["max_acceleration"], 2.8, "{runs}");
+    assert_eq!(settings["recovery"], true, "{runs}");
+    assert_eq!(settings["first_frame"], 10001, "{runs}");
+    for frame in 10002..=10004 {
+        let images: Vec<Vec<u8>> = (1..=4)
+            .map(|c| std::fs::read(recording().join(format!("img/cam{c}.{frame}"))).unwrap())
+            .collect();
+        let (status, body) = app.upload(sequence, image_form(frame, &images)).await;
+        assert_eq!(status, 202, "{body}");
+    }
+    app.wait_for_sequence(sequence).await;
+    let (status, body) = app
+        .post_json(
+            &format!("/sequences/{sequence}/tracking/finish"),
+            &json!({}),
+        )
+        .await;
+    assert_eq!(status, 202, "{body}");
+    let start = std::time::Instant::now();
+    while app.get_json(&format!("/sequences/{sequence}")).await.1["tracking"]["state"] != "finished"
+    {
+        assert!(
+            start.elapsed() < std::time::Duration::from_secs(120),
+            "tracking did not finish"
+        );
+        tokio::time::sleep(std::time::Duration::from_millis(50)).await;
+    }
+    let (_, tracked) = app
+        .get_json(&format!("/sequences/{sequence}/trajectories"))
+        .await;
+    let trajectories = tracked["trajectories"].as_array().unwrap();
+    // Four frames of some 500 particles: most are tracked through.
+    assert!(
+        trajectories.len() > 100,
+        "{} trajectories",
+        trajectories.len()
+    );
     app.stop().await;
 }
 

@@ -524,6 +524,71 @@ pub fn unix_seconds(stamp: &str) -> f64 {
     (days * 86_400 + field(11..13) * 3600 + field(14..16) * 60) as f64 + seconds
 }
 
+/// A memory grant the service logged (`service::budget`: the grants of
+/// a quarter of its budget or more), with when it was taken and released
+/// (seconds since 1970; `None`: still held).
+#[derive(Clone, Debug)]
+pub struct LoggedGrant {
+    /// Its number in the process.
+    pub number: u64,
+    /// MiB.
+    pub mib: u64,
+    /// What it was for.
+    pub what: String,
+    /// Taken at.
+    pub taken: f64,
+    /// Released at.
+    pub released: Option<f64>,
+}
+
+/// The memory grants in a service's log (its standard error).
+pub fn logged_grants(log: &str) -> Vec<LoggedGrant> {
+    let mut grants: Vec<LoggedGrant> = Vec::new();
+    for line in log.lines() {
+        // Without the terminal's colours.
+        let mut plain = String::with_capacity(line.len());
+        let mut chars = line.chars();
+        while let Some(c) = chars.next() {
+            if c == '\u{1b}' {
+                for c in chars.by_ref() {
+                    if c == 'm' {
+                        break;
+                    }
+                }
+            } else {
+                plain.push(c);
+            }
+        }
+        let stamp = plain.split_whitespace().next().unwrap_or("");
+        let number_of = |rest: &str| -> (u64, u64, String) {
+            // "grant N, M MiB[ of ...], ..., for WHAT"
+            let rest = rest.strip_prefix("grant ").unwrap();
+            let (number, rest) = rest.split_once(", ").unwrap();
+            let (mib, rest) = rest.split_once(" MiB").unwrap();
+            let what = rest.split_once(", for ").unwrap().1.to_owned();
+            (number.parse().unwrap(), mib.parse().unwrap(), what)
+        };
+        if let Some((_, rest)) = plain.split_once("memory granted: ") {
+            let (number, mib, what) = number_of(rest);
+            grants.push(LoggedGrant {
+                number,
+                mib,
+                what,
+                taken: unix_seconds(stamp),
+                released: None,
+            });
+        } else if let Some((_, rest)) = plain.split_once("memory released: ") {
+            let (number, _, _) = number_of(rest);
+            let grant = grants
+                .iter_mut()
+                .find(|g| g.number == number)
+                .unwrap_or_else(|| panic!("grant {number} released but not taken: {plain}"));
+            grant.released = Some(unix_seconds(stamp));
+        }
+    }
+    grants
+}
+
 /// This machine's clock, in seconds since 1970.
 pub fn unix_seconds_now() -> f64 {
     std::time::SystemTime::now()
@@ -659,6 +724,27 @@ impl ServiceProcess {
 
     /// [`ServiceProcess::start`] with more arguments (`--lease-secs 3`).
     pub fn start_with(data_dir: &Path, workers: usize, more: &[&str]) -> ServiceProcess {
+        ServiceProcess::start_with_stderr(data_dir, workers, more, Stdio::null())
+    }
+
+    /// [`ServiceProcess::start_with`], its log (standard error) written to
+    /// the file `log`.
+    pub fn start_logged(
+        data_dir: &Path,
+        workers: usize,
+        more: &[&str],
+        log: &Path,
+    ) -> ServiceProcess {
+        let file = std::fs::File::create(log).expect("the log file is created");
+        ServiceProcess::start_with_stderr(data_dir, workers, more, Stdio::from(file))
+    }
+
+    fn start_with_stderr(
+        data_dir: &Path,
+        workers: usize,
+        more: &[&str],
+        stderr: Stdio,
+    ) -> ServiceProcess {
         let mut child = Command::new(env!("CARGO_BIN_EXE_ptv"))
             .args(["serve", "--bind", "127.0.0.1:0", "--workers"])
             .arg(workers.to_string())
@@ -668,7 +754,7 @@ impl ServiceProcess {
             .args(object_store_flags(data_dir))
             .args(more)
             .stdout(Stdio::piped())
-            .stderr(Stdio::null())
+            .stderr(stderr)
             .spawn()
             .expect("the ptv binary starts");
         let stdout = child.stdout.take().unwrap();

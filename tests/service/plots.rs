@@ -14,7 +14,7 @@ use serde_json::Value;
 
 use ptv::plot::overlay::{self, LEGEND, MATCHED, MATCHED_RADIUS, UNMATCHED, UNMATCHED_RADIUS};
 use ptv::plot::residuals::{ResidualLayout, ResidualReport, EXCLUDED, SENSOR, USED};
-use ptv::plot::views::{ParticlePoint, TrajectoryPoint, ViewsLayout, PANEL};
+use ptv::plot::views::{ParticlePoint, TrajectoryPoint, ViewsLayout, PANEL, VIEWS};
 use ptv::plot::{cameras_colour, WHITE};
 
 use crate::helpers::{content_type, image_form, png, raw8, rig, spawn_app, targets_form, TestApp};
@@ -301,6 +301,70 @@ async fn frame_pictures_mark_the_targets_and_particles_where_they_are() {
         "a disc per particle and view"
     );
 
+    // The plain kept image (the page's frame viewer draws its own marks
+    // on it): the camera's samples, grey, at the sensor's size, the same
+    // from the PNG frame and the raw one; not kept, a 409.
+    for frame in [3, 4] {
+        let response = app
+            .client
+            .get(app.api(&format!(
+                "/sequences/{kept}/frames/{frame}/image.png?camera=1"
+            )))
+            .send()
+            .await
+            .unwrap();
+        assert_eq!(response.status(), 200);
+        assert_eq!(content_type(&response), "image/png");
+        let plain = image::load_from_memory(&response.bytes().await.unwrap()).unwrap();
+        assert_eq!(plain.color(), image::ColorType::L8);
+        let plain = plain.to_luma8();
+        assert_eq!(plain.dimensions(), (sensor.width, sensor.height));
+        for (x, y) in [
+            (far.0, far.1),
+            (10, 10),
+            (sensor.width - 1, sensor.height - 1),
+        ] {
+            let grey = rendered.images[1].get(x, y).unwrap() as u8;
+            assert_eq!(plain.get_pixel(x, y).0[0], grey, "frame {frame} ({x}, {y})");
+        }
+        let (tx, ty) = targets[0];
+        let grey = rendered.images[1].get(tx as u32, ty as u32).unwrap() as u8;
+        assert_eq!(
+            plain.get_pixel(tx as u32, ty as u32).0[0],
+            grey,
+            "no mark on a target"
+        );
+    }
+    refused(
+        &app,
+        &format!("/sequences/{targets_only}/frames/3/image.png"),
+        409,
+        &["not kept"],
+    )
+    .await;
+    refused(
+        &app,
+        &format!("/sequences/{kept}/frames/3/image.png?camera=7"),
+        404,
+        &["camera 7"],
+    )
+    .await;
+    refused(
+        &app,
+        &format!("/sequences/{kept}/frames/9/image.png"),
+        404,
+        &["no frame 9"],
+    )
+    .await;
+    refused(&app, "/sequences/999/frames/3/image.png", 404, &["999"]).await;
+    refused(
+        &app,
+        &format!("/sequences/{kept}/frames/3/image.png?format=svg"),
+        400,
+        &[],
+    )
+    .await;
+
     // Bad requests.
     refused(&app, "/sequences/999/frames/3/overlay.png", 404, &["999"]).await;
     refused(
@@ -405,7 +469,7 @@ async fn residual_pictures_put_each_arrow_where_its_point_was_measured() {
         }
         assert!(empty > 50, "{empty}");
         let svg = svg_picture(&app, &format!("{path}&format=svg")).await;
-        assert!(svg.contains(&format!("CALIBRATION RESIDUALS, CAMERA {}", residuals.name)));
+        assert!(svg.contains(&format!("Calibration residuals, camera {}", residuals.name)));
     }
 
     // The wrong kind of report, no report, unknown ids, bad queries.
@@ -477,7 +541,7 @@ pub async fn check_disparity_picture(app: &TestApp, id: i64, report: &Value) {
     }
     assert!(cells > 0);
     let svg = svg_picture(app, &format!("{path}?format=svg")).await;
-    assert!(svg.contains("DISPARITY MAPS"));
+    assert!(svg.contains("Disparity maps"));
     refused(
         app,
         &format!("/calibrations/{id}/residuals.png"),
@@ -547,5 +611,11 @@ pub async fn check_trajectories_picture(app: &TestApp, sequence: i64, run: i64) 
         }
     }
     let svg = svg_picture(app, &format!("{path}&format=svg")).await;
-    assert_eq!(svg.matches("<line").count(), 3 * segments);
+    // Every segment once in each of the three views, besides one tick mark
+    // per tick of each view's two axes.
+    let ticks: usize = VIEWS
+        .iter()
+        .map(|(_, a, b)| layout.ticks(*a).1.len() + layout.ticks(*b).1.len())
+        .sum();
+    assert_eq!(svg.matches("<line").count(), 3 * segments + ticks);
 }

@@ -235,9 +235,7 @@ fn start_from_references(
         name: camera.name.clone(),
     };
     let flat = dlt::flatness(&points) < 1e-3;
-    let oriented = (ParameterSet::exterior() | ParameterSet::interior())
-        .iter()
-        .all(|p| !unknown.contains(p));
+    let oriented = resection::has_orientation(camera, unknown);
     if pairs.len() >= 4 && !flat && pairs.len() < super::MIN_POINTS && oriented {
         // Too few for the DLT, but the setup has an orientation: OpenPTV's
         // manual orientation (4 points, `man_ori`) adjusts the exterior

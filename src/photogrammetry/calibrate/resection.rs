@@ -52,7 +52,9 @@ pub(super) fn resect_camera(
         free: prepared.fixed.complement(),
         held: Vec::new(),
         held_at_estimate: ParameterSet::empty(),
+        held_at_prior: Vec::new(),
         excluded: Vec::new(),
+        excluded_equations: Vec::new(),
         iterations: 0,
     };
     // Before the adjustment: the exterior orientation (and the interior
@@ -64,9 +66,7 @@ pub(super) fn resect_camera(
     // setup with the orientation (e.g. OpenPTV's .ori), the setup's, often
     // the better one on a shallow target; the one that fits the
     // observations better is kept.
-    let oriented = (ParameterSet::exterior() | ParameterSet::interior())
-        .iter()
-        .all(|p| !unknown.contains(p));
+    let oriented = has_orientation(setup, unknown);
     let equations = resection.equations();
     let from_setup = if oriented {
         valid_start(setup.clone())
@@ -101,7 +101,10 @@ pub(super) fn resect_camera(
     resection.adjust(
         (ParameterSet::exterior() | ParameterSet::interior()) - resection.free.complement(),
     )?;
-    let stats = resection.adjust_all()?;
+    let mut stats = resection.adjust_all()?;
+    if resection.release_determined(&stats)? {
+        stats = resection.adjust_all()?;
+    }
     resection.check_geometry(&stats)?;
     Ok(resection.finish(&stats))
 }
@@ -116,10 +119,56 @@ fn priors(setup: &CameraParameters, unknown: ParameterSet) -> ParameterSet {
     let mut priors = ParameterSet::all() - ParameterSet::exterior() - unknown;
     let s = &setup.sensor;
     let r = 0.5 * (f64::from(s.width) * s.pixel_size_x).hypot(f64::from(s.height) * s.pixel_size_y);
-    if !(setup.interior.c.abs() > 0.5 * r) {
+    // NaN counts as a placeholder too.
+    let placeholder =
+        setup.interior.c.abs().partial_cmp(&(0.5 * r)) != Some(std::cmp::Ordering::Greater);
+    if placeholder {
         priors.remove(Parameter::C);
     }
     priors
+}
+
+/// `stats` (over `estimated`, the held-at-prior parameters among them)
+/// with each `(parameter, sigma)` prior added to the normal matrix as a
+/// pseudo-observation of weight `sigma0² / sigma²`, and the redundancy
+/// restored (each prior is one observation more); `None` when the result
+/// is still singular.
+fn with_prior(
+    mut stats: Statistics,
+    priors: &[(Parameter, f64)],
+    estimated: ParameterSet,
+) -> Option<Statistics> {
+    let order: Vec<Parameter> = estimated.iter().collect();
+    let redundancy = stats.redundancy + priors.len();
+    let vtv = stats.sigma0 * stats.sigma0 * stats.redundancy as f64;
+    let sigma0 = if redundancy > 0 {
+        (vtv / redundancy as f64).sqrt()
+    } else {
+        0.0
+    };
+    let mut normal = stats.normal.clone();
+    for (p, sigma) in priors {
+        let k = order.iter().position(|o| o == p)?;
+        if *sigma > 0.0 && sigma0 > 0.0 {
+            normal[(k, k)] += (sigma0 / sigma).powi(2);
+        }
+    }
+    stats.cofactor = Some(normal.cholesky()?.inverse());
+    stats.sigma0 = sigma0;
+    stats.redundancy = redundancy;
+    Some(stats)
+}
+
+/// Whether the setup gives the camera's orientation (e.g. OpenPTV's .ori
+/// files), a start for the exterior orientation: none of its exterior or
+/// interior values left out, and a principal distance that is not a
+/// placeholder (see [`priors`]; a setup written without an orientation
+/// has zeros and `c = 1`).
+pub(super) fn has_orientation(setup: &CameraParameters, unknown: ParameterSet) -> bool {
+    (ParameterSet::exterior() | ParameterSet::interior())
+        .iter()
+        .all(|p| !unknown.contains(p))
+        && priors(setup, unknown).contains(Parameter::C)
 }
 
 /// sigma0 from the median absolute residual (`1.4826 median |v|`, the
@@ -313,8 +362,15 @@ pub(super) struct Resection<'a> {
     /// Parameters held at their least-squares estimate for a correlation:
     /// their uncertainty stays in the others' standard deviations.
     held_at_estimate: ParameterSet,
+    /// Parameters held at the setup's value because the observations do
+    /// not determine them, each with its prior standard deviation (a third
+    /// of its plausible range): the others' standard deviations keep it.
+    held_at_prior: Vec<(Parameter, f64)>,
     /// Points excluded as gross errors, in the order they were found.
     pub(super) excluded: Vec<PointResidual>,
+    /// The observation equations of the excluded points, to take back
+    /// when the model changes (see `release_determined`).
+    excluded_equations: Vec<(u64, Equation)>,
     /// Levenberg-Marquardt iterations, all adjustments together.
     pub(super) iterations: usize,
 }
@@ -361,9 +417,14 @@ impl Resection<'_> {
             // adjustment, after snooping, must have converged.
             let converged = self.adjust(self.free)?;
             let stats = self.statistics(self.free)?;
-            if self.snoop(&stats)
+            // Correlations first and snooping next, as before the priors;
+            // a parameter is held at its prior only once no gross error is
+            // left to exclude: with one still in, the model error it
+            // leaves would make a determinable parameter (k1) look
+            // undetermined, and a hold is never undone.
+            if self.hold_correlated(&stats)
+                || self.snoop(&stats)
                 || self.hold_implausible(&stats, stats.sigma0)
-                || self.hold_correlated(&stats)
             {
                 continue;
             }
@@ -431,6 +492,7 @@ impl Resection<'_> {
         let mut v = to_vector(&self.parameters);
         v[p.index()] = to_vector(self.setup)[p.index()];
         self.parameters = from_vector(&self.parameters, &v);
+        self.held_at_prior.push((p, range / 3.0));
         self.held.push((
             p,
             format!(
@@ -440,6 +502,47 @@ impl Resection<'_> {
             ),
         ));
         true
+    }
+
+    /// Frees again the parameters held at their priors that the adjusted
+    /// observations do determine (three standard deviations within the
+    /// plausible range, with this adjustment's sigma0); whether any was.
+    /// The holds made before the adjustment were judged at an estimate
+    /// without the parameters held, whose residuals carry their model
+    /// error (an unmodelled k1 of a few pixels at the corners) and any
+    /// gross error not yet excluded: a determinable parameter can look
+    /// undetermined there, and held at the setup's zero it would leave
+    /// that model error in the result, and points excluded for it.
+    fn release_determined(&mut self, stats: &Statistics) -> Result<bool, CalibrationError> {
+        let mut released = false;
+        let candidates: Vec<(Parameter, f64)> = self.held_at_prior.clone();
+        for (p, prior) in candidates {
+            let mut free = self.free;
+            free.insert(p);
+            let Some(trial) = adjustment::statistics(&self.parameters, free, &self.equations())
+            else {
+                continue;
+            };
+            let Some(q) = &trial.cofactor else { continue };
+            let Some(k) = free.iter().position(|o| o == p) else {
+                continue;
+            };
+            let sigma = stats.sigma0 * q[(k, k)].max(0.0).sqrt();
+            if 3.0 * sigma <= 3.0 * prior {
+                self.free.insert(p);
+                self.held_at_prior.retain(|(h, _)| *h != p);
+                self.held.retain(|(h, _)| *h != p);
+                released = true;
+            }
+        }
+        if released {
+            // Points excluded while a determinable parameter was held may
+            // have shown its model error, not a gross error of their own:
+            // all are taken back and tested again.
+            self.active.append(&mut self.excluded_equations);
+            self.excluded.clear();
+        }
+        Ok(released)
     }
 
     /// A result whose geometry the observations do not fix is an error:
@@ -532,6 +635,7 @@ impl Resection<'_> {
         match worst {
             Some((i, t)) if t > critical && self.active.len() > points_needed(self.free.len()) => {
                 let (id, equation) = self.active.remove(i);
+                self.excluded_equations.push((id, equation));
                 self.excluded.push(PointResidual {
                     id,
                     x_px: stats.residuals[i].x,
@@ -549,15 +653,31 @@ impl Resection<'_> {
     /// covariance come with the parameters held at their estimates still
     /// free: conditioning on a value that is itself uncertain would make the
     /// others' look better than they are.
+    ///
+    /// A parameter held at the setup's value because the observations do
+    /// not determine it is not known exactly either: the setup's value is a
+    /// prior, within its plausible range (3 sigma). Its uncertainty enters
+    /// the others' as that prior would in the adjustment: the normal
+    /// matrix with it free, plus `sigma0² / sigma_prior²` on its diagonal
+    /// (a pseudo-observation of its value; the redundancy is unchanged, one
+    /// observation and one unknown more), inverted. Without that, holding
+    /// a non-zero truth at zero would bias the others beyond their
+    /// reported standard deviations.
     fn finish(self, stats: &Statistics) -> (CameraParameters, CameraReport) {
         let uncertain = self.free | self.held_at_estimate;
-        let marginal = if uncertain == self.free {
+        let mut with_priors = uncertain;
+        let priors = self.held_at_prior.clone();
+        for (p, _) in &priors {
+            with_priors.insert(*p);
+        }
+        let marginal = if with_priors == self.free {
             None
         } else {
-            adjustment::statistics(&self.parameters, uncertain, &self.equations())
+            adjustment::statistics(&self.parameters, with_priors, &self.equations())
+                .and_then(|m| with_prior(m, &priors, with_priors))
         };
         let uncertainty = match &marginal {
-            Some(m) if m.cofactor.is_some() => (m, uncertain),
+            Some(m) if m.cofactor.is_some() => (m, with_priors),
             _ => (stats, self.free),
         };
         let report = camera_report(&self, stats, uncertainty);

@@ -81,6 +81,7 @@ mod bundle;
 mod gauge;
 pub mod report;
 mod vote;
+pub mod wand;
 
 use nalgebra::{DMatrix, Point2, Point3, Vector2};
 
@@ -1033,6 +1034,7 @@ fn hold_undeterminable(
             redundancy: solution.redundancy,
             cofactor,
             scaled_normal,
+            normal: block.clone(),
             test: Vec::new(),
         };
         if let Some((p, reason)) = undeterminable(&stats, state.free[c], max_correlation, true) {

@@ -15,9 +15,11 @@
 //! order, and the scan of a read completes before hyper sees its bytes).
 //!
 //! Anything it does not follow (a head or chunk line too long, a length
-//! that does not parse, an upgrade) stops the scan for the rest of the
-//! connection: hyper refuses such a request itself and closes, and later
-//! requests then get no note (they are served as they are).
+//! that does not parse, a `CONNECT`) stops the scan for the rest of the
+//! connection, and later requests then get no note: the service refuses
+//! them (fails closed, see [`super::RefusedFraming`]). A head with an
+//! `Upgrade` field is followed like any other: the service never answers
+//! 101 Switching Protocols, so hyper reads the bytes after it as HTTP.
 
 use std::collections::VecDeque;
 
@@ -41,9 +43,8 @@ enum State {
         coded: bool,
         /// Its last coding is `chunked`.
         chunked: bool,
-        /// An `Upgrade` or a `CONNECT`: the bytes after the head are not
-        /// HTTP.
-        upgrade: bool,
+        /// A `CONNECT`: the bytes after the head are not followed.
+        connect: bool,
     },
     /// In a body of known length: bytes still to come.
     Fixed(u64),
@@ -67,7 +68,7 @@ impl State {
             has_length: false,
             coded: false,
             chunked: false,
-            upgrade: false,
+            connect: false,
         }
     }
 }
@@ -167,20 +168,20 @@ impl Framing {
                 has_length,
                 coded,
                 chunked,
-                upgrade,
+                connect,
             } => {
                 if !*started {
                     // Empty lines before a request line are skipped (RFC
                     // 9112 section 2.2), as hyper does.
                     if !line.is_empty() {
                         *started = true;
-                        *upgrade = line.starts_with(b"CONNECT ");
+                        *connect = line.starts_with(b"CONNECT ");
                     }
                     return;
                 }
                 if line.is_empty() {
                     let both = *has_length && *coded;
-                    let next = if *upgrade {
+                    let next = if *connect {
                         State::Lost
                     } else if *coded {
                         if *chunked {
@@ -222,8 +223,6 @@ impl Framing {
                     *coded = true;
                     let last = value.rsplit(|&b| b == b',').next().map(trim);
                     *chunked = last.is_some_and(|c| c.eq_ignore_ascii_case(b"chunked"));
-                } else if name.eq_ignore_ascii_case(b"upgrade") {
-                    *upgrade = true;
                 }
             }
             State::ChunkSize => {
@@ -329,6 +328,23 @@ mod tests {
                 b"POST / HTTP/1.1\r\nContent-Length: 1\r\nContent-Length: 2\r\n\r\nxGET / HTTP/1.1\r\n\r\n",
                 3
             ),
+            [false]
+        );
+    }
+
+    #[test]
+    fn upgrades_are_followed_and_connect_stops_the_notes() {
+        // The service never answers 101, so what follows an upgrade is
+        // the next request, and it is noted.
+        let wire: &[u8] = b"GET / HTTP/1.1\r\nConnection: Upgrade\r\nUpgrade: websocket\r\n\r\n\
+            POST / HTTP/1.1\r\nContent-Length: 4\r\nTransfer-Encoding: chunked\r\n\r\n0\r\n\r\n";
+        for piece in [1, 5, wire.len()] {
+            assert_eq!(notes(wire, piece), [false, true], "in pieces of {piece}");
+        }
+        // A CONNECT (refused, and its connection closed) is noted, and
+        // nothing after it: a request there would be refused.
+        assert_eq!(
+            notes(b"CONNECT x:443 HTTP/1.1\r\n\r\nGET / HTTP/1.1\r\n\r\n", 4),
             [false]
         );
     }

@@ -309,7 +309,7 @@ pub(super) fn stored_cameras(row: &CalibrationRow) -> Result<Vec<Camera>, ApiErr
 pub(super) fn stored_rig(
     row: &CalibrationRow,
 ) -> Result<(Vec<Camera>, Option<Splitter>), ApiError> {
-    formats::calibration::from_json_with_splitter(&row.model, "the stored calibration")
+    formats::calibration::stored_from_json_with_splitter(&row.model, "the stored calibration")
         .map_err(ApiError::internal)
 }
 

@@ -58,6 +58,7 @@ use crate::service::parameters;
         plots::overlay,
         plots::particles,
         plots::trajectories,
+        plots::kept_image,
         jobs::read,
         jobs::retry,
         super::healthz,

@@ -79,6 +79,16 @@ pub struct ImportedExperiment {
     /// Its last frame.
     #[schema(value_type = i64, minimum = 0, maximum = 4_294_967_295_u64)]
     pub last_frame: u64,
+    /// The tracking run created with the experiment's `track.par` (pyptv's
+    /// `track:`) settings: `max_velocity` from the `dv*` box,
+    /// `max_acceleration` from `dacc`, `recovery` from `flagNewParticles`,
+    /// from its first frame on; null where the experiment has none. Its
+    /// trajectories grow as frames are uploaded and processed.
+    #[schema(value_type = Option<i64>)]
+    pub tracking_run_id: Option<crate::service::store::TrackingRunId>,
+    /// Where its trajectories are (`{sequence}/trajectories`), where it has
+    /// a tracking run.
+    pub trajectories: Option<String>,
     /// The settings `ptv` does not use, and why.
     pub unmapped: Vec<UnmappedView>,
 }
@@ -142,6 +152,30 @@ pub async fn import(
     let _stop = StopOnDrop(cancel.clone());
     let (pipeline, splitter) = prepare_pipeline(&state, &model, &parameters, &cancel).await?;
 
+    // The tracking run's settings, checked before anything is stored.
+    let tracking = match &experiment.tracking {
+        Some(t) => {
+            let p = &t.parameters;
+            let settings = crate::service::tracking::TrackingSettings {
+                max_velocity: p.max_velocity,
+                max_acceleration: Some(p.max_acceleration),
+                max_gap: Some(p.max_gap),
+                min_length: Some(p.min_length),
+                fit_half_window: Some(p.fit_half_window),
+                fit_order: Some(p.fit_order),
+                first_frame: Some(crate::service::store::FrameNumber(
+                    experiment.sequence.first as i64,
+                )),
+                recovery: Some(t.recovery),
+            }
+            .with_defaults()?;
+            if let Some(volume) = &experiment.matching.volume {
+                settings.check_volume(volume)?;
+            }
+            Some(serde_json::to_string(&settings)?)
+        }
+        None => None,
+    };
     let name = name.unwrap_or_else(|| "openptv".to_owned());
     let (files, rows): (Vec<UploadedFile>, Vec<_>) = masks.into_iter().unzip();
     let cameras = experiment.cameras.len() as i64;
@@ -158,7 +192,20 @@ pub async fn import(
         (Arc::new(pipeline), splitter),
     );
     drop(scratch);
+    let mut tracking_run_id = None;
+    if let Some(settings) = &tracking {
+        let run = state
+            .store
+            .insert_tracking_run(sequence.id, settings)
+            .await?
+            .ok_or_else(|| ApiError::internal("the sequence just created is gone"))?;
+        tracking_run_id = Some(run.id);
+        crate::service::tracking::kick(&state, sequence.id);
+    }
     let body = ImportedExperiment {
+        tracking_run_id,
+        trajectories: tracking_run_id
+            .map(|_| format!("{}/trajectories", links::sequence(sequence.id))),
         calibration_id: calibration.id,
         sequence_id: sequence.id,
         calibration: links::calibration(calibration.id),

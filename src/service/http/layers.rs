@@ -85,7 +85,7 @@ use tracing::{Level, Span};
 
 use super::problem::ApiError;
 use crate::service::config::ServeArgs;
-use crate::service::connections::{BodyTooSlow, ConflictingFraming};
+use crate::service::connections::{BodyTooSlow, RefusedFraming};
 use crate::service::metrics::Metrics;
 
 /// The routes whose handlers do CPU work before answering.
@@ -162,12 +162,8 @@ impl<B> ValidateRequest<B> for HeadLimits {
     type ResponseBody = Body;
 
     fn validate(&mut self, request: &mut Request<B>) -> Result<(), Response> {
-        if request.extensions().get::<ConflictingFraming>().is_some() {
-            let mut response = ApiError::bad_request(
-                "the request declares both Content-Length and Transfer-Encoding, which frame \
-                 its body differently (RFC 9112 section 6.1); send one of them",
-            )
-            .into_response();
+        if let Some(refused) = request.extensions().get::<RefusedFraming>() {
+            let mut response = ApiError::bad_request(refused.reason()).into_response();
             response
                 .headers_mut()
                 .insert(header::CONNECTION, HeaderValue::from_static("close"));

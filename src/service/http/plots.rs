@@ -44,12 +44,13 @@ use crate::service::store::{CalibrationId, FrameNumber, SequenceId, TrackingRunI
 pub const MAX_TRAJECTORY_POINTS: usize = 200_000;
 
 /// The routes' paths (also the shed CPU routes).
-pub const PLOT_ROUTES: [&str; 5] = [
+pub const PLOT_ROUTES: [&str; 6] = [
     "/api/v1/calibrations/{id}/residuals.png",
     "/api/v1/calibrations/{id}/disparity.png",
     "/api/v1/sequences/{id}/frames/{frame}/overlay.png",
     "/api/v1/sequences/{id}/frames/{frame}/particles.png",
     "/api/v1/sequences/{id}/trajectories.png",
+    "/api/v1/sequences/{id}/frames/{frame}/image.png",
 ];
 
 pub(super) fn router() -> Router<Arc<AppState>> {
@@ -60,6 +61,17 @@ pub(super) fn router() -> Router<Arc<AppState>> {
         .route(route(PLOT_ROUTES[2]), get(overlay))
         .route(route(PLOT_ROUTES[3]), get(particles))
         .route(route(PLOT_ROUTES[4]), get(trajectories))
+        .route(route(PLOT_ROUTES[5]), get(kept_image))
+}
+
+/// Query of a frame's kept image.
+#[derive(Debug, Deserialize, IntoParams)]
+#[into_params(parameter_in = Query)]
+#[serde(deny_unknown_fields)]
+pub struct ImageQuery {
+    /// The camera, from 0 [default: 0].
+    #[serde(default)]
+    pub camera: usize,
 }
 
 /// Query of the pictures without other options.
@@ -261,67 +273,23 @@ pub async fn overlay(
     // The image, if asked for: the camera's file, or the frame's one file
     // that the splitter cuts into views.
     let image = if query.image.unwrap_or(true) {
-        let images = state.store.frame_images(id, frame).await?;
-        let wanted = if splitter.is_some() { 0 } else { query.camera };
-        let not_kept = || {
-            ApiError::conflict(format!(
-                "the image of camera {} of frame {frame} is not kept: sequence {id} was created \
-                 with keep_images false, or the frame came as targets; ask with image=false for \
-                 the targets and reprojections on a blank sensor",
-                query.camera
-            ))
-        };
-        let (_, sha256) = images.get(wanted).ok_or_else(not_kept)?;
-        let bytes = match state.images.read(sha256).await {
-            Ok(bytes) => bytes,
-            Err(crate::service::images::ImageStoreError::Missing { .. }) => return Err(not_kept()),
-            Err(e) => return Err(e.into()),
-        };
-        let layout = state
-            .store
-            .frame_input(id, frame)
-            .await?
-            .and_then(|input| input.raw_layout)
-            .map(|text| {
-                serde_json::from_str::<StoredRawLayout>(&text)
-                    .ok()
-                    .and_then(|l| l.layout())
-                    .ok_or_else(|| ApiError::internal(format!("malformed raw layout {text}")))
-            })
-            .transpose()?;
-        Some((bytes, layout))
+        let hint = "ask with image=false for the targets and reprojections on a blank sensor";
+        Some(stored_image(&state, (id, frame, query.camera), splitter.is_some(), hint).await?)
     } else {
         None
     };
     let format = query.format;
     let index = query.camera;
     let title = format!(
-        "SEQUENCE {id} FRAME {frame} CAMERA {index} ({})",
+        "Sequence {id}, frame {frame}, camera {index} ({})",
         camera.name()
     );
     let bytes = state
         .cpu
         .run(move || -> Result<Vec<u8>, ApiError> {
-            let image: Option<GreyImage> = match image {
-                None => None,
-                Some((bytes, layout)) => {
-                    let source = format!("the image of frame {frame}");
-                    let image = match &layout {
-                        Some(layout) => formats::image::decode_raw(&bytes, layout, &source),
-                        None => formats::image::decode_image(&bytes, &source),
-                    }
-                    .map_err(ApiError::internal)?;
-                    Some(match splitter {
-                        None => image,
-                        Some(splitter) => splitter
-                            .split(&image)
-                            .map_err(ApiError::internal)?
-                            .into_iter()
-                            .nth(index)
-                            .ok_or_else(|| ApiError::internal("the splitter has fewer views"))?,
-                    })
-                }
-            };
+            let image: Option<GreyImage> = image
+                .map(|stored| stored.decode(frame, index, splitter.as_ref()))
+                .transpose()?;
             let mut overlay = Overlay::new(
                 &camera,
                 index,
@@ -334,6 +302,132 @@ pub async fn overlay(
         })
         .await??;
     Ok(picture(format, bytes))
+}
+
+/// A frame's stored image file of a camera (a splitter's one file for
+/// every view), not decoded yet.
+struct StoredImage {
+    bytes: Vec<u8>,
+    layout: Option<formats::image::RawLayout>,
+}
+
+impl StoredImage {
+    /// The camera's image: the file decoded, a splitter's view cut out.
+    fn decode(
+        self,
+        frame: FrameNumber,
+        camera: usize,
+        splitter: Option<&crate::photogrammetry::splitter::Splitter>,
+    ) -> Result<GreyImage, ApiError> {
+        let source = format!("the image of frame {frame}");
+        let image = match &self.layout {
+            Some(layout) => formats::image::decode_raw(&self.bytes, layout, &source),
+            None => formats::image::decode_image(&self.bytes, &source),
+        }
+        .map_err(ApiError::internal)?;
+        match splitter {
+            None => Ok(image),
+            Some(splitter) => splitter
+                .split(&image)
+                .map_err(ApiError::internal)?
+                .into_iter()
+                .nth(camera)
+                .ok_or_else(|| ApiError::internal("the splitter has fewer views")),
+        }
+    }
+}
+
+/// Reads the kept image file of `camera` of a frame: a 409 where it is
+/// not kept, which ends with `hint` (what to ask for instead).
+async fn stored_image(
+    state: &AppState,
+    (id, frame, camera): (SequenceId, FrameNumber, usize),
+    splitter: bool,
+    hint: &str,
+) -> Result<StoredImage, ApiError> {
+    let images = state.store.frame_images(id, frame).await?;
+    let wanted = if splitter { 0 } else { camera };
+    let not_kept = || {
+        ApiError::conflict(format!(
+            "the image of camera {camera} of frame {frame} is not kept: sequence {id} was \
+             created with keep_images false, or the frame came as targets; {hint}"
+        ))
+    };
+    let (_, sha256) = images.get(wanted).ok_or_else(not_kept)?;
+    let bytes = match state.images.read(sha256).await {
+        Ok(bytes) => bytes,
+        Err(crate::service::images::ImageStoreError::Missing { .. }) => return Err(not_kept()),
+        Err(e) => return Err(e.into()),
+    };
+    let layout = state
+        .store
+        .frame_input(id, frame)
+        .await?
+        .and_then(|input| input.raw_layout)
+        .map(|text| {
+            serde_json::from_str::<StoredRawLayout>(&text)
+                .ok()
+                .and_then(|l| l.layout())
+                .ok_or_else(|| ApiError::internal(format!("malformed raw layout {text}")))
+        })
+        .transpose()?;
+    Ok(StoredImage { bytes, layout })
+}
+
+/// A frame's kept camera image, plain (no marks), as an 8-bit grey PNG
+/// at the sensor's size: a 16-bit or 12-bit image's top 8 bits of its
+/// depth, as the overlay shows it. For a viewer that draws its own marks
+/// (the page's frame viewer).
+#[utoipa::path(
+    get, path = "/api/v1/sequences/{id}/frames/{frame}/image.png", tag = "plots",
+    params(
+        ("id" = i64, Path, description = "Sequence id"),
+        ("frame" = i64, Path, description = "Frame number", minimum = 0, maximum = 4_294_967_295_u64),
+        ImageQuery,
+    ),
+    responses(
+        (status = 200, content_type = "image/png", body = Vec<u8>, description = "8-bit grey PNG, a picture pixel a sensor pixel"),
+        (status = 400, description = "Unknown query field", body = super::problem::Problem, content_type = "application/problem+json"),
+        (status = 404, description = "No such sequence, frame or camera", body = super::problem::Problem, content_type = "application/problem+json"),
+        (status = 409, description = "The frame's image is not kept", body = super::problem::Problem, content_type = "application/problem+json"),
+    )
+)]
+pub async fn kept_image(
+    State(state): Shared,
+    ApiPath((id, frame)): ApiPath<(SequenceId, u32)>,
+    ApiQuery(query): ApiQuery<ImageQuery>,
+) -> Result<Response, ApiError> {
+    let frame = FrameNumber(frame.into());
+    let sequence = super::sequences::sequence(&state, id).await?;
+    let calibration = calibration(&state, sequence.calibration_id).await?;
+    let (cameras, splitter) = stored_rig(&calibration)?;
+    if query.camera >= cameras.len() {
+        return Err(ApiError::not_found(format!(
+            "camera {} does not exist; sequence {id}'s cameras are 0 to {}",
+            query.camera,
+            cameras.len().saturating_sub(1)
+        )));
+    }
+    if state.store.frame_input(id, frame).await?.is_none() {
+        return Err(ApiError::not_found(format!(
+            "sequence {id} has no frame {frame}"
+        )));
+    }
+    let hint = format!(
+        "its targets are at {}/frames/{frame}/targets?camera={}",
+        super::links::sequence(id),
+        query.camera
+    );
+    let stored = stored_image(&state, (id, frame, query.camera), splitter.is_some(), &hint).await?;
+    let camera = query.camera;
+    let bytes = state
+        .cpu
+        .run(move || -> Result<Vec<u8>, ApiError> {
+            let image = stored.decode(frame, camera, splitter.as_ref())?;
+            crate::plot::grey_png(&image).map_err(|e| ApiError::internal(e.to_string()))
+        })
+        .await??;
+    Ok(picture(PlotFormat::Png, bytes))
 }
 
 /// A processed frame's particles in three orthographic views (XY, XZ,
@@ -370,7 +464,7 @@ pub async fn particles(
                     cameras: p.camera_count(),
                 })
                 .collect();
-            particles_plot(&format!("SEQUENCE {id} FRAME {frame}"), &points, format)
+            particles_plot(&format!("Sequence {id}, frame {frame}"), &points, format)
         })
         .await??;
     Ok(picture(format, bytes))
@@ -435,14 +529,14 @@ pub async fn trajectories(
     }
     let note = if full {
         format!(
-            "THE FIRST {} OF {total} TRAJECTORIES (AT MOST {MAX_TRAJECTORY_POINTS} POINTS)",
+            "The first {} of {total} trajectories (at most {MAX_TRAJECTORY_POINTS} points)",
             trajectories.len()
         )
     } else {
         String::new()
     };
     let format = query.format;
-    let title = format!("SEQUENCE {id} TRACKING RUN {}", run.id);
+    let title = format!("Sequence {id}, tracking run {}", run.id);
     let bytes = state
         .cpu
         .run(move || trajectories_plot(&title, &note, &trajectories, format))

@@ -77,9 +77,11 @@ pub async fn self_calibrate(
         .calibration(row.calibration_id)
         .await?
         .ok_or_else(|| ApiError::internal("a sequence's calibration is gone"))?;
-    let (cameras, _) =
-        formats::calibration::from_json_with_splitter(&calibration.model, "the stored calibration")
-            .map_err(ApiError::internal)?;
+    let (cameras, _) = formats::calibration::stored_from_json_with_splitter(
+        &calibration.model,
+        "the stored calibration",
+    )
+    .map_err(ApiError::internal)?;
     let parameters: Vec<_> = cameras.iter().map(|c| c.parameters().clone()).collect();
     let sequence_parameters: SequenceParameters = serde_json::from_str(&row.parameters)?;
     request.options(&parameters, sequence_parameters.matching().volume)?;

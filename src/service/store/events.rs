@@ -49,7 +49,7 @@ impl Store {
         for chunk in events.chunks(INSERT_ROWS) {
             let sql = format!(
                 "INSERT INTO events (sequence_id, change) VALUES {} RETURNING id",
-                super::placeholders(chunk.len(), 2)
+                super::placeholders(self.dialect, chunk.len(), 2)
             );
             let mut insert = sqlx::query_as::<_, (EventId,)>(&sql);
             for (sequence_id, change) in chunk {

@@ -658,11 +658,17 @@ async fn apply_page_limit(conn: &mut AnyConnection, pages: u32) -> Result<u32, s
 }
 
 /// The `VALUES` list of a multi-row insert, `rows` rows of `columns`
-/// parameters each, numbered `$1`.. in order (the one placeholder style
-/// both engines read; sqlx's `QueryBuilder` writes `?` under the `Any`
-/// driver).
-fn placeholders(rows: usize, columns: usize) -> String {
+/// parameters each, bound in order: `$1`.. on PostgreSQL; on SQLite
+/// anonymous `?`. SQLite keeps every named or numbered parameter (`$N`,
+/// `?N`) in a list it searches linearly, once per parameter when the
+/// statement is prepared and again when each value is bound, so a
+/// statement of N such parameters costs O(N²): 0.4 s for the 17,000 of a
+/// frame's trajectory points (issue 30). Anonymous ones are bound by
+/// position at no search. (sqlx's `QueryBuilder` writes `?` under the
+/// `Any` driver, which PostgreSQL does not read.)
+fn placeholders(dialect: Dialect, rows: usize, columns: usize) -> String {
     let mut sql = String::with_capacity(rows * columns * 7);
+    let mut numbers = itoa::Buffer::new();
     for row in 0..rows {
         if row > 0 {
             sql.push_str(", ");
@@ -672,11 +678,55 @@ fn placeholders(rows: usize, columns: usize) -> String {
             if column > 0 {
                 sql.push_str(", ");
             }
-            sql.push_str(&format!("${}", row * columns + column + 1));
+            match dialect {
+                Dialect::Sqlite => sql.push('?'),
+                Dialect::Postgres => {
+                    sql.push('$');
+                    sql.push_str(numbers.format(row * columns + column + 1));
+                }
+            }
         }
         sql.push(')');
     }
     sql
+}
+
+/// The most rows one multi-row insert writes: on SQLite (in this
+/// process, no round trip) 128; on PostgreSQL, where each statement is a
+/// round trip to the server, 512 (8,704 values of a trajectory point's
+/// 17, within its 65,535).
+fn rows_per_statement(dialect: Dialect) -> usize {
+    match dialect {
+        Dialect::Sqlite => 128,
+        Dialect::Postgres => 512,
+    }
+}
+
+/// The row counts of the statements that insert `rows` rows: full ones of
+/// [`rows_per_statement`], the rest in powers of two (100 rows as 64, 32
+/// and 4). A table's inserts then have at most ten statement texts,
+/// each prepared once per connection and kept in sqlx's statement cache,
+/// where a text per row count would prepare each insert anew; and no
+/// statement is so long that a slow-statement log of it (sqlx logs the
+/// whole text) floods the log.
+fn statement_rows(dialect: Dialect, rows: usize) -> impl Iterator<Item = usize> {
+    let most = rows_per_statement(dialect);
+    let rest = rows % most;
+    std::iter::repeat(most).take(rows / most).chain(
+        (0..usize::BITS)
+            .rev()
+            .map(|bit| 1usize << bit)
+            .filter(move |size| rest & size != 0),
+    )
+}
+
+/// `items` in the slices [`statement_rows`] gives.
+fn statement_chunks<T>(dialect: Dialect, mut items: &[T]) -> impl Iterator<Item = &[T]> {
+    statement_rows(dialect, items.len()).map(move |n| {
+        let (chunk, rest) = items.split_at(n);
+        items = rest;
+        chunk
+    })
 }
 
 /// Whether any frame's image, job's file or sequence's background or
@@ -697,6 +747,30 @@ async fn file_in_use(conn: &mut AnyConnection, sha256: &str) -> Result<bool, sql
 mod tests {
     use super::*;
     use sqlx::sqlite::{SqliteConnectOptions, SqlitePoolOptions};
+
+    /// Multi-row inserts: every row once, in order, in at most eight
+    /// (SQLite) or ten (PostgreSQL) distinct statement sizes per table,
+    /// none above the bound.
+    #[test]
+    fn inserts_are_cut_into_a_few_statement_sizes() {
+        for (dialect, most, texts) in [(Dialect::Sqlite, 128, 8), (Dialect::Postgres, 512, 10)] {
+            let mut sizes = std::collections::BTreeSet::new();
+            for rows in [0, 1, 2, 3, 100, 127, 128, 129, 255, 511, 513, 2000, 15_001] {
+                let items: Vec<usize> = (0..rows).collect();
+                let chunks: Vec<&[usize]> = statement_chunks(dialect, &items).collect();
+                assert_eq!(chunks.concat(), items, "{rows} rows");
+                assert!(chunks.iter().all(|c| !c.is_empty() && c.len() <= most));
+                sizes.extend(chunks.iter().map(|c| c.len()));
+            }
+            assert!(sizes.len() <= texts, "{sizes:?}");
+        }
+        assert_eq!(
+            statement_rows(Dialect::Sqlite, 100).collect::<Vec<_>>(),
+            [64, 32, 4]
+        );
+        assert_eq!(placeholders(Dialect::Sqlite, 2, 2), "(?, ?), (?, ?)");
+        assert_eq!(placeholders(Dialect::Postgres, 2, 2), "($1, $2), ($3, $4)");
+    }
 
     /// `--fsync` reaches every connection: SQLite's `synchronous` is FULL
     /// (2) on the writer and the readers with it, NORMAL (1) without.

@@ -116,6 +116,26 @@ impl Store {
         Ok(rows.into_iter().map(|(f,)| f).collect())
     }
 
+    /// How many targets the sequence's frames within `first..=last` have
+    /// stored, every camera's (a self-calibration's memory need, known
+    /// before the targets are read).
+    pub async fn target_count(
+        &self,
+        sequence_id: SequenceId,
+        (first, last): (FrameNumber, FrameNumber),
+    ) -> Result<i64, sqlx::Error> {
+        let (count,): (Option<i64>,) = sqlx::query_as(
+            "SELECT CAST(SUM(count) AS BIGINT) FROM targets \
+             WHERE sequence_id = $1 AND frame BETWEEN $2 AND $3",
+        )
+        .bind(sequence_id)
+        .bind(first)
+        .bind(last)
+        .fetch_one(&self.reader)
+        .await?;
+        Ok(count.unwrap_or(0))
+    }
+
     /// The sequence's processed frames whose particles another calibration
     /// than `calibration_id` made, in order.
     pub async fn frames_made_by_others(

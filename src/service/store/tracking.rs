@@ -173,10 +173,6 @@ pub enum FrameReadiness {
     Pending,
 }
 
-/// Points written per statement (17 values each, within SQLite's limit of
-/// 32,766 bound values and PostgreSQL's of 65,535).
-const POINTS_PER_STATEMENT: usize = 1000;
-
 impl Store {
     /// A tracking run by id.
     pub async fn tracking_run(
@@ -415,7 +411,7 @@ impl Store {
             .bind(particles)
             .execute(&mut *tx)
             .await?;
-        insert_points(&mut tx, id, points).await?;
+        insert_points(&mut tx, self.dialect, id, points).await?;
         tx.commit().await?;
         Ok(true)
     }
@@ -443,7 +439,7 @@ impl Store {
         if done == 0 {
             return Ok(false);
         }
-        insert_points(&mut tx, id, points).await?;
+        insert_points(&mut tx, self.dialect, id, points).await?;
         tx.commit().await?;
         Ok(true)
     }
@@ -579,15 +575,20 @@ pub(super) async fn insert_run(
 
 /// Inserts trajectory points and brings their trajectories' extents up to
 /// date, inside the caller's transaction.
+/// A frame's points are those that frame made final (the tracker hands
+/// each point out once), so a frame adds rows and rewrites none; its
+/// trajectories' extents are upserted. Both in statements of at most
+/// [`super::rows_per_statement`] rows ([`super::statement_chunks`]).
 async fn insert_points(
     tx: &mut Transaction<'_, Any>,
+    dialect: super::Dialect,
     id: TrackingRunId,
     points: &[PointRow],
 ) -> Result<(), sqlx::Error> {
-    for chunk in points.chunks(POINTS_PER_STATEMENT) {
+    for chunk in super::statement_chunks(dialect, points) {
         let sql = format!(
             "INSERT INTO trajectory_points (run_id, {POINT_COLUMNS}) VALUES {}",
-            super::placeholders(chunk.len(), 17)
+            super::placeholders(dialect, chunk.len(), 17)
         );
         let mut insert = sqlx::query(&sql);
         for p in chunk {
@@ -625,7 +626,7 @@ async fn insert_points(
         e.2 += 1;
     }
     let extents: Vec<_> = extents.into_iter().collect();
-    for chunk in extents.chunks(POINTS_PER_STATEMENT) {
+    for chunk in super::statement_chunks(dialect, &extents) {
         let sql = format!(
             "INSERT INTO trajectories (run_id, id, first_frame, last_frame, length) VALUES {} \
              ON CONFLICT (run_id, id) DO UPDATE SET \
@@ -634,7 +635,7 @@ async fn insert_points(
              last_frame = CASE WHEN excluded.last_frame > trajectories.last_frame \
                           THEN excluded.last_frame ELSE trajectories.last_frame END, \
              length = trajectories.length + excluded.length",
-            super::placeholders(chunk.len(), 5)
+            super::placeholders(dialect, chunk.len(), 5)
         );
         let mut upsert = sqlx::query(&sql);
         for (trajectory, (first, last, length)) in chunk {

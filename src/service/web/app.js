@@ -106,7 +106,9 @@
   async function api(path, options = {}) {
     const response = await send(API + path, { ...options, headers: headers(options.headers) });
     if (response.status === 401) {
-      askToken(sessionStorage.getItem(TOKEN_KEY) !== null);
+      let detail = '';
+      try { detail = (await response.json()).detail || ''; } catch (_) { /* not JSON */ }
+      askToken(sessionStorage.getItem(TOKEN_KEY) !== null, detail);
       throw new NeedToken('the API token is needed');
     }
     if (!response.ok) {
@@ -121,10 +123,20 @@
     method: 'POST', headers: { 'Content-Type': 'application/json' }, body: JSON.stringify(body),
   })).json();
 
-  function askToken(wrong) {
+  /** Shows the token form; after a token was tried (`wrong`), says that
+   * the service refused it, with the service's words (kept until another
+   * token is given). */
+  function askToken(wrong, detail) {
     const form = document.getElementById('token-form');
     form.hidden = false;
-    if (wrong) sessionStorage.removeItem(TOKEN_KEY);
+    const said = document.getElementById('token-error');
+    if (wrong) {
+      sessionStorage.removeItem(TOKEN_KEY);
+      showForget();
+      said.textContent = `The service did not accept that token (HTTP 401${detail ? `: ${detail}` : ''}). `
+        + 'Give the token the service was started with (--api-token).';
+      said.hidden = false;
+    }
     document.getElementById('token-input').focus();
   }
   document.getElementById('token-form').addEventListener('submit', (e) => {
@@ -132,6 +144,10 @@
     const input = document.getElementById('token-input');
     sessionStorage.setItem(TOKEN_KEY, input.value.trim());
     input.value = '';
+    // A new token: what was said of the last one goes (it is said again
+    // if this one is refused too; the view's parallel requests all come
+    // back 401, and only the first finds the token to forget).
+    document.getElementById('token-error').hidden = true;
     e.target.hidden = true;
     showForget();
     route();
@@ -147,18 +163,28 @@
 
   // ---- Plots: fetched with the token and shown from a blob; a plot the
   // service cannot give (not there, or no image kept) says so instead.
+  // A plot is shown as wide as the page allows (at most its own size);
+  // a click on it shows it at full size (scrolling), and its link opens
+  // the picture alone. `figure.release()` frees its image (a plot that
+  // is drawn again).
   function plot(path, caption) {
     const figure = el('figure', { class: 'plot', dataset: { src: API + path, loaded: 'pending' } });
-    (async () => {
+    let url = null;
+    const release = () => { if (url) URL.revokeObjectURL(url); url = null; };
+    figure.release = release;
+    cleanups.push(release);
+    figure.ready = (async () => {
       try {
         const response = await oneAtATime(() => send(API + path, { headers: headers() }));
         if (!response.ok) throw new HttpError(response.status, response.statusText);
-        const image = el('img', { alt: caption });
-        const url = URL.createObjectURL(await response.blob());
-        cleanups.push(() => URL.revokeObjectURL(url));
+        const image = el('img', { alt: caption, title: 'click: full size / fit' });
+        url = URL.createObjectURL(await response.blob());
         image.src = url;
         await image.decode();
-        figure.replaceChildren(image, el('figcaption', { text: caption }));
+        image.addEventListener('click', () => figure.classList.toggle('full'));
+        figure.replaceChildren(el('div', { class: 'frame' }, image), el('figcaption', {}, caption,
+          ` (${image.naturalWidth}×${image.naturalHeight} px; click for full size or `,
+          el('a', { href: url, target: '_blank', rel: 'noopener', class: 'open', text: 'open it alone' }), ')'));
         figure.dataset.loaded = 'yes';
       } catch (error) {
         const why = error instanceof HttpError ? `HTTP ${error.status}` : 'it does not load';
@@ -292,10 +318,24 @@
           .filter(([key]) => key !== 'media')
           .map(([key, value]) => [key, Array.isArray(value) ? value.map((v) => fmt(v)).join(', ') : fmt(value)])));
       }
-      if (report && report.cameras) section.append(plot(`/calibrations/${id}/residuals.png?camera=${c}`, `residuals of camera ${c}`));
+      // Residual pictures exist for a report solved from control points
+      // that says where each point was measured; a self-calibration's
+      // report has disparities instead (its plot is above).
+      if (camera && hasResiduals(report, camera)) {
+        section.append(plot(`/calibrations/${id}/residuals.png?camera=${c}`, `residuals of camera ${c}`));
+      } else if (camera && !report.outcome) {
+        section.append(el('p', { class: 'note', text: 'No residual picture: this report was written before reports said where each point was measured (calibrate again to draw it).' }));
+      }
       main.append(section);
     });
     if (!report) main.append(el('p', { class: 'note', text: 'No report: this calibration was stored as given, not solved.' }));
+  }
+
+  /** Whether the service can draw a camera's residuals: a solve's report
+   * (not a self-calibration's) whose points say where they were measured. */
+  function hasResiduals(report, camera) {
+    if (report.outcome !== undefined || !Array.isArray(camera.residuals)) return false;
+    return camera.residuals.concat(camera.excluded || []).every((r) => Array.isArray(r.image_px));
   }
 
   function card(label, value, id) {
@@ -330,11 +370,10 @@
       el('details', {}, el('summary', { text: 'parameters' }), el('pre', { text: JSON.stringify(sequence.parameters, null, 2) })),
       el('h2', { text: 'Events' }), log, frames);
     showCounts(counts, sequence.frames);
-    if (sequence.tracking) {
-      main.append(el('h2', { text: 'Trajectories' }),
-        el('p', { class: 'note', text: `Tracking run ${sequence.tracking.run_id}: ${sequence.tracking.state}, tracked through frame ${sequence.tracking.tracked_through ?? '–'}.` }),
-        plot(`/sequences/${id}/trajectories.png`, 'trajectories coloured by speed'));
-    }
+    const tracking = trackingSection(id);
+    main.append(tracking.node);
+    tracking.update(sequence.tracking);
+    cleanups.push(tracking.stop);
     await showFrames(frames, id);
 
     // Throughput from the frames processed while this page is open.
@@ -347,6 +386,7 @@
         try {
           const fresh = await getJson(`/sequences/${id}`);
           showCounts(counts, fresh.frames);
+          tracking.update(fresh.tracking);
           await showFrames(frames, id);
         } catch (error) {
           if (!(error instanceof NeedToken)) throw error;
@@ -363,10 +403,7 @@
         const now = performance.now();
         processed.push(now);
         while (processed.length && now - processed[0] > 60000) processed.shift();
-        const span = processed.length > 1 ? (now - processed[0]) / 1000 : 0;
-        throughput.textContent = span > 0
-          ? `${((processed.length - 1) / span).toFixed(2)} frames/s over the last ${Math.round(span)} s`
-          : '1 frame processed since this page opened';
+        throughput.textContent = throughputText(processed, now);
       }
       update();
     }, (status) => {
@@ -374,6 +411,65 @@
       live.className = `live ${status === 'live' ? 'on' : status === 'connecting' ? '' : 'off'}`;
     });
     cleanups.push(stop, () => clearTimeout(refresh));
+  }
+
+  /** The rate of frames processed (`times`, ms, the last minute's) as
+   * said on the page: a rate only once the frames span a second or more
+   * (a rate over a few milliseconds says nothing), the span to a tenth of
+   * a second below ten seconds. */
+  function throughputText(times, now) {
+    const n = times.length;
+    const span = n > 1 ? (now - times[0]) / 1000 : 0;
+    const frames = `${n} frame${n === 1 ? '' : 's'}`;
+    if (span < 1) return `${frames} processed in the last ${span > 0 ? `${span.toFixed(1)} s` : 'moment'}`;
+    const shown = span < 10 ? span.toFixed(1) : String(Math.round(span));
+    return `${((n - 1) / span).toFixed(2)} frames/s over the last ${shown} s (${frames})`;
+  }
+
+  /** A sequence's tracking: its run's line and trajectories plot, drawn
+   * again as the run goes on (the plot at most every PLOT_REFRESH_MS, and
+   * once more when the run ends), hidden while there is no run. */
+  const PLOT_REFRESH_MS = 4000;
+  function trackingSection(id) {
+    const line = el('p', { class: 'note', id: 'tracking-line' });
+    const holder = el('div', { id: 'trajectories' });
+    const node = el('section', { id: 'tracking', hidden: '' }, el('h2', { text: 'Trajectories' }), line, holder);
+    let drawn = null;
+    let wanted = null;
+    let last = -Infinity;
+    let timer = null;
+    function redraw() {
+      clearTimeout(timer);
+      timer = null;
+      last = performance.now();
+      drawn = wanted;
+      // The new picture replaces the old one once it is loaded (no blank
+      // between the two).
+      const figure = plot(`/sequences/${id}/trajectories.png`, 'trajectories coloured by speed');
+      figure.dataset.key = drawn;
+      const old = [...holder.children];
+      figure.hidden = old.length > 0;
+      holder.append(figure);
+      figure.ready.then(() => {
+        for (const o of old) { if (o.release) o.release(); o.remove(); }
+        figure.hidden = false;
+      });
+    }
+    return {
+      node,
+      update(run) {
+        if (!run) { node.hidden = true; return; }
+        node.hidden = false;
+        line.textContent = `Tracking run ${run.run_id}: ${run.state}, tracked through frame ${run.tracked_through ?? '–'}.`;
+        line.dataset.key = `${run.run_id} ${run.state} ${run.tracked_through ?? ''}`;
+        wanted = line.dataset.key;
+        if (wanted === drawn) return;
+        const wait = PLOT_REFRESH_MS - (performance.now() - last);
+        if (wait <= 0 || run.state !== 'tracking') redraw();
+        else if (!timer) timer = setTimeout(redraw, wait);
+      },
+      stop() { clearTimeout(timer); },
+    };
   }
 
   function showCounts(node, frames) {
@@ -442,13 +538,15 @@
     const zoomLabel = el('span', { id: 'zoom', text: '100%' });
     const marks = el('input', { type: 'checkbox', id: 'marks', checked: '' });
     marks.addEventListener('change', () => draw());
+    // The camera's plain kept image (image.png) under the page's own
+    // marks: one set of marks, explained by the one legend below.
     const imageNote = el('p', { class: 'note', id: 'image-note' });
     const node = el('section', { class: 'frame-viewer' },
       el('div', { class: 'toolbar' }, buttons,
         el('button', { type: 'button', text: '+', onclick: () => zoomAt(1.5, canvas.width / 2, canvas.height / 2) }),
         el('button', { type: 'button', text: '−', onclick: () => zoomAt(1 / 1.5, canvas.width / 2, canvas.height / 2) }),
         el('button', { type: 'button', text: 'fit', onclick: () => { fit(); draw(); } }), zoomLabel,
-        el('label', {}, marks, ' the page\'s marks')),
+        el('label', {}, marks, ' marks')),
       canvas,
       el('p', { class: 'legend' }, el('span', {}, el('i', { class: 'swatch sw-used' }), 'target of a particle'),
         el('span', {}, el('i', { class: 'swatch sw-unused' }), 'unmatched target'),
@@ -483,8 +581,7 @@
       context.setTransform(s, 0, 0, s, state.x, state.y);
       if (state.image) {
         context.imageSmoothingEnabled = state.zoom < 4;
-        // At one image pixel per sensor pixel (the service's overlay has
-        // its legend below the sensor's rows).
+        // One image pixel a sensor pixel.
         context.drawImage(state.image, 0, 0, state.image.width, state.image.height);
       } else {
         context.fillStyle = '#1e2a36';
@@ -528,20 +625,21 @@
       fit();
       draw();
       canvas.dataset.camera = String(camera);
-      imageNote.textContent = keptImages ? 'Loading the overlay image…' : 'This sequence keeps no images: targets and reprojections only.';
-      // The overlay (the image with the service's marks), where kept.
+      imageNote.textContent = keptImages ? 'Loading the camera image…' : 'This sequence keeps no images: targets and reprojections only.';
+      // The camera's kept image, plain, where kept.
       if (keptImages) {
         try {
-          const url = `${API}/sequences/${id}/frames/${frame}/overlay.png?camera=${camera}`;
+          const url = `${API}/sequences/${id}/frames/${frame}/image.png?camera=${camera}`;
           const response = await oneAtATime(() => send(url, { headers: headers() }));
           if (!response.ok) throw new HttpError(response.status, response.statusText);
           const bitmap = await createImageBitmap(await response.blob());
           if (state.camera !== camera) return;
           state.image = bitmap;
-          imageNote.textContent = 'Under the marks: the service\'s overlay of the camera image.';
+          imageNote.textContent = 'Under the marks: the camera\'s image as kept.';
+          canvas.dataset.image = 'yes';
           draw();
         } catch (error) {
-          imageNote.textContent = `No overlay image (${error instanceof HttpError ? `HTTP ${error.status}` : 'it does not load'}): targets and reprojections only.`;
+          imageNote.textContent = `No camera image (${error instanceof HttpError ? `HTTP ${error.status}` : 'it does not load'}): targets and reprojections only.`;
         }
       }
     }
@@ -699,7 +797,9 @@
     } catch (error) {
       if (mine === generation) {
         if (error instanceof HttpError) main.replaceChildren(el('p', { class: 'problem', text: error.detail }));
-        else if (!(error instanceof NeedToken)) { main.replaceChildren(); failed(error); }
+        else if (error instanceof NeedToken) {
+          main.replaceChildren(el('p', { class: 'note', id: 'needs-token', text: 'This view needs the API token: give it above.' }));
+        } else { main.replaceChildren(); failed(error); }
       }
     }
     if (mine === generation) {

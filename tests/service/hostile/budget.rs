@@ -15,7 +15,10 @@ use ptv::photogrammetry::GreyImage;
 use reqwest::multipart::{Form, Part};
 use serde_json::{json, Value};
 
-use crate::helpers::{png, status_and_json, ServiceProcess};
+use crate::helpers::{
+    logged_grants, png, rig, status_and_json, targets_form, upload as upload_form,
+    wait_for_sequence, LoggedGrant, ServiceProcess,
+};
 
 /// The largest sensor side the service takes.
 const SIDE: u32 = 8192;
@@ -103,19 +106,26 @@ fn checkerboard(side: u32, rows: u32) -> Vec<u8> {
     png(&GreyImage::from_u16(side, side, pixels).unwrap())
 }
 
-/// The MiB of the memory budget in use, from `/metrics`.
-async fn reserved_mib(client: &reqwest::Client, address: &str) -> Option<u64> {
-    let text = client
-        .get(format!("{address}/metrics"))
-        .send()
-        .await
-        .ok()?
-        .text()
-        .await
-        .ok()?;
-    text.lines()
-        .find_map(|l| l.strip_prefix("ptv_memory_reserved_mib "))
-        .and_then(|v| v.trim().parse().ok())
+/// Asserts that no two of `grants` whose MiB together exceed
+/// `budget_mib` were held at once: one was released before the other was
+/// taken (a grant still held counts as held to the end). Each grant
+/// brackets its job's work, so this says the jobs ran one after the
+/// other.
+fn assert_serialised(grants: &[LoggedGrant], budget_mib: u64) {
+    for (i, a) in grants.iter().enumerate() {
+        for b in &grants[i + 1..] {
+            if a.mib + b.mib <= budget_mib {
+                continue;
+            }
+            let a_before_b = a.released.is_some_and(|end| end <= b.taken);
+            let b_before_a = b.released.is_some_and(|end| end <= a.taken);
+            assert!(
+                a_before_b || b_before_a,
+                "{a:?} and {b:?} ran at once, {} MiB together over the budget of {budget_mib} MiB",
+                a.mib + b.mib
+            );
+        }
+    }
 }
 
 /// The frames a background is computed from: 16 rather than the 32 of
@@ -150,10 +160,12 @@ async fn large_jobs_queued_at_once_run_one_after_the_other_within_the_budget() {
     let budget_mib = BACKGROUND_NEED_MIB.max(FRAME_NEED_MIB) + 100;
     assert!(budget_mib < 2 * BACKGROUND_NEED_MIB.min(FRAME_NEED_MIB));
     let dir = tempfile::tempdir().unwrap();
-    let server = ServiceProcess::start_with(
+    let log = dir.path().join("server.log");
+    let server = ServiceProcess::start_logged(
         dir.path(),
         2,
         &["--memory-budget-mb", &budget_mib.to_string()],
+        &log,
     );
     let client = reqwest::Client::new();
     let api = format!("{}/api/v1", server.address);
@@ -187,15 +199,12 @@ async fn large_jobs_queued_at_once_run_one_after_the_other_within_the_budget() {
     }
 
     // Until both backgrounds are computed and both detections ended (the
-    // backgrounds' frames themselves are not waited for), the budget in
-    // use never holds two of these jobs.
-    let mut most_reserved = 0;
+    // backgrounds' frames themselves are not waited for).
     loop {
         assert!(
             started.elapsed() < Duration::from_secs(600),
             "the jobs did not end in 10 minutes"
         );
-        most_reserved = most_reserved.max(reserved_mib(&client, &server.address).await.unwrap());
         let mut done = 0;
         for sequence in backgrounds {
             let view = get_json(&client, format!("{api}/sequences/{sequence}")).await;
@@ -210,7 +219,28 @@ async fn large_jobs_queued_at_once_run_one_after_the_other_within_the_budget() {
         }
         tokio::time::sleep(Duration::from_millis(100)).await;
     }
-    assert!(most_reserved <= budget_mib, "{most_reserved} MiB reserved");
+    // When each large job held its memory, from the server's log: the two
+    // backgrounds and the two hostile detections (and the backgrounds'
+    // frames, detected as they come) each took a grant of their declared
+    // need, and no two whose needs exceed the budget together ran at once.
+    let grants = logged_grants(&std::fs::read_to_string(&log).unwrap());
+    let backgrounds_held: Vec<_> = grants
+        .iter()
+        .filter(|g| g.what.contains("median background"))
+        .collect();
+    assert_eq!(backgrounds_held.len(), 2, "{grants:?}");
+    assert!(
+        backgrounds_held
+            .iter()
+            .all(|g| g.mib == BACKGROUND_NEED_MIB),
+        "{grants:?}"
+    );
+    let frames_held = grants
+        .iter()
+        .filter(|g| g.what.contains("detecting and matching"))
+        .count();
+    assert!(frames_held >= 2, "{grants:?}");
+    assert_serialised(&grants, budget_mib);
     // The hostile frames ended with a reason, not a crash.
     for job in &detection_jobs {
         let view = get_json(&client, format!("{api}/jobs/{job}")).await;
@@ -285,4 +315,104 @@ async fn a_job_that_can_never_fit_fails_once_with_the_reason() {
         .await
         .unwrap();
     assert!(metrics.contains("ptv_memory_budget_mib 100\n"), "{metrics}");
+}
+
+/// Self-calibrations take their memory from the budget too, their need
+/// derived from the stored target counts of their frames
+/// (`budget::selfcal_need`): two queued at once on two workers with a
+/// budget that holds one of them but not both run one after the other.
+/// The frames are processed first under the default budget (a frame of
+/// the rig's four 1280x1024 cameras declares 4 x 80 MiB of matching), and
+/// the server restarted on the same data with the small budget.
+#[tokio::test(flavor = "multi_thread")]
+async fn self_calibrations_queued_at_once_run_one_after_the_other_within_the_budget() {
+    const FRAMES: i64 = 4;
+    const PARTICLES: usize = 1000;
+    let dir = tempfile::tempdir().unwrap();
+    let rig = rig();
+    let client = reqwest::Client::new();
+    let mut targets = 0u64;
+    let sequence = {
+        let server = ServiceProcess::start(dir.path(), 1);
+        let api = format!("{}/api/v1", server.address);
+        let response = client
+            .post(format!("{api}/calibrations"))
+            .header("content-type", "application/json")
+            .body(ptv::formats::calibration::to_json(&rig.cameras))
+            .send()
+            .await
+            .unwrap();
+        let (status, body) = status_and_json(response).await;
+        assert_eq!(status, 201, "{body}");
+        let sequence = sequence(&client, &api, body["id"].as_i64().unwrap(), json!({})).await;
+        for frame in 0..FRAMES {
+            let frame_targets = rig.targets(PARTICLES, 7 + frame as u64);
+            targets += frame_targets
+                .targets
+                .iter()
+                .map(|c| c.len() as u64)
+                .sum::<u64>();
+            let (status, body) = upload_form(
+                &client,
+                &server.address,
+                sequence,
+                targets_form(frame, &frame_targets),
+            )
+            .await;
+            assert_eq!(status, 202, "{body}");
+        }
+        let view = wait_for_sequence(&client, &server.address, sequence).await;
+        assert_eq!(view["frames"]["done"], FRAMES, "{view}");
+        sequence
+    };
+    // The need the service declares: every stored target of the frames.
+    let log = dir.path().join("server.log");
+    let need = ptv::service::budget::selfcal_need(targets, 4, FRAMES as usize).mib();
+    assert!(need >= 4, "{targets} targets: {need} MiB");
+    // One fits, two do not.
+    let budget_mib = need + need / 2;
+    let server = ServiceProcess::start_logged(
+        dir.path(),
+        2,
+        &["--memory-budget-mb", &budget_mib.to_string()],
+        &log,
+    );
+    let api = format!("{}/api/v1", server.address);
+    let mut jobs = Vec::new();
+    for _ in 0..2 {
+        let (status, body) = post_json(
+            &client,
+            format!("{api}/sequences/{sequence}/self-calibration"),
+            &json!({"tolerance": 2.0}),
+        )
+        .await;
+        assert_eq!(status, 202, "{body}");
+        jobs.push(body["job_id"].as_i64().unwrap());
+    }
+    let started = Instant::now();
+    for job in &jobs {
+        loop {
+            let view = get_json(&client, format!("{api}/jobs/{job}")).await;
+            if view["state"] == "succeeded" || view["state"] == "failed" {
+                assert_eq!(view["attempts"], 1, "{view}");
+                break;
+            }
+            assert!(
+                started.elapsed() < Duration::from_secs(300),
+                "the self-calibrations did not end: {view}"
+            );
+            tokio::time::sleep(Duration::from_millis(100)).await;
+        }
+    }
+    let grants: Vec<_> = logged_grants(&std::fs::read_to_string(&log).unwrap())
+        .into_iter()
+        .filter(|g| g.what.starts_with("self-calibrating"))
+        .collect();
+    assert_eq!(grants.len(), 2, "{grants:?}");
+    assert!(
+        grants.iter().all(|g| g.mib == need),
+        "{grants:?} for {need} MiB"
+    );
+    assert!(2 * need > budget_mib);
+    assert_serialised(&grants, budget_mib);
 }

@@ -365,6 +365,45 @@ async fn content_length_with_chunked_is_refused_with_400() {
     app.stop().await;
 }
 
+/// The framing scan fails closed (issue 29): a request with an `Upgrade:`
+/// header is answered as plain HTTP (the service never switches
+/// protocols) and the scan goes on following the connection, so a
+/// request with both `Content-Length` and `Transfer-Encoding` after it is
+/// still refused (before, the scan stopped at the upgrade and the second
+/// request was served); a `CONNECT` is refused and its connection closed,
+/// so nothing after it is served.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn framing_is_followed_past_upgrades_and_connect_is_refused() {
+    let app = spawn_app().await;
+    let smuggled = "POST /api/v1/calibrations HTTP/1.1\r\nHost: x\r\n\
+        Content-Type: application/json\r\nContent-Length: 5\r\n\
+        Transfer-Encoding: chunked\r\n\r\n0\r\n\r\n";
+    let upgrade = format!(
+        "GET /healthz HTTP/1.1\r\nHost: x\r\nConnection: Upgrade\r\nUpgrade: websocket\r\n\r\n\
+         {smuggled}"
+    );
+    let answer = raw_exchange(&app.address, &upgrade).await;
+    assert!(answer.starts_with("HTTP/1.1 200 "), "{answer}");
+    let second = answer
+        .find("HTTP/1.1 400 ")
+        .map(|at| &answer[at..])
+        .unwrap_or_else(|| panic!("the request after the upgrade was served: {answer}"));
+    assert!(
+        second.contains("both Content-Length and Transfer-Encoding"),
+        "{answer}"
+    );
+    let connect = format!("CONNECT x:443 HTTP/1.1\r\nHost: x:443\r\n\r\n{smuggled}");
+    let answer = raw_exchange(&app.address, &connect).await;
+    assert!(answer.starts_with("HTTP/1.1 400 "), "{answer}");
+    assert!(answer.contains("does not take CONNECT"), "{answer}");
+    assert!(
+        answer.to_ascii_lowercase().contains("connection: close"),
+        "{answer}"
+    );
+    assert_eq!(answer.matches("HTTP/1.1 ").count(), 1, "{answer}");
+    app.stop().await;
+}
+
 /// Runs `ptv` with `args` and `env` until it exits (at most `patience`):
 /// its exit code, standard error, and how long it ran.
 fn run_ptv(

@@ -1,0 +1,453 @@
+//! Step 3 (see the parent module): splitting a blob of several local
+//! maxima by flooding it from the top, with the absolute (OpenPTV's
+//! `discont`) or the automatic rule, and the automatic rule's deferral of
+//! such blobs to the end of the frame.
+
+use super::{
+    key, key_index, key_level, Detector, Found, Grey, Mask, TooManyTargets, AUTO_SPLIT_CAP,
+    AUTO_SPLIT_FRACTION, AUTO_SPLIT_NOISE_STRUCTURED, STRUCTURED_SPLITS,
+};
+/// "No region / not yet visited" in the splitting step.
+pub(super) const NONE: u32 = u32::MAX;
+
+#[derive(Clone, Copy, Debug)]
+pub(super) struct Region {
+    parent: u32,
+    /// The grey value of its maximum.
+    peak: u32,
+}
+
+#[derive(Clone, Copy)]
+pub(super) enum SplitRule {
+    /// It rises above the saddle by more than this.
+    Absolute(u32),
+    /// It rises by more than `noise` and than a fraction
+    /// ([`AUTO_SPLIT_FRACTION`]) of its height above `threshold`.
+    /// And its cap (its pixels brighter than the saddle) holds a volume
+    /// above the saddle of more than `cap` times the square root of its
+    /// pixel count ([`AUTO_SPLIT_CAP`] times the noise level).
+    Auto {
+        noise: u32,
+        threshold: u32,
+        cap: u32,
+    },
+}
+
+impl<G: Grey> Detector<'_, G> {
+    /// The automatic split rule's blobs with several maxima, deferred by
+    /// [`Detector::measure_blob`]: split with [`AUTO_SPLIT_NOISE`](super::AUTO_SPLIT_NOISE); if
+    /// that parts more targets than chance overlaps explain
+    /// ([`Detector::structured`]), split again with
+    /// [`AUTO_SPLIT_NOISE_STRUCTURED`] instead. Each is flooded again from
+    /// its seed; at the end their levels are cleared by their marks.
+    ///
+    /// With a limit: once the first split's targets and `found` are more
+    /// than the limit, the first split's targets are counted (and their
+    /// sizes kept), no longer kept; if the frame is then not structured it
+    /// has those targets and detection stops ([`TooManyTargets`]), else
+    /// every deferred blob is measured again with the higher floor, and
+    /// detection stops as soon as `found` passes the limit.
+    pub(super) fn split_deferred<const PIXELS: bool>(
+        &mut self,
+        found: &mut Found,
+    ) -> Result<(), TooManyTargets> {
+        if self.deferred.is_empty() {
+            return Ok(());
+        }
+        self.reserve_blob(None);
+        let mut fine: Found = (Vec::new(), Vec::new());
+        // Per deferred blob: whether a saddle kept particles apart, and
+        // where its targets in `fine` end.
+        let mut first = Vec::with_capacity(self.deferred.len());
+        let mut parted = 0;
+        // The first split's targets, kept in `fine` or only counted.
+        let mut counted = 0;
+        let mut kept = true;
+        for blob in 0..self.deferred.len() {
+            let before = fine.0.len();
+            self.measure_deferred::<PIXELS>(blob, &mut fine);
+            let new = fine.0.len() - before;
+            parted += new.saturating_sub(1);
+            counted += new;
+            first.push((self.kept_apart, counted));
+            if kept && found.0.len() + counted > self.limit {
+                kept = false;
+                self.target_sizes.extend(fine.0.iter().map(|t| t.n));
+                fine = (Vec::new(), Vec::new());
+            } else if !kept {
+                self.target_sizes.extend(fine.0.iter().map(|t| t.n));
+                fine.0.clear();
+                fine.1.clear();
+            }
+        }
+        if kept {
+            self.target_sizes.extend(fine.0.iter().map(|t| t.n));
+        }
+        if self.structured(found.0.len() + counted, parted) {
+            self.split_noise = AUTO_SPLIT_NOISE_STRUCTURED;
+            let mut pixels = fine.1.into_iter();
+            let mut start = 0;
+            for (blob, &(kept_apart, end)) in first.iter().enumerate() {
+                if kept_apart || !kept {
+                    if PIXELS && kept {
+                        pixels.by_ref().take(end - start).for_each(drop);
+                    }
+                    self.measure_deferred::<PIXELS>(blob, found);
+                    self.check_limit(found)?;
+                } else {
+                    // Every saddle merged all the particles it met into
+                    // one: each region merged was insignificant with the
+                    // lower floor, so with the higher one too, and whichever
+                    // region anchors them the union is the same, so the
+                    // flood goes through the same states with either floor
+                    // and its target stands.
+                    found.0.extend_from_slice(&fine.0[start..end]);
+                    if PIXELS {
+                        found.1.extend(pixels.by_ref().take(end - start));
+                    }
+                    self.check_limit(found)?;
+                }
+                start = end;
+            }
+        } else if !kept {
+            return Err(TooManyTargets { limit: self.limit });
+        } else {
+            found.0.append(&mut fine.0);
+            found.1.append(&mut fine.1);
+            self.check_limit(found)?;
+        }
+        // Clear the deferred blobs' levels, word by word of their marks.
+        for (word, &marks) in self.deferred_marks.iter().enumerate() {
+            let mut marks = marks;
+            while marks != 0 {
+                self.levels[(word << 6) + marks.trailing_zeros() as usize] = 0;
+                marks &= marks - 1;
+            }
+        }
+        self.deferred = Vec::new();
+        self.deferred_marks = Vec::new();
+        Ok(())
+    }
+
+    /// Floods deferred blob number `blob` from its seed, splits it and
+    /// measures its particles (its levels stay).
+    pub(super) fn measure_deferred<const PIXELS: bool>(&mut self, blob: usize, found: &mut Found) {
+        self.flood(self.deferred[blob]);
+        let (corner, size) = self.blob_box();
+        self.split_and_measure::<PIXELS>(corner, size, self.threshold_level(), found);
+    }
+
+    /// Whether the frame's particle images have structure of their own:
+    /// its splits parted `parted` targets more than its blobs, of `targets`
+    /// in all, and chance overlaps explain far fewer (see the module
+    /// documentation, "Structured particle images").
+    pub(super) fn structured(&mut self, targets: usize, parted: usize) -> bool {
+        if self.target_sizes.is_empty() || parted == 0 {
+            return false;
+        }
+        let middle = self.target_sizes.len() / 2;
+        let area = f64::from(*self.target_sizes.select_nth_unstable(middle).1);
+        // Two particle images touch when their centres are closer than one
+        // image diameter and the pixel between.
+        let reach = 2.0 * (area / std::f64::consts::PI).sqrt() + 1.0;
+        let pixels = self
+            .mask
+            .map_or((self.width * self.height) as u64, Mask::used)
+            .max(1) as f64;
+        let density = targets as f64 / pixels;
+        let overlaps =
+            targets as f64 * (1.0 - (-density * std::f64::consts::PI * reach * reach).exp()) / 2.0;
+        // Beyond the noise of a count: 3 sigma of a Poisson count of that
+        // mean, and 3 for a mean near 0 (a lone pair is not a statistic).
+        let bound = STRUCTURED_SPLITS * overlaps;
+        parted as f64 > bound + 3.0 * bound.sqrt() + 3.0
+    }
+
+    /// Splits the blob in `blob` (of bounding box `corner`, `size`) and
+    /// measures each particle.
+    pub(super) fn split_and_measure<const PIXELS: bool>(
+        &mut self,
+        corner: (usize, usize),
+        size: (usize, usize),
+        threshold: u32,
+        found: &mut Found,
+    ) {
+        let maxima = self.count_maxima(usize::MAX);
+        self.split(corner, size, maxima);
+        // Number the particles in flooding order, and re-key each pixel by
+        // its particle: sorted, each particle's pixels are contiguous and
+        // particles are measured one at a time, in that order.
+        self.slot.clear();
+        self.slot.resize(self.regions.len(), NONE);
+        let mut particles = 0u32;
+        for rank in 0..self.blob.len() {
+            let p = key_index(self.blob[rank]);
+            let (x, y) = self.position(p);
+            let cell = (y - corner.1) * size.0 + (x - corner.0);
+            let root = self.find(self.grid[cell]) as usize;
+            if self.slot[root] == NONE {
+                self.slot[root] = particles;
+                particles += 1;
+            }
+            self.blob[rank] = (u64::from(self.slot[root]) << 32) | p as u64;
+        }
+        self.blob.sort_unstable();
+        let mut start = 0;
+        while start < self.blob.len() {
+            let particle = self.blob[start] >> 32;
+            let end = start
+                + self.blob[start..]
+                    .iter()
+                    .position(|&k| k >> 32 != particle)
+                    .unwrap_or(self.blob.len() - start);
+            self.measure_particle::<PIXELS>(start..end, corner, threshold, found);
+            start = end;
+        }
+    }
+
+    /// How many pixels of the blob would start a particle when it is
+    /// flooded, counting up to `limit`: those with no neighbour that comes
+    /// before them in flooding order (brighter, or as bright and earlier in
+    /// raster order). Only the edge neighbours are compared (they are in
+    /// the blob if above the threshold; a diagonal neighbour may be in
+    /// another blob): left out, the count is at least the particles the
+    /// split starts (which compares all 8 neighbours within the blob), so a
+    /// count of 1 is still exact. Most blobs are single particles, and
+    /// counting to 2 spares them the sort.
+    pub(super) fn count_maxima(&self, limit: usize) -> usize {
+        let (width, height) = (self.width, self.height);
+        let mut maxima = 0;
+        for &k in &self.blob {
+            let p = key_index(k);
+            let level = self.levels[p];
+            let (x, y) = self.position(p);
+            let first = if x > 0 && y > 0 && x + 1 < width && y + 1 < height {
+                // Away from the border, by offset: the neighbours before
+                // `p` in raster order must be darker, those after it no
+                // brighter.
+                let levels = &self.levels;
+                let (w, before, after) = (
+                    width,
+                    |q: usize| levels[q] < level,
+                    |q: usize| levels[q] <= level,
+                );
+                before(p - w) && before(p - 1) && after(p + 1) && after(p + w)
+            } else {
+                self.first_at_border(p, level, (x, y))
+            };
+            if first {
+                maxima += 1;
+                if maxima >= limit {
+                    return maxima;
+                }
+            }
+        }
+        maxima
+    }
+
+    /// [`Detector::count_maxima`]'s test at the image's border: whether no
+    /// neighbour of pixel `p` (at `level`, position `(x, y)`) comes before
+    /// it in flooding order.
+    pub(super) fn first_at_border(&self, p: usize, level: u16, (x, y): (usize, usize)) -> bool {
+        let (width, height) = (self.width, self.height);
+        for ny in y.saturating_sub(1)..=(y + 1).min(height - 1) {
+            for nx in x.saturating_sub(1)..=(x + 1).min(width - 1) {
+                if nx != x && ny != y {
+                    continue; // see `count_maxima`
+                }
+                let q = ny * width + nx;
+                let other = self.levels[q];
+                // Raster order: rows above, or this row to the left.
+                if other > level || (other == level && q < p) {
+                    return false;
+                }
+            }
+        }
+        true
+    }
+
+    /// Step 3: floods the blob (`maxima` local maxima, bounding box of
+    /// `size` at `corner`) from its brightest pixel down, leaving each
+    /// pixel's region in `grid`.
+    pub(super) fn split(&mut self, corner: (usize, usize), size: (usize, usize), maxima: usize) {
+        self.kept_apart = false;
+        let rule = match self.parameters.split_depth {
+            Some(depth) => SplitRule::Absolute(
+                (u64::from(depth) * G::LEVEL_SCALE).min(u64::from(u32::MAX)) as u32,
+            ),
+            None => SplitRule::Auto {
+                noise: self.noise_depth(),
+                threshold: self.threshold_level(),
+                cap: (u64::from(self.noise) * AUTO_SPLIT_CAP / 10).min(u64::from(u32::MAX)) as u32,
+            },
+        };
+        let auto = matches!(rule, SplitRule::Auto { .. });
+        // Bright to dark; equal values in raster order, so that the result
+        // does not depend on where the blob lies in the image.
+        self.blob.sort_unstable();
+        let (box_width, box_height) = size;
+        let cells = box_width * box_height;
+        // Exact reservations: these grow to the largest blob's needs and no
+        // further.
+        self.grid.clear();
+        self.grid.reserve_exact(cells);
+        self.grid.resize(cells, NONE);
+        self.regions.clear();
+        self.regions.reserve_exact(maxima);
+        self.caps.clear();
+        if auto {
+            self.caps.reserve_exact(maxima);
+        }
+        self.slot.clear();
+        self.slot.reserve_exact(maxima);
+        for rank in 0..self.blob.len() {
+            let k = self.blob[rank];
+            let level = u32::from(key_level(k));
+            let (x, y) = self.position(key_index(k));
+            let (bx, by) = (x - corner.0, y - corner.1);
+            // Visited neighbours (all at least as bright): their cells and
+            // region roots. Most pixels see one region only and join it; a
+            // saddle, where several meet, needs their keys.
+            let (x0, x1) = (bx.saturating_sub(1), (bx + 2).min(box_width));
+            let (y0, y1) = (by.saturating_sub(1), (by + 2).min(box_height));
+            let mut cells = [(0usize, NONE); 8];
+            let mut count = 0;
+            let mut several = false;
+            for ny in y0..y1 {
+                for nx in x0..x1 {
+                    let region = self.grid[ny * box_width + nx];
+                    if region != NONE {
+                        let root = self.find(region);
+                        several |= count > 0 && root != cells[0].1;
+                        cells[count] = (ny * box_width + nx, root);
+                        count += 1;
+                    }
+                }
+            }
+            if count == 0 {
+                // A local maximum: a new particle.
+                self.grid[by * box_width + bx] = self.regions.len() as u32;
+                self.regions.push(Region {
+                    parent: self.regions.len() as u32,
+                    peak: level,
+                });
+                if auto {
+                    self.caps.push((1, level));
+                }
+                continue;
+            }
+            let mut brightest = cells[0].1;
+            if several {
+                let mut neighbours = [(u64::MAX, NONE); 8];
+                for (slot, &(cell, root)) in neighbours.iter_mut().zip(&cells[..count]) {
+                    let q =
+                        (cell / box_width + corner.1) * self.width + cell % box_width + corner.0;
+                    *slot = (key(self.levels[q], q), root);
+                }
+                let neighbours = &neighbours[..count];
+                brightest = neighbours
+                    .iter()
+                    .min_by_key(|(q, _)| *q)
+                    .map_or(brightest, |&(_, root)| root);
+                self.merge_insignificant(neighbours, level, rule);
+                let first = self.find(neighbours[0].1);
+                for &(_, root) in &neighbours[1..] {
+                    if self.find(root) != first {
+                        self.kept_apart = true;
+                        break;
+                    }
+                }
+            }
+            // A saddle pixel goes to the particle of its brightest neighbour.
+            let root = self.find(brightest);
+            self.grid[by * box_width + bx] = root;
+            if auto {
+                let cap = &mut self.caps[root as usize];
+                *cap = (cap.0 + 1, cap.1.saturating_add(level));
+            }
+        }
+    }
+
+    /// The automatic rule's noise floor in levels: [`AUTO_SPLIT_NOISE`](super::AUTO_SPLIT_NOISE)
+    /// (or [`AUTO_SPLIT_NOISE_STRUCTURED`] in a structured frame) times the
+    /// image's noise level.
+    pub(super) fn noise_depth(&self) -> u32 {
+        (u64::from(self.noise) * self.split_noise / 10).min(u64::from(u32::MAX)) as u32
+    }
+
+    /// At a pixel of grey value `level` where several particles meet: a
+    /// particle whose peak does not rise enough above it (`rule`) is noise
+    /// on a neighbour, and is merged into the particle of the brightest
+    /// neighbour that is significant (or, if none is, into the highest one).
+    pub(super) fn merge_insignificant(
+        &mut self,
+        neighbours: &[(u64, u32)],
+        level: u32,
+        rule: SplitRule,
+    ) {
+        let significant = |regions: &[Region], caps: &[(u32, u32)], root: u32| {
+            let peak = regions[root as usize].peak;
+            let rise = peak.saturating_sub(level);
+            match rule {
+                SplitRule::Absolute(depth) => rise > depth,
+                SplitRule::Auto {
+                    noise,
+                    threshold,
+                    cap,
+                } => {
+                    let (num, den) = AUTO_SPLIT_FRACTION;
+                    // The cap: the particle's pixels so far, all at least
+                    // as bright as the saddle, and their volume above it.
+                    let (n, sum) = caps[root as usize];
+                    // (A sum that saturated, of more than 65,536 pixels
+                    // at full scale, is a bump far above any noise.)
+                    let volume = if sum == u32::MAX {
+                        u64::MAX
+                    } else {
+                        u64::from(sum).saturating_sub(u64::from(n) * u64::from(level))
+                    };
+                    rise > noise
+                        && u64::from(rise) * u64::from(den)
+                            > u64::from(peak.saturating_sub(threshold)) * u64::from(num)
+                        && u128::from(volume) * u128::from(volume)
+                            > u128::from(cap) * u128::from(cap) * u128::from(n)
+                }
+            }
+        };
+        let anchor = neighbours
+            .iter()
+            .filter(|&&(_, root)| significant(&self.regions, &self.caps, root))
+            .min_by_key(|&&(q, _)| q)
+            .map(|&(_, root)| root)
+            .or_else(|| {
+                neighbours
+                    .iter()
+                    .map(|&(_, root)| root)
+                    .max_by_key(|&root| (self.regions[root as usize].peak, std::cmp::Reverse(root)))
+            });
+        let Some(anchor) = anchor else { return };
+        for &(_, root) in neighbours {
+            let root = self.find(root);
+            if root != anchor && !significant(&self.regions, &self.caps, root) {
+                self.regions[root as usize].parent = anchor;
+                let peak = self.regions[root as usize].peak;
+                let anchor_region = &mut self.regions[anchor as usize];
+                anchor_region.peak = anchor_region.peak.max(peak);
+                if !self.caps.is_empty() {
+                    let (n, sum) = self.caps[root as usize];
+                    let cap = &mut self.caps[anchor as usize];
+                    *cap = (cap.0 + n, cap.1.saturating_add(sum));
+                }
+            }
+        }
+    }
+    /// The root of a region, halving paths on the way.
+    pub(super) fn find(&mut self, mut region: u32) -> u32 {
+        while self.regions[region as usize].parent != region {
+            let grandparent = self.regions[self.regions[region as usize].parent as usize].parent;
+            self.regions[region as usize].parent = grandparent;
+            region = grandparent;
+        }
+        region
+    }
+}
