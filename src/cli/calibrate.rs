@@ -19,17 +19,34 @@ pub struct CalibrateArgs {
     /// and media of every camera; its orientation (position, angles,
     /// principal_distance) is optional, used only for fixed parameters and,
     /// with --image and no --reference, as starting values to identify marks.
-    #[arg(long, value_name = "SETUP_JSON")]
-    pub calibration: PathBuf,
+    #[arg(
+        long,
+        value_name = "SETUP_JSON",
+        required_unless_present = "experiment"
+    )]
+    pub calibration: Option<PathBuf>,
     /// The control points (OpenPTV calibration block: `id X Y Z` per line,
     /// mm); not with --wand.
     #[arg(
         long,
         value_name = "CALBLOCK",
-        required_unless_present = "wand",
+        required_unless_present_any = ["wand", "experiment"],
         conflicts_with = "wand"
     )]
     pub control: Option<PathBuf>,
+    /// Calibrate an OpenPTV experiment (a directory with parameters/*.par,
+    /// or a pyptv YAML) from its own calibration images as OpenPTV would:
+    /// the setup from ptv.par and the .ori/.addpar files, the target and
+    /// images from cal_ori, the detection from detect_plate, the fixed
+    /// parameters from orient, and man_ori's manual points as the start.
+    /// Writes calibration.json, camN.ori/.addpar and report.json into
+    /// --output (a directory).
+    #[arg(
+        long,
+        value_name = "DIR",
+        conflicts_with_all = ["calibration", "control", "observations", "image", "reference", "fix", "wand"]
+    )]
+    pub experiment: Option<PathBuf>,
     /// Measured image coordinates of control points, `id x y` per line
     /// (pixels); once per camera, in camera order.
     #[arg(long, value_name = "FILE")]
@@ -58,7 +75,8 @@ pub struct CalibrateArgs {
     /// Parameters correlated above this are held (one of each pair).
     #[arg(long, value_name = "R", default_value_t = 0.99)]
     pub max_correlation: f64,
-    /// Where to write the calibrated calibration JSON.
+    /// Where to write the calibrated calibration JSON (with --experiment:
+    /// the directory for its files).
     #[arg(short, long, value_name = "CALIBRATION_JSON")]
     pub output: PathBuf,
     /// Detection of the marks, with --image.
@@ -86,6 +104,10 @@ fn flag(flag: &'static str, reason: impl Into<String>) -> CliError {
 }
 
 fn options(args: &CalibrateArgs) -> Result<CalibrationOptions, CliError> {
+    options_with(args, &args.fix)
+}
+
+fn options_with(args: &CalibrateArgs, fix: &[String]) -> Result<CalibrationOptions, CliError> {
     let check_ids = match &args.check_ids {
         Some(path) => Some(control::parse_check_ids(
             &formats::read_text(path)?,
@@ -93,7 +115,7 @@ fn options(args: &CalibrateArgs) -> Result<CalibrationOptions, CliError> {
         )?),
         None => None,
     };
-    control::fixed_parameters(&args.fix)
+    control::fixed_parameters(fix)
         .and_then(|fixed| {
             control::calibration_options(fixed, args.check_every, check_ids, args.max_correlation)
         })
@@ -125,18 +147,24 @@ pub(super) fn run(
     stdout: &mut dyn Write,
     stderr: &mut dyn Write,
 ) -> Result<(), CliError> {
+    if let Some(dir) = &args.experiment {
+        return run_experiment(args, dir, stdout, stderr);
+    }
     if args.wand.wand {
         return super::wand::run(args, stdout, stderr);
     }
-    let Some(control_path) = &args.control else {
-        return Err(flag("--control", "give the control points, or --wand"));
+    let (Some(calibration), Some(control_path)) = (&args.calibration, &args.control) else {
+        return Err(flag(
+            "--control",
+            "give --calibration and --control, or --wand, or --experiment",
+        ));
     };
     let formats::calibration::Setup {
         cameras: setup,
         unknown,
     } = formats::calibration::setup_from_json(
-        &formats::read_text(&args.calibration)?,
-        &args.calibration.display().to_string(),
+        &formats::read_text(calibration)?,
+        &calibration.display().to_string(),
     )?;
     let control_points = control::parse_control_points(
         &formats::read_text(control_path)?,
@@ -148,7 +176,7 @@ pub(super) fn run(
     };
     let result = if args.image.is_empty() {
         super::check_camera_count(
-            &args.calibration,
+            calibration,
             setup.len(),
             args.observations.len(),
             ("--observations", "observation file"),
@@ -161,14 +189,14 @@ pub(super) fn run(
         calibrate::calibrate(&setup, &control_points, &observations, &options)?
     } else {
         super::check_camera_count(
-            &args.calibration,
+            calibration,
             setup.len(),
             args.image.len(),
             ("--image", "image"),
         )?;
         if !args.reference.is_empty() {
             super::check_camera_count(
-                &args.calibration,
+                calibration,
                 setup.len(),
                 args.reference.len(),
                 ("--reference", "reference file"),
@@ -187,7 +215,7 @@ pub(super) fn run(
         calibrate::check_mark_inputs(&setup, &control_points, &counts, &options)?;
         let parameters = calibrate::mark_detection_parameters(&args.detection.parameters())?;
         let preprocessing = super::detect::read_camera_preprocessing(
-            &args.calibration,
+            calibration,
             setup.len(),
             &args.backgrounds,
             &args.masks,
@@ -229,4 +257,84 @@ pub(super) fn run(
     let cameras = result.camera_models()?;
     formats::write_text(&args.output, &formats::calibration::to_json(&cameras))?;
     write_stdout(stdout, &control::report_to_json(&result.report))
+}
+
+/// `ptv calibrate --experiment DIR`: the experiment's cameras calibrated
+/// from its own calibration images with its own settings
+/// ([`crate::formats::experiment::calibration_settings`]), written as
+/// calibration.json, OpenPTV's camN.ori/camN.addpar and report.json in
+/// `--output`; the report also goes to standard output.
+fn run_experiment(
+    args: &CalibrateArgs,
+    dir: &Path,
+    stdout: &mut dyn Write,
+    stderr: &mut dyn Write,
+) -> Result<(), CliError> {
+    use crate::formats::experiment::{self, LocalFiles};
+    let exp = experiment::read_experiment(dir)?;
+    let settings = experiment::read_calibration_settings(&LocalFiles, dir, exp.cameras.len())?;
+    let setup: Vec<_> = exp.cameras.iter().map(|c| c.parameters().clone()).collect();
+    let control_points = control::parse_control_points(
+        &formats::read_text(&settings.control)?,
+        &settings.control.display().to_string(),
+    )?;
+    let references = settings.references(&control_points)?;
+    let fix: Vec<String> = settings.fixed.iter().map(|p| p.name().to_owned()).collect();
+    let options = options_with(args, &fix)?;
+    for setting in &settings.unmapped {
+        write_stderr_line(
+            stderr,
+            &format!(
+                "not used: {}: {} = {}: {}",
+                setting.file, setting.key, setting.value, setting.reason
+            ),
+        )?;
+    }
+    let counts: Vec<usize> = references.iter().map(Vec::len).collect();
+    calibrate::check_mark_inputs(&setup, &control_points, &counts, &options)?;
+    let mut marks = Vec::with_capacity(setup.len());
+    for (k, path) in settings.images.iter().enumerate() {
+        let image = formats::image::read_image(path, None)?;
+        let parameters = calibrate::mark_detection_parameters(&settings.detection[k])?;
+        let found =
+            calibrate::detect_marks(&image, &parameters).map_err(|error| CliError::Flag {
+                flag: "--experiment",
+                reason: format!("{}: {error}", path.display()),
+            })?;
+        write_stderr_line(
+            stderr,
+            &format!(
+                "{}: {} marks detected (camera {k}, detect_plate threshold {})",
+                path.display(),
+                found.len(),
+                parameters.threshold
+            ),
+        )?;
+        marks.push(found);
+    }
+    let result =
+        calibrate::calibrate_from_marks(&setup, &control_points, &marks, &references, &options)?;
+    let cameras = result.camera_models()?;
+    std::fs::create_dir_all(&args.output).map_err(|reason| formats::FormatError::Io {
+        path: args.output.clone(),
+        reason,
+    })?;
+    formats::write_text(
+        &args.output.join("calibration.json"),
+        &formats::calibration::to_json(&cameras),
+    )?;
+    for (k, camera) in cameras.iter().enumerate() {
+        let name = format!("cam{}", k + 1);
+        formats::write_text(
+            &args.output.join(format!("{name}.ori")),
+            &formats::openptv::format_ori(camera),
+        )?;
+        formats::write_text(
+            &args.output.join(format!("{name}.addpar")),
+            &formats::openptv::format_addpar(&camera.parameters().distortion),
+        )?;
+    }
+    let report = control::report_to_json(&result.report);
+    formats::write_text(&args.output.join("report.json"), &report)?;
+    write_stdout(stdout, &report)
 }

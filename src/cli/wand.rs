@@ -69,10 +69,14 @@ pub(super) fn run(
     let range = w
         .frames
         .ok_or_else(|| flag("--frames", "give the wand's frames, FIRST..LAST"))?;
-    let start = formats::calibration::from_json(
-        &formats::read_text(&args.calibration)?,
-        &args.calibration.display().to_string(),
-    )?;
+    let Some(setup) = &args.calibration else {
+        return Err(CliError::Flag {
+            flag: "--calibration",
+            reason: "--wand starts from a setup calibration; give --calibration".into(),
+        });
+    };
+    let start =
+        formats::calibration::from_json(&formats::read_text(setup)?, &setup.display().to_string())?;
     let (patterns, images, which) = match (w.wand_targets.is_empty(), w.wand_images.is_empty()) {
         (false, true) => (&w.wand_targets, false, "--wand-targets"),
         (true, false) => (&w.wand_images, true, "--wand-images"),
@@ -83,12 +87,7 @@ pub(super) fn run(
             ))
         }
     };
-    super::check_camera_count(
-        &args.calibration,
-        start.len(),
-        patterns.len(),
-        (which, "pattern"),
-    )?;
+    super::check_camera_count(setup, start.len(), patterns.len(), (which, "pattern"))?;
     let patterns = patterns
         .iter()
         .map(|p| FramePattern::parse(p, WithoutNumber::Refuse).map_err(|e| flag(which, e)))

@@ -80,6 +80,7 @@ use serde::Deserialize;
 use super::frames::{FramePattern, WithoutNumber};
 use super::{calibration, openptv, FormatError};
 
+pub mod calibration_settings;
 pub mod files;
 use crate::photogrammetry::correspond::MatchingParameters;
 use crate::photogrammetry::track::TrackingParameters;
@@ -87,6 +88,7 @@ use crate::photogrammetry::{
     Camera, CameraParameters, Centroid, DetectionParameters, Distortion, Media, Sensor, Splitter,
     Volume, Wall,
 };
+pub use calibration_settings::{read_calibration_settings, CalibrationSettings};
 pub use files::{ExperimentFiles, LocalFiles, Refused, UploadedFiles};
 
 /// The high-pass radius `hp_flag` stands for: liboptv's

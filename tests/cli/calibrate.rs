@@ -454,3 +454,262 @@ fn bad_setups_say_what_they_need() {
         );
     }
 }
+
+/// The real test_cavity experiment as pyptv ships it: its calibration
+/// images, target and OpenPTV's own orientation (`cal/camN.tif.ori`).
+const RECORDING: &str = concat!(
+    env!("CARGO_MANIFEST_DIR"),
+    "/tests/data/openptv/test_cavity_recording"
+);
+
+/// Per camera the distance (mm) of the projective centre and the angle
+/// (mrad) of the rotation from OpenPTV's orientation in `cal/camN.tif.ori`.
+fn distance_from_openptv(calibration_json: &std::path::Path) -> Vec<(f64, f64)> {
+    let text = std::fs::read_to_string(calibration_json).unwrap();
+    let calibrated = calibration::from_json(&text, "calibration.json").unwrap();
+    calibrated
+        .iter()
+        .enumerate()
+        .map(|(k, camera)| {
+            let ori = format!("{RECORDING}/cal/cam{}.tif.ori", k + 1);
+            let (exterior, _, _) =
+                ptv::formats::openptv::parse_ori(&std::fs::read_to_string(&ori).unwrap(), &ori)
+                    .unwrap();
+            let rotation = ptv::photogrammetry::camera::rotation_matrix(
+                exterior.omega,
+                exterior.phi,
+                exterior.kappa,
+            );
+            let d = (camera.position().coords - exterior.position).norm();
+            let relative = rotation.transpose() * camera.rotation();
+            let angle = ((relative.trace() - 1.0) / 2.0).clamp(-1.0, 1.0).acos();
+            (d, angle * 1e3)
+        })
+        .collect()
+}
+
+/// Issue 33: test_cavity calibrated from its own images with the default
+/// flags (default detection, nothing fixed). Its target is 16 mm deep,
+/// seen from 570 mm: it cannot determine c, the principal point and the
+/// distortion with the position, and an adjustment with them free put cam1
+/// 1.4 m away with c = 203 mm. What the observations cannot determine
+/// must be held at the setup's values and reported, and every camera must
+/// land within 5 mm and 5 mrad of OpenPTV's own orientation with the marks
+/// reprojected at 0.5 px RMS or better (the issue's acceptance figures;
+/// OpenPTV's exterior-only orientation of the same marks sits 1-2 mm from
+/// its files, as the issue measured).
+///
+/// Not met yet (ignored until it is): the held parameters bring the rig
+/// from metres off to 3-10 mm and 4-19 mrad, and cam3/cam4 reproject at
+/// 0.74-0.77 px RMS; k1 and the shear stay free and cam2's shear trades
+/// with kappa (run with `--ignored` to see the figures).
+#[test]
+#[ignore = "issue 33's acceptance (5 mm, 5 mrad, 0.5 px) is not met yet: 3-10 mm"]
+fn test_cavity_from_its_own_images_with_default_flags() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = ptv(
+        &["experiment", "import", RECORDING, "-o", "exp"],
+        dir.path(),
+    );
+    assert!(out.status.success());
+    let mut args = vec![
+        "calibrate".to_owned(),
+        "--calibration".into(),
+        "exp/calibration.json".into(),
+        "--control".into(),
+        format!("{RECORDING}/cal/target_on_a_side.txt"),
+        "-o".into(),
+        "cal.json".into(),
+    ];
+    for k in 1..=4 {
+        args.push("--image".into());
+        args.push(format!("{RECORDING}/cal/cam{k}.tif"));
+    }
+    let args: Vec<&str> = args.iter().map(String::as_str).collect();
+    let report: serde_json::Value =
+        serde_json::from_str(&succeeds(&ptv(&args, dir.path()))).unwrap();
+    let distances = distance_from_openptv(&dir.path().join("cal.json"));
+    for (camera, (d, angle)) in report["cameras"].as_array().unwrap().iter().zip(distances) {
+        let held: Vec<&str> = camera["parameters"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .filter(|p| p["status"] == "held")
+            .map(|p| p["name"].as_str().unwrap())
+            .collect();
+        let residuals = camera["residuals"].as_array().unwrap();
+        let rms = (residuals
+            .iter()
+            .map(|r| r["x_px"].as_f64().unwrap().powi(2) + r["y_px"].as_f64().unwrap().powi(2))
+            .sum::<f64>()
+            / residuals.len() as f64)
+            .sqrt();
+        println!(
+            "{}: {d:.2} mm, {angle:.2} mrad from OpenPTV; sigma0 {:.3} px, rms {rms:.3} px, \
+             {} marks; held {held:?}",
+            camera["name"],
+            camera["sigma0_px"].as_f64().unwrap(),
+            residuals.len()
+        );
+        assert!(
+            d <= 5.0 && angle <= 5.0,
+            "{}: {d} mm, {angle} mrad",
+            camera["name"]
+        );
+        assert!(rms <= 0.5, "{rms}");
+        // c is what the shallow target cannot give: held, with the reason.
+        let c = &camera["parameters"][8];
+        assert_eq!(c["name"], "c");
+        assert_eq!(c["status"], "held", "{c}");
+        assert!(c["reason"].as_str().unwrap().contains("plausible range"));
+    }
+}
+
+/// Check points every 3, 5, 7 and 10 marks leave fewer points for the
+/// resections: each run either succeeds near OpenPTV's orientation or
+/// fails with an error saying what to do; never a confident wrong answer
+/// (the issue's every-7th run put cam1 at z0 = -2,913 mm with c = 309 mm).
+///
+/// Not met yet (ignored until it is): every 5th is refused with "did not
+/// converge" (no advice to fix parameters), every 7th puts cam2 9.9 mm off.
+#[test]
+#[ignore = "issue 33: every 7th check point still gives cam2 9.9 mm off OpenPTV's"]
+fn test_cavity_with_check_points_is_right_or_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    assert!(ptv(
+        &["experiment", "import", RECORDING, "-o", "exp"],
+        dir.path()
+    )
+    .status
+    .success());
+    for every in ["3", "5", "7", "10"] {
+        let mut args = vec![
+            "calibrate".to_owned(),
+            "--calibration".into(),
+            "exp/calibration.json".into(),
+            "--control".into(),
+            format!("{RECORDING}/cal/target_on_a_side.txt"),
+            "--check-every".into(),
+            every.into(),
+            "-o".into(),
+            format!("cal{every}.json"),
+        ];
+        for k in 1..=4 {
+            args.push("--image".into());
+            args.push(format!("{RECORDING}/cal/cam{k}.tif"));
+        }
+        let args: Vec<&str> = args.iter().map(String::as_str).collect();
+        let out = ptv(&args, dir.path());
+        if out.status.success() {
+            for (k, (d, angle)) in
+                distance_from_openptv(&dir.path().join(format!("cal{every}.json")))
+                    .into_iter()
+                    .enumerate()
+            {
+                println!("every {every}: cam{}: {d:.2} mm, {angle:.2} mrad", k + 1);
+                assert!(
+                    d <= 5.0 && angle <= 5.0,
+                    "every {every}, cam{}: {d} mm",
+                    k + 1
+                );
+            }
+        } else {
+            let stderr = String::from_utf8_lossy(&out.stderr);
+            println!("every {every}: refused: {stderr}");
+            assert!(
+                stderr.contains("fix") || stderr.contains("reference"),
+                "{stderr}"
+            );
+        }
+    }
+}
+
+/// A copy of the test_cavity experiment (parameters, calibration files and
+/// images) in `dir`, for runs that change its settings.
+fn copy_recording(dir: &std::path::Path) {
+    for sub in ["parameters", "cal"] {
+        std::fs::create_dir_all(dir.join(sub)).unwrap();
+        for entry in std::fs::read_dir(format!("{RECORDING}/{sub}")).unwrap() {
+            let entry = entry.unwrap();
+            std::fs::copy(entry.path(), dir.join(sub).join(entry.file_name())).unwrap();
+        }
+    }
+}
+
+/// Issue 33: `ptv calibrate --experiment` calibrates test_cavity from its
+/// own images as OpenPTV would (detect_plate's thresholds, orient.par's
+/// fixed parameters: all but the exterior orientation, man_ori's 4 points
+/// as the start) and writes calibration.json, the .ori/.addpar files and
+/// the report. OpenPTV's orientation of the same marks with the same
+/// fixed parameters: within 5 mm and 5 mrad (the issue measured 1-2 mm for
+/// this choice). sigma0 is printed, not bounded: with the distortion fixed
+/// at zero, cam3 and cam4 reproject at 0.85 px, as the issue found with
+/// OpenPTV's choice (0.28-0.85 px).
+#[test]
+fn calibrates_an_openptv_experiment_as_openptv_would() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = ptv(
+        &["calibrate", "--experiment", RECORDING, "-o", "out"],
+        dir.path(),
+    );
+    let report: serde_json::Value = serde_json::from_str(&succeeds(&out)).unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(stderr.contains("multi_planes"), "{stderr}");
+    let out_dir = dir.path().join("out");
+    for k in 1..=4 {
+        let ori = std::fs::read_to_string(out_dir.join(format!("cam{k}.ori"))).unwrap();
+        ptv::formats::openptv::parse_ori(&ori, "ori").unwrap();
+        assert!(out_dir.join(format!("cam{k}.addpar")).is_file());
+    }
+    assert!(out_dir.join("report.json").is_file());
+    let distances = distance_from_openptv(&out_dir.join("calibration.json"));
+    for (camera, (d, angle)) in report["cameras"].as_array().unwrap().iter().zip(distances) {
+        // orient.par frees nothing but the exterior orientation.
+        for p in camera["parameters"].as_array().unwrap()[6..].iter() {
+            assert_eq!(p["status"], "fixed", "{p}");
+        }
+        println!(
+            "{}: {d:.2} mm, {angle:.2} mrad from OpenPTV; sigma0 {:.3} px",
+            camera["name"],
+            camera["sigma0_px"].as_f64().unwrap()
+        );
+        assert!(
+            d <= 5.0 && angle <= 5.0,
+            "{}: {d} mm, {angle} mrad",
+            camera["name"]
+        );
+    }
+}
+
+/// Bad calibration settings: a man_ori point the target does not have,
+/// and a detection that finds too few marks; each a clear error.
+#[test]
+fn bad_experiment_calibration_settings_are_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    copy_recording(dir.path());
+    let man_ori = dir.path().join("parameters/man_ori.par");
+    let original = std::fs::read_to_string(&man_ori).unwrap();
+    std::fs::write(&man_ori, original.replacen("72", "999", 1)).unwrap();
+    fails(
+        &ptv(&["calibrate", "--experiment", ".", "-o", "out"], dir.path()),
+        &["man_ori.nr", "camera 1", "999", "target_on_a_side.txt"],
+    );
+    std::fs::write(&man_ori, &original).unwrap();
+    // Threshold 255 on 8-bit images: next to nothing is a mark.
+    let plate = dir.path().join("parameters/detect_plate.par");
+    let text = std::fs::read_to_string(&plate).unwrap();
+    std::fs::write(
+        &plate,
+        text.replacen("40\n40\n40\n40", "255\n255\n255\n255", 1),
+    )
+    .unwrap();
+    let out = ptv(&["calibrate", "--experiment", ".", "-o", "out"], dir.path());
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{stderr}");
+    let last = stderr.lines().last().unwrap_or_default();
+    assert!(
+        last.starts_with("error: ") && last.contains("marks could be identified"),
+        "{stderr}"
+    );
+    assert!(!dir.path().join("out").exists());
+}

@@ -440,9 +440,22 @@ fn planted_gross_errors_are_all_flagged() {
     {
         let flagged: std::collections::BTreeSet<u64> =
             camera.excluded.iter().map(|p| p.id).collect();
+        let held = |c: &ptv::photogrammetry::calibrate::CameraReport| {
+            c.parameters
+                .iter()
+                .filter(|p| p.status == ParameterStatus::Held)
+                .map(|p| p.name.name())
+                .collect::<Vec<_>>()
+        };
         println!(
-            "{}: planted {:?}, flagged {:?}; sigma0 {:.4} (clean {:.4})",
-            camera.name, planted, flagged, camera.sigma0_px, clean.sigma0_px
+            "{}: planted {:?}, flagged {:?}; sigma0 {:.4} (clean {:.4}); held {:?} (clean {:?})",
+            camera.name,
+            planted,
+            flagged,
+            camera.sigma0_px,
+            clean.sigma0_px,
+            held(camera),
+            held(clean)
         );
         assert!(planted.is_subset(&flagged), "{planted:?} vs {flagged:?}");
         assert!(flagged.len() <= planted.len() + 1);

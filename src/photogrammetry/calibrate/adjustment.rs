@@ -213,7 +213,7 @@ fn linearise(
 }
 
 /// Sum of squared residuals (px²), or `None` where a point does not image.
-fn cost(parameters: &CameraParameters, equations: &[Equation]) -> Option<f64> {
+pub(crate) fn cost(parameters: &CameraParameters, equations: &[Equation]) -> Option<f64> {
     let camera = Camera::new(parameters.clone()).ok()?;
     equations.iter().try_fold(0.0, |sum, e| {
         let pixel = camera.project(&e.point).ok()?;
@@ -348,6 +348,9 @@ pub(crate) struct Statistics {
     pub cofactor: Option<DMatrix<f64>>,
     /// The normal matrix scaled to unit diagonal (for rank and correlations).
     pub scaled_normal: DMatrix<f64>,
+    /// The normal matrix in the parameters' own units (the cofactor's
+    /// inverse when that exists).
+    pub normal: DMatrix<f64>,
     /// Per equation the test statistic `vᵀ Qvv⁻¹ v / sigma0²`, `None` where
     /// the point has no redundancy to test.
     pub test: Vec<Option<f64>>,
@@ -399,12 +402,21 @@ pub(crate) fn statistics(
     }
     let cofactor =
         inverse.map(|q| DMatrix::from_fn(u, u, |i, j| q[(i, j)] * lin.scale[i] * lin.scale[j]));
+    let normal = DMatrix::from_fn(u, u, |i, j| {
+        let scale = lin.scale[i] * lin.scale[j];
+        if scale != 0.0 {
+            n[(i, j)] / scale
+        } else {
+            0.0
+        }
+    });
     Some(Statistics {
         residuals,
         sigma0,
         redundancy,
         cofactor,
         scaled_normal,
+        normal,
         test,
     })
 }

@@ -119,6 +119,16 @@ pub enum CalibrationError {
         /// Its name.
         name: String,
     },
+    /// The result's geometry is not fixed by the observations.
+    #[error("camera {camera} ({name}): the observations do not fix the camera's geometry: {reason}. The target is too shallow (or too small in the image) for the parameters left free: fix the interior orientation at known values (--fix c,xh,yh and the distortion, with their values in the setup; OpenPTV's orient.par does the same), or calibrate with a deeper target or with the plate at several known positions (multi-plane)")]
+    ImplausibleGeometry {
+        /// The camera (0-based).
+        camera: usize,
+        /// Its name.
+        name: String,
+        /// What is implausible.
+        reason: String,
+    },
     /// Too few marks could be identified in an image.
     #[error("camera {camera} ({name}): only {found} marks could be identified with control points; give better starting values or reference points (id x y) for at least 6 points")]
     TooFewIdentified {
@@ -130,7 +140,7 @@ pub enum CalibrationError {
         found: usize,
     },
     /// Too few reference points to start identifying marks.
-    #[error("camera {camera} ({name}): {given} reference points do not determine a starting orientation; give at least 6 not in one plane, or at least 4 in one plane with c, xh and yh right in the setup")]
+    #[error("camera {camera} ({name}): {given} reference points do not determine a starting orientation; give at least 6 not in one plane, at least 4 in one plane with c, xh and yh right in the setup, or at least 4 with the camera's approximate orientation in the setup")]
     TooFewReferences {
         /// The camera (0-based).
         camera: usize,

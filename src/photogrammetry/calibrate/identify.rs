@@ -235,6 +235,17 @@ fn start_from_references(
         name: camera.name.clone(),
     };
     let flat = dlt::flatness(&points) < 1e-3;
+    let oriented = resection::has_orientation(camera, unknown);
+    if pairs.len() >= 4 && !flat && pairs.len() < super::MIN_POINTS && oriented {
+        // Too few for the DLT, but the setup has an orientation: OpenPTV's
+        // manual orientation (4 points, `man_ori`) adjusts the exterior
+        // orientation from the setup's (its `raw_orient`): 8 equations, 6
+        // unknowns.
+        return resection::valid_start(camera.clone())
+            .and_then(|start| adjustment::adjust(&start, ParameterSet::exterior(), &equations, 50))
+            .map(|a| a.parameters)
+            .ok_or_else(no_start);
+    }
     if pairs.len() < 4 || (!flat && pairs.len() < super::MIN_POINTS) {
         return Err(CalibrationError::TooFewReferences {
             camera: k,

@@ -106,6 +106,66 @@ impl Parameter {
         }
     }
 
+    /// The order in which parameters the observations cannot determine
+    /// (their standard deviation against their plausible range) are held
+    /// at the setup's values, lowest first: the distortion (higher radial
+    /// terms, decentering, then k1), then the affine terms and the
+    /// principal point, then the principal distance, the one that sets the
+    /// rig's scale with the position.
+    pub(super) fn range_order(self) -> u8 {
+        match self {
+            Parameter::K3 => 0,
+            Parameter::K2 => 1,
+            Parameter::P2 => 2,
+            Parameter::P1 => 3,
+            Parameter::K1 => 4,
+            Parameter::She => 5,
+            Parameter::Scx => 6,
+            Parameter::Yh => 7,
+            Parameter::Xh => 8,
+            Parameter::C => 9,
+            _ => 10,
+        }
+    }
+
+    /// How far a real camera's value plausibly lies from a setup's nominal
+    /// one (half-width of the range, the parameter's unit); `None` for the
+    /// exterior orientation, which has no such range. With `r` the sensor's
+    /// half-diagonal (mm), the image effect at the sensor's corner:
+    ///
+    /// * c: 10% of the setup's, the most a lens focused at a finite
+    ///   distance `d` moves its principal distance from the focal length
+    ///   `f` (`c = f d / (d - f)`, 11% at `d = 10 f`, the closest PTV
+    ///   distances; refraction by a flat window is in the media model);
+    /// * xh, yh: r / 10 (the sensor's centre within a tenth of its
+    ///   half-diagonal: 0.98 mm, 82 px, on test_cavity's 1280 x 1024 x
+    ///   12 µm sensors; real offsets are tens of pixels);
+    /// * k1, k2, k3: a radial displacement of 5% of r at the corner (a
+    ///   strong wide-angle lens's distortion): `0.05 / r^2`, `/ r^4`, `/ r^6`;
+    /// * p1, p2: a decentering displacement (up to `3 p r^2`) of 1% of r
+    ///   at the corner: `0.01 / (3 r)`;
+    /// * scx, she: 1% (the pixel pitch's aspect and the sensor's shear are
+    ///   manufactured far closer than that).
+    pub fn plausible_range(
+        self,
+        setup: &crate::photogrammetry::camera::CameraParameters,
+    ) -> Option<f64> {
+        let s = &setup.sensor;
+        let r =
+            0.5 * (f64::from(s.width) * s.pixel_size_x).hypot(f64::from(s.height) * s.pixel_size_y);
+        let r = r.max(1e-3);
+        match self {
+            Parameter::C => Some(0.1 * setup.interior.c.abs()),
+            Parameter::Xh | Parameter::Yh => Some(0.1 * r),
+            Parameter::K1 => Some(0.05 / r.powi(2)),
+            Parameter::K2 => Some(0.05 / r.powi(4)),
+            Parameter::K3 => Some(0.05 / r.powi(6)),
+            Parameter::P1 | Parameter::P2 => Some(0.01 / (3.0 * r)),
+            Parameter::Scx | Parameter::She => Some(0.01),
+            _ => None,
+        }
+    }
+
     /// Distortion and affine terms are held at the setup's value (normally
     /// none); principal distance and point at their current estimate.
     pub(super) fn held_at_setup(self) -> bool {

@@ -16,7 +16,7 @@
 
 use std::collections::HashSet;
 
-use nalgebra::{Point3, Vector2};
+use nalgebra::{Point3, Vector2, Vector3};
 
 use super::adjustment::{self, from_vector, to_vector, Equation, Statistics};
 use super::prepare::Prepared;
@@ -38,25 +38,157 @@ pub(super) fn resect_camera(
     let equations = observation_equations(k, &setup.name, observed, prepared)?;
     check_point_count(k, setup, &equations, prepared.fixed)?;
     let coplanar = in_one_plane(k, setup, &equations, prepared.fixed)?;
-    let start = closed_form_start(k, setup, &equations, coplanar, prepared.fixed)?;
+    let unknown = options.unknown.get(k).copied().unwrap_or_default();
+    let priors = priors(setup, unknown) - prepared.fixed;
+    let start = closed_form_start(k, setup, &equations, coplanar, prepared.fixed | priors)?;
     let mut resection = Resection {
         camera: k,
         setup,
         options,
         fixed: prepared.fixed,
+        priors,
         active: equations,
         parameters: start,
         free: prepared.fixed.complement(),
         held: Vec::new(),
         held_at_estimate: ParameterSet::empty(),
+        held_at_prior: Vec::new(),
         excluded: Vec::new(),
+        excluded_equations: Vec::new(),
         iterations: 0,
     };
+    // Before the adjustment: the exterior orientation (and the interior
+    // parameters the setup has no value for) with the setup's values for
+    // the rest, then, at that estimate, which parameters the observations
+    // can determine at all.
+    let first = (ParameterSet::exterior() | (ParameterSet::interior() - priors)) - prepared.fixed;
+    // The start of the exterior orientation: the closed form's and, for a
+    // setup with the orientation (e.g. OpenPTV's .ori), the setup's, often
+    // the better one on a shallow target; the one that fits the
+    // observations better is kept.
+    let oriented = has_orientation(setup, unknown);
+    let equations = resection.equations();
+    let from_setup = if oriented {
+        valid_start(setup.clone())
+            .and_then(|s| adjustment::adjust(&s, first, &equations, options.max_iterations))
+    } else {
+        None
+    };
+    let from_closed_form = adjustment::adjust(
+        &resection.parameters,
+        first,
+        &equations,
+        options.max_iterations,
+    );
+    let cost = |a: &adjustment::Adjusted| {
+        adjustment::cost(&a.parameters, &equations).unwrap_or(f64::INFINITY)
+    };
+    let best = [from_closed_form, from_setup]
+        .into_iter()
+        .flatten()
+        .min_by(|a, b| cost(a).total_cmp(&cost(b)))
+        .ok_or_else(|| resection.no_convergence())?;
+    resection.iterations += best.iterations;
+    resection.parameters = best.parameters;
+    resection.hold_undeterminable()?;
+    let mut before = resection.statistics(resection.free)?;
+    while resection.hold_implausible(&before, robust_sigma0(&before)) {
+        // What is left free, at the same estimate.
+        before = resection.statistics(resection.free)?;
+    }
     // Step 2: the exterior and interior orientation through the strict
     // model, from which all free parameters start.
-    resection.adjust((ParameterSet::exterior() | ParameterSet::interior()) - prepared.fixed)?;
-    let stats = resection.adjust_all()?;
+    resection.adjust(
+        (ParameterSet::exterior() | ParameterSet::interior()) - resection.free.complement(),
+    )?;
+    let mut stats = resection.adjust_all()?;
+    if resection.release_determined(&stats)? {
+        stats = resection.adjust_all()?;
+    }
+    resection.check_geometry(&stats)?;
     Ok(resection.finish(&stats))
+}
+
+/// The parameters whose setup values are a prior the observations can be
+/// judged against (see [`Parameter::plausible_range`]): all but the
+/// exterior orientation and the values the setup leaves out; and not the
+/// principal distance where the setup's is a placeholder, shorter than half
+/// the sensor's half-diagonal (a diagonal field of view over 127°: no PTV
+/// lens, e.g. the `c = 1` of a setup written without an orientation).
+fn priors(setup: &CameraParameters, unknown: ParameterSet) -> ParameterSet {
+    let mut priors = ParameterSet::all() - ParameterSet::exterior() - unknown;
+    let s = &setup.sensor;
+    let r = 0.5 * (f64::from(s.width) * s.pixel_size_x).hypot(f64::from(s.height) * s.pixel_size_y);
+    // NaN counts as a placeholder too.
+    let placeholder =
+        setup.interior.c.abs().partial_cmp(&(0.5 * r)) != Some(std::cmp::Ordering::Greater);
+    if placeholder {
+        priors.remove(Parameter::C);
+    }
+    priors
+}
+
+/// `stats` (over `estimated`, the held-at-prior parameters among them)
+/// with each `(parameter, sigma)` prior added to the normal matrix as a
+/// pseudo-observation of weight `sigma0² / sigma²`, and the redundancy
+/// restored (each prior is one observation more); `None` when the result
+/// is still singular.
+fn with_prior(
+    mut stats: Statistics,
+    priors: &[(Parameter, f64)],
+    estimated: ParameterSet,
+) -> Option<Statistics> {
+    let order: Vec<Parameter> = estimated.iter().collect();
+    let redundancy = stats.redundancy + priors.len();
+    let vtv = stats.sigma0 * stats.sigma0 * stats.redundancy as f64;
+    let sigma0 = if redundancy > 0 {
+        (vtv / redundancy as f64).sqrt()
+    } else {
+        0.0
+    };
+    let mut normal = stats.normal.clone();
+    for (p, sigma) in priors {
+        let k = order.iter().position(|o| o == p)?;
+        if *sigma > 0.0 && sigma0 > 0.0 {
+            normal[(k, k)] += (sigma0 / sigma).powi(2);
+        }
+    }
+    stats.cofactor = Some(normal.cholesky()?.inverse());
+    stats.sigma0 = sigma0;
+    stats.redundancy = redundancy;
+    Some(stats)
+}
+
+/// Whether the setup gives the camera's orientation (e.g. OpenPTV's .ori
+/// files), a start for the exterior orientation: none of its exterior or
+/// interior values left out, and a principal distance that is not a
+/// placeholder (see [`priors`]; a setup written without an orientation
+/// has zeros and `c = 1`).
+pub(super) fn has_orientation(setup: &CameraParameters, unknown: ParameterSet) -> bool {
+    (ParameterSet::exterior() | ParameterSet::interior())
+        .iter()
+        .all(|p| !unknown.contains(p))
+        && priors(setup, unknown).contains(Parameter::C)
+}
+
+/// sigma0 from the median absolute residual (`1.4826 median |v|`, the
+/// normal distribution's sigma), scaled by `sqrt(2n / r)` as `vᵀv / r` is:
+/// the image noise as the bulk of the points show it, unspoilt by gross
+/// errors not yet excluded, for judging what the observations determine
+/// before they are snooped.
+fn robust_sigma0(stats: &Statistics) -> f64 {
+    let mut v: Vec<f64> = stats
+        .residuals
+        .iter()
+        .flat_map(|r| [r.x.abs(), r.y.abs()])
+        .collect();
+    if v.is_empty() || stats.redundancy == 0 {
+        return stats.sigma0;
+    }
+    v.sort_by(f64::total_cmp);
+    let median = v[v.len() / 2];
+    let scale = (v.len() as f64 / stats.redundancy as f64).sqrt();
+    (1.4826 * median * scale).min(stats.sigma0)
 }
 
 /// Checks one camera's observations and turns the usable ones (control
@@ -215,6 +347,9 @@ pub(super) struct Resection<'a> {
     pub(super) options: &'a CalibrationOptions,
     /// The parameters the user fixed.
     pub(super) fixed: ParameterSet,
+    /// The free parameters whose setup values are a prior: held there when
+    /// the observations cannot determine them within their plausible range.
+    priors: ParameterSet,
     /// The observation equations in use, with their points' ids (gross
     /// errors taken out).
     pub(super) active: Vec<(u64, Equation)>,
@@ -227,8 +362,15 @@ pub(super) struct Resection<'a> {
     /// Parameters held at their least-squares estimate for a correlation:
     /// their uncertainty stays in the others' standard deviations.
     held_at_estimate: ParameterSet,
+    /// Parameters held at the setup's value because the observations do
+    /// not determine them, each with its prior standard deviation (a third
+    /// of its plausible range): the others' standard deviations keep it.
+    held_at_prior: Vec<(Parameter, f64)>,
     /// Points excluded as gross errors, in the order they were found.
     pub(super) excluded: Vec<PointResidual>,
+    /// The observation equations of the excluded points, to take back
+    /// when the model changes (see `release_determined`).
+    excluded_equations: Vec<(u64, Equation)>,
     /// Levenberg-Marquardt iterations, all adjustments together.
     pub(super) iterations: usize,
 }
@@ -275,7 +417,15 @@ impl Resection<'_> {
             // adjustment, after snooping, must have converged.
             let converged = self.adjust(self.free)?;
             let stats = self.statistics(self.free)?;
-            if self.hold_correlated(&stats) || self.snoop(&stats) {
+            // Correlations first and snooping next, as before the priors;
+            // a parameter is held at its prior only once no gross error is
+            // left to exclude: with one still in, the model error it
+            // leaves would make a determinable parameter (k1) look
+            // undetermined, and a hold is never undone.
+            if self.hold_correlated(&stats)
+                || self.snoop(&stats)
+                || self.hold_implausible(&stats, stats.sigma0)
+            {
                 continue;
             }
             return if converged {
@@ -314,6 +464,149 @@ impl Resection<'_> {
         true
     }
 
+    /// Holds, at the setup's value, the parameter first in
+    /// [`Parameter::range_order`] among those with a prior whose standard
+    /// deviation (`sigma0` times the cofactor's root) is more than a third
+    /// of their plausible range: the 3-sigma interval the observations
+    /// leave is wider than the values a real camera plausibly takes, so
+    /// the setup's value is better than the estimate; whether one was held.
+    fn hold_implausible(&mut self, stats: &Statistics, sigma0: f64) -> bool {
+        let Some(q) = &stats.cofactor else {
+            return false;
+        };
+        let worst = self
+            .free
+            .iter()
+            .enumerate()
+            .filter(|(_, p)| self.priors.contains(*p) && p.holdable())
+            .filter_map(|(k, p)| {
+                let sigma = sigma0 * q[(k, k)].max(0.0).sqrt();
+                let range = p.plausible_range(self.setup)?;
+                (3.0 * sigma > range).then_some((p, sigma, range))
+            })
+            .min_by_key(|(p, _, _)| p.range_order());
+        let Some((p, sigma, range)) = worst else {
+            return false;
+        };
+        self.free.remove(p);
+        let mut v = to_vector(&self.parameters);
+        v[p.index()] = to_vector(self.setup)[p.index()];
+        self.parameters = from_vector(&self.parameters, &v);
+        self.held_at_prior.push((p, range / 3.0));
+        self.held.push((
+            p,
+            format!(
+                "the observations do not determine it: its standard deviation {sigma:.3e} is more \
+                 than a third of its plausible range ±{range:.3e} around the setup's value \
+                 (held there, in the order distortion, affine terms and principal point, then c)"
+            ),
+        ));
+        true
+    }
+
+    /// Frees again the parameters held at their priors that the adjusted
+    /// observations do determine (three standard deviations within the
+    /// plausible range, with this adjustment's sigma0); whether any was.
+    /// The holds made before the adjustment were judged at an estimate
+    /// without the parameters held, whose residuals carry their model
+    /// error (an unmodelled k1 of a few pixels at the corners) and any
+    /// gross error not yet excluded: a determinable parameter can look
+    /// undetermined there, and held at the setup's zero it would leave
+    /// that model error in the result, and points excluded for it.
+    fn release_determined(&mut self, stats: &Statistics) -> Result<bool, CalibrationError> {
+        let mut released = false;
+        let candidates: Vec<(Parameter, f64)> = self.held_at_prior.clone();
+        for (p, prior) in candidates {
+            let mut free = self.free;
+            free.insert(p);
+            let Some(trial) = adjustment::statistics(&self.parameters, free, &self.equations())
+            else {
+                continue;
+            };
+            let Some(q) = &trial.cofactor else { continue };
+            let Some(k) = free.iter().position(|o| o == p) else {
+                continue;
+            };
+            let sigma = stats.sigma0 * q[(k, k)].max(0.0).sqrt();
+            if 3.0 * sigma <= 3.0 * prior {
+                self.free.insert(p);
+                self.held_at_prior.retain(|(h, _)| *h != p);
+                self.held.retain(|(h, _)| *h != p);
+                released = true;
+            }
+        }
+        if released {
+            // Points excluded while a determinable parameter was held may
+            // have shown its model error, not a gross error of their own:
+            // all are taken back and tested again.
+            self.active.append(&mut self.excluded_equations);
+            self.excluded.clear();
+        }
+        Ok(released)
+    }
+
+    /// A result whose geometry the observations do not fix is an error:
+    /// a projective centre whose standard deviation is over a third of 10%
+    /// of its distance to the control points (the rig's scale, which c
+    /// trades with, as undetermined as c's test would hold c), or a principal distance estimated more than its plausible
+    /// range away from the setup's.
+    fn check_geometry(&self, stats: &Statistics) -> Result<(), CalibrationError> {
+        let free_names = || {
+            (self.free - ParameterSet::exterior())
+                .iter()
+                .map(|p| p.name())
+                .collect::<Vec<_>>()
+                .join(", ")
+        };
+        let centroid = self
+            .active
+            .iter()
+            .fold(Vector3::zeros(), |sum, (_, e)| sum + e.point.coords)
+            / self.active.len().max(1) as f64;
+        let distance = (self.parameters.exterior.position - centroid).norm();
+        if let Some(q) = &stats.cofactor {
+            let sigma = self
+                .free
+                .iter()
+                .enumerate()
+                .filter(|(_, p)| ParameterSet::position().contains(*p))
+                .map(|(k, _)| stats.sigma0 * q[(k, k)].max(0.0).sqrt())
+                .fold(0.0, f64::max);
+            // The position's relative uncertainty is the rig's scale's,
+            // the one c trades with (sigma_c / c = sigma_z / distance): over
+            // a third of c's plausible 10% is what holds c.
+            if 3.0 * sigma > 0.1 * distance {
+                return Err(CalibrationError::ImplausibleGeometry {
+                    camera: self.camera,
+                    name: self.setup.name.clone(),
+                    reason: format!(
+                        "its position has a standard deviation of {sigma:.1} mm at {distance:.0} \
+                         mm from the control points (3 sigma over 10%: the rig's scale is not \
+                         determined), with {} free",
+                        free_names()
+                    ),
+                });
+            }
+        }
+        let c = Parameter::C;
+        if self.free.contains(c) && self.priors.contains(c) {
+            let range = c.plausible_range(self.setup).unwrap_or(f64::INFINITY);
+            let (estimate, nominal) = (self.parameters.interior.c, self.setup.interior.c);
+            if (estimate - nominal).abs() > range {
+                return Err(CalibrationError::ImplausibleGeometry {
+                    camera: self.camera,
+                    name: self.setup.name.clone(),
+                    reason: format!(
+                        "its principal distance came out {estimate:.2} mm against the setup's \
+                         {nominal:.2} mm (more than 10% apart), with {} free",
+                        free_names()
+                    ),
+                });
+            }
+        }
+        Ok(())
+    }
+
     /// Stops estimating `p`: distortion and affine terms go back to the
     /// setup's value; the others stay at the current estimate, `at_estimate`
     /// marking one whose uncertainty the others' sigmas keep.
@@ -342,6 +635,7 @@ impl Resection<'_> {
         match worst {
             Some((i, t)) if t > critical && self.active.len() > points_needed(self.free.len()) => {
                 let (id, equation) = self.active.remove(i);
+                self.excluded_equations.push((id, equation));
                 self.excluded.push(PointResidual {
                     id,
                     x_px: stats.residuals[i].x,
@@ -359,15 +653,31 @@ impl Resection<'_> {
     /// covariance come with the parameters held at their estimates still
     /// free: conditioning on a value that is itself uncertain would make the
     /// others' look better than they are.
+    ///
+    /// A parameter held at the setup's value because the observations do
+    /// not determine it is not known exactly either: the setup's value is a
+    /// prior, within its plausible range (3 sigma). Its uncertainty enters
+    /// the others' as that prior would in the adjustment: the normal
+    /// matrix with it free, plus `sigma0² / sigma_prior²` on its diagonal
+    /// (a pseudo-observation of its value; the redundancy is unchanged, one
+    /// observation and one unknown more), inverted. Without that, holding
+    /// a non-zero truth at zero would bias the others beyond their
+    /// reported standard deviations.
     fn finish(self, stats: &Statistics) -> (CameraParameters, CameraReport) {
         let uncertain = self.free | self.held_at_estimate;
-        let marginal = if uncertain == self.free {
+        let mut with_priors = uncertain;
+        let priors = self.held_at_prior.clone();
+        for (p, _) in &priors {
+            with_priors.insert(*p);
+        }
+        let marginal = if with_priors == self.free {
             None
         } else {
-            adjustment::statistics(&self.parameters, uncertain, &self.equations())
+            adjustment::statistics(&self.parameters, with_priors, &self.equations())
+                .and_then(|m| with_prior(m, &priors, with_priors))
         };
         let uncertainty = match &marginal {
-            Some(m) if m.cofactor.is_some() => (m, uncertain),
+            Some(m) if m.cofactor.is_some() => (m, with_priors),
             _ => (stats, self.free),
         };
         let report = camera_report(&self, stats, uncertainty);

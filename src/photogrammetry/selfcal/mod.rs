@@ -1034,6 +1034,7 @@ fn hold_undeterminable(
             redundancy: solution.redundancy,
             cofactor,
             scaled_normal,
+            normal: block.clone(),
             test: Vec::new(),
         };
         if let Some((p, reason)) = undeterminable(&stats, state.free[c], max_correlation, true) {
