@@ -17,8 +17,8 @@ use clap::{Args, ValueEnum};
 use super::{write_stderr_line, write_stdout, CliError};
 use crate::formats::{self, image::RawLayout};
 use crate::photogrammetry::{
-    detect_preprocessed, BitDepth, Centroid, DetectionParameters, GreyImage, Mask, PreprocessError,
-    Preprocessing,
+    detect_preprocessed, detect_within, BitDepth, Centroid, DetectError, DetectionParameters,
+    GreyImage, Mask, PreprocessError, Preprocessing,
 };
 
 /// How `ptv detect` writes its targets.
@@ -51,6 +51,12 @@ pub struct DetectArgs {
     /// Output format.
     #[arg(long, value_enum, default_value_t = TargetFormat::Csv)]
     pub format: TargetFormat,
+    /// Stop with an error once more than N targets are found, as the frame
+    /// pipeline does at its camera's bound (a hostile image then costs the
+    /// detection's scratch and N targets, not a target per two pixels); by
+    /// default no limit.
+    #[arg(long, value_name = "N")]
+    pub max_targets: Option<usize>,
     /// The layout of raw images.
     #[command(flatten)]
     pub raw: RawImageFlags,
@@ -214,8 +220,21 @@ pub(super) fn run(
         args.mask.as_deref(),
         args.raw.layout().as_ref(),
     )?;
-    let targets = detect_preprocessed(&image, &preprocessing, &parameters)
-        .map_err(|error| preprocess_error(error, &args.image, &preprocessing_files(args)))?;
+    let preprocess_error = |error| preprocess_error(error, &args.image, &preprocessing_files(args));
+    let targets = match args.max_targets {
+        None => {
+            detect_preprocessed(&image, &preprocessing, &parameters).map_err(preprocess_error)?
+        }
+        Some(limit) => detect_within(&image, &preprocessing, &parameters, limit).map_err(
+            |error| match error {
+                DetectError::Preprocess(error) => preprocess_error(error),
+                DetectError::TooManyTargets(error) => CliError::Flag {
+                    flag: "--max-targets",
+                    reason: format!("{}: {error}", args.image.display()),
+                },
+            },
+        )?,
+    };
     let text = match args.format {
         TargetFormat::Csv => formats::csv::format_targets(&targets),
         TargetFormat::Openptv => formats::openptv::format_targets(&targets),

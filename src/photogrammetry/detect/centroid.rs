@@ -22,7 +22,7 @@ pub(super) struct Moments {
 }
 
 impl Moments {
-    fn new() -> Moments {
+    pub(super) fn new() -> Moments {
         Moments {
             n: 0,
             sumg: 0,
@@ -37,7 +37,13 @@ impl Moments {
     }
 
     #[inline]
-    fn add(&mut self, (x, y): (usize, usize), level: u32, corner: (usize, usize), threshold: u32) {
+    pub(super) fn add(
+        &mut self,
+        (x, y): (usize, usize),
+        level: u32,
+        corner: (usize, usize),
+        threshold: u32,
+    ) {
         // Every blob pixel is above the threshold, so its weight is >= 1.
         let w = u64::from(level.saturating_sub(threshold));
         self.n += 1;

@@ -748,8 +748,18 @@ fn detect_with_pixels_if<const PIXELS: bool>(
         found.sort_by(|(a, _), (b, _)| order(a, b));
         found.into_iter().unzip()
     } else {
-        // Stable, as before: targets at the same position keep their order.
-        targets.sort_by(order);
+        // In place (a stable sort takes a scratch of half the targets, 20
+        // bytes a pixel of a hostile frame's): targets at the same position
+        // are ordered by their other fields, so the order is still one
+        // order (only targets equal in every field tie, and those are
+        // interchangeable).
+        targets.sort_unstable_by(|a, b| {
+            order(a, b)
+                .then(a.n.cmp(&b.n))
+                .then(a.nx.cmp(&b.nx))
+                .then(a.ny.cmp(&b.ny))
+                .then(a.sumg.cmp(&b.sumg))
+        });
         (targets, pixels)
     })
 }
@@ -943,6 +953,9 @@ struct Detector<'a, G: Grey> {
     caps: Vec<(u32, u32)>,
     /// Measuring: per region root, its particle's number in the blob.
     slot: Vec<u32>,
+    /// Measuring a split blob of few particles: each one's moments (see
+    /// [`Detector::split_and_measure`]; at most 1,024).
+    moments: Vec<centroid::Moments>,
     /// The image's noise level after the high-pass filter (levels, one
     /// standard deviation), estimated before the filter when a rule needs
     /// it ([`Detector::sample_noise`]); 0 when not needed.
@@ -992,6 +1005,7 @@ impl<'a, G: Grey> Detector<'a, G> {
             regions: Vec::new(),
             caps: Vec::new(),
             slot: Vec::new(),
+            moments: Vec::new(),
             noise: 0,
             split_noise: AUTO_SPLIT_NOISE,
             deferred: Vec::new(),

@@ -3,12 +3,26 @@
 //! `discont`) or the automatic rule, and the automatic rule's deferral of
 //! such blobs to the end of the frame.
 
+use super::centroid::Moments;
 use super::{
     key, key_index, key_level, Detector, Found, Grey, Mask, TooManyTargets, AUTO_SPLIT_CAP,
     AUTO_SPLIT_FRACTION, AUTO_SPLIT_NOISE_STRUCTURED, STRUCTURED_SPLITS,
 };
+use crate::photogrammetry::centroid::Centroid;
 /// "No region / not yet visited" in the splitting step.
 pub(super) const NONE: u32 = u32::MAX;
+
+/// The most particles of a split blob whose moments are summed in one pass
+/// over its pixels ([`Detector::split_and_measure`]): 1,024 moments, 96 KiB
+/// of scratch kept from blob to blob; a blob parted into more is sorted by
+/// particle and measured one particle at a time, so the scratch stays
+/// bounded whatever the image.
+const MOMENTS_IN_PASS: usize = 1024;
+
+/// The largest blob whose split reserves room for half its pixels as
+/// local maxima rather than counting them (4,096 pixels: 24 KiB of
+/// regions and particle numbers at most, 40 KiB with the automatic rule).
+const COUNTED_BLOB: usize = 1 << 12;
 
 #[derive(Clone, Copy, Debug)]
 pub(super) struct Region {
@@ -172,24 +186,63 @@ impl<G: Grey> Detector<'_, G> {
         threshold: u32,
         found: &mut Found,
     ) {
-        let maxima = self.count_maxima(usize::MAX);
+        // The reservations' count (see `split`): counted where the blob is
+        // large enough for its scratch to matter; a small blob's (at most
+        // one maximum per 2 pixels) is reserved without the pass.
+        let maxima = if self.blob.len() <= COUNTED_BLOB {
+            self.blob.len().div_ceil(2)
+        } else {
+            self.count_maxima(usize::MAX)
+        };
         self.split(corner, size, maxima);
         // Number the particles in flooding order, and re-key each pixel by
         // its particle: sorted, each particle's pixels are contiguous and
-        // particles are measured one at a time, in that order.
+        // particles are measured one at a time, in that order. Where the
+        // targets need only their moments (no pixel lists, no Gaussian fit
+        // around a peak) and the particles are few, their moments are
+        // summed in this same pass instead, and the sort is not needed:
+        // the moments are integer sums and extremes, so the targets are the
+        // same whatever the order of the pixels.
         self.slot.clear();
         self.slot.resize(self.regions.len(), NONE);
+        self.moments.clear();
+        let mut summed = !PIXELS && self.parameters.centroid != Centroid::Gaussian;
         let mut particles = 0u32;
         for rank in 0..self.blob.len() {
-            let p = key_index(self.blob[rank]);
+            let k = self.blob[rank];
+            let p = key_index(k);
             let (x, y) = self.position(p);
             let cell = (y - corner.1) * size.0 + (x - corner.0);
             let root = self.find(self.grid[cell]) as usize;
             if self.slot[root] == NONE {
                 self.slot[root] = particles;
                 particles += 1;
+                if summed {
+                    if self.moments.len() < MOMENTS_IN_PASS {
+                        self.moments.push(Moments::new());
+                    } else {
+                        summed = false;
+                    }
+                }
             }
-            self.blob[rank] = (u64::from(self.slot[root]) << 32) | p as u64;
+            let particle = self.slot[root];
+            if summed {
+                self.moments[particle as usize].add(
+                    (x, y),
+                    u32::from(key_level(k)),
+                    corner,
+                    threshold,
+                );
+            }
+            self.blob[rank] = (u64::from(particle) << 32) | p as u64;
+        }
+        if summed {
+            for m in &self.moments {
+                if let Some(target) = self.target(m, corner) {
+                    found.0.push(target);
+                }
+            }
+            return;
         }
         self.blob.sort_unstable();
         let mut start = 0;
