@@ -29,6 +29,7 @@
 //! cargo run --release --example track_report                 # 2,000, 8,000, 20,000 particles
 //! cargo run --release --example track_report -- 8000 34 0.35  # particles, frames, displacement / spacing
 //! cargo run --release --example track_report -- --recovery 8000  # with the image-space recovery
+//! cargo run --release --example track_report -- --backward 8000 50  # forward, then with backward tracking
 //! ```
 //!
 //! With `--recovery` the tracker also looks in the images for the
@@ -127,7 +128,7 @@ impl Cells {
     }
 }
 
-fn run(particles: usize, frames: usize, displacement_share: f64, recover: bool) {
+fn run(particles: usize, frames: usize, displacement_share: f64, recover: bool, backward: bool) {
     let spec = RigSpec::convergent(4);
     let cameras = spec.build().expect("the simulator's rig");
     let volume = spec.volume;
@@ -219,156 +220,175 @@ fn run(particles: usize, frames: usize, displacement_share: f64, recover: bool) 
                 .with_noise(noise.unwrap_or(f64::NAN))
         })
         .collect();
-    let start = Instant::now();
-    let mut tracker = if recover {
-        let recovery = ImageSpaceRecovery::new(cameras.clone(), 0.5).expect("a rig");
-        Tracker::with_recovery(parameters, recovery).expect("tracking parameters")
-    } else {
-        Tracker::new(parameters).expect("tracking parameters")
-    };
-    let mut points = Vec::new();
-    let mut recovered = Vec::new();
-    for ((number, particles), targets) in input.into_iter().zip(targets) {
-        let out = tracker
-            .push_with_targets(number, particles, targets)
-            .expect("tracking runs");
-        points.extend(out);
-        recovered.extend(tracker.take_recovered());
-    }
-    let (last, last_recovered) = tracker.finish_with_recovered();
-    points.extend(last);
-    recovered.extend(last_recovered);
-    let per_frame_ms = start.elapsed().as_secs_f64() * 1e3 / frames as f64;
-    // The recovered particles' labels, as the matched ones'.
-    let mut recovered_count = 0usize;
-    for r in &recovered {
-        let f = r.frame as usize;
-        assert_eq!(
-            truth[f].len(),
-            r.first,
-            "recovered particles follow the frame's"
-        );
-        for particle in &r.particles {
-            let ids: Vec<usize> = particle
-                .targets
-                .iter()
-                .enumerate()
-                .filter_map(|(c, t)| t.map(|t| images[f].0.truth[c][t]))
-                .collect();
-            let majority = ids
-                .iter()
-                .find(|&&i| 2 * ids.iter().filter(|&&j| j == i).count() > ids.len())
-                .copied();
-            truth[f].push(majority);
-            pure[f].push(ids.iter().all(|&i| i == ids[0]));
-            recovered_count += 1;
+    // Forward, then (with --backward) forward and backward, on the same
+    // matched frames.
+    let modes: &[bool] = if backward { &[false, true] } else { &[false] };
+    let (truth0, pure0) = (truth, pure);
+    for &backward in modes {
+        let (mut truth, mut pure) = (truth0.clone(), pure0.clone());
+        let input = input.clone();
+        let targets = targets.clone();
+        let start = Instant::now();
+        let mut tracker = if recover {
+            let recovery = ImageSpaceRecovery::new(cameras.clone(), 0.5).expect("a rig");
+            Tracker::with_recovery(parameters.clone(), recovery).expect("tracking parameters")
+        } else {
+            Tracker::new(parameters.clone()).expect("tracking parameters")
+        };
+        if backward {
+            tracker = tracker.extending_backward();
         }
-    }
-    let trajectories = trajectories(points);
+        let mut points = Vec::new();
+        let mut recovered = Vec::new();
+        for ((number, particles), targets) in input.into_iter().zip(targets) {
+            let out = tracker
+                .push_with_targets(number, particles, targets)
+                .expect("tracking runs");
+            points.extend(out);
+            recovered.extend(tracker.take_recovered());
+        }
+        let finished = tracker.finish_all();
+        points.extend(finished.points);
+        recovered.extend(finished.recovered);
+        let per_frame_ms = start.elapsed().as_secs_f64() * 1e3 / frames as f64;
+        // The recovered particles' labels, as the matched ones'.
+        let mut recovered_count = 0usize;
+        for r in &recovered {
+            let f = r.frame as usize;
+            assert_eq!(
+                truth[f].len(),
+                r.first,
+                "recovered particles follow the frame's"
+            );
+            for particle in &r.particles {
+                let ids: Vec<usize> = particle
+                    .targets
+                    .iter()
+                    .enumerate()
+                    .filter_map(|(c, t)| t.map(|t| images[f].0.truth[c][t]))
+                    .collect();
+                let majority = ids
+                    .iter()
+                    .find(|&&i| 2 * ids.iter().filter(|&&j| j == i).count() > ids.len())
+                    .copied();
+                truth[f].push(majority);
+                pure[f].push(ids.iter().all(|&i| i == ids[0]));
+                recovered_count += 1;
+            }
+        }
+        let trajectories = trajectories(points);
 
-    // Links.
-    let (mut links, mut wrong, mut right, mut through_ghosts) = (0usize, 0usize, 0usize, 0usize);
-    let mut through_mixed = 0usize;
-    let (mut v_err, mut v_ref, mut a_err, mut a_ref, mut n) = (0.0, 0.0, 0.0, 0.0, 0usize);
-    let mut v_errors: Vec<f64> = Vec::new();
-    let (mut v_err_centred, mut v_ref_centred) = (0.0, 0.0);
-    for t in &trajectories {
-        for pair in t.points.windows(2) {
-            links += 1;
-            let a = truth[pair[0].frame as usize][pair[0].particle];
-            let b = truth[pair[1].frame as usize][pair[1].particle];
-            if a.is_some() && a == b && pair[1].frame == pair[0].frame + 1 {
-                right += 1;
-            } else if a.is_none() || a != b {
-                wrong += 1;
-                if a.is_none() || b.is_none() {
-                    through_ghosts += 1;
+        // Links.
+        let (mut links, mut wrong, mut right, mut through_ghosts) =
+            (0usize, 0usize, 0usize, 0usize);
+        let mut through_mixed = 0usize;
+        let (mut v_err, mut v_ref, mut a_err, mut a_ref, mut n) = (0.0, 0.0, 0.0, 0.0, 0usize);
+        let mut v_errors: Vec<f64> = Vec::new();
+        let (mut v_err_centred, mut v_ref_centred) = (0.0, 0.0);
+        for t in &trajectories {
+            for pair in t.points.windows(2) {
+                links += 1;
+                let a = truth[pair[0].frame as usize][pair[0].particle];
+                let b = truth[pair[1].frame as usize][pair[1].particle];
+                if a.is_some() && a == b && pair[1].frame == pair[0].frame + 1 {
+                    right += 1;
+                } else if a.is_none() || a != b {
+                    wrong += 1;
+                    if a.is_none() || b.is_none() {
+                        through_ghosts += 1;
+                    }
+                }
+                if !pure[pair[0].frame as usize][pair[0].particle]
+                    || !pure[pair[1].frame as usize][pair[1].particle]
+                {
+                    through_mixed += 1;
                 }
             }
-            if !pure[pair[0].frame as usize][pair[0].particle]
-                || !pure[pair[1].frame as usize][pair[1].particle]
-            {
-                through_mixed += 1;
+            for (k, p) in t.points.iter().enumerate() {
+                if let Some(id) = truth[p.frame as usize][p.particle] {
+                    let x = truth_positions[p.frame as usize][id];
+                    let (u, du) = (flow.velocity(&x), flow.acceleration(&x));
+                    // A full, centred window: two points on each side, no gap.
+                    let centred = k >= 2
+                        && k + 2 < t.points.len()
+                        && t.points[k + 2].frame - t.points[k - 2].frame == 4;
+                    if centred {
+                        v_err_centred += (p.derivatives.velocity - u).norm_squared();
+                        v_ref_centred += u.norm_squared();
+                    }
+                    v_err += (p.derivatives.velocity - u).norm_squared();
+                    v_errors.push((p.derivatives.velocity - u).norm());
+                    v_ref += u.norm_squared();
+                    if let Some(a) = p.derivatives.acceleration {
+                        a_err += (a - du).norm_squared();
+                        a_ref += du.norm_squared();
+                    }
+                    n += 1;
+                }
             }
         }
-        for (k, p) in t.points.iter().enumerate() {
-            if let Some(id) = truth[p.frame as usize][p.particle] {
-                let x = truth_positions[p.frame as usize][id];
-                let (u, du) = (flow.velocity(&x), flow.acceleration(&x));
-                // A full, centred window: two points on each side, no gap.
-                let centred = k >= 2
-                    && k + 2 < t.points.len()
-                    && t.points[k + 2].frame - t.points[k - 2].frame == 4;
-                if centred {
-                    v_err_centred += (p.derivatives.velocity - u).norm_squared();
-                    v_ref_centred += u.norm_squared();
-                }
-                v_err += (p.derivatives.velocity - u).norm_squared();
-                v_errors.push((p.derivatives.velocity - u).norm());
-                v_ref += u.norm_squared();
-                if let Some(a) = p.derivatives.acceleration {
-                    a_err += (a - du).norm_squared();
-                    a_ref += du.norm_squared();
-                }
-                n += 1;
+        // True links available: a true particle correctly found in frames f
+        // and f + 1.
+        let mut available = 0usize;
+        for f in 0..frames - 1 {
+            let mut here = vec![false; particles];
+            for id in truth[f].iter().flatten() {
+                here[*id] = true;
             }
+            available += truth[f + 1]
+                .iter()
+                .flatten()
+                .filter(|id| here[**id])
+                .count();
         }
-    }
-    // True links available: a true particle correctly found in frames f
-    // and f + 1.
-    let mut available = 0usize;
-    for f in 0..frames - 1 {
-        let mut here = vec![false; particles];
-        for id in truth[f].iter().flatten() {
-            here[*id] = true;
-        }
-        available += truth[f + 1]
-            .iter()
-            .flatten()
-            .filter(|id| here[**id])
-            .count();
-    }
-    let displacement = (truth_positions
-        .windows(2)
-        .flat_map(|w| w[0].iter().zip(&w[1]).map(|(a, b)| (b - a).norm_squared()))
-        .sum::<f64>()
-        / (particles * (frames - 1)) as f64)
-        .sqrt();
-    v_errors.sort_by(f64::total_cmp);
-    let q = |share: f64| v_errors[((v_errors.len() - 1) as f64 * share) as usize];
-    let v_rms = (v_ref / n.max(1) as f64).sqrt();
-    let median_v = q(0.5) / v_rms;
-    let p99 = q(0.99) / v_rms;
-    let points: usize = trajectories.iter().map(|t| t.points.len()).sum();
-    let mean_length = points as f64 / trajectories.len().max(1) as f64;
-    println!(
+        let displacement = (truth_positions
+            .windows(2)
+            .flat_map(|w| w[0].iter().zip(&w[1]).map(|(a, b)| (b - a).norm_squared()))
+            .sum::<f64>()
+            / (particles * (frames - 1)) as f64)
+            .sqrt();
+        v_errors.sort_by(f64::total_cmp);
+        let q = |share: f64| v_errors[((v_errors.len() - 1) as f64 * share) as usize];
+        let v_rms = (v_ref / n.max(1) as f64).sqrt();
+        let median_v = q(0.5) / v_rms;
+        let p99 = q(0.99) / v_rms;
+        let points: usize = trajectories.iter().map(|t| t.points.len()).sum();
+        let mean_length = points as f64 / trajectories.len().max(1) as f64;
+        println!(
         "{particles} particles, spacing {spacing:.2} mm, RMS displacement {displacement:.2} mm/frame ({:.2} of the spacing; peak {peak:.2}), {frames} frames:",
         displacement / spacing
     );
-    let counts: Vec<String> = by_cameras
-        .iter()
-        .enumerate()
-        .filter(|(_, (n, _, _))| *n > 0)
-        .map(|(k, (n, mixed, ghosts))| {
-            format!(
-                "{k} cameras {n} ({:.1}% mixed, {:.2}% ghosts)",
-                100.0 * *mixed as f64 / *n as f64,
-                100.0 * *ghosts as f64 / *n as f64
-            )
-        })
-        .collect();
-    println!("  matched: {}", counts.join(", "));
-    if recover {
-        println!("  image-space recovery: {recovered_count} particles recovered");
-    }
-    println!(
+        let counts: Vec<String> = by_cameras
+            .iter()
+            .enumerate()
+            .filter(|(_, (n, _, _))| *n > 0)
+            .map(|(k, (n, mixed, ghosts))| {
+                format!(
+                    "{k} cameras {n} ({:.1}% mixed, {:.2}% ghosts)",
+                    100.0 * *mixed as f64 / *n as f64,
+                    100.0 * *ghosts as f64 / *n as f64
+                )
+            })
+            .collect();
+        println!("  matched: {}", counts.join(", "));
+        match finished.backward {
+            Some(b) => println!(
+                "  with backward tracking: {} points added, {} trajectories lengthened, {} joined",
+                b.points, b.lengthened, b.joined
+            ),
+            None => println!("  forward only"),
+        }
+        if recover {
+            println!("  image-space recovery: {recovered_count} particles recovered");
+        }
+        println!(
         "  link recall {:.4}, wrong links {:.2}% of {links} ({through_ghosts} of them to or from a ghost; {through_mixed} links in all through a mixed particle), mean length {mean_length:.1} of {frames} frames ({:.2}), {} trajectories",
         right as f64 / available as f64,
         100.0 * wrong as f64 / links.max(1) as f64,
         mean_length / frames as f64,
         trajectories.len()
     );
-    println!(
+        println!(
         "  velocity error median {:.2}%, 99th percentile {:.1}%, RMS {:.2}% of the RMS velocity ({:.2}% at points with a full centred window), acceleration {:.1}% of the RMS acceleration ({n} points); tracking {per_frame_ms:.2} ms a frame",
         100.0 * median_v,
         100.0 * p99,
@@ -376,12 +396,14 @@ fn run(particles: usize, frames: usize, displacement_share: f64, recover: bool) 
         100.0 * (v_err_centred / v_ref_centred).sqrt(),
         100.0 * (a_err / a_ref).sqrt()
     );
+    }
 }
 
 fn main() {
     let mut args: Vec<String> = std::env::args().skip(1).collect();
     let recover = args.iter().any(|a| a == "--recovery");
-    args.retain(|a| a != "--recovery" && a != "--bench");
+    let backward = args.iter().any(|a| a == "--backward");
+    args.retain(|a| a != "--recovery" && a != "--bench" && a != "--backward");
     let number = |i: usize, default: f64| {
         args.get(i)
             .map(|s| {
@@ -395,10 +417,10 @@ fn main() {
     let frames = number(1, 34.0) as usize;
     let share = number(2, 0.35);
     match args.first() {
-        Some(_) => run(number(0, 8000.0) as usize, frames, share, recover),
+        Some(_) => run(number(0, 8000.0) as usize, frames, share, recover, backward),
         None => {
             for particles in [2000, 8000, 20000] {
-                run(particles, frames, share, recover);
+                run(particles, frames, share, recover, backward);
             }
         }
     }

@@ -89,6 +89,11 @@ pub struct ProcessSequenceArgs {
     /// the output directory (docs/exports.md).
     #[arg(long, value_enum, requires = "track")]
     pub export: Vec<super::export::ExportFormat>,
+    /// With --track, do not extend the trajectories backwards in time
+    /// after the forward pass (docs/tracking.md; backward tracking holds
+    /// the sequence's particles until its end).
+    #[arg(long, requires = "track")]
+    pub no_backward: bool,
 }
 
 /// `a + b`, saturating, pixel by pixel; `None` if the sizes or depths
@@ -270,6 +275,16 @@ struct Summary {
     tracking: Option<TrackingSummary>,
 }
 
+/// What backward tracking added: points before the trajectories'
+/// starts, trajectories lengthened, trajectories joined to the one ending
+/// before them.
+#[derive(Serialize)]
+struct BackwardAdded {
+    points: usize,
+    lengthened: usize,
+    joined: usize,
+}
+
 /// The tracking part of the summary.
 #[derive(Serialize)]
 struct TrackingSummary {
@@ -282,6 +297,9 @@ struct TrackingSummary {
     trajectories: u64,
     points: usize,
     recovered_particles: usize,
+    /// What backward tracking added (absent with --no-backward).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    backward: Option<BackwardAdded>,
     output: String,
     ptv_is: bool,
     exports: Vec<String>,
@@ -525,6 +543,11 @@ fn track(
             super::track::Source::particles(pattern("particles.%d.csv")?),
         )
     };
+    let tracker = if args.no_backward {
+        tracker
+    } else {
+        tracker.extending_backward()
+    };
     let csv_path = output.join("trajectories.csv");
     let mut csv = Vec::new();
     let counts = super::track::track_source(
@@ -557,6 +580,11 @@ fn track(
         trajectories: counts.trajectories,
         points: counts.points,
         recovered_particles: counts.recovered,
+        backward: counts.backward.map(|b| BackwardAdded {
+            points: b.points,
+            lengthened: b.lengthened,
+            joined: b.joined,
+        }),
         output: csv_path.display().to_string(),
         ptv_is: args.ptv_is,
         exports: exports.iter().map(|p| p.display().to_string()).collect(),

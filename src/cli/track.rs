@@ -38,8 +38,8 @@ use crate::formats::csv::ParticleRow;
 use crate::formats::frames::{FramePattern, FrameRange, WithoutNumber};
 use crate::photogrammetry::correspond::Matcher;
 use crate::photogrammetry::track::{
-    FrameTargets, ImageSpaceRecovery, ParticlePosition, RecoveredParticles, TrackPoint, Tracker,
-    TrackingParameters,
+    BackwardSummary, FrameTargets, ImageSpaceRecovery, ParticlePosition, RecoveredParticles,
+    TrackPoint, Tracker, TrackingParameters,
 };
 
 /// Arguments of `ptv track`.
@@ -89,6 +89,13 @@ pub struct TrackArgs {
     /// more cameras, intersected and accepted within --tolerance).
     #[arg(long)]
     pub no_recovery: bool,
+    /// Do not extend the trajectories backwards in time after the forward
+    /// pass. Backward tracking (docs/tracking.md) takes back the starts
+    /// the forward pass found late, but holds the whole sequence until
+    /// its end (about 200 bytes a particle) and writes every row then;
+    /// without it the rows stream in memory bounded by the fit window.
+    #[arg(long)]
+    pub no_backward: bool,
     /// Also export the particles and trajectories (repeatable): `vtk` for
     /// ParaView (`particles.<frame>.vtp`, `particles.pvd`,
     /// `trajectories.vtp`), `hdf5` (`sequence.h5`); into --export-dir.
@@ -264,6 +271,9 @@ pub(super) fn run(
             ))
         }
     };
+    if !args.no_backward {
+        tracker = tracker.extending_backward();
+    }
     let counts = track_source(
         &parameters,
         tracker,
@@ -301,6 +311,8 @@ pub(super) struct TrackCounts {
     pub points: usize,
     /// What the exports need, where asked.
     pub export: Option<super::export::Collector>,
+    /// What backward tracking added, where it ran.
+    pub backward: Option<BackwardSummary>,
 }
 
 impl TrackCounts {
@@ -316,7 +328,13 @@ impl TrackCounts {
             self.trajectories,
             parameters.min_length,
             self.points
-        )
+        ) + &match self.backward {
+            Some(b) => format!(
+                "; backward tracking added {} points before trajectories' starts ({} trajectories lengthened, {} joined to the one ending before them)",
+                b.points, b.lengthened, b.joined
+            ),
+            None => "; backward tracking off".into(),
+        }
     }
 }
 
@@ -390,8 +408,10 @@ pub(super) fn track_source(
             indicatif::ProgressDrawTarget::hidden()
         },
     );
-    // A frame's particles are needed until its points are handed out.
+    // A frame's particles are needed until its points are handed out:
+    // with backward tracking, all of them at the end.
     let keep = parameters.report_delay() as u64;
+    let hold_all = tracker.is_extending_backward();
     if let Some(dir) = ptv_is {
         std::fs::create_dir_all(dir).map_err(|e| {
             flag(
@@ -444,7 +464,7 @@ pub(super) fn track_source(
         particles += rows.len();
         let sigmas = positions.iter().map(|p| p.sigma).collect();
         window.push_back(Held::new(frame, rows, sigmas));
-        while window.front().is_some_and(|h| h.frame + keep < frame) {
+        while !hold_all && window.front().is_some_and(|h| h.frame + keep < frame) {
             let held = window.pop_front().expect("a frame");
             held.write_ptv_is(ptv_is)?;
             writer.release(held);
@@ -456,9 +476,9 @@ pub(super) fn track_source(
         recovered += hold_recovered(tracker.take_recovered(), &mut window)?;
         writer.write(&points, &mut window, stdout)?;
     }
-    let (points, last) = tracker.finish_with_recovered();
-    recovered += hold_recovered(last, &mut window)?;
-    writer.write(&points, &mut window, stdout)?;
+    let finished = tracker.finish_all();
+    recovered += hold_recovered(finished.recovered, &mut window)?;
+    writer.write(&finished.points, &mut window, stdout)?;
     for held in window {
         held.write_ptv_is(ptv_is)?;
         writer.release(held);
@@ -477,6 +497,7 @@ pub(super) fn track_source(
         trajectories: writer.trajectories,
         points: writer.points,
         export: writer.export,
+        backward: finished.backward,
     })
 }
 

@@ -104,6 +104,7 @@
 //! (equal costs, which continuous positions make rare, are ranked by
 //! trajectory and then particle index).
 
+pub mod backward;
 pub mod kinematics;
 pub mod recovery;
 
@@ -111,6 +112,7 @@ use std::collections::{HashMap, VecDeque};
 
 use nalgebra::{Point3, Vector3};
 
+pub use backward::BackwardSummary;
 pub use kinematics::Derivatives;
 use kinematics::{
     breaks_before, derivatives_at, end_is_intruder, is_outlier, is_smooth, Sample, MAX_SAMPLES,
@@ -678,6 +680,21 @@ pub struct Tracker {
     last_frame: Option<i64>,
     /// The most cameras any particle so far was seen by: the rig's count.
     rig_cameras: usize,
+    /// With backward tracking ([`Tracker::extending_backward`]): every
+    /// frame linked and every point, until the end.
+    backward: Option<(Vec<backward::Stored>, Vec<TrackPoint>)>,
+}
+
+/// The end of a sequence ([`Tracker::finish_all`]).
+#[derive(Debug)]
+pub struct Finished {
+    /// The last points (all of them, with backward tracking).
+    pub points: Vec<TrackPoint>,
+    /// The particles recovered in the frames linked last
+    /// ([`Tracker::take_recovered`]).
+    pub recovered: Vec<RecoveredParticles>,
+    /// What backward tracking added, where it ran.
+    pub backward: Option<BackwardSummary>,
 }
 
 impl Tracker {
@@ -693,7 +710,23 @@ impl Tracker {
             next_id: 0,
             last_frame: None,
             rig_cameras: 0,
+            backward: None,
         })
+    }
+
+    /// The same tracker, extending every trajectory backwards in time
+    /// once the sequence ends ([`backward`]): its points are all handed
+    /// out by [`Tracker::finish_all`] (every push returns none), and it
+    /// holds the whole sequence until then.
+    pub fn extending_backward(mut self) -> Self {
+        self.backward = Some((Vec::new(), Vec::new()));
+        self
+    }
+
+    /// Whether it extends the trajectories backwards at the end
+    /// ([`Tracker::extending_backward`]).
+    pub fn is_extending_backward(&self) -> bool {
+        self.backward.is_some()
     }
 
     /// A tracker that also looks in the images for the particles the
@@ -792,6 +825,9 @@ impl Tracker {
         let targets = targets.filter(|_| self.recovery.is_some());
         self.take(number, particles, targets, &mut out);
         self.last_frame = Some(number);
+        if let Some((_, held)) = &mut self.backward {
+            held.append(&mut out);
+        }
         Ok(out)
     }
 
@@ -802,7 +838,16 @@ impl Tracker {
 
     /// [`Tracker::finish`], with the particles recovered in the frames
     /// linked last ([`Tracker::take_recovered`]).
-    pub fn finish_with_recovered(mut self) -> (Vec<TrackPoint>, Vec<RecoveredParticles>) {
+    pub fn finish_with_recovered(self) -> (Vec<TrackPoint>, Vec<RecoveredParticles>) {
+        let finished = self.finish_all();
+        (finished.points, finished.recovered)
+    }
+
+    /// Ends the sequence: links what is left and, with backward tracking,
+    /// extends the trajectories backwards; returns the points not yet
+    /// handed out, the particles recovered in the frames linked last, and
+    /// what backward tracking added.
+    pub fn finish_all(mut self) -> Finished {
         let mut out = Vec::new();
         while let Some(mut next) = self.ahead.pop_front() {
             let ahead = self.ahead.pop_front();
@@ -813,7 +858,18 @@ impl Tracker {
         for live in std::mem::take(&mut self.live) {
             self.end(live, &mut out);
         }
-        (out, self.recovered)
+        let mut summary = None;
+        if let Some((frames, mut held)) = self.backward.take() {
+            held.append(&mut out);
+            let (points, added) = backward::extend(&frames, held, &self.parameters, self.cell());
+            out = points;
+            summary = Some(added);
+        }
+        Finished {
+            points: out,
+            recovered: self.recovered,
+            backward: summary,
+        }
     }
 
     /// Points held (not yet handed out, or kept for their neighbours'
@@ -878,6 +934,13 @@ impl Tracker {
 
     /// Keeps what `frame` recovered for [`Tracker::take_recovered`].
     fn keep_recovered(&mut self, frame: Frame) {
+        if let Some((frames, _)) = &mut self.backward {
+            frames.push(backward::Stored {
+                number: frame.number,
+                particles: frame.particles,
+                missing: frame.missing,
+            });
+        }
         if !frame.recovered.is_empty() {
             self.recovered.push(RecoveredParticles {
                 frame: frame.number,
@@ -956,10 +1019,6 @@ impl Tracker {
         let next = &*next;
         let p = &self.parameters;
         let mut links = Vec::new();
-        let mut near = Vec::new();
-        let mut candidates: Vec<(f64, usize)> = Vec::new();
-        let mut near_ahead = Vec::new();
-        let mut partner: Vec<(f64, usize)> = Vec::new();
         // What each trajectory's search needs, in one pass over them in
         // memory order. The searches then run in the order of their
         // predictions' cells in `next`'s grid, so that one search reads
@@ -985,124 +1044,20 @@ impl Tracker {
             })
             .collect();
         let visits = next.grid.cell_order(searches.iter().map(|s| s.predicted));
+        let mut scratch = Scratch::default();
+        let ahead = ahead.map(|a| (&a.grid, (a.number - next.number) as f64));
         for l in visits {
             let l = l as usize;
-            let Search {
-                predicted,
-                radius,
-                from,
-                dt,
-                velocity,
-                floor,
-                source,
-            } = searches[l];
-            // The candidates: within the radius and the velocity limit, at
-            // most MAX_CANDIDATES of them (the nearest the prediction).
-            let moves =
-                |e: usize| ((next.grid.points[e] - from) / dt).norm() <= p.max_velocity + floor;
-            if next.grid.is_small(radius) {
-                near.clear();
-                next.grid.within(&predicted, radius, &mut near);
-                candidates.clear();
-                candidates.extend(near.iter().filter(|&&e| moves(e)).map(|&e| (0.0, e)));
-                if candidates.len() > MAX_CANDIDATES {
-                    for candidate in candidates.iter_mut() {
-                        candidate.0 = (next.grid.points[candidate.1] - predicted).norm_squared();
-                    }
-                    candidates.select_nth_unstable_by(MAX_CANDIDATES - 1, |a, b| {
-                        a.0.total_cmp(&b.0).then(a.1.cmp(&b.1))
-                    });
-                    candidates.truncate(MAX_CANDIDATES);
-                }
-            } else {
-                next.grid
-                    .nearest(&predicted, radius, MAX_CANDIDATES, moves, &mut candidates);
-            }
-            // Entries of the grids: each candidate's data is read there, in
-            // cell order next to its neighbours', not from the frame's
-            // arrays in input order (at 10,000+ particles a cache miss
-            // for each).
-            for &(_, e) in &candidates {
-                let c = next.grid.order[e] as usize;
-                let position = next.grid.points[e];
-                let sigma = next.grid.sigma[e];
-                let step = (position - from) / dt;
-                // The acceleration this link implies (none known for a
-                // trajectory of one point).
-                let a1 = velocity.map(|v| (step - v) / dt);
-                let mut best: Option<f64> = None;
-                if let Some(ahead) = ahead {
-                    let dt2 = (ahead.number - next.number) as f64;
-                    let predicted2 = position + step * dt2;
-                    let floor2 = noise_floor(&sigma);
-                    let radius2 = p.max_acceleration * dt2 * dt2 + floor2;
-                    let cost = |d: usize| {
-                        let step2 = (ahead.grid.points[d] - position) / dt2;
-                        if step2.norm() > p.max_velocity + floor2 {
-                            return None;
-                        }
-                        let a2 = (step2 - step) / dt2;
-                        Some(match a1 {
-                            Some(a1) => (a2 - a1).norm(),
-                            None => a2.norm(),
-                        })
-                    };
-                    if ahead.grid.is_small(radius2) {
-                        near_ahead.clear();
-                        ahead.grid.within(&predicted2, radius2, &mut near_ahead);
-                        for &d in &near_ahead {
-                            if let Some(cost) = cost(d) {
-                                best = Some(best.map_or(cost, |b: f64| b.min(cost)));
-                            }
-                        }
-                    } else {
-                        // A partner's cost is its distance from where the
-                        // link's acceleration carries on to, `predicted2 +
-                        // a1 dt2²` (from `predicted2` for a trajectory of
-                        // one point), over dt2²: the best is the nearest
-                        // one there within the radius.
-                        let carried = predicted2 + a1.unwrap_or_else(Vector3::zeros) * dt2 * dt2;
-                        ahead.grid.nearest(
-                            &carried,
-                            (carried - predicted2).norm() + radius2,
-                            1,
-                            |d| {
-                                (ahead.grid.points[d] - predicted2).norm_squared()
-                                    <= radius2 * radius2
-                                    && cost(d).is_some()
-                            },
-                            &mut partner,
-                        );
-                        best = partner.first().and_then(|&(_, d)| cost(d));
-                    }
-                }
-                // A candidate missed by some cameras may be a ghost, and so
-                // may a trajectory of one such point (one with more points
-                // has its history as evidence): the link ranks after one
-                // between points seen by all whose cost is within the
-                // noise's.
-                let penalty =
-                    (next.grid.missing[e] + source) as f64 * WEAK_PENALTY * cost_noise(&sigma);
-                let link = match best {
-                    Some(cost) => Link {
-                        rank: Link::rank(false, cost + penalty),
-                        live: l,
-                        particle: c,
-                    },
-                    // A new trajectory's first link needs a look-ahead
-                    // partner, unless there is no frame to look ahead to.
-                    None if a1.is_none() && ahead.is_some() => continue,
-                    None => Link {
-                        rank: Link::rank(
-                            true,
-                            a1.map_or((position - from).norm(), |a| a.norm()) + penalty,
-                        ),
-                        live: l,
-                        particle: c,
-                    },
-                };
-                links.push(link);
-            }
+            candidate_links(
+                p,
+                &next.grid,
+                ahead,
+                &searches[l],
+                l,
+                |_| true,
+                &mut scratch,
+                &mut links,
+            );
         }
         // Global resolution: best first over the whole frame.
         // (Unstable is enough: no two links share a trajectory and a
@@ -1319,6 +1274,153 @@ impl Tracker {
             live.nodes.pop_front();
         }
         None
+    }
+}
+
+/// Reused buffers of [`candidate_links`].
+#[derive(Default)]
+struct Scratch {
+    near: Vec<usize>,
+    candidates: Vec<(f64, usize)>,
+    near_ahead: Vec<usize>,
+    partner: Vec<(f64, usize)>,
+}
+
+/// The candidate links of one trajectory's `search` (trajectory `live`)
+/// in the frame of grid `next`, judged with the frame after it (`ahead`:
+/// its grid and the frames from `next` to it), appended to `links`: the
+/// linking's steps 1 and 2 (module docs), the same whichever way in time
+/// the trajectory is extended (forward, or backward from its first points:
+/// [`backward`]). `accept` says which entries of `next` may be taken at
+/// all (the backward pass takes only particles no trajectory holds).
+#[allow(clippy::too_many_arguments)]
+fn candidate_links(
+    p: &TrackingParameters,
+    next: &Grid,
+    ahead: Option<(&Grid, f64)>,
+    search: &Search,
+    live: usize,
+    accept: impl Fn(usize) -> bool,
+    scratch: &mut Scratch,
+    links: &mut Vec<Link>,
+) {
+    let Scratch {
+        near,
+        candidates,
+        near_ahead,
+        partner,
+    } = scratch;
+    let Search {
+        predicted,
+        radius,
+        from,
+        dt,
+        velocity,
+        floor,
+        source,
+    } = *search;
+    // The candidates: within the radius and the velocity limit, at
+    // most MAX_CANDIDATES of them (the nearest the prediction).
+    let moves =
+        |e: usize| ((next.points[e] - from) / dt).norm() <= p.max_velocity + floor && accept(e);
+    if next.is_small(radius) {
+        near.clear();
+        next.within(&predicted, radius, near);
+        candidates.clear();
+        candidates.extend(near.iter().filter(|&&e| moves(e)).map(|&e| (0.0, e)));
+        if candidates.len() > MAX_CANDIDATES {
+            for candidate in candidates.iter_mut() {
+                candidate.0 = (next.points[candidate.1] - predicted).norm_squared();
+            }
+            candidates.select_nth_unstable_by(MAX_CANDIDATES - 1, |a, b| {
+                a.0.total_cmp(&b.0).then(a.1.cmp(&b.1))
+            });
+            candidates.truncate(MAX_CANDIDATES);
+        }
+    } else {
+        next.nearest(&predicted, radius, MAX_CANDIDATES, moves, candidates);
+    }
+    // Entries of the grids: each candidate's data is read there, in
+    // cell order next to its neighbours', not from the frame's
+    // arrays in input order (at 10,000+ particles a cache miss
+    // for each).
+    for &(_, e) in candidates.iter() {
+        let c = next.order[e] as usize;
+        let position = next.points[e];
+        let sigma = next.sigma[e];
+        let step = (position - from) / dt;
+        // The acceleration this link implies (none known for a
+        // trajectory of one point).
+        let a1 = velocity.map(|v| (step - v) / dt);
+        let mut best: Option<f64> = None;
+        if let Some((ahead, dt2)) = ahead {
+            let predicted2 = position + step * dt2;
+            let floor2 = noise_floor(&sigma);
+            let radius2 = p.max_acceleration * dt2 * dt2 + floor2;
+            let cost = |d: usize| {
+                let step2 = (ahead.points[d] - position) / dt2;
+                if step2.norm() > p.max_velocity + floor2 {
+                    return None;
+                }
+                let a2 = (step2 - step) / dt2;
+                Some(match a1 {
+                    Some(a1) => (a2 - a1).norm(),
+                    None => a2.norm(),
+                })
+            };
+            if ahead.is_small(radius2) {
+                near_ahead.clear();
+                ahead.within(&predicted2, radius2, near_ahead);
+                for &d in near_ahead.iter() {
+                    if let Some(cost) = cost(d) {
+                        best = Some(best.map_or(cost, |b: f64| b.min(cost)));
+                    }
+                }
+            } else {
+                // A partner's cost is its distance from where the
+                // link's acceleration carries on to, `predicted2 +
+                // a1 dt2²` (from `predicted2` for a trajectory of
+                // one point), over dt2²: the best is the nearest
+                // one there within the radius.
+                let carried = predicted2 + a1.unwrap_or_else(Vector3::zeros) * dt2 * dt2;
+                ahead.nearest(
+                    &carried,
+                    (carried - predicted2).norm() + radius2,
+                    1,
+                    |d| {
+                        (ahead.points[d] - predicted2).norm_squared() <= radius2 * radius2
+                            && cost(d).is_some()
+                    },
+                    partner,
+                );
+                best = partner.first().and_then(|&(_, d)| cost(d));
+            }
+        }
+        // A candidate missed by some cameras may be a ghost, and so
+        // may a trajectory of one such point (one with more points
+        // has its history as evidence): the link ranks after one
+        // between points seen by all whose cost is within the
+        // noise's.
+        let penalty = (next.missing[e] + source) as f64 * WEAK_PENALTY * cost_noise(&sigma);
+        let link = match best {
+            Some(cost) => Link {
+                rank: Link::rank(false, cost + penalty),
+                live,
+                particle: c,
+            },
+            // A new trajectory's first link needs a look-ahead
+            // partner, unless there is no frame to look ahead to.
+            None if a1.is_none() && ahead.is_some() => continue,
+            None => Link {
+                rank: Link::rank(
+                    true,
+                    a1.map_or((position - from).norm(), |a| a.norm()) + penalty,
+                ),
+                live,
+                particle: c,
+            },
+        };
+        links.push(link);
     }
 }
 
@@ -1634,6 +1736,23 @@ pub fn track(
     }
     gathered.extend(tracker.finish());
     Ok(gathered.finish())
+}
+
+/// [`track`] with backward tracking ([`backward`]): the trajectories,
+/// and what the pass back added.
+pub fn track_both_ways(
+    frames: impl IntoIterator<Item = (i64, Vec<ParticlePosition>)>,
+    parameters: TrackingParameters,
+) -> Result<(Vec<Trajectory>, BackwardSummary), TrackError> {
+    let mut tracker = Tracker::new(parameters)?.extending_backward();
+    for (number, particles) in frames {
+        tracker.push(number, particles)?;
+    }
+    let finished = tracker.finish_all();
+    Ok((
+        trajectories(finished.points),
+        finished.backward.unwrap_or_default(),
+    ))
 }
 
 /// Trajectory points, in any order, gathered into trajectories by number,

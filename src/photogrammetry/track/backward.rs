@@ -1,0 +1,374 @@
+//! Backward tracking: after the forward pass, every trajectory is
+//! extended backwards in time from its first points, with the forward
+//! linking's criteria run the other way (as OpenPTV's `trackback_c` does
+//! after its forward pass; Willneff 2003, section 5.3.4, reports that it
+//! lengthens the trajectories the forward pass started late).
+//!
+//! **Why starts are found late.** Forward, a trajectory of one point has
+//! no velocity: its first link is searched within `max_velocity` of it and
+//! needs a look-ahead partner, and a new trajectory's first window of
+//! `2 w + 1` points must be one smooth path or it loses its leading
+//! points. A particle entering the volume (or found again after a loss
+//! longer than `max_gap`) whose second image is lost, or whose first link
+//! is ambiguous among its neighbours, starts its trajectory some frames
+//! after its first point. Backward, the same particle's trajectory has a
+//! velocity: its search is the acceleration limit's, around a prediction.
+//!
+//! **The pass** runs from the sequence's last frame to its first. In
+//! frame `t`, every trajectory of two or more points whose first point is
+//! in `t + 1 ..= t + 1 + max_gap` predicts `x̂ = x_1 + v Δ` (`v` its
+//! velocity from its first two points, reversed in time; `Δ` the frames
+//! from `t` to its first point), searched within `max_acceleration Δ²`
+//! plus the noise floor; the candidates are the particles of `t` no
+//! trajectory holds, and the last points of trajectories that end at `t`
+//! (a link to one *joins* the two: a trajectory broken by a loss longer
+//! than the gap, or cut where a link was missed). Each candidate is judged
+//! with the frame before `t` as the forward pass judges with the frame
+//! after (the change of acceleration over four positions, Malik et al.
+//! 1993; the ghost penalty for cameras missed), and all the frame's links
+//! are resolved globally, best first ([`super::candidate_links`], the
+//! same code). A link is taken only where the forward pass's own tests
+//! pass: the trajectory's first window with its new point (and, for a
+//! join, the window across the junction) is one smooth path at the
+//! gross-error level ([`super::kinematics::is_smooth`]), the new point is
+//! no gross error at the start ([`super::kinematics::end_is_intruder`]),
+//! and a join's path does not break at the junction
+//! ([`super::kinematics::breaks_before`], the test that cuts a trajectory
+//! forward: a join does not undo a cut). The points whose fit windows
+//! reach a new point get their derivatives fitted again.
+//!
+//! **Memory.** The pass needs the whole sequence: every frame's particles
+//! (56 bytes each) and every trajectory point (about 130 bytes), held
+//! until the end. A tracker without it streams in memory bounded by its
+//! window ([`super::Tracker::held_points`]).
+
+use std::collections::VecDeque;
+
+use nalgebra::Vector3;
+
+use super::kinematics::{
+    breaks_before, derivatives_at, end_is_intruder, is_smooth, Sample, MAX_SAMPLES,
+};
+use super::{
+    candidate_links, noise_floor, Derivatives, Gathered, Grid, Link, ParticlePosition, Scratch,
+    Search, TrackPoint, TrackingParameters,
+};
+
+/// What backward tracking added.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct BackwardSummary {
+    /// Points added before the trajectories' first points.
+    pub points: usize,
+    /// Trajectories that gained points at their start.
+    pub lengthened: usize,
+    /// Trajectories joined to the one that ended just before them (each
+    /// join makes two trajectories one).
+    pub joined: usize,
+}
+
+/// A frame as the pass reads it: its particles with the sigmas the
+/// forward pass used (floored), and the cameras that missed each.
+pub(super) struct Stored {
+    pub number: i64,
+    pub particles: Vec<ParticlePosition>,
+    pub missing: Vec<usize>,
+}
+
+/// A trajectory during the pass.
+struct Path {
+    id: u64,
+    points: VecDeque<TrackPoint>,
+    /// Their sigmas, in the same order.
+    sigma: VecDeque<Vector3<f64>>,
+    /// Per point, whether its neighbourhood changed (a point added, or
+    /// the last point before a junction): the fits whose windows reach it
+    /// are done again.
+    fresh: VecDeque<bool>,
+    /// Joined into another trajectory: its points are there.
+    gone: bool,
+    /// Gained points at its start.
+    lengthened: bool,
+}
+
+impl Path {
+    fn sample(&self, k: usize) -> Sample {
+        Sample {
+            frame: self.points[k].frame,
+            position: self.points[k].position.coords,
+            sigma: self.sigma[k],
+        }
+    }
+}
+
+/// Marks a particle held by no trajectory.
+const FREE: u32 = u32::MAX;
+
+/// Extends the trajectories of `points` (all the forward pass handed
+/// out) backwards over `frames` (every frame it linked, in order);
+/// returns every point, trajectories renumbered from 0 in their order,
+/// each in frame order, and what was added.
+pub(super) fn extend(
+    frames: &[Stored],
+    points: Vec<TrackPoint>,
+    parameters: &TrackingParameters,
+    cell: f64,
+) -> (Vec<TrackPoint>, BackwardSummary) {
+    let mut gathered = Gathered::default();
+    gathered.extend(points);
+    let index_of = |number: i64| frames.binary_search_by_key(&number, |f| f.number).ok();
+    // Per frame and particle, the trajectory (slot) holding it.
+    let mut holder: Vec<Vec<u32>> = frames
+        .iter()
+        .map(|f| vec![FREE; f.particles.len()])
+        .collect();
+    let mut paths: Vec<Path> = Vec::new();
+    for t in gathered.finish() {
+        let slot = paths.len() as u32;
+        let mut sigma = VecDeque::with_capacity(t.points.len());
+        for p in &t.points {
+            let f = index_of(p.frame).expect("a point of a frame linked");
+            holder[f][p.particle] = slot;
+            sigma.push_back(frames[f].particles[p.particle].sigma);
+        }
+        paths.push(Path {
+            id: t.id,
+            points: t.points.into(),
+            fresh: vec![false; sigma.len()].into(),
+            sigma,
+            gone: false,
+            lengthened: false,
+        });
+    }
+    let p = parameters;
+    let w = p.fit_half_window;
+    let mut summary = BackwardSummary::default();
+    let mut scratch = Scratch::default();
+    let mut links: Vec<Link> = Vec::new();
+    let mut grids: Vec<Option<Grid>> = frames.iter().map(|_| None).collect();
+    for k in (0..frames.len().saturating_sub(1)).rev() {
+        let frame = &frames[k];
+        let n = frame.number;
+        // The trajectories that may gain a point here.
+        let starting: Vec<usize> = paths
+            .iter()
+            .enumerate()
+            .filter(|(_, path)| {
+                !path.gone
+                    && path.points.len() >= 2
+                    && path.points[0].frame > n
+                    && path.points[0].frame <= n + 1 + p.max_gap as i64
+            })
+            .map(|(s, _)| s)
+            .collect();
+        // Grids of this frame and the one before it (the look-ahead, in
+        // reverse); those of later frames are no longer needed.
+        for g in [k, k.wrapping_sub(1)] {
+            if g < frames.len() && grids[g].is_none() {
+                grids[g] = Some(Grid::new(&frames[g].particles, &frames[g].missing, cell));
+            }
+        }
+        if let Some(done) = grids.get_mut(k + 1) {
+            *done = None;
+        }
+        if starting.is_empty() {
+            continue;
+        }
+        let grid = grids[k].as_ref().expect("built above");
+        let before = k.checked_sub(1).map(|b| {
+            (
+                grids[b].as_ref().expect("built above"),
+                (n - frames[b].number) as f64,
+            )
+        });
+        links.clear();
+        for (l, &s) in starting.iter().enumerate() {
+            let path = &paths[s];
+            let (first, second) = (&path.points[0], &path.points[1]);
+            let dt = (first.frame - n) as f64;
+            // Its velocity backwards in time (mm per frame).
+            let velocity = (first.position - second.position) / (second.frame - first.frame) as f64;
+            let floor = noise_floor(&path.sigma[0]);
+            let search = Search {
+                predicted: first.position + velocity * dt,
+                radius: p.max_acceleration * dt * dt + floor,
+                from: first.position,
+                dt,
+                velocity: Some(velocity),
+                floor,
+                source: 0,
+            };
+            // Free particles, and the last points of other trajectories
+            // ending here.
+            let holder = &holder[k];
+            let accept = |e: usize| {
+                let h = holder[grid.order[e] as usize];
+                h == FREE
+                    || (h as usize != s
+                        && paths[h as usize].points.back().map(|b| b.frame) == Some(n))
+            };
+            candidate_links(
+                p,
+                grid,
+                before,
+                &search,
+                l,
+                accept,
+                &mut scratch,
+                &mut links,
+            );
+        }
+        links.sort_unstable();
+        let mut taken_path = vec![false; starting.len()];
+        let mut taken = vec![false; frame.particles.len()];
+        for link in &links {
+            if taken_path[link.live] || taken[link.particle] {
+                continue;
+            }
+            let s = starting[link.live];
+            let particle = &frame.particles[link.particle];
+            let point = Sample {
+                frame: n,
+                position: particle.position.coords,
+                sigma: particle.sigma,
+            };
+            let h = holder[k][link.particle];
+            // The first window with the new point: one smooth path.
+            let path = &paths[s];
+            let mut window = [point; MAX_SAMPLES];
+            let len = (2 * w + 1).min(path.points.len() + 1).min(MAX_SAMPLES);
+            for (i, slot) in window.iter_mut().enumerate().take(len).skip(1) {
+                *slot = path.sample(i - 1);
+            }
+            // And the new point no gross error at the start (the test
+            // the forward pass gives a trajectory's first point).
+            if !is_smooth(&window[..len], 3)
+                || end_is_intruder(&window[..len], true, w, p.fit_order)
+            {
+                continue;
+            }
+            if h != FREE {
+                // A join: the window across the junction, `w` points on
+                // each side of the other's last point, as well.
+                let other = &paths[h as usize];
+                let before_count = w.min(other.points.len() - 1);
+                let after_count = w.min(path.points.len());
+                let mut junction = [point; MAX_SAMPLES];
+                let mut m = 0;
+                for i in other.points.len() - 1 - before_count..other.points.len() {
+                    junction[m] = other.sample(i);
+                    m += 1;
+                }
+                for i in 0..after_count {
+                    junction[m] = path.sample(i);
+                    m += 1;
+                }
+                if !is_smooth(&junction[..m], 3) {
+                    continue;
+                }
+                // Nor does the path break there (the test that cuts a
+                // trajectory forward: a join must not undo a cut), with up
+                // to 4 points on each side.
+                let mut across = [point; 8];
+                let before_count = 3.min(other.points.len() - 1);
+                let after_count = 4.min(path.points.len());
+                let mut m = 0;
+                for i in other.points.len() - 1 - before_count..other.points.len() {
+                    across[m] = other.sample(i);
+                    m += 1;
+                }
+                let k = m;
+                for i in 0..after_count {
+                    across[m] = path.sample(i);
+                    m += 1;
+                }
+                if breaks_before(&across[..m], k) {
+                    continue;
+                }
+            }
+            taken_path[link.live] = true;
+            taken[link.particle] = true;
+            if h == FREE {
+                let path = &mut paths[s];
+                if !path.lengthened {
+                    path.lengthened = true;
+                    summary.lengthened += 1;
+                }
+                path.points.push_front(TrackPoint {
+                    trajectory: path.id,
+                    frame: n,
+                    particle: link.particle,
+                    position: particle.position,
+                    derivatives: unfitted(),
+                });
+                path.sigma.push_front(particle.sigma);
+                path.fresh.push_front(true);
+                holder[k][link.particle] = s as u32;
+                summary.points += 1;
+            } else {
+                // The other trajectory takes this one's points after its
+                // own; this one is gone.
+                let h = h as usize;
+                let moved = std::mem::take(&mut paths[s].points);
+                let moved_sigma = std::mem::take(&mut paths[s].sigma);
+                let moved_fresh = std::mem::take(&mut paths[s].fresh);
+                paths[s].gone = true;
+                if std::mem::take(&mut paths[s].lengthened) {
+                    summary.lengthened -= 1;
+                }
+                for q in &moved {
+                    let f = index_of(q.frame).expect("a point of a frame linked");
+                    holder[f][q.particle] = h as u32;
+                }
+                let other = &mut paths[h];
+                if let Some(last) = other.fresh.back_mut() {
+                    *last = true;
+                }
+                other.points.extend(moved);
+                other.sigma.extend(moved_sigma);
+                other.fresh.extend(moved_fresh);
+                summary.joined += 1;
+            }
+        }
+    }
+    // The derivatives of the points whose windows reach a new point or a
+    // junction, fitted again as the forward pass fits them.
+    let mut out = Vec::new();
+    let mut id = 0u64;
+    let order = p.fit_order;
+    for path in paths.into_iter().filter(|path| !path.gone) {
+        let len = path.points.len();
+        if !path.fresh.contains(&true) {
+            for mut point in path.points {
+                point.trajectory = id;
+                out.push(point);
+            }
+            id += 1;
+            continue;
+        }
+        let samples: Vec<Sample> = (0..len).map(|k| path.sample(k)).collect();
+        for (k, mut point) in path.points.into_iter().enumerate() {
+            // Its fit reads points within 2 w of it.
+            let reach = k.saturating_sub(2 * w)..(k + 2 * w + 1).min(len);
+            if path.fresh.range(reach).any(|&f| f) {
+                let first = k.saturating_sub(2 * w);
+                let last = (k + 2 * w + 1).min(len);
+                let fit = derivatives_at(&samples[first..last], k - first, w, order);
+                point.derivatives = fit.derivatives.unwrap_or_else(unfitted);
+            }
+            point.trajectory = id;
+            out.push(point);
+        }
+        id += 1;
+    }
+    (out, summary)
+}
+
+/// Derivatives of a point not fitted (yet, or at all: too few points).
+fn unfitted() -> Derivatives {
+    Derivatives {
+        velocity: Vector3::repeat(f64::NAN),
+        velocity_sigma: Vector3::repeat(f64::NAN),
+        acceleration: None,
+        acceleration_sigma: None,
+    }
+}
