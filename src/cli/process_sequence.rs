@@ -89,11 +89,11 @@ pub struct ProcessSequenceArgs {
     /// the output directory (docs/exports.md).
     #[arg(long, value_enum, requires = "track")]
     pub export: Vec<super::export::ExportFormat>,
-    /// With --track, do not extend the trajectories backwards in time
-    /// after the forward pass (docs/tracking.md; backward tracking holds
-    /// the sequence's particles until its end).
+    /// With --track, extend the trajectories backwards in time after the
+    /// forward pass (docs/tracking.md; backward tracking holds the
+    /// sequence's particles until its end).
     #[arg(long, requires = "track")]
-    pub no_backward: bool,
+    pub backward: bool,
 }
 
 /// `a + b`, saturating, pixel by pixel; `None` if the sizes or depths
@@ -297,7 +297,7 @@ struct TrackingSummary {
     trajectories: u64,
     points: usize,
     recovered_particles: usize,
-    /// What backward tracking added (absent with --no-backward).
+    /// What backward tracking added (absent without --backward).
     #[serde(skip_serializing_if = "Option::is_none")]
     backward: Option<BackwardAdded>,
     output: String,
@@ -543,10 +543,10 @@ fn track(
             super::track::Source::particles(pattern("particles.%d.csv")?),
         )
     };
-    let tracker = if args.no_backward {
-        tracker
-    } else {
+    let tracker = if args.backward {
         tracker.extending_backward()
+    } else {
+        tracker
     };
     let csv_path = output.join("trajectories.csv");
     let mut csv = Vec::new();

@@ -89,13 +89,14 @@ pub struct TrackArgs {
     /// more cameras, intersected and accepted within --tolerance).
     #[arg(long)]
     pub no_recovery: bool,
-    /// Do not extend the trajectories backwards in time after the forward
-    /// pass. Backward tracking (docs/tracking.md) takes back the starts
-    /// the forward pass found late, but holds the whole sequence until
-    /// its end (about 200 bytes a particle) and writes every row then;
-    /// without it the rows stream in memory bounded by the fit window.
+    /// Extend the trajectories backwards in time after the forward pass
+    /// (docs/tracking.md): takes back the starts the forward pass found
+    /// late, but holds the whole sequence until its end (about 200 bytes
+    /// a particle) and writes every row then, and the new first points'
+    /// velocities are less accurate than the rest; without it the rows
+    /// stream in memory bounded by the fit window.
     #[arg(long)]
-    pub no_backward: bool,
+    pub backward: bool,
     /// Also export the particles and trajectories (repeatable): `vtk` for
     /// ParaView (`particles.<frame>.vtp`, `particles.pvd`,
     /// `trajectories.vtp`), `hdf5` (`sequence.h5`); into --export-dir.
@@ -271,7 +272,7 @@ pub(super) fn run(
             ))
         }
     };
-    if !args.no_backward {
+    if args.backward {
         tracker = tracker.extending_backward();
     }
     let counts = track_source(

@@ -399,9 +399,9 @@ fn bad_input_gets_one_clear_line() {
 
 /// Particles entering mid-sequence whose second point is lost: forward,
 /// a trajectory of one point bridges no gap, so each starts at its third
-/// point and its first is dropped; backward tracking (on by default)
-/// takes the first back, and the summary says what it added.
-/// `--no-backward` gives the forward pass's rows.
+/// point and its first is dropped; backward tracking
+/// (`--backward`) takes the first back, and the summary says what it
+/// added. Without the flag, the forward pass's rows.
 #[test]
 fn backward_tracking_takes_back_late_starts() {
     let dir = tempfile::tempdir().unwrap();
@@ -445,10 +445,10 @@ fn backward_tracking_takes_back_late_starts() {
         assert!(out.status.success(), "{}", text(&out.stderr));
         (rows(text(&out.stdout)), text(&out.stderr).to_string())
     };
-    let (forward, stderr) = run(&["--no-backward"]);
+    let (forward, stderr) = run(&[]);
     assert!(stderr.contains("backward tracking off"), "{stderr}");
     assert_eq!(forward.len(), total - entering, "the entering points lost");
-    let (both, stderr) = run(&[]);
+    let (both, stderr) = run(&["--backward"]);
     assert!(
         stderr.contains(&format!(
             "backward tracking added {entering} points before trajectories' starts ({entering} trajectories lengthened, 0 joined"
