@@ -1077,3 +1077,150 @@ async fn a_failed_frame_is_a_gap_the_trajectories_bridge() {
     );
     app.stop().await;
 }
+
+/// A `.vtp` read with a strict XML reader (end names checked): its
+/// `VTKFile` type and its `Piece`'s counts (points, verts, lines).
+fn vtp_counts(text: &str) -> (String, [usize; 3]) {
+    use quick_xml::events::Event;
+    let mut reader = quick_xml::Reader::from_str(text);
+    reader.config_mut().check_end_names = true;
+    let attr = |e: &quick_xml::events::BytesStart, name: &str| -> String {
+        e.try_get_attribute(name)
+            .unwrap()
+            .map(|a| a.unescape_value().unwrap().into_owned())
+            .unwrap_or_default()
+    };
+    let (mut kind, mut counts) = (String::new(), [usize::MAX; 3]);
+    loop {
+        match reader.read_event().expect("well-formed XML") {
+            Event::Start(e) if e.name().as_ref() == b"VTKFile" => kind = attr(&e, "type"),
+            Event::Start(e) if e.name().as_ref() == b"Piece" => {
+                let n = |k: &str| attr(&e, k).parse::<usize>().unwrap();
+                counts = [n("NumberOfPoints"), n("NumberOfVerts"), n("NumberOfLines")];
+            }
+            Event::Eof => return (kind, counts),
+            _ => {}
+        }
+    }
+}
+
+/// `?format=vtk` and `?format=hdf5` give the files `ptv export` writes,
+/// with the points the JSON gives; an unknown format is a 400 naming the
+/// accepted ones.
+#[tokio::test]
+async fn a_tracked_sequence_exports_to_paraview_and_hdf5() {
+    let app = crate::helpers::spawn_app().await;
+    let api = Api::at(&app.address);
+    let rig = rig();
+    let frames = moving_frames(&rig, 8, 34);
+    let sequence = api
+        .tracked_sequence(&rig, json!({"max_velocity": MAX_VELOCITY}))
+        .await;
+    let order: Vec<(i64, &TargetFrame)> = frames
+        .iter()
+        .enumerate()
+        .map(|(f, t)| (f as i64, t))
+        .collect();
+    api.upload_concurrently(sequence, &order, 2).await;
+    api.finish(sequence).await;
+    let (status, json) = api
+        .get(&format!("/sequences/{sequence}/trajectories"))
+        .await;
+    assert_eq!(status, 200, "{json}");
+    let trajectories = json["trajectories"].as_array().unwrap();
+    let points: usize = trajectories
+        .iter()
+        .map(|t| t["points"].as_array().unwrap().len())
+        .sum();
+    assert!(points > 0 && !trajectories.is_empty());
+    let get = |path: String| {
+        let request = api.client.get(api.url(&path));
+        async move { request.send().await.unwrap() }
+    };
+
+    // ParaView: the polylines, one per trajectory, with the JSON's points.
+    let response = get(format!("/sequences/{sequence}/trajectories?format=vtk")).await;
+    assert_eq!(response.status().as_u16(), 200);
+    assert_eq!(response.headers()["content-type"], "application/xml");
+    assert_eq!(
+        response.headers()["content-disposition"],
+        "attachment; filename=\"trajectories.vtp\""
+    );
+    let (kind, counts) = vtp_counts(&response.text().await.unwrap());
+    assert_eq!(kind, "PolyData");
+    assert_eq!(counts, [points, 0, trajectories.len()]);
+
+    // One frame's particles as vertices, the JSON's count.
+    let (status, frame) = api
+        .get(&format!("/sequences/{sequence}/frames/3/particles"))
+        .await;
+    assert_eq!(status, 200, "{frame}");
+    let particles = frame["particles"].as_array().unwrap().len();
+    assert!(particles > 0);
+    let response = get(format!(
+        "/sequences/{sequence}/frames/3/particles?format=vtk"
+    ))
+    .await;
+    assert_eq!(response.status().as_u16(), 200);
+    assert_eq!(
+        response.headers()["content-disposition"],
+        "attachment; filename=\"particles.3.vtp\""
+    );
+    let (kind, counts) = vtp_counts(&response.text().await.unwrap());
+    assert_eq!(kind, "PolyData");
+    assert_eq!(counts, [particles, particles, 0]);
+
+    // HDF5: the signature, then read back with the writer's own reader.
+    let response = get(format!("/sequences/{sequence}/trajectories?format=hdf5")).await;
+    assert_eq!(response.status().as_u16(), 200);
+    assert_eq!(response.headers()["content-type"], "application/x-hdf5");
+    assert_eq!(
+        response.headers()["content-disposition"],
+        format!("attachment; filename=\"sequence_{sequence}.h5\"").as_str()
+    );
+    let bytes = response.bytes().await.unwrap().to_vec();
+    assert!(bytes.starts_with(b"\x89HDF\r\n\x1a\n"));
+    let file = hdf5_pure::File::from_bytes(bytes).unwrap();
+    let column = |name: &str| file.dataset(&format!("trajectories/{name}")).unwrap();
+    let ids = column("trajectory").read_i64().unwrap();
+    let x = column("x").read_f64().unwrap();
+    assert_eq!(ids.len(), points);
+    let json_x: Vec<f64> = trajectories
+        .iter()
+        .flat_map(|t| t["points"].as_array().unwrap().iter())
+        .map(|p| p["position"][0].as_f64().unwrap())
+        .collect();
+    // serde_json's default float parsing (no `float_roundtrip`) may be
+    // off by an ulp or two; the file's values are the stored f64s.
+    assert_eq!(x.len(), json_x.len());
+    for (a, b) in x.iter().zip(&json_x) {
+        assert!(
+            (a - b).abs() <= 4.0 * f64::EPSILON * a.abs().max(1.0),
+            "{a} {b}"
+        );
+    }
+    let listed = file
+        .dataset("particles/frames")
+        .unwrap()
+        .read_i64()
+        .unwrap();
+    assert_eq!(listed, (0..8).collect::<Vec<i64>>());
+    let z = file
+        .dataset("particles/frame_3/z")
+        .unwrap()
+        .read_f64()
+        .unwrap();
+    assert_eq!(z.len(), particles);
+
+    // An unknown format names the accepted ones.
+    for path in [
+        format!("/sequences/{sequence}/trajectories?format=vtu"),
+        format!("/sequences/{sequence}/frames/3/particles?format=h5"),
+    ] {
+        let (status, body) = api.get(&path).await;
+        assert_eq!(status, 400, "{path}: {body}");
+        let detail = body["detail"].as_str().unwrap();
+        assert!(detail.contains("vtk"), "{path}: {detail}");
+    }
+    app.stop().await;
+}

@@ -34,6 +34,7 @@ pub mod decimal;
 pub mod docs;
 pub mod events;
 pub mod experiments;
+pub mod exports;
 pub mod extract;
 pub mod health;
 pub mod jobs;

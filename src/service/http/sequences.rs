@@ -905,6 +905,9 @@ pub enum ParticleFormat {
     Csv,
     /// OpenPTV's `rt_is`.
     RtIs,
+    /// ParaView's VTK XML `.vtp` of the frame (vertices with their sigmas,
+    /// cameras and trajectory), as `ptv export --export vtk` writes it.
+    Vtk,
 }
 
 /// Query of the particle routes.
@@ -912,7 +915,8 @@ pub enum ParticleFormat {
 #[into_params(parameter_in = Query)]
 #[serde(deny_unknown_fields)]
 pub struct ParticleQuery {
-    /// json (default), csv or rt_is.
+    /// json (default), csv, rt_is or vtk (`particles.<frame>.vtp`,
+    /// application/xml).
     #[serde(default)]
     pub format: ParticleFormat,
 }
@@ -1005,7 +1009,7 @@ pub(super) async fn no_results(state: &AppState, id: SequenceId, frame: FrameNum
         ParticleQuery,
     ),
     responses(
-        (status = 200, body = FrameParticles, description = "JSON; text/csv or text/plain (rt_is) by `format`, the calibration that made them in the `Ptv-Calibration-Id` header",
+        (status = 200, body = FrameParticles, description = "JSON; text/csv, text/plain (rt_is) or application/xml (vtk: ParaView's `.vtp`, an attachment) by `format`, the calibration that made them in the `Ptv-Calibration-Id` header",
             headers(("Ptv-Calibration-Id" = i64, description = "The calibration that made the particles"))),
         (status = 404, body = super::problem::Problem, content_type = "application/problem+json"),
         (status = 409, description = "Not processed yet", body = super::problem::Problem, content_type = "application/problem+json"),
@@ -1056,6 +1060,19 @@ pub async fn frame_particles(
             formats::openptv::format_rt_is(&particles, cameras),
         )
             .into_response(),
+        ParticleFormat::Vtk => {
+            let (_, trajectories) = frame_trajectories(&state, id, frame, particles.len()).await?;
+            let records = super::exports::particle_records(&particles, &trajectories);
+            (
+                provenance,
+                super::exports::attachment(
+                    super::exports::VTK_CONTENT_TYPE,
+                    &format!("particles.{frame}.vtp"),
+                    formats::vtk::particles_vtp(&records).into_bytes(),
+                ),
+            )
+                .into_response()
+        }
     })
 }
 

@@ -249,6 +249,14 @@ pub enum TrajectoryFormat {
     /// CSV `trajectory,frame,x,y,z,u,v,w,ax,ay,az,su,sv,sw,cameras,t0,...`
     /// as `ptv track` writes it, by trajectory and frame.
     Csv,
+    /// ParaView's VTK XML `trajectories.vtp` (polylines with velocity,
+    /// acceleration and their sigmas) as `ptv export --export vtk` writes
+    /// it; built whole, at most `EXPORT_MAX_POINTS` (200,000) points.
+    Vtk,
+    /// The sequence's one-file HDF5 (particles by frame and trajectories,
+    /// units in attributes) as `ptv export --export hdf5` writes it; built
+    /// whole, at most 200,000 points (trajectory points plus particles).
+    Hdf5,
 }
 
 /// Query of the trajectories route.
@@ -256,7 +264,9 @@ pub enum TrajectoryFormat {
 #[into_params(parameter_in = Query)]
 #[serde(deny_unknown_fields)]
 pub struct TrajectoriesQuery {
-    /// json (default) or csv.
+    /// json (default), csv, vtk (`trajectories.vtp`, application/xml) or
+    /// hdf5 (the sequence's HDF5 file, application/x-hdf5); vtk and hdf5
+    /// are refused with 413 above 200,000 points (cut them with `frames`).
     #[serde(default)]
     pub format: TrajectoryFormat,
     /// Only trajectories of at least this many points [default: all the
@@ -326,7 +336,7 @@ pub struct TrajectoryView {
 }
 
 /// The page of trajectories the list streams at a time.
-const TRAJECTORIES_PER_PAGE: u32 = 500;
+pub(super) const TRAJECTORIES_PER_PAGE: u32 = 500;
 
 fn point_view(p: &PointRow) -> TrajectoryPointView {
     TrajectoryPointView {
@@ -394,6 +404,8 @@ async fn page(
             mine.push(p);
         }
         match format {
+            // Built whole by `exports`, not paged.
+            TrajectoryFormat::Vtk | TrajectoryFormat::Hdf5 => {}
             TrajectoryFormat::Csv => {
                 for p in mine {
                     csv_row(p, &mut out);
@@ -425,11 +437,12 @@ async fn page(
     get, path = "/api/v1/sequences/{id}/trajectories", tag = "tracking",
     params(("id" = i64, Path, description = "Sequence id"), TrajectoriesQuery),
     responses(
-        (status = 200, description = "JSON `{\"run_id\", \"trajectories\": [TrajectoryView, ...]}`, or text/csv `trajectory,frame,x,y,z,u,v,w,ax,ay,az,su,sv,sw,cameras,t0,...` (mm, mm per frame, mm per frame²) as `ptv track` writes it, by `format`",
+        (status = 200, description = "JSON `{\"run_id\", \"trajectories\": [TrajectoryView, ...]}`, or text/csv `trajectory,frame,x,y,z,u,v,w,ax,ay,az,su,sv,sw,cameras,t0,...` (mm, mm per frame, mm per frame²) as `ptv track` writes it, by `format`; `format=vtk`: application/xml ParaView `trajectories.vtp`; `format=hdf5`: application/x-hdf5, the sequence's HDF5 file (particles by frame and trajectories), both as attachments",
             headers(("Ptv-Tracking-Run" = i64, description = "The tracking run"))),
         (status = 400, description = "A bad query", body = super::problem::Problem, content_type = "application/problem+json"),
         (status = 404, body = super::problem::Problem, content_type = "application/problem+json"),
         (status = 409, description = "The sequence is not tracked", body = super::problem::Problem, content_type = "application/problem+json"),
+        (status = 413, description = "`format=vtk` or `hdf5` above 200,000 points; cut it with `frames`", body = super::problem::Problem, content_type = "application/problem+json"),
     )
 )]
 pub async fn trajectories(
@@ -481,7 +494,29 @@ pub async fn trajectories(
     };
     let min_length = i64::from(query.min_length.unwrap_or(1));
     let format = query.format;
+    let run_header = (
+        header::HeaderName::from_static(RUN_HEADER),
+        run.id.to_string(),
+    );
     let (content_type, head, tail) = match format {
+        TrajectoryFormat::Vtk | TrajectoryFormat::Hdf5 => {
+            let collected =
+                super::exports::collect(&state, id, run.id, cameras, min_length, frames).await?;
+            let file = if let TrajectoryFormat::Vtk = format {
+                super::exports::attachment(
+                    super::exports::VTK_CONTENT_TYPE,
+                    "trajectories.vtp",
+                    formats::vtk::trajectories_vtp(&collected.trajectories).into_bytes(),
+                )
+            } else {
+                super::exports::attachment(
+                    super::exports::HDF5_CONTENT_TYPE,
+                    &format!("sequence_{id}.h5"),
+                    super::exports::hdf5(&collected)?,
+                )
+            };
+            return Ok(([run_header], file).into_response());
+        }
         TrajectoryFormat::Csv => (
             "text/csv",
             formats::csv::trajectory_header(cameras),
