@@ -774,11 +774,19 @@ async fn the_sequence_view_follows_tracking_live() {
             ),
             VIEW,
         );
+        // The plot of that progress or a later one: the key is `run state
+        // frame`, and the run may go on (and the view draw the next plot
+        // in its place) before this one has loaded (CI saw the view go
+        // from 8 to 9 while waiting for the plot of 8).
         let key = browser.eval("document.getElementById('tracking-line').dataset.key");
+        let key = key.as_str().unwrap_or_default().to_owned();
+        let mut parts = key.split(' ');
+        let (run, drawn) = (parts.next().unwrap_or_default(), parts.nth(1).unwrap_or_default());
         browser.wait_for(
             &format!(
-                "[...document.querySelectorAll('#trajectories figure')].some(f => \
-                 f.dataset.key === {key} && f.dataset.loaded === 'yes' && !f.hidden)"
+                "[...document.querySelectorAll('#trajectories figure')].some(f => {{ \
+                 const k = f.dataset.key.split(' '); return k[0] === {run:?} && \
+                 Number(k[2]) >= Number({drawn:?}) && f.dataset.loaded === 'yes' && !f.hidden; }})"
             ),
             VIEW,
         );
