@@ -1282,15 +1282,9 @@ mod tests {
         String::from_utf8_lossy(&answer).into_owned()
     }
 
-    /// Issue 29, slow readers: a client that asks for a large answer and
-    /// reads none of it holds its connection for the write timeout (here
-    /// 1 s) and no longer; the connection is then closed.
-    #[tokio::test]
-    async fn a_client_that_never_reads_its_answer_is_closed_after_the_write_timeout() {
-        let timeout = Duration::from_secs(1);
-        let (address, registry, _stop) = serve_for_test(large_and_small(), 100, timeout).await;
-        let _client = ask_and_never_read(address, "/large").await;
-        // The write stalls once the socket buffers are full...
+    /// Waits until a connection's write has stalled (its socket buffers
+    /// full), with a patience of 30 s for a loaded machine.
+    async fn until_a_write_stalls(registry: &Registry) {
         let started = Instant::now();
         while registry
             .longest_stalled_writer(u64::MAX, Duration::ZERO)
@@ -1302,6 +1296,18 @@ mod tests {
             );
             tokio::time::sleep(Duration::from_millis(20)).await;
         }
+    }
+
+    /// Issue 29, slow readers: a client that asks for a large answer and
+    /// reads none of it holds its connection for the write timeout (here
+    /// 1 s) and no longer; the connection is then closed.
+    #[tokio::test]
+    async fn a_client_that_never_reads_its_answer_is_closed_after_the_write_timeout() {
+        let timeout = Duration::from_secs(1);
+        let (address, registry, _stop) = serve_for_test(large_and_small(), 100, timeout).await;
+        let _client = ask_and_never_read(address, "/large").await;
+        // The write stalls once the socket buffers are full...
+        until_a_write_stalls(&registry).await;
         assert_eq!(registry.len(), 1);
         // ...then fails after the timeout, closing the connection
         // (patience 30 s for a loaded machine).
@@ -1324,17 +1330,7 @@ mod tests {
         let (address, registry, _stop) = serve_for_test(large_and_small(), 1, timeout).await;
         let _client = ask_and_never_read(address, "/large").await;
         // Until its write has stalled.
-        let started = Instant::now();
-        while registry
-            .longest_stalled_writer(u64::MAX, Duration::ZERO)
-            .is_none()
-        {
-            assert!(
-                started.elapsed() < Duration::from_secs(30),
-                "no write stalled"
-            );
-            tokio::time::sleep(Duration::from_millis(20)).await;
-        }
+        until_a_write_stalls(&registry).await;
         let answer = tokio::time::timeout(Duration::from_secs(60), small_answer(address))
             .await
             .expect("the new client got in");
