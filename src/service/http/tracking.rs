@@ -502,17 +502,30 @@ pub async fn trajectories(
         TrajectoryFormat::Vtk | TrajectoryFormat::Hdf5 => {
             let collected =
                 super::exports::collect(&state, id, run.id, cameras, min_length, frames).await?;
-            let file = if let TrajectoryFormat::Vtk = format {
+            // Encoding up to the point limit is CPU work: on the pool,
+            // as the plots are, not on the async runtime.
+            let vtk = matches!(format, TrajectoryFormat::Vtk);
+            let bytes = state
+                .cpu
+                .run(move || {
+                    if vtk {
+                        Ok(formats::vtk::trajectories_vtp(&collected.trajectories).into_bytes())
+                    } else {
+                        super::exports::hdf5(&collected)
+                    }
+                })
+                .await??;
+            let file = if vtk {
                 super::exports::attachment(
                     super::exports::VTK_CONTENT_TYPE,
                     "trajectories.vtp",
-                    formats::vtk::trajectories_vtp(&collected.trajectories).into_bytes(),
+                    bytes,
                 )
             } else {
                 super::exports::attachment(
                     super::exports::HDF5_CONTENT_TYPE,
                     &format!("sequence_{id}.h5"),
-                    super::exports::hdf5(&collected)?,
+                    bytes,
                 )
             };
             return Ok(([run_header], file).into_response());
