@@ -406,8 +406,7 @@ fn sniff(bytes: &[u8]) -> Option<ImageFormat> {
 /// predictor (what cameras and OpenPTV's recordings write; test_cavity's
 /// frames are 171 LZW strips of 6 rows), decoded straight into the image's
 /// samples: each strip's bytes are sliced from the file and inflated by
-/// `weezl` (the LZW decoder the `tiff` crate itself uses, with the same
-/// configuration) into its rows of the final buffer, in parallel where
+/// [`super::lzw`] into its rows of the final buffer, in parallel where
 /// rayon has idle threads. The `tiff` crate reads the tags. The general
 /// path (`image`'s decoder) reads each strip through a buffered reader
 /// into its own row buffer; this one makes no copy beside the output.
@@ -464,33 +463,14 @@ fn decode_tiff_strips(bytes: &[u8]) -> Option<GreyImage> {
     let inflate = |out: &mut [u8]| -> bool {
         out.par_chunks_mut(strip_bytes)
             .zip(&inputs)
-            .try_for_each_init(
-                || {
-                    weezl::decode::Configuration::with_tiff_size_switch(weezl::BitOrder::Msb, 8)
-                        .build()
-                },
-                |lzw, (rows, input)| {
-                    if compression == 1 {
-                        let data = input.get(..rows.len()).ok_or(())?;
-                        rows.copy_from_slice(data);
-                        return Ok(());
-                    }
-                    lzw.reset();
-                    let (mut input, mut done) = (*input, 0);
-                    while done < rows.len() {
-                        let result = lzw.decode_bytes(input, &mut rows[done..]);
-                        done += result.consumed_out;
-                        input = &input[result.consumed_in..];
-                        let progress = result.consumed_in + result.consumed_out > 0;
-                        match result.status {
-                            _ if done == rows.len() => {}
-                            Ok(weezl::LzwStatus::Ok) if progress => {}
-                            _ => return Err(()),
-                        }
-                    }
-                    Ok(())
-                },
-            )
+            .try_for_each(|(rows, input)| {
+                if compression == 1 {
+                    let data = input.get(..rows.len()).ok_or(())?;
+                    rows.copy_from_slice(data);
+                    return Ok(());
+                }
+                super::lzw::decode_strip(input, rows).map_err(|_| ())
+            })
             .is_ok()
     };
     let (w, h) = (width as u32, height as u32);

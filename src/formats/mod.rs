@@ -26,6 +26,7 @@ pub mod experiment;
 pub mod frames;
 pub mod hdf5;
 pub mod image;
+mod lzw;
 pub mod openptv;
 pub mod targets;
 #[cfg(test)]
