@@ -404,103 +404,160 @@ fn sniff(bytes: &[u8]) -> Option<ImageFormat> {
 
 /// A classic greyscale TIFF of strips, uncompressed or LZW without a
 /// predictor (what cameras and OpenPTV's recordings write; test_cavity's
-/// frames are 171 LZW strips of 6 rows), decoded straight into the image's
-/// samples: each strip's bytes are sliced from the file and inflated by
-/// [`super::lzw`] into its rows of the final buffer, in parallel where
-/// rayon has idle threads. The `tiff` crate reads the tags. The general
-/// path (`image`'s decoder) reads each strip through a buffered reader
-/// into its own row buffer; this one makes no copy beside the output.
-/// `None` for anything else and for any strip that does not decode to
-/// exactly its rows, which the general path then decodes or reports: the
-/// samples are the same (the unit test
-/// `tiff_strips_decode_as_the_general_decoder_does`).
-fn decode_tiff_strips(bytes: &[u8]) -> Option<GreyImage> {
-    use rayon::prelude::*;
-    use tiff::decoder::{ChunkType, Decoder};
-    use tiff::tags::{ByteOrder, Tag};
+/// frames are 171 LZW strips of 6 rows): its size, sample layout and each
+/// strip's bytes, sliced from the file. The `tiff` crate reads the tags.
+struct PlainStrips<'a> {
+    width: usize,
+    height: usize,
+    /// 1 or 2.
+    sample_bytes: usize,
+    lzw: bool,
+    big_endian: bool,
+    /// The rows of every strip but perhaps the last, in bytes.
+    strip_bytes: usize,
+    inputs: Vec<&'a [u8]>,
+}
 
-    let mut decoder = Decoder::new(Cursor::new(bytes)).ok()?;
-    let (width, height) = decoder.dimensions().ok()?;
-    check_image_size(width, height, "").ok()?;
-    let unsigned = |decoder: &mut Decoder<_>, tag, default: u64| {
-        decoder
-            .find_tag_unsigned::<u64>(tag)
-            .ok()
-            .map(|v| v.unwrap_or(default))
-    };
-    let bits = unsigned(&mut decoder, Tag::BitsPerSample, 1)?;
-    let compression = unsigned(&mut decoder, Tag::Compression, 1)?;
-    let plain = unsigned(&mut decoder, Tag::SamplesPerPixel, 1)? == 1
-        && unsigned(&mut decoder, Tag::PhotometricInterpretation, 2)? == 1
-        && unsigned(&mut decoder, Tag::Predictor, 1)? == 1
-        && unsigned(&mut decoder, Tag::FillOrder, 1)? == 1
-        && unsigned(&mut decoder, Tag::SampleFormat, 1)? == 1
-        && matches!(decoder.get_chunk_type(), ChunkType::Strip)
-        && matches!(bits, 8 | 16)
-        && matches!(compression, 1 | 5);
-    if !plain {
-        return None;
-    }
-    let rows_per_strip = unsigned(&mut decoder, Tag::RowsPerStrip, u64::from(height))?
-        .clamp(1, u64::from(height)) as usize;
-    let offsets = decoder.get_tag_u64_vec(Tag::StripOffsets).ok()?;
-    let counts = decoder.get_tag_u64_vec(Tag::StripByteCounts).ok()?;
-    let (width, height) = (width as usize, height as usize);
-    let strips = height.div_ceil(rows_per_strip);
-    if offsets.len() != strips || counts.len() != strips {
-        return None;
-    }
-    let mut inputs = Vec::with_capacity(strips);
-    for (&offset, &count) in offsets.iter().zip(&counts) {
-        let start = usize::try_from(offset).ok()?;
-        let end = start.checked_add(usize::try_from(count).ok()?)?;
-        inputs.push(bytes.get(start..end)?);
-    }
-    let sample_bytes = (bits / 8) as usize;
-    let strip_bytes = rows_per_strip * width * sample_bytes;
-    // Each strip into its rows of `out`; false if one is not exactly its
-    // rows' bytes.
-    let inflate = |out: &mut [u8]| -> bool {
-        out.par_chunks_mut(strip_bytes)
-            .zip(&inputs)
-            .try_for_each(|(rows, input)| {
-                if compression == 1 {
-                    let data = input.get(..rows.len()).ok_or(())?;
-                    rows.copy_from_slice(data);
-                    return Ok(());
-                }
-                super::lzw::decode_strip(input, rows).map_err(|_| ())
-            })
-            .is_ok()
-    };
-    let (w, h) = (width as u32, height as u32);
-    if sample_bytes == 1 {
-        let mut samples = vec![0u8; width * height];
-        inflate(&mut samples).then_some(())?;
-        GreyImage::from_u8(w, h, samples).ok()
-    } else {
-        let mut samples = vec![0u16; width * height];
-        inflate(bytemuck::cast_slice_mut(&mut samples)).then_some(())?;
-        let big = decoder.byte_order() == ByteOrder::BigEndian;
-        for sample in &mut samples {
-            *sample = if big {
-                u16::from_be(*sample)
-            } else {
-                u16::from_le(*sample)
-            };
+impl<'a> PlainStrips<'a> {
+    /// `None` for any other TIFF, which the general decoder decodes or
+    /// reports.
+    fn of(bytes: &'a [u8]) -> Option<Self> {
+        use tiff::decoder::{ChunkType, Decoder};
+        use tiff::tags::{ByteOrder, Tag};
+
+        let mut decoder = Decoder::new(Cursor::new(bytes)).ok()?;
+        let (width, height) = decoder.dimensions().ok()?;
+        check_image_size(width, height, "").ok()?;
+        let unsigned = |decoder: &mut Decoder<_>, tag, default: u64| {
+            decoder
+                .find_tag_unsigned::<u64>(tag)
+                .ok()
+                .map(|v| v.unwrap_or(default))
+        };
+        let bits = unsigned(&mut decoder, Tag::BitsPerSample, 1)?;
+        let compression = unsigned(&mut decoder, Tag::Compression, 1)?;
+        let plain = unsigned(&mut decoder, Tag::SamplesPerPixel, 1)? == 1
+            && unsigned(&mut decoder, Tag::PhotometricInterpretation, 2)? == 1
+            && unsigned(&mut decoder, Tag::Predictor, 1)? == 1
+            && unsigned(&mut decoder, Tag::FillOrder, 1)? == 1
+            && unsigned(&mut decoder, Tag::SampleFormat, 1)? == 1
+            && matches!(decoder.get_chunk_type(), ChunkType::Strip)
+            && matches!(bits, 8 | 16)
+            && matches!(compression, 1 | 5);
+        if !plain {
+            return None;
         }
-        GreyImage::from_u16(w, h, samples).ok()
+        let rows_per_strip = unsigned(&mut decoder, Tag::RowsPerStrip, u64::from(height))?
+            .clamp(1, u64::from(height)) as usize;
+        let offsets = decoder.get_tag_u64_vec(Tag::StripOffsets).ok()?;
+        let counts = decoder.get_tag_u64_vec(Tag::StripByteCounts).ok()?;
+        let (width, height) = (width as usize, height as usize);
+        let strips = height.div_ceil(rows_per_strip);
+        if offsets.len() != strips || counts.len() != strips {
+            return None;
+        }
+        let mut inputs = Vec::with_capacity(strips);
+        for (&offset, &count) in offsets.iter().zip(&counts) {
+            let start = usize::try_from(offset).ok()?;
+            let end = start.checked_add(usize::try_from(count).ok()?)?;
+            inputs.push(bytes.get(start..end)?);
+        }
+        let sample_bytes = (bits / 8) as usize;
+        Some(PlainStrips {
+            width,
+            height,
+            sample_bytes,
+            lzw: compression == 5,
+            big_endian: decoder.byte_order() == ByteOrder::BigEndian,
+            strip_bytes: rows_per_strip * width * sample_bytes,
+            inputs,
+        })
+    }
+
+    /// Each strip decoded straight into its rows of the image's samples
+    /// (by [`super::lzw`], or copied), in parallel where rayon has idle
+    /// threads: no copy beside the output, where the general decoder
+    /// reads each strip into its own row buffer first. `None` if a strip
+    /// does not decode to exactly its rows; the general path then decodes
+    /// or reports it, to the same samples (the unit test
+    /// `tiff_strips_decode_as_the_general_decoder_does`).
+    fn decode(&self) -> Option<GreyImage> {
+        use rayon::prelude::*;
+        let inflate = |out: &mut [u8]| -> bool {
+            out.par_chunks_mut(self.strip_bytes)
+                .zip(&self.inputs)
+                .try_for_each(|(rows, input)| {
+                    if self.lzw {
+                        return super::lzw::decode_strip(input, rows).map_err(|_| ());
+                    }
+                    rows.copy_from_slice(input.get(..rows.len()).ok_or(())?);
+                    Ok(())
+                })
+                .is_ok()
+        };
+        let (w, h) = (self.width as u32, self.height as u32);
+        let pixels = self.width * self.height;
+        if self.sample_bytes == 1 {
+            let mut samples = vec![0u8; pixels];
+            inflate(&mut samples).then_some(())?;
+            GreyImage::from_u8(w, h, samples).ok()
+        } else {
+            let mut samples = vec![0u16; pixels];
+            inflate(bytemuck::cast_slice_mut(&mut samples)).then_some(())?;
+            for sample in &mut samples {
+                *sample = if self.big_endian {
+                    u16::from_be(*sample)
+                } else {
+                    u16::from_le(*sample)
+                };
+            }
+            GreyImage::from_u16(w, h, samples).ok()
+        }
+    }
+
+    /// Whether [`PlainStrips::decode`] succeeds, without decoding: the
+    /// strips' lengths, and each LZW strip's codes by
+    /// [`super::lzw::check_strip`].
+    fn decodes(&self) -> bool {
+        let mut left = self.width * self.height * self.sample_bytes;
+        self.inputs.iter().all(|input| {
+            let rows = self.strip_bytes.min(left);
+            left -= rows;
+            if self.lzw {
+                super::lzw::check_strip(input, rows).is_ok()
+            } else {
+                input.len() >= rows
+            }
+        })
     }
 }
 
 /// Decodes a greyscale PNG or TIFF file's bytes.
 pub fn decode_image(bytes: &[u8], source: &str) -> Result<GreyImage, FormatError> {
-    if sniff(bytes).is_some_and(|format| format == ImageFormat::Tiff) && !is_bigtiff(bytes) {
-        if let Some(image) = decode_tiff_strips(bytes) {
-            return Ok(image);
-        }
+    if let Some(image) = plain_strips(bytes).and_then(|strips| strips.decode()) {
+        return Ok(image);
     }
     decode_image_general(bytes, source)
+}
+
+/// Whether [`decode_image`] succeeds on a file's bytes, with the same
+/// error if not; a TIFF of plain strips is checked without being decoded
+/// ([`super::lzw::check_strip`]: no memory for its samples, which is up to
+/// 128 MiB), anything else is decoded and dropped. What the
+/// service checks each upload with before it accepts it.
+pub fn check_image(bytes: &[u8], source: &str) -> Result<(), FormatError> {
+    if plain_strips(bytes).is_some_and(|strips| strips.decodes()) {
+        return Ok(());
+    }
+    decode_image_general(bytes, source).map(drop)
+}
+
+/// The file's strips if it is a classic TIFF of plain strips.
+fn plain_strips(bytes: &[u8]) -> Option<PlainStrips<'_>> {
+    let tiff = sniff(bytes).is_some_and(|format| format == ImageFormat::Tiff);
+    (tiff && !is_bigtiff(bytes))
+        .then(|| PlainStrips::of(bytes))
+        .flatten()
 }
 
 /// [`decode_image`] by the general decoders: the `png` crate's, `image`'s
@@ -775,23 +832,42 @@ mod tests {
                     let bytes = tiff_of(&samples, width, rows, compression, Predictor::None);
                     let general = decode_image_general(&bytes, "t.tif").unwrap();
                     assert_eq!(general.pixels(), &samples);
-                    let strips = decode_tiff_strips(&bytes);
+                    let strips = plain_strips(&bytes).and_then(|strips| strips.decode());
                     assert_eq!(strips.as_ref(), Some(&general), "{rows} rows, {name}");
+                    assert!(plain_strips(&bytes).unwrap().decodes());
+                    assert!(check_image(&bytes, "t.tif").is_ok());
                 }
                 // With a predictor the general decoder decodes it.
                 let bytes = tiff_of(&samples, width, 6, Compression::Lzw, Predictor::Horizontal);
-                assert!(decode_tiff_strips(&bytes).is_none());
+                assert!(plain_strips(&bytes)
+                    .and_then(|strips| strips.decode())
+                    .is_none());
                 assert_eq!(decode_image(&bytes, "t.tif").unwrap().pixels(), &samples);
             }
             // A strip cut short: not decoded here, and the general decoder's
             // error stands.
             let bytes = tiff_of(&samples, width, 6, Compression::Lzw, Predictor::None);
             let cut = &bytes[..bytes.len() / 2];
-            assert!(decode_tiff_strips(cut).is_none());
-            assert_eq!(
-                decode_image(cut, "t.tif").unwrap_err().to_string(),
-                decode_image_general(cut, "t.tif").unwrap_err().to_string()
-            );
+            assert!(plain_strips(cut)
+                .and_then(|strips| strips.decode())
+                .is_none());
+            let general = decode_image_general(cut, "t.tif").unwrap_err().to_string();
+            assert_eq!(decode_image(cut, "t.tif").unwrap_err().to_string(), general);
+            assert_eq!(check_image(cut, "t.tif").unwrap_err().to_string(), general);
+            // A strip's bytes damaged but not cut: the check finds what
+            // decoding finds, every time.
+            let strips = plain_strips(&bytes).unwrap();
+            let offset = strips.inputs[2].as_ptr() as usize - bytes.as_ptr() as usize;
+            for flip in 0..strips.inputs[2].len() * 8 {
+                let mut damaged = bytes.clone();
+                damaged[offset + flip / 8] ^= 1 << (flip % 8);
+                let decoded = plain_strips(&damaged).and_then(|strips| strips.decode());
+                assert_eq!(plain_strips(&damaged).unwrap().decodes(), decoded.is_some());
+                assert_eq!(
+                    check_image(&damaged, "t.tif").is_ok(),
+                    decode_image(&damaged, "t.tif").is_ok()
+                );
+            }
         }
     }
 
@@ -1012,6 +1088,8 @@ mod tests {
                 matches!(error, FormatError::UnsupportedImage { .. }),
                 "{name}: {error}"
             );
+            let checked = check_image(&bytes, name).unwrap_err();
+            assert_eq!(checked.to_string(), error.to_string());
             assert!(error.to_string().starts_with(name), "{error}");
         }
     }

@@ -6,11 +6,12 @@
 //!    [`stream_part`] for files streamed into the image store, never whole
 //!    in memory), draining the body when reading fails ([`or_drain`]);
 //! 2. check the images' headers against their cameras' sensors, then
-//!    decode each image whole, one at a time, so that a truncated or
+//!    check that each image decodes, one at a time, so that a truncated or
 //!    corrupt file is refused now rather than failing its job later
 //!    ([`check_images`], on the blocking pool: it reads the files; a
-//!    1280x1024 8-bit PNG decodes in under 20 ms, and an upload of four
-//!    8192x8192 PNGs of a dark field was answered in 175 ms);
+//!    1280x1024 8-bit PNG decodes in under 20 ms, a TIFF of LZW strips is
+//!    checked without being decoded, and an upload of four 8192x8192 PNGs
+//!    of a dark field was answered in 175 ms);
 //! 3. stage the files (S3: put them), then persist them and commit the
 //!    rows that refer to them under the image store's lock, removing the files again if the commit fails
 //!    ([`persist_and_commit`]), so that a failed request leaves no file
@@ -30,7 +31,7 @@ use futures_util::future::try_join_all;
 use serde::Serialize;
 
 use super::problem::ApiError;
-use crate::formats::image::{decode_image, read_header, ImageHeader, RawLayout};
+use crate::formats::image::{check_image, read_header, ImageHeader, RawLayout};
 use crate::photogrammetry::{Sensor, SensorMismatch};
 use crate::service::ops::images::{ImageStore, UploadedFile};
 use crate::service::ops::links;
@@ -88,9 +89,10 @@ pub async fn or_drain<T>(
 /// Checks uploaded images, one per camera in camera order: first every
 /// header (PNG or TIFF greyscale of its camera's sensor size; raw: the
 /// length `raw` needs, which is all a raw buffer can be checked for), then
-/// every PNG or TIFF decoded whole, one at a time and dropped at once (at
-/// most one decoded image per request in memory), so that a truncated file
-/// or a TIFF whose strips point outside it is refused here. `source(camera)`
+/// every PNG or TIFF checked to decode ([`check_image`]: plain TIFF strips
+/// without decoding them, the rest decoded one at a time and dropped at
+/// once, at most one decoded image per request in memory), so that a
+/// truncated file or a TIFF whose strips point outside it is refused here. `source(camera)`
 /// names an image in messages. Files that are not a greyscale PNG or TIFF
 /// this program can decode (unknown, BigTIFF, colour, truncated, corrupt)
 /// are 415 whichever step finds it, wrong sizes 422. Returns the headers,
@@ -129,7 +131,7 @@ pub async fn check_images(
             for (camera, (path, _)) in checks.iter().enumerate() {
                 let source = source(camera);
                 let bytes = std::fs::read(path).map_err(ApiError::internal)?;
-                decode_image(&bytes, &source)?;
+                check_image(&bytes, &source)?;
             }
         }
         Ok::<_, ApiError>(headers)
