@@ -1368,6 +1368,30 @@ fn map(
     at: &Locator,
     unmapped: Vec<UnmappedSetting>,
 ) -> Result<Experiment, ExperimentError> {
+    let (n, splitter) = camera_count(&s, at)?;
+    let cameras = map_cameras(files, &s, root, at, n)?;
+    let detection = map_detection(&s, at, n)?;
+    let matching = map_matching(&s, at, &cameras, n)?;
+    let sequence = map_sequence(&s, at, splitter)?;
+    let masks = map_masks(files, &s, root, at, n)?;
+    let tracking = s.track.as_ref().map(|t| map_tracking(t, at)).transpose()?;
+
+    Ok(Experiment {
+        root: root.to_owned(),
+        cameras,
+        splitter,
+        detection,
+        matching,
+        tracking,
+        sequence,
+        masks,
+        unmapped,
+    })
+}
+
+/// The number of cameras, and pyptv's splitter if the images are its
+/// quadrants; each per-camera list checked against the number.
+fn camera_count(s: &Sections, at: &Locator) -> Result<(usize, Option<Splitter>), ExperimentError> {
     let n = match (s.num_cams, s.ptv.n_img) {
         (Some(n), _) | (None, Some(n)) => n,
         (None, None) => return Err(at.invalid("num_cams", "the number of cameras is missing")),
@@ -1421,7 +1445,18 @@ fn map(
         return Err(at.invalid("sequence.base_name", "no image name pattern is given"));
     }
 
-    // Cameras.
+    Ok((n, splitter))
+}
+
+/// The cameras: each `.ori` (and `.addpar`) of `cal_ori` on `ptv.par`'s
+/// sensor and media.
+fn map_cameras(
+    files: &dyn ExperimentFiles,
+    s: &Sections,
+    root: &Path,
+    at: &Locator,
+    n: usize,
+) -> Result<Vec<Camera>, ExperimentError> {
     let sensor = Sensor {
         width: s.ptv.imx,
         height: s.ptv.imy,
@@ -1478,15 +1513,22 @@ fn map(
             },
         });
     }
-    let cameras = calibration::from_parameters(
+    Ok(calibration::from_parameters(
         parameters,
         &format!(
             "{} with the .ori files of cal_ori",
             at.file_of("ptv.imx").display()
         ),
-    )?;
+    )?)
+}
 
-    // Detection.
+/// Detection per camera from `targ_rec.par` (and `ptv.par`'s high-pass
+/// flag).
+fn map_detection(
+    s: &Sections,
+    at: &Locator,
+    n: usize,
+) -> Result<Vec<DetectionParameters>, ExperimentError> {
     let t = &s.targ_rec;
     let range = |key: &str, value: i64, max: i64| -> Result<i64, ExperimentError> {
         if (0..=max).contains(&value) {
@@ -1536,8 +1578,17 @@ fn map(
         })?;
         detection.push(parameters);
     }
+    Ok(detection)
+}
 
-    // Matching.
+/// Matching from `criteria.par`: the band, and the volume between its
+/// layers that the cameras see.
+fn map_matching(
+    s: &Sections,
+    at: &Locator,
+    cameras: &[Camera],
+    n: usize,
+) -> Result<MatchingParameters, ExperimentError> {
     let c = &s.criteria;
     for key in ["X_lay", "Zmin_lay", "Zmax_lay"] {
         let len = match key {
@@ -1580,14 +1631,14 @@ fn map(
     }
     let z_min = c.Zmin_lay[0].min(c.Zmin_lay[1]);
     let z_max = c.Zmax_lay[0].max(c.Zmax_lay[1]);
-    let (y_min, y_max) = seen_y_range(&cameras, z_min, z_max).ok_or_else(|| {
+    let (y_min, y_max) = seen_y_range(cameras, z_min, z_max).ok_or_else(|| {
         at.invalid(
             "criteria.Zmin_lay",
             "no camera sees the depth range Zmin_lay..Zmax_lay; check the volume and the \
              calibration",
         )
     })?;
-    let matching = MatchingParameters {
+    Ok(MatchingParameters {
         tolerance: c.eps0 / ((s.ptv.pix_x + s.ptv.pix_y) / 2.0),
         volume: Some(Volume {
             min: Point3::new(c.X_lay[0], y_min, z_min),
@@ -1595,9 +1646,16 @@ fn map(
         }),
         min_cameras: if s.ptv.allcam_flag { n.max(2) } else { 2 },
         ..MatchingParameters::default()
-    };
+    })
+}
 
-    // Sequence.
+/// The frames of `sequence.par`, and its image name patterns (one with a
+/// splitter).
+fn map_sequence(
+    s: &Sections,
+    at: &Locator,
+    splitter: Option<Splitter>,
+) -> Result<SequenceFrames, ExperimentError> {
     if s.sequence.first > s.sequence.last {
         return Err(at.invalid(
             "sequence.first",
@@ -1619,9 +1677,23 @@ fn map(
                 .map_err(|reason| at.invalid("sequence.base_name", reason))
         })
         .collect::<Result<Vec<_>, _>>()?;
+    Ok(SequenceFrames {
+        base_names,
+        first: s.sequence.first,
+        last: s.sequence.last,
+    })
+}
 
-    // Masks: pyptv's `mask_base_name % (camera + 1)`.
-    let masks = match &s.masking {
+/// pyptv's masks, `mask_base_name % (camera + 1)`, each an existing
+/// file.
+fn map_masks(
+    files: &dyn ExperimentFiles,
+    s: &Sections,
+    root: &Path,
+    at: &Locator,
+    n: usize,
+) -> Result<Option<Vec<PathBuf>>, ExperimentError> {
+    Ok(match &s.masking {
         Some(m) if m.mask_flag => {
             let pattern = FramePattern::parse(&m.mask_base_name, WithoutNumber::AppendAfterDot)
                 .map_err(|reason| at.invalid("masking.mask_base_name", reason))?;
@@ -1649,24 +1721,6 @@ fn map(
             Some(list)
         }
         _ => None,
-    };
-
-    let tracking = s.track.as_ref().map(|t| map_tracking(t, at)).transpose()?;
-
-    Ok(Experiment {
-        root: root.to_owned(),
-        cameras,
-        splitter,
-        detection,
-        matching,
-        tracking,
-        sequence: SequenceFrames {
-            base_names,
-            first: s.sequence.first,
-            last: s.sequence.last,
-        },
-        masks,
-        unmapped,
     })
 }
 
