@@ -11,6 +11,7 @@
 //! cargo bench --bench service_tracking -- --no-recovery
 //! cargo bench --bench service_tracking -- --untracked          # the same frames, no tracking
 //! cargo bench --bench service_tracking -- --database postgres://postgres@127.0.0.1:5432/ptv
+//! cargo bench --bench service_tracking -- --log 2>log.txt             # the service's log, as ptv serve's
 //! ```
 //!
 //! The run tracks with the image-space recovery (the service's default),
@@ -20,7 +21,10 @@
 //! a tracked frame should cost at most 1.5 times an untracked one). With
 //! `--database URL` the service keeps its state in that PostgreSQL
 //! database (empty or created by `ptv serve`), else SQLite in the
-//! temporary data directory.
+//! temporary data directory. With `--log` the service logs to standard
+//! error as `ptv serve` does (the level and format of its log), to see
+//! what a run writes there (issue 30: sqlx's slow-statement warnings
+//! quoted every trajectory-point insert whole).
 //!
 //! The service runs in this process on a temporary data directory; the
 //! uploads are open loop (every client sends its frames as fast as the
@@ -47,6 +51,7 @@ struct Options {
     recovery: bool,
     tracked: bool,
     database: Option<String>,
+    log: bool,
 }
 
 fn options() -> Options {
@@ -58,6 +63,7 @@ fn options() -> Options {
         recovery: true,
         tracked: true,
         database: None,
+        log: false,
     };
     let mut args = std::env::args().skip(1);
     while let Some(arg) = args.next() {
@@ -74,6 +80,7 @@ fn options() -> Options {
             "--no-recovery" => options.recovery = false,
             "--untracked" => options.tracked = false,
             "--database" => options.database = args.next(),
+            "--log" => options.log = true,
             _ => {}
         }
     }
@@ -82,6 +89,13 @@ fn options() -> Options {
 
 fn main() {
     let options = options();
+    if options.log {
+        // As `ptv serve` logs (`service::runtime`).
+        tracing_subscriber::fmt()
+            .with_writer(std::io::stderr)
+            .with_target(false)
+            .init();
+    }
     tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()

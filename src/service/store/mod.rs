@@ -218,11 +218,17 @@ const MIGRATIONS: &[(i64, &str, &str)] = &[
         "events",
         include_str!("../../../migrations/0009_events.sql"),
     ),
+    (
+        10,
+        "trajectory_points_by_block",
+        include_str!("../../../migrations/0010_trajectory_points_by_block.sql"),
+    ),
 ];
 
 /// Version, description and SQL of each PostgreSQL migration, in order
 /// (`migrations/postgres/`): 0001 is the schema SQLite's 0001-0008
-/// reach, 0002 SQLite's 0009; each engine numbers its own migrations.
+/// reach, 0002 SQLite's 0009, 0003 SQLite's 0010; each engine numbers its
+/// own migrations.
 const POSTGRES_MIGRATIONS: &[(i64, &str, &str)] = &[
     (
         1,
@@ -233,6 +239,11 @@ const POSTGRES_MIGRATIONS: &[(i64, &str, &str)] = &[
         2,
         "events",
         include_str!("../../../migrations/postgres/0002_events.sql"),
+    ),
+    (
+        3,
+        "trajectory_points_by_block",
+        include_str!("../../../migrations/postgres/0003_trajectory_points_by_block.sql"),
     ),
 ];
 

@@ -287,3 +287,131 @@ async fn tracking_runs_before_migration_7_have_no_calibration_and_new_ones_their
     assert_eq!(new.calibration_id, Some(CalibrationId(1)));
     store.close().await;
 }
+
+/// Trajectory points are found by block of frames, then trajectory
+/// (migration 10): every window of trajectories and frames gives exactly
+/// the points a filter of all of them gives, in trajectory and frame
+/// order, for points stored before the migration and after it alike, for
+/// windows within a block, across blocks, past the points' frames, and
+/// for every frame (the whole range of frame numbers, which must not
+/// count its blocks one by one).
+#[tokio::test]
+async fn trajectory_points_are_read_by_block_as_a_filter_of_all_reads_them() {
+    let dir = tempfile::tempdir().unwrap();
+    database_of_version_2(dir.path()).await;
+    // Trajectory t lives in frames t..t+20 as particle t of each frame.
+    let point = |t: i64, f: i64| tracking::PointRow {
+        trajectory: t,
+        frame: FrameNumber(f),
+        particle: t,
+        position: [t as f64, f as f64, 0.5],
+        velocity: (f > t).then_some([1.0, 2.0, 3.0]),
+        acceleration: None,
+        velocity_sigma: (f > t).then_some([0.1, 0.2, 0.3]),
+        targets: format!("{t},-1"),
+    };
+    let frame_points = |f: i64| -> Vec<tracking::PointRow> {
+        (0..40)
+            .filter(|t| (*t..t + 20).contains(&f))
+            .map(|t| point(t, f))
+            .collect()
+    };
+    // Frames 0..10 stored under the schema before migration 10.
+    let pool = migrated_to(dir.path(), 9).await;
+    sqlx::raw_sql("INSERT INTO tracking_runs (id, sequence_id, parameters) VALUES (1, 1, '{}')")
+        .execute(&pool)
+        .await
+        .unwrap();
+    for f in 0..10 {
+        for p in frame_points(f) {
+            sqlx::query(
+                "INSERT INTO trajectory_points (run_id, trajectory, frame, particle, x, y, z, \
+                 u, v, w, su, sv, sw, targets) VALUES (1, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+            )
+            .bind(p.trajectory)
+            .bind(p.frame.0)
+            .bind(p.particle)
+            .bind(p.position[0])
+            .bind(p.position[1])
+            .bind(p.position[2])
+            .bind(p.velocity.map(|v| v[0]))
+            .bind(p.velocity.map(|v| v[1]))
+            .bind(p.velocity.map(|v| v[2]))
+            .bind(p.velocity_sigma.map(|v| v[0]))
+            .bind(p.velocity_sigma.map(|v| v[1]))
+            .bind(p.velocity_sigma.map(|v| v[2]))
+            .bind(&p.targets)
+            .execute(&pool)
+            .await
+            .unwrap();
+        }
+        sqlx::query(
+            "INSERT INTO trajectories (run_id, id, first_frame, last_frame, length) \
+             SELECT 1, trajectory, min(frame), max(frame), count(*) FROM trajectory_points \
+             WHERE run_id = 1 GROUP BY trajectory \
+             ON CONFLICT (run_id, id) DO UPDATE SET first_frame = excluded.first_frame, \
+             last_frame = excluded.last_frame, length = excluded.length",
+        )
+        .execute(&pool)
+        .await
+        .unwrap();
+    }
+    sqlx::query(
+        "UPDATE tracking_runs SET tracked_through = 9, lease_owner = 'test', lease_token = 1",
+    )
+    .execute(&pool)
+    .await
+    .unwrap();
+    pool.close().await;
+    // Frames 10..60 stored by the store, after the migration.
+    let store = Store::open(dir.path(), 1).await.unwrap();
+    let run = TrackingRunId(1);
+    let token = store
+        .take_tracking_lease(run, "test", Duration::from_secs(60))
+        .await
+        .unwrap()
+        .unwrap();
+    for f in 10..60 {
+        let stored = store
+            .store_tracked_frame(
+                (run, token),
+                Some(FrameNumber(f - 1)),
+                FrameNumber(f),
+                Some(40),
+                &frame_points(f),
+            )
+            .await
+            .unwrap();
+        assert!(stored, "frame {f}");
+    }
+    let all: Vec<tracking::PointRow> = (0..40)
+        .flat_map(|t| (t..t + 20).map(move |f| point(t, f)))
+        .collect();
+    let full = (FrameNumber(i64::MIN), FrameNumber(i64::MAX));
+    for (ids, frames) in [
+        ((0, 39), full),
+        ((0, 39), (FrameNumber(0), FrameNumber(59))),
+        ((5, 7), (FrameNumber(15), FrameNumber(17))),
+        ((10, 10), (FrameNumber(16), FrameNumber(16))),
+        ((3, 30), (FrameNumber(9), FrameNumber(33))),
+        ((20, 39), (FrameNumber(31), FrameNumber(200))),
+        ((0, 4), (FrameNumber(-50), FrameNumber(2))),
+        ((0, 4), (FrameNumber(30), FrameNumber(40))),
+        ((40, 60), full),
+        ((7, 3), full),
+        ((0, 39), (FrameNumber(20), FrameNumber(10))),
+    ] {
+        let expected: Vec<&tracking::PointRow> = all
+            .iter()
+            .filter(|p| (ids.0..=ids.1).contains(&p.trajectory))
+            .filter(|p| (frames.0..=frames.1).contains(&p.frame))
+            .collect();
+        let found = store.trajectory_points(run, ids, frames).await.unwrap();
+        assert_eq!(
+            found.iter().collect::<Vec<_>>(),
+            expected,
+            "trajectories {ids:?}, frames {frames:?}"
+        );
+    }
+    store.close().await;
+}

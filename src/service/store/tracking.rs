@@ -135,6 +135,10 @@ impl FromRow<'_, AnyRow> for PointRow {
     }
 }
 
+/// The frames of a block of the trajectory points' index
+/// (`trajectory_points_block`, migration 0010: `frame / 16`).
+const FRAMES_PER_BLOCK: i64 = 16;
+
 const POINT_COLUMNS: &str =
     "trajectory, frame, particle, x, y, z, u, v, w, ax, ay, az, su, sv, sw, targets";
 
@@ -514,16 +518,49 @@ impl Store {
 
     /// The points of the run's trajectories numbered `ids.0..=ids.1` within
     /// `frames`, by trajectory and frame.
+    ///
+    /// The points are indexed by block of [`FRAMES_PER_BLOCK`] frames, then
+    /// trajectory (migration 0010 says why): the frames asked for are cut
+    /// to those of the trajectories' extents, and each of their blocks is
+    /// one seek of the index for the trajectories' range. The blocks are
+    /// the outer loop (`CROSS JOIN` keeps SQLite's planner to it, `+frame`
+    /// keeps it off the frame-led primary key), so a page of trajectories
+    /// reads its own points and the index entries of no other trajectory.
     pub async fn trajectory_points(
         &self,
         id: TrackingRunId,
         ids: (i64, i64),
         frames: (FrameNumber, FrameNumber),
     ) -> Result<Vec<PointRow>, sqlx::Error> {
+        let extent: (Option<FrameNumber>, Option<FrameNumber>) = sqlx::query_as(
+            "SELECT min(first_frame), max(last_frame) FROM trajectories \
+             WHERE run_id = $1 AND id BETWEEN $2 AND $3",
+        )
+        .bind(id)
+        .bind(ids.0)
+        .bind(ids.1)
+        .fetch_one(&self.reader)
+        .await?;
+        let (Some(first), Some(last)) = extent else {
+            return Ok(Vec::new());
+        };
+        let frames = (frames.0.max(first), frames.1.min(last));
+        if frames.0 > frames.1 {
+            return Ok(Vec::new());
+        }
+        let columns = POINT_COLUMNS
+            .split(", ")
+            .map(|c| format!("p.{c}"))
+            .collect::<Vec<_>>()
+            .join(", ");
         sqlx::query_as(&format!(
-            "SELECT {POINT_COLUMNS} FROM trajectory_points \
-             WHERE run_id = $1 AND trajectory BETWEEN $2 AND $3 AND frame BETWEEN $4 AND $5 \
-             ORDER BY trajectory, frame"
+            "WITH RECURSIVE blocks (block) AS (\
+               SELECT $4 / {FRAMES_PER_BLOCK} \
+               UNION ALL SELECT block + 1 FROM blocks WHERE block < $5 / {FRAMES_PER_BLOCK}) \
+             SELECT {columns} FROM blocks CROSS JOIN trajectory_points p \
+             WHERE p.run_id = $1 AND p.frame / {FRAMES_PER_BLOCK} = blocks.block \
+             AND p.trajectory BETWEEN $2 AND $3 AND +p.frame BETWEEN $4 AND $5 \
+             ORDER BY p.trajectory, p.frame"
         ))
         .bind(id)
         .bind(ids.0)
