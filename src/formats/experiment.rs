@@ -1130,26 +1130,78 @@ fn read_legacy(files: &dyn ExperimentFiles, dir: &Path) -> Result<Experiment, Ex
     let mut section_files = BTreeMap::new();
     let mut unmapped = Vec::new();
     let par = |name: &str| dir.join("parameters").join(name);
-    for (section, file) in [
-        ("ptv", "ptv.par"),
-        ("cal_ori", "cal_ori.par"),
-        ("criteria", "criteria.par"),
-        ("targ_rec", "targ_rec.par"),
-        ("sequence", "sequence.par"),
-        ("track", "track.par"),
-    ] {
+    for (section, file) in LEGACY_FILES {
         section_files.insert(section.to_owned(), par(file));
     }
+    let ptv = read_legacy_ptv(files, &par("ptv.par"), &mut places, &mut unmapped)?;
+    let n = ptv.n_img.unwrap_or_default();
+    let cal_ori = read_legacy_cal_ori(files, dir, n, &mut places, &mut unmapped)?;
+    let criteria = read_legacy_criteria(files, dir, &mut places, &mut unmapped)?;
+    let targ_rec = read_legacy_targ_rec(files, dir, n, &mut places, &mut unmapped)?;
+    let sequence = read_legacy_sequence(files, dir, n, &mut places)?;
+    let track = if files.is_file(&par("track.par")) {
+        Some(read_legacy_track(files, dir, &mut places, &mut unmapped)?)
+    } else {
+        None
+    };
+    // The other files are calibration's or the GUI's.
+    let others: Vec<String> = files
+        .list(&dir.join("parameters"))
+        .into_iter()
+        .filter(|name| name.ends_with(".par"))
+        .filter(|name| !LEGACY_FILES.iter().any(|(_, file)| file == name))
+        .collect();
+    for name in others {
+        let section = name.trim_end_matches(".par").to_owned();
+        unmapped.push(UnmappedSetting {
+            file: par(&name).display().to_string(),
+            key: section.clone(),
+            value: "(the whole file)".into(),
+            reason: unmapped_reason(&section, "").unwrap_or_default().into(),
+        });
+    }
 
-    // ptv.par: OpenPTV's one reader of it, keys as pyptv's YAML names them.
-    let ptv_path = par("ptv.par");
+    let sections = Sections {
+        num_cams: Some(n),
+        ptv,
+        cal_ori,
+        criteria,
+        targ_rec,
+        sequence,
+        masking: None,
+        track,
+    };
+    let locator = Locator {
+        places,
+        section_files,
+    };
+    map(files, sections, dir, &locator, unmapped)
+}
+
+/// The `.par` files read as the sections of pyptv's YAML.
+const LEGACY_FILES: [(&str, &str); 6] = [
+    ("ptv", "ptv.par"),
+    ("cal_ori", "cal_ori.par"),
+    ("criteria", "criteria.par"),
+    ("targ_rec", "targ_rec.par"),
+    ("sequence", "sequence.par"),
+    ("track", "track.par"),
+];
+
+/// ptv.par: OpenPTV's one reader of it, keys as pyptv's YAML names them.
+fn read_legacy_ptv(
+    files: &dyn ExperimentFiles,
+    ptv_path: &Path,
+    places: &mut BTreeMap<String, (PathBuf, usize)>,
+    unmapped: &mut Vec<UnmappedSetting>,
+) -> Result<PtvSection, ExperimentError> {
     let ptv_par = openptv::read_ptv_par(
-        &files.read_text(&ptv_path)?,
+        &files.read_text(ptv_path)?,
         &ptv_path.display().to_string(),
         "ptv.",
     )?;
     for (key, line) in ptv_par.lines() {
-        places.insert(format!("ptv.{key}"), (ptv_path.clone(), line));
+        places.insert(format!("ptv.{key}"), (ptv_path.to_owned(), line));
     }
     let n = ptv_par.num_cams();
     let ptv = PtvSection {
@@ -1185,8 +1237,18 @@ fn read_legacy(files: &dyn ExperimentFiles, dir: &Path) -> Result<Experiment, Ex
             .unwrap_or_default()
             .into(),
     });
+    Ok(ptv)
+}
 
-    let mut f = ParFile::open(files, dir, "cal_ori.par", "cal_ori", &mut places)?;
+/// cal_ori.par: the `.ori` file of each camera.
+fn read_legacy_cal_ori(
+    files: &dyn ExperimentFiles,
+    dir: &Path,
+    n: usize,
+    places: &mut BTreeMap<String, (PathBuf, usize)>,
+    unmapped: &mut Vec<UnmappedSetting>,
+) -> Result<CalOriSection, ExperimentError> {
+    let mut f = ParFile::open(files, dir, "cal_ori.par", "cal_ori", places)?;
     let fixp_name = f.text("fixp_name")?;
     let mut img_ori = Vec::new();
     for i in 0..n {
@@ -1202,9 +1264,17 @@ fn read_legacy(files: &dyn ExperimentFiles, dir: &Path) -> Result<Experiment, Ex
             .unwrap_or_default()
             .into(),
     });
-    let cal_ori = CalOriSection { img_ori };
+    Ok(CalOriSection { img_ori })
+}
 
-    let mut f = ParFile::open(files, dir, "criteria.par", "criteria", &mut places)?;
+/// criteria.par: the layers, the band; the similarity terms are not used.
+fn read_legacy_criteria(
+    files: &dyn ExperimentFiles,
+    dir: &Path,
+    places: &mut BTreeMap<String, (PathBuf, usize)>,
+    unmapped: &mut Vec<UnmappedSetting>,
+) -> Result<CriteriaSection, ExperimentError> {
+    let mut f = ParFile::open(files, dir, "criteria.par", "criteria", places)?;
     let mut lay = [[0.0; 3]; 2];
     for (i, layer) in lay.iter_mut().enumerate() {
         layer[0] = f.number(&format!("X_lay[{i}]"))?;
@@ -1230,9 +1300,19 @@ fn read_legacy(files: &dyn ExperimentFiles, dir: &Path) -> Result<Experiment, Ex
             reason: unmapped_reason("criteria", key).unwrap_or_default().into(),
         });
     }
+    Ok(criteria)
+}
 
-    // liboptv reads four thresholds whatever the camera count.
-    let mut f = ParFile::open(files, dir, "targ_rec.par", "targ_rec", &mut places)?;
+/// targ_rec.par: detection. liboptv reads four thresholds whatever the
+/// camera count.
+fn read_legacy_targ_rec(
+    files: &dyn ExperimentFiles,
+    dir: &Path,
+    n: usize,
+    places: &mut BTreeMap<String, (PathBuf, usize)>,
+    unmapped: &mut Vec<UnmappedSetting>,
+) -> Result<TargRecSection, ExperimentError> {
+    let mut f = ParFile::open(files, dir, "targ_rec.par", "targ_rec", places)?;
     let mut gvthres = Vec::new();
     for i in 0..n.max(4) {
         gvthres.push(f.integer(&format!("gvthres[{i}]"))?);
@@ -1257,8 +1337,17 @@ fn read_legacy(files: &dyn ExperimentFiles, dir: &Path) -> Result<Experiment, Ex
             .unwrap_or_default()
             .into(),
     });
+    Ok(targ_rec)
+}
 
-    let mut f = ParFile::open(files, dir, "sequence.par", "sequence", &mut places)?;
+/// sequence.par: the image names and the frames.
+fn read_legacy_sequence(
+    files: &dyn ExperimentFiles,
+    dir: &Path,
+    n: usize,
+    places: &mut BTreeMap<String, (PathBuf, usize)>,
+) -> Result<SequenceSection, ExperimentError> {
+    let mut f = ParFile::open(files, dir, "sequence.par", "sequence", places)?;
     let mut base_name = Vec::new();
     for i in 0..n {
         let name = f.text(&format!("base_name[{i}]"))?;
@@ -1275,88 +1364,49 @@ fn read_legacy(files: &dyn ExperimentFiles, dir: &Path) -> Result<Experiment, Ex
         }
         base_name.push(name);
     }
-    let sequence = SequenceSection {
+    Ok(SequenceSection {
         base_name,
         first: f.unsigned("first")?,
         last: f.unsigned("last")?,
-    };
+    })
+}
 
-    // track.par: nine values, liboptv's `read_track_par` (pyptv's later
-    // lines, one per camera, are not read by liboptv either).
-    let track = if files.is_file(&par("track.par")) {
-        let mut f = ParFile::open(files, dir, "track.par", "track", &mut places)?;
-        let mut dv = [0.0; 6];
-        for (value, key) in dv
-            .iter_mut()
-            .zip(["dvxmin", "dvxmax", "dvymin", "dvymax", "dvzmin", "dvzmax"])
-        {
-            *value = f.number(key)?;
-        }
-        let angle = f.number("angle")?;
-        let dacc = f.number("dacc")?;
-        let new_particles = f.integer("flagNewParticles")?;
-        unmapped.push(UnmappedSetting {
-            file: f.path.display().to_string(),
-            key: "track.angle".into(),
-            value: angle.to_string(),
-            reason: unmapped_reason("track", "angle").unwrap_or_default().into(),
-        });
-        Some(TrackSection {
-            dvxmin: dv[0],
-            dvxmax: dv[1],
-            dvymin: dv[2],
-            dvymax: dv[3],
-            dvzmin: dv[4],
-            dvzmax: dv[5],
-            angle: Some(angle),
-            dacc,
-            flagNewParticles: new_particles != 0,
-        })
-    } else {
-        None
-    };
-    // The other files are calibration's or the GUI's.
-    let others: Vec<String> = files
-        .list(&dir.join("parameters"))
-        .into_iter()
-        .filter(|name| name.ends_with(".par"))
-        .filter(|name| {
-            ![
-                "ptv.par",
-                "cal_ori.par",
-                "criteria.par",
-                "targ_rec.par",
-                "sequence.par",
-                "track.par",
-            ]
-            .contains(&name.as_str())
-        })
-        .collect();
-    for name in others {
-        let section = name.trim_end_matches(".par").to_owned();
-        unmapped.push(UnmappedSetting {
-            file: par(&name).display().to_string(),
-            key: section.clone(),
-            value: "(the whole file)".into(),
-            reason: unmapped_reason(&section, "").unwrap_or_default().into(),
-        });
+/// track.par: nine values, liboptv's `read_track_par` (pyptv's later
+/// lines, one per camera, are not read by liboptv either).
+fn read_legacy_track(
+    files: &dyn ExperimentFiles,
+    dir: &Path,
+    places: &mut BTreeMap<String, (PathBuf, usize)>,
+    unmapped: &mut Vec<UnmappedSetting>,
+) -> Result<TrackSection, ExperimentError> {
+    let mut f = ParFile::open(files, dir, "track.par", "track", places)?;
+    let mut dv = [0.0; 6];
+    for (value, key) in dv
+        .iter_mut()
+        .zip(["dvxmin", "dvxmax", "dvymin", "dvymax", "dvzmin", "dvzmax"])
+    {
+        *value = f.number(key)?;
     }
-
-    let sections = Sections {
-        num_cams: Some(n),
-        ptv,
-        cal_ori,
-        criteria,
-        targ_rec,
-        sequence,
-        masking: None,
-        track,
-    };
-    let locator = Locator {
-        places,
-        section_files,
-    };
-    map(files, sections, dir, &locator, unmapped)
+    let angle = f.number("angle")?;
+    let dacc = f.number("dacc")?;
+    let new_particles = f.integer("flagNewParticles")?;
+    unmapped.push(UnmappedSetting {
+        file: f.path.display().to_string(),
+        key: "track.angle".into(),
+        value: angle.to_string(),
+        reason: unmapped_reason("track", "angle").unwrap_or_default().into(),
+    });
+    Ok(TrackSection {
+        dvxmin: dv[0],
+        dvxmax: dv[1],
+        dvymin: dv[2],
+        dvymax: dv[3],
+        dvzmin: dv[4],
+        dvzmax: dv[5],
+        angle: Some(angle),
+        dacc,
+        flagNewParticles: new_particles != 0,
+    })
 }
 
 // --- The mapping ----------------------------------------------------------
