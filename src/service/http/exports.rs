@@ -31,6 +31,10 @@ use crate::service::infra::codec;
 use crate::service::ops::state::AppState;
 use crate::service::store::{FrameNumber, PointRow, SequenceId, TrackingRunId};
 
+/// Trajectories read from the store at a time (with their points) while an
+/// export is collected: one page of `GET .../trajectories`.
+const TRAJECTORIES_PER_READ: u32 = 500;
+
 /// The most points (trajectory points plus particles) an export loads.
 pub const EXPORT_MAX_POINTS: usize = 200_000;
 
@@ -127,13 +131,7 @@ pub async fn collect(
     loop {
         let list = state
             .store
-            .trajectories(
-                run,
-                min_length,
-                frames,
-                after,
-                super::tracking::TRAJECTORIES_PER_PAGE,
-            )
+            .trajectories(run, min_length, frames, after, TRAJECTORIES_PER_READ)
             .await?;
         let (Some(low), Some(high)) = (list.first(), list.last()) else {
             break;
@@ -166,7 +164,7 @@ pub async fn collect(
             }
             trajectories.push(record);
         }
-        if list.len() < super::tracking::TRAJECTORIES_PER_PAGE as usize {
+        if list.len() < TRAJECTORIES_PER_READ as usize {
             break;
         }
         after = high.id;
