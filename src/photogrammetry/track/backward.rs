@@ -116,29 +116,7 @@ pub(super) fn extend(
     let mut gathered = Gathered::default();
     gathered.extend(points);
     let index_of = |number: i64| frames.binary_search_by_key(&number, |f| f.number).ok();
-    // Per frame and particle, the trajectory (slot) holding it.
-    let mut holder: Vec<Vec<u32>> = frames
-        .iter()
-        .map(|f| vec![FREE; f.particles.len()])
-        .collect();
-    let mut paths: Vec<Path> = Vec::new();
-    for t in gathered.finish() {
-        let slot = paths.len() as u32;
-        let mut sigma = VecDeque::with_capacity(t.points.len());
-        for p in &t.points {
-            let f = index_of(p.frame).expect("a point of a frame linked");
-            holder[f][p.particle] = slot;
-            sigma.push_back(frames[f].particles[p.particle].sigma);
-        }
-        paths.push(Path {
-            id: t.id,
-            points: t.points.into(),
-            fresh: vec![false; sigma.len()].into(),
-            sigma,
-            gone: false,
-            lengthened: false,
-        });
-    }
+    let (mut paths, mut holder) = paths_of(frames, gathered);
     let p = parameters;
     let w = p.fit_half_window;
     let mut summary = BackwardSummary::default();
@@ -246,44 +224,8 @@ pub(super) fn extend(
             {
                 continue;
             }
-            if h != FREE {
-                // A join: the window across the junction, `w` points on
-                // each side of the other's last point, as well.
-                let other = &paths[h as usize];
-                let before_count = w.min(other.points.len() - 1);
-                let after_count = w.min(path.points.len());
-                let mut junction = [point; MAX_SAMPLES];
-                let mut m = 0;
-                for i in other.points.len() - 1 - before_count..other.points.len() {
-                    junction[m] = other.sample(i);
-                    m += 1;
-                }
-                for i in 0..after_count {
-                    junction[m] = path.sample(i);
-                    m += 1;
-                }
-                if !is_smooth(&junction[..m], 3) {
-                    continue;
-                }
-                // Nor does the path break there (the test that cuts a
-                // trajectory forward: a join must not undo a cut), with up
-                // to 4 points on each side.
-                let mut across = [point; 8];
-                let before_count = 3.min(other.points.len() - 1);
-                let after_count = 4.min(path.points.len());
-                let mut m = 0;
-                for i in other.points.len() - 1 - before_count..other.points.len() {
-                    across[m] = other.sample(i);
-                    m += 1;
-                }
-                let k = m;
-                for i in 0..after_count {
-                    across[m] = path.sample(i);
-                    m += 1;
-                }
-                if breaks_before(&across[..m], k) {
-                    continue;
-                }
+            if h != FREE && !joins_smoothly(point, &paths[h as usize], path, w) {
+                continue;
             }
             taken_path[link.live] = true;
             taken[link.particle] = true;
@@ -330,11 +272,85 @@ pub(super) fn extend(
             }
         }
     }
-    // The derivatives of the points whose windows reach a new point or a
-    // junction, fitted again as the forward pass fits them.
+    (refitted(paths, w, p.fit_order), summary)
+}
+
+/// Whether `path`, starting with `point`, may join `other` (which ends
+/// at the point's particle): the window across the junction, `w` points
+/// on each side of the other's last point, is smooth, and the path does
+/// not break there.
+fn joins_smoothly(point: Sample, other: &Path, path: &Path, w: usize) -> bool {
+    let mut window = [point; MAX_SAMPLES];
+    let (m, _) = across(other, path, (w, w), &mut window);
+    if !is_smooth(&window[..m], 3) {
+        return false;
+    }
+    // Nor does the path break there (the test that cuts a trajectory
+    // forward: a join must not undo a cut), with up to 4 points on each
+    // side.
+    let (m, k) = across(other, path, (3, 4), &mut window);
+    !breaks_before(&window[..m], k)
+}
+
+/// Up to `before` points of `other` before its last, its last, and up to
+/// `after` of `path`'s first, into `window`: how many, and where `path`'s
+/// start.
+fn across(
+    other: &Path,
+    path: &Path,
+    (before, after): (usize, usize),
+    window: &mut [Sample],
+) -> (usize, usize) {
+    let last = other.points.len() - 1;
+    let mut m = 0;
+    for i in last - before.min(last)..=last {
+        window[m] = other.sample(i);
+        m += 1;
+    }
+    let k = m;
+    for i in 0..after.min(path.points.len()) {
+        window[m] = path.sample(i);
+        m += 1;
+    }
+    (m, k)
+}
+
+/// The forward pass's trajectories as paths, and per frame and particle
+/// the path (slot) holding it.
+fn paths_of(frames: &[Stored], gathered: Gathered) -> (Vec<Path>, Vec<Vec<u32>>) {
+    let index_of = |number: i64| frames.binary_search_by_key(&number, |f| f.number).ok();
+    // Per frame and particle, the trajectory (slot) holding it.
+    let mut holder: Vec<Vec<u32>> = frames
+        .iter()
+        .map(|f| vec![FREE; f.particles.len()])
+        .collect();
+    let mut paths: Vec<Path> = Vec::new();
+    for t in gathered.finish() {
+        let slot = paths.len() as u32;
+        let mut sigma = VecDeque::with_capacity(t.points.len());
+        for p in &t.points {
+            let f = index_of(p.frame).expect("a point of a frame linked");
+            holder[f][p.particle] = slot;
+            sigma.push_back(frames[f].particles[p.particle].sigma);
+        }
+        paths.push(Path {
+            id: t.id,
+            points: t.points.into(),
+            fresh: vec![false; sigma.len()].into(),
+            sigma,
+            gone: false,
+            lengthened: false,
+        });
+    }
+    (paths, holder)
+}
+
+/// The paths kept, renumbered from 0 in their order; the derivatives of
+/// the points whose windows reach a new point or a junction fitted again
+/// as the forward pass fits them.
+fn refitted(paths: Vec<Path>, w: usize, order: usize) -> Vec<TrackPoint> {
     let mut out = Vec::new();
     let mut id = 0u64;
-    let order = p.fit_order;
     for path in paths.into_iter().filter(|path| !path.gone) {
         let len = path.points.len();
         if !path.fresh.contains(&true) {
@@ -360,7 +376,7 @@ pub(super) fn extend(
         }
         id += 1;
     }
-    (out, summary)
+    out
 }
 
 /// Derivatives of a point not fitted (yet, or at all: too few points).
