@@ -255,7 +255,9 @@ pub fn residual_plot(
     })
 }
 
-/// Draws one camera's residuals laid out by `layout`.
+/// Draws one camera's residuals laid out by `layout`: the title and
+/// figures, the arrows on the sensor, and beside them the histogram of
+/// their lengths and the check points' errors.
 pub fn draw_residuals(
     d: &mut dyn Draw,
     camera: &CameraResiduals,
@@ -263,7 +265,29 @@ pub fn draw_residuals(
     sensor: (u32, u32),
     layout: &ResidualLayout,
 ) {
-    let line = text_height(1) as i64 + 6;
+    let rms = rms(camera.residuals.iter().map(length));
+    draw_heading(d, camera, rms, sensor, layout);
+    draw_arrows(d, camera, sensor, layout);
+    let (sx, sy) = layout.sensor_origin;
+    let left = sx + layout.sensor_size.0 + 60;
+    let top = draw_length_histogram(d, camera, rms, layout, (left, sy));
+    draw_check_points(d, check_points, (left, top));
+}
+
+/// The line height of the side panels' text.
+fn line_height() -> i64 {
+    text_height(1) as i64 + 6
+}
+
+/// The title, the camera's figures and the arrows' scale bar.
+fn draw_heading(
+    d: &mut dyn Draw,
+    camera: &CameraResiduals,
+    rms: f64,
+    sensor: (u32, u32),
+    layout: &ResidualLayout,
+) {
+    let line = line_height();
     let (m, mut y) = (MARGIN, MARGIN);
     d.text(
         m,
@@ -273,7 +297,6 @@ pub fn draw_residuals(
         BLACK,
     );
     y += text_height(2) as i64 + 8;
-    let rms = rms(camera.residuals.iter().map(length));
     d.text(
         m,
         y,
@@ -318,8 +341,16 @@ pub fn draw_residuals(
         1,
         BLACK,
     );
+}
 
-    // The sensor.
+/// The sensor, each used point's residual as an arrow from where it was
+/// measured, and the excluded ones ringed, their arrows capped.
+fn draw_arrows(
+    d: &mut dyn Draw,
+    camera: &CameraResiduals,
+    sensor: (u32, u32),
+    layout: &ResidualLayout,
+) {
     let (sx, sy) = layout.sensor_origin;
     let (sw, sh) = layout.sensor_size;
     d.fill_rect(sx, sy, sw, sh, SENSOR);
@@ -352,10 +383,18 @@ pub fn draw_residuals(
         d.ring(from.0, from.1, 5.0, 1.5, EXCLUDED);
         d.arrow(from, tip, 1.5, 5.0, EXCLUDED);
     }
+}
 
-    // The histogram of the used residuals' lengths.
-    let left = sx + sw + 60;
-    let mut top = sy;
+/// The histogram of the used residuals' lengths, its top left corner at
+/// `(left, top)`; where the next panel starts.
+fn draw_length_histogram(
+    d: &mut dyn Draw,
+    camera: &CameraResiduals,
+    rms: f64,
+    layout: &ResidualLayout,
+    (left, mut top): (i64, i64),
+) -> i64 {
+    let line = line_height();
     d.text(left, top, "Residual lengths (px), points used", 1, BLACK);
     top += line;
     let lengths: Vec<f64> = camera
@@ -410,8 +449,17 @@ pub fn draw_residuals(
         BLACK,
     );
     top += SIDE_H + 3 * line + 10;
+    top
+}
 
-    // The check points.
+/// The check points' 3D errors, one bar each, and their RMSE, with the
+/// panel's top left corner at `(left, top)`.
+fn draw_check_points(
+    d: &mut dyn Draw,
+    check_points: Option<&CheckPoints>,
+    (left, mut top): (i64, i64),
+) {
+    let line = line_height();
     d.text(left, top, "Check points: 3D error (mm)", 1, BLACK);
     top += line;
     let Some(check) = check_points.filter(|c| !c.points.is_empty()) else {
