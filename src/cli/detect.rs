@@ -18,7 +18,7 @@ use super::{write_stderr_line, write_stdout, CliError};
 use crate::formats::{self, image::RawLayout};
 use crate::photogrammetry::{
     detect_preprocessed, detect_within, BitDepth, Centroid, DetectError, DetectionParameters,
-    GreyImage, Mask, PreprocessError, Preprocessing,
+    GreyImage, Mask, PreprocessError, Preprocessing, Target,
 };
 
 /// How `ptv detect` writes its targets.
@@ -235,11 +235,32 @@ pub(super) fn run(
             },
         )?,
     };
-    let text = match args.format {
-        TargetFormat::Csv => formats::csv::format_targets(&targets),
-        TargetFormat::Openptv => formats::openptv::format_targets(&targets),
-    };
-    write_stdout(stdout, &text)
+    match args.format {
+        TargetFormat::Csv => write_csv(stdout, &targets),
+        TargetFormat::Openptv => write_stdout(stdout, &formats::openptv::format_targets(&targets)),
+    }
+}
+
+/// The most targets [`write_csv`] formats at once: 65,536 (a few MiB of
+/// text).
+const CSV_CHUNK: usize = 1 << 16;
+
+/// Writes the targets as CSV (the header once), [`CSV_CHUNK`] targets at a
+/// time: the text of a frame's targets never exists whole (that of a
+/// hostile 8192x8192 frame's 33.5 million would take 12 bytes a pixel).
+fn write_csv(stdout: &mut dyn Write, targets: &[Target]) -> Result<(), CliError> {
+    let mut chunks = targets.chunks(CSV_CHUNK);
+    write_stdout(
+        stdout,
+        &formats::csv::format_targets(chunks.next().unwrap_or_default()),
+    )?;
+    for chunk in chunks {
+        let text = formats::csv::format_targets(chunk);
+        // Past the header's line.
+        let rows = text.find('\n').map_or("", |end| &text[end + 1..]);
+        write_stdout(stdout, rows)?;
+    }
+    Ok(())
 }
 
 /// The background and mask files of one camera, if given.
@@ -319,5 +340,33 @@ pub(super) fn preprocess_error(
             file.map_or_else(|| "the file".to_owned(), |f| f.display().to_string()),
             image.display()
         ),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn csv_written_in_chunks_is_the_whole_table() {
+        // More targets than two chunks, and none at all.
+        for count in [0, 2 * CSV_CHUNK + 3] {
+            let targets: Vec<Target> = (0..count)
+                .map(|i| Target {
+                    x: i as f64 + 0.25,
+                    y: (i / 7) as f64 + 0.5,
+                    n: (i % 9) as u32 + 1,
+                    nx: 2,
+                    ny: 3,
+                    sumg: i as u64,
+                })
+                .collect();
+            let mut out = Vec::new();
+            write_csv(&mut out, &targets).unwrap();
+            assert_eq!(
+                String::from_utf8(out).unwrap(),
+                formats::csv::format_targets(&targets)
+            );
+        }
     }
 }

@@ -194,8 +194,10 @@
 //! ripples). 4 lies between, with margins of 1.2 to 1.3 on each side: the
 //! estimate of `E` is rough (the reach from a median area, pairs only),
 //! and it is the ratio's size, not its exact value, that tells the two
-//! kinds of frame apart. The deferred blobs keep their levels and are
-//! flooded again from their first pixel at the end of the frame; in a
+//! kinds of frame apart. The deferred blobs keep their levels; their
+//! pixels' keys, sorted, are kept too while they fit in an eighth of the
+//! image's pixels (at most 2^20 keys), and the rest are flooded again from
+//! their first pixel at the end of the frame; in a
 //! structured frame, those in which some saddle kept particles apart are
 //! split a second time (where every saddle merged what it met, the higher
 //! floor merges the same, and the target stands). On frames without blobs
@@ -271,9 +273,9 @@
 //! # Memory
 //!
 //! Detection's scratch is bounded per pixel of the image, whatever the
-//! image holds: at most **20 bytes a pixel** with an absolute split depth
-//! and **30** with the automatic rule (plus a few bytes a row and a
-//! column), 1.25 and 1.9 GiB for the largest sensor
+//! image holds: at most **21 bytes a pixel** with an absolute split depth
+//! and **33** with the automatic rule (plus a few bytes a row and a
+//! column), 1.3 and 2.1 GiB for the largest sensor
 //! ([`MAX_SENSOR_PIXELS`](super::camera::MAX_SENSOR_PIXELS), 2^26 px),
 //! besides the image itself and the targets found (40 bytes each, at most
 //! twice that while their vector grows and is sorted; with the automatic
@@ -292,7 +294,12 @@
 //! deferred to the end of the frame (whose levels stay in place and are
 //! flooded again from their first pixel) a mark a pixel (one bit) and
 //! their first pixels (8 bytes a blob of at least 3 pixels, at most twice
-//! that while the vector grows: 5.3 bytes a pixel).
+//! that while the vector grows: 5.3 bytes a pixel), and the sorted keys
+//! of the first of them with their bounding boxes (at most an eighth of
+//! the pixels' keys and 16 MiB: 2 bytes a pixel). The blob's keys are
+//! sorted by radix from 256 pixels up to an eighth of the image's pixels
+//! (and 2^20), with a scratch of 8 bytes a key (a byte a pixel, 8 MiB at
+//! most), and in place beyond.
 //! With a target limit ([`detect_within`], which the frame pipeline calls
 //! with [`max_targets`](super::correspond::max_targets) of the camera's
 //! sensor), the targets found never exceed it by more than one blob's:
@@ -333,7 +340,7 @@ use super::image::{GreyImage, GreyPixels, Mask};
 use super::target::Target;
 use highpass::HighPass;
 use segment::TRAIL;
-use split::Region;
+use split::{Region, StoredBlob};
 
 /// The automatic split rule ([`DetectionParameters::split_depth`] `None`):
 /// a maximum is a particle of its own only if it rises above the saddle by
@@ -943,8 +950,14 @@ struct Detector<'a, G: Grey> {
     /// pixels before `head` have been expanded), then sorted into flooding
     /// order, then re-keyed by particle to measure them one at a time.
     blob: Vec<u64>,
-    /// Splitting: per cell of the blob's bounding box, the region of its
-    /// pixel once visited, else `NONE`.
+    /// The radix sort's scratch for the blob's keys (see
+    /// [`split::sort_keys`]; a byte a pixel and 8 MiB at most).
+    sorted: Vec<u64>,
+    /// The bounding box of the blob in `blob` (corner, size), found by its
+    /// flood.
+    bounds: ((usize, usize), (usize, usize)),
+    /// Splitting: per cell of the blob's bounding box and a border of one
+    /// cell around it, the region of its pixel once visited, else `NONE`.
     grid: Vec<u32>,
     regions: Vec<Region>,
     /// The automatic split rule: per region, its pixels so far and the sum
@@ -971,6 +984,12 @@ struct Detector<'a, G: Grey> {
     /// until then (the search passes them by; allocated with the first).
     deferred: Vec<usize>,
     deferred_marks: Vec<u64>,
+    /// The first deferred blobs' keys, sorted, and where each one's are
+    /// (see [`Detector::store_deferred`]); the rest are flooded again.
+    stored_keys: Vec<u64>,
+    stored: Vec<StoredBlob>,
+    /// Whether the keys in `blob` are sorted already (a stored blob's).
+    presorted: bool,
     /// Whether the last split kept particles apart at some saddle (see
     /// [`Detector::split_deferred`]).
     kept_apart: bool,
@@ -1001,6 +1020,8 @@ impl<'a, G: Grey> Detector<'a, G> {
             marks: Vec::new(),
             above: 0,
             blob: Vec::new(),
+            sorted: Vec::new(),
+            bounds: ((0, 0), (0, 0)),
             grid: Vec::new(),
             regions: Vec::new(),
             caps: Vec::new(),
@@ -1010,6 +1031,9 @@ impl<'a, G: Grey> Detector<'a, G> {
             split_noise: AUTO_SPLIT_NOISE,
             deferred: Vec::new(),
             deferred_marks: Vec::new(),
+            stored_keys: Vec::new(),
+            stored: Vec::new(),
+            presorted: false,
             kept_apart: false,
             target_sizes: Vec::new(),
             limit: usize::MAX,

@@ -91,7 +91,7 @@ impl<G: Grey> Detector<'_, G> {
     }
 
     /// Collects the blob of `seed` (4-connected: pixels join by an edge)
-    /// into `blob`, breadth first with `blob` itself as
+    /// into `blob` and its bounding box into `bounds`, breadth first with `blob` itself as
     /// the queue, and returns its last pixel (the largest index). Pixels are
     /// taken out of `levels` while it runs (so none is taken twice) and put
     /// back at the end, for the measuring step to read.
@@ -101,11 +101,17 @@ impl<G: Grey> Detector<'_, G> {
         self.take(seed);
         let mut head = 0;
         let mut last = seed;
+        // The bounding box, as the pixels are expanded.
+        let (mut xmin, mut ymin, mut xmax, mut ymax) = (usize::MAX, usize::MAX, 0, 0);
         while head < self.blob.len() {
             let p = key_index(self.blob[head]);
             head += 1;
             last = last.max(p);
             let (x, y) = self.position(p);
+            xmin = xmin.min(x);
+            ymin = ymin.min(y);
+            xmax = xmax.max(x);
+            ymax = ymax.max(y);
             // Only the four edge neighbours join a blob.
             if y > 0 {
                 self.take(p - width);
@@ -123,6 +129,7 @@ impl<G: Grey> Detector<'_, G> {
         for &k in &self.blob {
             self.levels[key_index(k)] = key_level(k);
         }
+        self.bounds = ((xmin, ymin), (xmax - xmin + 1, ymax - ymin + 1));
         last
     }
 
@@ -174,6 +181,7 @@ impl<G: Grey> Detector<'_, G> {
             }
             // The flood's first pixel is its seed.
             self.deferred.push(key_index(self.blob[0]));
+            self.store_deferred();
             return false;
         }
         self.split_and_measure::<PIXELS>(corner, size, threshold, found);
@@ -198,16 +206,8 @@ impl<G: Grey> Detector<'_, G> {
     }
 
     /// The bounding box of the blob in `blob`: its corner (column, row) and
-    /// size.
+    /// size (found by [`Detector::flood`] as it expands the pixels).
     pub(super) fn blob_box(&self) -> ((usize, usize), (usize, usize)) {
-        let (mut xmin, mut ymin, mut xmax, mut ymax) = (usize::MAX, usize::MAX, 0, 0);
-        for &k in &self.blob {
-            let (x, y) = self.position(key_index(k));
-            xmin = xmin.min(x);
-            ymin = ymin.min(y);
-            xmax = xmax.max(x);
-            ymax = ymax.max(y);
-        }
-        ((xmin, ymin), (xmax - xmin + 1, ymax - ymin + 1))
+        self.bounds
     }
 }

@@ -24,6 +24,89 @@ const MOMENTS_IN_PASS: usize = 1024;
 /// regions and particle numbers at most, 40 KiB with the automatic rule).
 const COUNTED_BLOB: usize = 1 << 12;
 
+/// Blobs of fewer pixels are sorted by comparison ([`sort_keys`]); the
+/// radix sort's passes cost more than they save below this.
+const RADIX_FROM: usize = 256;
+
+/// The most keys [`sort_keys`] sorts by radix: its scratch (8 bytes a key,
+/// kept from blob to blob) stays within 8 MiB; a larger blob is sorted in
+/// place by comparison, so a hostile frame's one huge blob costs no more
+/// memory than before.
+pub(super) const RADIX_UP_TO: usize = 1 << 20;
+
+/// Sorts a blob's [`key`]s ascending: bright to dark, equal levels in
+/// raster order. Keys are distinct (each holds its pixel's index), so
+/// every correct sort gives the same order. Blobs of [`RADIX_FROM`] to
+/// [`RADIX_UP_TO`] pixels, and no more than `most` (the detector's
+/// [`Detector::radix_most`]), are sorted by least-significant-digit radix, a
+/// byte a pass, over only the bytes in which the keys differ (for a real
+/// frame's blob of a few thousand pixels, about two of the level and
+/// three of the index): a counting pass over all of them at once, then a
+/// stable scatter a byte, between `keys` and `scratch`. Comparison sorts
+/// of thousands of keys, whose order is hard to predict, cost about twice
+/// as many instructions and many mispredicted branches.
+pub(super) fn sort_keys(keys: &mut [u64], scratch: &mut Vec<u64>, most: usize) {
+    if keys.len() < RADIX_FROM || keys.len() > most.min(RADIX_UP_TO) {
+        keys.sort_unstable();
+        return;
+    }
+    let differ = keys.iter().fold(0, |d, &k| d | (k ^ keys[0]));
+    let mut digits = [0u32; 8];
+    let mut passes = 0;
+    for d in 0..8 {
+        if (differ >> (8 * d)) & 0xff != 0 {
+            digits[passes] = d;
+            passes += 1;
+        }
+    }
+    let digits = &digits[..passes];
+    let mut counts = [[0u32; 256]; 8];
+    for &k in keys.iter() {
+        for (i, &d) in digits.iter().enumerate() {
+            counts[i][((k >> (8 * d)) & 0xff) as usize] += 1;
+        }
+    }
+    scratch.clear();
+    scratch.resize(keys.len(), 0);
+    let mut from_keys = true;
+    for (i, &d) in digits.iter().enumerate() {
+        let mut starts = [0u32; 256];
+        let mut sum = 0;
+        for (start, &count) in starts.iter_mut().zip(&counts[i]) {
+            *start = sum;
+            sum += count;
+        }
+        let (source, target): (&[u64], &mut [u64]) = if from_keys {
+            (&*keys, scratch.as_mut_slice())
+        } else {
+            (scratch.as_slice(), &mut *keys)
+        };
+        for &k in source {
+            let digit = ((k >> (8 * d)) & 0xff) as usize;
+            target[starts[digit] as usize] = k;
+            starts[digit] += 1;
+        }
+        from_keys = !from_keys;
+    }
+    if !from_keys {
+        keys.copy_from_slice(scratch);
+    }
+}
+
+/// The most keys of deferred blobs kept for their split at the end of the
+/// frame ([`Detector::store_deferred`]): 2^20, 8 MiB.
+const STORED_KEYS: usize = 1 << 20;
+
+/// A deferred blob whose keys are kept ([`Detector::store_deferred`]):
+/// where they are in `stored_keys`, and its bounding box.
+#[derive(Clone, Copy, Debug)]
+pub(super) struct StoredBlob {
+    start: u32,
+    len: u32,
+    corner: (u32, u32),
+    size: (u32, u32),
+}
+
 #[derive(Clone, Copy, Debug)]
 pub(super) struct Region {
     parent: u32,
@@ -140,15 +223,79 @@ impl<G: Grey> Detector<'_, G> {
         }
         self.deferred = Vec::new();
         self.deferred_marks = Vec::new();
+        self.stored = Vec::new();
+        self.stored_keys = Vec::new();
         Ok(())
     }
 
     /// Floods deferred blob number `blob` from its seed, splits it and
     /// measures its particles (its levels stay).
     pub(super) fn measure_deferred<const PIXELS: bool>(&mut self, blob: usize, found: &mut Found) {
-        self.flood(self.deferred[blob]);
+        if let Some(stored) = self.stored.get(blob) {
+            // Its keys, already sorted, as its flood found them.
+            let (start, len) = (stored.start as usize, stored.len as usize);
+            self.blob.clear();
+            self.blob
+                .extend_from_slice(&self.stored_keys[start..start + len]);
+            self.bounds = (
+                (stored.corner.0 as usize, stored.corner.1 as usize),
+                (stored.size.0 as usize, stored.size.1 as usize),
+            );
+            self.presorted = true;
+        } else {
+            self.flood(self.deferred[blob]);
+        }
         let (corner, size) = self.blob_box();
         self.split_and_measure::<PIXELS>(corner, size, self.threshold_level(), found);
+        self.presorted = false;
+    }
+
+    /// Keeps the keys of the blob just deferred (in `blob`), sorted, and its
+    /// bounding box, so that [`Detector::measure_deferred`] need not flood
+    /// and sort it again (up to twice): while the blobs deferred so far all
+    /// fit in [`Detector::store_budget`] keys. Past that, this blob and
+    /// every later one are flooded again from their seeds.
+    pub(super) fn store_deferred(&mut self) {
+        let budget = self.store_budget();
+        if self.stored.len() + 1 != self.deferred.len()
+            || self.stored_keys.len() + self.blob.len() > budget
+        {
+            return;
+        }
+        if self.stored_keys.capacity() == 0 {
+            self.stored_keys.reserve_exact(budget);
+        }
+        self.sort_blob();
+        let ((x, y), (w, h)) = self.bounds;
+        self.stored.push(StoredBlob {
+            start: self.stored_keys.len() as u32,
+            len: self.blob.len() as u32,
+            corner: (x as u32, y as u32),
+            size: (w as u32, h as u32),
+        });
+        self.stored_keys.extend_from_slice(&self.blob);
+    }
+
+    /// The largest blob whose keys [`sort_keys`] sorts by radix: an eighth
+    /// of the image's pixels, so that its scratch (8 bytes a key) is at
+    /// most a byte a pixel of the image.
+    pub(super) fn radix_most(&self) -> usize {
+        self.width * self.height / 8
+    }
+
+    /// Sorts the keys in `blob` ([`sort_keys`]).
+    pub(super) fn sort_blob(&mut self) {
+        let most = self.radix_most();
+        sort_keys(&mut self.blob, &mut self.sorted, most);
+    }
+
+    /// How many deferred blobs' keys [`Detector::store_deferred`] keeps: an
+    /// eighth of the image's pixels, at most [`STORED_KEYS`]. A key costs 8
+    /// bytes and its blob's [`StoredBlob`] (24 bytes, a blob of 3 pixels or
+    /// more) at most 8 more: at most 2 bytes a pixel of the image, and
+    /// 16 MiB.
+    pub(super) fn store_budget(&self) -> usize {
+        (self.width * self.height / 8).min(STORED_KEYS)
     }
 
     /// Whether the frame's particle images have structure of their own:
@@ -212,8 +359,7 @@ impl<G: Grey> Detector<'_, G> {
             let k = self.blob[rank];
             let p = key_index(k);
             let (x, y) = self.position(p);
-            let cell = (y - corner.1) * size.0 + (x - corner.0);
-            let root = self.find(self.grid[cell]) as usize;
+            let root = self.find(self.grid[self.cell((x, y), corner, size.0 + 2)]) as usize;
             if self.slot[root] == NONE {
                 self.slot[root] = particles;
                 particles += 1;
@@ -244,7 +390,7 @@ impl<G: Grey> Detector<'_, G> {
             }
             return;
         }
-        self.blob.sort_unstable();
+        self.sort_blob();
         let mut start = 0;
         while start < self.blob.len() {
             let particle = self.blob[start] >> 32;
@@ -337,9 +483,14 @@ impl<G: Grey> Detector<'_, G> {
         let auto = matches!(rule, SplitRule::Auto { .. });
         // Bright to dark; equal values in raster order, so that the result
         // does not depend on where the blob lies in the image.
-        self.blob.sort_unstable();
+        if !self.presorted {
+            self.sort_blob();
+        }
         let (box_width, box_height) = size;
-        let cells = box_width * box_height;
+        // The grid has a border of one unvisited cell on every side, so a
+        // pixel's eight neighbours are at fixed offsets, none out of range.
+        let stride = box_width + 2;
+        let cells = stride * (box_height + 2);
         // Exact reservations: these grow to the largest blob's needs and no
         // further.
         self.grid.clear();
@@ -353,33 +504,34 @@ impl<G: Grey> Detector<'_, G> {
         }
         self.slot.clear();
         self.slot.reserve_exact(maxima);
+        // The eight neighbours in raster order: offsets in the grid and in
+        // the image.
+        let (s, w) = (stride as isize, self.width as isize);
+        let around: [(isize, isize); 8] = [
+            (-s - 1, -w - 1),
+            (-s, -w),
+            (-s + 1, -w + 1),
+            (-1, -1),
+            (1, 1),
+            (s - 1, w - 1),
+            (s, w),
+            (s + 1, w + 1),
+        ];
         for rank in 0..self.blob.len() {
             let k = self.blob[rank];
             let level = u32::from(key_level(k));
-            let (x, y) = self.position(key_index(k));
-            let (bx, by) = (x - corner.0, y - corner.1);
-            // Visited neighbours (all at least as bright): their cells and
-            // region roots. Most pixels see one region only and join it; a
-            // saddle, where several meet, needs their keys.
-            let (x0, x1) = (bx.saturating_sub(1), (bx + 2).min(box_width));
-            let (y0, y1) = (by.saturating_sub(1), (by + 2).min(box_height));
-            let mut cells = [(0usize, NONE); 8];
-            let mut count = 0;
-            let mut several = false;
-            for ny in y0..y1 {
-                for nx in x0..x1 {
-                    let region = self.grid[ny * box_width + nx];
-                    if region != NONE {
-                        let root = self.find(region);
-                        several |= count > 0 && root != cells[0].1;
-                        cells[count] = (ny * box_width + nx, root);
-                        count += 1;
-                    }
-                }
-            }
-            if count == 0 {
+            let p = key_index(k);
+            let cell = self.cell(self.position(p), corner, stride);
+            // Visited neighbours (all at least as bright) hold the region
+            // their pixel joined, unvisited ones `NONE` (`u32::MAX`). Most
+            // pixels see one region only: the smallest and largest of the
+            // neighbours' regions tell, without a lookup each.
+            let regions = around.map(|(o, _)| self.grid[cell.wrapping_add_signed(o)]);
+            let lowest = regions.iter().fold(NONE, |a, &r| a.min(r));
+            let highest = regions.iter().fold(0, |a, &r| a.max(r.wrapping_add(1)));
+            if lowest == NONE {
                 // A local maximum: a new particle.
-                self.grid[by * box_width + bx] = self.regions.len() as u32;
+                self.grid[cell] = self.regions.len() as u32;
                 self.regions.push(Region {
                     parent: self.regions.len() as u32,
                     peak: level,
@@ -389,36 +541,66 @@ impl<G: Grey> Detector<'_, G> {
                 }
                 continue;
             }
-            let mut brightest = cells[0].1;
-            if several {
-                let mut neighbours = [(u64::MAX, NONE); 8];
-                for (slot, &(cell, root)) in neighbours.iter_mut().zip(&cells[..count]) {
-                    let q =
-                        (cell / box_width + corner.1) * self.width + cell % box_width + corner.0;
-                    *slot = (key(self.levels[q], q), root);
-                }
-                let neighbours = &neighbours[..count];
-                brightest = neighbours
-                    .iter()
-                    .min_by_key(|(q, _)| *q)
-                    .map_or(brightest, |&(_, root)| root);
-                self.merge_insignificant(neighbours, level, rule);
-                let first = self.find(neighbours[0].1);
-                for &(_, root) in &neighbours[1..] {
-                    if self.find(root) != first {
-                        self.kept_apart = true;
-                        break;
+            let root = if highest == lowest.wrapping_add(1) {
+                // One region (as recorded): it joins that region's root.
+                self.find(lowest)
+            } else {
+                // Several regions recorded: their roots, in raster order,
+                // and a saddle where those differ.
+                let mut cells = [(0usize, NONE); 8];
+                let mut count = 0;
+                let mut several = false;
+                for (&region, &(_, offset)) in regions.iter().zip(&around) {
+                    if region != NONE {
+                        let root = self.find(region);
+                        several |= count > 0 && root != cells[0].1;
+                        cells[count] = (p.wrapping_add_signed(offset), root);
+                        count += 1;
                     }
                 }
-            }
-            // A saddle pixel goes to the particle of its brightest neighbour.
-            let root = self.find(brightest);
-            self.grid[by * box_width + bx] = root;
+                let mut brightest = cells[0].1;
+                if several {
+                    let mut neighbours = [(u64::MAX, NONE); 8];
+                    for (slot, &(q, root)) in neighbours.iter_mut().zip(&cells[..count]) {
+                        *slot = (key(self.levels[q], q), root);
+                    }
+                    let neighbours = &neighbours[..count];
+                    brightest = neighbours
+                        .iter()
+                        .min_by_key(|(q, _)| *q)
+                        .map_or(brightest, |&(_, root)| root);
+                    self.merge_insignificant(neighbours, level, rule);
+                    let first = self.find(neighbours[0].1);
+                    for &(_, root) in &neighbours[1..] {
+                        if self.find(root) != first {
+                            self.kept_apart = true;
+                            break;
+                        }
+                    }
+                }
+                // A saddle pixel goes to the particle of its brightest
+                // neighbour.
+                self.find(brightest)
+            };
+            self.grid[cell] = root;
             if auto {
                 let cap = &mut self.caps[root as usize];
                 *cap = (cap.0 + 1, cap.1.saturating_add(level));
             }
         }
+    }
+
+    /// The cell in `grid` of the pixel at `(x, y)`, for a blob's bounding
+    /// box at `corner` whose grid rows are `stride` cells (the box's width
+    /// and its border of one cell on each side).
+    #[inline(always)]
+    pub(super) fn cell(
+        &self,
+        (x, y): (usize, usize),
+        corner: (usize, usize),
+        stride: usize,
+    ) -> usize {
+        (y - corner.1 + 1) * stride + (x - corner.0 + 1)
     }
 
     /// The automatic rule's noise floor in levels: [`AUTO_SPLIT_NOISE`](super::AUTO_SPLIT_NOISE)
