@@ -1178,6 +1178,17 @@ fn read_legacy(files: &dyn ExperimentFiles, dir: &Path) -> Result<Experiment, Ex
     map(files, sections, dir, &locator, unmapped)
 }
 
+/// A setting of a `.par` file that `ptv` reads but does not use, with the
+/// module table's reason.
+fn legacy_unmapped(file: &Path, section: &str, key: &str, value: String) -> UnmappedSetting {
+    UnmappedSetting {
+        file: file.display().to_string(),
+        key: format!("{section}.{key}"),
+        value,
+        reason: unmapped_reason(section, key).unwrap_or_default().into(),
+    }
+}
+
 /// The `.par` files read as the sections of pyptv's YAML.
 const LEGACY_FILES: [(&str, &str); 6] = [
     ("ptv", "ptv.par"),
@@ -1221,22 +1232,10 @@ fn read_legacy_ptv(
         mmp_d: ptv_par.mmp_d,
         splitter: false,
     };
-    unmapped.push(UnmappedSetting {
-        file: ptv_path.display().to_string(),
-        key: "ptv.img_name".into(),
-        value: ptv.img_name.join(" "),
-        reason: unmapped_reason("ptv", "img_name")
-            .unwrap_or_default()
-            .into(),
-    });
-    unmapped.push(UnmappedSetting {
-        file: ptv_path.display().to_string(),
-        key: "ptv.tiff_flag".into(),
-        value: u8::from(ptv.tiff_flag).to_string(),
-        reason: unmapped_reason("ptv", "tiff_flag")
-            .unwrap_or_default()
-            .into(),
-    });
+    let img_name = ptv.img_name.join(" ");
+    unmapped.push(legacy_unmapped(ptv_path, "ptv", "img_name", img_name));
+    let tiff_flag = u8::from(ptv.tiff_flag).to_string();
+    unmapped.push(legacy_unmapped(ptv_path, "ptv", "tiff_flag", tiff_flag));
     Ok(ptv)
 }
 
@@ -1256,14 +1255,12 @@ fn read_legacy_cal_ori(
         img_ori.push(f.text(&format!("img_ori[{i}]"))?);
     }
     let cal_ori_path = f.path.clone();
-    unmapped.push(UnmappedSetting {
-        file: cal_ori_path.display().to_string(),
-        key: "cal_ori.fixp_name".into(),
-        value: fixp_name,
-        reason: unmapped_reason("cal_ori", "fixp_name")
-            .unwrap_or_default()
-            .into(),
-    });
+    unmapped.push(legacy_unmapped(
+        &cal_ori_path,
+        "cal_ori",
+        "fixp_name",
+        fixp_name,
+    ));
     Ok(CalOriSection { img_ori })
 }
 
@@ -1293,12 +1290,12 @@ fn read_legacy_criteria(
     };
     let criteria_path = f.path.clone();
     for (key, value) in similarity {
-        unmapped.push(UnmappedSetting {
-            file: criteria_path.display().to_string(),
-            key: format!("criteria.{key}"),
-            value: value.to_string(),
-            reason: unmapped_reason("criteria", key).unwrap_or_default().into(),
-        });
+        unmapped.push(legacy_unmapped(
+            &criteria_path,
+            "criteria",
+            key,
+            value.to_string(),
+        ));
     }
     Ok(criteria)
 }
@@ -1329,14 +1326,12 @@ fn read_legacy_targ_rec(
         sumg_min: f.integer("sumg_min")?,
     };
     let cr_sz = f.integer("cr_sz")?;
-    unmapped.push(UnmappedSetting {
-        file: f.path.display().to_string(),
-        key: "targ_rec.cr_sz".into(),
-        value: cr_sz.to_string(),
-        reason: unmapped_reason("targ_rec", "cr_sz")
-            .unwrap_or_default()
-            .into(),
-    });
+    unmapped.push(legacy_unmapped(
+        &f.path,
+        "targ_rec",
+        "cr_sz",
+        cr_sz.to_string(),
+    ));
     Ok(targ_rec)
 }
 
@@ -1390,12 +1385,12 @@ fn read_legacy_track(
     let angle = f.number("angle")?;
     let dacc = f.number("dacc")?;
     let new_particles = f.integer("flagNewParticles")?;
-    unmapped.push(UnmappedSetting {
-        file: f.path.display().to_string(),
-        key: "track.angle".into(),
-        value: angle.to_string(),
-        reason: unmapped_reason("track", "angle").unwrap_or_default().into(),
-    });
+    unmapped.push(legacy_unmapped(
+        &f.path,
+        "track",
+        "angle",
+        angle.to_string(),
+    ));
     Ok(TrackSection {
         dvxmin: dv[0],
         dvxmax: dv[1],
