@@ -15,8 +15,10 @@
 //!
 //! `weezl` (the `tiff` crate's decoder) streams into buffers of any size
 //! and so keeps its own string table; on test_cavity's frames (1280x1024,
-//! 171 strips of 6 rows) it takes 7.3 ms a frame on one core, this 2.8 ms
-//! (`cargo bench --bench detect -- decode`). The tests check this decoder
+//! 171 strips of 6 rows) it took 7.3 ms a frame on one core, this 2.8 ms
+//! (the two alternated in one process, 200 times each). `cargo bench
+//! --bench detect -- decode` times the whole `decode_image` (strips in
+//! parallel on the machine's cores). The tests check this decoder
 //! against weezl's on encoded images of every kind and on the real frames.
 //!
 //! [`check_strip`] answers whether a strip decodes, from the strings'
