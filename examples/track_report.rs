@@ -285,6 +285,11 @@ fn run(particles: usize, frames: usize, displacement_share: f64, recover: bool, 
         let (mut v_err, mut v_ref, mut a_err, mut a_ref, mut n) = (0.0, 0.0, 0.0, 0.0, 0usize);
         let mut v_errors: Vec<f64> = Vec::new();
         let (mut v_err_centred, mut v_ref_centred) = (0.0, 0.0);
+        // Squared velocity error and count by the point's distance from
+        // its trajectory's nearer end: 0, 1, 2 or more.
+        let mut by_end = [(0.0, 0usize); 3];
+        let mut end_errors: [Vec<f64>; 3] = Default::default();
+        let mut by_len = [(0.0, 0usize); 3];
         for t in &trajectories {
             for pair in t.points.windows(2) {
                 links += 1;
@@ -317,6 +322,17 @@ fn run(particles: usize, frames: usize, displacement_share: f64, recover: bool, 
                         v_ref_centred += u.norm_squared();
                     }
                     v_err += (p.derivatives.velocity - u).norm_squared();
+                    let d = k.min(t.points.len() - 1 - k).min(2);
+                    by_end[d].0 += (p.derivatives.velocity - u).norm_squared();
+                    by_end[d].1 += 1;
+                    let c = match t.points.len() {
+                        0..=3 => 0,
+                        4 => 1,
+                        _ => 2,
+                    };
+                    by_len[c].0 += (p.derivatives.velocity - u).norm_squared();
+                    by_len[c].1 += 1;
+                    end_errors[d].push((p.derivatives.velocity - u).norm());
                     v_errors.push((p.derivatives.velocity - u).norm());
                     v_ref += u.norm_squared();
                     if let Some(a) = p.derivatives.acceleration {
@@ -396,6 +412,43 @@ fn run(particles: usize, frames: usize, displacement_share: f64, recover: bool, 
         100.0 * (v_err_centred / v_ref_centred).sqrt(),
         100.0 * (a_err / a_ref).sqrt()
     );
+        let v_ms = v_ref / n.max(1) as f64;
+        println!(
+            "  by trajectory length (3, 4, 5+ points): shares of the squared velocity error {:.0}% / {:.0}% / {:.0}% over {} / {} / {} points",
+            100.0 * by_len[0].0 / v_err,
+            100.0 * by_len[1].0 / v_err,
+            100.0 * by_len[2].0 / v_err,
+            by_len[0].1,
+            by_len[1].1,
+            by_len[2].1
+        );
+        for (d, e) in end_errors.iter_mut().enumerate() {
+            if e.is_empty() {
+                continue;
+            }
+            e.sort_by(f64::total_cmp);
+            let q = |s: f64| e[((e.len() - 1) as f64 * s) as usize] / v_ms.sqrt() * 100.0;
+            println!(
+                "  velocity error at distance {d}{} from the nearer end: median {:.2}%, 90th percentile {:.2}%, 99th {:.2}%, 99.9th {:.2}%",
+                if d == 2 { " or more" } else { "" },
+                q(0.5),
+                q(0.9),
+                q(0.99),
+                q(0.999)
+            );
+        }
+        println!(
+            "  by distance from the trajectory's nearer end (0, 1, 2+): velocity RMS {:.2}% / {:.2}% / {:.2}% over {} / {} / {} points; shares of the squared error {:.0}% / {:.0}% / {:.0}%",
+            100.0 * (by_end[0].0 / by_end[0].1.max(1) as f64 / v_ms).sqrt(),
+            100.0 * (by_end[1].0 / by_end[1].1.max(1) as f64 / v_ms).sqrt(),
+            100.0 * (by_end[2].0 / by_end[2].1.max(1) as f64 / v_ms).sqrt(),
+            by_end[0].1,
+            by_end[1].1,
+            by_end[2].1,
+            100.0 * by_end[0].0 / v_err,
+            100.0 * by_end[1].0 / v_err,
+            100.0 * by_end[2].0 / v_err,
+        );
     }
 }
 

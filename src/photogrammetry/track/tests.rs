@@ -524,6 +524,58 @@ fn the_window_keeps_its_points_at_the_ends() {
     }
 }
 
+/// A trajectory shorter than its start test's window is tested as one
+/// path when it ends: a zig-zag of 3 or 4 points (each link within the
+/// search's limits, the path off any quadratic by tens of sigmas: a chain
+/// of several particles' points) is dropped, while a real particle's 3 or
+/// 4 points on a curved path are kept. The test trusts the sigmas as far
+/// as the run's fits bear them out: a particle on a line through all 130
+/// frames gives those fits, and without them (a run too short) nothing is
+/// tested.
+#[test]
+fn short_trajectories_that_are_no_path_are_dropped() {
+    let sigma = 0.01;
+    let noise = Normal::new(0.0, sigma).unwrap();
+    let run = |frames: i64, n: i64, offset: &dyn Fn(i64) -> Vector3<f64>| {
+        let mut rng = simulate::rng(7);
+        let start = frames - 10 - n;
+        let frames: Vec<(i64, Vec<ParticlePosition>)> = (0..frames)
+            .map(|f| {
+                // The long trajectory: on a line 100 mm away, with noise.
+                let e = Vector3::from_fn(|_, _| noise.sample(&mut rng));
+                let mut here = vec![ParticlePosition::new(
+                    Point3::new(0.5 * f as f64, 100.0, 0.0) + e,
+                    Vector3::repeat(sigma),
+                )];
+                if (start..start + n).contains(&f) {
+                    let position = Point3::new(f as f64, 0.0, 0.0) + offset(f);
+                    here.push(ParticlePosition::new(position, Vector3::repeat(sigma)));
+                }
+                (f, here)
+            })
+            .collect();
+        let found = track(frames, parameters()).unwrap();
+        // The short one, if kept.
+        found
+            .into_iter()
+            .filter(|t| t.points.len() < 20)
+            .collect::<Vec<_>>()
+    };
+    // 0.3 mm to either side in turn: second differences of 0.6 mm per
+    // frame², within `max_acceleration` (0.75), 60 sigmas off a line.
+    let zigzag = |f: i64| Vector3::new(0.0, 0.3 * (f % 2) as f64, 0.0);
+    // The vortex's centripetal acceleration, 0.02 mm per frame².
+    let curved = |f: i64| Vector3::new(0.0, 0.01 * ((f % 100) * (f % 100)) as f64, 0.0);
+    for n in [3, 4] {
+        assert!(run(130, n, &zigzag).is_empty(), "{n} points, zig-zag");
+        let kept = run(130, n, &curved);
+        assert_eq!(kept.len(), 1, "{n} points, curved");
+        assert_eq!(kept[0].points.len(), n as usize);
+        // Too few fits to know how far the sigmas hold: kept.
+        assert_eq!(run(30, n, &zigzag).len(), 1, "{n} points, short run");
+    }
+}
+
 /// Points in any order, with numbers far apart, are gathered as a stable
 /// sort by (trajectory, frame) would gather them.
 #[test]
