@@ -286,6 +286,12 @@ async fn a_camera_turning_half_a_milliradian_raises_its_alarm_and_a_steady_rig_n
     assert_eq!(response.status(), 200);
     assert_eq!(crate::helpers::content_type(&response), "image/png");
     let png = response.bytes().await.unwrap();
+    // Kept for a look: target/tmp/calibration-health.png.
+    std::fs::write(
+        std::path::Path::new(env!("CARGO_TARGET_TMPDIR")).join("calibration-health.png"),
+        &png,
+    )
+    .unwrap();
     let picture = image::load_from_memory(&png).unwrap();
     assert_eq!((picture.width(), picture.height()), (900, 440));
 

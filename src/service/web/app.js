@@ -478,7 +478,8 @@
 
   /** A sequence's calibration health: each camera's drift from the run's
    * first frames, and, once a camera's alarm fired, the advice to
-   * self-calibrate; the plot over frames drawn again when an alarm fires. */
+   * self-calibrate; the plot over frames drawn again when an alarm fires
+   * and every window of frames. */
   function healthSection(id) {
     const line = el('p', { class: 'note', id: 'health-line' });
     const advice = el('p', { class: 'warning', id: 'health-advice', hidden: '' });
@@ -489,13 +490,16 @@
       node,
       async update() {
         const h = await getJson(`/sequences/${id}/calibration-health`);
+        const based = h.cameras.some((c) => c.baseline_px);
         line.textContent = h.through_frame === null ? 'No frame measured yet.'
-          : `Through frame ${h.through_frame} (${h.frames} frames); drift from the first ${h.window} frames: `
-            + h.cameras.map((c) => `camera ${c.camera} ${c.drift_px.toFixed(3)} px`).join(', ')
-            + ` (alarm above ${h.threshold_px} px).`;
+          : !based ? `Through frame ${h.through_frame} (${h.frames} frames); the drift is watched once the first ${h.window} frames are measured.`
+            : `Through frame ${h.through_frame} (${h.frames} frames); drift from the first ${h.window} frames: `
+              + h.cameras.map((c) => `camera ${c.camera} ${c.drift_px.toFixed(3)} px`).join(', ')
+              + ` (alarm above ${h.threshold_px} px).`;
         advice.hidden = !h.alarm;
         advice.textContent = h.advice || '';
-        const key = `${h.calibration_id} ${h.alarm} ${h.frames > 0}`;
+        // Drawn again when an alarm fires and every window of frames.
+        const key = `${h.calibration_id} ${h.alarm} ${Math.ceil(h.frames / h.window)}`;
         if (key === drawn || h.frames === 0) return;
         drawn = key;
         for (const o of [...holder.children]) { if (o.release) o.release(); o.remove(); }
