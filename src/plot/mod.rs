@@ -12,6 +12,8 @@
 //! - [`overlay`]: a camera image with its detected targets and the
 //!   particles' reprojections (Eq. 1-12), coloured by how many cameras
 //!   saw each particle; unmatched targets stand out.
+//! - [`health`]: a run's calibration health over its frames: each
+//!   camera's mean disparity drift, the threshold, the alarms.
 //! - [`views`]: a frame's particles and a sequence's trajectories in three
 //!   orthographic views (XY, XZ, YZ), trajectories coloured by speed.
 //!
@@ -36,6 +38,7 @@
 
 pub mod disparity;
 pub mod font;
+pub mod health;
 pub mod overlay;
 pub mod residuals;
 pub mod views;

@@ -8,6 +8,10 @@
 //!   `ptv serve --workers 0` with two `ptv worker` processes, one killed
 //!   in the middle of a job, which the other takes over once its lease
 //!   has run out and completes exactly once.
+//! - `calibration_health`: a simulated run whose camera 2 turns by 0.5
+//!   mrad over 200 frames raises its drift alarm at the frame the core's
+//!   monitor gives (event, gauges, picture); a steady rig none; bad
+//!   requests' 4xx.
 //! - `bad_inputs`: every kind of bad request gets its 4xx and leaves the
 //!   database consistent.
 //! - `hostile`: issue 29's probe of hostile requests, each held to its
@@ -66,6 +70,7 @@
 mod api;
 mod bad_inputs;
 mod browser;
+mod calibration_health;
 mod connections;
 mod experiments;
 mod fuzz;

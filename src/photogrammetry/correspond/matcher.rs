@@ -350,6 +350,12 @@ impl Matcher {
         &self.volume
     }
 
+    /// The tolerance (px): the band's half-width and the largest residual
+    /// of an accepted particle.
+    pub fn tolerance(&self) -> f64 {
+        self.tolerance
+    }
+
     /// Finds the particles of one frame: `targets[c]` are camera c's targets.
     pub fn match_frame(&self, targets: &[Vec<Target>]) -> Result<Vec<Particle>, MatchError> {
         self.match_frame_until(targets, &Cancel::new())

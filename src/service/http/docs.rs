@@ -10,8 +10,8 @@ use utoipa::{Modify, OpenApi};
 use utoipa_swagger_ui::SwaggerUi;
 
 use super::{
-    calibrations, events, experiments, jobs, plots, problem, selfcal, sequence_images, sequences,
-    tracking,
+    calibration_health, calibrations, events, experiments, jobs, plots, problem, selfcal,
+    sequence_images, sequences, tracking,
 };
 use crate::service::model::parameters;
 use crate::service::ops::state::AppState;
@@ -38,6 +38,7 @@ use crate::service::ops::state::AppState;
         sequences::read,
         sequences::upload_frame,
         sequences::frames,
+        calibration_health::read,
         events::events,
         sequence_images::upload_background,
         sequence_images::upload_mask,
@@ -59,6 +60,7 @@ use crate::service::ops::state::AppState;
         plots::particles,
         plots::trajectories,
         plots::kept_image,
+        plots::calibration_health,
         jobs::read,
         jobs::retry,
         super::health::healthz,
@@ -75,6 +77,7 @@ use crate::service::ops::state::AppState;
         parameters::MatchingSettings,
         parameters::SequenceParameters,
         parameters::ComputedBackground,
+        parameters::HealthSettings,
         parameters::SolveOptions,
         crate::service::ops::selfcal::SelfCalibrationRequest,
         crate::service::ops::selfcal::FrameSpan,

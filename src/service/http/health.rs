@@ -6,6 +6,8 @@ use axum::response::{IntoResponse, Response};
 
 use super::extract::Shared;
 use super::problem::{self, ApiError};
+use crate::photogrammetry::health::DriftMonitor;
+use crate::service::infra::metrics::{render_health, CameraDrift};
 
 /// Liveness: the process answers `ok`.
 #[utoipa::path(get, path = "/healthz", tag = "operations", security(()),
@@ -48,14 +50,30 @@ pub async fn readyz(State(state): Shared) -> Result<&'static str, ApiError> {
 }
 
 /// Counters in Prometheus' text format: requests by route and status,
-/// queue depth, jobs by kind and state, job durations, particles per frame.
+/// queue depth, jobs by kind and state, job durations, particles per frame,
+/// and per sequence whose calibration health advanced in the last hour (at
+/// most 100) and camera its drift (px) and alarm.
 #[utoipa::path(get, path = "/metrics", tag = "operations", security(()),
     responses((status = 200, content_type = "text/plain", body = String)))]
 pub async fn metrics(State(state): Shared) -> Result<Response, ApiError> {
     let jobs = state.store.job_counts().await?;
-    Ok((
-        [(header::CONTENT_TYPE, "text/plain; version=0.0.4")],
-        state.metrics.render(&jobs),
-    )
-        .into_response())
+    let mut text = state.metrics.render(&jobs);
+    let mut drifts = Vec::new();
+    for (sequence, stored) in state.store.recent_health_states(3600.0, 100).await? {
+        // A monitor that does not read (written by a newer version) is
+        // left out, as an unknown event is.
+        let Ok(monitor) = serde_json::from_str::<DriftMonitor>(&stored.monitor) else {
+            continue;
+        };
+        for (camera, c) in monitor.cameras.iter().enumerate() {
+            drifts.push(CameraDrift {
+                sequence: sequence.0,
+                camera,
+                drift_px: c.drift_px,
+                alarm: c.alarm.is_some(),
+            });
+        }
+    }
+    text.push_str(&render_health(&drifts));
+    Ok(([(header::CONTENT_TYPE, "text/plain; version=0.0.4")], text).into_response())
 }

@@ -6,6 +6,8 @@
 //!   OpenPTV files, project and intersect.
 //! - [`sequences`]: create, read, upload frames, fetch particles and
 //!   targets.
+//! - [`calibration_health`]: a sequence's calibration health during the
+//!   run (the drift of each camera's disparities, its alarm).
 //! - [`events`]: a sequence's live progress as server-sent events.
 //! - [`selfcal`]: a sequence's calibration self-calibrated from its
 //!   targets, its frames reprocessed with another calibration, a
@@ -29,6 +31,7 @@
 //!   the panic guard, load shedding, the bearer token) and the request
 //!   counts for `/metrics`.
 
+pub mod calibration_health;
 pub mod calibrations;
 pub mod decimal;
 pub mod docs;
@@ -66,6 +69,7 @@ pub fn router(state: Arc<AppState>) -> Router {
     let api = Router::new()
         .merge(calibrations::router())
         .merge(sequences::router())
+        .merge(calibration_health::router())
         .merge(events::router())
         .merge(sequence_images::router())
         .merge(selfcal::router())

@@ -23,12 +23,14 @@ use utoipa::IntoParams;
 
 use super::calibrations::{calibration, stored_rig};
 use super::extract::Shared;
+use super::lookups::sequence;
 use super::problem::{ApiError, ApiPath, ApiQuery};
 use super::sequences::{load_particles, no_results};
 use super::tracking::current_run;
 use crate::formats;
 use crate::photogrammetry::image::GreyImage;
 use crate::plot::disparity::{disparity_plot, DisparityMaps};
+use crate::plot::health::{health_plot, CameraSeries, HealthSeries};
 use crate::plot::overlay::{overlay_plot, Overlay};
 use crate::plot::residuals::{residual_plot, ResidualReport};
 use crate::plot::views::{particles_plot, trajectories_plot, ParticlePoint, TrajectoryPoint};
@@ -44,13 +46,14 @@ use crate::service::store::{CalibrationId, FrameNumber, SequenceId, TrackingRunI
 pub const MAX_TRAJECTORY_POINTS: usize = 200_000;
 
 /// The routes' paths (also the shed CPU routes).
-pub const PLOT_ROUTES: [&str; 6] = [
+pub const PLOT_ROUTES: [&str; 7] = [
     "/api/v1/calibrations/{id}/residuals.png",
     "/api/v1/calibrations/{id}/disparity.png",
     "/api/v1/sequences/{id}/frames/{frame}/overlay.png",
     "/api/v1/sequences/{id}/frames/{frame}/particles.png",
     "/api/v1/sequences/{id}/trajectories.png",
     "/api/v1/sequences/{id}/frames/{frame}/image.png",
+    "/api/v1/sequences/{id}/calibration-health.png",
 ];
 
 pub(super) fn router() -> Router<Arc<AppState>> {
@@ -62,6 +65,7 @@ pub(super) fn router() -> Router<Arc<AppState>> {
         .route(route(PLOT_ROUTES[3]), get(particles))
         .route(route(PLOT_ROUTES[4]), get(trajectories))
         .route(route(PLOT_ROUTES[5]), get(kept_image))
+        .route(route(PLOT_ROUTES[6]), get(calibration_health))
 }
 
 /// Query of a frame's kept image.
@@ -540,6 +544,70 @@ pub async fn trajectories(
     let bytes = state
         .cpu
         .run(move || trajectories_plot(&title, &note, &trajectories, format))
+        .await??;
+    Ok(picture(format, bytes))
+}
+
+/// The most bins of frames the calibration health picture draws: a bin
+/// is the mean of its frames, so the picture reads at most cameras x
+/// 1,000 rows whatever the run's length.
+pub const MAX_HEALTH_BINS: i64 = 1000;
+
+/// A sequence's calibration health over its frames: per camera the change
+/// of its frames' mean disparity from the run's first window of frames,
+/// the alarm threshold, and each camera's alarm; frames averaged in bins
+/// beyond 1,000 frames.
+#[utoipa::path(
+    get, path = "/api/v1/sequences/{id}/calibration-health.png", tag = "plots",
+    params(("id" = i64, Path, description = "Sequence id"), PlotQuery),
+    responses(
+        (status = 200, content_type = "image/png", body = Vec<u8>, description = "PNG; image/svg+xml with format=svg"),
+        (status = 400, description = "Unknown format or query field", body = super::problem::Problem, content_type = "application/problem+json"),
+        (status = 404, description = "No such sequence", body = super::problem::Problem, content_type = "application/problem+json"),
+    )
+)]
+pub async fn calibration_health(
+    State(state): Shared,
+    ApiPath(id): ApiPath<SequenceId>,
+    ApiQuery(query): ApiQuery<PlotQuery>,
+) -> Result<Response, ApiError> {
+    sequence(&state, id).await?;
+    let monitor = crate::service::ops::health::summary(&state, id).await?;
+    let points = state
+        .store
+        .health_series(id, monitor.calibration_id, MAX_HEALTH_BINS)
+        .await?;
+    let mut cameras: Vec<CameraSeries> = monitor
+        .monitor
+        .cameras
+        .iter()
+        .map(|c| CameraSeries {
+            points: Vec::new(),
+            baseline: c.baseline_px,
+            alarm: c.alarm.as_ref().map(|a| a.frame),
+        })
+        .collect();
+    for p in points {
+        if let Some(c) = usize::try_from(p.camera)
+            .ok()
+            .and_then(|c| cameras.get_mut(c))
+        {
+            c.points.push((p.frame.0, p.mean));
+        }
+    }
+    let series = HealthSeries {
+        title: format!(
+            "Sequence {id}, calibration {}: calibration health",
+            monitor.calibration_id
+        ),
+        threshold_px: monitor.settings.threshold_px,
+        window: monitor.settings.window as usize,
+        cameras,
+    };
+    let format = query.format;
+    let bytes = state
+        .cpu
+        .run(move || health_plot(&series, format))
         .await??;
     Ok(picture(format, bytes))
 }

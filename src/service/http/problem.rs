@@ -216,6 +216,17 @@ impl From<crate::plot::PlotError> for ApiError {
     }
 }
 
+impl From<crate::service::ops::health::HealthError> for ApiError {
+    fn from(error: crate::service::ops::health::HealthError) -> Self {
+        use crate::service::ops::health::HealthError;
+        match error {
+            HealthError::Database(error) => error.into(),
+            HealthError::NoSequence(_) => ApiError::not_found(error.to_string()),
+            HealthError::Stored(..) => ApiError::internal(error),
+        }
+    }
+}
+
 impl From<sqlx::Error> for ApiError {
     /// A full disk is a 507, a database that cannot be reached a 503 (both
     /// with `Retry-After`); any other database error a 500.

@@ -34,7 +34,7 @@ use crate::photogrammetry::correspond::{max_targets, Particle, MAX_TARGETS_PER_C
 use crate::photogrammetry::{Camera, Cancel, Sensor, Splitter, StopOnDrop, Target};
 use crate::service::infra::codec;
 use crate::service::model::parameters::{
-    ComputedBackground, DetectionSettings, MatchingSettings, SequenceParameters,
+    ComputedBackground, DetectionSettings, HealthSettings, MatchingSettings, SequenceParameters,
 };
 use crate::service::model::raw_layout::StoredRawLayout;
 use crate::service::model::tracking_settings::TrackingSettings;
@@ -106,6 +106,10 @@ pub struct CreateSequence {
     /// /sequences/{id}/tracking` starts tracking later].
     #[serde(default)]
     pub tracking: Option<TrackingSettings>,
+    /// How its calibration health is watched [default: an alarm when a
+    /// camera's mean disparity drifts 0.3 px over 50 frames].
+    #[serde(default)]
+    pub health: Option<HealthSettings>,
 }
 
 /// Frames of a sequence by state.
@@ -252,6 +256,10 @@ pub async fn create(
         background.validate().map_err(ApiError::unprocessable)?;
     }
     parameters.background = request.background;
+    if let Some(health) = request.health {
+        health.validate().map_err(ApiError::unprocessable)?;
+        parameters.health = Some(health);
+    }
     let tracking = match &request.tracking {
         Some(settings) => Some(settings.with_defaults()?),
         None => None,

@@ -144,6 +144,59 @@ pub struct Metrics {
     /// Requests whose body arrived too slowly, ended at the limit to let a
     /// new connection in.
     slow_evicted: AtomicU64,
+    /// Calibration drift alarms this process announced.
+    calibration_alarms: AtomicU64,
+}
+
+/// One camera's calibration health in a sequence whose monitor advanced
+/// lately, for [`render_health`].
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct CameraDrift {
+    /// The sequence's id.
+    pub sequence: i64,
+    /// The camera, from 0.
+    pub camera: usize,
+    /// The windowed mean disparity's drift from the baseline (px; 0 before
+    /// the baseline is complete).
+    pub drift_px: f64,
+    /// Whether the camera's alarm fired.
+    pub alarm: bool,
+}
+
+/// The calibration health gauges: per sequence whose drift monitor advanced
+/// within the last hour (at most 100 sequences, the newest; the caller
+/// reads them) and camera (at most 16), its drift and whether its alarm
+/// fired; so at most 1,600 series of each, and they go away an hour after
+/// a run stops.
+pub fn render_health(cameras: &[CameraDrift]) -> String {
+    let mut out = String::new();
+    out.push_str(
+        "# HELP ptv_calibration_drift_px A camera's mean disparity drift from the run's first \
+         frames (px), per sequence advanced in the last hour.\n",
+    );
+    out.push_str("# TYPE ptv_calibration_drift_px gauge\n");
+    for c in cameras {
+        let _ = writeln!(
+            out,
+            "ptv_calibration_drift_px{{sequence=\"{}\",camera=\"{}\"}} {}",
+            c.sequence, c.camera, c.drift_px
+        );
+    }
+    out.push_str(
+        "# HELP ptv_calibration_drift_alarm 1 when a camera's drift passed the sequence's \
+         threshold (self-calibrate), per sequence advanced in the last hour.\n",
+    );
+    out.push_str("# TYPE ptv_calibration_drift_alarm gauge\n");
+    for c in cameras {
+        let _ = writeln!(
+            out,
+            "ptv_calibration_drift_alarm{{sequence=\"{}\",camera=\"{}\"}} {}",
+            c.sequence,
+            c.camera,
+            u8::from(c.alarm)
+        );
+    }
+    out
 }
 
 impl Metrics {
@@ -220,6 +273,11 @@ impl Metrics {
         self.slow_evicted.fetch_add(1, Ordering::Relaxed);
     }
 
+    /// A calibration drift alarm announced.
+    pub fn calibration_alarm(&self) {
+        self.calibration_alarms.fetch_add(1, Ordering::Relaxed);
+    }
+
     /// The text exposition; `jobs` are (kind, state, count) from the store.
     pub fn render(&self, jobs: &[(String, String, i64)]) -> String {
         let mut out = String::new();
@@ -271,6 +329,12 @@ impl Metrics {
                 "Requests whose body arrived below --min-body-rate, ended with 408 at the \
                  limit to let a new connection in.",
                 &self.slow_evicted,
+            ),
+            (
+                "ptv_calibration_drift_alarms_total",
+                "counter",
+                "Calibration drift alarms this process announced (calibration_drift events).",
+                &self.calibration_alarms,
             ),
         ];
         for (name, kind, help, value) in connections {

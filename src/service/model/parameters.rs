@@ -277,6 +277,66 @@ impl ComputedBackground {
     }
 }
 
+/// How a sequence's calibration health is watched
+/// ([`crate::photogrammetry::health::DriftMonitor`]): a camera's alarm
+/// fires at the first frame at which the mean of its last `window` frames'
+/// mean disparity vectors has moved more than `threshold_px` from the mean
+/// of the run's first `window` frames. Sequences stored before the setting
+/// existed read it as absent, that is as the defaults.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct HealthSettings {
+    /// The drift (px) that raises a camera's alarm, above 0 and at most
+    /// 100 [default: 0.3].
+    #[serde(default = "default_threshold_px")]
+    pub threshold_px: f64,
+    /// Frames per window, 1..=500 [default: 50].
+    #[serde(default = "default_window")]
+    pub window: u32,
+}
+
+/// The largest health window: the monitor keeps one window of frame means
+/// per camera (3 numbers a frame), so its stored state stays under about
+/// 16 cameras x 500 frames x 60 bytes = 480 KB of JSON.
+pub const MAX_HEALTH_WINDOW: u32 = 500;
+
+fn default_threshold_px() -> f64 {
+    crate::photogrammetry::health::DriftMonitor::DEFAULT_THRESHOLD_PX
+}
+
+fn default_window() -> u32 {
+    crate::photogrammetry::health::DriftMonitor::DEFAULT_WINDOW as u32
+}
+
+impl Default for HealthSettings {
+    fn default() -> Self {
+        HealthSettings {
+            threshold_px: default_threshold_px(),
+            window: default_window(),
+        }
+    }
+}
+
+impl HealthSettings {
+    /// Checks the threshold and the window.
+    pub fn validate(&self) -> Result<(), String> {
+        if !(self.threshold_px.is_finite() && self.threshold_px > 0.0 && self.threshold_px <= 100.0)
+        {
+            return Err(format!(
+                "health.threshold_px: {} is not a drift in pixels above 0 and at most 100",
+                self.threshold_px
+            ));
+        }
+        if !(1..=MAX_HEALTH_WINDOW).contains(&self.window) {
+            return Err(format!(
+                "health.window: {} is outside 1..={MAX_HEALTH_WINDOW} frames",
+                self.window
+            ));
+        }
+        Ok(())
+    }
+}
+
 /// The parameters a sequence is processed with, defaults filled in.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, ToSchema)]
 pub struct SequenceParameters {
@@ -288,6 +348,10 @@ pub struct SequenceParameters {
     /// (absent: none, or an uploaded one).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub background: Option<ComputedBackground>,
+    /// How its calibration health is watched (absent in sequences stored
+    /// before the setting existed: the defaults).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub health: Option<HealthSettings>,
 }
 
 impl SequenceParameters {
@@ -301,7 +365,13 @@ impl SequenceParameters {
                 min_cameras: Some(matching.min_cameras.unwrap_or(2)),
             },
             background: None,
+            health: Some(HealthSettings::default()),
         }
+    }
+
+    /// The health settings, the defaults where the stored sequence has none.
+    pub fn health(&self) -> HealthSettings {
+        self.health.clone().unwrap_or_default()
     }
 
     /// The core's detection parameters (not yet validated): per camera

@@ -199,6 +199,28 @@ pub enum Change {
         /// why).
         finished: bool,
     },
+    /// A camera's calibration drifted: the mean of its last `window`
+    /// frames' mean disparity vectors moved more than `threshold_px` from
+    /// the run's first `window` frames' (`GET
+    /// /sequences/{id}/calibration-health`). Self-calibrate the sequence
+    /// (`POST /sequences/{id}/self-calibration`). Once per camera and
+    /// calibration.
+    CalibrationDrift {
+        /// The camera, from 0.
+        camera: usize,
+        /// The frame at which the alarm fired.
+        #[schema(value_type = i64, minimum = 0, maximum = 4_294_967_295_u64)]
+        frame: FrameNumber,
+        /// The calibration the drift is from.
+        #[schema(value_type = i64)]
+        calibration_id: crate::service::store::CalibrationId,
+        /// The windowed mean's change from the baseline (px, x and y).
+        drift_px: [f64; 2],
+        /// Its length (px).
+        drift_length_px: f64,
+        /// The sequence's threshold (px).
+        threshold_px: f64,
+    },
 }
 
 impl Change {
@@ -213,6 +235,7 @@ impl Change {
             Change::Job { .. } => "job",
             Change::Tracked { .. } => "tracked",
             Change::TrackingEnded { .. } => "tracking_ended",
+            Change::CalibrationDrift { .. } => "calibration_drift",
         }
     }
 }
@@ -678,6 +701,14 @@ mod tests {
             Change::TrackingEnded {
                 run_id,
                 finished: true,
+            },
+            Change::CalibrationDrift {
+                camera: 1,
+                frame,
+                calibration_id: crate::service::store::CalibrationId(4),
+                drift_px: [0.3, 0.1],
+                drift_length_px: 0.316,
+                threshold_px: 0.3,
             },
         ];
         for change in changes {

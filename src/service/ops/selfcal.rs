@@ -418,7 +418,7 @@ pub async fn reprocess_sequence(state: Arc<AppState>, run: JobRun) -> Result<(),
                 .await?;
             let cancel = Cancel::with_limit(limit.for_work(0, count));
             let work_cancel = cancel.clone();
-            let particles = state
+            let (particles, health) = state
                 .cpu
                 .run_until(&cancel, move || {
                     let targets = stored
@@ -426,10 +426,18 @@ pub async fn reprocess_sequence(state: Arc<AppState>, run: JobRun) -> Result<(),
                         .map(|(_, _, blob)| codec::decode_targets(blob))
                         .collect::<Result<Vec<_>, _>>()
                         .map_err(|e| format!("its stored targets: {e}"))?;
-                    pipeline
-                        .matcher()
+                    let matcher = pipeline.matcher();
+                    let particles = matcher
                         .match_frame_until(&targets, &work_cancel)
-                        .map_err(|e| e.to_string())
+                        .map_err(|e| e.to_string())?;
+                    let health = crate::service::ops::health::frame_health(
+                        matcher.cameras(),
+                        &targets,
+                        &particles,
+                        matcher.volume(),
+                        matcher.tolerance(),
+                    );
+                    Ok::<_, String>((particles, health))
                 })
                 .await
                 .map_err(|e| JobError::Failed(format!("reprocessing frame {frame}: {e}")))?
@@ -442,6 +450,7 @@ pub async fn reprocess_sequence(state: Arc<AppState>, run: JobRun) -> Result<(),
                     (sequence_id, frame),
                     calibration_id,
                     (particles.len() as i64, &blob),
+                    &crate::service::ops::health::rows_of(&health),
                 )
                 .await?;
             done += 1;

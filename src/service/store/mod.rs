@@ -62,12 +62,14 @@
 //! (sequences and their frames' inputs and results) and `jobs`
 //! (the queue and the jobs' input files), `selfcal`
 //! (refined calibrations, reprocessing), `tracking`
-//! (tracking runs, the frames they took, trajectory points); here the pools, the migrations
+//! (tracking runs, the frames they took, trajectory points), `health`
+//! (frames' calibration health, the sequences' drift monitors); here the pools, the migrations
 //! and what they share.
 
 mod calibrations;
 mod dialect;
 mod events;
+mod health;
 mod jobs;
 mod selfcal;
 mod sequences;
@@ -93,6 +95,7 @@ use crate::service::infra::urls::PostgresUrl;
 pub use self::calibrations::{insert_calibration, CalibrationRow, CalibrationSummary};
 pub use self::dialect::{error_kind, Dialect, ErrorKind};
 pub use self::events::EventRow;
+pub use self::health::{HealthFrame, HealthRow, HealthSeriesPoint, HealthState};
 pub use self::jobs::{
     enqueue, expire_leases, finish, ClaimOutcome, ClaimedJob, JobClaim, JobFile, JobResult, JobRow,
     JobState, RetryOutcome, WorkerId, MAX_ATTEMPTS,
@@ -223,11 +226,16 @@ const MIGRATIONS: &[(i64, &str, &str)] = &[
         "trajectory_points_by_block",
         include_str!("../../../migrations/0010_trajectory_points_by_block.sql"),
     ),
+    (
+        11,
+        "calibration_health",
+        include_str!("../../../migrations/0011_calibration_health.sql"),
+    ),
 ];
 
 /// Version, description and SQL of each PostgreSQL migration, in order
 /// (`migrations/postgres/`): 0001 is the schema SQLite's 0001-0008
-/// reach, 0002 SQLite's 0009, 0003 SQLite's 0010; each engine numbers its
+/// reach, 0002 SQLite's 0009, 0003 SQLite's 0010, 0004 SQLite's 0011; each engine numbers its
 /// own migrations.
 const POSTGRES_MIGRATIONS: &[(i64, &str, &str)] = &[
     (
@@ -244,6 +252,11 @@ const POSTGRES_MIGRATIONS: &[(i64, &str, &str)] = &[
         3,
         "trajectory_points_by_block",
         include_str!("../../../migrations/postgres/0003_trajectory_points_by_block.sql"),
+    ),
+    (
+        4,
+        "calibration_health",
+        include_str!("../../../migrations/postgres/0004_calibration_health.sql"),
     ),
 ];
 

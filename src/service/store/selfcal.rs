@@ -156,7 +156,7 @@ impl Store {
     /// Replaces a processed frame's particles with those `calibration_id`
     /// made, in one transaction fenced on the reprocess `job`'s lease (a
     /// worker whose lease ran out writes nothing:
-    /// [`CompleteError::LostLease`]): the old ones stay until the new ones
+    /// [`CompleteError::LostLease`]), with their health rows: the old ones stay until the new ones
     /// are written. False if the frame has no particles.
     pub async fn replace_particles(
         &self,
@@ -164,6 +164,7 @@ impl Store {
         (sequence_id, frame): (SequenceId, FrameNumber),
         calibration_id: CalibrationId,
         particles: (i64, &[u8]),
+        health: &[super::HealthRow],
     ) -> Result<bool, CompleteError> {
         let mut tx = self.write_transaction().await?;
         let held: Option<(i64,)> = sqlx::query_as(
@@ -188,6 +189,9 @@ impl Store {
         .execute(&mut *tx)
         .await?
         .rows_affected();
+        if changed == 1 {
+            super::health::replace_health(&mut tx, (sequence_id, frame), health).await?;
+        }
         tx.commit().await?;
         Ok(changed == 1)
     }

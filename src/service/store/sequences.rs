@@ -493,7 +493,8 @@ impl Store {
 
     /// Stores a processed frame's results and completes its job, in one
     /// transaction: `targets` (detected; empty when they were uploaded),
-    /// the particles (naming `input.calibration_id`, which made them), and, when the sequence does not keep images, the
+    /// the particles (naming `input.calibration_id`, which made them), their
+    /// calibration health rows (`health`), and, when the sequence does not keep images, the
     /// removal of the frame's image rows. Returns the hashes of the removed
     /// rows: their files go where nothing else refers to them, which the
     /// caller checks after the commit under the image store's lock
@@ -506,7 +507,7 @@ impl Store {
         job: &ClaimedJob,
         input: &FrameInput,
         targets: &[(i64, i64, Vec<u8>)],
-        particles: (i64, &[u8]),
+        (particles, health): ((i64, &[u8]), &[super::HealthRow]),
         drop_images: bool,
         duration_s: f64,
     ) -> Result<Vec<String>, CompleteError> {
@@ -527,6 +528,10 @@ impl Store {
         .bind(input.calibration_id)
         .execute(&mut *tx)
         .await?;
+        // Replaced, not only inserted: rows a frame's earlier results left
+        // (only a hand-edited database has them without particles) never
+        // stop its completion.
+        super::health::replace_health(&mut tx, (sequence_id, frame), health).await?;
         let mut released = Vec::new();
         if drop_images {
             let hashes: Vec<(String,)> = sqlx::query_as(

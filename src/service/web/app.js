@@ -374,6 +374,9 @@
     main.append(tracking.node);
     tracking.update(sequence.tracking);
     cleanups.push(tracking.stop);
+    const health = healthSection(id);
+    main.append(health.node);
+    await health.update();
     await showFrames(frames, id);
 
     // Throughput from the frames processed while this page is open.
@@ -387,6 +390,7 @@
           const fresh = await getJson(`/sequences/${id}`);
           showCounts(counts, fresh.frames);
           tracking.update(fresh.tracking);
+          await health.update();
           await showFrames(frames, id);
         } catch (error) {
           if (!(error instanceof NeedToken)) throw error;
@@ -469,6 +473,38 @@
         else if (!timer) timer = setTimeout(redraw, wait);
       },
       stop() { clearTimeout(timer); },
+    };
+  }
+
+  /** A sequence's calibration health: each camera's drift from the run's
+   * first frames, and, once a camera's alarm fired, the advice to
+   * self-calibrate; the plot over frames drawn again when an alarm fires
+   * and every window of frames. */
+  function healthSection(id) {
+    const line = el('p', { class: 'note', id: 'health-line' });
+    const advice = el('p', { class: 'warning', id: 'health-advice', hidden: '' });
+    const holder = el('div', { id: 'health-plot' });
+    const node = el('section', { id: 'health' }, el('h2', { text: 'Calibration health' }), line, advice, holder);
+    let drawn = null;
+    return {
+      node,
+      async update() {
+        const h = await getJson(`/sequences/${id}/calibration-health`);
+        const based = h.cameras.some((c) => c.baseline_px);
+        line.textContent = h.through_frame === null ? 'No frame measured yet.'
+          : !based ? `Through frame ${h.through_frame} (${h.frames} frames); the drift is watched once the first ${h.window} frames are measured.`
+            : `Through frame ${h.through_frame} (${h.frames} frames); drift from the first ${h.window} frames: `
+              + h.cameras.map((c) => `camera ${c.camera} ${c.drift_px.toFixed(3)} px`).join(', ')
+              + ` (alarm above ${h.threshold_px} px).`;
+        advice.hidden = !h.alarm;
+        advice.textContent = h.advice || '';
+        // Drawn again when an alarm fires and every window of frames.
+        const key = `${h.calibration_id} ${h.alarm} ${Math.ceil(h.frames / h.window)}`;
+        if (key === drawn || h.frames === 0) return;
+        drawn = key;
+        for (const o of [...holder.children]) { if (o.release) o.release(); o.remove(); }
+        holder.append(plot(`/sequences/${id}/calibration-health.png`, 'each camera\'s mean disparity drift over frames'));
+      },
     };
   }
 

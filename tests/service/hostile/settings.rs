@@ -423,6 +423,8 @@ fn openapi_declares_every_frame_number_alike() {
         "first_frame",
         "last_frame",
         "tracked_through",
+        "through_frame",
+        "latest_frame",
         "after",
     ];
     let mut seen = Vec::new();

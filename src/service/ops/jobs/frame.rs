@@ -1,7 +1,7 @@
 //! The `process_frame` job: one uploaded frame's images decoded, its
 //! targets detected and matched into particles with the sequence's
-//! pipeline, within the job's time limit and memory need; its results
-//! stored with the job's completion.
+//! pipeline, within the job's time limit and memory need, its calibration
+//! health measured; its results stored with the job's completion.
 
 use super::attempt::{JobError, JobRun, TimeLimit};
 use super::cache::Prepared;
@@ -9,10 +9,12 @@ use super::pipelines::{pipeline_of, sequence_parameters};
 use super::pool::CpuError;
 use crate::formats::{self, FormatError};
 use crate::photogrammetry::correspond::{MatchError, Particle};
-use crate::photogrammetry::{Cancel, PipelineError, SplitterError};
+use crate::photogrammetry::health::FrameHealth;
+use crate::photogrammetry::{Cancel, FramePipeline, PipelineError, SplitterError, Target};
 use crate::service::infra::codec;
 use crate::service::infra::codec::DamagedBlob;
 use crate::service::model::raw_layout::StoredRawLayout;
+use crate::service::ops::health::{frame_health, rows_of};
 use crate::service::ops::images::remove_unused_images;
 use crate::service::ops::state::AppState;
 use crate::service::store::{FrameInputKind, FrameNumber, SequenceId};
@@ -49,7 +51,29 @@ pub enum FrameError {
     Cpu(#[from] CpuError),
 }
 
-/// A frame's targets (encoded per camera, for images) and particles. Images
+/// A frame's results: its targets (encoded per camera, for images; none
+/// for uploaded targets), particles and calibration health.
+type FrameResults = (Vec<(i64, i64, Vec<u8>)>, Vec<Particle>, FrameHealth);
+
+/// The calibration health of a frame matched by `pipeline`
+/// ([`crate::service::ops::health`]).
+fn health_of(
+    pipeline: &FramePipeline,
+    targets: &[Vec<Target>],
+    particles: &[Particle],
+) -> FrameHealth {
+    let matcher = pipeline.matcher();
+    frame_health(
+        matcher.cameras(),
+        targets,
+        particles,
+        matcher.volume(),
+        matcher.tolerance(),
+    )
+}
+
+/// A frame's targets (encoded per camera, for images), particles and
+/// calibration health (measured on the CPU pool with the matching). Images
 /// are read, decoded and detected one camera at a time, keeping only their
 /// targets, so a worker holds at most one compressed and one decoded image
 /// at a time (with a splitter, the one image and its views); `size` keeps
@@ -62,7 +86,7 @@ async fn frame_work(
     limit: &TimeLimit,
     cancel: &Cancel,
     size: &mut (u64, u64),
-) -> Result<(Vec<(i64, i64, Vec<u8>)>, Vec<Particle>), JobError> {
+) -> Result<FrameResults, JobError> {
     let cameras = pipeline.cameras().len();
     let splitter = *splitter;
     if input.input == FrameInputKind::Images {
@@ -146,8 +170,9 @@ async fn frame_work(
             .cpu
             .run_until(cancel, move || {
                 let frame = pipeline.match_targets(targets, &work_cancel)?;
+                let health = health_of(&pipeline, &frame.targets, &frame.particles);
                 let targets = codec::encode_frame_targets(&frame.targets);
-                Ok::<_, FrameError>((targets, frame.particles))
+                Ok::<_, FrameError>((targets, frame.particles, health))
             })
             .await
             .map_err(FrameError::from)
@@ -164,24 +189,24 @@ async fn frame_work(
             .sum();
         cancel.set_limit(limit.for_work(0, size.1));
         let (pipeline, work_cancel) = (pipeline.clone(), cancel.clone());
-        let particles = state
+        let (particles, health) = state
             .cpu
             .run_until(cancel, move || {
                 let targets = stored
                     .iter()
                     .map(|(_, _, blob)| codec::decode_targets(blob))
                     .collect::<Result<Vec<_>, _>>()?;
-                Ok::<_, FrameError>(
-                    pipeline
-                        .matcher()
-                        .match_frame_until(&targets, &work_cancel)?,
-                )
+                let particles = pipeline
+                    .matcher()
+                    .match_frame_until(&targets, &work_cancel)?;
+                let health = health_of(&pipeline, &targets, &particles);
+                Ok::<_, FrameError>((particles, health))
             })
             .await
             .map_err(FrameError::from)
             .and_then(|r| r)
             .map_err(JobError::failed)?;
-        Ok((Vec::new(), particles))
+        Ok((Vec::new(), particles, health))
     }
 }
 
@@ -254,7 +279,7 @@ pub async fn process_frame(state: Arc<AppState>, run: JobRun) -> Result<(), JobE
     let grant = state.budget.acquire(&frame_need(&input, &prepared)).await?;
     let computed = frame_work(&state, &input, &prepared, &limit, &cancel, &mut size).await;
     drop(grant);
-    let (targets, particles) = match computed {
+    let (targets, particles, health) = match computed {
         Ok(result) => result,
         Err(_) if cancel.is_stopped() || cancel.check().is_err() => {
             let (pixels, targets) = size;
@@ -280,7 +305,7 @@ pub async fn process_frame(state: Arc<AppState>, run: JobRun) -> Result<(), JobE
             &run.job,
             &input,
             &targets,
-            (particles.len() as i64, &blob),
+            ((particles.len() as i64, &blob), &rows_of(&health)),
             !keep_images,
             run.elapsed_s(),
         )

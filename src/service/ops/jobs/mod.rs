@@ -270,9 +270,22 @@ async fn execute(state: &Arc<AppState>, job: ClaimedJob) {
     crate::service::ops::events::job_ended(&state.events, &job, announced);
     if kind == JobKind::ProcessFrame.as_str() {
         // A frame done (or failed: a gap) may let its sequence's tracking
-        // advance.
+        // and calibration health advance.
         if let Ok(payload) = serde_json::from_str::<FramePayload>(&job.payload) {
             crate::service::ops::tracking::kick(state, payload.sequence_id);
+            crate::service::ops::health::advance_later(state, payload.sequence_id);
+        }
+    } else if kind == JobKind::ReprocessSequence.as_str() {
+        // Frames reprocessed with the sequence's new calibration feed its
+        // new health monitor.
+        if let Ok(payload) = serde_json::from_str::<OfSequence>(&job.payload) {
+            crate::service::ops::health::advance_later(state, payload.sequence_id);
         }
     }
+}
+
+/// The sequence a job's payload names (other fields ignored).
+#[derive(serde::Deserialize)]
+struct OfSequence {
+    sequence_id: crate::service::store::SequenceId,
 }
