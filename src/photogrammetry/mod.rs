@@ -30,6 +30,7 @@ pub mod detect;
 pub mod health;
 pub mod image;
 pub mod intersect;
+pub mod ipr;
 pub mod media;
 pub mod pipeline;
 pub mod selfcal;
