@@ -33,6 +33,7 @@ pub mod intersect;
 pub mod ipr;
 pub mod media;
 pub mod pipeline;
+pub mod score;
 pub mod selfcal;
 pub mod simulate;
 pub mod splitter;
