@@ -16,6 +16,10 @@
 //!   every camera's targets (correspondences, section 6.2, and intersection).
 //! - `ptv process` (`cli/process.rs`): the particles of one frame from every
 //!   camera's image, through the frame pipeline (detection, then `match`).
+//! - `ptv reconstruct` (`cli/reconstruct.rs`): the particles of one dense
+//!   frame set by iterative particle reconstruction.
+//! - `ptv score` (`cli/score.rs`): particles scored against the truth by
+//!   the LPT challenge's 1-voxel rule.
 //! - `ptv experiment import` (`cli/experiment.rs`): an OpenPTV/pyptv
 //!   experiment as the calibration JSON and the service's sequence body.
 //! - `ptv process-sequence` (`cli/process_sequence.rs`): every frame of an
@@ -49,6 +53,8 @@ mod plot;
 mod process;
 mod process_sequence;
 mod project;
+mod reconstruct;
+mod score;
 mod selfcalibrate;
 mod simulate;
 mod simulate_wand;
@@ -70,6 +76,8 @@ pub use self::match_targets::{MatchArgs, MatchingFlags};
 pub use self::plot::PlotCommand;
 pub use self::process::ProcessArgs;
 pub use self::process_sequence::{BackgroundChoice, ProcessSequenceArgs};
+pub use self::reconstruct::ReconstructArgs;
+pub use self::score::ScoreArgs;
 pub use self::selfcalibrate::SelfCalibrateArgs;
 pub use self::simulate::{FlowArg, SimulateArgs};
 pub use self::track::TrackArgs;
@@ -121,6 +129,17 @@ pub enum Command {
     /// Find the particles of one frame from the image of every camera
     /// (detection, then as `ptv match`); writes the same CSV as `ptv match`.
     Process(ProcessArgs),
+    /// Find the particles of one dense frame set (0.01..0.15 particles per
+    /// pixel) by iterative particle reconstruction (IPR) from the image of
+    /// every camera; writes the CSV x,y,z,sx,sy,sz,intensity,rms_px (mm,
+    /// grey levels, px) to standard output, a line per outer loop to
+    /// standard error.
+    Reconstruct(ReconstructArgs),
+    /// Score a particle table against the true particles (`ptv simulate`'s
+    /// truth.csv) by the LPT challenge's 1-voxel rule; writes JSON (found,
+    /// ghosts, recall, ghost fraction, position RMS in voxels, mm and px)
+    /// to standard output.
+    Score(ScoreArgs),
     /// Import an OpenPTV/pyptv experiment.
     #[command(subcommand)]
     Experiment(ExperimentCommand),
@@ -293,6 +312,9 @@ pub enum CliError {
         #[source]
         source: SensorMismatch,
     },
+    /// Iterative particle reconstruction refused the frame set.
+    #[error("cannot reconstruct the particles")]
+    Reconstruct(#[source] crate::photogrammetry::ipr::IprError),
     /// The frame pipeline refused the frame.
     #[error("cannot process the frame")]
     Pipeline(#[source] PipelineError),
@@ -379,6 +401,8 @@ pub fn run(
         Command::Detect(args) => detect::run(&args, stdout, stderr),
         Command::Match(args) => match_targets::run(&args, stdout),
         Command::Process(args) => process::run(&args, stdout, stderr),
+        Command::Reconstruct(args) => reconstruct::run(&args, stdout, stderr),
+        Command::Score(args) => score::run(&args, stdout),
         Command::Experiment(ExperimentCommand::Import(args)) => experiment::import(&args, stderr),
         Command::ProcessSequence(args) => process_sequence::run(&args, stdout),
         Command::Simulate(args) => simulate::run(&args, stderr),

@@ -16,6 +16,7 @@ mod experiment;
 mod matching;
 mod openptv_files;
 mod plot;
+mod reconstruct;
 mod selfcalibrate;
 mod simulate;
 mod track;
