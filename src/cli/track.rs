@@ -625,6 +625,42 @@ impl Held {
     }
 }
 
+/// The hash of [`Rows::last`]'s keys, trajectory numbers (dense, chosen
+/// by the tracker, not by the input): a multiply and a rotate (as rustc's
+/// FxHash) instead of SipHash's rounds, which guard against keys chosen
+/// to collide.
+#[derive(Clone, Copy, Default)]
+struct TrajectoryHash;
+
+impl std::hash::BuildHasher for TrajectoryHash {
+    type Hasher = TrajectoryHasher;
+
+    fn build_hasher(&self) -> TrajectoryHasher {
+        TrajectoryHasher(0)
+    }
+}
+
+/// [`TrajectoryHash`]'s hasher.
+struct TrajectoryHasher(u64);
+
+impl std::hash::Hasher for TrajectoryHasher {
+    fn finish(&self) -> u64 {
+        // hashbrown takes the top 7 bits as a tag and the low ones as the
+        // bucket: the rotate brings the product's well-mixed high bits down.
+        self.0.rotate_left(26)
+    }
+
+    fn write(&mut self, bytes: &[u8]) {
+        for &b in bytes {
+            self.write_u64(u64::from(b));
+        }
+    }
+
+    fn write_u64(&mut self, value: u64) {
+        self.0 = (self.0.rotate_left(5) ^ value).wrapping_mul(0xf135_7aea_2e62_a9c5);
+    }
+}
+
 /// The CSV writer and its counts.
 #[derive(Default)]
 struct Rows {
@@ -634,7 +670,7 @@ struct Rows {
     trajectories: u64,
     points: usize,
     /// Per trajectory, its last point written (frame, particle).
-    last: std::collections::HashMap<u64, (i64, usize)>,
+    last: std::collections::HashMap<u64, (i64, usize), TrajectoryHash>,
     /// What the exports need, where asked.
     export: Option<super::export::Collector>,
 }
@@ -693,27 +729,30 @@ impl Rows {
         for p in points {
             self.points += 1;
             self.trajectories = self.trajectories.max(p.trajectory + 1);
+            // Its frame in the window (held in frame order).
+            let here = window
+                .binary_search_by_key(&p.frame, |h| h.frame as i64)
+                .ok();
             // Adjacent-frame links for ptv_is.
             if let Some((frame, particle)) = self.last.insert(p.trajectory, (p.frame, p.particle)) {
                 if frame + 1 == p.frame {
-                    if let Some(before) = window.iter_mut().find(|h| h.frame as i64 == frame) {
+                    if let Some(before) = here
+                        .and_then(|i| i.checked_sub(1))
+                        .and_then(|i| window.get_mut(i))
+                        .filter(|h| h.frame as i64 == frame)
+                    {
                         before.next[particle] = p.particle as i64;
                     }
-                    if let Some(this) = window.iter_mut().find(|h| h.frame as i64 == p.frame) {
+                    if let Some(this) = here.map(|i| &mut window[i]) {
                         this.prev[p.particle] = particle as i64;
                     }
                 }
             }
-            if let Some(held) = window.iter_mut().find(|h| h.frame as i64 == p.frame) {
-                if let Some(t) = held.trajectory.get_mut(p.particle) {
-                    *t = p.trajectory as i64;
-                }
-            }
-            let Some((row, sigma)) = window
-                .iter()
-                .find(|h| h.frame as i64 == p.frame)
-                .and_then(|h| Some((h.rows.get(p.particle)?, *h.sigma.get(p.particle)?)))
-            else {
+            let Some((row, sigma)) = here.map(|i| &mut window[i]).and_then(|held| {
+                *held.trajectory.get_mut(p.particle)? = p.trajectory as i64;
+                let held = &*held;
+                Some((held.rows.get(p.particle)?, *held.sigma.get(p.particle)?))
+            }) else {
                 return Err(flag(
                     "--max-gap",
                     format!(
