@@ -75,27 +75,34 @@ fn row_of((camera, cell, count, x, y, rms): RowTuple) -> HealthRow {
 }
 
 /// Stores a frame's health rows, in the transaction that stores its
-/// particles: at most cameras x (1 + cells) rows.
+/// particles: at most cameras x (1 + cells) rows, in statements of at most
+/// [`super::rows_per_statement`] rows ([`super::statement_chunks`]), as the
+/// store's other multi-row inserts.
 pub(super) async fn insert_health(
     tx: &mut Transaction<'_, Any>,
+    dialect: super::Dialect,
     (sequence_id, frame): (SequenceId, FrameNumber),
     rows: &[HealthRow],
 ) -> Result<(), sqlx::Error> {
-    for row in rows {
-        sqlx::query(
+    for chunk in super::statement_chunks(dialect, rows) {
+        let sql = format!(
             "INSERT INTO frame_health (sequence_id, frame, camera, cell, count, mean_x, mean_y, rms) \
-             VALUES ($1, $2, $3, $4, $5, $6, $7, $8)",
-        )
-        .bind(sequence_id)
-        .bind(frame)
-        .bind(row.camera)
-        .bind(row.cell)
-        .bind(row.count)
-        .bind(row.mean[0])
-        .bind(row.mean[1])
-        .bind(row.rms)
-        .execute(&mut **tx)
-        .await?;
+             VALUES {}",
+            super::placeholders(dialect, chunk.len(), 8)
+        );
+        let mut insert = sqlx::query(&sql);
+        for row in chunk {
+            insert = insert
+                .bind(sequence_id)
+                .bind(frame)
+                .bind(row.camera)
+                .bind(row.cell)
+                .bind(row.count)
+                .bind(row.mean[0])
+                .bind(row.mean[1])
+                .bind(row.rms);
+        }
+        insert.execute(&mut **tx).await?;
     }
     Ok(())
 }
@@ -104,6 +111,7 @@ pub(super) async fn insert_health(
 /// another calibration).
 pub(super) async fn replace_health(
     tx: &mut Transaction<'_, Any>,
+    dialect: super::Dialect,
     key: (SequenceId, FrameNumber),
     rows: &[HealthRow],
 ) -> Result<(), sqlx::Error> {
@@ -112,7 +120,7 @@ pub(super) async fn replace_health(
         .bind(key.1)
         .execute(&mut **tx)
         .await?;
-    insert_health(tx, key, rows).await
+    insert_health(tx, dialect, key, rows).await
 }
 
 impl Store {

@@ -190,7 +190,8 @@ impl Store {
         .await?
         .rows_affected();
         if changed == 1 {
-            super::health::replace_health(&mut tx, (sequence_id, frame), health).await?;
+            super::health::replace_health(&mut tx, self.dialect, (sequence_id, frame), health)
+                .await?;
         }
         tx.commit().await?;
         Ok(changed == 1)

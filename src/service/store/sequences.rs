@@ -531,7 +531,7 @@ impl Store {
         // Replaced, not only inserted: rows a frame's earlier results left
         // (only a hand-edited database has them without particles) never
         // stop its completion.
-        super::health::replace_health(&mut tx, (sequence_id, frame), health).await?;
+        super::health::replace_health(&mut tx, self.dialect, (sequence_id, frame), health).await?;
         let mut released = Vec::new();
         if drop_images {
             let hashes: Vec<(String,)> = sqlx::query_as(
