@@ -486,9 +486,9 @@ impl<'a> PlainStrips<'a> {
         let inflate = |out: &mut [u8]| -> bool {
             out.par_chunks_mut(self.strip_bytes)
                 .zip(&self.inputs)
-                .try_for_each(|(rows, input)| {
+                .try_for_each_init(super::lzw::Table::new, |table, (rows, input)| {
                     if self.lzw {
-                        return super::lzw::decode_strip(input, rows).map_err(|_| ());
+                        return super::lzw::decode_strip(input, rows, table).map_err(|_| ());
                     }
                     rows.copy_from_slice(input.get(..rows.len()).ok_or(())?);
                     Ok(())
@@ -520,11 +520,12 @@ impl<'a> PlainStrips<'a> {
     /// [`super::lzw::check_strip`].
     fn decodes(&self) -> bool {
         let mut left = self.width * self.height * self.sample_bytes;
+        let mut table = super::lzw::Table::new();
         self.inputs.iter().all(|input| {
             let rows = self.strip_bytes.min(left);
             left -= rows;
             if self.lzw {
-                super::lzw::check_strip(input, rows).is_ok()
+                super::lzw::check_strip(input, rows, &mut table).is_ok()
             } else {
                 input.len() >= rows
             }

@@ -31,9 +31,22 @@ pub(crate) struct Corrupt;
 
 /// The entries of a full table: 4,096 codes of 12 bits.
 const TABLE: usize = 4096;
+
+/// A decoder's table of `(start, length)` entries (32 KiB), kept from
+/// strip to strip by the caller: the decoder reads an entry only below
+/// the next free code, which it has written since the strip's start or
+/// its last clear code, so what earlier strips left in it is never read
+/// and it is never cleared (clearing it for each of a frame's 171 strips
+/// was a sixth of the decoder's instructions).
+pub(crate) struct Table(Box<[(u32, u32); TABLE]>);
+
+impl Table {
+    pub(crate) fn new() -> Table {
+        Table(Box::new([(0, 0); TABLE]))
+    }
+}
 const CLEAR: usize = 256;
 const END: usize = 257;
-const FIRST_ENTRY: usize = 258;
 
 /// What a strip's strings are written to: the rows ([`Rows`]), or nowhere
 /// ([`Lengths`]) when only whether it decodes is asked.
@@ -91,33 +104,49 @@ impl Output for Lengths {
 /// Decodes one LZW-compressed strip into `out`, which must come out full:
 /// an end code or the end of the input before that, more output than
 /// `out` holds, or a code that is not yet in the table is [`Corrupt`].
-pub(crate) fn decode_strip(input: &[u8], out: &mut [u8]) -> Result<(), Corrupt> {
+pub(crate) fn decode_strip(input: &[u8], out: &mut [u8], table: &mut Table) -> Result<(), Corrupt> {
     let n = out.len();
-    inflate(input, n, Rows(out))
+    inflate(input, n, Rows(out), table)
 }
 
 /// Whether [`decode_strip`] would decode `input` into exactly `n` bytes,
 /// without writing them. It takes about as long as decoding (reading the
 /// codes is the work) but no memory for the output: what an upload is
 /// checked with before it is accepted.
-pub(crate) fn check_strip(input: &[u8], n: usize) -> Result<(), Corrupt> {
-    inflate(input, n, Lengths)
+pub(crate) fn check_strip(input: &[u8], n: usize, table: &mut Table) -> Result<(), Corrupt> {
+    inflate(input, n, Lengths, table)
 }
 
 /// The decoder, writing to `out`, which holds `n` bytes.
 #[inline(always)]
-fn inflate(input: &[u8], n: usize, mut out: impl Output) -> Result<(), Corrupt> {
-    // (start, length) of each entry's string in the output.
-    let mut table = [(0u32, 0u32); TABLE];
-    let mut next = FIRST_ENTRY;
+fn inflate(
+    input: &[u8],
+    n: usize,
+    mut out: impl Output,
+    Table(table): &mut Table,
+) -> Result<(), Corrupt> {
+    // (start, length) of each entry's string in the output; only those
+    // below `next` are read. After a clear code (and at the strip's start)
+    // there is no previous string, and the next code can only be a
+    // literal, or clear or end: `next` starts one early, at the end
+    // code's number, so that this first code's insertion (of whatever
+    // `previous` holds) lands in the entry of the end code, which is never
+    // read, and brings `next` to the first entry. So every code inserts,
+    // with no test for a previous string. A first code of 258 or more is
+    // above `next` and refused, as it must be; the KwKwK case, a code equal
+    // to `next`, would be the end code, which is taken first.
+    let mut next = END;
     let mut width = 9u32;
+    // `next` at which the code width grows: one code early ("early
+    // change"), never past 12 bits.
+    let mut grow_at = (1 << width) - 1;
     // The next input bits, most significant first; `held` of them valid.
     let mut bits = 0u64;
     let mut held = 0u32;
     let mut read = 0usize;
     let mut written = 0usize;
-    // The previous code's string, once there is one since the last clear.
-    let mut previous: Option<(usize, usize)> = None;
+    // The previous code's string (start, length).
+    let mut previous = (0usize, 0usize);
     loop {
         if held < width {
             if let Some(word) = input.get(read..read + 8) {
@@ -145,9 +174,9 @@ fn inflate(input: &[u8], n: usize, mut out: impl Output) -> Result<(), Corrupt> 
         bits <<= width;
         held -= width;
         if code == CLEAR {
-            next = FIRST_ENTRY;
+            next = END;
             width = 9;
-            previous = None;
+            grow_at = (1 << width) - 1;
             continue;
         }
         if code == END {
@@ -170,7 +199,7 @@ fn inflate(input: &[u8], n: usize, mut out: impl Output) -> Result<(), Corrupt> 
         } else if code == next {
             // The entry being defined: the previous string and its own
             // first byte.
-            let (start, length) = previous.ok_or(Corrupt)?;
+            let (start, length) = previous;
             if written + length + 1 > n {
                 return Err(Corrupt);
             }
@@ -179,16 +208,20 @@ fn inflate(input: &[u8], n: usize, mut out: impl Output) -> Result<(), Corrupt> 
         } else {
             return Err(Corrupt);
         };
-        if let Some((start, previous_length)) = previous {
-            if next < TABLE {
-                table[next] = (start as u32, previous_length as u32 + 1);
-                next += 1;
-                if next + 1 >= 1 << width && width < 12 {
-                    width += 1;
-                }
+        if next < TABLE {
+            let (start, previous_length) = previous;
+            table[next] = (start as u32, previous_length as u32 + 1);
+            next += 1;
+            if next >= grow_at {
+                width += 1;
+                grow_at = if width < 12 {
+                    (1 << width) - 1
+                } else {
+                    usize::MAX
+                };
             }
         }
-        previous = Some((written, length));
+        previous = (written, length);
         written += length;
     }
 }
@@ -258,13 +291,16 @@ mod tests {
             let encoded = encode(samples);
             let mut out = vec![0u8; samples.len()];
             assert_eq!(
-                decode_strip(&encoded, &mut out),
+                decode_strip(&encoded, &mut out, &mut Table::new()),
                 Ok(()),
                 "{} bytes",
                 samples.len()
             );
             assert_eq!(&out, samples, "{} bytes", samples.len());
-            assert_eq!(check_strip(&encoded, samples.len()), Ok(()));
+            assert_eq!(
+                check_strip(&encoded, samples.len(), &mut Table::new()),
+                Ok(())
+            );
             assert_eq!(
                 weezl_decode(&encoded, samples.len()).as_ref(),
                 Some(samples)
@@ -284,6 +320,9 @@ mod tests {
             "/tests/data/openptv/test_cavity_recording/img"
         );
         let mut frames = 0;
+        // One table for every strip, as `decode_image` keeps one per
+        // thread: what a strip leaves in it changes nothing.
+        let mut table = Table::new();
         for entry in std::fs::read_dir(folder).expect("the recording") {
             let bytes = std::fs::read(entry.expect("an entry").path()).expect("a frame");
             let mut decoder = Decoder::new(std::io::Cursor::new(&bytes)).expect("a TIFF");
@@ -300,8 +339,8 @@ mod tests {
                 left -= strip;
                 let expected = weezl_decode(input, strip).expect("weezl decodes it");
                 let mut out = vec![0u8; strip];
-                assert_eq!(decode_strip(input, &mut out), Ok(()));
-                assert_eq!(check_strip(input, strip), Ok(()));
+                assert_eq!(decode_strip(input, &mut out, &mut table), Ok(()));
+                assert_eq!(check_strip(input, strip, &mut table), Ok(()));
                 assert_eq!(out, expected);
             }
             frames += 1;
@@ -322,19 +361,35 @@ mod tests {
         let mut out = vec![0u8; samples.len()];
         for cut in [0, 1, 2, encoded.len() / 2, encoded.len() - 3] {
             assert_eq!(
-                decode_strip(&encoded[..cut], &mut out),
+                decode_strip(&encoded[..cut], &mut out, &mut Table::new()),
                 Err(Corrupt),
                 "cut at {cut}"
             );
         }
         // Asking for more rows than the strip holds.
         let mut longer = vec![0u8; samples.len() + 1];
-        assert_eq!(decode_strip(&encoded, &mut longer), Err(Corrupt));
-        assert_eq!(check_strip(&encoded, longer.len()), Err(Corrupt));
+        assert_eq!(
+            decode_strip(&encoded, &mut longer, &mut Table::new()),
+            Err(Corrupt)
+        );
+        assert_eq!(
+            check_strip(&encoded, longer.len(), &mut Table::new()),
+            Err(Corrupt)
+        );
         // And for fewer.
         let mut shorter = vec![0u8; samples.len() - 1];
-        assert_eq!(decode_strip(&encoded, &mut shorter), Err(Corrupt));
-        assert_eq!(check_strip(&encoded, shorter.len()), Err(Corrupt));
+        assert_eq!(
+            decode_strip(&encoded, &mut shorter, &mut Table::new()),
+            Err(Corrupt)
+        );
+        assert_eq!(
+            check_strip(&encoded, shorter.len(), &mut Table::new()),
+            Err(Corrupt)
+        );
+        // One table through all trials, as a thread keeps it from strip to
+        // strip: a damaged strip's code that is not yet in the table is
+        // refused whatever earlier strips left there.
+        let mut table = Table::new();
         for trial in 0..2_000 {
             let mut damaged = encoded.clone();
             for _ in 0..1 + trial % 4 {
@@ -344,8 +399,12 @@ mod tests {
             if trial % 7 == 0 {
                 damaged = (0..random() % 3_000).map(|_| random() as u8).collect();
             }
-            let decoded = decode_strip(&damaged, &mut out);
-            assert_eq!(check_strip(&damaged, out.len()), decoded, "trial {trial}");
+            let decoded = decode_strip(&damaged, &mut out, &mut table);
+            assert_eq!(
+                check_strip(&damaged, out.len(), &mut table),
+                decoded,
+                "trial {trial}"
+            );
             if decoded.is_ok() {
                 assert_eq!(
                     weezl_decode(&damaged, out.len()).as_ref(),
