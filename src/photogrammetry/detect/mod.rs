@@ -853,33 +853,43 @@ fn key_level(key: u64) -> u16 {
 
 /// Splits pixel indices `y * width + x` into column and row without an
 /// integer division (tens of cycles, and the blob steps need a pixel's
-/// position several times): the row is the index times `1 / width` in
-/// `f64`, corrected by one where rounding put it on the wrong side of a row
-/// start. Indices are below 2^32 (a [`GreyImage`]'s limit), exact in `f64`,
-/// and the product's relative error (2^-52) is far below one row, so one
-/// correction step is always enough.
+/// position several times): the row is the high word of the index times
+/// `m = floor((2^64 - 1) / width) + 1`, one multiplication (Granlund and
+/// Montgomery 1994, "Division by invariant integers using
+/// multiplication"). `m` is `2^64 / width` rounded up (exactly it for a
+/// power of two), so `p m / 2^64 = p / width + e` with `0 <= e < p / 2^64
+/// < 2^-32` for indices below 2^32 (a [`GreyImage`]'s limit, and what a
+/// [`key`] holds); the fraction of `p / width` is at most `1 - 1 / width`
+/// and `1 / width > 2^-32`, so the high word is the row exactly. (A
+/// width of 1, whose `m` would be `2^64`, has the index as its row.) The
+/// `f64` reciprocal this replaces took about 25 instructions, mostly the
+/// conversions between `usize` and `f64`.
 #[derive(Clone, Copy, Debug)]
 struct Rows {
     width: usize,
-    inverse: f64,
+    magic: u64,
 }
 
 impl Rows {
     fn new(width: usize) -> Rows {
+        let width = width.max(1);
         Rows {
             width,
-            inverse: 1.0 / width as f64,
+            magic: if width == 1 {
+                0
+            } else {
+                u64::MAX / width as u64 + 1
+            },
         }
     }
 
     #[inline(always)]
     fn position(self, p: usize) -> (usize, usize) {
-        let mut y = (p as f64 * self.inverse) as usize;
-        if y * self.width > p {
-            y -= 1;
-        } else if (y + 1) * self.width <= p {
-            y += 1;
+        debug_assert!(p < 1 << 32);
+        if self.magic == 0 {
+            return (0, p);
         }
+        let y = ((u128::from(p as u64) * u128::from(self.magic)) >> 64) as usize;
         (p - y * self.width, y)
     }
 }

@@ -66,8 +66,12 @@ pub(super) fn sort_keys(keys: &mut [u64], scratch: &mut Vec<u64>, most: usize) {
             counts[i][((k >> (8 * d)) & 0xff) as usize] += 1;
         }
     }
-    scratch.clear();
-    scratch.resize(keys.len(), 0);
+    // Every scratch key is written before it is read: only its growth is
+    // filled.
+    if scratch.len() < keys.len() {
+        scratch.resize(keys.len(), 0);
+    }
+    let scratch = &mut scratch[..keys.len()];
     let mut from_keys = true;
     for (i, &d) in digits.iter().enumerate() {
         let mut starts = [0u32; 256];
@@ -77,9 +81,9 @@ pub(super) fn sort_keys(keys: &mut [u64], scratch: &mut Vec<u64>, most: usize) {
             sum += count;
         }
         let (source, target): (&[u64], &mut [u64]) = if from_keys {
-            (&*keys, scratch.as_mut_slice())
+            (&*keys, &mut *scratch)
         } else {
-            (scratch.as_slice(), &mut *keys)
+            (&*scratch, &mut *keys)
         };
         for &k in source {
             let digit = ((k >> (8 * d)) & 0xff) as usize;
@@ -359,7 +363,10 @@ impl<G: Grey> Detector<'_, G> {
             let k = self.blob[rank];
             let p = key_index(k);
             let (x, y) = self.position(p);
-            let root = self.find(self.grid[self.cell((x, y), corner, size.0 + 2)]) as usize;
+            let cell = self.cell((x, y), corner, size.0 + 2);
+            let root = self.find(self.grid[cell]) as usize;
+            // Left `NONE` for the next blob (see `split`).
+            self.grid[cell] = NONE;
             if self.slot[root] == NONE {
                 self.slot[root] = particles;
                 particles += 1;
@@ -492,10 +499,18 @@ impl<G: Grey> Detector<'_, G> {
         let stride = box_width + 2;
         let cells = stride * (box_height + 2);
         // Exact reservations: these grow to the largest blob's needs and no
-        // further.
-        self.grid.clear();
-        self.grid.reserve_exact(cells);
-        self.grid.resize(cells, NONE);
+        // further. The grid is all `NONE` between blobs (the measuring pass
+        // of `split_and_measure`, the one reader of what this leaves, sets
+        // each of the blob's cells back), so only its growth is filled, not
+        // the whole box: a blob of a few pixels in a long diagonal box
+        // costs its pixels, not its box.
+        debug_assert!(self.grid[..cells.min(self.grid.len())]
+            .iter()
+            .all(|&r| r == NONE));
+        if self.grid.len() < cells {
+            self.grid.reserve_exact(cells - self.grid.len());
+            self.grid.resize(cells, NONE);
+        }
         self.regions.clear();
         self.regions.reserve_exact(maxima);
         self.caps.clear();
@@ -526,7 +541,18 @@ impl<G: Grey> Detector<'_, G> {
             // their pixel joined, unvisited ones `NONE` (`u32::MAX`). Most
             // pixels see one region only: the smallest and largest of the
             // neighbours' regions tell, without a lookup each.
-            let regions = around.map(|(o, _)| self.grid[cell.wrapping_add_signed(o)]);
+            let grid = |i: usize| self.grid[cell.wrapping_add_signed(around[i].0)];
+            // (Written out: `around.map` was a call a pixel.)
+            let regions = [
+                grid(0),
+                grid(1),
+                grid(2),
+                grid(3),
+                grid(4),
+                grid(5),
+                grid(6),
+                grid(7),
+            ];
             let lowest = regions.iter().fold(NONE, |a, &r| a.min(r));
             let highest = regions.iter().fold(0, |a, &r| a.max(r.wrapping_add(1)));
             if lowest == NONE {
@@ -541,9 +567,15 @@ impl<G: Grey> Detector<'_, G> {
                 }
                 continue;
             }
-            let root = if highest == lowest.wrapping_add(1) {
+            let other = highest.wrapping_sub(1);
+            let root = if other == lowest {
                 // One region (as recorded): it joins that region's root.
                 self.find(lowest)
+            } else if let Some(root) = self.one_root(&regions, lowest, other) {
+                // Two regions recorded, merged since: in a noisy blob, where
+                // many small maxima have been merged into their particles,
+                // most pixels meet two such names of one particle.
+                root
             } else {
                 // Several regions recorded: their roots, in raster order,
                 // and a saddle where those differ.
@@ -588,6 +620,21 @@ impl<G: Grey> Detector<'_, G> {
                 *cap = (cap.0 + 1, cap.1.saturating_add(level));
             }
         }
+    }
+
+    /// The root of the neighbours' regions `regions` (`NONE` where not
+    /// visited) if they name only `lowest` and `other` and those two have
+    /// been merged; `None` if they name more, or two particles.
+    #[inline(always)]
+    fn one_root(&mut self, regions: &[u32; 8], lowest: u32, other: u32) -> Option<u32> {
+        if !regions
+            .iter()
+            .all(|&r| r == NONE || r == lowest || r == other)
+        {
+            return None;
+        }
+        let root = self.find(lowest);
+        (self.find(other) == root).then_some(root)
     }
 
     /// The cell in `grid` of the pixel at `(x, y)`, for a blob's bounding

@@ -1036,3 +1036,52 @@ fn blob_keys_sort_by_radix_as_by_comparison() {
     // The scratch never grows past the radix sort's largest blob.
     assert!(scratch.capacity() <= split::RADIX_UP_TO);
 }
+
+/// `Rows::position` is the division it replaces, for every width that
+/// matters and at the indices where rounding would show: each side of row
+/// starts, up to the largest index a key holds.
+#[test]
+fn rows_split_indices_as_division_does() {
+    let mut random = rng(17);
+    let mut widths = vec![1, 2, 3, 5, 7, 640, 1023, 1024, 1279, 1280, 1281, 4093, 8192];
+    widths.extend([
+        65_535,
+        65_536,
+        100_003,
+        (1 << 31) - 1,
+        1 << 31,
+        u32::MAX as usize,
+    ]);
+    widths.extend((0..200).map(|_| random.random_range(1..1usize << 32)));
+    for width in widths {
+        let rows = Rows::new(width);
+        let last = (1usize << 32) - 1;
+        let check = |p: usize| {
+            if p <= last {
+                assert_eq!(
+                    rows.position(p),
+                    (p % width, p / width),
+                    "width {width}, index {p}"
+                );
+            }
+        };
+        for y in [
+            0,
+            1,
+            2,
+            last / width / 2,
+            last / width - 1,
+            last / width,
+            last / width + 1,
+        ] {
+            let start = y.saturating_mul(width);
+            for p in [start.wrapping_sub(1), start, start + 1, start + width / 2] {
+                check(p);
+            }
+        }
+        check(last);
+        for _ in 0..1000 {
+            check(random.random_range(0..=last));
+        }
+    }
+}
