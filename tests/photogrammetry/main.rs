@@ -14,6 +14,7 @@ mod calibrate;
 mod detect_accuracy;
 mod detect_properties;
 mod health;
+mod ipr;
 mod openptv_frames;
 mod openptv_golden;
 mod real_recording;
