@@ -392,86 +392,112 @@ pub fn self_calibrate(
     progress: &mut dyn FnMut(Progress),
 ) -> Result<SelfCalibration, SelfCalibrationError> {
     check_inputs(cameras, frames, options)?;
-    let n = cameras.len();
-    let min_cameras = options.min_cameras.min(n);
-    let fixed: ParameterSet = options.fixed.iter().copied().collect();
-    let start = cameras.to_vec();
-    let models = models(&start)?;
-    let volume = Matcher::new(&models, &matching(options.start_tolerance_px, options))
-        .map_err(|source| SelfCalibrationError::Matching {
-            band_px: options.start_tolerance_px,
-            source,
-        })?
-        .volume()
-        .to_owned();
-    let gauge = Gauge::new(&start, &volume.centre(), fixed);
+    let setup = Setup::new(cameras, options)?;
     let mut state = State {
-        cameras: start.clone(),
-        free: vec![fixed.complement(); n],
-        held: vec![Vec::new(); n],
-        media: media_unknowns(&start, &options.free_media),
+        cameras: setup.start.clone(),
+        free: vec![setup.fixed.complement(); cameras.len()],
+        held: vec![Vec::new(); cameras.len()],
+        media: media_unknowns(&setup.start, &options.free_media),
         media_held: Vec::new(),
     };
     let media_all = state.media.clone();
+    let rounds = run_rounds(&setup, &mut state, frames, options, cancel, progress)?;
+    Ok(finish(
+        setup,
+        state,
+        &media_all,
+        frames.len(),
+        options,
+        rounds,
+    ))
+}
+
+/// What stays as it is through the rounds: the input rig and its models,
+/// the volume (the start band's matcher's), the gauge, the parameters the
+/// options hold, and the cameras a confident particle needs.
+struct Setup {
+    start: Vec<CameraParameters>,
+    models: Vec<Camera>,
+    volume: Volume,
+    gauge: Gauge,
+    fixed: ParameterSet,
+    min_cameras: usize,
+}
+
+impl Setup {
+    fn new(
+        cameras: &[CameraParameters],
+        options: &SelfCalibrationOptions,
+    ) -> Result<Setup, SelfCalibrationError> {
+        let fixed: ParameterSet = options.fixed.iter().copied().collect();
+        let start = cameras.to_vec();
+        let models = models(&start)?;
+        let volume = Matcher::new(&models, &matching(options.start_tolerance_px, options))
+            .map_err(|source| SelfCalibrationError::Matching {
+                band_px: options.start_tolerance_px,
+                source,
+            })?
+            .volume()
+            .to_owned();
+        let gauge = Gauge::new(&start, &volume.centre(), fixed);
+        Ok(Setup {
+            min_cameras: options.min_cameras.min(cameras.len()),
+            start,
+            models,
+            volume,
+            gauge,
+            fixed,
+        })
+    }
+}
+
+/// What the rounds left: their reports, the last adjustment's particles
+/// and solution, how they ended and why.
+struct Rounds {
+    reports: Vec<RoundReport>,
+    last: Option<(Vec<Track>, bundle::Solution)>,
+    outcome: Outcome,
+    message: Option<String>,
+}
+
+impl Rounds {
+    fn diverged(&mut self, message: String) {
+        self.message = Some(message);
+        self.outcome = Outcome::Diverged;
+    }
+}
+
+/// The rounds: match (or vote) with the band, adjust, narrow the band to
+/// the residuals, until they no longer improve at the final band.
+fn run_rounds(
+    setup: &Setup,
+    state: &mut State,
+    frames: &[Vec<Vec<Target>>],
+    options: &SelfCalibrationOptions,
+    cancel: &Cancel,
+    progress: &mut dyn FnMut(Progress),
+) -> Result<Rounds, SelfCalibrationError> {
     let mut band = options.start_tolerance_px;
-    let mut rounds: Vec<RoundReport> = Vec::new();
-    let mut last: Option<(Vec<Track>, bundle::Solution)> = None;
-    let mut outcome = Outcome::RoundLimit;
-    let mut message = None;
+    let mut rounds = Rounds {
+        reports: Vec::new(),
+        last: None,
+        outcome: Outcome::RoundLimit,
+        message: None,
+    };
     for round in 0..options.max_rounds {
-        let models = models_or_diverged(&state.cameras);
-        let Some(models) = models else {
-            message = Some(format!(
+        let Some(models) = models_or_diverged(&state.cameras) else {
+            rounds.diverged(format!(
                 "round {}: the adjusted parameters are not a valid camera",
                 round + 1
             ));
-            outcome = Outcome::Diverged;
             break;
         };
-        let (tracks, matched_by_cameras, candidate_count) = if band > VOTE_ABOVE_PX {
-            let radius = (band / 8.0).clamp(0.5, 1.0);
-            let vote = vote::vote(
-                frames,
-                &models,
-                &volume,
-                options.grid,
-                band,
-                radius,
-                min_cameras.max(3.min(n)),
-                options.max_particles,
-                cancel,
-            )?;
-            progress(Progress {
-                round,
-                rounds: options.max_rounds,
-                frames_matched: frames.len(),
-                frames: frames.len(),
-                band_px: band,
-            });
-            (vote.tracks, vote.by_cameras, vote.candidates)
-        } else {
-            matched_tracks(
-                frames,
-                &models,
-                band,
-                min_cameras,
-                &volume,
-                options,
-                cancel,
-                &mut |f| {
-                    progress(Progress {
-                        round,
-                        rounds: options.max_rounds,
-                        frames_matched: f,
-                        frames: frames.len(),
-                        band_px: band,
-                    })
-                },
-            )?
-        };
-        if tracks.len() < MIN_PARTICLES && last.is_some() {
+        let (tracks, matched_by_cameras, candidate_count) = round_tracks(
+            setup, frames, &models, band, round, options, cancel, progress,
+        )?;
+        if tracks.len() < MIN_PARTICLES && rounds.last.is_some() {
             // A later round that finds too few: keep the last adjustment.
-            message = Some(format!(
+            rounds.message = Some(format!(
                 "round {}: only {} confident particles with a band of {band:.3} px; the \
                  previous round's calibration is kept",
                 round + 1,
@@ -486,32 +512,30 @@ pub fn self_calibrate(
                 frames: frames.len(),
                 band_px: band,
                 round: round + 1,
-                min_cameras,
+                min_cameras: setup.min_cameras,
                 needed: MIN_PARTICLES,
             });
         }
         let selected = tracks.len();
         let rms_before = rms(&residual_vectors(&models, &tracks));
-        let adjusted = robust_adjustment(&mut state, tracks, &gauge, &start, options, cancel)?;
+        let adjusted =
+            robust_adjustment(state, tracks, &setup.gauge, &setup.start, options, cancel)?;
         let Some((tracks, solution, rejected, sigma)) = adjusted else {
-            message = Some(format!(
+            rounds.diverged(format!(
                 "round {}: the bundle adjustment did not converge (band {band} px)",
                 round + 1
             ));
-            outcome = Outcome::Diverged;
             break;
         };
-        let after_models = models_or_diverged(&state.cameras);
-        let Some(after_models) = after_models else {
-            message = Some(format!(
+        let Some(after_models) = models_or_diverged(&state.cameras) else {
+            rounds.diverged(format!(
                 "round {}: the adjusted parameters are not a valid camera",
                 round + 1
             ));
-            outcome = Outcome::Diverged;
             break;
         };
         let rms_after = rms(&residual_vectors(&after_models, &tracks));
-        rounds.push(RoundReport {
+        rounds.reports.push(RoundReport {
             band_px: band,
             matched_by_cameras,
             candidates: candidate_count,
@@ -522,15 +546,16 @@ pub fn self_calibrate(
             sigma_px: sigma,
             iterations: solution.iterations,
         });
-        last = Some((tracks, solution));
+        rounds.last = Some((tracks, solution));
         let previous = rounds
+            .reports
             .iter()
             .rev()
             .nth(1)
             .map(|r: &RoundReport| r.rms_after_px);
         let at_final = band <= options.final_tolerance_px;
         if at_final && previous.is_some_and(|p| rms_after > 0.95 * p) {
-            outcome = Outcome::Converged;
+            rounds.outcome = Outcome::Converged;
             break;
         }
         // After a vote the groups are clean and their residuals measure
@@ -543,19 +568,98 @@ pub fn self_calibrate(
             (shrink * band).max(options.final_tolerance_px),
         );
     }
+    Ok(rounds)
+}
+
+/// One round's confident particles as tracks: voted for in the sub-volumes
+/// while the band is wide ([`VOTE_ABOVE_PX`]), matched frame by frame
+/// after.
+#[allow(clippy::too_many_arguments)]
+fn round_tracks(
+    setup: &Setup,
+    frames: &[Vec<Vec<Target>>],
+    models: &[Camera],
+    band: f64,
+    round: usize,
+    options: &SelfCalibrationOptions,
+    cancel: &Cancel,
+    progress: &mut dyn FnMut(Progress),
+) -> Result<Matched, SelfCalibrationError> {
+    let mut report = |frames_matched| {
+        progress(Progress {
+            round,
+            rounds: options.max_rounds,
+            frames_matched,
+            frames: frames.len(),
+            band_px: band,
+        })
+    };
+    if band <= VOTE_ABOVE_PX {
+        return matched_tracks(
+            frames,
+            models,
+            band,
+            setup.min_cameras,
+            &setup.volume,
+            options,
+            cancel,
+            &mut report,
+        );
+    }
+    let radius = (band / 8.0).clamp(0.5, 1.0);
+    let vote = vote::vote(
+        frames,
+        models,
+        &setup.volume,
+        options.grid,
+        band,
+        radius,
+        setup.min_cameras.max(3.min(models.len())),
+        options.max_particles,
+        cancel,
+    )?;
+    report(frames.len());
+    Ok((vote.tracks, vote.by_cameras, vote.candidates))
+}
+
+/// The result of the rounds: the refined rig and its report, or the input
+/// rig where the rounds diverged or the refined rig reprojects the last
+/// round's particles worse than the input one.
+fn finish(
+    setup: Setup,
+    state: State,
+    media_all: &[MediaUnknown],
+    frame_count: usize,
+    options: &SelfCalibrationOptions,
+    rounds: Rounds,
+) -> SelfCalibration {
+    let Rounds {
+        reports,
+        last,
+        outcome,
+        message,
+    } = rounds;
+    let Setup {
+        start,
+        models,
+        volume,
+        gauge,
+        fixed,
+        ..
+    } = setup;
     let sigma0 = last
         .as_ref()
         .map_or(0.0, |(_, s)| (s.cost / s.redundancy.max(1) as f64).sqrt());
     let Some((tracks, solution)) = last else {
-        return Ok(diverged(
+        return diverged(
             &start,
-            frames.len(),
+            frame_count,
             volume,
             options,
             &gauge,
-            rounds,
+            reports,
             message,
-        ));
+        );
     };
     // The final disparities: the last round's particles intersected with
     // the input rig and with the refined one.
@@ -575,18 +679,18 @@ pub fn self_calibrate(
         let message = message.or(Some(
             "the refined calibration reprojects the particles worse than the input one".into(),
         ));
-        return Ok(diverged(
+        return diverged(
             &start,
-            frames.len(),
+            frame_count,
             volume,
             options,
             &gauge,
-            rounds,
+            reports,
             message,
-        ));
+        );
     }
     let after = after.unwrap_or_default();
-    let cameras_report = (0..n)
+    let cameras_report = (0..start.len())
         .map(|c| {
             let points: Vec<Point3<f64>> = after[c].iter().map(|(p, _)| *p).collect();
             let db: Vec<Vector2<f64>> = before[c].iter().map(|(_, v)| *v).collect();
@@ -604,23 +708,23 @@ pub fn self_calibrate(
             }
         })
         .collect();
-    let media = media_changes(&media_all, &start, &state, Some((&solution, sigma0)));
+    let media = media_changes(media_all, &start, &state, Some((&solution, sigma0)));
     let report = SelfCalibrationReport {
         outcome,
         message,
-        frames: frames.len(),
+        frames: frame_count,
         volume,
         grid: options.grid,
         sigma0_px: sigma0,
-        rounds,
+        rounds: reports,
         cameras: cameras_report,
         media,
         gauge: gauge_report(&gauge, &start, &state.cameras),
     };
-    Ok(SelfCalibration {
+    SelfCalibration {
         cameras: state.cameras,
         report,
-    })
+    }
 }
 
 /// Why the glass vector is not adjusted when not asked for.
