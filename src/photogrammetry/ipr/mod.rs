@@ -543,57 +543,8 @@ pub fn reconstruct(
     parameters: &IprParameters,
     progress: &mut dyn FnMut(&LoopReport),
 ) -> Result<Reconstruction, IprError> {
+    check_request(cameras, images, preprocessing, parameters)?;
     let n = cameras.len();
-    if images.len() != n {
-        return Err(IprError::ImageCount {
-            images: images.len(),
-            cameras: n,
-        });
-    }
-    if !preprocessing.is_empty() && preprocessing.len() != n {
-        return Err(IprError::PreprocessingCount {
-            given: preprocessing.len(),
-            cameras: n,
-        });
-    }
-    let fraction = |v: f64, low: f64| v >= low && v < 1.0;
-    if !fraction(parameters.peak_fraction, f64::MIN_POSITIVE)
-        || !fraction(parameters.ghost_fraction, 0.0)
-        || parameters.loops == 0
-        || parameters.loops + parameters.reduced_loops > 50
-        || parameters.shakes > 50
-    {
-        return Err(IprError::Parameter(format!(
-            "the peak and ghost fractions must be within 0..1, the loops 1..50 and the shaking \
-             passes at most 50; got {parameters:?}"
-        )));
-    }
-    for (camera, (model, image)) in cameras.iter().zip(images).enumerate() {
-        image
-            .check_sensor(model.sensor())
-            .map_err(|source| IprError::Sensor { camera, source })?;
-        if let Some(p) = preprocessing.get(camera) {
-            p.check(image)
-                .map_err(|source| IprError::Preprocess { camera, source })?;
-        }
-    }
-    if let Some(stated) = &parameters.otf {
-        if stated.len() != n {
-            return Err(IprError::OtfCount {
-                given: stated.len(),
-                cameras: n,
-            });
-        }
-        if let Some(camera) = stated.iter().position(|o| {
-            !((0.3..=4.0).contains(&o.sigma_x)
-                && (0.3..=4.0).contains(&o.sigma_y)
-                && o.rho.abs() < 0.95
-                && o.peak > 0.0
-                && o.peak.is_finite())
-        }) {
-            return Err(IprError::InvalidOtf { camera });
-        }
-    }
     let matching = |min_cameras: usize| MatchingParameters {
         tolerance: parameters.tolerance,
         volume: parameters.volume,
@@ -609,56 +560,13 @@ pub fn reconstruct(
     let cameras = full.cameras();
     let volume = *full.volume();
 
-    // The residual images and the model.
-    let no_preprocessing = Preprocessing::default();
-    let mut views = Vec::with_capacity(n);
-    for (camera, image) in images.iter().enumerate() {
-        let p = preprocessing.get(camera).unwrap_or(&no_preprocessing);
-        let residual = image::background_free(image, p);
-        let (width, height) = (image.width() as usize, image.height() as usize);
-        let otf = match &parameters.otf {
-            Some(stated) => stated[camera],
-            None => {
-                // The brightest particles set the scale: maxima above a
-                // tenth of the 99.9th percentile.
-                let mut sample: Vec<f32> = residual.iter().step_by(7).copied().collect();
-                let k = ((sample.len() as f64 * 0.999) as usize).min(sample.len() - 1);
-                let top = *sample.select_nth_unstable_by(k, f32::total_cmp).1;
-                let mask = p.mask.clone();
-                let usable = move |index: usize| mask.as_ref().map_or(true, |m| m.uses(index));
-                otf::estimate(&residual, width, height, 0.1 * top, &usable)
-                    .ok_or(IprError::NoParticleImages { camera })?
-            }
-        };
-        views.push(View {
-            width,
-            height,
-            residual,
-            mask: p.mask.clone(),
-            otf,
-            precision: otf.precision(),
-            radius: otf.radius(),
-        });
-    }
+    let mut views = residual_views(images, preprocessing, parameters)?;
     let typical_peak = {
         let mut peaks: Vec<f64> = views.iter().map(|v| v.otf.peak).collect();
         peaks.sort_by(f64::total_cmp);
         peaks[peaks.len() / 2]
     };
-    let mm_per_px = {
-        let centre = volume_centre(&volume);
-        cameras
-            .iter()
-            .filter_map(|c| c.project_with_jacobian(&centre).ok())
-            .map(|(_, j)| {
-                // The largest singular value of J: pixels per mm.
-                let jj = j * j.transpose();
-                let (a, b, d) = (jj[(0, 0)], jj[(0, 1)], jj[(1, 1)]);
-                let largest = 0.5 * (a + d) + (0.25 * (a - d).powi(2) + b * b).sqrt();
-                1.0 / largest.sqrt()
-            })
-            .fold(f64::INFINITY, f64::min)
-    };
+    let mm_per_px = mm_per_px(cameras, &volume);
     if !mm_per_px.is_finite() {
         return Err(IprError::Matching(MatchError::NoDefaultVolume));
     }
@@ -793,6 +701,128 @@ pub fn reconstruct(
         otf: views.iter().map(|v| v.otf).collect(),
         loops: reports,
     })
+}
+
+/// The request's inputs against each other: one image (and preprocessing,
+/// if any) per camera, of the camera's sensor; the parameters in range; a
+/// stated model per camera, of a plausible shape.
+fn check_request(
+    cameras: &[Camera],
+    images: &[GreyImage],
+    preprocessing: &[Preprocessing],
+    parameters: &IprParameters,
+) -> Result<(), IprError> {
+    let n = cameras.len();
+    if images.len() != n {
+        return Err(IprError::ImageCount {
+            images: images.len(),
+            cameras: n,
+        });
+    }
+    if !preprocessing.is_empty() && preprocessing.len() != n {
+        return Err(IprError::PreprocessingCount {
+            given: preprocessing.len(),
+            cameras: n,
+        });
+    }
+    let fraction = |v: f64, low: f64| v >= low && v < 1.0;
+    if !fraction(parameters.peak_fraction, f64::MIN_POSITIVE)
+        || !fraction(parameters.ghost_fraction, 0.0)
+        || parameters.loops == 0
+        || parameters.loops + parameters.reduced_loops > 50
+        || parameters.shakes > 50
+    {
+        return Err(IprError::Parameter(format!(
+            "the peak and ghost fractions must be within 0..1, the loops 1..50 and the shaking \
+             passes at most 50; got {parameters:?}"
+        )));
+    }
+    for (camera, (model, image)) in cameras.iter().zip(images).enumerate() {
+        image
+            .check_sensor(model.sensor())
+            .map_err(|source| IprError::Sensor { camera, source })?;
+        if let Some(p) = preprocessing.get(camera) {
+            p.check(image)
+                .map_err(|source| IprError::Preprocess { camera, source })?;
+        }
+    }
+    if let Some(stated) = &parameters.otf {
+        if stated.len() != n {
+            return Err(IprError::OtfCount {
+                given: stated.len(),
+                cameras: n,
+            });
+        }
+        if let Some(camera) = stated.iter().position(|o| {
+            !((0.3..=4.0).contains(&o.sigma_x)
+                && (0.3..=4.0).contains(&o.sigma_y)
+                && o.rho.abs() < 0.95
+                && o.peak > 0.0
+                && o.peak.is_finite())
+        }) {
+            return Err(IprError::InvalidOtf { camera });
+        }
+    }
+    Ok(())
+}
+
+/// Each camera's residual image (the recording less its background) and
+/// its particle image model, stated or estimated from its brightest
+/// isolated particle images.
+fn residual_views(
+    images: &[GreyImage],
+    preprocessing: &[Preprocessing],
+    parameters: &IprParameters,
+) -> Result<Vec<View>, IprError> {
+    let no_preprocessing = Preprocessing::default();
+    let mut views = Vec::with_capacity(images.len());
+    for (camera, image) in images.iter().enumerate() {
+        let p = preprocessing.get(camera).unwrap_or(&no_preprocessing);
+        let residual = image::background_free(image, p);
+        let (width, height) = (image.width() as usize, image.height() as usize);
+        let otf = match &parameters.otf {
+            Some(stated) => stated[camera],
+            None => {
+                // The brightest particles set the scale: maxima above a
+                // tenth of the 99.9th percentile.
+                let mut sample: Vec<f32> = residual.iter().step_by(7).copied().collect();
+                let k = ((sample.len() as f64 * 0.999) as usize).min(sample.len() - 1);
+                let top = *sample.select_nth_unstable_by(k, f32::total_cmp).1;
+                let mask = p.mask.clone();
+                let usable = move |index: usize| mask.as_ref().map_or(true, |m| m.uses(index));
+                otf::estimate(&residual, width, height, 0.1 * top, &usable)
+                    .ok_or(IprError::NoParticleImages { camera })?
+            }
+        };
+        views.push(View {
+            width,
+            height,
+            residual,
+            mask: p.mask.clone(),
+            otf,
+            precision: otf.precision(),
+            radius: otf.radius(),
+        });
+    }
+    Ok(views)
+}
+
+/// Object-space size of a pixel at the volume's centre (mm): the smallest
+/// over the cameras of the inverse of the projection's largest singular
+/// value; infinite if no camera sees the centre.
+fn mm_per_px(cameras: &[Camera], volume: &Volume) -> f64 {
+    let centre = volume_centre(volume);
+    cameras
+        .iter()
+        .filter_map(|c| c.project_with_jacobian(&centre).ok())
+        .map(|(_, j)| {
+            // The largest singular value of J: pixels per mm.
+            let jj = j * j.transpose();
+            let (a, b, d) = (jj[(0, 0)], jj[(0, 1)], jj[(1, 1)]);
+            let largest = 0.5 * (a + d) + (0.25 * (a - d).powi(2) + b * b).sqrt();
+            1.0 / largest.sqrt()
+        })
+        .fold(f64::INFINITY, f64::min)
 }
 
 fn volume_centre(volume: &Volume) -> Point3<f64> {
