@@ -224,6 +224,9 @@ fn run(particles: usize, frames: usize, displacement_share: f64, recover: bool, 
     // matched frames.
     let modes: &[bool] = if backward { &[false, true] } else { &[false] };
     let (truth0, pure0) = (truth, pure);
+    // The forward pass's points (frame, particle), to split the backward
+    // run's velocity error between them and the points it added.
+    let mut forward_points: std::collections::HashSet<(i64, usize)> = Default::default();
     for &backward in modes {
         let (mut truth, mut pure) = (truth0.clone(), pure0.clone());
         let input = input.clone();
@@ -285,6 +288,9 @@ fn run(particles: usize, frames: usize, displacement_share: f64, recover: bool, 
         let (mut v_err, mut v_ref, mut a_err, mut a_ref, mut n) = (0.0, 0.0, 0.0, 0.0, 0usize);
         let mut v_errors: Vec<f64> = Vec::new();
         let (mut v_err_centred, mut v_ref_centred) = (0.0, 0.0);
+        // With backward: squared velocity error and count at the forward
+        // pass's points and at the added ones.
+        let mut split = [(0.0, 0usize); 2];
         // Squared velocity error and count by the point's distance from
         // its trajectory's nearer end: 0, 1, 2 or more.
         let mut by_end = [(0.0, 0usize); 3];
@@ -322,6 +328,13 @@ fn run(particles: usize, frames: usize, displacement_share: f64, recover: bool, 
                         v_ref_centred += u.norm_squared();
                     }
                     v_err += (p.derivatives.velocity - u).norm_squared();
+                    if !backward {
+                        forward_points.insert((p.frame, p.particle));
+                    } else {
+                        let s = usize::from(!forward_points.contains(&(p.frame, p.particle)));
+                        split[s].0 += (p.derivatives.velocity - u).norm_squared();
+                        split[s].1 += 1;
+                    }
                     let d = k.min(t.points.len() - 1 - k).min(2);
                     by_end[d].0 += (p.derivatives.velocity - u).norm_squared();
                     by_end[d].1 += 1;
@@ -387,10 +400,17 @@ fn run(particles: usize, frames: usize, displacement_share: f64, recover: bool, 
             })
             .collect();
         println!("  matched: {}", counts.join(", "));
+        let v_ms_all = v_ref / n.max(1) as f64;
         match finished.backward {
             Some(b) => println!(
-                "  with backward tracking: {} points added, {} trajectories lengthened, {} joined",
-                b.points, b.lengthened, b.joined
+                "  with backward tracking: {} points added, {} trajectories lengthened, {} joined; velocity RMS {:.2}% at the forward pass's {} points, {:.2}% at the {} added",
+                b.points,
+                b.lengthened,
+                b.joined,
+                100.0 * (split[0].0 / split[0].1.max(1) as f64 / v_ms_all).sqrt(),
+                split[0].1,
+                100.0 * (split[1].0 / split[1].1.max(1) as f64 / v_ms_all).sqrt(),
+                split[1].1
             ),
             None => println!("  forward only"),
         }

@@ -128,6 +128,9 @@ pub(super) fn import(args: &ImportExperimentArgs, stderr: &mut dyn Write) -> Res
                 "fit_order": p.fit_order,
                 "first_frame": experiment.sequence.first,
                 "recovery": t.recovery,
+                // OpenPTV tracks back after tracking (pyptv's "Tracking
+                // backwards"), as a run does by default.
+                "backward": crate::service::model::tracking_settings::BACKWARD_BY_DEFAULT,
             })
         }),
         unmapped: &experiment.unmapped,

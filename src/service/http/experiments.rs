@@ -167,6 +167,9 @@ pub async fn import(
                     experiment.sequence.first as i64,
                 )),
                 recovery: Some(t.recovery),
+                // OpenPTV tracks back after tracking (pyptv's
+                // "Tracking backwards"): the run's default does too.
+                backward: None,
             }
             .with_defaults()?;
             if let Some(volume) = &experiment.matching.volume {

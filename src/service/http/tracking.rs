@@ -80,8 +80,24 @@ pub struct TrackingRunView {
     pub error: Option<String>,
     /// Trajectories stored so far.
     pub trajectories: i64,
+    /// What the backward pass added once the run finished (settings'
+    /// `backward`); null where it did not run (off, or not finished yet).
+    pub backward: Option<BackwardView>,
     /// When it was created (UTC).
     pub created_at: String,
+}
+
+/// What a run's backward pass added (as `ptv track --backward` reports
+/// it).
+#[derive(Debug, Serialize, ToSchema)]
+pub struct BackwardView {
+    /// Points added before the trajectories' first points.
+    pub points: i64,
+    /// Trajectories that gained points at their start.
+    pub lengthened: i64,
+    /// Trajectories joined onto the one that ended before them (each
+    /// join makes two trajectories one).
+    pub joined: i64,
 }
 
 /// A run's view.
@@ -104,6 +120,11 @@ pub(super) async fn run_view(
         finish_requested: row.finish_requested,
         error: row.error,
         trajectories,
+        backward: row.backward.map(|b| BackwardView {
+            points: b.points,
+            lengthened: b.lengthened,
+            joined: b.joined,
+        }),
         created_at: row.created_at,
     })
 }
