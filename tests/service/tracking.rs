@@ -1231,6 +1231,60 @@ async fn a_tracked_sequence_exports_to_paraview_and_hdf5() {
         .unwrap();
     assert_eq!(z.len(), particles);
 
+    // ParaView's time series as one zip: the .pvd names a .vtp per
+    // processed frame, each in the zip with that frame's particles, and
+    // the polylines as `?format=vtk` gives them.
+    let response = get(format!("/sequences/{sequence}/trajectories?format=pvd")).await;
+    assert_eq!(response.status().as_u16(), 200);
+    assert_eq!(response.headers()["content-type"], "application/zip");
+    assert_eq!(
+        response.headers()["content-disposition"],
+        format!("attachment; filename=\"sequence_{sequence}_paraview.zip\"").as_str()
+    );
+    let bytes = response.bytes().await.unwrap().to_vec();
+    let mut zip = zip::ZipArchive::new(std::io::Cursor::new(bytes)).unwrap();
+    let mut read = |name: &str| {
+        let mut text = String::new();
+        std::io::Read::read_to_string(&mut zip.by_name(name).unwrap(), &mut text).unwrap();
+        text
+    };
+    let series = read("particles.pvd");
+    let files: Vec<(i64, String)> = series
+        .lines()
+        .filter(|l| l.contains("<DataSet"))
+        .map(|l| {
+            let attribute = |name: &str| {
+                let from = l.find(&format!("{name}=\"")).unwrap() + name.len() + 2;
+                l[from..from + l[from..].find('"').unwrap()].to_owned()
+            };
+            (attribute("timestep").parse().unwrap(), attribute("file"))
+        })
+        .collect();
+    assert_eq!(
+        files,
+        (0..8)
+            .map(|f| (f, format!("particles.{f}.vtp")))
+            .collect::<Vec<_>>()
+    );
+    for (frame, file) in &files {
+        let (kind, counts) = vtp_counts(&read(file));
+        assert_eq!(kind, "PolyData", "{file}");
+        if *frame == 3 {
+            assert_eq!(counts, [particles, particles, 0]);
+        }
+    }
+    let polylines = get(format!("/sequences/{sequence}/trajectories?format=vtk"))
+        .await
+        .text()
+        .await
+        .unwrap();
+    assert_eq!(read("trajectories.vtp"), polylines);
+    assert_eq!(
+        zip.len(),
+        files.len() + 2,
+        "the .pvd, its frames, the polylines"
+    );
+
     // An unknown format names the accepted ones.
     for path in [
         format!("/sequences/{sequence}/trajectories?format=vtu"),
@@ -1354,5 +1408,60 @@ async fn backward_tracking_at_the_finish_is_ptv_track_backwards() {
         assert_eq!(t["first_frame"], points[0]["frame"], "{t}");
         assert_eq!(t["last_frame"], points[points.len() - 1]["frame"], "{t}");
     }
+    app.stop().await;
+}
+
+/// An export above the service's `--max-export-points` is refused with
+/// 413 before it is built, saying what to do; the frames asked for in
+/// part fit. The limit, 2,500 points, is under the 8 frames' particles
+/// alone (about 390 a frame: 400 particles, 4 cameras, 5% of images
+/// lost) and above 2 frames' particles and trajectory points (at most one
+/// point a particle: about 1,560).
+#[tokio::test]
+async fn an_export_above_the_configured_limit_is_refused_saying_to_cut_it() {
+    let app = crate::helpers::spawn_app_configured(|args| args.max_export_points = 2_500).await;
+    let api = Api::at(&app.address);
+    let rig = rig();
+    let frames = moving_frames(&rig, 8, 35);
+    let sequence = api
+        .tracked_sequence(&rig, json!({"max_velocity": MAX_VELOCITY}))
+        .await;
+    let order: Vec<(i64, &TargetFrame)> = frames
+        .iter()
+        .enumerate()
+        .map(|(f, t)| (f as i64, t))
+        .collect();
+    api.upload_concurrently(sequence, &order, 2).await;
+    api.finish(sequence).await;
+    for format in ["vtk", "hdf5"] {
+        let (status, body) = api
+            .get(&format!(
+                "/sequences/{sequence}/trajectories?format={format}"
+            ))
+            .await;
+        assert_eq!(status, 413, "{format}: {body}");
+        let detail = body["detail"].as_str().unwrap();
+        for says in [
+            "more than 2500 points",
+            "--max-export-points",
+            "frames=FIRST..LAST",
+        ] {
+            assert!(detail.contains(says), "{format}: {detail}");
+        }
+        let response = api
+            .client
+            .get(api.url(&format!(
+                "/sequences/{sequence}/trajectories?format={format}&frames=0..1"
+            )))
+            .send()
+            .await
+            .unwrap();
+        assert_eq!(response.status().as_u16(), 200, "{format}, frames 0..1");
+    }
+    // The JSON and CSV stream: no such limit.
+    let (status, _) = api
+        .get(&format!("/sequences/{sequence}/trajectories"))
+        .await;
+    assert_eq!(status, 200);
     app.stop().await;
 }

@@ -272,12 +272,21 @@ pub enum TrajectoryFormat {
     Csv,
     /// ParaView's VTK XML `trajectories.vtp` (polylines with velocity,
     /// acceleration and their sigmas) as `ptv export --export vtk` writes
-    /// it; built whole, at most `EXPORT_MAX_POINTS` (200,000) points.
+    /// it; built whole, at most the service's `--max-export-points`
+    /// (default 200,000) points.
     Vtk,
     /// The sequence's one-file HDF5 (particles by frame and trajectories,
     /// units in attributes) as `ptv export --export hdf5` writes it; built
-    /// whole, at most 200,000 points (trajectory points plus particles).
+    /// whole, at most the service's `--max-export-points` (default
+    /// 200,000) points (trajectory points plus particles).
     Hdf5,
+    /// ParaView's time series as one zip (`application/zip`, stored
+    /// entries): `particles.pvd`, each processed frame's
+    /// `particles.<frame>.vtp` within `frames` and `trajectories.vtp`, the
+    /// files `ptv track --export vtk` writes into a directory; unzip and
+    /// open `particles.pvd`. Built whole, within the same
+    /// `--max-export-points`.
+    Pvd,
 }
 
 /// Query of the trajectories route.
@@ -285,9 +294,12 @@ pub enum TrajectoryFormat {
 #[into_params(parameter_in = Query)]
 #[serde(deny_unknown_fields)]
 pub struct TrajectoriesQuery {
-    /// json (default), csv, vtk (`trajectories.vtp`, application/xml) or
-    /// hdf5 (the sequence's HDF5 file, application/x-hdf5); vtk and hdf5
-    /// are refused with 413 above 200,000 points (cut them with `frames`).
+    /// json (default), csv, vtk (`trajectories.vtp`, application/xml),
+    /// hdf5 (the sequence's HDF5 file, application/x-hdf5) or pvd
+    /// (ParaView's time series: a zip of `particles.pvd`, the frames'
+    /// `.vtp` and `trajectories.vtp`, application/zip); vtk, hdf5 and pvd
+    /// are refused with 413 above the service's `--max-export-points`
+    /// (default 200,000 points: cut them with `frames`).
     #[serde(default)]
     pub format: TrajectoryFormat,
     /// Only trajectories of at least this many points [default: all the
@@ -426,7 +438,7 @@ async fn page(
         }
         match format {
             // Built whole by `exports`, not paged.
-            TrajectoryFormat::Vtk | TrajectoryFormat::Hdf5 => {}
+            TrajectoryFormat::Vtk | TrajectoryFormat::Hdf5 | TrajectoryFormat::Pvd => {}
             TrajectoryFormat::Csv => {
                 for p in mine {
                     csv_row(p, &mut out);
@@ -520,34 +532,37 @@ pub async fn trajectories(
         run.id.to_string(),
     );
     let (content_type, head, tail) = match format {
-        TrajectoryFormat::Vtk | TrajectoryFormat::Hdf5 => {
+        TrajectoryFormat::Vtk | TrajectoryFormat::Hdf5 | TrajectoryFormat::Pvd => {
             let collected =
                 super::exports::collect(&state, id, run.id, cameras, min_length, frames).await?;
             // Encoding up to the point limit is CPU work: on the pool,
             // as the plots are, not on the async runtime.
-            let vtk = matches!(format, TrajectoryFormat::Vtk);
             let bytes = state
                 .cpu
-                .run(move || {
-                    if vtk {
+                .run(move || match format {
+                    TrajectoryFormat::Vtk => {
                         Ok(formats::vtk::trajectories_vtp(&collected.trajectories).into_bytes())
-                    } else {
-                        super::exports::hdf5(&collected)
                     }
+                    TrajectoryFormat::Pvd => super::exports::paraview_zip(&collected),
+                    _ => super::exports::hdf5(&collected),
                 })
                 .await??;
-            let file = if vtk {
-                super::exports::attachment(
+            let file = match format {
+                TrajectoryFormat::Vtk => super::exports::attachment(
                     super::exports::VTK_CONTENT_TYPE,
                     "trajectories.vtp",
                     bytes,
-                )
-            } else {
-                super::exports::attachment(
+                ),
+                TrajectoryFormat::Pvd => super::exports::attachment(
+                    super::exports::ZIP_CONTENT_TYPE,
+                    &format!("sequence_{id}_paraview.zip"),
+                    bytes,
+                ),
+                _ => super::exports::attachment(
                     super::exports::HDF5_CONTENT_TYPE,
                     &format!("sequence_{id}.h5"),
                     bytes,
-                )
+                ),
             };
             return Ok(([run_header], file).into_response());
         }
