@@ -39,9 +39,29 @@
 //! 1.57% (1.56% without); tracking 11.6 ms a frame instead of 9.8 (one
 //! run each on the idle machine, before the fits tested their windows).
 //!
-//! Measured here (34 frames, RMS displacement 0.31-0.33 of the spacing;
-//! `cargo run --release --example track_report`; the tracking time is in
-//! `benches/track.rs`, on one idle core):
+//! Measured here (session 16, the tracker after the test of short
+//! trajectories; 50 frames, RMS displacement 0.31 of the spacing;
+//! `cargo run --example track_report -- --backward N 50 0.35`, whose
+//! figures are the release build's: the run is deterministic; the
+//! tracking time is in `benches/track.rs`):
+//!
+//! | particles | link recall | wrong links | mean length | velocity error median / RMS (centred windows) | acceleration RMS |
+//! | ---: | ---: | ---: | ---: | ---: | ---: |
+//! | 2,000 | 0.9911 | 0.09% | 47.9 of 50 | 0.73% / 2.10% (1.28%) | 22.5% |
+//! | 8,000 | 0.9886 | 0.23% | 47.0 of 50 | 0.74% / 1.52% (0.98%) | 23.6% |
+//! | 20,000 | 0.9866 | 0.49% | 45.4 of 50 | 0.89% / 2.73% (1.17%) | 39.0% |
+//!
+//! With backward tracking (`--backward`): recall 0.9931 / 0.9908 /
+//! 0.9889, wrong links 0.10% / 0.25% / 0.54%, velocity RMS 2.35% / 1.64% /
+//! 3.24%; the points it adds (172 / 700 / 2,492) have velocity RMS errors
+//! of 25% / 14% / 35%, the forward pass's points 2.11% / 1.53% / 2.76%
+//! (docs/tracking.md). The trajectories' first and last points (8.5% of
+//! the points at 8,000) carry 53% of the squared velocity error (RMS 5.3%
+//! against 0.98% inside); a 7-point one-sided window there was tried and
+//! not kept (docs/tracking.md).
+//!
+//! The figures at 34 frames (the default run), before the test of short
+//! trajectories:
 //!
 //! | particles | link recall | wrong links | mean length | velocity error median / RMS (centred windows) | acceleration RMS |
 //! | ---: | ---: | ---: | ---: | ---: | ---: |

@@ -11,9 +11,9 @@
 //! recovery gives the core's tracker's trajectories over the stored
 //! particles; bad settings and queries are refused.
 //!
-//! Those runs are forward only (`"backward": false`, as `ptv track`
-//! without `--backward`); a run with backward tracking (the default) gives
-//! `ptv track --backward`'s trajectories over the stored particles.
+//! Those runs are forward only (`"backward": false`, the default, as `ptv
+//! track` without `--backward`); a run with `"backward": true` gives `ptv
+//! track --backward`'s trajectories over the stored particles.
 //!
 //! The comparisons are exact (no tolerance): the service runs the core's
 //! deterministic tracker on the particles and targets it stored, and `ptv
@@ -1301,7 +1301,7 @@ async fn a_tracked_sequence_exports_to_paraview_and_hdf5() {
 /// Backward tracking at the run's finish (issue 34): particles entering
 /// mid-sequence whose second frame is lost (no targets in any camera) are
 /// picked up late by the forward pass (a trajectory of one point bridges
-/// no gap); a run with the default settings extends its trajectories
+/// no gap); a run with `"backward": true` extends its trajectories
 /// backwards once it finishes. Its stored trajectories are, row for row,
 /// `ptv track --backward`'s over the stored particles (without recovery,
 /// which the particle files cannot give: the pass over a stored run sees
@@ -1332,7 +1332,7 @@ async fn backward_tracking_at_the_finish_is_ptv_track_backwards() {
     let sequence = api
         .tracked_sequence(
             &rig,
-            json!({"max_velocity": MAX_VELOCITY, "recovery": false}),
+            json!({"max_velocity": MAX_VELOCITY, "recovery": false, "backward": true}),
         )
         .await;
     let order: Vec<(i64, &TargetFrame)> = frames
@@ -1342,7 +1342,7 @@ async fn backward_tracking_at_the_finish_is_ptv_track_backwards() {
         .collect();
     api.upload_concurrently(sequence, &order, 2).await;
     let run = api.finish(sequence).await;
-    assert_eq!(run["settings"]["backward"], true, "the default: {run}");
+    assert_eq!(run["settings"]["backward"], true, "{run}");
 
     let particles = api.particles(sequence, count as i64).await;
     let positions = |rows: &[formats::csv::ParticleRow]| -> Vec<ParticlePosition> {

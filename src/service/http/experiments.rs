@@ -167,8 +167,8 @@ pub async fn import(
                     experiment.sequence.first as i64,
                 )),
                 recovery: Some(t.recovery),
-                // OpenPTV tracks back after tracking (pyptv's
-                // "Tracking backwards"): the run's default does too.
+                // The run's default (pyptv's tracking back is a step of
+                // its own, and off here by default: docs/tracking.md).
                 backward: None,
             }
             .with_defaults()?;
