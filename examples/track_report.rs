@@ -39,9 +39,29 @@
 //! 1.57% (1.56% without); tracking 11.6 ms a frame instead of 9.8 (one
 //! run each on the idle machine, before the fits tested their windows).
 //!
-//! Measured here (34 frames, RMS displacement 0.31-0.33 of the spacing;
-//! `cargo run --release --example track_report`; the tracking time is in
-//! `benches/track.rs`, on one idle core):
+//! Measured here (session 16, the tracker after the test of short
+//! trajectories; 50 frames, RMS displacement 0.31 of the spacing;
+//! `cargo run --example track_report -- --backward N 50 0.35`, whose
+//! figures are the release build's: the run is deterministic; the
+//! tracking time is in `benches/track.rs`):
+//!
+//! | particles | link recall | wrong links | mean length | velocity error median / RMS (centred windows) | acceleration RMS |
+//! | ---: | ---: | ---: | ---: | ---: | ---: |
+//! | 2,000 | 0.9911 | 0.09% | 47.9 of 50 | 0.73% / 2.10% (1.28%) | 22.5% |
+//! | 8,000 | 0.9886 | 0.23% | 47.0 of 50 | 0.74% / 1.52% (0.98%) | 23.6% |
+//! | 20,000 | 0.9866 | 0.49% | 45.4 of 50 | 0.89% / 2.73% (1.17%) | 39.0% |
+//!
+//! With backward tracking (`--backward`): recall 0.9931 / 0.9908 /
+//! 0.9889, wrong links 0.10% / 0.25% / 0.54%, velocity RMS 2.35% / 1.64% /
+//! 3.24%; the points it adds (172 / 700 / 2,492) have velocity RMS errors
+//! of 25% / 14% / 35%, the forward pass's points 2.11% / 1.53% / 2.76%
+//! (docs/tracking.md). The trajectories' first and last points (8.5% of
+//! the points at 8,000) carry 53% of the squared velocity error (RMS 5.3%
+//! against 0.98% inside); a 7-point one-sided window there was tried and
+//! not kept (docs/tracking.md).
+//!
+//! The figures at 34 frames (the default run), before the test of short
+//! trajectories:
 //!
 //! | particles | link recall | wrong links | mean length | velocity error median / RMS (centred windows) | acceleration RMS |
 //! | ---: | ---: | ---: | ---: | ---: | ---: |
@@ -224,6 +244,9 @@ fn run(particles: usize, frames: usize, displacement_share: f64, recover: bool, 
     // matched frames.
     let modes: &[bool] = if backward { &[false, true] } else { &[false] };
     let (truth0, pure0) = (truth, pure);
+    // The forward pass's points (frame, particle), to split the backward
+    // run's velocity error between them and the points it added.
+    let mut forward_points: std::collections::HashSet<(i64, usize)> = Default::default();
     for &backward in modes {
         let (mut truth, mut pure) = (truth0.clone(), pure0.clone());
         let input = input.clone();
@@ -285,6 +308,9 @@ fn run(particles: usize, frames: usize, displacement_share: f64, recover: bool, 
         let (mut v_err, mut v_ref, mut a_err, mut a_ref, mut n) = (0.0, 0.0, 0.0, 0.0, 0usize);
         let mut v_errors: Vec<f64> = Vec::new();
         let (mut v_err_centred, mut v_ref_centred) = (0.0, 0.0);
+        // With backward: squared velocity error and count at the forward
+        // pass's points and at the added ones.
+        let mut split = [(0.0, 0usize); 2];
         // Squared velocity error and count by the point's distance from
         // its trajectory's nearer end: 0, 1, 2 or more.
         let mut by_end = [(0.0, 0usize); 3];
@@ -322,6 +348,13 @@ fn run(particles: usize, frames: usize, displacement_share: f64, recover: bool, 
                         v_ref_centred += u.norm_squared();
                     }
                     v_err += (p.derivatives.velocity - u).norm_squared();
+                    if !backward {
+                        forward_points.insert((p.frame, p.particle));
+                    } else {
+                        let s = usize::from(!forward_points.contains(&(p.frame, p.particle)));
+                        split[s].0 += (p.derivatives.velocity - u).norm_squared();
+                        split[s].1 += 1;
+                    }
                     let d = k.min(t.points.len() - 1 - k).min(2);
                     by_end[d].0 += (p.derivatives.velocity - u).norm_squared();
                     by_end[d].1 += 1;
@@ -387,10 +420,17 @@ fn run(particles: usize, frames: usize, displacement_share: f64, recover: bool, 
             })
             .collect();
         println!("  matched: {}", counts.join(", "));
+        let v_ms_all = v_ref / n.max(1) as f64;
         match finished.backward {
             Some(b) => println!(
-                "  with backward tracking: {} points added, {} trajectories lengthened, {} joined",
-                b.points, b.lengthened, b.joined
+                "  with backward tracking: {} points added, {} trajectories lengthened, {} joined; velocity RMS {:.2}% at the forward pass's {} points, {:.2}% at the {} added",
+                b.points,
+                b.lengthened,
+                b.joined,
+                100.0 * (split[0].0 / split[0].1.max(1) as f64 / v_ms_all).sqrt(),
+                split[0].1,
+                100.0 * (split[1].0 / split[1].1.max(1) as f64 / v_ms_all).sqrt(),
+                split[1].1
             ),
             None => println!("  forward only"),
         }

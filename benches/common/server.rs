@@ -46,6 +46,7 @@ impl Server {
             api_token: None,
             max_cpu_requests: None,
             max_connections: None,
+            max_export_points: ptv::service::infra::config::DEFAULT_MAX_EXPORT_POINTS,
             timeouts: Timeouts::default(),
             job_limits: Default::default(),
             lease: Default::default(),

@@ -128,6 +128,9 @@ pub(super) fn import(args: &ImportExperimentArgs, stderr: &mut dyn Write) -> Res
                 "fit_order": p.fit_order,
                 "first_frame": experiment.sequence.first,
                 "recovery": t.recovery,
+                // The run's default (pyptv's tracking back is a step of
+                // its own; docs/tracking.md says why it is off).
+                "backward": crate::service::model::tracking_settings::BACKWARD_BY_DEFAULT,
             })
         }),
         unmapped: &experiment.unmapped,

@@ -52,6 +52,7 @@ pub fn test_args(data_dir: &Path, api_token: Option<&str>) -> ServeArgs {
         api_token: api_token.map(str::to_owned),
         max_cpu_requests: None,
         max_connections: None,
+        max_export_points: ptv::service::infra::config::DEFAULT_MAX_EXPORT_POINTS,
         timeouts: Timeouts::default(),
         job_limits: JobLimits::default(),
         lease: Default::default(),

@@ -11,6 +11,10 @@
 //! recovery gives the core's tracker's trajectories over the stored
 //! particles; bad settings and queries are refused.
 //!
+//! Those runs are forward only (`"backward": false`, the default, as `ptv
+//! track` without `--backward`); a run with `"backward": true` gives `ptv
+//! track --backward`'s trajectories over the stored particles.
+//!
 //! The comparisons are exact (no tolerance): the service runs the core's
 //! deterministic tracker on the particles and targets it stored, and `ptv
 //! track` matches the same target files (the uploads' CSV, shortest
@@ -516,7 +520,10 @@ async fn a_sequence_uploaded_out_of_order_by_four_clients_is_tracked_as_ptv_trac
     let rig = rig();
     let frames = moving_frames(&rig, FRAMES, 15);
     let sequence = api
-        .tracked_sequence(&rig, json!({"max_velocity": MAX_VELOCITY}))
+        .tracked_sequence(
+            &rig,
+            json!({"max_velocity": MAX_VELOCITY, "backward": false}),
+        )
         .await;
     let mut order: Vec<(i64, &TargetFrame)> = frames
         .iter()
@@ -667,7 +674,10 @@ async fn a_rerun_with_other_settings_is_a_new_run_and_the_old_one_stays() {
     let rig = rig();
     let frames = moving_frames(&rig, 30, 21);
     let sequence = api
-        .tracked_sequence(&rig, json!({"max_velocity": MAX_VELOCITY}))
+        .tracked_sequence(
+            &rig,
+            json!({"max_velocity": MAX_VELOCITY, "backward": false}),
+        )
         .await;
     let order: Vec<(i64, &TargetFrame)> = frames
         .iter()
@@ -684,7 +694,7 @@ async fn a_rerun_with_other_settings_is_a_new_run_and_the_old_one_stays() {
     let (status, second) = api
         .post(
             &format!("/sequences/{sequence}/tracking"),
-            &json!({"max_velocity": MAX_VELOCITY, "min_length": 10, "recovery": false}),
+            &json!({"max_velocity": MAX_VELOCITY, "min_length": 10, "recovery": false, "backward": false}),
         )
         .await;
     assert_eq!(status, 201, "{second}");
@@ -883,7 +893,10 @@ async fn a_kill_during_tracking_then_a_restart_gives_the_same_trajectories() {
     let first = ServiceProcess::start(data_dir.path(), 2);
     let api = Api::at(&first.address);
     let sequence = api
-        .tracked_sequence(&rig, json!({"max_velocity": MAX_VELOCITY}))
+        .tracked_sequence(
+            &rig,
+            json!({"max_velocity": MAX_VELOCITY, "backward": false}),
+        )
         .await;
     api.upload_concurrently(sequence, before, 4).await;
     // Kill once tracking is under way (some frames tracked), while frames
@@ -938,7 +951,10 @@ async fn worker_processes_track_in_frame_order_and_one_takes_over_a_killed_ones_
     let pids: Vec<u32> = workers.iter().map(WorkerProcess::pid).collect();
     let api = Api::at(&server.address);
     let sequence = api
-        .tracked_sequence(&rig, json!({"max_velocity": MAX_VELOCITY}))
+        .tracked_sequence(
+            &rig,
+            json!({"max_velocity": MAX_VELOCITY, "backward": false}),
+        )
         .await;
     api.upload_concurrently(sequence, before, 4).await;
     api.wait_tracked_through(sequence, 3).await;
@@ -991,7 +1007,10 @@ async fn a_failed_frame_is_a_gap_the_trajectories_bridge() {
     let frames = moving_frames(&rig, GAP_FRAMES, 41);
     let crowded = rig.targets(40_000, 42);
     let sequence = api
-        .tracked_sequence(&rig, json!({"max_velocity": MAX_VELOCITY}))
+        .tracked_sequence(
+            &rig,
+            json!({"max_velocity": MAX_VELOCITY, "backward": false}),
+        )
         .await;
     // Every frame but the gap's, last first: tracking waits at the gap's
     // frame number, not uploaded yet (nothing else competes with the
@@ -1212,6 +1231,60 @@ async fn a_tracked_sequence_exports_to_paraview_and_hdf5() {
         .unwrap();
     assert_eq!(z.len(), particles);
 
+    // ParaView's time series as one zip: the .pvd names a .vtp per
+    // processed frame, each in the zip with that frame's particles, and
+    // the polylines as `?format=vtk` gives them.
+    let response = get(format!("/sequences/{sequence}/trajectories?format=pvd")).await;
+    assert_eq!(response.status().as_u16(), 200);
+    assert_eq!(response.headers()["content-type"], "application/zip");
+    assert_eq!(
+        response.headers()["content-disposition"],
+        format!("attachment; filename=\"sequence_{sequence}_paraview.zip\"").as_str()
+    );
+    let bytes = response.bytes().await.unwrap().to_vec();
+    let mut zip = zip::ZipArchive::new(std::io::Cursor::new(bytes)).unwrap();
+    let mut read = |name: &str| {
+        let mut text = String::new();
+        std::io::Read::read_to_string(&mut zip.by_name(name).unwrap(), &mut text).unwrap();
+        text
+    };
+    let series = read("particles.pvd");
+    let files: Vec<(i64, String)> = series
+        .lines()
+        .filter(|l| l.contains("<DataSet"))
+        .map(|l| {
+            let attribute = |name: &str| {
+                let from = l.find(&format!("{name}=\"")).unwrap() + name.len() + 2;
+                l[from..from + l[from..].find('"').unwrap()].to_owned()
+            };
+            (attribute("timestep").parse().unwrap(), attribute("file"))
+        })
+        .collect();
+    assert_eq!(
+        files,
+        (0..8)
+            .map(|f| (f, format!("particles.{f}.vtp")))
+            .collect::<Vec<_>>()
+    );
+    for (frame, file) in &files {
+        let (kind, counts) = vtp_counts(&read(file));
+        assert_eq!(kind, "PolyData", "{file}");
+        if *frame == 3 {
+            assert_eq!(counts, [particles, particles, 0]);
+        }
+    }
+    let polylines = get(format!("/sequences/{sequence}/trajectories?format=vtk"))
+        .await
+        .text()
+        .await
+        .unwrap();
+    assert_eq!(read("trajectories.vtp"), polylines);
+    assert_eq!(
+        zip.len(),
+        files.len() + 2,
+        "the .pvd, its frames, the polylines"
+    );
+
     // An unknown format names the accepted ones.
     for path in [
         format!("/sequences/{sequence}/trajectories?format=vtu"),
@@ -1222,5 +1295,173 @@ async fn a_tracked_sequence_exports_to_paraview_and_hdf5() {
         let detail = body["detail"].as_str().unwrap();
         assert!(detail.contains("vtk"), "{path}: {detail}");
     }
+    app.stop().await;
+}
+
+/// Backward tracking at the run's finish (issue 34): particles entering
+/// mid-sequence whose second frame is lost (no targets in any camera) are
+/// picked up late by the forward pass (a trajectory of one point bridges
+/// no gap); a run with `"backward": true` extends its trajectories
+/// backwards once it finishes. Its stored trajectories are, row for row,
+/// `ptv track --backward`'s over the stored particles (without recovery,
+/// which the particle files cannot give: the pass over a stored run sees
+/// the particles `ptv track --particles` sees), the run shows what the
+/// pass added as the core's summary says, and the points are the forward
+/// pass's plus the added ones.
+#[tokio::test]
+async fn backward_tracking_at_the_finish_is_ptv_track_backwards() {
+    let app = crate::helpers::spawn_app().await;
+    let api = Api::at(&app.address);
+    let rig = rig();
+    let count = 24;
+    let mut frames = moving_frames(&rig, count, 34);
+    // Every 8th particle enters at frame 3..=14 and misses the frame after.
+    let birth = |i: usize| (i % 8 == 0).then_some(3 + (i / 8) % 12);
+    for (f, frame) in frames.iter_mut().enumerate() {
+        for (targets, truth) in frame.targets.iter_mut().zip(frame.truth.iter_mut()) {
+            let keep: Vec<bool> = truth
+                .iter()
+                .map(|&i| !matches!(birth(i), Some(b) if f < b || f == b + 1))
+                .collect();
+            let mut k = keep.iter();
+            targets.retain(|_| *k.next().unwrap());
+            let mut k = keep.iter();
+            truth.retain(|_| *k.next().unwrap());
+        }
+    }
+    let sequence = api
+        .tracked_sequence(
+            &rig,
+            json!({"max_velocity": MAX_VELOCITY, "recovery": false, "backward": true}),
+        )
+        .await;
+    let order: Vec<(i64, &TargetFrame)> = frames
+        .iter()
+        .enumerate()
+        .map(|(f, t)| (f as i64, t))
+        .collect();
+    api.upload_concurrently(sequence, &order, 2).await;
+    let run = api.finish(sequence).await;
+    assert_eq!(run["settings"]["backward"], true, "{run}");
+
+    let particles = api.particles(sequence, count as i64).await;
+    let positions = |rows: &[formats::csv::ParticleRow]| -> Vec<ParticlePosition> {
+        rows.iter()
+            .map(|r| {
+                ParticlePosition::seen_by(
+                    r.position,
+                    r.sigma.expect("the service's CSV has sigmas"),
+                    r.targets.iter().flatten().count(),
+                )
+            })
+            .collect()
+    };
+    let input: Vec<(i64, Vec<ParticlePosition>)> = particles
+        .iter()
+        .enumerate()
+        .map(|(f, rows)| (f as i64, positions(rows)))
+        .collect();
+    let (_, added) =
+        track::track_both_ways(input.clone(), TrackingParameters::new(MAX_VELOCITY)).unwrap();
+    let forward = track::track(input, TrackingParameters::new(MAX_VELOCITY)).unwrap();
+    // The late starts are there to take back (about 50 entering particles;
+    // a few of them start right anyway where their third point links
+    // back).
+    assert!(added.points >= 20, "{added:?}");
+    assert_eq!(
+        run["backward"],
+        json!({"points": added.points, "lengthened": added.lengthened, "joined": added.joined}),
+        "{run}"
+    );
+    let csv = api
+        .text(&format!("/sequences/{sequence}/trajectories?format=csv"))
+        .await;
+    let tables = api.particle_tables(sequence, count as i64).await;
+    assert_same_rows(
+        &csv.lines().collect::<Vec<_>>(),
+        &ptv_track(&tables, MAX_VELOCITY, &["--backward"]),
+    );
+    let forward_points: usize = forward.iter().map(|t| t.points.len()).sum();
+    assert_eq!(csv.lines().count() - 1, forward_points + added.points);
+    // The trajectories' extents agree with their points: one joined onto
+    // another is gone, the lengthened ones start earlier.
+    let (status, list) = api
+        .get(&format!("/sequences/{sequence}/trajectories"))
+        .await;
+    assert_eq!(status, 200, "{list}");
+    let list = list["trajectories"]
+        .as_array()
+        .expect("a list of trajectories");
+    assert_eq!(list.len(), forward.len() - added.joined);
+    assert_eq!(run["trajectories"].as_u64().unwrap() as usize, list.len());
+    let mut points_by_trajectory: HashMap<u64, usize> = HashMap::new();
+    for p in csv_points(&csv.lines().map(str::to_owned).collect::<Vec<_>>()) {
+        *points_by_trajectory.entry(p.trajectory).or_default() += 1;
+    }
+    for t in list {
+        let points = t["points"].as_array().unwrap();
+        assert_eq!(t["length"].as_u64().unwrap() as usize, points.len(), "{t}");
+        assert_eq!(
+            points.len(),
+            points_by_trajectory[&t["id"].as_u64().unwrap()]
+        );
+        assert_eq!(t["first_frame"], points[0]["frame"], "{t}");
+        assert_eq!(t["last_frame"], points[points.len() - 1]["frame"], "{t}");
+    }
+    app.stop().await;
+}
+
+/// An export above the service's `--max-export-points` is refused with
+/// 413 before it is built, saying what to do; the frames asked for in
+/// part fit. The limit, 2,500 points, is under the 8 frames' particles
+/// alone (about 390 a frame: 400 particles, 4 cameras, 5% of images
+/// lost) and above 2 frames' particles and trajectory points (at most one
+/// point a particle: about 1,560).
+#[tokio::test]
+async fn an_export_above_the_configured_limit_is_refused_saying_to_cut_it() {
+    let app = crate::helpers::spawn_app_configured(|args| args.max_export_points = 2_500).await;
+    let api = Api::at(&app.address);
+    let rig = rig();
+    let frames = moving_frames(&rig, 8, 35);
+    let sequence = api
+        .tracked_sequence(&rig, json!({"max_velocity": MAX_VELOCITY}))
+        .await;
+    let order: Vec<(i64, &TargetFrame)> = frames
+        .iter()
+        .enumerate()
+        .map(|(f, t)| (f as i64, t))
+        .collect();
+    api.upload_concurrently(sequence, &order, 2).await;
+    api.finish(sequence).await;
+    for format in ["vtk", "hdf5"] {
+        let (status, body) = api
+            .get(&format!(
+                "/sequences/{sequence}/trajectories?format={format}"
+            ))
+            .await;
+        assert_eq!(status, 413, "{format}: {body}");
+        let detail = body["detail"].as_str().unwrap();
+        for says in [
+            "more than 2500 points",
+            "--max-export-points",
+            "frames=FIRST..LAST",
+        ] {
+            assert!(detail.contains(says), "{format}: {detail}");
+        }
+        let response = api
+            .client
+            .get(api.url(&format!(
+                "/sequences/{sequence}/trajectories?format={format}&frames=0..1"
+            )))
+            .send()
+            .await
+            .unwrap();
+        assert_eq!(response.status().as_u16(), 200, "{format}, frames 0..1");
+    }
+    // The JSON and CSV stream: no such limit.
+    let (status, _) = api
+        .get(&format!("/sequences/{sequence}/trajectories"))
+        .await;
+    assert_eq!(status, 200);
     app.stop().await;
 }

@@ -105,14 +105,131 @@ const FREE: u32 = u32::MAX;
 
 /// Extends the trajectories of `points` (all the forward pass handed
 /// out) backwards over `frames` (every frame it linked, in order);
-/// returns every point, trajectories renumbered from 0 in their order,
-/// each in frame order, and what was added.
+/// returns every point, each trajectory keeping its number (one joined
+/// onto the trajectory before it is gone, its points under that one's
+/// number), each in frame order, and what was added.
 pub(super) fn extend(
     frames: &[Stored],
     points: Vec<TrackPoint>,
     parameters: &TrackingParameters,
     cell: f64,
 ) -> (Vec<TrackPoint>, BackwardSummary) {
+    let (paths, summary) = extend_paths(frames, points, parameters, cell);
+    let w = parameters.fit_half_window;
+    (refitted(paths, w, parameters.fit_order), summary)
+}
+
+/// A frame of a finished run, for [`extend_run`]: the particles the
+/// tracker was given (their sigmas as given) and, after them, those it
+/// recovered from the images (`given` says where they start).
+#[derive(Clone, Debug, PartialEq)]
+pub struct RunFrame {
+    /// The frame number.
+    pub number: i64,
+    /// Its particles: the `given` ones, then the recovered ones.
+    pub particles: Vec<ParticlePosition>,
+    /// How many of `particles` were given (the rest were recovered).
+    pub given: usize,
+}
+
+/// Backward tracking over a run tracked forward already and held
+/// elsewhere (the service's store): `frames` are the frames the tracker
+/// took, in increasing order (numbers skipped are empty frames, as
+/// [`super::Tracker::push`] takes them), `points` every point it handed
+/// out. Returns every point, each trajectory keeping its number (a
+/// trajectory joined onto the one before it is gone: its points carry
+/// that one's number), and what was added. The same pass as
+/// [`super::Tracker::extending_backward`]'s: the given particles' sigmas
+/// are floored by their frame's median, the cameras that missed a
+/// particle counted against the most seen so far, as the forward pass
+/// does; a recovered particle's sigma is floored by its frame's median
+/// only (the forward pass also floors it by its trajectory's last point's,
+/// which a stored run does not keep).
+///
+/// Memory: every frame's particles (about 80 bytes each) and every point
+/// (about 200 bytes), as the CLI's pass.
+pub fn extend_run(
+    frames: Vec<RunFrame>,
+    points: Vec<TrackPoint>,
+    parameters: &TrackingParameters,
+) -> Result<(Vec<TrackPoint>, BackwardSummary), super::TrackError> {
+    parameters.validate()?;
+    let mut stored: Vec<Stored> = Vec::with_capacity(frames.len());
+    let mut rig = 0usize;
+    let mut last: Option<i64> = None;
+    for frame in frames {
+        if let Some(last) = last {
+            if frame.number <= last {
+                return Err(super::TrackError::FrameOrder {
+                    frame: frame.number,
+                    last,
+                });
+            }
+            // Skipped numbers are empty frames, as the forward pass takes
+            // them.
+            let skipped = (frame.number - last - 1).min(super::MAX_GAP as i64 + 2);
+            for k in 0..skipped {
+                stored.push(Stored {
+                    number: frame.number - skipped + k,
+                    particles: Vec::new(),
+                    missing: Vec::new(),
+                });
+            }
+        }
+        last = Some(frame.number);
+        let mut particles = frame.particles;
+        let given = frame.given.min(particles.len());
+        let median = super::floor_sigmas(&mut particles[..given]);
+        for p in &mut particles[given..] {
+            p.sigma = p.sigma.sup(&median);
+        }
+        rig = particles[..given]
+            .iter()
+            .map(|p| p.cameras)
+            .fold(rig, usize::max);
+        let missing = particles
+            .iter()
+            .map(|p| match p.cameras {
+                0 => 0,
+                c => rig.saturating_sub(c),
+            })
+            .collect();
+        stored.push(Stored {
+            number: frame.number,
+            particles,
+            missing,
+        });
+    }
+    for point in &points {
+        let known = stored
+            .binary_search_by_key(&point.frame, |f| f.number)
+            .ok()
+            .is_some_and(|f| point.particle < stored[f].particles.len());
+        if !known {
+            return Err(super::TrackError::InvalidParticle {
+                frame: point.frame,
+                index: point.particle,
+                reason: format!(
+                    "trajectory {}'s point is no particle of the frames given",
+                    point.trajectory
+                ),
+            });
+        }
+    }
+    let cell = parameters.max_velocity.max(parameters.max_acceleration);
+    let (paths, summary) = extend_paths(&stored, points, parameters, cell);
+    let w = parameters.fit_half_window;
+    Ok((refitted(paths, w, parameters.fit_order), summary))
+}
+
+/// The pass: the trajectories as paths after it (those joined into
+/// another marked gone), and what it added.
+fn extend_paths(
+    frames: &[Stored],
+    points: Vec<TrackPoint>,
+    parameters: &TrackingParameters,
+    cell: f64,
+) -> (Vec<Path>, BackwardSummary) {
     let mut gathered = Gathered::default();
     gathered.extend(points);
     let index_of = |number: i64| frames.binary_search_by_key(&number, |f| f.number).ok();
@@ -272,7 +389,7 @@ pub(super) fn extend(
             }
         }
     }
-    (refitted(paths, w, p.fit_order), summary)
+    (paths, summary)
 }
 
 /// Whether `path`, starting with `point`, may join `other` (which ends
@@ -345,20 +462,20 @@ fn paths_of(frames: &[Stored], gathered: Gathered) -> (Vec<Path>, Vec<Vec<u32>>)
     (paths, holder)
 }
 
-/// The paths kept, renumbered from 0 in their order; the derivatives of
-/// the points whose windows reach a new point or a junction fitted again
-/// as the forward pass fits them.
+/// The paths kept, each with its number (those joined onto another are
+/// gone: their numbers are no more); the derivatives of the points whose
+/// windows reach a new point or a junction fitted again as the forward
+/// pass fits them.
 fn refitted(paths: Vec<Path>, w: usize, order: usize) -> Vec<TrackPoint> {
     let mut out = Vec::new();
-    let mut id = 0u64;
     for path in paths.into_iter().filter(|path| !path.gone) {
+        let id = path.id;
         let len = path.points.len();
         if !path.fresh.contains(&true) {
             for mut point in path.points {
                 point.trajectory = id;
                 out.push(point);
             }
-            id += 1;
             continue;
         }
         let samples: Vec<Sample> = (0..len).map(|k| path.sample(k)).collect();
@@ -374,7 +491,6 @@ fn refitted(paths: Vec<Path>, w: usize, order: usize) -> Vec<TrackPoint> {
             point.trajectory = id;
             out.push(point);
         }
-        id += 1;
     }
     out
 }

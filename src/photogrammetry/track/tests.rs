@@ -995,3 +995,90 @@ fn backward_tracking_recovers_the_starts_forward_tracking_picks_up_late() {
     let both_points: usize = both.iter().map(|t| t.points.len()).sum();
     assert_eq!(both_points, forward_points + entering);
 }
+
+/// The pass over a run tracked forward and held elsewhere (the service's
+/// store: the frames' particles as given, every point handed out) gives
+/// what the tracker's own pass gives: the same trajectories (as point
+/// lists: the numbers are the forward pass's, not renumbered), the same
+/// derivatives, and the same summary. With a skipped frame number (an
+/// empty frame to both), dropout and spurious points (no join happens
+/// here: the service's test compares its joins, where there are any, with
+/// `ptv track --backward`'s).
+#[test]
+fn the_pass_over_a_stored_run_is_the_trackers_own() {
+    let mut scene = vortex(2000, 24, 0.02, 0.08, 40, 43);
+    scene.frames.retain(|(n, _)| *n != 11);
+    let forward = {
+        let mut tracker = Tracker::new(parameters()).unwrap();
+        let mut points = Vec::new();
+        for (n, particles) in scene.frames.clone() {
+            points.extend(tracker.push(n, particles).unwrap());
+        }
+        points.extend(tracker.finish());
+        points
+    };
+    let (both, added) = track_both_ways(scene.frames.clone(), parameters()).unwrap();
+    assert!(added.points > 100, "{added:?}");
+    let frames: Vec<backward::RunFrame> = scene
+        .frames
+        .iter()
+        .map(|(n, particles)| backward::RunFrame {
+            number: *n,
+            given: particles.len(),
+            particles: particles.clone(),
+        })
+        .collect();
+    let forward_ids: std::collections::HashSet<u64> =
+        forward.iter().map(|p| p.trajectory).collect();
+    let (points, summary) = backward::extend_run(frames.clone(), forward, &parameters()).unwrap();
+    assert_eq!(summary, added);
+    let stored = trajectories(points);
+    // Numbers kept: every one is a forward trajectory's; the joined ones
+    // are gone.
+    assert!(stored.iter().all(|t| forward_ids.contains(&t.id)));
+    assert_eq!(stored.len() + added.joined, forward_ids.len());
+    let key = |t: &Trajectory| {
+        t.points
+            .iter()
+            .map(|p| (p.frame, p.particle))
+            .collect::<Vec<_>>()
+    };
+    let mut a: Vec<_> = stored.iter().map(|t| (key(t), t)).collect();
+    let mut b: Vec<_> = both.iter().map(|t| (key(t), t)).collect();
+    a.sort_by(|x, y| x.0.cmp(&y.0));
+    b.sort_by(|x, y| x.0.cmp(&y.0));
+    assert_eq!(a.len(), b.len());
+    for ((ka, ta), (kb, tb)) in a.iter().zip(&b) {
+        assert_eq!(ka, kb);
+        for (p, q) in ta.points.iter().zip(&tb.points) {
+            assert_eq!(p.position, q.position);
+            // Bit-equal where both are numbers (NaN for no fit).
+            let same = |x: Vector3<f64>, y: Vector3<f64>| {
+                x.iter()
+                    .zip(y.iter())
+                    .all(|(a, b)| a == b || (a.is_nan() && b.is_nan()))
+            };
+            assert!(same(p.derivatives.velocity, q.derivatives.velocity));
+        }
+    }
+    // A point of no frame given is refused, naming it.
+    let (mut points, _) = (Vec::new(), ());
+    points.push(TrackPoint {
+        trajectory: 7,
+        frame: 11,
+        particle: 0,
+        position: Point3::origin(),
+        derivatives: backward_unfitted(),
+    });
+    let error = backward::extend_run(frames, points, &parameters()).unwrap_err();
+    assert!(error.to_string().contains("trajectory 7"), "{error}");
+}
+
+fn backward_unfitted() -> Derivatives {
+    Derivatives {
+        velocity: Vector3::repeat(f64::NAN),
+        velocity_sigma: Vector3::repeat(f64::NAN),
+        acceleration: None,
+        acceleration_sigma: None,
+    }
+}

@@ -167,6 +167,9 @@ pub async fn import(
                     experiment.sequence.first as i64,
                 )),
                 recovery: Some(t.recovery),
+                // The run's default (pyptv's tracking back is a step of
+                // its own, and off here by default: docs/tracking.md).
+                backward: None,
             }
             .with_defaults()?;
             if let Some(volume) = &experiment.matching.volume {

@@ -5,12 +5,13 @@
 //!
 //! Bound: these files are built whole in memory (the HDF5 writer builds
 //! its file at once; a `.vtp`'s arrays are columns), so a request loads at
-//! most [`EXPORT_MAX_POINTS`] points (trajectory points plus the particles
-//! of the frames it covers) and is refused with 413 above that, before the
-//! file is built: about 0.6 KB a point between the records (~180 bytes),
-//! the stored rows and the file (~170 bytes a point in HDF5, ~220 in
-//! base64 VTK), so at most ~120 MB a request. `frames=FIRST..LAST` cuts a
-//! larger sequence into parts under the bound.
+//! most `--max-export-points` points (trajectory points plus the particles
+//! of the frames it covers; default [`DEFAULT_MAX_EXPORT_POINTS`]) and is
+//! refused with 413 above that, before the file is built: about 0.6 KB a
+//! point between the records (~180 bytes), the stored rows and the file
+//! (~170 bytes a point in HDF5, ~220 in base64 VTK), so ~120 MB a request
+//! at the default (docs/service-limits.md has the measured peak).
+//! `frames=FIRST..LAST` cuts a larger sequence into parts under the bound.
 //!
 //! What the store does not keep is written as unknown: the acceleration's
 //! sigmas (NaN in VTK and HDF5), and the position sigma of a point the
@@ -35,23 +36,36 @@ use crate::service::store::{FrameNumber, PointRow, SequenceId, TrackingRunId};
 /// export is collected: one page of `GET .../trajectories`.
 const TRAJECTORIES_PER_READ: u32 = 500;
 
-/// The most points (trajectory points plus particles) an export loads.
-pub const EXPORT_MAX_POINTS: usize = 200_000;
+pub use crate::service::infra::config::DEFAULT_MAX_EXPORT_POINTS;
 
 /// ParaView's VTK XML. `application/xml`: a `.vtp` is XML that any XML
 /// tool reads, and VTK registered no media type of its own
 /// (`model/vnd.vtk` is not in IANA's registry).
 pub const VTK_CONTENT_TYPE: &str = "application/xml";
 
+/// A zip (ParaView's time series: a `.pvd` names its frames' files).
+pub const ZIP_CONTENT_TYPE: &str = "application/zip";
+
 /// HDF5's media type as the HDF Group uses it.
 pub const HDF5_CONTENT_TYPE: &str = "application/x-hdf5";
 
-/// What the limit says when a request would go above it.
-fn too_many(what: &str) -> ApiError {
+/// What the limit says when a request would go above it: the frames
+/// asked for, and where the frames' particles alone passed the limit.
+fn too_many(
+    what: &str,
+    limit: usize,
+    frames: (FrameNumber, FrameNumber),
+    passed_at: Option<i64>,
+) -> ApiError {
+    let at = passed_at.map_or_else(String::new, |frame| {
+        format!(" (its particles alone pass it at frame {frame})")
+    });
     ApiError::too_large(format!(
-        "{what} has more than {EXPORT_MAX_POINTS} points (trajectory points and particles), \
-         the most one export builds in memory; ask for part of it with \
-         `frames=FIRST..LAST` (or `min_length`), or use `ptv export` on the files"
+        "{what} has more than {limit} points (trajectory points and particles) within frames \
+         {}..{}{at}, the most one export builds in memory (the service's \
+         --max-export-points); ask for fewer frames with `frames=FIRST..LAST`, or for longer \
+         trajectories only with `min_length`, or track the files with `ptv track --export`",
+        frames.0 .0, frames.1 .0
     ))
 }
 
@@ -106,6 +120,7 @@ pub async fn collect(
     frames: (FrameNumber, FrameNumber),
 ) -> Result<Collected, ApiError> {
     let what = format!("sequence {id}'s export");
+    let limit = usize::try_from(state.config.max_export_points).unwrap_or(usize::MAX);
     let mut loaded = 0usize;
     // The frames' particles first: the trajectory points take their
     // sigmas from them.
@@ -118,9 +133,9 @@ pub async fn collect(
         let Some((count, blob, _)) = state.store.frame_particles(id, frame).await? else {
             continue;
         };
-        loaded += usize::try_from(count).unwrap_or(usize::MAX);
-        if loaded > EXPORT_MAX_POINTS {
-            return Err(too_many(&what));
+        loaded = loaded.saturating_add(usize::try_from(count).unwrap_or(usize::MAX));
+        if loaded > limit {
+            return Err(too_many(&what, limit, frames, Some(frame.0)));
         }
         particles.insert(frame.0, codec::decode_particles(&blob, cameras)?);
         frame_list.push(frame.0);
@@ -152,8 +167,8 @@ pub async fn collect(
             };
             while let Some(p) = points.next_if(|p| p.trajectory == t.id) {
                 loaded += 1;
-                if loaded > EXPORT_MAX_POINTS {
-                    return Err(too_many(&what));
+                if loaded > limit {
+                    return Err(too_many(&what, limit, frames, None));
                 }
                 let particle = usize::try_from(p.particle).ok();
                 let stored = particle.and_then(|i| particles.get(&p.frame.0)?.get(i));
@@ -203,6 +218,43 @@ fn point_record(p: &PointRow, particle: Option<&Particle>) -> TrajectoryPointRec
             .filter(|t| t.parse::<i64>().is_ok_and(|t| t >= 0))
             .count() as u32,
     }
+}
+
+/// ParaView's time series of an export as one zip: `particles.pvd`, each
+/// frame's `particles.<frame>.vtp`, and `trajectories.vtp`, as `ptv track
+/// --export vtk` writes them into a directory. A `.pvd` names its
+/// frames' files by path, which VTK's readers open from the disk only
+/// (`vtkXMLReader` reads a file name or a string, no URL), so one
+/// download has to carry them all. Entries are stored, not deflated: the
+/// base64 arrays deflate to about three quarters only, and the HTTP layer
+/// gzips the whole answer for a client that accepts it. Built whole in
+/// memory: the files (about 220 bytes a point and particle), within the
+/// export's bound.
+pub fn paraview_zip(collected: &Collected) -> Result<Vec<u8>, ApiError> {
+    use std::io::Write;
+    let mut zip = zip::ZipWriter::new(std::io::Cursor::new(Vec::new()));
+    let stored = zip::write::SimpleFileOptions::default()
+        .compression_method(zip::CompressionMethod::Stored)
+        .large_file(false);
+    let internal = |e: &dyn std::fmt::Display| ApiError::internal(format!("the zip: {e}"));
+    let mut series = Vec::with_capacity(collected.frames.len());
+    for (frame, particles) in &collected.frames {
+        let name = format!("particles.{frame}.vtp");
+        zip.start_file(name.as_str(), stored)
+            .map_err(|e| internal(&e))?;
+        zip.write_all(formats::vtk::particles_vtp(particles).as_bytes())
+            .map_err(|e| internal(&e))?;
+        series.push((*frame, name));
+    }
+    zip.start_file("particles.pvd", stored)
+        .map_err(|e| internal(&e))?;
+    zip.write_all(formats::vtk::pvd(&series).as_bytes())
+        .map_err(|e| internal(&e))?;
+    zip.start_file("trajectories.vtp", stored)
+        .map_err(|e| internal(&e))?;
+    zip.write_all(formats::vtk::trajectories_vtp(&collected.trajectories).as_bytes())
+        .map_err(|e| internal(&e))?;
+    Ok(zip.finish().map_err(|e| internal(&e))?.into_inner())
 }
 
 /// The HDF5 file of an export.

@@ -641,6 +641,7 @@ mod tests {
             api_token: None,
             max_cpu_requests: Some(max_cpu_requests),
             max_connections: None,
+            max_export_points: crate::service::infra::config::DEFAULT_MAX_EXPORT_POINTS,
             timeouts: Timeouts {
                 request_secs,
                 ..Timeouts::default()

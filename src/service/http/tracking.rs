@@ -80,8 +80,24 @@ pub struct TrackingRunView {
     pub error: Option<String>,
     /// Trajectories stored so far.
     pub trajectories: i64,
+    /// What the backward pass added once the run finished (settings'
+    /// `backward`); null where it did not run (off, or not finished yet).
+    pub backward: Option<BackwardView>,
     /// When it was created (UTC).
     pub created_at: String,
+}
+
+/// What a run's backward pass added (as `ptv track --backward` reports
+/// it).
+#[derive(Debug, Serialize, ToSchema)]
+pub struct BackwardView {
+    /// Points added before the trajectories' first points.
+    pub points: i64,
+    /// Trajectories that gained points at their start.
+    pub lengthened: i64,
+    /// Trajectories joined onto the one that ended before them (each
+    /// join makes two trajectories one).
+    pub joined: i64,
 }
 
 /// A run's view.
@@ -104,6 +120,11 @@ pub(super) async fn run_view(
         finish_requested: row.finish_requested,
         error: row.error,
         trajectories,
+        backward: row.backward.map(|b| BackwardView {
+            points: b.points,
+            lengthened: b.lengthened,
+            joined: b.joined,
+        }),
         created_at: row.created_at,
     })
 }
@@ -251,12 +272,21 @@ pub enum TrajectoryFormat {
     Csv,
     /// ParaView's VTK XML `trajectories.vtp` (polylines with velocity,
     /// acceleration and their sigmas) as `ptv export --export vtk` writes
-    /// it; built whole, at most `EXPORT_MAX_POINTS` (200,000) points.
+    /// it; built whole, at most the service's `--max-export-points`
+    /// (default 200,000) points.
     Vtk,
     /// The sequence's one-file HDF5 (particles by frame and trajectories,
     /// units in attributes) as `ptv export --export hdf5` writes it; built
-    /// whole, at most 200,000 points (trajectory points plus particles).
+    /// whole, at most the service's `--max-export-points` (default
+    /// 200,000) points (trajectory points plus particles).
     Hdf5,
+    /// ParaView's time series as one zip (`application/zip`, stored
+    /// entries): `particles.pvd`, each processed frame's
+    /// `particles.<frame>.vtp` within `frames` and `trajectories.vtp`, the
+    /// files `ptv track --export vtk` writes into a directory; unzip and
+    /// open `particles.pvd`. Built whole, within the same
+    /// `--max-export-points`.
+    Pvd,
 }
 
 /// Query of the trajectories route.
@@ -264,9 +294,12 @@ pub enum TrajectoryFormat {
 #[into_params(parameter_in = Query)]
 #[serde(deny_unknown_fields)]
 pub struct TrajectoriesQuery {
-    /// json (default), csv, vtk (`trajectories.vtp`, application/xml) or
-    /// hdf5 (the sequence's HDF5 file, application/x-hdf5); vtk and hdf5
-    /// are refused with 413 above 200,000 points (cut them with `frames`).
+    /// json (default), csv, vtk (`trajectories.vtp`, application/xml),
+    /// hdf5 (the sequence's HDF5 file, application/x-hdf5) or pvd
+    /// (ParaView's time series: a zip of `particles.pvd`, the frames'
+    /// `.vtp` and `trajectories.vtp`, application/zip); vtk, hdf5 and pvd
+    /// are refused with 413 above the service's `--max-export-points`
+    /// (default 200,000 points: cut them with `frames`).
     #[serde(default)]
     pub format: TrajectoryFormat,
     /// Only trajectories of at least this many points [default: all the
@@ -405,7 +438,7 @@ async fn page(
         }
         match format {
             // Built whole by `exports`, not paged.
-            TrajectoryFormat::Vtk | TrajectoryFormat::Hdf5 => {}
+            TrajectoryFormat::Vtk | TrajectoryFormat::Hdf5 | TrajectoryFormat::Pvd => {}
             TrajectoryFormat::Csv => {
                 for p in mine {
                     csv_row(p, &mut out);
@@ -499,34 +532,37 @@ pub async fn trajectories(
         run.id.to_string(),
     );
     let (content_type, head, tail) = match format {
-        TrajectoryFormat::Vtk | TrajectoryFormat::Hdf5 => {
+        TrajectoryFormat::Vtk | TrajectoryFormat::Hdf5 | TrajectoryFormat::Pvd => {
             let collected =
                 super::exports::collect(&state, id, run.id, cameras, min_length, frames).await?;
             // Encoding up to the point limit is CPU work: on the pool,
             // as the plots are, not on the async runtime.
-            let vtk = matches!(format, TrajectoryFormat::Vtk);
             let bytes = state
                 .cpu
-                .run(move || {
-                    if vtk {
+                .run(move || match format {
+                    TrajectoryFormat::Vtk => {
                         Ok(formats::vtk::trajectories_vtp(&collected.trajectories).into_bytes())
-                    } else {
-                        super::exports::hdf5(&collected)
                     }
+                    TrajectoryFormat::Pvd => super::exports::paraview_zip(&collected),
+                    _ => super::exports::hdf5(&collected),
                 })
                 .await??;
-            let file = if vtk {
-                super::exports::attachment(
+            let file = match format {
+                TrajectoryFormat::Vtk => super::exports::attachment(
                     super::exports::VTK_CONTENT_TYPE,
                     "trajectories.vtp",
                     bytes,
-                )
-            } else {
-                super::exports::attachment(
+                ),
+                TrajectoryFormat::Pvd => super::exports::attachment(
+                    super::exports::ZIP_CONTENT_TYPE,
+                    &format!("sequence_{id}_paraview.zip"),
+                    bytes,
+                ),
+                _ => super::exports::attachment(
                     super::exports::HDF5_CONTENT_TYPE,
                     &format!("sequence_{id}.h5"),
                     bytes,
-                )
+                ),
             };
             return Ok(([run_header], file).into_response());
         }

@@ -263,6 +263,35 @@ pub fn tracking_need(frame: i64, held: u64, particles: u64, targets: u64) -> Mem
     )
 }
 
+/// Bytes a particle of the run takes in its backward pass (module
+/// `ops::tracking::backward`): its position, sigmas and camera count as
+/// the pass reads them (56), the cameras that missed it and the
+/// trajectory holding it (12), its spatial index entry while its frame is
+/// searched (24), and its targets' text for a point it may become (about
+/// 64).
+pub const BACKWARD_BYTES_PER_PARTICLE: u64 = 160;
+
+/// Bytes a stored trajectory point takes in the run's backward pass: its
+/// row as read (about 200 with its targets' text), the point in its
+/// trajectory (about 190 with its sigmas), and its row as written back
+/// (about 200), with room for the collections' growth.
+pub const BACKWARD_BYTES_PER_POINT: u64 = 768;
+
+/// A run's backward pass's need: every particle the tracker was given
+/// over the run, and every point it stored (the pass needs the whole
+/// run, as `ptv track --backward` does).
+pub fn backward_need(run: i64, particles: u64, points: u64) -> MemoryNeed {
+    MemoryNeed::new(
+        particles
+            .saturating_mul(BACKWARD_BYTES_PER_PARTICLE)
+            .saturating_add(points.saturating_mul(BACKWARD_BYTES_PER_POINT)),
+        format!(
+            "the backward pass of tracking run {run}: {particles} particles over its frames, \
+             {points} trajectory points"
+        ),
+    )
+}
+
 /// Why memory could not be granted.
 #[derive(Debug, thiserror::Error)]
 pub enum BudgetError {

@@ -43,6 +43,13 @@ pub struct ServeArgs {
     /// less a reserve for the database, image files and workers]
     #[arg(long, env = "PTV_MAX_CONNECTIONS", value_parser = clap::value_parser!(u64).range(1..))]
     pub max_connections: Option<u64>,
+    /// The most points (trajectory points plus particles) one VTK or
+    /// HDF5 export of the API builds in memory, about 0.6 KB each
+    /// (docs/service-limits.md); a larger one gets 413, saying to ask for
+    /// fewer frames.
+    #[arg(long, env = "PTV_MAX_EXPORT_POINTS", default_value_t = DEFAULT_MAX_EXPORT_POINTS,
+          value_parser = clap::value_parser!(u64).range(1..))]
+    pub max_export_points: u64,
     /// Time limits on connections and requests.
     #[command(flatten)]
     pub timeouts: Timeouts,
@@ -53,6 +60,10 @@ pub struct ServeArgs {
     #[command(flatten)]
     pub lease: Lease,
 }
+
+/// `--max-export-points`' default: 200,000 points, about 120 MB of one
+/// export's peak (docs/service-limits.md).
+pub const DEFAULT_MAX_EXPORT_POINTS: u64 = 200_000;
 
 /// Where a process keeps the service's state and images: `ptv serve`'s
 /// and `ptv worker`'s flags for it, the same for both (a worker must be
@@ -246,6 +257,7 @@ impl WorkerArgs {
             api_token: None,
             max_cpu_requests: None,
             max_connections: None,
+            max_export_points: DEFAULT_MAX_EXPORT_POINTS,
             timeouts: Timeouts::default(),
             job_limits: self.job_limits.clone(),
             lease: self.lease.clone(),

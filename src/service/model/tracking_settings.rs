@@ -53,7 +53,26 @@ pub struct TrackingSettings {
     /// setting existed show false: they were tracked without.
     #[serde(default)]
     pub recovery: Option<bool>,
+    /// Once the run finishes (`POST .../tracking/finish` and every frame
+    /// tracked), extend every trajectory backwards in time from its first
+    /// points with the same criteria (`ptv track --backward`; OpenPTV's
+    /// `trackback_c`): points before the trajectories' starts, and
+    /// trajectories joined onto the one ending before them; the run's
+    /// `backward` says what it added [default: false: it raises the link
+    /// recall by about 0.2% and joins broken trajectories, but the points
+    /// it adds have velocity errors of 14-35% of the RMS velocity, see
+    /// docs/tracking.md]. The pass reads the stored run, so it costs
+    /// nothing while frames are tracked. Runs stored before this setting
+    /// existed show false: they finished without it.
+    #[serde(default)]
+    pub backward: Option<bool>,
 }
+
+/// Whether a run extends its trajectories backwards unless told: not
+/// (docs/tracking.md has the figures: the velocities of the points the
+/// pass adds are about 3 times worse than those of the trajectories' own
+/// first points).
+pub const BACKWARD_BY_DEFAULT: bool = false;
 
 /// Settings the tracker refuses.
 #[derive(Debug, thiserror::Error)]
@@ -97,6 +116,7 @@ impl TrackingSettings {
             fit_order: Some(p.fit_order),
             first_frame: Some(first_frame),
             recovery: Some(self.recovery.unwrap_or(true)),
+            backward: Some(self.backward.unwrap_or(BACKWARD_BY_DEFAULT)),
         })
     }
 
@@ -123,11 +143,21 @@ impl TrackingSettings {
         self.recovery.unwrap_or(false)
     }
 
+    /// Whether a stored run extends its trajectories backwards once it
+    /// finishes: runs are stored with their settings filled in, so an
+    /// absent `backward` is a run stored before the setting existed,
+    /// which finishes as it would have then (without).
+    pub fn extends_backward(&self) -> bool {
+        self.backward.unwrap_or(false)
+    }
+
     /// The settings of a stored run as the API shows them (`recovery`
-    /// as [`TrackingSettings::recovers`] reads it).
+    /// as [`TrackingSettings::recovers`] reads it, `backward` as
+    /// [`TrackingSettings::extends_backward`]).
     pub fn as_stored(self) -> TrackingSettings {
         TrackingSettings {
             recovery: Some(self.recovers()),
+            backward: Some(self.extends_backward()),
             ..self
         }
     }

@@ -105,7 +105,9 @@ pub use self::sequences::{
     FrameCounts, FrameInput, FrameInputKind, FrameSummary, NewFrame, SequenceImage,
     SequenceImageKind, SequenceImagesError, SequenceRow,
 };
-pub use self::tracking::{FrameReadiness, PointRow, TrackingRunRow, TrackingState, TrajectoryRow};
+pub use self::tracking::{
+    BackwardRow, FrameReadiness, PointRow, TrackingRunRow, TrackingState, TrajectoryRow,
+};
 pub use crate::service::model::ids::{
     CalibrationId, EventId, FrameNumber, JobId, LeaseToken, SequenceId, TrackingRunId,
     MAX_FRAME_NUMBER,
@@ -231,12 +233,17 @@ const MIGRATIONS: &[(i64, &str, &str)] = &[
         "calibration_health",
         include_str!("../../../migrations/0011_calibration_health.sql"),
     ),
+    (
+        12,
+        "backward_tracking",
+        include_str!("../../../migrations/0012_backward_tracking.sql"),
+    ),
 ];
 
 /// Version, description and SQL of each PostgreSQL migration, in order
 /// (`migrations/postgres/`): 0001 is the schema SQLite's 0001-0008
-/// reach, 0002 SQLite's 0009, 0003 SQLite's 0010, 0004 SQLite's 0011; each engine numbers its
-/// own migrations.
+/// reach, 0002 SQLite's 0009, 0003 SQLite's 0010, 0004 SQLite's 0011, 0005 SQLite's 0012; each
+/// engine numbers its own migrations.
 const POSTGRES_MIGRATIONS: &[(i64, &str, &str)] = &[
     (
         1,
@@ -257,6 +264,11 @@ const POSTGRES_MIGRATIONS: &[(i64, &str, &str)] = &[
         4,
         "calibration_health",
         include_str!("../../../migrations/postgres/0004_calibration_health.sql"),
+    ),
+    (
+        5,
+        "backward_tracking",
+        include_str!("../../../migrations/postgres/0005_backward_tracking.sql"),
     ),
 ];
 

@@ -66,10 +66,23 @@ pub struct TrackingRunRow {
     /// sequence's when the run was created (`None` for runs stored before
     /// migration 0007, which track without recovery).
     pub calibration_id: Option<CalibrationId>,
+    /// What its backward pass added, where it ran (migration 0012).
+    pub backward: Option<BackwardRow>,
+}
+
+/// What a run's backward pass added ([`crate::photogrammetry::track::BackwardSummary`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct BackwardRow {
+    /// Points added before the trajectories' first points.
+    pub points: i64,
+    /// Trajectories that gained points at their start.
+    pub lengthened: i64,
+    /// Trajectories joined onto the one ending before them.
+    pub joined: i64,
 }
 
 const RUN_COLUMNS: &str = "id, sequence_id, parameters, tracked_through, finish_requested, state, \
-     error, created_at, calibration_id";
+     error, created_at, calibration_id, backward_points, backward_lengthened, backward_joined";
 
 impl FromRow<'_, AnyRow> for TrackingRunRow {
     fn from_row(row: &AnyRow) -> Result<Self, sqlx::Error> {
@@ -83,6 +96,18 @@ impl FromRow<'_, AnyRow> for TrackingRunRow {
             error: row.try_get("error")?,
             created_at: row.try_get("created_at")?,
             calibration_id: row.try_get("calibration_id")?,
+            backward: match (
+                row.try_get::<Option<i64>, _>("backward_points")?,
+                row.try_get::<Option<i64>, _>("backward_lengthened")?,
+                row.try_get::<Option<i64>, _>("backward_joined")?,
+            ) {
+                (Some(points), Some(lengthened), Some(joined)) => Some(BackwardRow {
+                    points,
+                    lengthened,
+                    joined,
+                }),
+                _ => None,
+            },
         })
     }
 }
@@ -425,9 +450,27 @@ impl Store {
     /// another holder took its lease.
     pub async fn finish_tracking_run(
         &self,
+        run: (TrackingRunId, LeaseToken),
+        through: Option<FrameNumber>,
+        points: &[PointRow],
+    ) -> Result<bool, sqlx::Error> {
+        self.finish_tracking_run_with(run, through, points, None)
+            .await
+    }
+
+    /// Ends a run tracked through `through` as
+    /// [`Store::finish_tracking_run`] does, after its backward pass: with
+    /// `backward`, `points` are all of the run's points (the pass's
+    /// result: trajectories lengthened, joined ones gone), which replace
+    /// those stored, and the summary is recorded; all in one transaction,
+    /// so a failure leaves the run tracking, its forward points whole, and
+    /// the next advance does the pass again.
+    pub async fn finish_tracking_run_with(
+        &self,
         (id, token): (TrackingRunId, LeaseToken),
         through: Option<FrameNumber>,
         points: &[PointRow],
+        backward: Option<BackwardRow>,
     ) -> Result<bool, sqlx::Error> {
         let mut tx = self.write_transaction().await?;
         let done = sqlx::query(
@@ -443,9 +486,42 @@ impl Store {
         if done == 0 {
             return Ok(false);
         }
+        if let Some(added) = backward {
+            for table in ["trajectory_points", "trajectories"] {
+                sqlx::query(&format!("DELETE FROM {table} WHERE run_id = $1"))
+                    .bind(id)
+                    .execute(&mut *tx)
+                    .await?;
+            }
+            sqlx::query(
+                "UPDATE tracking_runs SET backward_points = $1, backward_lengthened = $2, \
+                 backward_joined = $3 WHERE id = $4",
+            )
+            .bind(added.points)
+            .bind(added.lengthened)
+            .bind(added.joined)
+            .bind(id)
+            .execute(&mut *tx)
+            .await?;
+        }
         insert_points(&mut tx, self.dialect, id, points).await?;
         tx.commit().await?;
         Ok(true)
+    }
+
+    /// How many particles the run's tracker was given over its frames, and
+    /// how many points it stored: what its backward pass holds.
+    pub async fn tracking_run_size(&self, id: TrackingRunId) -> Result<(i64, i64), sqlx::Error> {
+        let (particles, points): (Option<i64>, Option<i64>) = sqlx::query_as(
+            // PostgreSQL's sum of BIGINT is NUMERIC: cast back.
+            "SELECT (SELECT CAST(sum(particles) AS BIGINT) FROM tracking_frames WHERE run_id = $1), \
+             (SELECT CAST(sum(length) AS BIGINT) FROM trajectories WHERE run_id = $2)",
+        )
+        .bind(id)
+        .bind(id)
+        .fetch_one(&self.reader)
+        .await?;
+        Ok((particles.unwrap_or(0), points.unwrap_or(0)))
     }
 
     /// Fails a run that is still tracking, with the reason.

@@ -77,6 +77,10 @@
 //! points do not show; after an upgrade, start a new run for sequences
 //! still being tracked.
 //!
+//! **Backward.** A run whose settings have `backward` (off by default)
+//! extends its trajectories backwards once it has taken its last frame,
+//! before it is `finished` ([`backward`]).
+//!
 //! **Runs.** A new run (other settings) supersedes the current one, whose
 //! points so far stay readable (`?run=`); frames of a finished run
 //! uploaded after it finished are not in it (start a new run).
@@ -86,6 +90,7 @@ use std::time::Duration;
 
 use tokio::sync::watch;
 
+pub mod backward;
 pub mod live;
 
 use self::live::{hold_recovered, rows, FrameInput, Live, TrackingError};
@@ -285,10 +290,21 @@ pub async fn advance(state: &Arc<AppState>, id: TrackingRunId) -> Result<(), Tra
         let mut held = live.targets;
         hold_recovered(&mut held, recovered)?;
         let rows = rows(&held, &points)?;
-        let finished = state
-            .store
-            .finish_tracking_run((id, token), live.through, &rows)
-            .await?;
+        drop(held);
+        let finished = if settings.extends_backward() {
+            // The pass back over the whole run, then its points replace
+            // the stored ones in the transaction that finishes it.
+            let (rows, added) = backward::extend(state, &run, &settings.parameters(), rows).await?;
+            state
+                .store
+                .finish_tracking_run_with((id, token), live.through, &rows, Some(added))
+                .await?
+        } else {
+            state
+                .store
+                .finish_tracking_run((id, token), live.through, &rows)
+                .await?
+        };
         if finished {
             let ended = Change::TrackingEnded {
                 run_id: id,
