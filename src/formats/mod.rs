@@ -19,6 +19,7 @@
 //! `request body`) and returns a [`FormatError`] that names the source, the
 //! line or field, and what was expected.
 
+pub mod between;
 pub mod calibration;
 pub mod control;
 pub mod csv;
@@ -27,6 +28,8 @@ pub mod frames;
 pub mod hdf5;
 pub mod image;
 mod lzw;
+pub mod myptv;
+pub mod openlpt;
 pub mod openptv;
 pub mod targets;
 #[cfg(test)]
