@@ -287,3 +287,112 @@ fn bad_camera_files_name_the_file_and_the_line() {
     );
     fails(&output, &["--volume", "finite"]);
 }
+
+/// The LPT challenge's `CalibPoints.txt` solved as control points:
+/// simulated cameras (the 4-camera convergent rig in water) image 300
+/// points through the volume with Gaussian noise of sigma = 0.1 px; the
+/// setup gives only sensors and media. The a-posteriori sigma0 of each
+/// camera must be sigma within 20% (with ~580 degrees of freedom its
+/// relative standard deviation is 1/sqrt(2 * 580) = 3%: 20% is over 6 of
+/// them), and the solved cameras' images over the volume's grid must agree
+/// with the true ones to 3 sigma sqrt(p / n) RMS (the least-squares
+/// prediction error of p = 16 parameters from n points, tripled).
+#[test]
+fn lpt_calib_points_are_solved_as_control_points() {
+    use ptv::photogrammetry::simulate::{self, RigSpec};
+    let dir = tempfile::tempdir().unwrap();
+    let spec = RigSpec::convergent(4);
+    let truth = spec.build().unwrap();
+    let sigma = 0.1;
+    let mut rng = simulate::rng(33);
+    let points = simulate::particles(&spec.volume, 300, &mut rng);
+    let images = simulate::observe(&truth, &points, sigma, &mut rng);
+    let mut text = String::from("# X Y Z x1 y1 x2 y2 x3 y3 x4 y4\n");
+    let mut n = 0;
+    for (k, point) in points.iter().enumerate() {
+        let seen: Option<Vec<_>> = images.iter().map(|camera| camera[k]).collect();
+        let Some(seen) = seen else { continue };
+        n += 1;
+        text += &format!("{:?} {:?} {:?}", point.x, point.y, point.z);
+        for pixel in seen {
+            text += &format!(" {:?} {:?}", pixel.x, pixel.y);
+        }
+        text.push('\n');
+    }
+    assert!(n > 200, "{n}");
+    std::fs::write(dir.path().join("CalibPoints.txt"), &text).unwrap();
+    let mut setup: Value = serde_json::from_str(&calibration::to_json(&truth)).unwrap();
+    for camera in setup["cameras"].as_array_mut().unwrap() {
+        let camera = camera.as_object_mut().unwrap();
+        for field in [
+            "position",
+            "angles",
+            "principal_distance",
+            "principal_point",
+            "radial",
+            "decentering",
+            "affine",
+        ] {
+            camera.remove(field);
+        }
+    }
+    std::fs::write(dir.path().join("setup.json"), setup.to_string()).unwrap();
+    let report = succeeds(&ptv(
+        &[
+            "calibrate",
+            "--calibration",
+            "setup.json",
+            "--calib-points",
+            "CalibPoints.txt",
+            "-o",
+            "solved.json",
+        ],
+        dir.path(),
+    ));
+    let report: Value = serde_json::from_str(&report).unwrap();
+    let solved = calibration::from_json(
+        &std::fs::read_to_string(dir.path().join("solved.json")).unwrap(),
+        "solved",
+    )
+    .unwrap();
+    let bound = 3.0 * sigma * (16.0 / n as f64).sqrt();
+    for (k, (a, b)) in truth.iter().zip(&solved).enumerate() {
+        let sigma0 = report["cameras"][k]["sigma0_px"].as_f64().unwrap();
+        assert!(
+            (sigma0 / sigma - 1.0).abs() < 0.2,
+            "camera {k}: sigma0 {sigma0}"
+        );
+        let d =
+            ptv::formats::between::reprojection_difference(a, &|p| b.project(p).ok(), &spec.volume);
+        eprintln!("camera {k}: sigma0 {sigma0:.4} px, images over the grid: RMS {:.4} px, max {:.4} px (bound RMS {bound:.4})", d.rms_px, d.max_px);
+        assert!(d.rms_px < bound, "camera {k}: {d:?} against {bound}");
+    }
+    // A line with a camera's coordinates missing names the file and line.
+    let bad: String = text
+        .lines()
+        .enumerate()
+        .map(|(i, l)| {
+            if i == 3 {
+                l.rsplit_once(' ').unwrap().0.to_owned() + "\n"
+            } else {
+                l.to_owned() + "\n"
+            }
+        })
+        .collect();
+    std::fs::write(dir.path().join("bad.txt"), bad).unwrap();
+    fails(
+        &ptv(
+            &[
+                "calibrate",
+                "--calibration",
+                "setup.json",
+                "--calib-points",
+                "bad.txt",
+                "-o",
+                "x.json",
+            ],
+            dir.path(),
+        ),
+        &["bad.txt", "line 4", "expected 11 numbers", "got 10"],
+    );
+}
