@@ -159,10 +159,8 @@ fn refraction_goes_out_through_the_best_fit_and_says_so() {
     let air = in_air(dir.path());
     for tool in ["myptv", "openlpt"] {
         let fitted = export(tool, &cavity, tool, dir.path());
-        // The refraction simply dropped: the rig in air against the rig in
-        // water, measured by exporting the rig in air and re-importing it
-        // with the water's media is not possible, so compare the figures
-        // with the error of the camera in air seen as the camera in water.
+        // The yardstick: the same cameras with their refraction simply
+        // dropped (the rig in air against the rig in water).
         let dropped = dropped_refraction_px(&cavity, &air);
         for ((how, max, rms), dropped) in fitted.iter().zip(&dropped) {
             assert!(
