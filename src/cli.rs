@@ -2,7 +2,9 @@
 //!
 //! - `ptv calibration import-openptv` and `export-openptv`
 //!   (`cli/calibration.rs`): between OpenPTV's `ptv.par`/`.ori`/`.addpar` and the
-//!   calibration JSON.
+//!   calibration JSON; `import-myptv`/`export-myptv` and
+//!   `import-openlpt`/`export-openlpt`: MyPTV's and OpenLPT's camera files,
+//!   with how exact the conversion is, by reprojection.
 //! - `ptv calibrate` (`cli/calibrate.rs`): the rig's calibration by
 //!   resection on control points (section 5), from image coordinates or
 //!   calibration images; the report as JSON.
@@ -192,6 +194,57 @@ pub enum CalibrationCommand {
     ImportOpenptv(ImportOpenptvArgs),
     /// Write a calibration JSON as OpenPTV's ptv.par, NAME.ori and NAME.addpar.
     ExportOpenptv(ExportOpenptvArgs),
+    /// Read MyPTV's Tsai model camera files (one per camera) and write the
+    /// calibration JSON; how exact the conversion is goes to standard error.
+    ImportMyptv(ImportCamerasArgs),
+    /// Write a calibration JSON as MyPTV's Tsai model camera files (NAME),
+    /// exactly where its model carries ptv's, else by the best fit.
+    ExportMyptv(ExportCamerasArgs),
+    /// Read OpenLPT's PINHOLE camera files (one per camera) and write the
+    /// calibration JSON; how exact the conversion is goes to standard error.
+    ImportOpenlpt(ImportCamerasArgs),
+    /// Write a calibration JSON as OpenLPT's PINHOLE camera files
+    /// (NAME.txt), exactly where its model carries ptv's, else by the best
+    /// fit.
+    ExportOpenlpt(ExportCamerasArgs),
+}
+
+/// Arguments of `ptv calibration import-myptv` and `import-openlpt`.
+#[derive(Debug, Args)]
+pub struct ImportCamerasArgs {
+    /// The camera files, one per camera, in camera order.
+    #[arg(value_name = "CAMERA_FILE", required = true)]
+    pub cameras: Vec<PathBuf>,
+    /// The sensor's pixel pitch (mm), which the files do not hold: ptv's
+    /// principal distance c (mm) is the file's (px) times it. The images
+    /// computed do not depend on it.
+    #[arg(long, value_name = "MM")]
+    pub pixel_size: f64,
+    /// The observation volume `xmin,xmax,ymin,ymax,zmin,zmax` (mm): the
+    /// conversion is measured by reprojection over a grid of 11x11x11
+    /// points through it, and fitted on it where it is not exact.
+    #[arg(long, value_name = "BOUNDS", allow_hyphen_values = true)]
+    pub volume: String,
+    /// Where to write the calibration JSON; standard output if not given.
+    #[arg(short, long, value_name = "CALIBRATION_JSON")]
+    pub output: Option<PathBuf>,
+}
+
+/// Arguments of `ptv calibration export-myptv` and `export-openlpt`.
+#[derive(Debug, Args)]
+pub struct ExportCamerasArgs {
+    /// The calibration JSON to export.
+    #[arg(long, value_name = "CALIBRATION_JSON")]
+    pub calibration: PathBuf,
+    /// The observation volume `xmin,xmax,ymin,ymax,zmin,zmax` (mm): the
+    /// conversion is measured by reprojection over a grid of 11x11x11
+    /// points through it, and fitted on it where it is not exact.
+    #[arg(long, value_name = "BOUNDS", allow_hyphen_values = true)]
+    pub volume: String,
+    /// The directory to write into (created if missing); the files written
+    /// are listed on standard error.
+    #[arg(long, value_name = "DIR")]
+    pub out_dir: PathBuf,
 }
 
 /// Arguments of `ptv calibration import-openptv`.
@@ -393,6 +446,18 @@ pub fn run(
         }
         Command::Calibration(CalibrationCommand::ExportOpenptv(args)) => {
             calibration::export_openptv(&args, stderr)
+        }
+        Command::Calibration(CalibrationCommand::ImportMyptv(args)) => {
+            calibration::import_cameras(calibration::Tool::Myptv, &args, stdout, stderr)
+        }
+        Command::Calibration(CalibrationCommand::ExportMyptv(args)) => {
+            calibration::export_cameras(calibration::Tool::Myptv, &args, stderr)
+        }
+        Command::Calibration(CalibrationCommand::ImportOpenlpt(args)) => {
+            calibration::import_cameras(calibration::Tool::Openlpt, &args, stdout, stderr)
+        }
+        Command::Calibration(CalibrationCommand::ExportOpenlpt(args)) => {
+            calibration::export_cameras(calibration::Tool::Openlpt, &args, stderr)
         }
         Command::Calibrate(args) => calibrate::run(&args, stdout, stderr),
         Command::Selfcalibrate(args) => selfcalibrate::run(&args, stdout, stderr),

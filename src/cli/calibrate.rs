@@ -30,10 +30,19 @@ pub struct CalibrateArgs {
     #[arg(
         long,
         value_name = "CALBLOCK",
-        required_unless_present_any = ["wand", "experiment"],
+        required_unless_present_any = ["wand", "experiment", "calib_points"],
         conflicts_with = "wand"
     )]
     pub control: Option<PathBuf>,
+    /// The LPT challenge's calibration points instead of --control and
+    /// --observations: `X Y Z x1 y1 ... xN yN` per line, a control point
+    /// (mm) and its image in each of the setup's N cameras (pixels).
+    #[arg(
+        long,
+        value_name = "FILE",
+        conflicts_with_all = ["control", "observations", "image", "reference", "wand", "experiment"]
+    )]
+    pub calib_points: Option<PathBuf>,
     /// Calibrate an OpenPTV experiment (a directory with parameters/*.par,
     /// or a pyptv YAML) from its own calibration images as OpenPTV would:
     /// the setup from ptv.par and the .ori/.addpar files, the target and
@@ -153,10 +162,10 @@ pub(super) fn run(
     if args.wand.wand {
         return super::wand::run(args, stdout, stderr);
     }
-    let (Some(calibration), Some(control_path)) = (&args.calibration, &args.control) else {
+    let Some(calibration) = &args.calibration else {
         return Err(flag(
-            "--control",
-            "give --calibration and --control, or --wand, or --experiment",
+            "--calibration",
+            "give --calibration with --control or --calib-points, or --wand, or --experiment",
         ));
     };
     let formats::calibration::Setup {
@@ -166,15 +175,35 @@ pub(super) fn run(
         &formats::read_text(calibration)?,
         &calibration.display().to_string(),
     )?;
-    let control_points = control::parse_control_points(
-        &formats::read_text(control_path)?,
-        &control_path.display().to_string(),
-    )?;
+    let (control_points, calib_points) =
+        match (&args.calib_points, &args.control) {
+            (Some(path), _) => {
+                let (points, observations) = control::parse_calib_points(
+                    &formats::read_text(path)?,
+                    &path.display().to_string(),
+                    setup.len(),
+                )?;
+                (points, Some(observations))
+            }
+            (None, Some(control_path)) => (
+                control::parse_control_points(
+                    &formats::read_text(control_path)?,
+                    &control_path.display().to_string(),
+                )?,
+                None,
+            ),
+            (None, None) => return Err(flag(
+                "--control",
+                "give --calibration with --control or --calib-points, or --wand, or --experiment",
+            )),
+        };
     let options = CalibrationOptions {
         unknown,
         ..options(args)?
     };
-    let result = if args.image.is_empty() {
+    let result = if let Some(observations) = calib_points {
+        calibrate::calibrate(&setup, &control_points, &observations, &options)?
+    } else if args.image.is_empty() {
         super::check_camera_count(
             calibration,
             setup.len(),

@@ -310,3 +310,100 @@ mod tests {
         );
     }
 }
+
+/// The LPT challenge's calibration points (`CalibPoints.txt`): per line a
+/// control point and its image in every camera, `X Y Z x1 y1 ... xN yN`
+/// (mm, pixels), fields separated by whitespace (or commas); blank lines
+/// and lines starting with `#` skipped. The points are numbered by data
+/// line from 1. The image coordinates are taken in the camera model's
+/// convention (the centre of the top-left pixel at 0.5, 0.5); a file that
+/// counts pixel centres from 0 shifts every image by half a pixel, which the
+/// resection takes into the principal point (xh, yh) when they are free.
+/// Every point must be seen by every camera: `cameras` is the setup's.
+pub fn parse_calib_points(
+    text: &str,
+    source: &str,
+    cameras: usize,
+) -> Result<(Vec<ControlPoint>, Vec<Vec<MarkObservation>>), FormatError> {
+    let fields = 3 + 2 * cameras;
+    let mut control = Vec::new();
+    let mut observations = vec![Vec::new(); cameras];
+    for (index, line) in text.lines().enumerate() {
+        let number = index + 1;
+        let trimmed = line.trim();
+        if trimmed.is_empty() || trimmed.starts_with('#') {
+            continue;
+        }
+        let tokens: Vec<&str> = trimmed
+            .split(|c: char| c.is_whitespace() || c == ',')
+            .filter(|t| !t.is_empty())
+            .collect();
+        if tokens.len() != fields {
+            return Err(FormatError::invalid(
+                source,
+                format!("line {number}"),
+                format!(
+                    "expected {fields} numbers `X Y Z x1 y1 ... x{cameras} y{cameras}` (the setup \
+                     has {cameras} cameras), got {}",
+                    tokens.len()
+                ),
+            ));
+        }
+        let value = |k: usize, what: String| finite_number(tokens[k], source, number, &what);
+        let id = control.len() as u64 + 1;
+        control.push(ControlPoint {
+            id,
+            position: Point3::new(
+                value(0, "X".into())?,
+                value(1, "Y".into())?,
+                value(2, "Z".into())?,
+            ),
+        });
+        for (camera, marks) in observations.iter_mut().enumerate() {
+            let x = value(3 + 2 * camera, format!("x{}", camera + 1))?;
+            let y = value(4 + 2 * camera, format!("y{}", camera + 1))?;
+            marks.push(MarkObservation {
+                id,
+                pixel: Point2::new(x, y),
+            });
+        }
+    }
+    if control.is_empty() {
+        return Err(FormatError::invalid(
+            source,
+            "line 1",
+            "no calibration points: expected lines `X Y Z x1 y1 ... xN yN`",
+        ));
+    }
+    Ok((control, observations))
+}
+
+#[cfg(test)]
+mod calib_points_tests {
+    use super::*;
+
+    #[test]
+    fn reads_points_and_their_images_and_names_bad_lines() {
+        let text = "# X Y Z x1 y1 x2 y2\n1 2 3 10.5 20.5 30 40\n\n4,5,6,11,21,31,41\n";
+        let (control, observations) = parse_calib_points(text, "CalibPoints.txt", 2).unwrap();
+        assert_eq!(control.len(), 2);
+        assert_eq!(control[1].position, Point3::new(4.0, 5.0, 6.0));
+        assert_eq!(observations[1][0].pixel, Point2::new(30.0, 40.0));
+        assert_eq!(observations[0][1].id, 2);
+        for (bad, expected) in [
+            ("1 2 3 4 5 6\n", "line 1: expected 7 numbers"),
+            (
+                "1 2 3 4 5 6 7\n1 2 NaN 4 5 6 7\n",
+                "line 2: Z must be a finite number, got `NaN`",
+            ),
+            ("1 2 3 4 5 6 y\n", "line 1: y2 must be a finite number"),
+            ("# nothing\n", "no calibration points"),
+        ] {
+            let message = parse_calib_points(bad, "CalibPoints.txt", 2)
+                .unwrap_err()
+                .to_string();
+            assert!(message.starts_with("CalibPoints.txt: "), "{message}");
+            assert!(message.contains(expected), "{expected}: {message}");
+        }
+    }
+}

@@ -2,8 +2,12 @@
 //!
 //! - [`calibration`]: the project's calibration JSON.
 //! - [`control`]: calibration inputs (control points `id X Y Z`, image
-//!   coordinates `id x y`) and the calibration report.
+//!   coordinates `id x y`, the LPT challenge's `CalibPoints.txt`) and the
+//!   calibration report.
 //! - [`openptv`]: OpenPTV's `.ori`, `.addpar` and `ptv.par`.
+//! - [`myptv`] and [`openlpt`]: MyPTV's and OpenLPT's camera files, and
+//!   [`between`]: what conversions to them share (the axes, the best fit,
+//!   how exact a conversion is by reprojection).
 //! - [`experiment`]: a whole OpenPTV/pyptv experiment (the `parameters/`
 //!   folder or pyptv's YAML) in `ptv`'s settings.
 //! - [`csv`]: point, observation and target tables of the command line.
@@ -19,6 +23,7 @@
 //! `request body`) and returns a [`FormatError`] that names the source, the
 //! line or field, and what was expected.
 
+pub mod between;
 pub mod calibration;
 pub mod control;
 pub mod csv;
@@ -27,6 +32,8 @@ pub mod frames;
 pub mod hdf5;
 pub mod image;
 mod lzw;
+pub mod myptv;
+pub mod openlpt;
 pub mod openptv;
 pub mod targets;
 #[cfg(test)]

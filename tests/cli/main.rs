@@ -10,6 +10,7 @@
 mod common;
 
 mod background;
+mod between_tools;
 mod calibrate;
 mod detect;
 mod experiment;
