@@ -6,7 +6,6 @@ use std::io::Write;
 use std::path::{Path, PathBuf};
 
 use clap::Args;
-use nalgebra::Point2;
 
 use super::{write_stderr_line, write_stdout, CliError, DetectionFlags};
 use crate::formats::{self, control};
@@ -226,7 +225,7 @@ pub(super) fn run(
             let image = formats::image::read_image(path, None)?;
             args.detection
                 .warn_if_threshold_unsuited(&image, path, stderr)?;
-            let found: Vec<Point2<f64>> = if preprocessing[k].is_empty() {
+            let found = if preprocessing[k].is_empty() {
                 calibrate::detect_marks(&image, &parameters).map_err(|error| CliError::Flag {
                     flag: "--image",
                     reason: format!("{}: {error}", path.display()),
@@ -238,9 +237,6 @@ pub(super) fn run(
                 };
                 crate::photogrammetry::detect_preprocessed(&image, &preprocessing[k], &parameters)
                     .map_err(|error| super::detect::preprocess_error(error, path, &files))?
-                    .iter()
-                    .map(|t| Point2::new(t.x, t.y))
-                    .collect()
             };
             write_stderr_line(
                 stderr,

@@ -4,7 +4,7 @@
 
 use nalgebra::{DMatrix, DVector, Point2, Point3, Vector3};
 use ptv::photogrammetry::calibrate::{
-    calibrate, projection_with_parameter_jacobian, CalibrationError, CalibrationOptions,
+    calibrate, mark_at, projection_with_parameter_jacobian, CalibrationError, CalibrationOptions,
     CheckPoints, ControlPoint, MarkObservation, Parameter, ParameterSet, ParameterStatus,
     RigCalibration,
 };
@@ -892,16 +892,16 @@ fn few_points_hold_undeterminable_terms() {
 fn identifies_marks_from_starting_values() {
     let mut rng = simulate::rng(31);
     let e = experiment(3, true, TargetShape::TwoPlanes, 100, 0.05, &mut rng);
-    let marks: Vec<Vec<Point2<f64>>> = e
+    let marks: Vec<Vec<_>> = e
         .observations
         .iter()
         .map(|observed| {
-            let mut marks: Vec<Point2<f64>> = observed.iter().map(|o| o.pixel).collect();
+            let mut marks: Vec<_> = observed.iter().map(|o| mark_at(o.pixel)).collect();
             for _ in 0..10 {
-                marks.push(Point2::new(
+                marks.push(mark_at(Point2::new(
                     rng.random_range(0.0..1280.0),
                     rng.random_range(0.0..1024.0),
-                ));
+                )));
             }
             marks
         })
@@ -945,10 +945,10 @@ fn identifies_marks_from_starting_values() {
 fn too_few_reference_points_are_refused() {
     let mut rng = simulate::rng(41);
     let e = experiment(3, false, TargetShape::Volume, 60, 0.05, &mut rng);
-    let marks: Vec<Vec<Point2<f64>>> = e
+    let marks: Vec<Vec<_>> = e
         .observations
         .iter()
-        .map(|o| o.iter().map(|m| m.pixel).collect())
+        .map(|o| o.iter().map(|m| mark_at(m.pixel)).collect())
         .collect();
     let references: Vec<Vec<MarkObservation>> =
         e.observations.iter().map(|o| o[..5].to_vec()).collect();

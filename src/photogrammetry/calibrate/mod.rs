@@ -65,7 +65,9 @@ use super::camera::{Camera, CameraParameters};
 pub use adjustment::projection_with_parameter_jacobian;
 use check::check_point_report;
 pub use error::{setup_field, CalibrationError};
-pub use identify::{calibrate_from_marks, detect_marks, identify_marks, mark_detection_parameters};
+pub use identify::{
+    calibrate_from_marks, detect_marks, identify_marks, mark_at, mark_detection_parameters,
+};
 pub use parameter::{Parameter, ParameterSet};
 use prepare::prepare;
 pub use report::{
