@@ -24,12 +24,17 @@
 //!   camera has scx = 1, c' = scx c, xh' = scx xh, k1' = k1 / scx², p' =
 //!   p / scx, ...). The normal matrix is then singular and scx is held at the
 //!   setup's value; fix it (`--fix scx`) to say so up front.
-//! * A parameter correlated above the limit is held at its least-squares
-//!   estimate (distortion terms at the setup's value), judged after an
-//!   adjustment with it free, so holding it does not move the others. Their
-//!   standard deviations still include its uncertainty: computed as if it
-//!   were free, since conditioning on an uncertain value would shrink the
-//!   partner's by sqrt(1 - rho²) and overstate the accuracy.
+//! * A parameter correlated above the limit is held, judged after an
+//!   adjustment with it free: the observations determine only a
+//!   combination of the pair (c with z0: the rig's scale). It is held at
+//!   the better known of two values: its least-squares estimate, so that
+//!   holding it does not move the others, or, when its standard deviation
+//!   is over a third of its plausible range, the setup's value (distortion
+//!   terms always at the setup's). The others' standard deviations still
+//!   include its uncertainty: computed as if it were free (or with the
+//!   setup's value as a prior), since conditioning on an uncertain value
+//!   would shrink the partner's by sqrt(1 - rho²) and overstate the
+//!   accuracy.
 //!
 //! Then the check points, left out of every resection, are intersected
 //! (section 4.3, [`super::intersect()`]) from all cameras: their RMSE
