@@ -195,7 +195,7 @@ pub fn identify_marks(
 }
 
 /// The largest number of resection-and-assignment rounds per camera.
-const MAX_ROUNDS: usize = 10;
+pub(super) const MAX_ROUNDS: usize = 10;
 
 /// Calibrates from detected marks: per camera the marks (centre in px and,
 /// where known, pixel count; [`mark_at`] for positions alone) and either

@@ -47,7 +47,8 @@
 //!
 //! Pure: no I/O. The entry points are [`calibrate`] (measured image
 //! coordinates) and [`calibrate_from_marks`] (detected marks). The other
-//! files: `parameter.rs`, the 16 parameters and sets of them; `prepare.rs`,
+//! files: `parameter.rs`, the 16 parameters and sets of them; `planes.rs`,
+//! the plate at several positions in one adjustment; `prepare.rs`,
 //! the inputs validated once for all cameras; `report.rs`, the report and
 //! how a camera's is drawn from its adjustment; `check.rs`, the check
 //! points; `error.rs`, what can go wrong.
@@ -58,6 +59,7 @@ mod dlt;
 mod error;
 pub mod identify;
 mod parameter;
+pub mod planes;
 mod prepare;
 mod report;
 pub(crate) mod resection;
@@ -74,6 +76,9 @@ pub use identify::{
     calibrate_from_marks, detect_marks, identify_marks, mark_at, mark_detection_parameters,
 };
 pub use parameter::{Parameter, ParameterSet};
+pub use planes::{
+    calibrate_planes, calibrate_planes_from_marks, Plane, PlaneMarks, PLANE_ID_STRIDE,
+};
 use prepare::prepare;
 pub use report::{
     CalibrationReport, CameraReport, CheckPointDeviation, CheckPointReport, Correlation,
