@@ -6,7 +6,6 @@ use std::io::Write;
 use std::path::{Path, PathBuf};
 
 use clap::Args;
-use nalgebra::Point2;
 
 use super::{write_stderr_line, write_stdout, CliError, DetectionFlags};
 use crate::formats::{self, control};
@@ -30,7 +29,7 @@ pub struct CalibrateArgs {
     #[arg(
         long,
         value_name = "CALBLOCK",
-        required_unless_present_any = ["wand", "experiment", "calib_points"],
+        required_unless_present_any = ["wand", "experiment", "calib_points", "plane"],
         conflicts_with = "wand"
     )]
     pub control: Option<PathBuf>,
@@ -65,6 +64,18 @@ pub struct CalibrateArgs {
     /// --max-pixels) and identified with the control points.
     #[arg(long, value_name = "IMAGE", conflicts_with = "observations")]
     pub image: Vec<PathBuf>,
+    /// Multi-plane calibration: the plate at one known position, its
+    /// control points in the common frame (`id X Y Z`) and one image per
+    /// camera in camera order, as CONTROL:IMAGE1,IMAGE2,...; repeat for
+    /// each position (the plate moved along its normal). All positions go
+    /// into one adjustment; the setup's orientation identifies the marks.
+    /// In the report, plane k's point id is k * 1000000 + id.
+    #[arg(
+        long,
+        value_name = "CONTROL:IMAGES",
+        conflicts_with_all = ["control", "calib_points", "image", "observations", "reference", "experiment", "wand"]
+    )]
+    pub plane: Vec<String>,
     /// With --image: per camera, at least 6 identified marks (`id x y`; 4 if
     /// they lie in one plane and c, xh, yh are fixed) to start from; without
     /// it, the setup's orientation is the start.
@@ -162,10 +173,14 @@ pub(super) fn run(
     if args.wand.wand {
         return super::wand::run(args, stdout, stderr);
     }
+    if !args.plane.is_empty() {
+        return run_planes(args, stdout, stderr);
+    }
     let Some(calibration) = &args.calibration else {
         return Err(flag(
             "--calibration",
-            "give --calibration with --control or --calib-points, or --wand, or --experiment",
+            "give --calibration with --control, --calib-points or --plane, or --wand, or \
+             --experiment",
         ));
     };
     let formats::calibration::Setup {
@@ -252,37 +267,148 @@ pub(super) fn run(
         )?;
         let mut marks = Vec::with_capacity(args.image.len());
         for (k, path) in args.image.iter().enumerate() {
-            let image = formats::image::read_image(path, None)?;
-            args.detection
-                .warn_if_threshold_unsuited(&image, path, stderr)?;
-            let found: Vec<Point2<f64>> = if preprocessing[k].is_empty() {
-                calibrate::detect_marks(&image, &parameters).map_err(|error| CliError::Flag {
-                    flag: "--image",
-                    reason: format!("{}: {error}", path.display()),
-                })?
-            } else {
-                let files = super::detect::PreprocessingFiles {
-                    background: args.backgrounds.get(k).map(PathBuf::as_path),
-                    mask: args.masks.get(k).map(PathBuf::as_path),
-                };
-                crate::photogrammetry::detect_preprocessed(&image, &preprocessing[k], &parameters)
-                    .map_err(|error| super::detect::preprocess_error(error, path, &files))?
-                    .iter()
-                    .map(|t| Point2::new(t.x, t.y))
-                    .collect()
-            };
-            write_stderr_line(
+            marks.push(detect_in_image(
+                args,
+                k,
+                path,
+                &preprocessing[k],
+                &parameters,
                 stderr,
-                &format!(
-                    "{}: {} marks detected (camera {k})",
-                    path.display(),
-                    found.len()
-                ),
-            )?;
-            marks.push(found);
+            )?);
         }
         calibrate::calibrate_from_marks(&setup, &control_points, &marks, &references, &options)?
     };
+    let cameras = result.camera_models()?;
+    formats::write_text(&args.output, &formats::calibration::to_json(&cameras))?;
+    write_stdout(stdout, &control::report_to_json(&result.report))
+}
+
+/// The marks of camera `k`'s calibration image `path`, with `--background`
+/// and `--mask` (`preprocessing`) if given; the count goes to stderr.
+fn detect_in_image(
+    args: &CalibrateArgs,
+    k: usize,
+    path: &Path,
+    preprocessing: &crate::photogrammetry::Preprocessing,
+    parameters: &crate::photogrammetry::DetectionParameters,
+    stderr: &mut dyn Write,
+) -> Result<Vec<crate::photogrammetry::Target>, CliError> {
+    let image = formats::image::read_image(path, None)?;
+    args.detection
+        .warn_if_threshold_unsuited(&image, path, stderr)?;
+    let found = if preprocessing.is_empty() {
+        calibrate::detect_marks(&image, parameters).map_err(|error| CliError::Flag {
+            flag: "--image",
+            reason: format!("{}: {error}", path.display()),
+        })?
+    } else {
+        let files = super::detect::PreprocessingFiles {
+            background: args.backgrounds.get(k).map(PathBuf::as_path),
+            mask: args.masks.get(k).map(PathBuf::as_path),
+        };
+        crate::photogrammetry::detect_preprocessed(&image, preprocessing, parameters)
+            .map_err(|error| super::detect::preprocess_error(error, path, &files))?
+    };
+    write_stderr_line(
+        stderr,
+        &format!(
+            "{}: {} marks detected (camera {k})",
+            path.display(),
+            found.len()
+        ),
+    )?;
+    Ok(found)
+}
+
+/// One `--plane CONTROL:IMAGE1,IMAGE2,...`: the control file and the images.
+fn parse_plane(value: &str) -> Result<(PathBuf, Vec<PathBuf>), CliError> {
+    let bad = |reason: &str| {
+        flag(
+            "--plane",
+            format!("{value:?}: {reason}; give CONTROL_FILE:IMAGE_CAM1,IMAGE_CAM2,... (one image per camera, in camera order)"),
+        )
+    };
+    let Some((control, images)) = value.rsplit_once(':') else {
+        return Err(bad("no ':' between the control file and the images"));
+    };
+    let images: Vec<PathBuf> = images
+        .split(',')
+        .filter(|s| !s.trim().is_empty())
+        .map(PathBuf::from)
+        .collect();
+    if control.trim().is_empty() || images.is_empty() {
+        return Err(bad("a control file and at least one image are needed"));
+    }
+    Ok((PathBuf::from(control), images))
+}
+
+/// `ptv calibrate --plane ... --plane ...`: the plate at several known
+/// positions in one adjustment
+/// ([`crate::photogrammetry::calibrate::planes`]).
+fn run_planes(
+    args: &CalibrateArgs,
+    stdout: &mut dyn Write,
+    stderr: &mut dyn Write,
+) -> Result<(), CliError> {
+    let Some(calibration) = &args.calibration else {
+        return Err(flag("--plane", "give --calibration with the setup"));
+    };
+    let formats::calibration::Setup {
+        cameras: setup,
+        unknown,
+    } = formats::calibration::setup_from_json(
+        &formats::read_text(calibration)?,
+        &calibration.display().to_string(),
+    )?;
+    let options = CalibrationOptions {
+        unknown,
+        ..options(args)?
+    };
+    let planes = args
+        .plane
+        .iter()
+        .map(|value| parse_plane(value))
+        .collect::<Result<Vec<_>, _>>()?;
+    // Before reading any image: the counts, and the targets.
+    let mut controls = Vec::with_capacity(planes.len());
+    for (k, (control_path, images)) in planes.iter().enumerate() {
+        if images.len() != setup.len() {
+            return Err(calibrate::CalibrationError::PlaneCameraCount {
+                plane: k + 1,
+                cameras: setup.len(),
+                given: images.len(),
+            }
+            .into());
+        }
+        controls.push(control::parse_control_points(
+            &formats::read_text(control_path)?,
+            &control_path.display().to_string(),
+        )?);
+    }
+    let parameters = calibrate::mark_detection_parameters(&args.detection.parameters())?;
+    let preprocessing = super::detect::read_camera_preprocessing(
+        calibration,
+        setup.len(),
+        &args.backgrounds,
+        &args.masks,
+        None,
+    )?;
+    let mut plates = Vec::with_capacity(planes.len());
+    for ((_, images), control) in planes.iter().zip(controls) {
+        let mut marks = Vec::with_capacity(images.len());
+        for (k, path) in images.iter().enumerate() {
+            marks.push(detect_in_image(
+                args,
+                k,
+                path,
+                &preprocessing[k],
+                &parameters,
+                stderr,
+            )?);
+        }
+        plates.push(calibrate::PlaneMarks { control, marks });
+    }
+    let result = calibrate::calibrate_planes_from_marks(&setup, &plates, &options)?;
     let cameras = result.camera_models()?;
     formats::write_text(&args.output, &formats::calibration::to_json(&cameras))?;
     write_stdout(stdout, &control::report_to_json(&result.report))

@@ -366,7 +366,14 @@ fn too_few_wand_positions_is_an_error() {
     )
     .unwrap_err();
     assert!(
-        matches!(err, WandError::TooFewPositions { frames: 20, .. }),
+        matches!(
+            err,
+            WandError::TooFewPositions {
+                usable: 20,
+                frames: 20,
+                ..
+            }
+        ),
         "{err}"
     );
     assert!(err.to_string().contains("record more positions"), "{err}");

@@ -7,7 +7,7 @@
 //! | `detect_plate`: `gvth_1..4`, `min_npix`, `max_npix`, `min_npix_x/y`, `max_npix_x/y`, `sum_grey`, `tol_dis` | [`DetectionParameters`] per camera: threshold, pixel counts, extents, `min_sumg`, `split_depth` (`size_cross` only draws crosses in pyptv's GUI) |
 //! | `orient`: `cc`, `xh`, `yh`, `k1`..`p2`, `scale`, `shear` (1 = estimate) | the parameters held at the `.ori`/`.addpar` values (0 = fixed); `pnfo` and `interf` are not used |
 //! | `man_ori` (`nr`: 4 point ids per camera) with `man_ori.dat` (legacy: 4 lines `x y` per camera) or `man_ori_coordinates` (YAML) | per camera the manually identified reference points (`id x y`), the start of the mark identification |
-//! | `multi_planes`: `n_planes`, `plane_name` | listed, not used: OpenPTV's multi-plane calibration reads a target file per plane (`<plane><cam>.tif.fix`/`.crd`) that `ptv` does not read |
+//! | `multi_planes`: `n_planes`, `plane_name` | listed, not used: OpenPTV's multi-plane calibration reads a target file per plane (`<plane><cam>.tif.fix`/`.crd`) that `ptv` does not read (the listing says whether they are present); `ptv calibrate --plane` calibrates the plate at several positions from images |
 //!
 //! pyptv's `orient` flags are "1 = the parameter is adjusted"; every flag
 //! 0 (the test_cavity experiment's choice) is an exterior-only resection
@@ -428,10 +428,23 @@ fn read_legacy(
     let planes = dir.join("parameters").join("multi_planes.par");
     if files.is_file(&planes) {
         let value = files.read_text(&planes)?;
-        unmapped.push(multi_planes_unmapped(
-            &planes,
-            value.split_whitespace().collect::<Vec<_>>().join(" "),
-        ));
+        let words: Vec<&str> = value.split_whitespace().collect();
+        let mut entry = multi_planes_unmapped(&planes, words.join(" "));
+        // The plane names follow the count: say whether their files exist.
+        let fix: Vec<PathBuf> = words
+            .iter()
+            .skip(1)
+            .map(|name| dir.join(format!("{name}1.tif.fix")))
+            .collect();
+        let present = fix.iter().filter(|f| files.is_file(f)).count();
+        if let Some(first) = fix.first() {
+            entry.reason.push_str(&format!(
+                " ({present} of the {} planes' files for camera 1 are present here, e.g. {})",
+                fix.len(),
+                first.display()
+            ));
+        }
+        unmapped.push(entry);
     }
     Ok(CalibrationSettings {
         control,
@@ -449,8 +462,10 @@ fn multi_planes_unmapped(file: &Path, value: String) -> UnmappedSetting {
         file: file.display().to_string(),
         key: "multi_planes".into(),
         value,
-        reason: "OpenPTV's multi-plane calibration reads each plane's target files, which ptv \
-                 does not; ptv calibrates from cal_ori's image per camera"
+        reason: "OpenPTV's multi-plane calibration reads each plane's identified points \
+                 (<plane><camera>.tif.fix and .crd), which ptv does not read; ptv calibrates from \
+                 cal_ori's image per camera, and the plate at several positions from its images \
+                 with `ptv calibrate --plane CONTROL:IMAGE1,IMAGE2,...` once per position"
             .into(),
     }
 }

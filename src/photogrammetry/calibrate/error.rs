@@ -91,6 +91,49 @@ pub enum CalibrationError {
         /// Free parameters.
         free: usize,
     },
+    /// Multi-plane calibration: a plane's inputs are not one per camera.
+    #[error("plane {plane}: {given} images or observation lists for {cameras} cameras; give one per camera, in camera order, for every plane")]
+    PlaneCameraCount {
+        /// The plane (1-based, in the order given).
+        plane: usize,
+        /// Cameras in the setup.
+        cameras: usize,
+        /// Inputs given for the plane.
+        given: usize,
+    },
+    /// Multi-plane calibration: a plane seen in too few marks by a camera.
+    #[error("plane {plane}: camera {camera} ({name}) has only {found} marks of it, and a plane needs at least {MIN_POINTS} in every camera; check its image and the detection (threshold, pixel counts), or leave the plane out")]
+    TooFewPlaneMarks {
+        /// The plane (1-based, in the order given).
+        plane: usize,
+        /// The camera (0-based).
+        camera: usize,
+        /// Its name.
+        name: String,
+        /// Marks of the plane the camera has.
+        found: usize,
+    },
+    /// Multi-plane calibration: the planes' control points all lie in one
+    /// plane (the plate was not moved out of its plane, or the same
+    /// positions were given twice).
+    #[error("the {planes} planes' control points all lie in one plane (plane {first} and plane {second} coincide or the plate only slid within its plane), which cannot determine the interior orientation; give each position's control points in the common frame, the plate moved along its normal (e.g. Z = 0, 10, 20 mm)")]
+    PlanesCoincide {
+        /// How many planes were given.
+        planes: usize,
+        /// The first plane (1-based).
+        first: usize,
+        /// A second plane in the same plane (1-based).
+        second: usize,
+    },
+    /// Multi-plane calibration: a control point id too large to be told
+    /// apart from the other planes' (see [`super::PLANE_ID_STRIDE`]).
+    #[error("plane {plane}: control point id {id} is {} or more; number the points of each plane below it", super::PLANE_ID_STRIDE)]
+    PlaneIdTooLarge {
+        /// The plane (1-based).
+        plane: usize,
+        /// The id.
+        id: u64,
+    },
     /// All points in one plane, with interior parameters free.
     #[error("camera {camera} ({name}): all {count} control points it sees lie in one plane, which cannot determine the interior orientation ({}) together with the position; fix them (--fix c,xh,yh) at known values in the setup, or use a target with points in a second plane", free.iter().map(|p| p.name()).collect::<Vec<_>>().join(", "))]
     Coplanar {

@@ -24,12 +24,17 @@
 //!   camera has scx = 1, c' = scx c, xh' = scx xh, k1' = k1 / scx², p' =
 //!   p / scx, ...). The normal matrix is then singular and scx is held at the
 //!   setup's value; fix it (`--fix scx`) to say so up front.
-//! * A parameter correlated above the limit is held at its least-squares
-//!   estimate (distortion terms at the setup's value), judged after an
-//!   adjustment with it free, so holding it does not move the others. Their
-//!   standard deviations still include its uncertainty: computed as if it
-//!   were free, since conditioning on an uncertain value would shrink the
-//!   partner's by sqrt(1 - rho²) and overstate the accuracy.
+//! * A parameter correlated above the limit is held, judged after an
+//!   adjustment with it free: the observations determine only a
+//!   combination of the pair (c with z0: the rig's scale). It is held at
+//!   the better known of two values: its least-squares estimate, so that
+//!   holding it does not move the others, or, when its standard deviation
+//!   is over a third of its plausible range, the setup's value (distortion
+//!   terms always at the setup's). The others' standard deviations still
+//!   include its uncertainty: computed as if it were free (or with the
+//!   setup's value as a prior), since conditioning on an uncertain value
+//!   would shrink the partner's by sqrt(1 - rho²) and overstate the
+//!   accuracy.
 //!
 //! Then the check points, left out of every resection, are intersected
 //! (section 4.3, [`super::intersect()`]) from all cameras: their RMSE
@@ -42,7 +47,8 @@
 //!
 //! Pure: no I/O. The entry points are [`calibrate`] (measured image
 //! coordinates) and [`calibrate_from_marks`] (detected marks). The other
-//! files: `parameter.rs`, the 16 parameters and sets of them; `prepare.rs`,
+//! files: `parameter.rs`, the 16 parameters and sets of them; `planes.rs`,
+//! the plate at several positions in one adjustment; `prepare.rs`,
 //! the inputs validated once for all cameras; `report.rs`, the report and
 //! how a camera's is drawn from its adjustment; `check.rs`, the check
 //! points; `error.rs`, what can go wrong.
@@ -53,6 +59,7 @@ mod dlt;
 mod error;
 pub mod identify;
 mod parameter;
+pub mod planes;
 mod prepare;
 mod report;
 pub(crate) mod resection;
@@ -65,8 +72,13 @@ use super::camera::{Camera, CameraParameters};
 pub use adjustment::projection_with_parameter_jacobian;
 use check::check_point_report;
 pub use error::{setup_field, CalibrationError};
-pub use identify::{calibrate_from_marks, detect_marks, identify_marks, mark_detection_parameters};
+pub use identify::{
+    calibrate_from_marks, detect_marks, identify_marks, mark_at, mark_detection_parameters,
+};
 pub use parameter::{Parameter, ParameterSet};
+pub use planes::{
+    calibrate_planes, calibrate_planes_from_marks, Plane, PlaneMarks, PLANE_ID_STRIDE,
+};
 use prepare::prepare;
 pub use report::{
     CalibrationReport, CameraReport, CheckPointDeviation, CheckPointReport, Correlation,

@@ -7,7 +7,9 @@
 //! * Parameters the data cannot determine (a singular normal matrix, or a
 //!   correlation above the limit) are held and reported; exterior
 //!   parameters are never held. Distortion and affine terms are held at
-//!   the setup's value, the others at their estimate.
+//!   the setup's value; the principal point and distance at the better
+//!   known of their estimate and the setup's value (see
+//!   `Resection::hold_correlated`).
 //! * Data snooping (Baarda 1968, with Pope's a posteriori variance): the
 //!   point with the largest test statistic `vᵢᵀ Qvvᵢ⁻¹ vᵢ / sigma0²`
 //!   (chi-square with 2 degrees of freedom under the null hypothesis) above
@@ -452,16 +454,58 @@ impl Resection<'_> {
 
     /// Holds one of the pair correlated most above the limit (or one the
     /// normal matrix no longer determines), judged at the least-squares
-    /// solution `stats`, so that a parameter held at its estimate leaves
-    /// the others' estimates as they are; whether one was held.
+    /// solution `stats`; whether one was held.
+    ///
+    /// The observations then determine only a combination of the pair
+    /// (c and z0: the rig's scale), and the held one needs a value. Of the
+    /// two at hand, the better known is taken: its least-squares estimate,
+    /// known to its standard deviation `sigma` (with its partner free), or
+    /// the setup's value, known to a third of its plausible range (see
+    /// [`Parameter::plausible_range`]). So a parameter with a prior whose
+    /// `3 sigma` exceeds that range is held at the setup's value, as the
+    /// range test ([`Self::hold_implausible`]) would hold it; otherwise at
+    /// its estimate, which leaves the others' estimates as they are.
+    /// Distortion and affine terms go back to the setup's value either way
+    /// (see [`Parameter::held_at_setup`]).
     fn hold_correlated(&mut self, stats: &Statistics) -> bool {
         let Some((p, reason)) =
             undeterminable(stats, self.free, self.options.max_correlation, true)
         else {
             return false;
         };
-        self.hold(p, reason, true);
+        let index = self.free.iter().position(|o| o == p);
+        let from_prior = match (&stats.cofactor, index, p.plausible_range(self.setup)) {
+            (Some(q), Some(k), Some(range)) if self.priors.contains(p) && !p.held_at_setup() => {
+                let sigma = stats.sigma0 * q[(k, k)].max(0.0).sqrt();
+                (3.0 * sigma > range).then_some((sigma, range))
+            }
+            _ => None,
+        };
+        match from_prior {
+            Some((sigma, range)) => self.hold_at_prior(
+                p,
+                range,
+                format!(
+                    "{reason}, and its standard deviation {sigma:.3e} is more than a third of its \
+                     plausible range ±{range:.3e} around the setup's value: held there, the \
+                     better known of the two"
+                ),
+            ),
+            None => self.hold(p, reason, true),
+        }
         true
+    }
+
+    /// Stops estimating `p` and sets it to the setup's value, a prior of
+    /// standard deviation `range / 3` whose uncertainty the others'
+    /// standard deviations keep (see [`Self::finish`]).
+    fn hold_at_prior(&mut self, p: Parameter, range: f64, reason: String) {
+        self.free.remove(p);
+        let mut v = to_vector(&self.parameters);
+        v[p.index()] = to_vector(self.setup)[p.index()];
+        self.parameters = from_vector(&self.parameters, &v);
+        self.held_at_prior.push((p, range / 3.0));
+        self.held.push((p, reason));
     }
 
     /// Holds, at the setup's value, the parameter first in
@@ -488,19 +532,15 @@ impl Resection<'_> {
         let Some((p, sigma, range)) = worst else {
             return false;
         };
-        self.free.remove(p);
-        let mut v = to_vector(&self.parameters);
-        v[p.index()] = to_vector(self.setup)[p.index()];
-        self.parameters = from_vector(&self.parameters, &v);
-        self.held_at_prior.push((p, range / 3.0));
-        self.held.push((
+        self.hold_at_prior(
             p,
+            range,
             format!(
                 "the observations do not determine it: its standard deviation {sigma:.3e} is more \
                  than a third of its plausible range ±{range:.3e} around the setup's value \
                  (held there, in the order distortion, affine terms and principal point, then c)"
             ),
-        ));
+        );
         true
     }
 
@@ -546,7 +586,8 @@ impl Resection<'_> {
     }
 
     /// A result whose geometry the observations do not fix is an error:
-    /// a projective centre whose standard deviation is over a third of 10%
+    /// a projective centre whose standard deviation (as reported: with
+    /// what is held as uncertain as it is) is over a third of 10%
     /// of its distance to the control points (the rig's scale, which c
     /// trades with, as undetermined as c's test would hold c), or a principal distance estimated more than its plausible
     /// range away from the setup's.
@@ -564,9 +605,16 @@ impl Resection<'_> {
             .fold(Vector3::zeros(), |sum, (_, e)| sum + e.point.coords)
             / self.active.len().max(1) as f64;
         let distance = (self.parameters.exterior.position - centroid).norm();
+        // The standard deviations the report gives: with the uncertainty of
+        // what is held (at an estimate, or at the setup's value as a
+        // prior), not conditioned on it.
+        let marginal = self.marginal();
+        let (stats, estimated) = match &marginal {
+            Some((m, set)) => (m, *set),
+            None => (stats, self.free),
+        };
         if let Some(q) = &stats.cofactor {
-            let sigma = self
-                .free
+            let sigma = estimated
                 .iter()
                 .enumerate()
                 .filter(|(_, p)| ParameterSet::position().contains(*p))
@@ -664,24 +712,33 @@ impl Resection<'_> {
     /// a non-zero truth at zero would bias the others beyond their
     /// reported standard deviations.
     fn finish(self, stats: &Statistics) -> (CameraParameters, CameraReport) {
-        let uncertain = self.free | self.held_at_estimate;
-        let mut with_priors = uncertain;
+        let marginal = self.marginal();
+        let uncertainty = match &marginal {
+            Some((m, set)) => (m, *set),
+            None => (stats, self.free),
+        };
+        let report = camera_report(&self, stats, uncertainty);
+        (self.parameters, report)
+    }
+
+    /// The statistics the reported standard deviations come from (see
+    /// [`Self::finish`]): with the parameters held at their estimates free
+    /// and those held at the setup's value as priors, over the returned
+    /// set; `None` when nothing is held so (the final adjustment's serve)
+    /// or the result is singular.
+    fn marginal(&self) -> Option<(Statistics, ParameterSet)> {
+        let mut with_priors = self.free | self.held_at_estimate;
         let priors = self.held_at_prior.clone();
         for (p, _) in &priors {
             with_priors.insert(*p);
         }
-        let marginal = if with_priors == self.free {
-            None
-        } else {
-            adjustment::statistics(&self.parameters, with_priors, &self.equations())
-                .and_then(|m| with_prior(m, &priors, with_priors))
-        };
-        let uncertainty = match &marginal {
-            Some(m) if m.cofactor.is_some() => (m, with_priors),
-            _ => (stats, self.free),
-        };
-        let report = camera_report(&self, stats, uncertainty);
-        (self.parameters, report)
+        if with_priors == self.free {
+            return None;
+        }
+        adjustment::statistics(&self.parameters, with_priors, &self.equations())
+            .and_then(|m| with_prior(m, &priors, with_priors))
+            .filter(|m| m.cofactor.is_some())
+            .map(|m| (m, with_priors))
     }
 }
 

@@ -317,8 +317,9 @@ pub fn check_inputs(
         });
     }
     if frames.len() < MIN_POSITIONS {
+        // Not paired yet: at most every frame is a usable position.
         return Err(WandError::TooFewPositions {
-            usable: 0,
+            usable: frames.len(),
             frames: frames.len(),
             incomplete: 0,
             ambiguous: 0,
