@@ -37,6 +37,7 @@ pub mod score;
 pub mod selfcal;
 pub mod simulate;
 pub mod splitter;
+pub mod statistics;
 pub mod target;
 pub mod track;
 pub mod volume;

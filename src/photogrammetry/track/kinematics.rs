@@ -54,6 +54,8 @@
 
 use nalgebra::{SMatrix, SVector, Vector3};
 
+use crate::photogrammetry::statistics::chi_square_quantile;
+
 /// One point of a trajectory for the fit.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub(super) struct Sample {
@@ -285,7 +287,7 @@ fn off_path(point: &Sample, path: &[Sample]) -> bool {
             r * r / (point.sigma[axis].powi(2) + cubic.position_variance[axis])
         })
         .sum();
-    d2 > chi_square_quantile(3, Z_GROSS)
+    d2 > chi_square_quantile(3.0, Z_GROSS)
 }
 
 /// Whether a window of consecutive points is one smooth path: its fit
@@ -408,16 +410,6 @@ pub(super) fn robust_fit(samples: &[Sample], at: i64, order: usize) -> Option<De
 /// fits, which costs those fits a little precision and no bias.
 pub const OUTLIER_CHI2: f64 = 16.27;
 
-/// The quantile of χ² with `dof` degrees of freedom at the normal
-/// quantile `z` (Wilson-Hilferty: `k (1 - h + z sqrt(h))³`, `h = 2 / (9k)`;
-/// from 3 degrees of freedom on within 2% of the exact value at 99.9% and
-/// 7% above it, on the safe side, at 1 - 10⁻⁶).
-fn chi_square_quantile(dof: usize, z: f64) -> f64 {
-    let k = dof as f64;
-    let h = 2.0 / (9.0 * k);
-    k * (1.0 - h + z * h.sqrt()).powi(3)
-}
-
 /// The normal's 99.9% quantile: the level of the windows' consistency.
 const Z_999: f64 = 3.0902;
 
@@ -453,13 +445,9 @@ impl Fit {
     }
 
     /// Its weighted squared residuals over the median of χ² with its
-    /// degrees of freedom `k` (Wilson and Hilferty: `k (1 - 2 / 9k)³`),
-    /// where it has redundancy.
+    /// degrees of freedom, where it has redundancy.
     fn chi2_ratio(&self) -> Option<f64> {
-        (self.dof > 0).then(|| {
-            let k = self.dof as f64;
-            self.chi2 / (k * (1.0 - 2.0 / (9.0 * k)).powi(3))
-        })
+        (self.dof > 0).then(|| self.chi2 / chi_square_quantile(self.dof as f64, 0.0))
     }
 
     /// The χ² quantile of its degrees of freedom at the normal quantile
@@ -468,7 +456,7 @@ impl Fit {
         if self.dof == 0 {
             f64::INFINITY
         } else {
-            chi_square_quantile(self.dof, z)
+            chi_square_quantile(self.dof as f64, z)
         }
     }
 }

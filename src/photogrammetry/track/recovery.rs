@@ -48,6 +48,7 @@ use nalgebra::{Point2, Point3};
 use super::super::camera::Camera;
 use super::super::correspond::Particle;
 use super::super::intersect::{intersect, Observation};
+use super::super::statistics::chi_square_quantile;
 use super::super::target::Target;
 
 /// The side of an index cell (px): about the windows searched.
@@ -321,6 +322,9 @@ pub fn frame_noise(particles: impl IntoIterator<Item = (f64, usize)>) -> Option<
     Some(*values.select_nth_unstable_by(middle, f64::total_cmp).1)
 }
 
+/// The standard normal's 99% quantile.
+const Z_99: f64 = 2.326;
+
 /// The 99% quantile of the chi-square distribution with `dof` degrees of
 /// freedom (the odd ones of `2m - 3`, 2..8 cameras; beyond, the
 /// Wilson-Hilferty approximation).
@@ -333,11 +337,7 @@ fn chi_square_99(dof: usize) -> f64 {
         9 => 21.666,
         11 => 24.725,
         13 => 27.688,
-        _ => {
-            let k = dof as f64;
-            let h = 2.0 / (9.0 * k);
-            k * (1.0 - h + 2.326 * h.sqrt()).powi(3)
-        }
+        _ => chi_square_quantile(dof as f64, Z_99),
     }
 }
 
@@ -816,9 +816,7 @@ mod tests {
         assert_eq!(frame_noise([(f64::NAN, 4), (0.2, 1)]), None);
         // The chi-square quantiles: the table and the approximation agree
         // where both exist.
-        let k = 13.0f64;
-        let h = 2.0 / (9.0 * k);
-        assert!((k * (1.0 - h + 2.326 * h.sqrt()).powi(3) - chi_square_99(13)).abs() < 0.05);
+        assert!((chi_square_quantile(13.0, Z_99) - chi_square_99(13)).abs() < 0.05);
     }
 
     #[test]

@@ -4,6 +4,7 @@
 
 use super::completion::{CandidateGroups, Completion};
 use super::{size, Search, NONE};
+use crate::photogrammetry::statistics::chi_square_quantile;
 
 /// The fewest candidate groups from which the frame's image noise is
 /// estimated.
@@ -75,8 +76,7 @@ impl Search<'_, '_> {
         let (_, median, _) = spreads.select_nth_unstable_by(middle, f64::total_cmp);
         let m = largest as f64;
         let k = 2.0 * m - 3.0;
-        let chi_square_median = k * (1.0 - 2.0 / (9.0 * k)).powi(3);
-        Some(*median * m / chi_square_median)
+        Some(*median * m / chi_square_quantile(k, 0.0))
     }
 
     /// Sets the acceptance threshold from the frame itself (see
