@@ -13,8 +13,11 @@
 //! sensor's image into the views of several cameras ([`splitter`]);
 //! section 5's system calibration by resection on control points
 //! ([`mod@calibrate`]); volume self-calibration from the particles
-//! ([`selfcal`]); and tracking in object space after the companion paper,
-//! Malik, Dracos and Papantoniou (1993), Part II ([`track`]).
+//! ([`selfcal`]); tracking in object space after the companion paper,
+//! Malik, Dracos and Papantoniou (1993), Part II ([`track`]); and for dense
+//! seeding, iterative particle reconstruction ([`ipr`]) and its scoring
+//! against the truth ([`score`]). [`statistics`] holds the χ² quantile
+//! their tests share.
 //!
 //! This module never imports the service's shell (no async runtime, web
 //! framework, SQL or OpenAPI crates; ARCHITECTURE.md's invariant greps for
