@@ -33,9 +33,9 @@ average before and after.
 Requirements: a release build of `ptv` (`cargo build --release --bin ptv`)
 and a Python with optv 0.3.2, numpy and Pillow::
 
-    python3 -m venv /work/venv-optv
-    /work/venv-optv/bin/pip install optv numpy pillow
-    /work/venv-optv/bin/python scripts/openptv_sequence_side_by_side.py \\
+    python3 -m venv /tmp/optv-venv
+    /tmp/optv-venv/bin/pip install optv numpy pillow
+    /tmp/optv-venv/bin/python scripts/openptv_sequence_side_by_side.py \\
         --ptv target/release/ptv --cpus 1 --runs 3
 
 Without optv (or Pillow) the OpenPTV side is skipped with a message, and
@@ -212,8 +212,8 @@ def main() -> None:
         have_optv = False
         print(
             f"note: {sys.executable} has no optv or Pillow, so OpenPTV is skipped; run "
-            "this script with a Python that has them (python3 -m venv /work/venv-optv && "
-            "/work/venv-optv/bin/pip install optv numpy pillow)",
+            "this script with a Python that has them (python3 -m venv /tmp/optv-venv && "
+            "/tmp/optv-venv/bin/pip install optv numpy pillow)",
             file=sys.stderr,
         )
     ptv_cmd = pinned(
