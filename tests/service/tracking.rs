@@ -184,8 +184,18 @@ impl Api {
         futures_util::future::join_all(uploads).await;
     }
 
-    /// Says the sequence is complete and waits for its run to finish; the
-    /// run's view.
+    /// Uploads every frame of `frames` (numbered from 0) with 2 concurrent
+    /// clients, then [`Api::finish`]es the sequence; the run's view.
+    async fn upload_all_and_finish(&self, sequence: i64, frames: &[TargetFrame]) -> Value {
+        let order: Vec<(i64, &TargetFrame)> = frames
+            .iter()
+            .enumerate()
+            .map(|(f, t)| (f as i64, t))
+            .collect();
+        self.upload_concurrently(sequence, &order, 2).await;
+        self.finish(sequence).await
+    }
+
     /// The sequence's trajectories as CSV rows, asserted to be `ptv track
     /// --targets`'s on all of `frames` (recovery on), row for row; and
     /// how many particles `ptv track` recovered.
@@ -205,6 +215,8 @@ impl Api {
         (lines, recovered)
     }
 
+    /// Says the sequence is complete and waits for its run to finish; the
+    /// run's view.
     async fn finish(&self, sequence: i64) -> Value {
         wait_for_sequence(&self.client, &self.address, sequence).await;
         let (status, body) = self
@@ -679,13 +691,7 @@ async fn a_rerun_with_other_settings_is_a_new_run_and_the_old_one_stays() {
             json!({"max_velocity": MAX_VELOCITY, "backward": false}),
         )
         .await;
-    let order: Vec<(i64, &TargetFrame)> = frames
-        .iter()
-        .enumerate()
-        .map(|(f, t)| (f as i64, t))
-        .collect();
-    api.upload_concurrently(sequence, &order, 2).await;
-    let first = api.finish(sequence).await;
+    let first = api.upload_all_and_finish(sequence, &frames).await;
     assert_eq!(first["settings"]["recovery"], true, "{first}");
     let old_csv = api
         .text(&format!("/sequences/{sequence}/trajectories?format=csv"))
@@ -1135,13 +1141,7 @@ async fn a_tracked_sequence_exports_to_paraview_and_hdf5() {
     let sequence = api
         .tracked_sequence(&rig, json!({"max_velocity": MAX_VELOCITY}))
         .await;
-    let order: Vec<(i64, &TargetFrame)> = frames
-        .iter()
-        .enumerate()
-        .map(|(f, t)| (f as i64, t))
-        .collect();
-    api.upload_concurrently(sequence, &order, 2).await;
-    api.finish(sequence).await;
+    api.upload_all_and_finish(sequence, &frames).await;
     let (status, json) = api
         .get(&format!("/sequences/{sequence}/trajectories"))
         .await;
@@ -1335,13 +1335,7 @@ async fn backward_tracking_at_the_finish_is_ptv_track_backwards() {
             json!({"max_velocity": MAX_VELOCITY, "recovery": false, "backward": true}),
         )
         .await;
-    let order: Vec<(i64, &TargetFrame)> = frames
-        .iter()
-        .enumerate()
-        .map(|(f, t)| (f as i64, t))
-        .collect();
-    api.upload_concurrently(sequence, &order, 2).await;
-    let run = api.finish(sequence).await;
+    let run = api.upload_all_and_finish(sequence, &frames).await;
     assert_eq!(run["settings"]["backward"], true, "{run}");
 
     let particles = api.particles(sequence, count as i64).await;
@@ -1426,13 +1420,7 @@ async fn an_export_above_the_configured_limit_is_refused_saying_to_cut_it() {
     let sequence = api
         .tracked_sequence(&rig, json!({"max_velocity": MAX_VELOCITY}))
         .await;
-    let order: Vec<(i64, &TargetFrame)> = frames
-        .iter()
-        .enumerate()
-        .map(|(f, t)| (f as i64, t))
-        .collect();
-    api.upload_concurrently(sequence, &order, 2).await;
-    api.finish(sequence).await;
+    api.upload_all_and_finish(sequence, &frames).await;
     for format in ["vtk", "hdf5"] {
         let (status, body) = api
             .get(&format!(
