@@ -64,11 +64,15 @@ fn reconstruct_then_score_a_sparse_frame_set() {
         stdout.starts_with("x,y,z,sx,sy,sz,intensity,rms_px\n"),
         "{stdout}"
     );
-    // A progress line per outer loop (4 + 2 by default), the model per
+    // A progress line per outer loop (8 + 3 by default), the model per
     // camera: the renderer's sigma 2.5/4 px widened by the pixel area to
     // sqrt(0.625² + 1/12) = 0.6875 px; a box-convolved Gaussian is not
     // quite a Gaussian, its best fit lies within 0.01 px of that.
-    assert_eq!(stderr.lines().filter(|l| l.starts_with("loop ")).count(), 6);
+    let defaults = ptv::photogrammetry::ipr::IprParameters::default();
+    assert_eq!(
+        stderr.lines().filter(|l| l.starts_with("loop ")).count(),
+        defaults.loops + defaults.reduced_loops
+    );
     for camera in 0..4 {
         let line = stderr
             .lines()

@@ -369,6 +369,31 @@ impl Matcher {
         targets: &[Vec<Target>],
         cancel: &Cancel,
     ) -> Result<Vec<Particle>, MatchError> {
+        let frames = self.frames(targets, cancel)?;
+        Ok(Search::new(self, &frames).until(cancel).run()?)
+    }
+
+    /// Every candidate particle of a frame, not one per target: each group
+    /// of [`MatchingParameters::min_cameras`] or more whose rays meet within
+    /// the acceptance threshold (steps 2, 3 and the noise estimate of the
+    /// [module doc](super)), a target in as many groups as it fits (at most
+    /// `MAX_GROUPS_PER_TARGET` per seed target, so the count stays linear
+    /// in the targets), each group once. Iterative reconstruction
+    /// ([`crate::photogrammetry::ipr`]) takes them all and lets the images
+    /// decide (Wieneke 2013, section 2.2): a best-first choice that keeps a
+    /// ghost keeps the true particles whose images it took out of reach.
+    pub fn candidates(&self, targets: &[Vec<Target>]) -> Result<Vec<Particle>, MatchError> {
+        let cancel = Cancel::new();
+        let frames = self.frames(targets, &cancel)?;
+        Ok(Search::new(self, &frames).candidates()?)
+    }
+
+    /// The checked targets of a frame, filed per camera with their rays.
+    fn frames(
+        &self,
+        targets: &[Vec<Target>],
+        cancel: &Cancel,
+    ) -> Result<Vec<CameraFrame>, MatchError> {
         cancel.check()?;
         let count = self.cameras.len();
         if targets.len() != count {
@@ -400,7 +425,7 @@ impl Matcher {
             cancel.check()?;
             frames.push(CameraFrame::new(camera, list, self.tolerance));
         }
-        Ok(Search::new(self, &frames).until(cancel).run()?)
+        Ok(frames)
     }
 
     /// Whether `a` and `b` pass the similarity criteria.
@@ -693,6 +718,57 @@ mod tests {
             found.iter().all(|&f| f >= 89),
             "{found:?} of 100 at {BANDS:?} px"
         );
+    }
+
+    #[test]
+    fn candidates_keep_every_group_that_fits_a_target_in_several() {
+        // A dense frame (4 cameras, 20,000 particles, 0.1 px noise) in a
+        // 1 px band: the best-first choice keeps one group per target; the
+        // candidates must hold its correct particles (all but the few that
+        // the exchange of near-coincident targets formed after the choice,
+        // at most 1%), each member set once, and targets shared by several
+        // groups, which is what the best-first choice never gives.
+        let scene = scene(4, 20_000, 0.1, 0.0, 24);
+        let parameters = MatchingParameters {
+            tolerance: 1.0,
+            volume: Some(scene.volume),
+            min_cameras: 4,
+            similarity: None,
+        };
+        let matcher = Matcher::new(&scene.cameras, &parameters).unwrap();
+        let chosen = matcher.match_frame(&scene.frame.targets).unwrap();
+        let candidates = matcher.candidates(&scene.frame.targets).unwrap();
+        let members = |p: &Particle| p.targets.clone();
+        let all: std::collections::HashSet<_> = candidates.iter().map(members).collect();
+        assert_eq!(all.len(), candidates.len(), "a group twice");
+        let correct = |p: &Particle| {
+            let mut truth = p
+                .targets
+                .iter()
+                .enumerate()
+                .filter_map(|(c, t)| t.map(|t| scene.frame.truth[c][t]));
+            let first = truth.next();
+            first.is_some() && truth.all(|j| Some(j) == first)
+        };
+        let chosen_correct: Vec<_> = chosen.iter().filter(|p| correct(p)).collect();
+        let kept = chosen_correct
+            .iter()
+            .filter(|p| all.contains(&members(p)))
+            .count();
+        assert!(
+            kept as f64 >= 0.99 * chosen_correct.len() as f64,
+            "{kept} of {} correct particles among the candidates",
+            chosen_correct.len()
+        );
+        let mut uses = vec![0usize; scene.frame.targets[0].len()];
+        for p in &candidates {
+            if let Some(t) = p.targets[0] {
+                uses[t] += 1;
+            }
+        }
+        let shared = uses.iter().filter(|&&u| u > 1).count();
+        assert!(shared > 0, "no target of camera 1 in two candidates");
+        assert!(candidates.len() > chosen.len());
     }
 
     #[test]

@@ -16,10 +16,17 @@
 //! 3. **Outer loop** k: the 2D peaks of every residual image (local maxima
 //!    above a threshold, a fraction of the model's typical peak) are the
 //!    targets of the existing correspondence search ([`Matcher`], epipolar
-//!    bands through the walls, a band widened to [`IprParameters::tolerance`]),
-//!    whose particles, intersected by least squares, are the candidates;
-//!    each candidate's image is subtracted from the residuals with its
-//!    least-squares intensity per camera.
+//!    bands through the walls, a band widened to [`IprParameters::tolerance`]).
+//!    Every group of peaks whose rays meet is a candidate
+//!    ([`Matcher::candidates`]), a peak in as many as it fits, as in
+//!    Wieneke's triangulation of all possible matches (section 2.2): the
+//!    1993 method's best-first choice, one particle per peak, lets a ghost
+//!    hold the peaks of four true particles, which then never become
+//!    candidates while it stands. The candidates, intersected by least
+//!    squares, are painted (their images subtracted from the residuals with
+//!    the residual's height at their centre) best-meeting rays first: a true
+//!    particle's rays meet within the image noise, a ghost's only within the
+//!    band, so the true one takes the light it shares with a ghost.
 //! 4. **Shaking** (Wieneke section 2.3): every particle's position and
 //!    per-camera intensities are fitted to its image patches in all
 //!    cameras, the others' images subtracted (the "augmented" image
@@ -35,9 +42,13 @@
 //!    particles' images loses its intensity to them while they are shaken;
 //!    particles whose mean intensity falls below
 //!    [`IprParameters::ghost_fraction`] of the model's typical peak, or
-//!    whose image is seen in fewer cameras than the loop requires, are
-//!    removed, and so is the weaker of two particles closer than a pixel
-//!    (overlaps resolved by shaking leave them apart).
+//!    whose image reaches that fraction of its camera's typical peak in
+//!    fewer cameras than the loop requires, are removed, and so is the
+//!    weaker of two particles closer than a pixel (overlaps resolved by
+//!    shaking leave them apart). The test is per camera because the
+//!    intensities are: a ghost loses its light in each camera to the one
+//!    true particle whose image it borrowed there, and keeps a mean
+//!    intensity from the cameras where that particle is not yet found.
 //! 6. The last [`IprParameters::reduced_loops`] outer loops accept
 //!    candidates seen in one camera less (Jahn et al. 2021, section 2.2:
 //!    particles hidden behind brighter ones in one view).
@@ -100,8 +111,8 @@ impl Default for IprParameters {
         IprParameters {
             volume: None,
             tolerance: 2.0,
-            loops: 4,
-            reduced_loops: 2,
+            loops: 8,
+            reduced_loops: 3,
             shakes: 3,
             peak_fraction: 0.25,
             ghost_fraction: 0.3,
@@ -239,6 +250,19 @@ struct State {
 }
 
 impl State {
+    /// In how many cameras the particle's image is at least `fraction` of
+    /// that camera's typical peak. A ghost sits where the rays of other
+    /// particles' images cross; once those particles are found, each takes
+    /// its light back in its own camera, and the ghost keeps a faint image
+    /// there while it may keep its mean intensity from the others.
+    fn bright_in(&self, views: &[View], fraction: f64) -> usize {
+        self.images
+            .iter()
+            .zip(views)
+            .filter(|(image, view)| image.is_some_and(|(_, a)| a >= fraction * view.otf.peak))
+            .count()
+    }
+
     fn intensity(&self) -> (f64, usize) {
         let seen: Vec<f64> = self.images.iter().flatten().map(|&(_, a)| a).collect();
         let n = seen.len();
@@ -604,7 +628,17 @@ pub fn reconstruct(
                 p
             })
             .collect();
-        let candidates = matcher.match_frame(&peaks)?;
+        // Every candidate, a peak in several (Wieneke 2013, section 2.2),
+        // best-meeting rays first: the first to be painted take the light,
+        // and a true particle's rays meet within the image noise where a
+        // ghost's meet only within the band. (Two cameras have no
+        // candidates beyond the unambiguous pairs.)
+        let mut candidates = if n >= 3 {
+            matcher.candidates(&peaks)?
+        } else {
+            matcher.match_frame(&peaks)?
+        };
+        candidates.sort_by(|a, b| a.rms_px.total_cmp(&b.rms_px));
         let candidate_count = candidates.len();
         let first_new = states.len();
         for particle in candidates {
@@ -649,8 +683,9 @@ pub fn reconstruct(
         let duplicate = duplicates(&states, mm_per_px);
         let mut removed = 0;
         for (i, state) in states.iter().enumerate() {
-            let (intensity, seen) = state.intensity();
-            let ghost = intensity < parameters.ghost_fraction * typical_peak || seen < min_cameras;
+            let intensity = state.intensity().0;
+            let ghost = intensity < parameters.ghost_fraction * typical_peak
+                || state.bright_in(&views, parameters.ghost_fraction) < min_cameras;
             if keep[i] && (ghost || duplicate[i]) {
                 restore(state, &mut views);
                 keep[i] = false;

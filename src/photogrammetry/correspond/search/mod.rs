@@ -328,6 +328,30 @@ impl<'m, 'f> Search<'m, 'f> {
         }
     }
 
+    /// Every candidate group of the frame (see [`Matcher::candidates`]):
+    /// the seed stages as in [`Search::run`], each group trimmed to the
+    /// acceptance threshold and kept once, none marking its targets used.
+    pub(super) fn candidates(mut self) -> Result<Vec<Particle>, Cancelled> {
+        if self.frames.len() >= 3 {
+            let mut kept = std::collections::HashSet::new();
+            for (stage, &seed) in self.matcher.seeds.iter().enumerate() {
+                let groups = if stage == 0 {
+                    let groups = self.first_stage(seed);
+                    self.estimate_noise(&groups);
+                    groups
+                } else {
+                    self.candidate_groups(seed)
+                };
+                self.keep_all(groups, &mut kept);
+            }
+        }
+        let particles = self.finish();
+        match self.stopped {
+            Some(reason) => Err(reason),
+            None => Ok(particles),
+        }
+    }
+
     /// Least-squares intersection of a group, with its targets numbered as
     /// in the caller's lists; `None` unless every residual is within the
     /// acceptance threshold. `observations` is scratch space.

@@ -180,6 +180,28 @@ impl Search<'_, '_> {
         groups
     }
 
+    /// Every group of `groups` within the acceptance threshold (trimmed to
+    /// it where a member misses by more), each member set once (`kept`),
+    /// none marking its targets used.
+    pub(super) fn keep_all(
+        &mut self,
+        groups: CandidateGroups,
+        kept: &mut std::collections::HashSet<Vec<u32>>,
+    ) {
+        let count = self.frames.len();
+        let mut members = groups.members;
+        let limit = self.acceptance;
+        for g in 0..groups.sizes.len() {
+            let group = &mut members[g * count..(g + 1) * count];
+            if groups.largest[g] > limit && self.trim(group, limit, |_| false).is_none() {
+                continue;
+            }
+            if size(group) >= 3 && kept.insert(group.to_vec()) {
+                self.accepted.extend_from_slice(group);
+            }
+        }
+    }
+
     /// Step 4: best-first selection of groups of three or more.
     pub(super) fn select(&mut self, groups: CandidateGroups) {
         let count = self.frames.len();
