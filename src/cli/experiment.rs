@@ -128,8 +128,8 @@ pub(super) fn import(args: &ImportExperimentArgs, stderr: &mut dyn Write) -> Res
                 "fit_order": p.fit_order,
                 "first_frame": experiment.sequence.first,
                 "recovery": t.recovery,
-                // The run's default (pyptv's tracking back is a step of
-                // its own; docs/tracking.md says why it is off).
+                // The run's default (on: docs/tracking.md; pyptv's
+                // tracking back is a step of its own).
                 "backward": crate::service::model::tracking_settings::BACKWARD_BY_DEFAULT,
             })
         }),

@@ -89,10 +89,14 @@ pub struct ProcessSequenceArgs {
     /// the output directory (docs/exports.md).
     #[arg(long, value_enum, requires = "track")]
     pub export: Vec<super::export::ExportFormat>,
-    /// With --track, extend the trajectories backwards in time after the
-    /// forward pass (docs/tracking.md; backward tracking holds the
-    /// sequence's particles until its end).
-    #[arg(long, requires = "track")]
+    /// With --track, do not extend the trajectories backwards in time
+    /// after the forward pass (on by default: docs/tracking.md; backward
+    /// tracking holds the sequence's particles until its end).
+    #[arg(long, requires = "track", conflicts_with = "backward")]
+    pub no_backward: bool,
+    /// Backward tracking, the default with --track (kept for scripts that
+    /// ask for it).
+    #[arg(long, requires = "track", hide = true)]
     pub backward: bool,
 }
 
@@ -297,7 +301,7 @@ struct TrackingSummary {
     trajectories: u64,
     points: usize,
     recovered_particles: usize,
-    /// What backward tracking added (absent without --backward).
+    /// What backward tracking added (absent with --no-backward).
     #[serde(skip_serializing_if = "Option::is_none")]
     backward: Option<BackwardAdded>,
     output: String,
@@ -543,7 +547,7 @@ fn track(
             super::track::Source::particles(pattern("particles.%d.csv")?),
         )
     };
-    let tracker = if args.backward {
+    let tracker = if !args.no_backward {
         tracker.extending_backward()
     } else {
         tracker

@@ -89,13 +89,17 @@ pub struct TrackArgs {
     /// more cameras, intersected and accepted within --tolerance).
     #[arg(long)]
     pub no_recovery: bool,
-    /// Extend the trajectories backwards in time after the forward pass
-    /// (docs/tracking.md): takes back the starts the forward pass found
-    /// late, but holds the whole sequence until its end (about 200 bytes
-    /// a particle) and writes every row then, and the new first points'
-    /// velocities are less accurate than the rest; without it the rows
-    /// stream in memory bounded by the fit window.
-    #[arg(long)]
+    /// Do not extend the trajectories backwards in time after the forward
+    /// pass. Backward tracking (on by default; docs/tracking.md) takes back
+    /// the starts the forward pass found late and joins trajectories a
+    /// loss broke, but holds the whole sequence until its end (about 200
+    /// bytes a particle) and writes every row then; with --no-backward the
+    /// rows stream in memory bounded by the fit window (for long
+    /// sequences).
+    #[arg(long, conflicts_with = "backward")]
+    pub no_backward: bool,
+    /// Backward tracking, the default (kept for scripts that ask for it).
+    #[arg(long, hide = true)]
     pub backward: bool,
     /// Also export the particles and trajectories (repeatable): `vtk` for
     /// ParaView (`particles.<frame>.vtp`, `particles.pvd`,
@@ -272,7 +276,7 @@ pub(super) fn run(
             ))
         }
     };
-    if args.backward {
+    if !args.no_backward {
         tracker = tracker.extending_backward();
     }
     let counts = track_source(
@@ -334,7 +338,7 @@ impl TrackCounts {
                 "; backward tracking added {} points before trajectories' starts ({} trajectories lengthened, {} joined to the one ending before them)",
                 b.points, b.lengthened, b.joined
             ),
-            None => "; backward tracking off".into(),
+            None => "; backward tracking off (--no-backward)".into(),
         }
     }
 }

@@ -144,7 +144,7 @@ fn the_legacy_folder_and_its_yaml_give_the_same_settings() {
     assert_eq!(tracking["max_acceleration"], 2.8);
     assert_eq!(tracking["recovery"], true);
     assert_eq!(
-        tracking["backward"], false,
+        tracking["backward"], true,
         "the run's default (docs/tracking.md)"
     );
     assert_eq!(tracking["first_frame"], 10001);

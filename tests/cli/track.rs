@@ -399,9 +399,10 @@ fn bad_input_gets_one_clear_line() {
 
 /// Particles entering mid-sequence whose second point is lost: forward,
 /// a trajectory of one point bridges no gap, so each starts at its third
-/// point and its first is dropped; backward tracking
-/// (`--backward`) takes the first back, and the summary says what it
-/// added. Without the flag, the forward pass's rows.
+/// point and its first is dropped; backward tracking (the default)
+/// takes the first back, and the summary says what it added. With
+/// `--no-backward`, the forward pass's rows; `--backward` (kept for
+/// scripts) is the default.
 #[test]
 fn backward_tracking_takes_back_late_starts() {
     let dir = tempfile::tempdir().unwrap();
@@ -445,10 +446,12 @@ fn backward_tracking_takes_back_late_starts() {
         assert!(out.status.success(), "{}", text(&out.stderr));
         (rows(text(&out.stdout)), text(&out.stderr).to_string())
     };
-    let (forward, stderr) = run(&[]);
+    let (forward, stderr) = run(&["--no-backward"]);
     assert!(stderr.contains("backward tracking off"), "{stderr}");
     assert_eq!(forward.len(), total - entering, "the entering points lost");
-    let (both, stderr) = run(&["--backward"]);
+    let (both, stderr) = run(&[]);
+    let (again, again_stderr) = run(&["--backward"]);
+    assert_eq!((again.len(), &again_stderr), (both.len(), &stderr));
     assert!(
         stderr.contains(&format!(
             "backward tracking added {entering} points before trajectories' starts ({entering} trajectories lengthened, 0 joined"

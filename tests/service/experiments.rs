@@ -174,8 +174,8 @@ async fn the_recording_imports_from_its_par_files_and_its_yaml_and_a_frame_proce
     );
     assert_eq!(settings["max_acceleration"], 2.8, "{runs}");
     assert_eq!(settings["recovery"], true, "{runs}");
-    // Backward tracking is off unless asked for (docs/tracking.md).
-    assert_eq!(settings["backward"], false, "{runs}");
+    // Backward tracking is on unless turned off (docs/tracking.md).
+    assert_eq!(settings["backward"], true, "{runs}");
     assert_eq!(settings["first_frame"], 10001, "{runs}");
     for frame in 10002..=10004 {
         let images: Vec<Vec<u8>> = (1..=4)

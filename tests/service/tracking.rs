@@ -11,9 +11,9 @@
 //! recovery gives the core's tracker's trajectories over the stored
 //! particles; bad settings and queries are refused.
 //!
-//! Those runs are forward only (`"backward": false`, the default, as `ptv
-//! track` without `--backward`); a run with `"backward": true` gives `ptv
-//! track --backward`'s trajectories over the stored particles.
+//! Those runs are forward only (`"backward": false`, as `ptv track
+//! --no-backward`); a run with `"backward": true` (the default) gives `ptv
+//! track`'s trajectories over the stored particles.
 //!
 //! The comparisons are exact (no tolerance): the service runs the core's
 //! deterministic tracker on the particles and targets it stored, and `ptv
@@ -210,7 +210,7 @@ impl Api {
             .await;
         let lines: Vec<String> = csv.lines().map(str::to_owned).collect();
         let all: Vec<Option<&TargetFrame>> = frames.iter().map(Some).collect();
-        let (expected, recovered) = ptv_track_targets(rig, &all, MAX_VELOCITY, &[]);
+        let (expected, recovered) = ptv_track_targets(rig, &all, MAX_VELOCITY, &["--no-backward"]);
         assert_same_rows(&lines, &expected);
         (lines, recovered)
     }
@@ -726,7 +726,11 @@ async fn a_rerun_with_other_settings_is_a_new_run_and_the_old_one_stays() {
     let tables = api.particle_tables(sequence, 30).await;
     assert_eq!(
         csv.lines().collect::<Vec<_>>(),
-        ptv_track(&tables, MAX_VELOCITY, &["--min-length", "10"])
+        ptv_track(
+            &tables,
+            MAX_VELOCITY,
+            &["--min-length", "10", "--no-backward"]
+        )
     );
     // The old run is still there, unchanged.
     let old_again = api
@@ -1084,7 +1088,12 @@ async fn a_failed_frame_is_a_gap_the_trajectories_bridge() {
         .enumerate()
         .map(|(f, t)| (f as i64 != GAP).then_some(t))
         .collect();
-    let (expected, _) = ptv_track_targets(&rig, &inputs, MAX_VELOCITY, &["--allow-gaps"]);
+    let (expected, _) = ptv_track_targets(
+        &rig,
+        &inputs,
+        MAX_VELOCITY,
+        &["--allow-gaps", "--no-backward"],
+    );
     assert_eq!(lines, expected);
     // Most trajectories across the gap are bridged, not cut.
     let mut by_trajectory: HashMap<u64, Vec<i64>> = HashMap::new();

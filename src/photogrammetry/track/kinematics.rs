@@ -290,6 +290,19 @@ fn off_path(point: &Sample, path: &[Sample]) -> bool {
     d2 > chi_square_quantile(3.0, Z_GROSS)
 }
 
+/// Whether a window of consecutive points is consistent with its fit by
+/// a polynomial of at most `order`, at the level at which
+/// [`derivatives_at`] takes a window as it is (99.9%), or cannot be tested
+/// (no redundancy, a singular system). Backward tracking adds a point only
+/// where the window its velocity is fitted from passes this
+/// ([`super::backward`]).
+pub(super) fn is_consistent(window: &[Sample], order: usize) -> bool {
+    let Some(first) = window.first() else {
+        return true;
+    };
+    !fit_once(window, first.frame, order, false).is_some_and(|fit| !fit.consistent())
+}
+
 /// Whether a window of consecutive points is one smooth path: its fit
 /// with a polynomial of at most `order` is consistent at the gross-error
 /// level ([`GROSS_ERROR_LEVEL`]), or cannot be tested (no redundancy, a

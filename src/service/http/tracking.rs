@@ -87,7 +87,7 @@ pub struct TrackingRunView {
     pub created_at: String,
 }
 
-/// What a run's backward pass added (as `ptv track --backward` reports
+/// What a run's backward pass added (as `ptv track` reports
 /// it).
 #[derive(Debug, Serialize, ToSchema)]
 pub struct BackwardView {

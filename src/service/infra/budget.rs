@@ -279,7 +279,7 @@ pub const BACKWARD_BYTES_PER_POINT: u64 = 768;
 
 /// A run's backward pass's need: every particle the tracker was given
 /// over the run, and every point it stored (the pass needs the whole
-/// run, as `ptv track --backward` does).
+/// run, as `ptv track` does).
 pub fn backward_need(run: i64, particles: u64, points: u64) -> MemoryNeed {
     MemoryNeed::new(
         particles

@@ -24,7 +24,7 @@
 //! frame after the frame's own, its sigma its frame's median (the
 //! forward pass also floors it by its trajectory's, not stored); a
 //! recovered particle no trajectory kept is not stored, and the pass does
-//! not see it (`ptv track --backward` does). So with recovery the stored
+//! not see it (`ptv track` does). So with recovery the stored
 //! result may differ from the command line's in those few particles;
 //! without, it is the command line's (tested).
 //!

@@ -77,7 +77,7 @@
 //! points do not show; after an upgrade, start a new run for sequences
 //! still being tracked.
 //!
-//! **Backward.** A run whose settings have `backward` (off by default)
+//! **Backward.** A run whose settings have `backward` (on by default)
 //! extends its trajectories backwards once it has taken its last frame,
 //! before it is `finished` ([`backward`]).
 //!
