@@ -429,6 +429,40 @@ fn run_experiment(
     let exp = experiment::read_experiment(dir)?;
     let settings = experiment::read_calibration_settings(&LocalFiles, dir, exp.cameras.len())?;
     let setup: Vec<_> = exp.cameras.iter().map(|c| c.parameters().clone()).collect();
+    // examine.Combine_Flag 1: OpenPTV's multi-plane calibration from the
+    // planes' identified points, read (and checked) before anything runs.
+    let planes = if settings.planes.is_empty() {
+        None
+    } else {
+        Some(settings.read_planes(&LocalFiles)?)
+    };
+    let result = if let Some(planes) = planes {
+        print_unmapped(&settings, stderr)?;
+        write_stderr_line(
+            stderr,
+            &format!(
+                "multi-plane calibration (examine.Combine_Flag 1): {} planes from {}",
+                planes.len(),
+                settings.planes_source.display()
+            ),
+        )?;
+        let fix: Vec<String> = settings.fixed.iter().map(|p| p.name().to_owned()).collect();
+        calibrate::calibrate_planes(&setup, &planes, &options_with(args, &fix)?)?
+    } else {
+        calibrate_experiment_images(args, &settings, &setup, stderr)?
+    };
+    write_experiment_calibration(args, &result)?;
+    write_stdout(stdout, &control::report_to_json(&result.report))
+}
+
+/// The experiment's cameras calibrated from `cal_ori`'s image per camera:
+/// detect_plate's detection, man_ori's points as the start.
+fn calibrate_experiment_images(
+    args: &CalibrateArgs,
+    settings: &crate::formats::experiment::CalibrationSettings,
+    setup: &[crate::photogrammetry::CameraParameters],
+    stderr: &mut dyn Write,
+) -> Result<calibrate::RigCalibration, CliError> {
     let control_points = control::parse_control_points(
         &formats::read_text(&settings.control)?,
         &settings.control.display().to_string(),
@@ -436,17 +470,9 @@ fn run_experiment(
     let references = settings.references(&control_points)?;
     let fix: Vec<String> = settings.fixed.iter().map(|p| p.name().to_owned()).collect();
     let options = options_with(args, &fix)?;
-    for setting in &settings.unmapped {
-        write_stderr_line(
-            stderr,
-            &format!(
-                "not used: {}: {} = {}: {}",
-                setting.file, setting.key, setting.value, setting.reason
-            ),
-        )?;
-    }
+    print_unmapped(settings, stderr)?;
     let counts: Vec<usize> = references.iter().map(Vec::len).collect();
-    calibrate::check_mark_inputs(&setup, &control_points, &counts, &options)?;
+    calibrate::check_mark_inputs(setup, &control_points, &counts, &options)?;
     let mut marks = Vec::with_capacity(setup.len());
     for (k, path) in settings.images.iter().enumerate() {
         let image = formats::image::read_image(path, None)?;
@@ -467,8 +493,37 @@ fn run_experiment(
         )?;
         marks.push(found);
     }
-    let result =
-        calibrate::calibrate_from_marks(&setup, &control_points, &marks, &references, &options)?;
+    Ok(calibrate::calibrate_from_marks(
+        setup,
+        &control_points,
+        &marks,
+        &references,
+        &options,
+    )?)
+}
+
+/// The experiment's settings not used, and why, on stderr.
+fn print_unmapped(
+    settings: &crate::formats::experiment::CalibrationSettings,
+    stderr: &mut dyn Write,
+) -> Result<(), CliError> {
+    for setting in &settings.unmapped {
+        write_stderr_line(
+            stderr,
+            &format!(
+                "not used: {}: {} = {}: {}",
+                setting.file, setting.key, setting.value, setting.reason
+            ),
+        )?;
+    }
+    Ok(())
+}
+
+/// calibration.json, camN.ori/camN.addpar and report.json in `--output`.
+fn write_experiment_calibration(
+    args: &CalibrateArgs,
+    result: &calibrate::RigCalibration,
+) -> Result<(), CliError> {
     let cameras = result.camera_models()?;
     std::fs::create_dir_all(&args.output).map_err(|reason| formats::FormatError::Io {
         path: args.output.clone(),
@@ -489,7 +544,9 @@ fn run_experiment(
             &formats::openptv::format_addpar(&camera.parameters().distortion),
         )?;
     }
-    let report = control::report_to_json(&result.report);
-    formats::write_text(&args.output.join("report.json"), &report)?;
-    write_stdout(stdout, &report)
+    formats::write_text(
+        &args.output.join("report.json"),
+        &control::report_to_json(&result.report),
+    )?;
+    Ok(())
 }

@@ -82,6 +82,7 @@ use super::{calibration, openptv, FormatError};
 
 pub mod calibration_settings;
 pub mod files;
+pub mod multi_planes;
 use crate::photogrammetry::correspond::MatchingParameters;
 use crate::photogrammetry::track::TrackingParameters;
 use crate::photogrammetry::{

@@ -970,3 +970,173 @@ fn calibrates_from_a_plate_at_three_depths() {
         &["plane 1: 2 images", "one per camera"],
     );
 }
+
+/// Issue 33: OpenPTV's multi-plane calibration in `ptv calibrate
+/// --experiment` (examine.par's Combine_Flag 1): the test_cavity
+/// experiment with `multi_planes.par`'s three planes written as pyptv
+/// writes them (`img/calib_X_camN.tif.fix`/`.crd`, every camera numbering
+/// its points from 0 in its own order, `%10.5f`, one undetected `-999`
+/// line), projected by the simulator from a known rig: the experiment's
+/// cameras moved by a few mm and mrad, with c 1% longer. A 9 x 6 plate
+/// (64 x 40 mm) at Z = -80, 0, 80 mm, 0.05 px Gaussian noise; orient.par
+/// frees c. test_cavity's lenses are narrow (c = 70 mm, a 12 degree
+/// field), so c and the distance stay correlated: at 0.9998 over Z = -10,
+/// 0, 10 mm, 0.997 over these 160 mm, and the default limit (0.99) holds
+/// c at its estimate; `--max-correlation 0.999` keeps it free, with its
+/// standard deviation. The planes determine c and every camera's
+/// position and c lie within 4 of their reported standard deviations of
+/// the truth (4 sigma: a false alarm in about 1 of 16,000 draws per
+/// parameter). Broken: a plane's file missing for camera 4, a `.crd`
+/// point its `.fix` does not have, a point number twice, and all planes
+/// at one depth; each a clear error.
+#[test]
+fn calibrates_an_openptv_experiment_from_its_plane_files() {
+    use ptv::photogrammetry::calibrate::MarkObservation;
+    let dir = tempfile::tempdir().unwrap();
+    copy_recording(dir.path());
+    std::fs::create_dir_all(dir.path().join("img")).unwrap();
+    std::fs::write(dir.path().join("parameters/examine.par"), "0\n1\n").unwrap();
+    replace_line_in(&dir.path().join("parameters/orient.par"), 1, "1");
+    let setup = ptv::formats::experiment::read_experiment(dir.path())
+        .unwrap()
+        .cameras;
+    let truth: Vec<Camera> = setup
+        .iter()
+        .enumerate()
+        .map(|(k, c)| {
+            let mut p = c.parameters().clone();
+            let s = if k % 2 == 0 { 1.0 } else { -1.0 };
+            p.exterior.position += nalgebra::Vector3::new(2.0 * s, -1.5, 3.0 * s);
+            p.exterior.omega += 0.002 * s;
+            p.exterior.kappa -= 0.003;
+            p.interior.c *= 1.01;
+            Camera::new(p).unwrap()
+        })
+        .collect();
+    let mut rng = simulate::rng(33);
+    let write_planes = |depths: [f64; 3], rng: &mut rand::rngs::StdRng| {
+        for (name, z) in ["a", "b", "c"].into_iter().zip(depths) {
+            let plate: Vec<ControlPoint> = (0..54)
+                .map(|i| ControlPoint {
+                    id: i + 1,
+                    position: Point3::new(
+                        -32.0 + 8.0 * (i % 9) as f64,
+                        -20.0 + 8.0 * (i / 9) as f64,
+                        z,
+                    ),
+                })
+                .collect();
+            let seen = simulate::observe_target(&truth, &plate, 0.05, rng);
+            for (k, marks) in seen.iter().enumerate() {
+                // pyptv's own numbering: from 0 in this camera's order,
+                // here reversed so that no two cameras number alike.
+                let marks: Vec<&MarkObservation> = marks.iter().rev().collect();
+                let mut fix = String::new();
+                let mut crd = String::new();
+                for (pnr, m) in marks.iter().enumerate() {
+                    let p = plate[m.id as usize - 1].position;
+                    fix += &format!(
+                        "{:10.5} {:10.5} {:10.5} {:10.5}\n",
+                        pnr as f64, p.x, p.y, p.z
+                    );
+                    crd += &format!("{:9.5} {:9.5} {:9.5}\n", pnr as f64, m.pixel.x, m.pixel.y);
+                }
+                crd += &format!("{:9.5} {:9.5} {:9.5}\n", -999.0, -999.0, -999.0);
+                let base = dir
+                    .path()
+                    .join(format!("img/calib_{name}_cam{}.tif", k + 1));
+                std::fs::write(base.with_extension("tif.fix"), fix).unwrap();
+                std::fs::write(base.with_extension("tif.crd"), crd).unwrap();
+            }
+        }
+    };
+    write_planes([-80.0, 0.0, 80.0], &mut rng);
+    let run = || {
+        ptv(
+            &[
+                "calibrate",
+                "--experiment",
+                ".",
+                "--max-correlation",
+                "0.999",
+                "-o",
+                "out",
+            ],
+            dir.path(),
+        )
+    };
+    let out = run();
+    let report: serde_json::Value = serde_json::from_str(&succeeds(&out)).unwrap();
+    assert!(
+        String::from_utf8_lossy(&out.stderr).contains("multi-plane calibration"),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    positions_close(&dir.path().join("out/calibration.json"), &truth, &report);
+    for (camera, t) in report["cameras"].as_array().unwrap().iter().zip(&truth) {
+        let c = &camera["parameters"][8];
+        println!(
+            "{}: {} points, sigma0 {} px, c {} (truth {}) sigma {}",
+            camera["name"],
+            camera["points_used"],
+            camera["sigma0_px"],
+            c["value"],
+            t.parameters().interior.c,
+            c["sigma"]
+        );
+        assert_eq!(c["status"], "free", "{c}");
+        let error = c["value"].as_f64().unwrap() - t.parameters().interior.c;
+        assert!(error.abs() < 4.0 * c["sigma"].as_f64().unwrap(), "{c}");
+    }
+    assert!(dir.path().join("out/cam4.ori").is_file());
+
+    // Broken: camera 4's file of plane b missing (the camera count of the
+    // files does not match the experiment's 4 cameras).
+    let crd = dir.path().join("img/calib_b_cam4.tif.crd");
+    let kept = std::fs::read_to_string(&crd).unwrap();
+    std::fs::remove_file(&crd).unwrap();
+    fails(
+        &run(),
+        &[
+            "multi_planes.par",
+            "plane_name[1] (img/calib_b_cam), camera 4",
+            "calib_b_cam4.tif.crd, which does not exist",
+        ],
+    );
+    // A point the .fix does not have, then a point number twice.
+    std::fs::write(&crd, format!("{kept}  77.00000 100.0 200.0\n")).unwrap();
+    fails(
+        &run(),
+        &[
+            "calib_b_cam4.tif.crd",
+            "point 77 is not in",
+            "calib_b_cam4.tif.fix",
+        ],
+    );
+    std::fs::write(&crd, format!("{kept}{}", kept.lines().next().unwrap())).unwrap();
+    fails(
+        &run(),
+        &["calib_b_cam4.tif.crd", "point 0 again (first on line 1)"],
+    );
+    std::fs::write(&crd, &kept).unwrap();
+    // Every plane at one depth: marks from one plane only.
+    write_planes([0.0, 0.0, 0.0], &mut rng);
+    let out = run();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{stderr}");
+    let last = stderr.lines().last().unwrap_or_default();
+    assert!(
+        last.starts_with("error: ")
+            && last.contains("lie in one plane")
+            && last.contains("moved along its normal"),
+        "{stderr}"
+    );
+}
+
+/// `file` with its line `number` (0-based) replaced by `value`.
+fn replace_line_in(file: &std::path::Path, number: usize, value: &str) {
+    let text = std::fs::read_to_string(file).unwrap();
+    let mut lines: Vec<&str> = text.lines().collect();
+    lines[number] = value;
+    std::fs::write(file, lines.join("\n") + "\n").unwrap();
+}

@@ -7,7 +7,8 @@
 //! | `detect_plate`: `gvth_1..4`, `min_npix`, `max_npix`, `min_npix_x/y`, `max_npix_x/y`, `sum_grey`, `tol_dis` | [`DetectionParameters`] per camera: threshold, pixel counts, extents, `min_sumg`, `split_depth` (`size_cross` only draws crosses in pyptv's GUI) |
 //! | `orient`: `cc`, `xh`, `yh`, `k1`..`p2`, `scale`, `shear` (1 = estimate) | the parameters held at the `.ori`/`.addpar` values (0 = fixed); `pnfo` and `interf` are not used |
 //! | `man_ori` (`nr`: 4 point ids per camera) with `man_ori.dat` (legacy: 4 lines `x y` per camera) or `man_ori_coordinates` (YAML) | per camera the manually identified reference points (`id x y`), the start of the mark identification |
-//! | `multi_planes`: `n_planes`, `plane_name` | listed, not used: OpenPTV's multi-plane calibration reads a target file per plane (`<plane><cam>.tif.fix`/`.crd`) that `ptv` does not read (the listing says whether they are present); `ptv calibrate --plane` calibrates the plate at several positions from images |
+//! | `examine`: `Combine_Flag` | 1: calibrate from `multi_planes`' plane files instead of `cal_ori`'s images, as OpenPTV's multi-plane orientation does; 0 (or no `examine`): from the images (`Examine_Flag` only shows OpenPTV's GUI more) |
+//! | `multi_planes`: `n_planes`, `plane_name` | with `Combine_Flag` 1, the planes' identified points (`<plane><cam>.tif.fix`/`.crd`, [`super::multi_planes`]); otherwise listed as not used, saying whether the files are present |
 //!
 //! pyptv's `orient` flags are "1 = the parameter is adjusted"; every flag
 //! 0 (the test_cavity experiment's choice) is an exterior-only resection
@@ -18,6 +19,7 @@ use std::path::{Path, PathBuf};
 use nalgebra::Point2;
 use serde::Deserialize;
 
+use super::multi_planes::{self, PlaneFiles};
 use super::{ExperimentError, ExperimentFiles, ParFile, UnmappedSetting};
 use crate::photogrammetry::calibrate::{ControlPoint, MarkObservation, Parameter};
 use crate::photogrammetry::DetectionParameters;
@@ -40,6 +42,12 @@ pub struct CalibrationSettings {
     /// their image positions (px), not yet checked against the control
     /// points ([`CalibrationSettings::references`] does).
     pub manual: Vec<Vec<(u64, Point2<f64>)>>,
+    /// OpenPTV's multi-plane calibration (`examine.Combine_Flag` 1): the
+    /// planes' files, to calibrate from instead of `images`; empty
+    /// otherwise.
+    pub planes: Vec<PlaneFiles>,
+    /// The file that names the planes (for errors).
+    pub planes_source: PathBuf,
     /// Settings read but not used, and why.
     pub unmapped: Vec<UnmappedSetting>,
     /// Where the manual points' ids come from (for errors).
@@ -47,6 +55,16 @@ pub struct CalibrationSettings {
 }
 
 impl CalibrationSettings {
+    /// The planes of OpenPTV's multi-plane calibration, read through
+    /// `files` ([`multi_planes::read_planes`]); empty unless
+    /// `examine.Combine_Flag` is 1.
+    pub fn read_planes(
+        &self,
+        files: &dyn ExperimentFiles,
+    ) -> Result<Vec<crate::photogrammetry::calibrate::Plane>, ExperimentError> {
+        multi_planes::read_planes(files, &self.planes_source, &self.planes)
+    }
+
     /// The manual orientation points as reference observations, each id
     /// checked against `control`: an id the target does not have is an
     /// error naming the camera and the file.
@@ -143,7 +161,24 @@ struct YamlSections {
     man_ori_coordinates:
         std::collections::BTreeMap<String, std::collections::BTreeMap<String, ManualPoint>>,
     #[serde(default)]
-    multi_planes: Option<serde_norway::Value>,
+    multi_planes: Option<MultiPlanes>,
+    #[serde(default)]
+    examine: Option<Examine>,
+}
+
+/// pyptv's `multi_planes` section.
+#[derive(Debug, Deserialize)]
+struct MultiPlanes {
+    n_planes: i64,
+    #[serde(default)]
+    plane_name: Vec<String>,
+}
+
+/// pyptv's `examine` section: its flags are booleans (or 0/1).
+#[derive(Debug, Deserialize)]
+struct Examine {
+    #[serde(rename = "Combine_Flag", default)]
+    combine_flag: Option<serde_norway::Value>,
 }
 
 /// Reads the calibration settings of the experiment at `dir` (as
@@ -425,48 +460,115 @@ fn read_legacy(
                  and excludes gross errors by data snooping"
             .into(),
     }];
-    let planes = dir.join("parameters").join("multi_planes.par");
-    if files.is_file(&planes) {
-        let value = files.read_text(&planes)?;
-        let words: Vec<&str> = value.split_whitespace().collect();
-        let mut entry = multi_planes_unmapped(&planes, words.join(" "));
-        // The plane names follow the count: say whether their files exist.
-        let fix: Vec<PathBuf> = words
-            .iter()
-            .skip(1)
-            .map(|name| dir.join(format!("{name}1.tif.fix")))
-            .collect();
-        let present = fix.iter().filter(|f| files.is_file(f)).count();
-        if let Some(first) = fix.first() {
-            entry.reason.push_str(&format!(
-                " ({present} of the {} planes' files for camera 1 are present here, e.g. {})",
-                fix.len(),
-                first.display()
-            ));
+    let planes_source = dir.join("parameters").join("multi_planes.par");
+    let examine = dir.join("parameters").join("examine.par");
+    let combine = if files.is_file(&examine) {
+        let mut f = ParFile::open(files, dir, "examine.par", "examine", &mut places)?;
+        f.integer("Examine_Flag")?;
+        f.integer("Combine_Flag")? != 0
+    } else {
+        false
+    };
+    let names = if files.is_file(&planes_source) {
+        let mut f = ParFile::open(files, dir, "multi_planes.par", "multi_planes", &mut places)?;
+        let n = f.integer("n_planes")?;
+        let n = plane_count(n, &planes_source)?;
+        let mut names = Vec::with_capacity(n);
+        for i in 0..n {
+            names.push(f.text(&format!("plane_name[{i}]"))?);
         }
-        unmapped.push(entry);
-    }
+        Some(names)
+    } else {
+        None
+    };
+    let planes = use_planes(
+        files,
+        combine,
+        names,
+        (&examine, &planes_source),
+        dir,
+        cameras,
+        &mut unmapped,
+    )?;
     Ok(CalibrationSettings {
         control,
         images,
         detection,
         fixed,
         manual,
+        planes,
+        planes_source,
         unmapped,
         manual_source: man_ori.display().to_string(),
     })
 }
 
-fn multi_planes_unmapped(file: &Path, value: String) -> UnmappedSetting {
-    UnmappedSetting {
-        file: file.display().to_string(),
-        key: "multi_planes".into(),
-        value,
-        reason: "OpenPTV's multi-plane calibration reads each plane's identified points \
-                 (<plane><camera>.tif.fix and .crd), which ptv does not read; ptv calibrates from \
-                 cal_ori's image per camera, and the plate at several positions from its images \
-                 with `ptv calibrate --plane CONTROL:IMAGE1,IMAGE2,...` once per position"
-            .into(),
+/// The most planes `multi_planes` may name (liboptv reads at most 10).
+const MAX_PLANES: usize = 100;
+
+fn plane_count(n: i64, file: &Path) -> Result<usize, ExperimentError> {
+    usize::try_from(n)
+        .ok()
+        .filter(|n| (1..=MAX_PLANES).contains(n))
+        .ok_or_else(|| {
+            count_error(
+                file,
+                "multi_planes.n_planes",
+                format!("{n} planes; give 1 to {MAX_PLANES}, one plane_name each"),
+            )
+        })
+}
+
+/// The planes' files if `combine` (examine.Combine_Flag) asks for them
+/// (an error if `names`, multi_planes' plane names, are missing); else
+/// multi_planes listed as not used, saying whether its files are there.
+/// The two paths are examine's and multi_planes' files (for errors).
+fn use_planes(
+    files: &dyn ExperimentFiles,
+    combine: bool,
+    names: Option<Vec<String>>,
+    (examine, planes_source): (&Path, &Path),
+    root: &Path,
+    cameras: usize,
+    unmapped: &mut Vec<UnmappedSetting>,
+) -> Result<Vec<PlaneFiles>, ExperimentError> {
+    match (combine, names) {
+        (true, Some(names)) => {
+            multi_planes::plane_files(files, planes_source, root, &names, cameras)
+        }
+        (true, None) => Err(count_error(
+            examine,
+            "examine.Combine_Flag",
+            format!(
+                "1 (calibrate from several planes), but there is no multi_planes setting ({}); \
+                 name the planes there, or set Combine_Flag to 0 to calibrate from cal_ori's \
+                 images",
+                planes_source.display()
+            ),
+        )),
+        (false, Some(names)) => {
+            let planes = multi_planes::plane_files(files, planes_source, root, &names, 1);
+            let present = planes
+                .as_ref()
+                .map(|p| p.iter().filter(|p| files.is_file(&p.cameras[0].0)).count())
+                .unwrap_or(0);
+            unmapped.push(UnmappedSetting {
+                file: planes_source.display().to_string(),
+                key: "multi_planes".into(),
+                value: format!("{} planes: {}", names.len(), names.join(" ")),
+                reason: format!(
+                    "examine.Combine_Flag is 0, so ptv calibrates from cal_ori's image per \
+                     camera, as OpenPTV does; with Combine_Flag 1 it calibrates from the \
+                     planes' identified points (<plane><camera>.tif.fix and .crd; {present} of \
+                     the {} planes' files for camera 1 are present here). From images of the \
+                     plate at several positions: `ptv calibrate --plane \
+                     CONTROL:IMAGE1,IMAGE2,...` once per position",
+                    names.len()
+                ),
+            });
+            Ok(Vec::new())
+        }
+        (false, None) => Ok(Vec::new()),
     }
 }
 
@@ -567,21 +669,55 @@ fn read_yaml(
                 .into(),
         });
     }
-    if let Some(planes) = &s.multi_planes {
-        unmapped.push(multi_planes_unmapped(
-            path,
-            serde_norway::to_string(planes)
-                .unwrap_or_default()
-                .trim()
-                .replace('\n', "; "),
-        ));
-    }
+    let combine = match s.examine.as_ref().and_then(|e| e.combine_flag.as_ref()) {
+        None => false,
+        Some(serde_norway::Value::Bool(b)) => *b,
+        Some(v) => match v.as_i64() {
+            Some(0) => false,
+            Some(1) => true,
+            _ => {
+                return Err(count_error(
+                    path,
+                    "examine.Combine_Flag",
+                    "not a flag; give true/false (or 1/0)".into(),
+                ))
+            }
+        },
+    };
+    let names = match &s.multi_planes {
+        Some(planes) => {
+            let n = plane_count(planes.n_planes, path)?;
+            if planes.plane_name.len() < n {
+                return Err(count_error(
+                    path,
+                    "multi_planes.plane_name",
+                    format!(
+                        "{} names for n_planes {n}; give one per plane",
+                        planes.plane_name.len()
+                    ),
+                ));
+            }
+            Some(planes.plane_name[..n].to_vec())
+        }
+        None => None,
+    };
+    let planes = use_planes(
+        files,
+        combine,
+        names,
+        (path, path),
+        root,
+        cameras,
+        &mut unmapped,
+    )?;
     Ok(CalibrationSettings {
         control,
         images,
         detection,
         fixed,
         manual,
+        planes,
+        planes_source: path.to_owned(),
         unmapped,
         manual_source: path.display().to_string(),
     })
