@@ -16,6 +16,7 @@ mod selection;
 
 use nalgebra::{Point2, Point3};
 
+use self::completion::CandidateGroups;
 use super::epipolar::{clip, EpipolarCurve};
 use super::grid::CameraFrame;
 use super::matcher::Matcher;
@@ -303,48 +304,47 @@ impl<'m, 'f> Search<'m, 'f> {
     /// Steps 2 to 6: the particles of the frame, or why the search was
     /// stopped before its end.
     pub(super) fn run(mut self) -> Result<Vec<Particle>, Cancelled> {
-        if self.frames.len() >= 3 {
-            for (stage, &seed) in self.matcher.seeds.iter().enumerate() {
-                let groups = if stage == 0 {
-                    let groups = self.first_stage(seed);
-                    self.estimate_noise(&groups);
-                    groups
-                } else {
-                    self.candidate_groups(seed)
-                };
-                self.select(groups);
-            }
-        }
+        self.seed_stages(Self::select);
         if !self.should_stop(0) {
             self.improve();
         }
         if self.matcher.min_cameras == 2 && !self.should_stop(0) {
             self.pairs();
         }
-        let particles = self.finish();
-        match self.stopped {
-            Some(reason) => Err(reason),
-            None => Ok(particles),
-        }
+        self.particles()
     }
 
     /// Every candidate group of the frame (see [`Matcher::candidates`]):
     /// the seed stages as in [`Search::run`], each group trimmed to the
     /// acceptance threshold and kept once, none marking its targets used.
     pub(super) fn candidates(mut self) -> Result<Vec<Particle>, Cancelled> {
-        if self.frames.len() >= 3 {
-            let mut kept = std::collections::HashSet::new();
-            for (stage, &seed) in self.matcher.seeds.iter().enumerate() {
-                let groups = if stage == 0 {
-                    let groups = self.first_stage(seed);
-                    self.estimate_noise(&groups);
-                    groups
-                } else {
-                    self.candidate_groups(seed)
-                };
-                self.keep_all(groups, &mut kept);
-            }
+        let mut kept = std::collections::HashSet::new();
+        self.seed_stages(|search, groups| search.keep_all(groups, &mut kept));
+        self.particles()
+    }
+
+    /// Steps 2 and 3 for every seed pair (three cameras or more), the first
+    /// with the frame's noise estimate, each stage's groups handed to
+    /// `take` before the next stage's search.
+    fn seed_stages(&mut self, mut take: impl FnMut(&mut Self, CandidateGroups)) {
+        if self.frames.len() < 3 {
+            return;
         }
+        let matcher = self.matcher;
+        for (stage, &seed) in matcher.seeds.iter().enumerate() {
+            let groups = if stage == 0 {
+                let groups = self.first_stage(seed);
+                self.estimate_noise(&groups);
+                groups
+            } else {
+                self.candidate_groups(seed)
+            };
+            take(self, groups);
+        }
+    }
+
+    /// Step 6 over the accepted groups, or why the search stopped early.
+    fn particles(mut self) -> Result<Vec<Particle>, Cancelled> {
         let particles = self.finish();
         match self.stopped {
             Some(reason) => Err(reason),
