@@ -17,7 +17,8 @@
 //! Malik, Dracos and Papantoniou (1993), Part II ([`track`]); and for dense
 //! seeding, iterative particle reconstruction ([`ipr`]) and its scoring
 //! against the truth ([`score`]). [`statistics`] holds the χ² quantile
-//! their tests share.
+//! their tests share; `levenberg_marquardt` the one damped least-squares
+//! driver of the calibration's and the bundle adjustment.
 //!
 //! This module never imports the service's shell (no async runtime, web
 //! framework, SQL or OpenAPI crates; ARCHITECTURE.md's invariant greps for
@@ -34,6 +35,7 @@ pub mod health;
 pub mod image;
 pub mod intersect;
 pub mod ipr;
+pub(crate) mod levenberg_marquardt;
 pub mod media;
 pub mod pipeline;
 pub mod score;

@@ -2,7 +2,9 @@
 //! collinearity equations with the multimedia module (Eq. 1-12, section
 //! 4.3's observation equations with the 16 camera parameters as unknowns,
 //! as the paper's section 5 uses them), adjusted by Gauss-Markov with
-//! Levenberg-Marquardt damping, and the statistics of the result.
+//! Levenberg-Marquardt damping (the driver of `levenberg_marquardt.rs`, on
+//! the Jacobian's columns scaled to unit length), and the statistics of
+//! the result.
 //!
 //! * Observations are the pixel coordinates of the control points, with
 //!   equal weights; `sigma0² = vᵀv / (2n - u)` a posteriori, and the
@@ -19,6 +21,7 @@ use nalgebra::{DMatrix, DVector, Matrix2, Point2, Point3, SVector, Vector2};
 
 use super::{Parameter, ParameterSet};
 use crate::photogrammetry::camera::{Camera, CameraParameters};
+use crate::photogrammetry::levenberg_marquardt::{minimise, LeastSquares, Settings, Trial};
 
 /// The 16 parameters as a vector, in [`Parameter::ALL`]'s order.
 pub(crate) type ParameterVector = SVector<f64, 16>;
@@ -227,94 +230,97 @@ pub(crate) struct Adjusted {
     pub parameters: CameraParameters,
     /// Iterations used.
     pub iterations: usize,
-    /// Whether the step criterion was met (else the iteration limit ended it).
+    /// Whether a stopping test was met (else the iteration limit ended it,
+    /// or no step reduced the cost any more).
     pub converged: bool,
 }
 
-/// Levenberg-Marquardt on the free parameters from `start`.
+/// One camera's resection as a least-squares problem for the driver: the
+/// free parameters from the current estimate.
+struct Resection<'e> {
+    current: CameraParameters,
+    free: ParameterSet,
+    equations: &'e [Equation],
+}
+
+/// The normal equations of the scaled Jacobian (columns of unit length).
+struct ScaledNormal {
+    /// `AᵀA`.
+    n: DMatrix<f64>,
+    /// `Aᵀv`.
+    g: DVector<f64>,
+    /// The column scales (multiply a scaled step to get the parameter step).
+    scale: DVector<f64>,
+}
+
+impl LeastSquares for Resection<'_> {
+    type Normal = ScaledNormal;
+    type Estimate = CameraParameters;
+
+    fn cost(&self) -> Option<f64> {
+        cost(&self.current, self.equations)
+    }
+
+    fn cost_of(&self, estimate: &CameraParameters) -> Option<f64> {
+        cost(estimate, self.equations)
+    }
+
+    fn normal(&self) -> Option<ScaledNormal> {
+        let lin = linearise(&self.current, self.free, self.equations)?;
+        Some(ScaledNormal {
+            n: lin.a.transpose() * &lin.a,
+            g: lin.a.transpose() * &lin.residual,
+            scale: lin.scale,
+        })
+    }
+
+    fn trial(&self, normal: &ScaledNormal, lambda: f64) -> Option<Trial<CameraParameters>> {
+        let mut damped = normal.n.clone();
+        for k in 0..damped.nrows() {
+            damped[(k, k)] += lambda * normal.n[(k, k)].max(1e-12);
+        }
+        let step = solve(damped, &normal.g)?;
+        let delta = step.component_mul(&normal.scale);
+        let mut v = to_vector(&self.current);
+        for (k, p) in self.free.iter().enumerate() {
+            v[p.index()] += delta[k];
+        }
+        Some(Trial {
+            estimate: from_vector(&self.current, &v),
+            predicted: step.dot(&(&normal.g * 2.0 - &normal.n * &step)),
+        })
+    }
+
+    fn accept(&mut self, estimate: CameraParameters) -> CameraParameters {
+        std::mem::replace(&mut self.current, estimate)
+    }
+}
+
+/// Levenberg-Marquardt on the free parameters from `start`: the driver's
+/// rules (`levenberg_marquardt.rs`), converged when the Gauss-Newton step
+/// promises to reduce `vᵀv` by less than 1e-10 of it (each parameter then
+/// within about 1e-4 of its sigma of the minimum for a redundancy of 100).
 pub(crate) fn adjust(
     start: &CameraParameters,
     free: ParameterSet,
     equations: &[Equation],
     max_iterations: usize,
 ) -> Option<Adjusted> {
-    let mut current = start.clone();
-    let mut current_cost = cost(&current, equations)?;
-    let mut lambda = 1e-3;
-    // Nielsen's (1999) damping update: grow by nu (doubling) on failure,
-    // shrink by the agreement of the actual and the predicted reduction.
-    let mut nu = 2.0;
-    let mut iterations = 0;
-    while iterations < max_iterations {
-        iterations += 1;
-        let lin = linearise(&current, free, equations)?;
-        let n = lin.a.transpose() * &lin.a;
-        let g = lin.a.transpose() * &lin.residual;
-        // At the minimum (to rounding) the Gauss-Newton step promises no
-        // reduction worth taking: the cost falls by about gᵀΔ.
-        if let Some(step) = solve(n.clone(), &g) {
-            if g.dot(&step) <= 1e-10 * current_cost + 1e-30 {
-                return Some(Adjusted {
-                    parameters: current,
-                    iterations,
-                    converged: true,
-                });
-            }
-        }
-        let mut accepted = false;
-        let mut small_step = false;
-        for _ in 0..40 {
-            let mut damped = n.clone();
-            for k in 0..damped.nrows() {
-                damped[(k, k)] += lambda * n[(k, k)].max(1e-12);
-            }
-            let Some(step) = solve(damped, &g) else {
-                lambda *= nu;
-                nu *= 2.0;
-                continue;
-            };
-            let delta = step.component_mul(&lin.scale);
-            let mut v = to_vector(&current);
-            for (k, p) in free.iter().enumerate() {
-                v[p.index()] += delta[k];
-            }
-            let candidate = from_vector(&current, &v);
-            // The linear model's reduction of vᵀv: Δᵀ(2g - NΔ).
-            let predicted = step.dot(&(&g * 2.0 - &n * &step));
-            match cost(&candidate, equations) {
-                Some(c) if c <= current_cost && predicted > 0.0 => {
-                    let rho = (current_cost - c) / predicted;
-                    // A Gauss-Newton step (little damping) that moves the
-                    // image by less than 1e-9 px: converged. Damped steps
-                    // may be small without being at the minimum.
-                    small_step = lambda <= 1e-3 && step.norm() < 1e-9;
-                    current = candidate;
-                    current_cost = c;
-                    lambda =
-                        (lambda * f64::max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0).powi(3))).max(1e-12);
-                    nu = 2.0;
-                    accepted = true;
-                    break;
-                }
-                _ => {
-                    lambda *= nu;
-                    nu *= 2.0;
-                }
-            }
-        }
-        if !accepted || small_step {
-            // No descent left: at a minimum (to rounding) or stuck.
-            return Some(Adjusted {
-                parameters: current,
-                iterations,
-                converged: accepted,
-            });
-        }
-    }
+    let mut resection = Resection {
+        current: start.clone(),
+        free,
+        equations,
+    };
+    let settings = Settings {
+        lambda: 1e-3,
+        max_iterations,
+        tolerance: 1e-10,
+    };
+    let outcome = minimise(&mut resection, &settings)?;
     Some(Adjusted {
-        parameters: current,
-        iterations,
-        converged: false,
+        parameters: resection.current,
+        iterations: outcome.iterations,
+        converged: outcome.converged,
     })
 }
 

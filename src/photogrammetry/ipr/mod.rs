@@ -77,7 +77,7 @@ use nalgebra::{Matrix3, Point2, Point3, Vector2, Vector3};
 use self::image::View;
 pub use self::otf::Otf;
 use super::camera::Camera;
-use super::correspond::{max_targets, MatchError, Matcher, MatchingParameters};
+use super::correspond::{max_targets, MatchError, Matcher, MatchingParameters, Particle};
 use super::detect::{PreprocessError, Preprocessing};
 use super::image::{GreyImage, SensorMismatch};
 use super::volume::Volume;
@@ -641,61 +641,23 @@ pub fn reconstruct(
         candidates.sort_by(|a, b| a.rms_px.total_cmp(&b.rms_px));
         let candidate_count = candidates.len();
         let first_new = states.len();
-        for particle in candidates {
-            if !context.holds(&particle.position) {
-                continue;
-            }
-            let mut images = Vec::with_capacity(n);
-            for (camera, view) in cameras.iter().zip(&views) {
-                images.push(camera.project(&particle.position).ok().and_then(|centre| {
-                    let a = view.amplitude(centre);
-                    (a > 0.0).then_some((centre, a))
-                }));
-            }
-            let state = State {
-                position: particle.position,
-                images,
-                sigma: particle.sigma,
-                rms_px: particle.rms_px,
-            };
-            for (view, image) in views.iter_mut().zip(&state.images) {
-                if let Some((centre, amplitude)) = image {
-                    view.paint(*centre, -amplitude);
-                }
-            }
-            states.push(state);
-        }
-        // New particles are shaken twice as often as the settled ones.
-        let mut keep = vec![true; states.len()];
-        for pass in 0..2 * parameters.shakes {
-            for (i, state) in states.iter_mut().enumerate() {
-                if !keep[i] || (i < first_new && pass % 2 == 1) {
-                    continue;
-                }
-                if !shake(state, &mut views, &context, 1) {
-                    restore(state, &mut views);
-                    state.images.iter_mut().for_each(|image| *image = None);
-                    keep[i] = false;
-                }
-            }
-        }
-        // Ghosts and duplicates.
-        let duplicate = duplicates(&states, mm_per_px);
-        let mut removed = 0;
-        for (i, state) in states.iter().enumerate() {
-            let intensity = state.intensity().0;
-            let ghost = intensity < parameters.ghost_fraction * typical_peak
-                || state.bright_in(&views, parameters.ghost_fraction) < min_cameras;
-            if keep[i] && (ghost || duplicate[i]) {
-                restore(state, &mut views);
-                keep[i] = false;
-            }
-            if !keep[i] {
-                removed += 1;
-            }
-        }
-        let mut flags = keep.into_iter();
-        states.retain(|_| flags.next().unwrap_or(false));
+        add_candidates(candidates, &mut states, &mut views, &context);
+        let keep = shake_all(
+            &mut states,
+            &mut views,
+            &context,
+            parameters.shakes,
+            first_new,
+        );
+        let removed = remove_ghosts(
+            &mut states,
+            &mut views,
+            keep,
+            mm_per_px,
+            parameters.ghost_fraction,
+            typical_peak,
+            min_cameras,
+        );
         let report = LoopReport {
             index,
             min_cameras,
@@ -736,6 +698,103 @@ pub fn reconstruct(
         otf: views.iter().map(|v| v.otf).collect(),
         loops: reports,
     })
+}
+
+/// An outer loop's new particles: each candidate inside the volume with
+/// its image amplitude per camera, painted out of the residual images.
+fn add_candidates(
+    candidates: Vec<Particle>,
+    states: &mut Vec<State>,
+    views: &mut [View],
+    context: &Context<'_>,
+) {
+    for particle in candidates {
+        if !context.holds(&particle.position) {
+            continue;
+        }
+        let images = context
+            .cameras
+            .iter()
+            .zip(views.iter())
+            .map(|(camera, view)| {
+                camera.project(&particle.position).ok().and_then(|centre| {
+                    let a = view.amplitude(centre);
+                    (a > 0.0).then_some((centre, a))
+                })
+            })
+            .collect();
+        let state = State {
+            position: particle.position,
+            images,
+            sigma: particle.sigma,
+            rms_px: particle.rms_px,
+        };
+        for (view, image) in views.iter_mut().zip(&state.images) {
+            if let Some((centre, amplitude)) = image {
+                view.paint(*centre, -amplitude);
+            }
+        }
+        states.push(state);
+    }
+}
+
+/// `shakes` passes of shaking, the particles from `first_new` on (this
+/// loop's) twice as often as the settled ones; per particle whether it is
+/// kept (one that no longer images is restored to the residual images).
+fn shake_all(
+    states: &mut [State],
+    views: &mut [View],
+    context: &Context<'_>,
+    shakes: usize,
+    first_new: usize,
+) -> Vec<bool> {
+    let mut keep = vec![true; states.len()];
+    for pass in 0..2 * shakes {
+        for (i, state) in states.iter_mut().enumerate() {
+            if !keep[i] || (i < first_new && pass % 2 == 1) {
+                continue;
+            }
+            if !shake(state, views, context, 1) {
+                restore(state, views);
+                state.images.iter_mut().for_each(|image| *image = None);
+                keep[i] = false;
+            }
+        }
+    }
+    keep
+}
+
+/// Ghosts (mean intensity below `ghost_fraction` of `typical_peak`, or an
+/// image of that fraction of its camera's typical peak in fewer than
+/// `min_cameras` cameras, [`State::bright_in`]) and duplicates restored to
+/// the residual images and removed with those `keep` already drops; how
+/// many were removed.
+fn remove_ghosts(
+    states: &mut Vec<State>,
+    views: &mut [View],
+    mut keep: Vec<bool>,
+    mm_per_px: f64,
+    ghost_fraction: f64,
+    typical_peak: f64,
+    min_cameras: usize,
+) -> usize {
+    let duplicate = duplicates(states, mm_per_px);
+    let mut removed = 0;
+    for (i, state) in states.iter().enumerate() {
+        let intensity = state.intensity().0;
+        let ghost = intensity < ghost_fraction * typical_peak
+            || state.bright_in(views, ghost_fraction) < min_cameras;
+        if keep[i] && (ghost || duplicate[i]) {
+            restore(state, views);
+            keep[i] = false;
+        }
+        if !keep[i] {
+            removed += 1;
+        }
+    }
+    let mut flags = keep.into_iter();
+    states.retain(|_| flags.next().unwrap_or(false));
+    removed
 }
 
 /// The request's inputs against each other: one image (and preprocessing,

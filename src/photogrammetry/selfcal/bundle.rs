@@ -4,9 +4,11 @@
 //! multimedia module, Eq. 1-12, as the calibration's observation equations,
 //! with the object coordinates unknown as in the intersection's Eq. 21-23).
 //!
-//! * Levenberg-Marquardt on the normal equations reduced to the cameras
-//!   (the points' 3x3 blocks eliminated by the Schur complement, so a step
-//!   costs the cameras' few dozen unknowns, not the thousands of points').
+//! * Levenberg-Marquardt (the driver of `levenberg_marquardt.rs`, Nielsen's
+//!   damping) on the normal equations reduced to the cameras (the points'
+//!   3x3 blocks eliminated by the Schur complement, so a step costs the
+//!   cameras' few dozen unknowns, not the thousands of points'); the
+//!   damping scales the diagonal of both blocks.
 //! * The camera Jacobian is the calibration's numerical one
 //!   ([`ParameterModel`]); the point Jacobian is the camera model's
 //!   analytical one ([`Camera::project_with_jacobian`]).
@@ -33,6 +35,7 @@ use super::gauge::Gauge;
 use crate::photogrammetry::calibrate::adjustment::{from_vector, to_vector, ParameterModel};
 use crate::photogrammetry::calibrate::ParameterSet;
 use crate::photogrammetry::camera::{Camera, CameraParameters};
+use crate::photogrammetry::levenberg_marquardt::{minimise, LeastSquares, Settings, Trial};
 
 /// One particle: its observations (camera, pixel, weight) and its position.
 #[derive(Clone, Debug)]
@@ -434,72 +437,26 @@ impl Bundle<'_> {
         cost_of(&self.cameras, &self.tracks)
     }
 
-    /// Levenberg-Marquardt to convergence (at most `max_iterations`).
+    /// Levenberg-Marquardt to convergence (at most `max_iterations`): the
+    /// driver's rules (`levenberg_marquardt.rs`), converged when the
+    /// Gauss-Newton step promises to reduce the weighted cost by less than
+    /// 1e-9 of it (each parameter then within about 3e-3 of its sigma of
+    /// the minimum for a redundancy of 10,000).
     pub fn adjust(&mut self, max_iterations: usize) -> Option<Solution> {
-        let mut current = self.cost()?;
-        let mut lambda = 1e-4;
-        let mut nu = 2.0;
-        let mut iterations = 0;
-        // The state before the last accepted step: a step can leave a
-        // state that cannot be linearised (a wall moved past a particle,
-        // a point no longer imaged with its derivatives); then it is taken
-        // back and the damping raised.
-        let mut previous: Option<(Vec<CameraParameters>, Vec<Track>, f64)> = None;
-        while iterations < max_iterations {
-            iterations += 1;
-            let Some(normal) = self.linearise() else {
-                let (cameras, tracks, cost) = previous.take()?;
-                self.cameras = cameras;
-                self.tracks = tracks;
-                current = cost;
-                lambda *= 10.0;
-                continue;
-            };
-            let mut accepted = false;
-            let mut small = false;
-            for _ in 0..30 {
-                let Some(reduced) = Self::reduce(&normal, lambda) else {
-                    lambda *= nu;
-                    nu *= 2.0;
-                    continue;
-                };
-                let Some(step) = self.solve(&normal, &reduced) else {
-                    lambda *= nu;
-                    nu *= 2.0;
-                    continue;
-                };
-                let (cameras, tracks) = self.stepped(&normal, &reduced, &step);
-                match cost_of(&cameras, &tracks) {
-                    Some(c) if c <= current => {
-                        let relative = (current - c) / current.max(1e-300);
-                        small = relative < 1e-9;
-                        previous = Some((
-                            std::mem::replace(&mut self.cameras, cameras),
-                            std::mem::replace(&mut self.tracks, tracks),
-                            current,
-                        ));
-                        current = c;
-                        lambda = (lambda / 3.0).max(1e-12);
-                        nu = 2.0;
-                        accepted = true;
-                        break;
-                    }
-                    _ => {
-                        lambda *= nu;
-                        nu *= 2.0;
-                    }
-                }
-            }
-            if !accepted || small {
-                // No descent left, or none worth taking: at the minimum
-                // (to rounding).
-                break;
-            }
-        }
-        let normal = match self.linearise() {
+        let settings = Settings {
+            lambda: 1e-4,
+            max_iterations,
+            tolerance: 1e-9,
+        };
+        let outcome = minimise(self, &settings)?;
+        let mut current = outcome.cost;
+        let iterations = outcome.iterations;
+        // The statistics need the final state's linearisation; where a
+        // step left one that cannot be linearised, the state before it.
+        let normal = match outcome.normal.or_else(|| self.linearise()) {
             Some(normal) => normal,
             None => {
-                let (cameras, tracks, cost) = previous.take()?;
+                let ((cameras, tracks), cost) = outcome.previous?;
                 self.cameras = cameras;
                 self.tracks = tracks;
                 current = cost;
@@ -582,13 +539,16 @@ impl Bundle<'_> {
     }
 
     /// The cameras and points after the camera `step` (points by back
-    /// substitution).
+    /// substitution), and the linear model's reduction of the weighted
+    /// cost, `Σ w (‖r‖² - ‖r - JΔ‖²)` over the observations (the reduction
+    /// `Δᵀ(2g - NΔ)` of the full system, the gauge's drift correction
+    /// included).
     fn stepped(
         &self,
         normal: &Normal,
         reduced: &ReducedSystem,
         step: &DVector<f64>,
-    ) -> (Vec<CameraParameters>, Vec<Track>) {
+    ) -> (Vec<CameraParameters>, Vec<Track>, f64) {
         let mut cameras: Vec<CameraParameters> = self
             .cameras
             .iter()
@@ -607,23 +567,33 @@ impl Bundle<'_> {
                 m.apply(&mut cameras[c], step[normal.camera_unknowns + k]);
             }
         }
+        let mut predicted = 0.0;
         let tracks = self
             .tracks
             .iter()
             .zip(&normal.lin)
             .zip(&reduced.per_track)
             .map(|((track, lin), (vinv, gp))| {
+                // The camera part of each observation's linear change.
+                let camera_change: Vec<Vector2<f64>> = lin
+                    .iter()
+                    .map(|o| o.cols.iter().map(|&(i, d)| d * step[i]).sum())
+                    .collect();
                 let mut rhs = *gp;
-                for o in lin {
-                    let jd: Vector2<f64> = o.cols.iter().map(|&(i, d)| d * step[i]).sum();
+                for (o, jd) in lin.iter().zip(&camera_change) {
                     rhs -= o.jp.transpose() * jd * o.w;
                 }
+                let point_step = vinv * rhs;
+                for (o, jd) in lin.iter().zip(&camera_change) {
+                    let change = jd + o.jp * point_step;
+                    predicted += o.w * (2.0 * o.r.dot(&change) - change.norm_squared());
+                }
                 let mut t = track.clone();
-                t.point += vinv * rhs;
+                t.point += point_step;
                 t
             })
             .collect();
-        (cameras, tracks)
+        (cameras, tracks, predicted)
     }
 
     /// The camera parameters' cofactor matrix under the gauge constraints:
@@ -636,6 +606,43 @@ impl Bundle<'_> {
         let q = DMatrix::from_fn(n, n, |i, j| inverse[(i, j)] * scale[i] * scale[j]);
         // A regular system gives a positive diagonal.
         (q.diagonal().iter().all(|d| d.is_finite() && *d >= 0.0)).then_some(q)
+    }
+}
+
+/// The bundle as a least-squares problem for the driver: the cameras, the
+/// media terms and the points from the current state, the points
+/// eliminated from each damped system.
+impl LeastSquares for Bundle<'_> {
+    type Normal = Normal;
+    type Estimate = (Vec<CameraParameters>, Vec<Track>);
+
+    fn cost(&self) -> Option<f64> {
+        Bundle::cost(self)
+    }
+
+    fn cost_of(&self, (cameras, tracks): &Self::Estimate) -> Option<f64> {
+        cost_of(cameras, tracks)
+    }
+
+    fn normal(&self) -> Option<Normal> {
+        self.linearise()
+    }
+
+    fn trial(&self, normal: &Normal, lambda: f64) -> Option<Trial<Self::Estimate>> {
+        let reduced = Self::reduce(normal, lambda)?;
+        let step = self.solve(normal, &reduced)?;
+        let (cameras, tracks, predicted) = self.stepped(normal, &reduced, &step);
+        Some(Trial {
+            estimate: (cameras, tracks),
+            predicted,
+        })
+    }
+
+    fn accept(&mut self, (cameras, tracks): Self::Estimate) -> Self::Estimate {
+        (
+            std::mem::replace(&mut self.cameras, cameras),
+            std::mem::replace(&mut self.tracks, tracks),
+        )
     }
 }
 

@@ -1062,17 +1062,7 @@ fn robust_adjustment(
                 r.iter()
                     .all(|v| v.is_some_and(|v| v.norm() <= REJECT_K * sigma))
             })
-            .map(|(mut t, r)| {
-                for (o, v) in t.observations.iter_mut().zip(r) {
-                    let length = v.map_or(f64::INFINITY, |v| v.norm());
-                    o.2 = if length <= HUBER_K * sigma {
-                        1.0
-                    } else {
-                        HUBER_K * sigma / length
-                    };
-                }
-                t
-            })
+            .map(|(t, r)| huber_weighted(t, r, sigma))
             .collect();
         let dropped = before - kept.len();
         rejected += dropped;
@@ -1100,6 +1090,20 @@ fn robust_adjustment(
     solution.iterations += iterations;
     state.cameras = bundle.cameras;
     Ok(Some((bundle.tracks, solution, rejected, previous_sigma)))
+}
+
+/// `track` with each observation's Huber weight at `sigma`: 1 within
+/// `HUBER_K` sigma, `HUBER_K sigma / |v|` beyond, 0 where it does not image.
+fn huber_weighted(mut track: Track, residuals: &[Option<Vector2<f64>>], sigma: f64) -> Track {
+    for (o, v) in track.observations.iter_mut().zip(residuals) {
+        let length = v.map_or(f64::INFINITY, |v| v.norm());
+        o.2 = if length <= HUBER_K * sigma {
+            1.0
+        } else {
+            HUBER_K * sigma / length
+        };
+    }
+    track
 }
 
 /// Per camera, holds the parameter the data determine least (singular

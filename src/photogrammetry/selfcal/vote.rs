@@ -307,80 +307,138 @@ pub(super) fn vote(
     let mut lists: Vec<Vec<Vec<PairLists>>> = Vec::with_capacity(frames.len());
     for frame in frames {
         cancel.check()?;
-        let grids: Vec<Grid> = frame
-            .iter()
-            .zip(cameras)
-            .map(|(t, c)| Grid::new(t, c.sensor().width, c.sensor().height, band.max(4.0)))
-            .collect();
-        let per_camera: Vec<Vec<PairLists>> = (0..n)
-            .map(|i| {
-                let (regions, depths) = layouts[i];
-                let sensor = cameras[i].sensor();
-                frame[i]
-                    .par_iter()
-                    .map(|ta| {
-                        let mut out = vec![Vec::new(); n];
-                        if i + 1 >= n {
-                            return out;
-                        }
-                        let Ok(ray) = cameras[i].ray(Point2::new(ta.x, ta.y)) else {
-                            return out;
-                        };
-                        let Some((t0, t1)) = clip(&ray.origin, &ray.direction, volume) else {
-                            return out;
-                        };
-                        let samples: Vec<Point3<f64>> = (0..SAMPLES)
-                            .map(|k| ray.at(t0 + (t1 - t0) * k as f64 / (SAMPLES - 1) as f64))
-                            .collect();
-                        let rx = ((ta.x / f64::from(sensor.width) * regions as f64).floor()
-                            as usize)
-                            .min(regions - 1);
-                        let ry = ((ta.y / f64::from(sensor.height) * regions as f64).floor()
-                            as usize)
-                            .min(regions - 1);
-                        let region = ry * regions + rx;
-                        for j in i + 1..n {
-                            let curve: Option<Vec<Point2<f64>>> =
-                                samples.iter().map(|p| cameras[j].project(p).ok()).collect();
-                            let Some(curve) = curve else {
-                                continue;
-                            };
-                            let mut near = Vec::new();
-                            for w in curve.windows(2) {
-                                grids[j].near_segment(&frame[j], w[0], w[1], band, &mut near);
-                            }
-                            near.sort_unstable();
-                            near.dedup();
-                            for b in near {
-                                let tb = &frame[j][b];
-                                if let Some((d, along)) =
-                                    signed_distance(&curve, Point2::new(tb.x, tb.y), band)
-                                {
-                                    let z =
-                                        ((along * depths as f64).floor() as usize).min(depths - 1);
-                                    out[j].push(PairCandidate {
-                                        b: b as u32,
-                                        d: d as f32,
-                                        cell: (region * depths + z) as u16,
-                                    });
-                                }
-                            }
-                        }
-                        out
-                    })
-                    .collect()
-            })
-            .collect();
-        lists.push(per_camera);
+        lists.push(pair_candidates(frame, cameras, volume, &layouts, band));
     }
     // 2. Per pair and cell, the peak.
+    let (peaks, contrasts) = pair_peaks(&lists, &pairs, &layouts, n, band, radius);
+    // 3-4. Per frame, the maximal groups consistent with the peaks.
+    let mut groups: Vec<(usize, Vec<Option<usize>>)> = Vec::new();
+    for (f, frame) in lists.iter().enumerate() {
+        cancel.check()?;
+        let adj = consistent_pairs(frame, &frames[f], &pairs, &peaks, radius);
+        let found: Vec<Vec<Option<usize>>> = (0..n)
+            .flat_map(|s| (0..frames[f][s].len()).map(move |a| (s, a)))
+            .collect::<Vec<_>>()
+            .par_iter()
+            .flat_map_iter(|&(s, a)| {
+                let mut out = Vec::new();
+                let mut members = vec![None; n];
+                members[s] = Some(a);
+                extend(&adj, n, s + 1, &mut members, min_cameras, &mut out);
+                out.into_iter()
+            })
+            .collect();
+        groups.extend(found.into_iter().map(|g| (f, g)));
+    }
+    // 5. Unambiguous groups, the most cameras first, capped per sub-volume.
+    let candidates = groups.len();
+    let kept = unambiguous(groups, frames, cameras);
+    let (tracks, by_cameras) = capped(kept, frames, volume, grid, max_particles, n);
+    Ok(Vote {
+        tracks,
+        candidates,
+        by_cameras,
+        contrasts,
+    })
+}
+
+/// Step 1 on one frame: per camera i, per target, its pair candidates in
+/// each camera j > i (signed distance to its epipolar curve, and cell).
+fn pair_candidates(
+    frame: &[Vec<Target>],
+    cameras: &[Camera],
+    volume: &Volume,
+    layouts: &[(usize, usize)],
+    band: f64,
+) -> Vec<Vec<PairLists>> {
+    let n = cameras.len();
+    let grids: Vec<Grid> = frame
+        .iter()
+        .zip(cameras)
+        .map(|(t, c)| Grid::new(t, c.sensor().width, c.sensor().height, band.max(4.0)))
+        .collect();
+    (0..n)
+        .map(|i| {
+            let (regions, depths) = layouts[i];
+            let sensor = cameras[i].sensor();
+            frame[i]
+                .par_iter()
+                .map(|ta| {
+                    let mut out = vec![Vec::new(); n];
+                    if i + 1 >= n {
+                        return out;
+                    }
+                    let Ok(ray) = cameras[i].ray(Point2::new(ta.x, ta.y)) else {
+                        return out;
+                    };
+                    let Some((t0, t1)) = clip(&ray.origin, &ray.direction, volume) else {
+                        return out;
+                    };
+                    let samples: Vec<Point3<f64>> = (0..SAMPLES)
+                        .map(|k| ray.at(t0 + (t1 - t0) * k as f64 / (SAMPLES - 1) as f64))
+                        .collect();
+                    let rx = ((ta.x / f64::from(sensor.width) * regions as f64).floor() as usize)
+                        .min(regions - 1);
+                    let ry = ((ta.y / f64::from(sensor.height) * regions as f64).floor() as usize)
+                        .min(regions - 1);
+                    let region = ry * regions + rx;
+                    for j in i + 1..n {
+                        let curve: Option<Vec<Point2<f64>>> =
+                            samples.iter().map(|p| cameras[j].project(p).ok()).collect();
+                        let Some(curve) = curve else {
+                            continue;
+                        };
+                        let mut near = Vec::new();
+                        for w in curve.windows(2) {
+                            grids[j].near_segment(&frame[j], w[0], w[1], band, &mut near);
+                        }
+                        near.sort_unstable();
+                        near.dedup();
+                        for b in near {
+                            let tb = &frame[j][b];
+                            if let Some((d, along)) =
+                                signed_distance(&curve, Point2::new(tb.x, tb.y), band)
+                            {
+                                let z = ((along * depths as f64).floor() as usize).min(depths - 1);
+                                out[j].push(PairCandidate {
+                                    b: b as u32,
+                                    d: d as f32,
+                                    cell: (region * depths + z) as u16,
+                                });
+                            }
+                        }
+                    }
+                    out
+                })
+                .collect()
+        })
+        .collect()
+}
+
+/// Per pair (i, j) and cell, its peak.
+type Peaks = Vec<Vec<Vec<Option<f64>>>>;
+
+/// Per pair (i, j) and cell, its contrasts.
+type Contrasts = Vec<((usize, usize), Vec<f64>)>;
+
+/// Step 2: per pair and cell over all frames, the peak of the signed
+/// distances where its contrast reaches [`MIN_CONTRAST`], and every cell's
+/// contrast.
+fn pair_peaks(
+    lists: &[Vec<Vec<PairLists>>],
+    pairs: &[(usize, usize)],
+    layouts: &[(usize, usize)],
+    n: usize,
+    band: f64,
+    radius: f64,
+) -> (Peaks, Contrasts) {
     let mut contrasts = Vec::new();
-    let mut peaks: Vec<Vec<Vec<Option<f64>>>> = vec![vec![Vec::new(); n]; n];
-    for &(i, j) in &pairs {
+    let mut peaks: Peaks = vec![vec![Vec::new(); n]; n];
+    for &(i, j) in pairs {
         let (regions, depths) = layouts[i];
         let cells = regions * regions * depths;
         let mut values = vec![Vec::new(); cells];
-        for frame in &lists {
+        for frame in lists {
             for candidates in &frame[i] {
                 for c in &candidates[j] {
                     values[usize::from(c.cell)].push(f64::from(c.d));
@@ -398,51 +456,57 @@ pub(super) fn vote(
             .map(|p| p.and_then(|(centre, c)| (c >= MIN_CONTRAST).then_some(centre)))
             .collect();
     }
-    // 3. Pair candidates near their peak, both ways.
-    let mut groups: Vec<(usize, Vec<Option<usize>>)> = Vec::new();
-    for (f, frame) in lists.iter().enumerate() {
-        cancel.check()?;
-        let mut adj: Vec<Vec<Vec<Vec<u32>>>> = (0..n)
-            .map(|i| vec![vec![Vec::new(); frames[f][i].len()]; n])
-            .collect();
-        for &(i, j) in &pairs {
-            for (a, candidates) in frame[i].iter().enumerate() {
-                for c in &candidates[j] {
-                    let Some(p) = peaks[i][j][usize::from(c.cell)] else {
-                        continue;
-                    };
-                    if (f64::from(c.d) - p).abs() <= radius {
-                        adj[i][j][a].push(c.b);
-                        adj[j][i][c.b as usize].push(a as u32);
-                    }
+    (peaks, contrasts)
+}
+
+/// Step 3 on one frame: the pair candidates within `radius` of their
+/// cell's peak, both ways: per camera i, camera j and target of i, the
+/// targets of j (sorted, each once).
+fn consistent_pairs(
+    frame: &[Vec<PairLists>],
+    targets: &[Vec<Target>],
+    pairs: &[(usize, usize)],
+    peaks: &Peaks,
+    radius: f64,
+) -> Vec<Vec<Vec<Vec<u32>>>> {
+    let n = targets.len();
+    let mut adj: Vec<Vec<Vec<Vec<u32>>>> = (0..n)
+        .map(|i| vec![vec![Vec::new(); targets[i].len()]; n])
+        .collect();
+    for &(i, j) in pairs {
+        for (a, candidates) in frame[i].iter().enumerate() {
+            for c in &candidates[j] {
+                let Some(p) = peaks[i][j][usize::from(c.cell)] else {
+                    continue;
+                };
+                if (f64::from(c.d) - p).abs() <= radius {
+                    adj[i][j][a].push(c.b);
+                    adj[j][i][c.b as usize].push(a as u32);
                 }
             }
         }
-        for by_j in adj.iter_mut() {
-            for by_a in by_j.iter_mut() {
-                for list in by_a.iter_mut() {
-                    list.sort_unstable();
-                    list.dedup();
-                }
-            }
-        }
-        // 4. Maximal groups, each from its lowest camera.
-        let adj = &adj;
-        let found: Vec<Vec<Option<usize>>> = (0..n)
-            .flat_map(|s| (0..frames[f][s].len()).map(move |a| (s, a)))
-            .collect::<Vec<_>>()
-            .par_iter()
-            .flat_map_iter(|&(s, a)| {
-                let mut out = Vec::new();
-                let mut members = vec![None; n];
-                members[s] = Some(a);
-                extend(adj, n, s + 1, &mut members, min_cameras, &mut out);
-                out.into_iter()
-            })
-            .collect();
-        groups.extend(found.into_iter().map(|g| (f, g)));
     }
-    // 5. Unambiguous groups: each target in one.
+    for by_j in adj.iter_mut() {
+        for by_a in by_j.iter_mut() {
+            for list in by_a.iter_mut() {
+                list.sort_unstable();
+                list.dedup();
+            }
+        }
+    }
+    adj
+}
+
+/// A kept group: its frame, its target per camera, its intersection.
+type Group = (usize, Vec<Option<usize>>, Point3<f64>);
+
+/// Step 5's first half: the groups each of whose targets is in no other
+/// (per frame), intersected, the most cameras first.
+fn unambiguous(
+    groups: Vec<(usize, Vec<Option<usize>>)>,
+    frames: &[Vec<Vec<Target>>],
+    cameras: &[Camera],
+) -> Vec<Group> {
     let mut uses: Vec<Vec<Vec<u8>>> = frames
         .iter()
         .map(|f| f.iter().map(|t| vec![0u8; t.len()]).collect())
@@ -455,8 +519,7 @@ pub(super) fn vote(
             }
         }
     }
-    let candidates = groups.len();
-    let mut kept: Vec<(usize, Vec<Option<usize>>, Point3<f64>)> = groups
+    let mut kept: Vec<Group> = groups
         .into_par_iter()
         .filter(|(f, g)| {
             g.iter()
@@ -469,8 +532,21 @@ pub(super) fn vote(
             Some((f, g, x.point))
         })
         .collect();
-    // The most cameras first; a cap per sub-volume.
     kept.sort_by_key(|(f, g, _)| (std::cmp::Reverse(g.iter().flatten().count()), *f));
+    kept
+}
+
+/// Step 5's second half: the groups in order, at most `max_particles` and
+/// an even share per sub-volume of `grid`, as tracks; the count kept by
+/// the number of cameras.
+fn capped(
+    kept: Vec<Group>,
+    frames: &[Vec<Vec<Target>>],
+    volume: &Volume,
+    grid: [usize; 3],
+    max_particles: usize,
+    n: usize,
+) -> (Vec<Track>, Vec<usize>) {
     let cells = grid[0] * grid[1] * grid[2];
     let cap = max_particles.div_ceil(cells).max(1);
     let mut filled = vec![0usize; cells];
@@ -491,12 +567,7 @@ pub(super) fn vote(
             point,
         });
     }
-    Ok(Vote {
-        tracks,
-        candidates,
-        by_cameras,
-        contrasts,
-    })
+    (tracks, by_cameras)
 }
 
 fn observations(frame: &[Vec<Target>], group: &[Option<usize>]) -> Vec<Observation> {

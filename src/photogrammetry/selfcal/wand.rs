@@ -50,10 +50,12 @@
 use nalgebra::{Point2, Point3, Vector2};
 use serde::Serialize;
 
-use super::bundle::{residuals, Bundle, Track};
+use super::bundle::{residuals, Bundle, Solution, Track};
 use super::gauge::Gauge;
 use super::report::{median_sorted, ParameterChange};
-use super::{hold_undeterminable, parameter_changes, robust_sigma, State, HUBER_K, REJECT_K};
+use super::{
+    hold_undeterminable, huber_weighted, parameter_changes, robust_sigma, State, REJECT_K,
+};
 use crate::photogrammetry::calibrate::{Parameter, ParameterSet};
 use crate::photogrammetry::camera::{Camera, CameraParameters, InvalidCamera};
 use crate::photogrammetry::cancel::{Cancel, Cancelled};
@@ -472,110 +474,200 @@ pub fn wand_calibrate(
     cancel: &Cancel,
 ) -> Result<WandCalibration, WandError> {
     check_inputs(cameras, frames, options)?;
-    let n = cameras.len();
-    let start = cameras.to_vec();
-    let models = models_of(&start).ok_or_else(|| WandError::Diverged("invalid start".into()))?;
-    let mut incomplete = 0;
-    let mut ambiguous = 0;
-    let mut positions: Vec<Position> = Vec::new();
-    let mut ends: Vec<[Point3<f64>; 2]> = Vec::new();
-    for (frame, targets) in frames.iter().enumerate() {
-        if frame % 64 == 0 {
-            cancel.check()?;
-        }
-        let Some(marks) = targets
-            .iter()
-            .map(|t| two_marks(t))
-            .collect::<Option<Vec<_>>>()
-        else {
-            incomplete += 1;
-            continue;
-        };
-        match pair(&models, &marks) {
-            Some((_, _, true)) => ambiguous += 1,
-            Some((pairing, e, false)) => {
-                positions.push(Position { frame, pairing });
-                ends.push(e);
-            }
-            None => incomplete += 1,
-        }
-    }
-    let too_few = |usable: usize, rejected: usize| WandError::TooFewPositions {
-        usable,
-        frames: frames.len(),
-        incomplete,
-        ambiguous,
-        rejected,
-        needed: MIN_POSITIONS,
-    };
-    if positions.len() < MIN_POSITIONS {
-        return Err(too_few(positions.len(), 0));
-    }
-    let mut tracks = tracks_of(&positions, &ends);
-    let length_before = LengthSpread::of(&lengths(&tracks));
-    let ratio = options.length_mm / length_before.median_mm;
-    if !ratio.is_finite() || (ratio - 1.0).abs() > options.max_scale_change {
-        return Err(WandError::LengthDisagrees {
-            given_mm: options.length_mm,
-            measured_mm: length_before.median_mm,
-            positions: positions.len(),
-            percent: 100.0 * (ratio - 1.0),
-            limit_percent: 100.0 * options.max_scale_change,
-        });
-    }
-    // The centre of the wands: the scaling's fixed point.
-    let centre = Point3::from(
-        tracks
-            .iter()
-            .map(|t| t.point.coords)
-            .sum::<nalgebra::Vector3<f64>>()
-            / tracks.len() as f64,
-    );
-    let rms_before = rms_per_camera(&models, &tracks).0;
-    let fixed: ParameterSet = options.fixed.iter().copied().collect();
+    let (setup, mut wands) = Setup::new(cameras, frames, options, cancel)?;
     let mut state = State {
-        cameras: start.clone(),
-        free: vec![fixed.complement(); n],
-        held: vec![Vec::new(); n],
+        cameras: setup.start.clone(),
+        free: vec![setup.fixed.complement(); cameras.len()],
+        held: vec![Vec::new(); cameras.len()],
         media: Vec::new(),
         media_held: Vec::new(),
     };
+    let passes = run_passes(&setup, &mut state, &mut wands, options, cancel)?;
+    finish(&setup, state, wands, passes, options)
+}
+
+/// What stays as it is through the passes (steps 1-3): the input rig, the
+/// parameters the options hold, the wands' centre (the scaling's fixed
+/// point), the counts of skipped frames and what the start measured.
+struct Setup {
+    start: Vec<CameraParameters>,
+    fixed: ParameterSet,
+    centre: Point3<f64>,
+    frames: usize,
+    incomplete: usize,
+    ambiguous: usize,
+    length_before: LengthSpread,
+    rms_before: Vec<f64>,
+}
+
+/// The wand positions being adjusted and their ends as the bundle's tracks
+/// (two per position: end A, end B).
+struct Wands {
+    positions: Vec<Position>,
+    tracks: Vec<Track>,
+}
+
+/// What the passes (steps 4-5) left.
+struct Passes {
+    solution: Solution,
+    scale_factor: f64,
+    rejected: usize,
+    passes: usize,
+}
+
+impl Setup {
+    /// Steps 1-3: the marks, their pairing, the scale check.
+    fn new(
+        cameras: &[CameraParameters],
+        frames: &[Vec<Vec<Target>>],
+        options: &WandOptions,
+        cancel: &Cancel,
+    ) -> Result<(Setup, Wands), WandError> {
+        let start = cameras.to_vec();
+        let models =
+            models_of(&start).ok_or_else(|| WandError::Diverged("invalid start".into()))?;
+        let mut setup = Setup {
+            start,
+            fixed: options.fixed.iter().copied().collect(),
+            centre: Point3::origin(),
+            frames: frames.len(),
+            incomplete: 0,
+            ambiguous: 0,
+            length_before: LengthSpread::default(),
+            rms_before: Vec::new(),
+        };
+        let mut positions: Vec<Position> = Vec::new();
+        let mut ends: Vec<[Point3<f64>; 2]> = Vec::new();
+        for (frame, targets) in frames.iter().enumerate() {
+            if frame % 64 == 0 {
+                cancel.check()?;
+            }
+            let Some(marks) = targets
+                .iter()
+                .map(|t| two_marks(t))
+                .collect::<Option<Vec<_>>>()
+            else {
+                setup.incomplete += 1;
+                continue;
+            };
+            match pair(&models, &marks) {
+                Some((_, _, true)) => setup.ambiguous += 1,
+                Some((pairing, e, false)) => {
+                    positions.push(Position { frame, pairing });
+                    ends.push(e);
+                }
+                None => setup.incomplete += 1,
+            }
+        }
+        if positions.len() < MIN_POSITIONS {
+            return Err(setup.too_few(positions.len(), 0));
+        }
+        let tracks = tracks_of(&positions, &ends);
+        setup.length_before = LengthSpread::of(&lengths(&tracks));
+        let ratio = options.length_mm / setup.length_before.median_mm;
+        if !ratio.is_finite() || (ratio - 1.0).abs() > options.max_scale_change {
+            return Err(WandError::LengthDisagrees {
+                given_mm: options.length_mm,
+                measured_mm: setup.length_before.median_mm,
+                positions: positions.len(),
+                percent: 100.0 * (ratio - 1.0),
+                limit_percent: 100.0 * options.max_scale_change,
+            });
+        }
+        setup.centre = Point3::from(
+            tracks
+                .iter()
+                .map(|t| t.point.coords)
+                .sum::<nalgebra::Vector3<f64>>()
+                / tracks.len() as f64,
+        );
+        setup.rms_before = rms_per_camera(&models, &tracks).0;
+        Ok((setup, Wands { positions, tracks }))
+    }
+
+    /// The error of `usable` positions left, `rejected` by the passes.
+    fn too_few(&self, usable: usize, rejected: usize) -> WandError {
+        WandError::TooFewPositions {
+            usable,
+            frames: self.frames,
+            incomplete: self.incomplete,
+            ambiguous: self.ambiguous,
+            rejected,
+            needed: MIN_POSITIONS,
+        }
+    }
+}
+
+impl Wands {
+    /// The wands' mean length (mm).
+    fn mean_length(&self) -> f64 {
+        lengths(&self.tracks).iter().sum::<f64>() / self.positions.len() as f64
+    }
+
+    /// Step 5's removal: the whole wand where either end has a residual
+    /// beyond `limit` (px), the rest Huber-weighted at `sigma`; how many
+    /// were removed.
+    fn remove_gross_errors(
+        &mut self,
+        residuals: &[Vec<Option<Vector2<f64>>>],
+        limit: f64,
+        sigma: f64,
+    ) -> usize {
+        let before = self.positions.len();
+        let mut kept_positions = Vec::with_capacity(before);
+        let mut kept_tracks = Vec::with_capacity(self.tracks.len());
+        for ((position, pair), r) in std::mem::take(&mut self.positions)
+            .into_iter()
+            .zip(self.tracks.chunks(2))
+            .zip(residuals.chunks(2))
+        {
+            let good = r
+                .iter()
+                .flatten()
+                .all(|v| v.is_some_and(|v| v.norm() <= limit));
+            if !good {
+                continue;
+            }
+            kept_positions.push(position);
+            for (t, r) in pair.iter().zip(r) {
+                kept_tracks.push(huber_weighted(t.clone(), r, sigma));
+            }
+        }
+        self.positions = kept_positions;
+        self.tracks = kept_tracks;
+        before - self.positions.len()
+    }
+}
+
+/// Step 4's adjustment and step 5, pass after pass, until nothing is held
+/// or removed, the residuals' scale has settled twice and the wands' mean
+/// length is the given one (or [`MAX_PASSES`]).
+fn run_passes(
+    setup: &Setup,
+    state: &mut State,
+    wands: &mut Wands,
+    options: &WandOptions,
+    cancel: &Cancel,
+) -> Result<Passes, WandError> {
     let mut scale_factor = 1.0;
     let mut rejected = 0;
     let mut previous_sigma = f64::INFINITY;
     let mut settled_once = false;
     let mut passes = 0;
-    let mut last;
     loop {
         cancel.check()?;
         passes += 1;
-        // The scale from the wand's mean length.
-        let mean = lengths(&tracks).iter().sum::<f64>() / (tracks.len() / 2) as f64;
-        let s = options.length_mm / mean;
-        scale_about(&mut state.cameras, &mut tracks, &centre, s);
-        scale_factor *= s;
-        let gauge = Gauge::new(&state.cameras, &centre, fixed);
-        let mut bundle = Bundle {
-            cameras: state.cameras.clone(),
-            free: state.free.clone(),
-            tracks,
-            gauge: &gauge,
-            media: Vec::new(),
-        };
-        let solution = bundle
-            .adjust(30)
-            .ok_or_else(|| WandError::Diverged(format!("pass {passes}")))?;
-        state.cameras = bundle.cameras;
-        tracks = bundle.tracks;
+        scale_factor *= scale_to_length(setup, state, wands, options.length_mm);
+        let solution = adjust_pass(setup, state, wands, passes)?;
         let models = models_of(&state.cameras).ok_or_else(|| {
             WandError::Diverged(format!(
                 "pass {passes}: the adjusted parameters are not a valid camera"
             ))
         })?;
-        let res = residuals(&models, &tracks);
+        let res = residuals(&models, &wands.tracks);
         let flat: Vec<Vector2<f64>> = res.iter().flatten().flatten().copied().collect();
         let sigma = robust_sigma(&flat).max(1e-6);
-        let held = hold_undeterminable(&mut state, &solution, &start, options.max_correlation);
+        let held = hold_undeterminable(state, &solution, &setup.start, options.max_correlation);
         // Whole wands out where either end has a gross error. Until the
         // residuals' scale has settled the rig is still moving and the
         // volume's edges carry model error beyond 5 sigma (simulated: 29
@@ -586,88 +678,107 @@ pub fn wand_calibrate(
         } else {
             3.0 * REJECT_K
         };
-        let before = tracks.len() / 2;
-        let mut kept_positions = Vec::with_capacity(before);
-        let mut kept_tracks = Vec::with_capacity(tracks.len());
-        for ((position, pair), r) in positions
-            .into_iter()
-            .zip(tracks.chunks(2))
-            .zip(res.chunks(2))
-        {
-            let good = r
-                .iter()
-                .flatten()
-                .all(|v| v.is_some_and(|v| v.norm() <= limit * sigma));
-            if !good {
-                continue;
-            }
-            kept_positions.push(position);
-            for (t, r) in pair.iter().zip(r) {
-                let mut t = t.clone();
-                for (o, v) in t.observations.iter_mut().zip(r) {
-                    let length = v.map_or(f64::INFINITY, |v| v.norm());
-                    o.2 = if length <= HUBER_K * sigma {
-                        1.0
-                    } else {
-                        HUBER_K * sigma / length
-                    };
-                }
-                kept_tracks.push(t);
-            }
-        }
-        positions = kept_positions;
-        tracks = kept_tracks;
-        let dropped = before - positions.len();
+        let dropped = wands.remove_gross_errors(&res, limit * sigma, sigma);
         rejected += dropped;
-        if positions.len() < MIN_POSITIONS {
-            return Err(too_few(positions.len(), rejected));
+        if wands.positions.len() < MIN_POSITIONS {
+            return Err(setup.too_few(wands.positions.len(), rejected));
         }
         let settled = (previous_sigma - sigma).abs() <= 0.01 * sigma;
         previous_sigma = sigma;
         let strict = settled_once;
         settled_once |= settled;
-        let mean = lengths(&tracks).iter().sum::<f64>() / positions.len() as f64;
-        let scaled = (options.length_mm / mean - 1.0).abs() < 1e-7;
-        last = (solution, sigma);
+        let scaled = (options.length_mm / wands.mean_length() - 1.0).abs() < 1e-7;
         if (!held && dropped == 0 && settled && strict && scaled) || passes >= MAX_PASSES {
-            break;
+            return Ok(Passes {
+                solution,
+                scale_factor,
+                rejected,
+                passes,
+            });
         }
     }
-    let (solution, _) = last;
-    // The last pass's scale, exactly.
-    let mean = lengths(&tracks).iter().sum::<f64>() / positions.len() as f64;
-    let s = options.length_mm / mean;
-    scale_about(&mut state.cameras, &mut tracks, &centre, s);
-    scale_factor *= s;
+}
+
+/// Scales the rig and the wands about the centre so that the wands' mean
+/// length is `length_mm`; the factor.
+fn scale_to_length(setup: &Setup, state: &mut State, wands: &mut Wands, length_mm: f64) -> f64 {
+    let s = length_mm / wands.mean_length();
+    scale_about(&mut state.cameras, &mut wands.tracks, &setup.centre, s);
+    s
+}
+
+/// Step 4: one bundle adjustment of the rig and the wands' ends, the gauge
+/// anchored at the rig as scaled.
+fn adjust_pass(
+    setup: &Setup,
+    state: &mut State,
+    wands: &mut Wands,
+    pass: usize,
+) -> Result<Solution, WandError> {
+    let gauge = Gauge::new(&state.cameras, &setup.centre, setup.fixed);
+    let mut bundle = Bundle {
+        cameras: state.cameras.clone(),
+        free: state.free.clone(),
+        tracks: std::mem::take(&mut wands.tracks),
+        gauge: &gauge,
+        media: Vec::new(),
+    };
+    let solution = bundle
+        .adjust(30)
+        .ok_or_else(|| WandError::Diverged(format!("pass {pass}")))?;
+    state.cameras = bundle.cameras;
+    wands.tracks = bundle.tracks;
+    Ok(solution)
+}
+
+/// The last pass's scale, exactly; the report and the adjusted wands.
+fn finish(
+    setup: &Setup,
+    mut state: State,
+    mut wands: Wands,
+    passes: Passes,
+    options: &WandOptions,
+) -> Result<WandCalibration, WandError> {
+    let scale_factor =
+        passes.scale_factor * scale_to_length(setup, &mut state, &mut wands, options.length_mm);
     let models =
         models_of(&state.cameras).ok_or_else(|| WandError::Diverged("final rig".into()))?;
-    let (rms_after, rms_all) = rms_per_camera(&models, &tracks);
+    let (rms_after, rms_all) = rms_per_camera(&models, &wands.tracks);
+    let solution = &passes.solution;
     let sigma0 = (solution.cost / solution.redundancy.max(1) as f64).sqrt();
     let report = WandReport {
-        frames: frames.len(),
-        incomplete,
-        ambiguous,
-        rejected,
-        positions: positions.len(),
+        frames: setup.frames,
+        incomplete: setup.incomplete,
+        ambiguous: setup.ambiguous,
+        rejected: passes.rejected,
+        positions: wands.positions.len(),
         length_mm: options.length_mm,
-        length_before,
-        length_after: LengthSpread::of(&lengths(&tracks)),
+        length_before: setup.length_before.clone(),
+        length_after: LengthSpread::of(&lengths(&wands.tracks)),
         scale_factor,
         sigma0_px: sigma0,
         rms_px: rms_all,
-        passes,
-        cameras: (0..n)
+        passes: passes.passes,
+        cameras: (0..setup.start.len())
             .map(|c| WandCamera {
-                name: start[c].name.clone(),
-                rms_before_px: rms_before[c],
+                name: setup.start[c].name.clone(),
+                rms_before_px: setup.rms_before[c],
                 rms_after_px: rms_after[c],
-                parameters: parameter_changes(c, &start[c], &state, fixed, &solution, sigma0),
+                parameters: parameter_changes(
+                    c,
+                    &setup.start[c],
+                    &state,
+                    setup.fixed,
+                    solution,
+                    sigma0,
+                ),
             })
             .collect(),
     };
-    let wands = positions
+    let wands = wands
+        .positions
         .iter()
-        .zip(tracks.chunks(2))
+        .zip(wands.tracks.chunks(2))
         .map(|(p, t)| AdjustedWand {
             frame: p.frame,
             a: t[0].point,
