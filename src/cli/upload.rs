@@ -3,7 +3,7 @@
 //!
 //! Each frame is one `POST /api/v1/sequences/{id}/frames`, multipart with
 //! a `frame` part (its number) and one image part per camera, `cam0` ..
-//! `camN-1` in camera order (see `src/service/http/sequences.rs`). The
+//! `camN-1` in camera order (see `src/service/http/frames.rs`). The
 //! images of frame `F` are named by one pattern per camera with a
 //! printf-style frame number: `img/cam1.%d`, `img/cam1_%05d.tif`; or
 //! they come from an OpenPTV/pyptv experiment (`--experiment DIR`, read by

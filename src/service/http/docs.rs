@@ -10,8 +10,8 @@ use utoipa::{Modify, OpenApi};
 use utoipa_swagger_ui::SwaggerUi;
 
 use super::{
-    calibration_health, calibrations, events, experiments, jobs, plots, problem, selfcal,
-    sequence_images, sequences, tracking,
+    calibration_health, calibrations, events, experiments, frames, jobs, plots, problem, results,
+    selfcal, sequence_images, sequences, tracking,
 };
 use crate::service::model::parameters;
 use crate::service::ops::state::AppState;
@@ -36,16 +36,16 @@ use crate::service::ops::state::AppState;
         sequences::list,
         sequences::create,
         sequences::read,
-        sequences::upload_frame,
-        sequences::frames,
+        frames::upload_frame,
+        frames::frames,
         calibration_health::read,
         events::events,
         sequence_images::upload_background,
         sequence_images::upload_mask,
         experiments::import,
-        sequences::frame_particles,
-        sequences::frame_targets,
-        sequences::all_particles,
+        results::frame_particles,
+        results::frame_targets,
+        results::all_particles,
         tracking::start,
         tracking::runs,
         tracking::finish,

@@ -4,8 +4,10 @@
 //!
 //! - [`calibrations`]: create (JSON or OpenPTV files), read, export as
 //!   OpenPTV files, project and intersect.
-//! - [`sequences`]: create, read, upload frames, fetch particles and
-//!   targets.
+//! - [`sequences`]: create, read, list.
+//! - [`frames`]: a sequence's frames: upload one, list them.
+//! - [`results`]: a frame's particles and targets, all particles of a
+//!   sequence.
 //! - [`calibration_health`]: a sequence's calibration health during the
 //!   run (the drift of each camera's disparities, its alarm).
 //! - [`events`]: a sequence's live progress as server-sent events.
@@ -39,12 +41,14 @@ pub mod events;
 pub mod experiments;
 pub mod exports;
 pub mod extract;
+pub mod frames;
 pub mod health;
 pub mod jobs;
 pub mod layers;
 pub mod lookups;
 pub mod plots;
 pub mod problem;
+pub mod results;
 pub mod selfcal;
 pub mod sequence_images;
 pub mod sequences;
@@ -69,6 +73,8 @@ pub fn router(state: Arc<AppState>) -> Router {
     let api = Router::new()
         .merge(calibrations::router())
         .merge(sequences::router())
+        .merge(frames::router())
+        .merge(results::router())
         .merge(calibration_health::router())
         .merge(events::router())
         .merge(sequence_images::router())

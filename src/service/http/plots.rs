@@ -25,7 +25,7 @@ use super::calibrations::{calibration, stored_rig};
 use super::extract::Shared;
 use super::lookups::sequence;
 use super::problem::{ApiError, ApiPath, ApiQuery};
-use super::sequences::{load_particles, no_results};
+use super::results::{load_particles, no_results};
 use super::tracking::current_run;
 use crate::formats;
 use crate::photogrammetry::image::GreyImage;

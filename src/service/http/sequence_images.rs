@@ -18,8 +18,9 @@ use axum::routing::post;
 use axum::{Json, Router};
 
 use super::extract::Shared;
+use super::frames::camera_of;
 use super::problem::{ApiError, ApiMultipart, ApiPath};
-use super::sequences::{camera_of, sequence_cameras_and_row, view, SequenceView};
+use super::sequences::{sequence_cameras_and_row, view, SequenceView};
 use super::upload::{check_images, or_drain, persist_and_commit, stream_part};
 use crate::photogrammetry::Sensor;
 use crate::service::model::parameters::SequenceParameters;
