@@ -508,13 +508,7 @@ fn print_unmapped(
     stderr: &mut dyn Write,
 ) -> Result<(), CliError> {
     for setting in &settings.unmapped {
-        write_stderr_line(
-            stderr,
-            &format!(
-                "not used: {}: {} = {}: {}",
-                setting.file, setting.key, setting.value, setting.reason
-            ),
-        )?;
+        write_stderr_line(stderr, &format!("not used: {setting}"))?;
     }
     Ok(())
 }

@@ -144,13 +144,7 @@ pub(super) fn import(args: &ImportExperimentArgs, stderr: &mut dyn Write) -> Res
         formats::write_text(&args.output.join(name), &text)?;
     }
     for setting in &experiment.unmapped {
-        write_stderr_line(
-            stderr,
-            &format!(
-                "not mapped: {}: {} = {}: {}",
-                setting.file, setting.key, setting.value, setting.reason
-            ),
-        )?;
+        write_stderr_line(stderr, &format!("not mapped: {setting}"))?;
     }
     Ok(())
 }

@@ -171,6 +171,17 @@ pub struct UnmappedSetting {
     pub reason: String,
 }
 
+/// `FILE: KEY = VALUE: REASON`, the line the command line prints for it.
+impl std::fmt::Display for UnmappedSetting {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "{}: {} = {}: {}",
+            self.file, self.key, self.value, self.reason
+        )
+    }
+}
+
 /// Why an experiment cannot be read.
 #[derive(Debug, thiserror::Error)]
 pub enum ExperimentError {
