@@ -257,14 +257,7 @@ pub(super) fn run(
         // Before reading any image: can every camera's marks be identified?
         let counts: Vec<usize> = references.iter().map(Vec::len).collect();
         calibrate::check_mark_inputs(&setup, &control_points, &counts, &options)?;
-        let parameters = calibrate::mark_detection_parameters(&args.detection.parameters())?;
-        let preprocessing = super::detect::read_camera_preprocessing(
-            calibration,
-            setup.len(),
-            &args.backgrounds,
-            &args.masks,
-            None,
-        )?;
+        let (parameters, preprocessing) = mark_detection(args, calibration, setup.len())?;
         let mut marks = Vec::with_capacity(args.image.len());
         for (k, path) in args.image.iter().enumerate() {
             marks.push(detect_in_image(
@@ -342,6 +335,31 @@ fn parse_plane(value: &str) -> Result<(PathBuf, Vec<PathBuf>), CliError> {
     Ok((PathBuf::from(control), images))
 }
 
+/// How the marks of `--image` and `--plane` images are detected: the
+/// detection flags as marks need them, and each camera's background and
+/// mask.
+fn mark_detection(
+    args: &CalibrateArgs,
+    calibration: &Path,
+    cameras: usize,
+) -> Result<
+    (
+        crate::photogrammetry::DetectionParameters,
+        Vec<crate::photogrammetry::Preprocessing>,
+    ),
+    CliError,
+> {
+    let parameters = calibrate::mark_detection_parameters(&args.detection.parameters())?;
+    let preprocessing = super::detect::read_camera_preprocessing(
+        calibration,
+        cameras,
+        &args.backgrounds,
+        &args.masks,
+        None,
+    )?;
+    Ok((parameters, preprocessing))
+}
+
 /// `ptv calibrate --plane ... --plane ...`: the plate at several known
 /// positions in one adjustment
 /// ([`crate::photogrammetry::calibrate::planes`]).
@@ -385,14 +403,7 @@ fn run_planes(
             &control_path.display().to_string(),
         )?);
     }
-    let parameters = calibrate::mark_detection_parameters(&args.detection.parameters())?;
-    let preprocessing = super::detect::read_camera_preprocessing(
-        calibration,
-        setup.len(),
-        &args.backgrounds,
-        &args.masks,
-        None,
-    )?;
+    let (parameters, preprocessing) = mark_detection(args, calibration, setup.len())?;
     let mut plates = Vec::with_capacity(planes.len());
     for ((_, images), control) in planes.iter().zip(controls) {
         let mut marks = Vec::with_capacity(images.len());
