@@ -244,17 +244,29 @@ async fn a_failed_frame_is_processed_after_a_retry() {
 
 /// A real full disk: the data directory on a 16 MiB tmpfs, filled by
 /// another file. Needs the right to mount (root); skipped otherwise.
+///
+/// The test fills only a file system it has checked to be its own small
+/// one: mounted under the build's scratch directory (not the shared
+/// `/tmp` every other test's data directory is in), a different device
+/// from its parent and at most [`TMPFS_BYTES`] large. Where a sandbox
+/// accepts the mount but not its size, or the mount lands elsewhere, the
+/// test is skipped rather than fill the disk the other tests run on; and
+/// the filler stops at twice that size whatever the file system says.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_real_full_disk_is_a_507_and_freeing_space_is_enough() {
+    const TMPFS_BYTES: u64 = 16 << 20;
     if crate::postgres::enabled() {
         // The disk filled is the data directory's, where SQLite's file is;
         // PostgreSQL's database is on its server's disk, which this test
         // does not fill.
         return;
     }
-    let mount = tempfile::tempdir().unwrap();
+    let scratch = std::path::Path::new(env!("CARGO_TARGET_TMPDIR"));
+    std::fs::create_dir_all(scratch).unwrap();
+    let mount = tempfile::tempdir_in(scratch).unwrap();
     let mounted = std::process::Command::new("mount")
-        .args(["-t", "tmpfs", "-o", "size=16m", "tmpfs"])
+        .args(["-t", "tmpfs", "-o", &format!("size={TMPFS_BYTES}")])
+        .arg("tmpfs")
         .arg(mount.path())
         .status()
         .is_ok_and(|status| status.success());
@@ -273,6 +285,22 @@ async fn a_real_full_disk_is_a_507_and_freeing_space_is_enough() {
         }
     }
     let _unmount = Unmount(mount.path().to_owned());
+    let own_device = {
+        use std::os::unix::fs::MetadataExt;
+        let here = std::fs::metadata(mount.path()).unwrap().dev();
+        let parent = std::fs::metadata(scratch).unwrap().dev();
+        here != parent
+    };
+    let size = rustix::fs::statvfs(mount.path())
+        .map(|fs| fs.f_blocks * fs.f_frsize)
+        .unwrap_or(u64::MAX);
+    if !own_device || size > TMPFS_BYTES {
+        eprintln!(
+            "skipped: the tmpfs mounted is not a {TMPFS_BYTES}-byte file system of its own \
+             ({size} bytes, own device: {own_device})"
+        );
+        return;
+    }
     let data_dir = mount.path().join("data");
     let app = spawn_app_configured(|args| args.storage.data_dir = data_dir.clone()).await;
     let (rig, sequence) = app.rig_sequence().await;
@@ -284,7 +312,10 @@ async fn a_real_full_disk_is_a_507_and_freeing_space_is_enough() {
         use std::io::Write;
         let mut file = std::fs::File::create(&filler).unwrap();
         let chunk = vec![0u8; 1 << 16];
-        while file.write_all(&chunk).is_ok() {}
+        let mut written = 0;
+        while written < 2 * TMPFS_BYTES && file.write_all(&chunk).is_ok() {
+            written += chunk.len() as u64;
+        }
         let _ = file.sync_all();
     }
     fill_until_refused(&app, &calibration, "the disk").await;
