@@ -74,13 +74,12 @@ use std::collections::VecDeque;
 
 use nalgebra::Vector3;
 
+use super::grid::Grid;
 use super::kinematics::{
     breaks_before, derivatives_at, end_is_intruder, is_consistent, is_smooth, Sample, MAX_SAMPLES,
 };
-use super::{
-    candidate_links, noise_floor, Derivatives, Gathered, Grid, Link, ParticlePosition, Scratch,
-    Search, TrackPoint, TrackingParameters,
-};
+use super::links::{candidate_links, noise_floor, Link, Scratch, Search};
+use super::{Derivatives, Gathered, ParticlePosition, TrackPoint, TrackingParameters};
 
 /// What backward tracking added.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]

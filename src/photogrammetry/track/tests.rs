@@ -7,6 +7,8 @@ use rand::seq::SliceRandom;
 use rand::Rng;
 use rand_distr::{Distribution, Normal};
 
+use super::links::Link;
+use super::live::{binomial_cdf, decision_length};
 use super::*;
 use crate::photogrammetry::simulate;
 
