@@ -53,9 +53,8 @@ use serde::Serialize;
 use super::bundle::{residuals, Bundle, Solution, Track};
 use super::gauge::Gauge;
 use super::report::{median_sorted, ParameterChange};
-use super::{
-    hold_undeterminable, huber_weighted, parameter_changes, robust_sigma, State, REJECT_K,
-};
+use super::robust::{hold_undeterminable, huber_weighted, robust_sigma, REJECT_K};
+use super::{parameter_changes, State};
 use crate::photogrammetry::calibrate::{Parameter, ParameterSet};
 use crate::photogrammetry::camera::{Camera, CameraParameters, InvalidCamera};
 use crate::photogrammetry::cancel::{Cancel, Cancelled};
