@@ -1,10 +1,9 @@
 //! Serving HTTP/1.1 connections with hyper, within a connection limit.
 //!
-//! Size: about 1,180 lines of code and 240 of tests; the registry, the
-//! accept loop, the per-connection service and the body-rate meter share
-//! private types (`Connection`, `Registered`, `Tracked`, `Meter`).
-//! Splitting the registry from the body-rate meter is an open item of
-//! issue 31.
+//! In this folder: `mod.rs` the accept loop and the per-connection
+//! service, [`registry`] the connections and the limit, [`body_rate`] the
+//! least rate of request bodies, [`limits`] the default limit, `framing`
+//! the scan of request heads.
 //!
 //! Every connection lives in a [`Registry`] with the time since which it
 //! has been waiting for a complete request (`None` while a request is in
@@ -67,15 +66,23 @@
 //! `--body-timeout-secs` and all within `--request-timeout-secs`, before the
 //! socket closes. A lingering connection counts as idle for the limit.
 
+mod body_rate;
 mod framing;
+mod limits;
+mod registry;
 
-use std::collections::HashMap;
+pub use body_rate::{BodyRate, BodyTooSlow};
+use body_rate::{Meter, Tracked};
+pub use limits::{default_max_connections, raise_open_file_limit};
+pub use registry::Registry;
+use registry::{Connection, Registered, BUSY, EVICTED};
+
 use std::convert::Infallible;
 use std::future::Future;
 use std::pin::Pin;
-use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
-use std::sync::{Arc, Mutex, OnceLock};
-use std::task::{Context, Poll, Waker};
+use std::sync::atomic::Ordering;
+use std::sync::Arc;
+use std::task::{Context, Poll};
 use std::time::{Duration, Instant};
 
 use axum::body::{Body, Bytes, HttpBody};
@@ -86,12 +93,10 @@ use hyper::server::conn::http1;
 use hyper_util::rt::{TokioIo, TokioTimer};
 use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt, ReadBuf};
 use tokio::net::{TcpListener, TcpStream};
-use tokio::sync::{watch, Notify};
-use tokio::task::AbortHandle;
+use tokio::sync::watch;
 use tower::ServiceExt;
 
 use crate::service::infra::config::ServeArgs;
-use crate::service::infra::metrics::Metrics;
 
 /// The largest request head hyper buffers (request line and header
 /// fields); the service's own limits (`http::layers`: 8 KiB of request
@@ -103,309 +108,6 @@ pub const HYPER_MAX_HEAD_BYTES: usize = 128 * 1024;
 
 /// The most header fields hyper parses; more get its empty 431.
 pub const HYPER_MAX_HEADERS: usize = 256;
-
-/// File descriptors kept for everything but connections: standard streams,
-/// the listener, the runtime's, the log.
-const RESERVE_BASE: u64 = 64;
-
-/// The default limit's ceiling: more idle connections than this cost more
-/// memory than they are worth; `--max-connections` can go higher.
-const DEFAULT_CEILING: u64 = 65_536;
-
-/// Raises the soft limit on open files to the hard one (on Unix) and
-/// returns the soft limit then in force, if known.
-pub fn raise_open_file_limit() -> Option<u64> {
-    #[cfg(unix)]
-    {
-        use rustix::process::{getrlimit, setrlimit, Resource, Rlimit};
-        let limit = getrlimit(Resource::Nofile);
-        if limit.current.is_some() && limit.current != limit.maximum {
-            // An unlimited hard limit cannot be the soft one on Linux
-            // (`fs.nr_open` caps it); try a large finite value instead.
-            let target = limit.maximum.unwrap_or(1 << 20);
-            let raised = Rlimit {
-                current: Some(target),
-                maximum: limit.maximum,
-            };
-            if let Err(error) = setrlimit(Resource::Nofile, raised) {
-                tracing::debug!(%error, "cannot raise the open-file limit");
-            }
-        }
-        getrlimit(Resource::Nofile).current
-    }
-    #[cfg(not(unix))]
-    {
-        None
-    }
-}
-
-/// The default connection limit for `open_files` file descriptors: less a
-/// reserve of 64, 4 per database connection (database, WAL, shared memory,
-/// journal), 16 per worker (the image files of a frame) and a sixteenth of
-/// the limit (uploads' temporary files), at most 65,536. Without a known
-/// limit, 1,024.
-pub fn default_max_connections(open_files: Option<u64>, workers: usize, database: u32) -> usize {
-    let Some(open_files) = open_files else {
-        return 1024;
-    };
-    let reserve = RESERVE_BASE + 4 * u64::from(database) + 16 * workers as u64 + open_files / 16;
-    let max = if open_files > 2 * reserve {
-        open_files - reserve
-    } else {
-        open_files / 2
-    };
-    usize::try_from(max.clamp(1, DEFAULT_CEILING)).unwrap_or(1)
-}
-
-/// `idle` of a connection with a request in flight.
-const BUSY: u64 = 0;
-/// `idle` of a connection chosen to be closed.
-const EVICTED: u64 = u64::MAX;
-
-/// One connection as the registry sees it.
-#[derive(Debug)]
-struct Connection {
-    /// [`BUSY`], [`EVICTED`], or 1 + the milliseconds from the registry's
-    /// epoch to the moment it last became idle (accepted, or its last
-    /// answer ended).
-    idle: AtomicU64,
-    /// Set when a request's body was left unread: close by lingering.
-    unread_body: AtomicBool,
-    /// Set when a request's body arrived too slowly: linger for at most
-    /// the rate window.
-    too_slow: AtomicBool,
-    /// The body of the request in flight, if any.
-    meter: Mutex<Option<Arc<Meter>>>,
-    /// The scan of the incoming bytes for conflicting framing.
-    framing: Mutex<framing::Framing>,
-    /// Since when a write to the client has made no progress, if one is
-    /// waiting (the client reads none of its answer).
-    write_stalled: Mutex<Option<Instant>>,
-    /// Cancels the connection's task.
-    task: OnceLock<AbortHandle>,
-}
-
-impl Connection {
-    fn meter(&self) -> Option<Arc<Meter>> {
-        self.meter.lock().unwrap_or_else(|e| e.into_inner()).clone()
-    }
-
-    fn write_stalled(&self) -> std::sync::MutexGuard<'_, Option<Instant>> {
-        self.write_stalled.lock().unwrap_or_else(|e| e.into_inner())
-    }
-}
-
-/// The open connections.
-#[derive(Debug)]
-pub struct Registry {
-    max: usize,
-    epoch: Instant,
-    next_id: AtomicU64,
-    open: Mutex<HashMap<u64, Arc<Connection>>>,
-    /// Notified when a connection ends or becomes idle.
-    changed: Notify,
-    metrics: Arc<Metrics>,
-}
-
-impl Registry {
-    /// A registry allowing `max` connections at once (at least 1).
-    pub fn new(max: usize, metrics: Arc<Metrics>) -> Registry {
-        metrics.connection_limit(max);
-        Registry {
-            max: max.max(1),
-            epoch: Instant::now(),
-            next_id: AtomicU64::new(0),
-            open: Mutex::default(),
-            changed: Notify::new(),
-            metrics,
-        }
-    }
-
-    fn lock(&self) -> std::sync::MutexGuard<'_, HashMap<u64, Arc<Connection>>> {
-        self.open.lock().unwrap_or_else(|e| e.into_inner())
-    }
-
-    fn now(&self) -> u64 {
-        1 + u64::try_from(self.epoch.elapsed().as_millis()).unwrap_or(u64::MAX - 2)
-    }
-
-    /// How many connections are open.
-    pub fn len(&self) -> usize {
-        self.lock().len()
-    }
-
-    /// Whether none is open.
-    pub fn is_empty(&self) -> bool {
-        self.len() == 0
-    }
-
-    fn register(self: &Arc<Self>) -> Registered {
-        let id = self.next_id.fetch_add(1, Ordering::Relaxed);
-        let connection = Arc::new(Connection {
-            idle: AtomicU64::new(self.now()),
-            unread_body: AtomicBool::new(false),
-            too_slow: AtomicBool::new(false),
-            meter: Mutex::new(None),
-            framing: Mutex::default(),
-            write_stalled: Mutex::new(None),
-            task: OnceLock::new(),
-        });
-        let open = {
-            let mut open = self.lock();
-            open.insert(id, connection.clone());
-            open.len()
-        };
-        self.metrics.connections_open(open);
-        Registered {
-            registry: self.clone(),
-            id,
-            connection,
-        }
-    }
-
-    /// The latest `idle` value of a connection idle for at least `min`.
-    fn idle_cutoff(&self, min: Duration) -> u64 {
-        let min = u64::try_from(min.as_millis()).unwrap_or(u64::MAX);
-        self.now().saturating_sub(min)
-    }
-
-    /// Whether some connection has waited at least `min` without a
-    /// request in flight.
-    fn any_idle_for(&self, min: Duration) -> bool {
-        let cutoff = self.idle_cutoff(min);
-        self.lock().values().any(|c| {
-            let idle = c.idle.load(Ordering::Relaxed);
-            !matches!(idle, BUSY | EVICTED) && idle <= cutoff
-        })
-    }
-
-    /// The request in flight whose body arrives slowest, below `rate`
-    /// (over at least [`EVICTION_GRACE`] of waiting), if any.
-    fn slowest_body(&self, rate: &BodyRate) -> Option<Arc<Meter>> {
-        let open = self.lock();
-        let slowest = open
-            .values()
-            .filter(|c| c.idle.load(Ordering::Relaxed) == BUSY)
-            .filter_map(|c| c.meter())
-            .filter_map(|meter| Some((meter.slow_rate(rate)?, meter)))
-            .min_by(|(a, _), (b, _)| a.total_cmp(b))
-            .map(|(_, meter)| meter);
-        slowest
-    }
-
-    /// Whether some request in flight has a body arriving below `rate`.
-    fn any_slow_body(&self, rate: Option<&BodyRate>) -> bool {
-        rate.is_some_and(|rate| self.slowest_body(rate).is_some())
-    }
-
-    /// Ends the request whose body arrives slowest below `rate` (its body
-    /// fails with [`BodyTooSlow`], answered 408); false if there is none.
-    fn evict_slowest_body(&self, rate: Option<&BodyRate>) -> bool {
-        let Some(rate) = rate else {
-            return false;
-        };
-        let Some(meter) = self.slowest_body(rate) else {
-            return false;
-        };
-        meter.evict(rate);
-        self.metrics.slow_body_evicted();
-        true
-    }
-
-    /// The connection whose write has made no progress longest, for at
-    /// least `min`, other than `except`, if any.
-    fn longest_stalled_writer(&self, except: u64, min: Duration) -> Option<u64> {
-        let now = Instant::now();
-        self.lock()
-            .iter()
-            .filter(|(id, c)| **id != except && c.idle.load(Ordering::Relaxed) != EVICTED)
-            .filter_map(|(id, c)| {
-                let stalled = now.saturating_duration_since((*c.write_stalled())?);
-                (stalled >= min).then_some((stalled, *id))
-            })
-            .max()
-            .map(|(_, id)| id)
-    }
-
-    /// Closes the connection whose answer has been stalled longest (its
-    /// client reads none of it), for at least `min`, other than `except`;
-    /// false if there is none.
-    fn evict_stalled_writer(&self, except: u64, min: Duration) -> bool {
-        let Some(id) = self.longest_stalled_writer(except, min) else {
-            return false;
-        };
-        let mut open = self.lock();
-        let Some(connection) = open.remove(&id) else {
-            return false;
-        };
-        connection.idle.store(EVICTED, Ordering::Release);
-        if let Some(task) = connection.task.get() {
-            task.abort();
-        }
-        let len = open.len();
-        drop(open);
-        self.metrics.connection_evicted(len);
-        true
-    }
-
-    /// Closes the connection that has waited longest without a complete
-    /// request, other than `except`, if it has waited at least `min`;
-    /// false if there is none (every other one has a request in flight, or
-    /// has waited less).
-    fn evict_oldest_idle(&self, except: u64, min: Duration) -> bool {
-        let cutoff = self.idle_cutoff(min);
-        let mut open = self.lock();
-        loop {
-            let oldest = open
-                .iter()
-                .filter(|(id, _)| **id != except)
-                .filter_map(|(id, c)| {
-                    let idle = c.idle.load(Ordering::Relaxed);
-                    (!matches!(idle, BUSY | EVICTED) && idle <= cutoff).then_some((idle, *id))
-                })
-                .min();
-            let Some((idle, id)) = oldest else {
-                return false;
-            };
-            let connection = &open[&id];
-            // A request may have begun since the scan: then look again.
-            if connection
-                .idle
-                .compare_exchange(idle, EVICTED, Ordering::AcqRel, Ordering::Relaxed)
-                .is_err()
-            {
-                continue;
-            }
-            if let Some(task) = connection.task.get() {
-                task.abort();
-            }
-            open.remove(&id);
-            let len = open.len();
-            drop(open);
-            self.metrics.connection_evicted(len);
-            return true;
-        }
-    }
-}
-
-/// A connection's place in the registry; leaving it on drop.
-struct Registered {
-    registry: Arc<Registry>,
-    id: u64,
-    connection: Arc<Connection>,
-}
-
-impl Drop for Registered {
-    fn drop(&mut self) {
-        let open = {
-            let mut open = self.registry.lock();
-            open.remove(&self.id);
-            open.len()
-        };
-        self.registry.metrics.connections_open(open);
-        self.registry.changed.notify_waiters();
-    }
-}
 
 /// How connections are served.
 #[derive(Clone, Debug)]
@@ -442,28 +144,6 @@ impl Settings {
     }
 }
 
-/// The least rate at which a request body must arrive: `--min-body-rate`
-/// averaged over `--body-rate-window-secs`.
-#[derive(Clone, Copy, Debug)]
-pub struct BodyRate {
-    /// Bytes per second.
-    pub bytes_per_second: u64,
-    /// Over how much time waiting for the body it is averaged.
-    pub window: Duration,
-}
-
-impl BodyRate {
-    /// The bytes a window must bring.
-    fn bytes_per_window(&self) -> f64 {
-        self.bytes_per_second as f64 * self.window.as_secs_f64()
-    }
-}
-
-/// How long a connection is spared at the limit: a new or idle one for
-/// this long since it became idle (a client that just connected has that
-/// long to send its request before the next arrival may close it), and a
-/// request in flight until its body has been waited for this long (at
-/// most the rate window; its rate is not known before).
 const EVICTION_GRACE: Duration = Duration::from_secs(1);
 
 /// Serves HTTP/1.1 connections on `listener` with hyper until `shutdown`
@@ -920,273 +600,12 @@ impl HttpBody for Answer {
     }
 }
 
-/// A request's body, noting on its connection whether it was left unread,
-/// and holding it to the least rate ([`BodyRate`]).
-struct Tracked {
-    body: Incoming,
-    connection: Arc<Connection>,
-    ended: bool,
-    /// Its arrival, as the connection limit sees it.
-    meter: Arc<Meter>,
-    rate: Option<BodyRate>,
-    /// Wakes the body at the end of the current rate window.
-    timer: Option<Pin<Box<tokio::time::Sleep>>>,
-}
-
-impl HttpBody for Tracked {
-    type Data = Bytes;
-    type Error = axum::BoxError;
-
-    fn poll_frame(
-        mut self: Pin<&mut Self>,
-        cx: &mut Context<'_>,
-    ) -> Poll<Option<Result<Frame<Bytes>, axum::BoxError>>> {
-        let this = &mut *self;
-        if this.ended {
-            return Poll::Ready(None);
-        }
-        loop {
-            if let Some(error) = this.meter.evicted() {
-                return this.too_slow(error);
-            }
-            let polled = Pin::new(&mut this.body).poll_frame(cx);
-            let now = Instant::now();
-            match polled {
-                Poll::Pending => {}
-                Poll::Ready(None) => {
-                    this.ended = true;
-                    this.meter.arrived(now, 0, true);
-                    return Poll::Ready(None);
-                }
-                Poll::Ready(Some(Ok(frame))) => {
-                    let length = frame.data_ref().map_or(0, |data| data.len() as u64);
-                    this.meter.arrived(now, length, false);
-                    return Poll::Ready(Some(Ok(frame)));
-                }
-                Poll::Ready(Some(Err(error))) => {
-                    this.meter.arrived(now, 0, true);
-                    // Read no further: hyper's body ends after an error,
-                    // which would look like a whole body. What the client
-                    // still sends is lingered over.
-                    this.ended = true;
-                    this.connection.unread_body.store(true, Ordering::Relaxed);
-                    return Poll::Ready(Some(Err(error.into())));
-                }
-            }
-            let Some(rate) = this.rate else {
-                this.meter.waiting(now, cx.waker());
-                return Poll::Pending;
-            };
-            let left = match this.meter.waiting_checked(now, cx.waker(), &rate) {
-                Ok(left) => left,
-                Err(error) => return this.too_slow(error),
-            };
-            let deadline = tokio::time::Instant::from_std(now + left);
-            let timer = this
-                .timer
-                .get_or_insert_with(|| Box::pin(tokio::time::sleep_until(deadline)));
-            if timer.deadline() != deadline {
-                timer.as_mut().reset(deadline);
-            }
-            if timer.as_mut().poll(cx).is_pending() {
-                return Poll::Pending;
-            }
-            // The window ended meanwhile: look again.
-        }
-    }
-
-    fn is_end_stream(&self) -> bool {
-        self.ended || self.body.is_end_stream()
-    }
-
-    fn size_hint(&self) -> SizeHint {
-        self.body.size_hint()
-    }
-}
-
-impl Tracked {
-    /// Ends the body with `error`, marking the connection for a short
-    /// lingering close.
-    fn too_slow(
-        &mut self,
-        error: BodyTooSlow,
-    ) -> Poll<Option<Result<Frame<Bytes>, axum::BoxError>>> {
-        self.ended = true;
-        self.timer = None;
-        self.meter.arrived(Instant::now(), 0, true);
-        self.connection.too_slow.store(true, Ordering::Relaxed);
-        self.connection.unread_body.store(true, Ordering::Relaxed);
-        Poll::Ready(Some(Err(Box::new(error))))
-    }
-}
-
-impl Drop for Tracked {
-    fn drop(&mut self) {
-        self.meter.arrived(Instant::now(), 0, true);
-        if !self.ended && !self.body.is_end_stream() {
-            self.connection.unread_body.store(true, Ordering::Relaxed);
-        }
-    }
-}
-
-/// Why a request body was ended: it arrived below `--min-body-rate`.
-#[derive(Clone, Debug, thiserror::Error)]
-pub enum BodyTooSlow {
-    /// A whole window brought less than the rate asks.
-    #[error(
-        "the body arrived at {bytes} bytes in {window_secs} s, below the service's minimum of \
-         {bytes_per_second} bytes/s (--min-body-rate, averaged over --body-rate-window-secs)"
-    )]
-    Window {
-        /// What the window brought.
-        bytes: u64,
-        /// The window.
-        window_secs: u64,
-        /// The rate asked.
-        bytes_per_second: u64,
-    },
-    /// Ended at the connection limit to let a new connection in.
-    #[error(
-        "the body arrived at {bytes} bytes in {waited_secs:.1} s, below the service's minimum of \
-         {bytes_per_second} bytes/s (--min-body-rate), while every connection was busy; it was \
-         ended to let another client in"
-    )]
-    Evicted {
-        /// What had come.
-        bytes: u64,
-        /// In this much waiting.
-        waited_secs: f64,
-        /// The rate asked.
-        bytes_per_second: u64,
-    },
-}
-
-/// A request body's arrival: what came in how much waiting, shared by the
-/// body and the accept loop (which may end it, [`Meter::evict`]).
-#[derive(Debug, Default)]
-struct Meter(Mutex<MeterState>);
-
-#[derive(Debug, Default)]
-struct MeterState {
-    /// Bytes come.
-    bytes: u64,
-    /// Time spent waiting for them, before the current wait.
-    waited: Duration,
-    /// Since when the body is waited for, if it is.
-    waiting_since: Option<Instant>,
-    /// The bytes and the waiting at the start of the current rate window.
-    window_start: (u64, Duration),
-    /// Ended (whole, failed, dropped, or too slow).
-    ended: bool,
-    /// Why it is to end, set by the accept loop.
-    evicted: Option<BodyTooSlow>,
-    /// Wakes the body's reader, to see that it was evicted.
-    waker: Option<Waker>,
-}
-
-impl MeterState {
-    fn waited_until(&self, now: Instant) -> Duration {
-        self.waited
-            + self
-                .waiting_since
-                .map_or(Duration::ZERO, |since| now.saturating_duration_since(since))
-    }
-}
-
-impl Meter {
-    fn lock(&self) -> std::sync::MutexGuard<'_, MeterState> {
-        self.0.lock().unwrap_or_else(|e| e.into_inner())
-    }
-
-    /// `bytes` came at `now` (`ended`: and nothing more will).
-    fn arrived(&self, now: Instant, bytes: u64, ended: bool) {
-        let mut state = self.lock();
-        state.waited = state.waited_until(now);
-        state.waiting_since = None;
-        state.bytes += bytes;
-        state.ended |= ended;
-        if ended {
-            state.waker = None;
-        }
-    }
-
-    /// The body is waited for from `now` on (if not already).
-    fn waiting(&self, now: Instant, waker: &Waker) {
-        let mut state = self.lock();
-        state.waiting_since.get_or_insert(now);
-        if !state.waker.as_ref().is_some_and(|w| w.will_wake(waker)) {
-            state.waker = Some(waker.clone());
-        }
-    }
-
-    /// [`Meter::waiting`], and the rate check: an error if a whole window
-    /// of waiting brought less than `rate` asks, else the waiting left in
-    /// the current window.
-    fn waiting_checked(
-        &self,
-        now: Instant,
-        waker: &Waker,
-        rate: &BodyRate,
-    ) -> Result<Duration, BodyTooSlow> {
-        self.waiting(now, waker);
-        let mut state = self.lock();
-        let waited = state.waited_until(now);
-        let (start_bytes, start_waited) = state.window_start;
-        let in_window = waited.saturating_sub(start_waited);
-        if in_window < rate.window {
-            return Ok(rate.window - in_window);
-        }
-        let bytes = state.bytes - start_bytes;
-        if (bytes as f64) < rate.bytes_per_window() {
-            return Err(BodyTooSlow::Window {
-                bytes,
-                window_secs: rate.window.as_secs(),
-                bytes_per_second: rate.bytes_per_second,
-            });
-        }
-        state.window_start = (state.bytes, waited);
-        Ok(rate.window)
-    }
-
-    /// The rate at which the body arrives, if it is waited for now, has
-    /// been for at least [`EVICTION_GRACE`] (or the window, if shorter),
-    /// and arrives below `rate`: the candidates for [`Meter::evict`].
-    fn slow_rate(&self, rate: &BodyRate) -> Option<f64> {
-        let state = self.lock();
-        if state.ended || state.evicted.is_some() || state.waiting_since.is_none() {
-            return None;
-        }
-        let waited = state.waited_until(Instant::now());
-        if waited < EVICTION_GRACE.min(rate.window) {
-            return None;
-        }
-        let per_second = state.bytes as f64 / waited.as_secs_f64();
-        (per_second < rate.bytes_per_second as f64).then_some(per_second)
-    }
-
-    /// Ends the body at its next read (waking its reader).
-    fn evict(&self, rate: &BodyRate) {
-        let mut state = self.lock();
-        let waited = state.waited_until(Instant::now());
-        state.evicted = Some(BodyTooSlow::Evicted {
-            bytes: state.bytes,
-            waited_secs: waited.as_secs_f64(),
-            bytes_per_second: rate.bytes_per_second,
-        });
-        if let Some(waker) = state.waker.take() {
-            waker.wake();
-        }
-    }
-
-    /// Why the body is to end, if the accept loop chose it.
-    fn evicted(&self) -> Option<BodyTooSlow> {
-        self.lock().evicted.clone()
-    }
-}
-
 #[cfg(test)]
 mod tests {
+    use std::task::Waker;
+
     use super::*;
+    use crate::service::infra::metrics::Metrics;
 
     #[test]
     fn the_default_limit_keeps_a_reserve() {
