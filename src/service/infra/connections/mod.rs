@@ -1,9 +1,10 @@
 //! Serving HTTP/1.1 connections with hyper, within a connection limit.
 //!
 //! In this folder: `mod.rs` the accept loop and the per-connection
-//! service, [`registry`] the connections and the limit, [`body_rate`] the
-//! least rate of request bodies, [`limits`] the default limit, `framing`
-//! the scan of request heads.
+//! service, [`registry`] the connections and the limit, `tracked` a
+//! request's body as its connection sees it, [`body_rate`] the least rate
+//! of request bodies, [`limits`] the default limit, `framing` the scan of
+//! request heads.
 //!
 //! Every connection lives in a [`Registry`] with the time since which it
 //! has been waiting for a complete request (`None` while a request is in
@@ -70,12 +71,14 @@ mod body_rate;
 mod framing;
 mod limits;
 mod registry;
+mod tracked;
 
+use body_rate::Meter;
 pub use body_rate::{BodyRate, BodyTooSlow};
-use body_rate::{Meter, Tracked};
 pub use limits::{default_max_connections, raise_open_file_limit};
 pub use registry::Registry;
 use registry::{Connection, Registered, BUSY, EVICTED};
+use tracked::Tracked;
 
 use std::convert::Infallible;
 use std::future::Future;
@@ -144,6 +147,11 @@ impl Settings {
     }
 }
 
+/// How long a connection is spared at the limit: a new or idle one for
+/// this long since it became idle (a client that just connected has that
+/// long to send its request before the next arrival may close it), and a
+/// request in flight until its body has been waited for this long (at
+/// most the rate window; its rate is not known before).
 const EVICTION_GRACE: Duration = Duration::from_secs(1);
 
 /// Serves HTTP/1.1 connections on `listener` with hyper until `shutdown`
