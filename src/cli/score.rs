@@ -1,10 +1,14 @@
 //! `ptv score`: a particle table scored against the simulator's truth by
 //! the LPT challenge's rule ([`crate::photogrammetry::score`]): the 1-voxel
 //! test, recall, ghost fraction, position RMS in voxels, mm and
-//! reprojected px. Any table with `x,y,z` columns can be scored (`ptv
-//! reconstruct`'s, `ptv match`'s, `ptv process`'s), against any table with
-//! `x,y,z` (`ptv simulate`'s `truth.csv` or a sequence's
-//! `truth.FFFFF.csv`). The scores go to standard output as JSON.
+//! reprojected px; and the seeding density the images show: the true
+//! particles per pixel of the volume's footprint in each camera (`ppp`,
+//! the mean over the cameras, and `ppp_per_camera`), which is the density
+//! to quote (over the sensor's whole area it understates the density
+//! wherever the volume does not fill the view). Any table with `x,y,z`
+//! columns can be scored (`ptv reconstruct`'s, `ptv match`'s, `ptv
+//! process`'s), against any table with `x,y,z` (`ptv simulate`'s
+//! `truth.csv` or a sequence's `truth.FFFFF.csv`). The scores go to standard output as JSON.
 
 use std::io::Write;
 use std::path::PathBuf;
@@ -16,7 +20,7 @@ use serde_json::json;
 use super::match_targets::parse_volume;
 use super::{read_calibration, write_stdout, CliError};
 use crate::formats;
-use crate::photogrammetry::score::{score_particles, voxel};
+use crate::photogrammetry::score::{particles_per_pixel, score_particles, voxel};
 use crate::photogrammetry::Volume;
 
 /// Arguments of `ptv score`.
@@ -71,7 +75,12 @@ pub(super) fn run(args: &ScoreArgs, stdout: &mut dyn Write) -> Result<(), CliErr
             .to_owned(),
     })?;
     let s = score_particles(&truth, &particles, voxel, &cameras);
+    let ppp = particles_per_pixel(truth.len(), &volume, &cameras);
+    let known: Vec<f64> = ppp.iter().flatten().copied().collect();
+    let mean_ppp = (!known.is_empty()).then(|| known.iter().sum::<f64>() / known.len() as f64);
     let report = json!({
+        "ppp": mean_ppp,
+        "ppp_per_camera": ppp,
         "voxel_mm": [s.voxel.x, s.voxel.y, s.voxel.z],
         "truth": s.truth,
         "reconstructed": s.reconstructed,

@@ -100,6 +100,20 @@ fn reconstruct_then_score_a_sparse_frame_set() {
     assert!(score["recall"].as_f64().unwrap() >= 0.97, "{score}");
     assert!(score["ghost_fraction"].as_f64().unwrap() <= 0.03, "{score}");
     assert!(score["rms_px"].as_f64().unwrap() <= 0.05, "{score}");
+    // The density is over the volume's footprint, which is smaller than
+    // the sensor in every camera here: above 2,000 over the whole sensor.
+    let per_camera = score["ppp_per_camera"].as_array().unwrap();
+    assert_eq!(per_camera.len(), 4, "{score}");
+    let over_sensor = 2000.0 / (1280.0 * 1024.0);
+    for ppp in per_camera {
+        let ppp = ppp.as_f64().unwrap();
+        assert!(ppp > over_sensor && ppp < 1.0, "{score}");
+    }
+    let mean = per_camera.iter().map(|p| p.as_f64().unwrap()).sum::<f64>() / 4.0;
+    assert!(
+        (score["ppp"].as_f64().unwrap() - mean).abs() < 1e-12,
+        "{score}"
+    );
     // The truth scored against itself: everything found, exactly.
     let perfect: serde_json::Value = serde_json::from_str(&succeeds(&ptv(
         &[
