@@ -185,8 +185,8 @@ async fn open_and_reap(config: &ServeArgs, readers: u32) -> Result<Store, Servic
         // anything else (a password refused, a failed migration) ends the
         // start at once.
         let database = config.storage.database.as_ref();
-        let unreachable = store::error_kind(&error) == store::ErrorKind::Unavailable
-            || (database.is_some() && matches!(error, sqlx::Error::Io(_)));
+        let unreachable =
+            error.kind() == store::ErrorKind::Unavailable || (database.is_some() && error.is_io());
         if !unreachable {
             return Err(ServiceError::Database(error));
         }

@@ -52,7 +52,7 @@ pub enum ServiceError {
     },
     /// The database could not be opened or migrated.
     #[error("the database: {0}")]
-    Database(#[source] sqlx::Error),
+    Database(#[source] store::StoreError),
     /// The database server could not be reached within
     /// `--database-wait-secs`.
     #[error(
@@ -67,7 +67,7 @@ pub enum ServiceError {
         /// How long it was tried.
         waited_secs: u64,
         /// The last attempt's error.
-        source: sqlx::Error,
+        source: store::StoreError,
     },
     /// The image store could not be opened (a data directory that cannot
     /// be written, an object store that cannot be reached or refuses the

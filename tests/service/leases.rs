@@ -9,6 +9,7 @@
 
 use std::time::Duration;
 
+use ptv::service::model::parameters::SequenceParameters;
 use ptv::service::store::{
     ClaimOutcome, CompleteError, FrameNumber, JobResult, JobState, LeaseToken, Store, MAX_ATTEMPTS,
 };
@@ -215,13 +216,17 @@ async fn the_reaper_ends_the_leases_of_dead_processes_of_this_host_only() {
 async fn a_tracking_run_is_held_by_one_owner_and_fenced_on_its_token() {
     let (_dir, store) = store().await;
     let calibration = store.insert_calibration("{}", 2, None).await.unwrap();
+    let parameters = SequenceParameters::with_defaults(Default::default(), Default::default());
     let sequence = store
-        .insert_sequence(calibration.id, "", "{}", true, None)
+        .insert_sequence(calibration.id, "", &parameters, true, None)
         .await
         .unwrap()
         .unwrap();
     let run = store
-        .insert_tracking_run(sequence.id, r#"{"max_velocity": 1.0}"#)
+        .insert_tracking_run(
+            sequence.id,
+            &serde_json::from_str(r#"{"max_velocity": 1.0}"#).unwrap(),
+        )
         .await
         .unwrap()
         .unwrap();

@@ -342,7 +342,7 @@ async fn a_real_full_disk_is_a_507_and_freeing_space_is_enough() {
 /// unavailable (503). PostgreSQL only.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn postgres_errors_map_to_their_kinds() {
-    use ptv::service::store::{error_kind, ErrorKind};
+    use ptv::service::store::{ErrorKind, StoreError};
     let data_dir = tempfile::tempdir().unwrap();
     if !crate::postgres::enabled() {
         // SQLite's full disk is the page-limit test above.
@@ -362,7 +362,7 @@ async fn postgres_errors_map_to_their_kinds() {
         .execute(&db)
         .await
         .unwrap_err();
-        assert_eq!(error_kind(&error), kind, "{code}: {error:?}");
+        assert_eq!(StoreError::from(error).kind(), kind, "{code}");
     }
     db.close().await;
 }

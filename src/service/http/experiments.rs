@@ -48,7 +48,7 @@ use crate::service::ops::images::UploadedFile;
 use crate::service::ops::jobs::pipelines::prepare_pipeline;
 use crate::service::ops::links;
 use crate::service::ops::state::AppState;
-use crate::service::store::{CalibrationId, SequenceId};
+use crate::service::store::{CalibrationId, NewSequenceImage, SequenceId};
 
 /// Files an experiment upload may have.
 const MAX_FILES: usize = 128;
@@ -175,7 +175,7 @@ pub async fn import(
             if let Some(volume) = &experiment.matching.volume {
                 settings.check_volume(volume)?;
             }
-            Some(serde_json::to_string(&settings)?)
+            Some(settings)
         }
         None => None,
     };
@@ -185,7 +185,7 @@ pub async fn import(
     let (calibration, sequence) = persist_and_commit(&state, files, || {
         state
             .store
-            .insert_experiment(&model, cameras, &name, &sequence_json, keep_images, &rows)
+            .insert_experiment(&model, cameras, &name, &parameters, keep_images, &rows)
     })
     .await?;
     state.pipelines.insert(
@@ -374,13 +374,13 @@ fn settings_json(experiment: &Experiment) -> Result<String, ApiError> {
 }
 
 /// The experiment's masking images as files for the image store, with their
-/// rows (camera, hash, size, bits), each checked against its camera's
+/// rows, each checked against its camera's
 /// sensor: the sequence's backgrounds, as pyptv subtracts them.
 async fn mask_files(
     state: &AppState,
     experiment: &Experiment,
     uploaded: &Arc<UploadedFiles>,
-) -> Result<Vec<(UploadedFile, (i64, String, i64, i64))>, ApiError> {
+) -> Result<Vec<(UploadedFile, NewSequenceImage)>, ApiError> {
     let Some(masks) = &experiment.masks else {
         return Ok(Vec::new());
     };
@@ -409,12 +409,12 @@ async fn mask_files(
         .zip(headers)
         .enumerate()
         .map(|(camera, (file, header))| {
-            let row = (
-                camera as i64,
-                file.sha256.clone(),
-                file.size as i64,
-                i64::from(header.bit_depth.bits()),
-            );
+            let row = NewSequenceImage {
+                camera: camera as i64,
+                sha256: file.sha256.clone(),
+                size: file.size as i64,
+                bits: i64::from(header.bit_depth.bits()),
+            };
             (file, row)
         })
         .collect())

@@ -32,7 +32,8 @@ use crate::service::ops::images::UploadedFile;
 use crate::service::ops::links;
 use crate::service::ops::state::AppState;
 use crate::service::store::{
-    FrameInputKind, FrameNumber, InsertFrameError, JobId, NewFrame, SequenceId, SequenceImageKind,
+    CameraImage, FrameInputKind, FrameNumber, InsertFrameError, JobId, NewFrame, SequenceId,
+    SequenceImageKind,
 };
 
 /// Largest targets part (bytes). The part is parsed as it arrives
@@ -465,7 +466,11 @@ pub async fn upload_frame(
         })
         .await?;
         check_background_depths(&state, id, &vec![headers[0]; n]).await?;
-        new_frame.images = vec![(0, whole.sha256.clone(), whole.size as i64)];
+        new_frame.images = vec![CameraImage {
+            camera: 0,
+            sha256: whole.sha256.clone(),
+            size: whole.size as i64,
+        }];
     } else if !images.is_empty() {
         let sensors: Vec<Sensor> = cameras.iter().map(|c| c.sensor().clone()).collect();
         let layout = raw.as_ref().and_then(StoredRawLayout::layout);
@@ -475,7 +480,11 @@ pub async fn upload_frame(
         new_frame.images = images
             .iter()
             .enumerate()
-            .map(|(camera, f)| (camera as i64, f.sha256.clone(), f.size as i64))
+            .map(|(camera, f)| CameraImage {
+                camera: camera as i64,
+                sha256: f.sha256.clone(),
+                size: f.size as i64,
+            })
             .collect();
     } else {
         new_frame.targets = codec::encode_frame_targets(targets.iter().flatten());

@@ -35,7 +35,7 @@ use crate::plot::overlay::{overlay_plot, Overlay};
 use crate::plot::residuals::{residual_plot, ResidualReport};
 use crate::plot::views::{particles_plot, trajectories_plot, ParticlePoint, TrajectoryPoint};
 use crate::plot::PlotFormat;
-use crate::service::infra::codec;
+use crate::service::infra::codec::{self, CameraTargets};
 use crate::service::model::raw_layout::StoredRawLayout;
 use crate::service::ops::state::AppState;
 use crate::service::store::{CalibrationId, FrameNumber, SequenceId, TrackingRunId};
@@ -258,7 +258,9 @@ pub async fn overlay(
     let frame = FrameNumber(frame.into());
     let (cameras_n, particles, made_by) = load_particles(&state, id, frame).await?;
     let stored = state.store.frame_targets(id, frame).await?;
-    let Some((_, _, blob)) = stored.iter().find(|(c, _, _)| *c == query.camera as i64) else {
+    let Some(CameraTargets { data: blob, .. }) =
+        stored.iter().find(|t| t.camera == query.camera as i64)
+    else {
         if stored.is_empty() {
             return Err(no_results(&state, id, frame).await);
         }
@@ -357,8 +359,8 @@ async fn stored_image(
              created with keep_images false, or the frame came as targets; {hint}"
         ))
     };
-    let (_, sha256) = images.get(wanted).ok_or_else(not_kept)?;
-    let bytes = match state.images.read(sha256).await {
+    let image = images.get(wanted).ok_or_else(not_kept)?;
+    let bytes = match state.images.read(&image.sha256).await {
         Ok(bytes) => bytes,
         Err(crate::service::ops::images::ImageStoreError::Missing { .. }) => return Err(not_kept()),
         Err(e) => return Err(e.into()),

@@ -227,11 +227,11 @@ impl From<crate::service::ops::health::HealthError> for ApiError {
     }
 }
 
-impl From<sqlx::Error> for ApiError {
+impl From<store::StoreError> for ApiError {
     /// A full disk is a 507, a database that cannot be reached a 503 (both
     /// with `Retry-After`); any other database error a 500.
-    fn from(error: sqlx::Error) -> Self {
-        match store::error_kind(&error) {
+    fn from(error: store::StoreError) -> Self {
+        match error.kind() {
             store::ErrorKind::StorageFull => ApiError::storage_full(error),
             store::ErrorKind::Unavailable => ApiError::unavailable("database", error),
             store::ErrorKind::Other => ApiError::internal(error),
@@ -502,7 +502,9 @@ mod tests {
     fn a_full_disk_is_a_507_with_retry_after() {
         for error in [
             ApiError::from(std::io::Error::from_raw_os_error(28)),
-            ApiError::from(sqlx::Error::Io(std::io::Error::from_raw_os_error(28))),
+            ApiError::from(store::StoreError::from(std::io::Error::from_raw_os_error(
+                28,
+            ))),
         ] {
             let response = error.into_response();
             assert_eq!(response.status(), StatusCode::INSUFFICIENT_STORAGE);

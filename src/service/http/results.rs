@@ -18,7 +18,7 @@ use super::problem::{ApiError, ApiPath, ApiQuery};
 use super::tracking::frame_trajectories;
 use crate::formats;
 use crate::photogrammetry::correspond::Particle;
-use crate::service::infra::codec;
+use crate::service::infra::codec::{self, CameraTargets};
 use crate::service::ops::state::AppState;
 use crate::service::store::{CalibrationId, FrameNumber, SequenceId, TrackingRunId};
 
@@ -298,9 +298,9 @@ pub async fn frame_targets(
     if stored.is_empty() {
         return Err(no_results(&state, id, frame).await);
     }
-    let (_, _, blob) = stored
+    let CameraTargets { data: blob, .. } = stored
         .iter()
-        .find(|(camera, _, _)| *camera == query.camera as i64)
+        .find(|t| t.camera == query.camera as i64)
         .ok_or_else(|| {
             ApiError::not_found(format!(
                 "camera {} does not exist; cameras are 0 to {}",

@@ -17,7 +17,6 @@ use super::problem::{ApiError, ApiJson, ApiPath};
 use super::upload::accepted;
 use crate::formats;
 use crate::service::model::job_kind::JobKind;
-use crate::service::model::parameters::SequenceParameters;
 use crate::service::ops::links;
 use crate::service::ops::selfcal::{
     SelfCalibrationPayload, SelfCalibrationRequest, SelfCalibrationRequestError,
@@ -84,8 +83,7 @@ pub async fn self_calibrate(
     )
     .map_err(ApiError::internal)?;
     let parameters: Vec<_> = cameras.iter().map(|c| c.parameters().clone()).collect();
-    let sequence_parameters: SequenceParameters = serde_json::from_str(&row.parameters)?;
-    request.options(&parameters, sequence_parameters.matching().volume)?;
+    request.options(&parameters, row.parameters.matching().volume)?;
     let frames = state
         .store
         .frames_with_targets(id, request.span(), calibration.cameras)

@@ -23,11 +23,10 @@ use super::problem::{ApiError, ApiMultipart, ApiPath};
 use super::sequences::{sequence_cameras_and_row, view, SequenceView};
 use super::upload::{check_images, or_drain, persist_and_commit, stream_part};
 use crate::photogrammetry::Sensor;
-use crate::service::model::parameters::SequenceParameters;
 use crate::service::ops::images::UploadedFile;
 use crate::service::ops::links;
 use crate::service::ops::state::AppState;
-use crate::service::store::{SequenceId, SequenceImageKind, SequenceImagesError};
+use crate::service::store::{NewSequenceImage, SequenceId, SequenceImageKind, SequenceImagesError};
 
 pub(super) fn router() -> Router<Arc<AppState>> {
     Router::new()
@@ -106,8 +105,7 @@ async fn upload(
 ) -> Result<Response, ApiError> {
     let checked = async {
         let rig = sequence_cameras_and_row(&state, id).await?;
-        let parameters: SequenceParameters = serde_json::from_str(&rig.row.parameters)?;
-        if kind == SequenceImageKind::Background && parameters.background.is_some() {
+        if kind == SequenceImageKind::Background && rig.row.parameters.background.is_some() {
             return Err(ApiError::conflict(format!(
                 "sequence {id} computes its background from its frames (`background` when it \
                  was created); create a sequence without it to upload one"
@@ -136,17 +134,15 @@ async fn upload(
         format!("{kind} of cam{}", names[i])
     })
     .await?;
-    let rows: Vec<(i64, String, i64, i64)> = given
+    let rows: Vec<NewSequenceImage> = given
         .iter()
         .zip(&files)
         .zip(&headers)
-        .map(|((&camera, file), header)| {
-            (
-                camera as i64,
-                file.sha256.clone(),
-                file.size as i64,
-                i64::from(header.bit_depth.bits()),
-            )
+        .map(|((&camera, file), header)| NewSequenceImage {
+            camera: camera as i64,
+            sha256: file.sha256.clone(),
+            size: file.size as i64,
+            bits: i64::from(header.bit_depth.bits()),
         })
         .collect();
     persist_and_commit(&state, files, || {

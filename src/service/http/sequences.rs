@@ -134,7 +134,6 @@ pub struct SequenceView {
 
 pub(super) async fn view(state: &AppState, row: SequenceRow) -> Result<SequenceView, ApiError> {
     let counts = state.store.frame_counts(row.id).await?;
-    let parameters: SequenceParameters = serde_json::from_str(&row.parameters)?;
     let images = state.store.sequence_images(row.id).await?;
     let cameras_of = |kind| {
         images
@@ -148,7 +147,7 @@ pub(super) async fn view(state: &AppState, row: SequenceRow) -> Result<SequenceV
         Some(run) => Some(run_view(state, run).await?),
         None => None,
     };
-    let background = match (&parameters.background, background_cameras.is_empty()) {
+    let background = match (&row.parameters.background, background_cameras.is_empty()) {
         (None, true) => BackgroundStatus::None,
         (None, false) => BackgroundStatus::Uploaded,
         (Some(_), true) => BackgroundStatus::Waiting,
@@ -158,7 +157,7 @@ pub(super) async fn view(state: &AppState, row: SequenceRow) -> Result<SequenceV
         id: row.id,
         calibration_id: row.calibration_id,
         name: row.name,
-        parameters,
+        parameters: row.parameters,
         keep_images: row.keep_images,
         background,
         background_cameras,
@@ -237,19 +236,18 @@ pub async fn create(
     let tracking = match tracking {
         Some(settings) => {
             settings.check_volume(pipeline.volume())?;
-            Some(serde_json::to_string(&settings)?)
+            Some(settings)
         }
         None => None,
     };
-    let stored = serde_json::to_string(&parameters)?;
     let row = state
         .store
         .insert_sequence(
             calibration.id,
             &name,
-            &stored,
+            &parameters,
             request.keep_images.unwrap_or(true),
-            tracking.as_deref(),
+            tracking.as_ref(),
         )
         .await?
         .ok_or_else(|| ApiError::unprocessable("calibration_id: the calibration does not exist"))?;

@@ -21,14 +21,13 @@ use crate::formats;
 use crate::formats::frames::FrameRange;
 use crate::photogrammetry::correspond::default_volume;
 use crate::photogrammetry::Volume;
-use crate::service::model::parameters::SequenceParameters;
 use crate::service::model::tracking_settings::TrackingSettings;
 use crate::service::ops::state::AppState;
 use crate::service::ops::tracking::kick;
 use crate::service::store::SequenceRow;
 use crate::service::store::{
-    CalibrationId, FrameNumber, PointRow, SequenceId, TrackingRunId, TrackingRunRow, TrackingState,
-    TrajectoryRow,
+    CalibrationId, FrameNumber, PointRow, SequenceId, StoreError, TrackingRunId, TrackingRunRow,
+    TrackingState, TrajectoryRow,
 };
 
 pub(super) fn router() -> Router<Arc<AppState>> {
@@ -108,7 +107,7 @@ pub(super) async fn run_view(
     let trajectories = state.store.trajectory_count(row.id).await?;
     Ok(TrackingRunView {
         run_id: row.id,
-        settings: serde_json::from_str::<TrackingSettings>(&row.parameters)?.as_stored(),
+        settings: row.parameters.as_stored(),
         calibration_id: row.calibration_id,
         state: match row.state {
             TrackingState::Tracking => TrackingStateView::Tracking,
@@ -157,7 +156,7 @@ pub async fn start(
     let previous = state.store.current_tracking_run(id).await?;
     let row = state
         .store
-        .insert_tracking_run(id, &serde_json::to_string(&settings)?)
+        .insert_tracking_run(id, &settings)
         .await?
         .ok_or_else(|| ApiError::not_found(format!("sequence {id} does not exist")))?;
     if let Some(previous) = previous {
@@ -175,8 +174,7 @@ async fn observation_volume(
     state: &AppState,
     row: &SequenceRow,
 ) -> Result<Option<Volume>, ApiError> {
-    let parameters: SequenceParameters = serde_json::from_str(&row.parameters)?;
-    if let Some(volume) = parameters.matching().volume {
+    if let Some(volume) = row.parameters.matching().volume {
         return Ok(Some(volume));
     }
     let calibration = super::calibrations::calibration(state, row.calibration_id).await?;
@@ -417,7 +415,7 @@ async fn page(
     list: &[TrajectoryRow],
     frames: (FrameNumber, FrameNumber),
     first_of_all: bool,
-) -> Result<String, sqlx::Error> {
+) -> Result<String, StoreError> {
     let (Some(low), Some(high)) = (list.first(), list.last()) else {
         return Ok(String::new());
     };
@@ -592,7 +590,7 @@ pub async fn trajectories(
                 let text = page(&state, run_id, format, &list, frames, after < 0).await?;
                 let next = (list.len() == TRAJECTORIES_PER_PAGE as usize)
                     .then(|| list.last().map_or(after, |t| t.id));
-                Ok::<_, sqlx::Error>((text, next))
+                Ok::<_, StoreError>((text, next))
             }
             .await;
             match chunk {

@@ -45,15 +45,38 @@ pub fn encode_targets(targets: &[Target]) -> Vec<u8> {
     out
 }
 
+/// One camera's targets of a frame as the store keeps them: the camera,
+/// how many, and their blob ([`encode_targets`]).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct CameraTargets {
+    /// The camera, from 0.
+    pub camera: i64,
+    /// How many targets the blob holds.
+    pub count: i64,
+    /// The targets, as [`encode_targets`] writes them.
+    pub data: Vec<u8>,
+}
+
+impl CameraTargets {
+    /// The targets ([`decode_targets`]).
+    pub fn decode(&self) -> Result<Vec<Target>, DamagedBlob> {
+        decode_targets(&self.data)
+    }
+}
+
 /// Encodes a frame's targets, per camera in camera order, as the store
-/// keeps them: camera, count and blob.
+/// keeps them.
 pub fn encode_frame_targets<'a>(
     cameras: impl IntoIterator<Item = &'a Vec<Target>>,
-) -> Vec<(i64, i64, Vec<u8>)> {
+) -> Vec<CameraTargets> {
     cameras
         .into_iter()
         .enumerate()
-        .map(|(camera, targets)| (camera as i64, targets.len() as i64, encode_targets(targets)))
+        .map(|(camera, targets)| CameraTargets {
+            camera: camera as i64,
+            count: targets.len() as i64,
+            data: encode_targets(targets),
+        })
         .collect()
 }
 

@@ -43,7 +43,7 @@ use crate::photogrammetry::health::{
     HealthOptions,
 };
 use crate::photogrammetry::{Camera, Target, Volume};
-use crate::service::model::parameters::{HealthSettings, SequenceParameters};
+use crate::service::model::parameters::HealthSettings;
 use crate::service::ops::events::Change;
 use crate::service::ops::state::AppState;
 use crate::service::store::{
@@ -154,7 +154,7 @@ pub struct Monitor {
 pub enum HealthError {
     /// The database failed.
     #[error(transparent)]
-    Database(#[from] sqlx::Error),
+    Database(#[from] crate::service::store::StoreError),
     /// The sequence does not exist.
     #[error("sequence {0} does not exist")]
     NoSequence(SequenceId),
@@ -171,9 +171,7 @@ async fn step(state: &AppState, sequence_id: SequenceId) -> Result<Monitor, Heal
         .sequence(sequence_id)
         .await?
         .ok_or(HealthError::NoSequence(sequence_id))?;
-    let parameters: SequenceParameters = serde_json::from_str(&sequence.parameters)
-        .map_err(|_| HealthError::Stored(sequence_id, "parameters"))?;
-    let settings = parameters.health();
+    let settings = sequence.parameters.health();
     let cameras = state
         .store
         .calibration(sequence.calibration_id)

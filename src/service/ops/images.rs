@@ -432,7 +432,10 @@ impl ImageStore {
     /// file system without `flock`), the process's own mutex stands in for
     /// it, with a warning. Fails only where the database's lock cannot be
     /// taken (PostgreSQL out of reach).
-    pub async fn lock(&self, database: &Store) -> Result<ImageLock<'_>, sqlx::Error> {
+    pub async fn lock(
+        &self,
+        database: &Store,
+    ) -> Result<ImageLock<'_>, crate::service::store::StoreError> {
         let guard = self.lock.lock().await;
         let file = match crate::service::infra::file_lock::exclusive(self.lock_file.clone()).await {
             Ok(file) => Some(file),
@@ -653,7 +656,7 @@ pub enum SweepError {
     Images(#[from] ImageStoreError),
     /// The database.
     #[error("the database: {0}")]
-    Database(#[from] sqlx::Error),
+    Database(#[from] crate::service::store::StoreError),
 }
 
 /// Puts a local file as an object: in one request up to

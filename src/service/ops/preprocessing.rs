@@ -29,7 +29,9 @@ use crate::service::model::parameters::ComputedBackground;
 use crate::service::model::raw_layout::StoredRawLayout;
 use crate::service::ops::jobs::attempt::JobError;
 use crate::service::ops::state::AppState;
-use crate::service::store::{FrameNumber, SequenceId, SequenceImage, SequenceImageKind};
+use crate::service::store::{
+    CameraImage, FrameNumber, NewSequenceImage, SequenceId, SequenceImage, SequenceImageKind,
+};
 
 /// How long a frame job waiting for its sequence's background stays
 /// unclaimed before it looks again.
@@ -184,8 +186,13 @@ pub async fn ensure_computed_background(
             // With a splitter, the one image holds every camera's view.
             let image = images
                 .iter()
-                .find(|(c, _)| splitter.is_some() || usize::try_from(*c).ok() == Some(camera));
-            let Some((stored_camera, sha256)) = image else {
+                .find(|i| splitter.is_some() || usize::try_from(i.camera).ok() == Some(camera));
+            let Some(CameraImage {
+                camera: stored_camera,
+                sha256,
+                ..
+            }) = image
+            else {
                 continue;
             };
             let stored_camera = *stored_camera;
@@ -266,7 +273,7 @@ pub async fn ensure_computed_background(
 
 /// A frame's number, raw layout (if raw) and (camera, SHA-256) of its
 /// image files.
-type FrameFiles = (FrameNumber, Option<RawLayout>, Vec<(i64, String)>);
+type FrameFiles = (FrameNumber, Option<RawLayout>, Vec<CameraImage>);
 
 /// What computing a sequence's background needs at most (see
 /// [`ensure_computed_background`], [`budget::background_bytes`]):
@@ -284,7 +291,7 @@ async fn computed_background_need(
     let mut sample_bytes = 1;
     let mut compressed = 0u64;
     if let Some((frame, layout, images)) = inputs.first() {
-        for (camera, sha256) in images {
+        for CameraImage { camera, sha256, .. } in images {
             let bytes = state.images.read(sha256).await.map_err(|e| {
                 JobError::image(&format!("the image of camera {camera} of frame {frame}"), e)
             })?;
@@ -361,7 +368,12 @@ async fn store_backgrounds(
     let mut files = Vec::with_capacity(backgrounds.len());
     let mut rows = Vec::with_capacity(backgrounds.len());
     for (camera, file, bits) in backgrounds {
-        rows.push((camera, file.sha256.clone(), file.size as i64, bits));
+        rows.push(NewSequenceImage {
+            camera,
+            sha256: file.sha256.clone(),
+            size: file.size as i64,
+            bits,
+        });
         files.push(file);
     }
     for file in &files {

@@ -30,7 +30,7 @@ use serde::{Deserialize, Serialize};
 use utoipa::ToSchema;
 
 use crate::formats;
-use crate::service::infra::codec;
+use crate::service::infra::codec::{self, CameraTargets};
 use crate::service::ops::jobs::attempt::{JobError, JobRun, TimeLimit};
 use crate::service::ops::jobs::pipelines::{pipeline_of, sequence_parameters};
 use crate::service::ops::state::AppState;
@@ -236,7 +236,7 @@ async fn read_frames(
         let stored = state.store.frame_targets(sequence_id, frame).await?;
         let cameras = stored
             .iter()
-            .map(|(_, _, blob)| codec::decode_targets(blob))
+            .map(CameraTargets::decode)
             .collect::<Result<Vec<_>, _>>()
             .map_err(|e| JobError::Failed(format!("frame {frame}'s stored targets: {e}")))?;
         out.push(cameras);
@@ -404,10 +404,10 @@ pub async fn reprocess_sequence(state: Arc<AppState>, run: JobRun) -> Result<(),
             let stored = state.store.frame_targets(sequence_id, frame).await?;
             let count: u64 = stored
                 .iter()
-                .map(|(_, n, _)| u64::try_from(*n).unwrap_or(0))
+                .map(|t| u64::try_from(t.count).unwrap_or(0))
                 .sum();
             // One frame's memory at a time, released before the next.
-            let stored_bytes = stored.iter().map(|(_, _, b)| b.len() as u64).sum();
+            let stored_bytes = stored.iter().map(|t| t.data.len() as u64).sum();
             let _grant = state
                 .budget
                 .acquire(&crate::service::infra::budget::reprocess_need(
@@ -423,7 +423,7 @@ pub async fn reprocess_sequence(state: Arc<AppState>, run: JobRun) -> Result<(),
                 .run_until(&cancel, move || {
                     let targets = stored
                         .iter()
-                        .map(|(_, _, blob)| codec::decode_targets(blob))
+                        .map(CameraTargets::decode)
                         .collect::<Result<Vec<_>, _>>()
                         .map_err(|e| format!("its stored targets: {e}"))?;
                     let matcher = pipeline.matcher();

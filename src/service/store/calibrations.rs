@@ -5,6 +5,7 @@ use sqlx::any::AnyRow;
 use sqlx::{Any, FromRow, Row, Transaction};
 
 use super::jobs::{finish, ClaimedJob};
+use super::StoreError;
 use super::{CalibrationId, CompleteError, JobId, Store};
 
 /// A stored calibration.
@@ -72,7 +73,7 @@ impl Store {
         model: &str,
         cameras: i64,
         report: Option<&str>,
-    ) -> Result<CalibrationRow, sqlx::Error> {
+    ) -> Result<CalibrationRow, StoreError> {
         let mut tx = self.write_transaction().await?;
         let row = insert_calibration(&mut tx, model, cameras, report, None).await?;
         tx.commit().await?;
@@ -83,7 +84,7 @@ impl Store {
     pub async fn calibration(
         &self,
         id: CalibrationId,
-    ) -> Result<Option<CalibrationRow>, sqlx::Error> {
+    ) -> Result<Option<CalibrationRow>, StoreError> {
         sqlx::query_as(
             "SELECT id, model, cameras, report, origin_calibration, created_at FROM calibrations \
              WHERE id = $1",
@@ -91,6 +92,7 @@ impl Store {
         .bind(id)
         .fetch_optional(&self.reader)
         .await
+        .map_err(StoreError::from)
     }
 
     /// Calibrations newest first (highest id first), below `before` if
@@ -100,7 +102,7 @@ impl Store {
         &self,
         before: Option<CalibrationId>,
         limit: u32,
-    ) -> Result<Vec<CalibrationSummary>, sqlx::Error> {
+    ) -> Result<Vec<CalibrationSummary>, StoreError> {
         sqlx::query_as(
             "SELECT id, cameras, CASE WHEN report IS NULL THEN 0 ELSE 1 END AS has_report, origin_calibration, created_at \
              FROM calibrations WHERE id < $1 ORDER BY id DESC LIMIT $2",
@@ -109,6 +111,7 @@ impl Store {
         .bind(i64::from(limit))
         .fetch_all(&self.reader)
         .await
+        .map_err(StoreError::from)
     }
 
     /// Stores a solved calibration with its report and completes its job,
@@ -154,7 +157,7 @@ pub async fn insert_calibration(
     cameras: i64,
     report: Option<&str>,
     solved_by: Option<JobId>,
-) -> Result<CalibrationRow, sqlx::Error> {
+) -> Result<CalibrationRow, StoreError> {
     sqlx::query_as(
         "INSERT INTO calibrations (model, cameras, report, job_id) VALUES ($1, $2, $3, $4) \
          RETURNING id, model, cameras, report, origin_calibration, created_at",
@@ -165,4 +168,5 @@ pub async fn insert_calibration(
     .bind(solved_by)
     .fetch_one(&mut **tx)
     .await
+    .map_err(StoreError::from)
 }

@@ -1,7 +1,7 @@
 //! The two engines' differences, kept to the fragments of SQL that differ
 //! (one text per query: the store writes every query once, with `$N`
-//! parameters, which both SQLite and PostgreSQL read), and how their
-//! errors are told apart.
+//! parameters, which both SQLite and PostgreSQL read). How their errors
+//! are told apart is [`super::error`].
 //!
 //! | | SQLite | PostgreSQL |
 //! |---|---|---|
@@ -92,72 +92,6 @@ impl Dialect {
     }
 }
 
-/// What a database error means for its caller, whatever the engine: the
-/// HTTP layer maps it to a status, the workers to what happens to the job
-/// attempt (the one place that looks at engine codes).
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum ErrorKind {
-    /// The disk (or SQLite's page limit) is full: SQLITE_FULL, an I/O
-    /// error that says so, PostgreSQL's SQLSTATE 53100 (disk full). A 507
-    /// with `Retry-After`; a job attempt given back uncounted.
-    StorageFull,
-    /// The database cannot be reached for now: connection refused or
-    /// broken, the pool timed out, PostgreSQL restarting or shutting down
-    /// (SQLSTATE 57P01, 57P02, 57P03, class 08), SQLite still busy or
-    /// locked by another process's writer after its busy timeout
-    /// (SQLITE_BUSY, SQLITE_LOCKED and their extended codes: `ptv worker`
-    /// processes on one data directory, on a loaded machine). A 503 with
-    /// `Retry-After`; a job attempt given back uncounted; workers and the
-    /// tracker wait and try again.
-    Unavailable,
-    /// Anything else (a bug, a constraint, a corrupt file): a 500.
-    Other,
-}
-
-/// SQLite's result code for "database or disk is full" (it has no
-/// extended codes).
-const SQLITE_FULL: &str = "13";
-
-/// Whether `code` is SQLite's SQLITE_BUSY (5) or SQLITE_LOCKED (6), or
-/// one of their extended codes (the primary code in the low byte).
-/// SQLite's codes are decimal numbers of at most four digits;
-/// PostgreSQL's SQLSTATEs have five characters, so none is taken for one.
-fn sqlite_busy(code: &str) -> bool {
-    code.len() < 5 && code.parse::<u32>().is_ok_and(|n| matches!(n & 0xff, 5 | 6))
-}
-
-/// What `error` means (see [`ErrorKind`]).
-pub fn error_kind(error: &sqlx::Error) -> ErrorKind {
-    match error {
-        sqlx::Error::Database(db) => match db.code().as_deref() {
-            Some(SQLITE_FULL | "53100") => ErrorKind::StorageFull,
-            Some("57P01" | "57P02" | "57P03") => ErrorKind::Unavailable,
-            Some(code) if code.len() == 5 && code.starts_with("08") => ErrorKind::Unavailable,
-            Some(code) if sqlite_busy(code) => ErrorKind::Unavailable,
-            _ => ErrorKind::Other,
-        },
-        sqlx::Error::Io(io) if crate::service::infra::errors::is_storage_full(io) => {
-            ErrorKind::StorageFull
-        }
-        sqlx::Error::Io(io) => {
-            use std::io::ErrorKind as Io;
-            match io.kind() {
-                Io::ConnectionRefused
-                | Io::ConnectionReset
-                | Io::ConnectionAborted
-                | Io::NotConnected
-                | Io::BrokenPipe
-                | Io::UnexpectedEof
-                | Io::TimedOut
-                | Io::AddrNotAvailable => ErrorKind::Unavailable,
-                _ => ErrorKind::Other,
-            }
-        }
-        sqlx::Error::PoolTimedOut | sqlx::Error::WorkerCrashed => ErrorKind::Unavailable,
-        _ => ErrorKind::Other,
-    }
-}
-
 /// Holds the sequence's row until the transaction ends, so that its
 /// checks (no frames yet, no background yet) stay true until it commits:
 /// on PostgreSQL `FOR UPDATE` (a frame's insert, whose foreign key takes a
@@ -176,41 +110,4 @@ pub async fn lock_sequence(
     .execute(&mut **tx)
     .await?;
     Ok(())
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn sqlite_busy_and_locked_are_told_from_other_codes() {
-        // SQLITE_BUSY, SQLITE_BUSY_RECOVERY, SQLITE_BUSY_SNAPSHOT,
-        // SQLITE_LOCKED, SQLITE_LOCKED_SHAREDCACHE.
-        for code in ["5", "261", "517", "6", "262"] {
-            assert!(sqlite_busy(code), "{code}");
-        }
-        // SQLITE_FULL, SQLITE_CONSTRAINT_UNIQUE, SQLITE_IOERR_READ, and
-        // PostgreSQL's serialization failure and disk full.
-        for code in ["13", "2067", "266", "40001", "53100", "00005"] {
-            assert!(!sqlite_busy(code), "{code}");
-        }
-    }
-
-    #[test]
-    fn errors_are_told_apart_by_kind() {
-        let io = |kind| sqlx::Error::Io(std::io::Error::from(kind));
-        assert_eq!(
-            error_kind(&io(std::io::ErrorKind::ConnectionRefused)),
-            ErrorKind::Unavailable
-        );
-        assert_eq!(
-            error_kind(&sqlx::Error::PoolTimedOut),
-            ErrorKind::Unavailable
-        );
-        assert_eq!(
-            error_kind(&sqlx::Error::Io(std::io::Error::from_raw_os_error(28))),
-            ErrorKind::StorageFull
-        );
-        assert_eq!(error_kind(&sqlx::Error::RowNotFound), ErrorKind::Other);
-    }
 }

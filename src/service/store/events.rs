@@ -7,6 +7,7 @@
 use sqlx::any::AnyRow;
 use sqlx::{FromRow, Row};
 
+use super::StoreError;
 use super::{EventId, SequenceId, Store};
 
 /// Rows of one `INSERT` into the log (two parameters each, far below
@@ -40,7 +41,7 @@ impl Store {
     pub async fn append_events(
         &self,
         events: &[(SequenceId, String)],
-    ) -> Result<Option<EventId>, sqlx::Error> {
+    ) -> Result<Option<EventId>, StoreError> {
         if events.is_empty() {
             return Ok(None);
         }
@@ -68,7 +69,7 @@ impl Store {
         &self,
         after: EventId,
         limit: u32,
-    ) -> Result<Vec<EventRow>, sqlx::Error> {
+    ) -> Result<Vec<EventRow>, StoreError> {
         sqlx::query_as(
             "SELECT id, sequence_id, change FROM events WHERE id > $1 ORDER BY id LIMIT $2",
         )
@@ -76,6 +77,7 @@ impl Store {
         .bind(i64::from(limit))
         .fetch_all(&self.reader)
         .await
+        .map_err(StoreError::from)
     }
 
     /// The logged events of `sequence_id` with an id above `after`, in id
@@ -86,7 +88,7 @@ impl Store {
         sequence_id: SequenceId,
         after: EventId,
         limit: u32,
-    ) -> Result<Vec<EventRow>, sqlx::Error> {
+    ) -> Result<Vec<EventRow>, StoreError> {
         sqlx::query_as(
             "SELECT id, sequence_id, change FROM events \
              WHERE sequence_id = $1 AND id > $2 ORDER BY id LIMIT $3",
@@ -96,11 +98,12 @@ impl Store {
         .bind(i64::from(limit))
         .fetch_all(&self.reader)
         .await
+        .map_err(StoreError::from)
     }
 
     /// The highest event id logged (0 when none): where a process that
     /// starts following the log begins.
-    pub async fn last_event_id(&self) -> Result<EventId, sqlx::Error> {
+    pub async fn last_event_id(&self) -> Result<EventId, StoreError> {
         let (id,): (i64,) = sqlx::query_as("SELECT COALESCE(MAX(id), 0) FROM events")
             .fetch_one(&self.reader)
             .await?;
@@ -109,7 +112,7 @@ impl Store {
 
     /// The lowest event id still logged (none: the log is empty): a
     /// client that last saw an event below it missed some that are gone.
-    pub async fn oldest_event_id(&self) -> Result<Option<EventId>, sqlx::Error> {
+    pub async fn oldest_event_id(&self) -> Result<Option<EventId>, StoreError> {
         let (id,): (Option<i64>,) = sqlx::query_as("SELECT MIN(id) FROM events")
             .fetch_one(&self.reader)
             .await?;
@@ -118,7 +121,7 @@ impl Store {
 
     /// Deletes the events logged more than `age_s` seconds ago; returns
     /// how many.
-    pub async fn prune_events(&self, age_s: u32) -> Result<u64, sqlx::Error> {
+    pub async fn prune_events(&self, age_s: u32) -> Result<u64, StoreError> {
         Ok(sqlx::query(&format!(
             "DELETE FROM events WHERE created_at < {}",
             self.dialect.now_plus(1)

@@ -5,6 +5,7 @@
 
 use sqlx::{Any, Transaction};
 
+use super::StoreError;
 use super::{CalibrationId, FrameNumber, JobState, SequenceId, Store};
 
 /// One row of a frame's health: a camera over the whole frame (`cell`
@@ -83,7 +84,7 @@ pub(super) async fn insert_health(
     dialect: super::Dialect,
     (sequence_id, frame): (SequenceId, FrameNumber),
     rows: &[HealthRow],
-) -> Result<(), sqlx::Error> {
+) -> Result<(), StoreError> {
     for chunk in super::statement_chunks(dialect, rows) {
         let sql = format!(
             "INSERT INTO frame_health (sequence_id, frame, camera, cell, count, mean_x, mean_y, rms) \
@@ -114,7 +115,7 @@ pub(super) async fn replace_health(
     dialect: super::Dialect,
     key: (SequenceId, FrameNumber),
     rows: &[HealthRow],
-) -> Result<(), sqlx::Error> {
+) -> Result<(), StoreError> {
     sqlx::query("DELETE FROM frame_health WHERE sequence_id = $1 AND frame = $2")
         .bind(key.0)
         .bind(key.1)
@@ -128,7 +129,7 @@ impl Store {
     pub async fn health_state(
         &self,
         sequence_id: SequenceId,
-    ) -> Result<Option<HealthState>, sqlx::Error> {
+    ) -> Result<Option<HealthState>, StoreError> {
         let row: Option<(CalibrationId, Option<FrameNumber>, i64, String, String)> =
             sqlx::query_as(
                 "SELECT calibration_id, through_frame, frames, monitor, updated_at \
@@ -161,7 +162,7 @@ impl Store {
         calibration_id: CalibrationId,
         after: Option<FrameNumber>,
         limit: u32,
-    ) -> Result<Vec<HealthFrame>, sqlx::Error> {
+    ) -> Result<Vec<HealthFrame>, StoreError> {
         let frames: Vec<(FrameNumber, String, Option<CalibrationId>)> = sqlx::query_as(
             "SELECT f.frame, j.state, p.calibration_id FROM frames f \
              JOIN jobs j ON j.id = f.job_id \
@@ -233,7 +234,7 @@ impl Store {
         previous: Option<(CalibrationId, Option<FrameNumber>)>,
         (calibration_id, through, frames): (CalibrationId, FrameNumber, i64),
         monitor: &str,
-    ) -> Result<bool, sqlx::Error> {
+    ) -> Result<bool, StoreError> {
         let written = match previous {
             None => sqlx::query(
                 "INSERT INTO calibration_health \
@@ -278,7 +279,7 @@ impl Store {
         sequence_id: SequenceId,
         calibration_id: CalibrationId,
         max_bins: i64,
-    ) -> Result<Vec<HealthSeriesPoint>, sqlx::Error> {
+    ) -> Result<Vec<HealthSeriesPoint>, StoreError> {
         let (first, last): (Option<i64>, Option<i64>) = sqlx::query_as(
             "SELECT min(frame), max(frame) FROM frame_health WHERE sequence_id = $1 AND cell = -1",
         )
@@ -318,7 +319,7 @@ impl Store {
         &self,
         sequence_id: SequenceId,
         frame: FrameNumber,
-    ) -> Result<Vec<HealthRow>, sqlx::Error> {
+    ) -> Result<Vec<HealthRow>, StoreError> {
         let rows: Vec<RowTuple> = sqlx::query_as(
             "SELECT camera, cell, count, mean_x, mean_y, rms FROM frame_health \
              WHERE sequence_id = $1 AND frame = $2 ORDER BY camera, cell",
@@ -336,7 +337,7 @@ impl Store {
         &self,
         sequence_id: SequenceId,
         through: FrameNumber,
-    ) -> Result<Option<(FrameNumber, Vec<HealthRow>)>, sqlx::Error> {
+    ) -> Result<Option<(FrameNumber, Vec<HealthRow>)>, StoreError> {
         let (latest,): (Option<FrameNumber>,) = sqlx::query_as(
             "SELECT max(frame) FROM frame_health WHERE sequence_id = $1 AND frame <= $2",
         )
@@ -356,7 +357,7 @@ impl Store {
         &self,
         age_s: f64,
         limit: u32,
-    ) -> Result<Vec<(SequenceId, HealthState)>, sqlx::Error> {
+    ) -> Result<Vec<(SequenceId, HealthState)>, StoreError> {
         let rows: Vec<(
             SequenceId,
             CalibrationId,

@@ -29,6 +29,7 @@ use sqlx::{Any, FromRow, Row, Transaction};
 
 use std::time::Duration;
 
+use super::StoreError;
 use super::{
     decode_text, stored_as_text, text_column, CalibrationId, CompleteError, Dialect, FrameNumber,
     JobId, LeaseToken, SequenceId, Store, TextColumn,
@@ -197,14 +198,14 @@ pub struct JobFile {
 impl Store {
     /// Whether a claim would find a job now (a read, so that idle workers
     /// polling the queue do not take the write lock).
-    pub async fn claimable(&self) -> Result<bool, sqlx::Error> {
+    pub async fn claimable(&self) -> Result<bool, StoreError> {
         let (ready, expired) = self.queue_state().await?;
         Ok(ready || expired)
     }
 
     /// Whether a queued job is ready to be claimed, and whether a running
     /// job's lease has run out (one read).
-    async fn queue_state(&self) -> Result<(bool, bool), sqlx::Error> {
+    async fn queue_state(&self) -> Result<(bool, bool), StoreError> {
         let d = self.dialect;
         let (ready, expired): (i64, i64) = sqlx::query_as(&format!(
             "SELECT CASE WHEN EXISTS (SELECT 1 FROM jobs WHERE state = 'queued' \
@@ -228,7 +229,7 @@ impl Store {
         &self,
         worker: &str,
         lease: Duration,
-    ) -> Result<Option<ClaimedJob>, sqlx::Error> {
+    ) -> Result<Option<ClaimedJob>, StoreError> {
         let (ready, expired) = self.queue_state().await?;
         if !(ready || expired) {
             return Ok(None);
@@ -276,7 +277,7 @@ impl Store {
     /// Renews the lease of a job the worker holds for another `lease`
     /// (the heartbeat). False if the worker no longer holds it: another
     /// claim took it (its lease ran out), or the attempt ended.
-    pub async fn renew(&self, job: &ClaimedJob, lease: Duration) -> Result<bool, sqlx::Error> {
+    pub async fn renew(&self, job: &ClaimedJob, lease: Duration) -> Result<bool, StoreError> {
         let done = sqlx::query(&format!(
             "UPDATE jobs SET lease_until = {until} \
              WHERE id = $2 AND state = 'running' AND lease_token = $3",
@@ -395,7 +396,7 @@ impl Store {
 
     /// A job's claims in order (its attempt history): token, worker, when,
     /// and how each ended (`None` while it runs); at most the last `last`.
-    pub async fn job_claims(&self, id: JobId, last: u32) -> Result<Vec<JobClaim>, sqlx::Error> {
+    pub async fn job_claims(&self, id: JobId, last: u32) -> Result<Vec<JobClaim>, StoreError> {
         let rows: Vec<(LeaseToken, String, String, Option<String>)> = sqlx::query_as(
             "SELECT * FROM (SELECT token, worker, claimed_at, outcome FROM job_claims \
              WHERE job_id = $1 ORDER BY token DESC LIMIT $2) AS last ORDER BY token",
@@ -420,7 +421,7 @@ impl Store {
     /// /jobs/{id}/retry`); its error stays until it runs. What it works on
     /// is still there: a frame's images and targets and a solve's files
     /// go only when their job succeeds.
-    pub async fn retry(&self, id: JobId) -> Result<RetryOutcome, sqlx::Error> {
+    pub async fn retry(&self, id: JobId) -> Result<RetryOutcome, StoreError> {
         let mut tx = self.write_transaction().await?;
         let state: Option<(String,)> = sqlx::query_as("SELECT state FROM jobs WHERE id = $1")
             .bind(id)
@@ -458,7 +459,7 @@ impl Store {
         &self,
         host: &str,
         alive: impl Fn(u32) -> bool,
-    ) -> Result<(u64, u64), sqlx::Error> {
+    ) -> Result<(u64, u64), StoreError> {
         let mut tx = self.write_transaction().await?;
         let held: Vec<(JobId, LeaseToken, String)> = sqlx::query_as(
             "SELECT id, lease_token, locked_by FROM jobs \
@@ -505,7 +506,7 @@ impl Store {
 
     /// A job by id, with what its result is: the calibration that names
     /// it, or, once it succeeded, the frame that does.
-    pub async fn job(&self, id: JobId) -> Result<Option<JobRow>, sqlx::Error> {
+    pub async fn job(&self, id: JobId) -> Result<Option<JobRow>, StoreError> {
         sqlx::query_as(
             "SELECT j.id, j.kind, j.payload, j.state, j.attempts, j.error, j.result, \
              j.created_at, j.started_at, j.finished_at, j.locked_by, j.lease_until, \
@@ -519,13 +520,15 @@ impl Store {
         .bind(id)
         .fetch_optional(&self.reader)
         .await
+        .map_err(StoreError::from)
     }
 
     /// Jobs counted by kind and state.
-    pub async fn job_counts(&self) -> Result<Vec<(String, String, i64)>, sqlx::Error> {
+    pub async fn job_counts(&self) -> Result<Vec<(String, String, i64)>, StoreError> {
         sqlx::query_as("SELECT kind, state, count(*) FROM jobs GROUP BY kind, state")
             .fetch_all(&self.reader)
             .await
+            .map_err(StoreError::from)
     }
 
     /// Enqueues a job and records its input files in one transaction;
@@ -535,7 +538,7 @@ impl Store {
         kind: &str,
         payload: &str,
         files: &[JobFile],
-    ) -> Result<JobId, sqlx::Error> {
+    ) -> Result<JobId, StoreError> {
         let mut tx = self.write_transaction().await?;
         let id = enqueue(&mut tx, kind, payload).await?;
         for file in files {
@@ -555,7 +558,7 @@ impl Store {
     }
 
     /// A job's input files, in the order they were recorded.
-    pub async fn job_files(&self, job_id: JobId) -> Result<Vec<JobFile>, sqlx::Error> {
+    pub async fn job_files(&self, job_id: JobId) -> Result<Vec<JobFile>, StoreError> {
         let rows: Vec<(String, Option<i64>, String, i64)> = sqlx::query_as(
             "SELECT part, camera, sha256, size FROM job_files WHERE job_id = $1 ORDER BY rowid",
         )
@@ -589,7 +592,7 @@ impl Store {
 
     /// Enqueues a job on its own (e.g. solve_calibration, whose inputs are
     /// files already in the image store, named in the payload).
-    pub async fn enqueue(&self, kind: &str, payload: &str) -> Result<JobId, sqlx::Error> {
+    pub async fn enqueue(&self, kind: &str, payload: &str) -> Result<JobId, StoreError> {
         let mut tx = self.write_transaction().await?;
         let id = enqueue(&mut tx, kind, payload).await?;
         tx.commit().await?;
@@ -598,7 +601,7 @@ impl Store {
 
     /// Returns the jobs this process's workers hold to the queue (at a
     /// shutdown whose grace period ran out).
-    pub async fn release_held(&self, instance: &str) -> Result<u64, sqlx::Error> {
+    pub async fn release_held(&self, instance: &str) -> Result<u64, StoreError> {
         let mut tx = self.write_transaction().await?;
         let held: Vec<(JobId, LeaseToken)> = sqlx::query_as(
             "UPDATE jobs SET state = 'queued', locked_by = NULL, lease_until = NULL \
@@ -622,7 +625,7 @@ pub async fn enqueue(
     tx: &mut Transaction<'_, Any>,
     kind: &str,
     payload: &str,
-) -> Result<JobId, sqlx::Error> {
+) -> Result<JobId, StoreError> {
     let (id,): (JobId,) =
         sqlx::query_as("INSERT INTO jobs (kind, payload) VALUES ($1, $2) RETURNING id")
             .bind(kind)
@@ -669,7 +672,7 @@ async fn end_claim(
     id: JobId,
     token: LeaseToken,
     outcome: ClaimOutcome,
-) -> Result<(), sqlx::Error> {
+) -> Result<(), StoreError> {
     sqlx::query(&format!(
         "UPDATE job_claims SET outcome = $1, ended_at = {} \
          WHERE job_id = $2 AND token = $3 AND outcome IS NULL",
@@ -690,7 +693,7 @@ async fn end_claim(
 pub async fn expire_leases(
     tx: &mut Transaction<'_, Any>,
     dialect: Dialect,
-) -> Result<(u64, u64), sqlx::Error> {
+) -> Result<(u64, u64), StoreError> {
     // On PostgreSQL, claimers expiring at once pass over each other's rows
     // (SKIP LOCKED) rather than wait for them, and cannot deadlock.
     let (now, expired, skip_locked) = (

@@ -49,13 +49,15 @@
 //! transaction whose future was cancelled; an explicit rollback in each
 //! path would add nothing the queued one does not do.
 //!
-//! **Errors by kind** ([`error_kind`]): a full disk (SQLITE_FULL,
-//! PostgreSQL's 53100, [`is_storage_full`]) is an error of its own kind to
-//! the callers: a 507 with `Retry-After` to a client, a job attempt given
-//! back to the queue ([`Store::give_back`]) rather than counted; so is a
-//! database that cannot be reached (PostgreSQL stopped or restarting, the
-//! network): a 503 with `Retry-After`, the attempt given back. [`Store::set_max_page_count`] makes the writer fail exactly so
-//! (SQLite's page limit), for tests.
+//! **Errors by kind**: the store's methods fail with [`StoreError`], never
+//! sqlx's error, and its [`ErrorKind`] says what it means. A full disk
+//! (SQLITE_FULL, PostgreSQL's 53100, [`StoreError::is_storage_full`]) is
+//! an error of its own kind to the callers: a 507 with `Retry-After` to a
+//! client, a job attempt given back to the queue ([`Store::give_back`])
+//! rather than counted; so is a database that cannot be reached
+//! (PostgreSQL stopped or restarting, the network): a 503 with
+//! `Retry-After`, the attempt given back. [`Store::set_max_page_count`]
+//! makes the writer fail exactly so (SQLite's page limit), for tests.
 //!
 //! One file per table group, each with its own `impl Store`:
 //! `calibrations`, `sequences`
@@ -68,6 +70,7 @@
 
 mod calibrations;
 mod dialect;
+mod error;
 mod events;
 mod health;
 mod jobs;
@@ -93,7 +96,8 @@ use sqlx::{AnyConnection, AnyPool};
 use crate::service::infra::urls::PostgresUrl;
 
 pub use self::calibrations::{insert_calibration, CalibrationRow, CalibrationSummary};
-pub use self::dialect::{error_kind, Dialect, ErrorKind};
+pub use self::dialect::Dialect;
+pub use self::error::{ErrorKind, StoreError};
 pub use self::events::EventRow;
 pub use self::health::{HealthFrame, HealthRow, HealthSeriesPoint, HealthState};
 pub use self::jobs::{
@@ -102,8 +106,8 @@ pub use self::jobs::{
 };
 pub use self::selfcal::{reprocess_payload, RefinedCalibration};
 pub use self::sequences::{
-    FrameCounts, FrameInput, FrameInputKind, FrameSummary, NewFrame, SequenceImage,
-    SequenceImageKind, SequenceImagesError, SequenceRow,
+    CameraImage, FrameCounts, FrameInput, FrameInputKind, FrameSummary, NewFrame, NewSequenceImage,
+    SequenceImage, SequenceImageKind, SequenceImagesError, SequenceRow,
 };
 pub use self::tracking::{
     BackwardRow, FrameReadiness, PointRow, TrackingRunRow, TrackingState, TrajectoryRow,
@@ -135,12 +139,6 @@ pub struct Store {
 /// processes share one host and lock a file instead.
 #[derive(Debug)]
 pub struct HostsLock(#[allow(dead_code)] Option<sqlx::Transaction<'static, Any>>);
-
-/// Whether a database error means that the disk (or the page limit) is
-/// full ([`ErrorKind::StorageFull`]).
-pub fn is_storage_full(error: &sqlx::Error) -> bool {
-    error_kind(error) == ErrorKind::StorageFull
-}
 
 /// Whether a writer connection came back outside any transaction, by
 /// sqlx's count and, on SQLite, by SQLite's own state (`BEGIN` fails
@@ -307,7 +305,7 @@ pub enum InsertFrameError {
     },
     /// The database failed.
     #[error(transparent)]
-    Database(#[from] sqlx::Error),
+    Database(#[from] StoreError),
 }
 
 /// A completion that the job's holder may no longer make.
@@ -318,8 +316,21 @@ pub enum CompleteError {
     LostLease(JobId),
     /// The database failed.
     #[error(transparent)]
-    Database(#[from] sqlx::Error),
+    Database(#[from] StoreError),
 }
+
+/// The store's error enums that wrap a database failure take sqlx's error
+/// as [`StoreError`] (so that `?` works on a statement inside the store).
+macro_rules! database_failure_from_sqlx {
+    ($($type:ty),+) => {
+        $(impl From<sqlx::Error> for $type {
+            fn from(error: sqlx::Error) -> Self {
+                Self::Database(error.into())
+            }
+        })+
+    };
+}
+database_failure_from_sqlx!(InsertFrameError, CompleteError, SequenceImagesError);
 
 /// A stored text that names none of a column's values (a database written
 /// by a newer version, or edited by hand).
@@ -392,6 +403,26 @@ fn decode_text<T: FromStr<Err = UnknownValue>>(column: &str, text: &str) -> Resu
         index: column.to_owned(),
         source: Box::new(error),
     })
+}
+
+/// The JSON text column `column` of `row`, parsed: settings are parsed
+/// once, where they are read, and a stored text this version cannot read
+/// is a decode error that names the column.
+fn json_column<T: serde::de::DeserializeOwned>(
+    row: &AnyRow,
+    column: &str,
+) -> Result<T, sqlx::Error> {
+    serde_json::from_str(row.try_get::<&str, _>(column)?).map_err(|error| {
+        sqlx::Error::ColumnDecode {
+            index: column.to_owned(),
+            source: Box::new(error),
+        }
+    })
+}
+
+/// `value` as the JSON text a column stores.
+fn json_text<T: serde::Serialize>(value: &T) -> Result<String, StoreError> {
+    serde_json::to_string(value).map_err(|error| sqlx::Error::Encode(Box::new(error)).into())
 }
 
 /// The text column `column` of `row`, as its enum (see [`decode_text`]).
@@ -486,7 +517,7 @@ impl Store {
     /// it one at a time, under a lock on `ptv.sqlite.lock`: two migrating
     /// a new database together would both apply its first migration, and
     /// switching a new database to WAL does not wait for a busy one.
-    pub async fn open(data_dir: &Path, readers: u32) -> Result<Store, sqlx::Error> {
+    pub async fn open(data_dir: &Path, readers: u32) -> Result<Store, StoreError> {
         Store::open_sqlite(data_dir, readers, Synchronous::Normal).await
     }
 
@@ -495,7 +526,7 @@ impl Store {
         data_dir: &Path,
         readers: u32,
         synchronous: Synchronous,
-    ) -> Result<Store, sqlx::Error> {
+    ) -> Result<Store, StoreError> {
         sqlx::any::install_default_drivers();
         let _opening =
             crate::service::infra::file_lock::exclusive(data_dir.join("ptv.sqlite.lock"))
@@ -545,7 +576,7 @@ impl Store {
     /// refused, no such host, a password refused), where the pool's only
     /// says that it timed out. An attempt without an answer in time is an
     /// I/O error of kind `TimedOut`.
-    pub async fn reach_postgres(url: &PostgresUrl, within: Duration) -> Result<(), sqlx::Error> {
+    pub async fn reach_postgres(url: &PostgresUrl, within: Duration) -> Result<(), StoreError> {
         use sqlx::Connection as _;
         let options = sqlx::postgres::PgConnectOptions::from_str(url.as_str())?;
         match tokio::time::timeout(within, sqlx::PgConnection::connect_with(&options)).await {
@@ -553,11 +584,12 @@ impl Store {
                 let _ = connection.close().await;
                 Ok(())
             }
-            Ok(Err(error)) => Err(error),
-            Err(_) => Err(sqlx::Error::Io(std::io::Error::new(
+            Ok(Err(error)) => Err(error.into()),
+            Err(_) => Err(std::io::Error::new(
                 std::io::ErrorKind::TimedOut,
                 format!("no answer within {:.0} s", within.as_secs_f64()),
-            ))),
+            )
+            .into()),
         }
     }
 
@@ -566,7 +598,7 @@ impl Store {
     /// the run, so processes started together migrate one at a time. One
     /// pool serves reads and writes: `readers` connections and a few for
     /// the writes (claims, heartbeats, results).
-    pub async fn open_postgres(url: &PostgresUrl, readers: u32) -> Result<Store, sqlx::Error> {
+    pub async fn open_postgres(url: &PostgresUrl, readers: u32) -> Result<Store, StoreError> {
         sqlx::any::install_default_drivers();
         let pool = AnyPoolOptions::new()
             .max_connections(readers.max(1) + 8)
@@ -601,17 +633,18 @@ impl Store {
     /// the limit. Returns the limit in force. SQLite only (PostgreSQL has
     /// no such limit): an error on PostgreSQL.
     #[doc(hidden)]
-    pub async fn set_max_page_count(&self, pages: Option<u32>) -> Result<u32, sqlx::Error> {
+    pub async fn set_max_page_count(&self, pages: Option<u32>) -> Result<u32, StoreError> {
         if self.dialect != Dialect::Sqlite {
             return Err(sqlx::Error::Configuration(
                 "the page limit is SQLite's; PostgreSQL has none".into(),
-            ));
+            )
+            .into());
         }
         self.page_limit
             .store(pages.map_or(0, |p| p.max(1)), Ordering::Release);
         let mut conn = self.writer.acquire().await?;
         match pages {
-            Some(pages) => apply_page_limit(&mut conn, pages.max(1)).await,
+            Some(pages) => Ok(apply_page_limit(&mut conn, pages.max(1)).await?),
             None => {
                 // A fresh connection has SQLite's default limit.
                 conn.close().await?;
@@ -632,8 +665,8 @@ impl Store {
     /// PostgreSQL a plain `BEGIN` (read committed): the writes that must
     /// not race are fenced by their `WHERE` (tokens, states) or lock their
     /// rows (`FOR UPDATE`).
-    async fn write_transaction(&self) -> Result<sqlx::Transaction<'static, Any>, sqlx::Error> {
-        self.writer.begin_with(self.dialect.begin_write()).await
+    async fn write_transaction(&self) -> Result<sqlx::Transaction<'static, Any>, StoreError> {
+        Ok(self.writer.begin_with(self.dialect.begin_write()).await?)
     }
 
     /// Readiness: on SQLite the writer takes SQLite's write lock (`BEGIN
@@ -641,7 +674,7 @@ impl Store {
     /// PostgreSQL a connection answers. A full disk does not show here
     /// (only a write that needs space finds it); a writer that cannot be
     /// opened or locked does.
-    pub async fn ready(&self, within: Duration) -> Result<(), sqlx::Error> {
+    pub async fn ready(&self, within: Duration) -> Result<(), StoreError> {
         let probe = match self.dialect {
             Dialect::Sqlite => "BEGIN IMMEDIATE; ROLLBACK",
             Dialect::Postgres => "SELECT 1",
@@ -652,7 +685,7 @@ impl Store {
             Ok(())
         })
         .await
-        .unwrap_or(Err(sqlx::Error::PoolTimedOut))
+        .unwrap_or_else(|_| Err(StoreError::timed_out()))
     }
 
     /// Closes both pools.
@@ -666,7 +699,7 @@ impl Store {
     /// another holds it. One connection stays with the lock: take it once
     /// per process at a time (behind a process mutex), so that waiters do
     /// not use up the pool.
-    pub async fn lock_across_hosts(&self, key: i64) -> Result<HostsLock, sqlx::Error> {
+    pub async fn lock_across_hosts(&self, key: i64) -> Result<HostsLock, StoreError> {
         match self.dialect {
             Dialect::Sqlite => Ok(HostsLock(None)),
             Dialect::Postgres => {
@@ -681,9 +714,9 @@ impl Store {
     }
 
     /// Whether any frame, job or sequence refers to the file with this hash.
-    pub async fn image_in_use(&self, sha256: &str) -> Result<bool, sqlx::Error> {
+    pub async fn image_in_use(&self, sha256: &str) -> Result<bool, StoreError> {
         let mut conn = self.writer.acquire().await?;
-        file_in_use(&mut conn, sha256).await
+        Ok(file_in_use(&mut conn, sha256).await?)
     }
 }
 

@@ -5,6 +5,7 @@
 
 use super::calibrations::insert_calibration;
 use super::jobs::{enqueue, finish, ClaimedJob};
+use super::StoreError;
 use super::{CalibrationId, CompleteError, FrameNumber, JobId, SequenceId, Store};
 
 use crate::service::model::job_kind::JobKind;
@@ -77,7 +78,7 @@ impl Store {
         &self,
         sequence_id: SequenceId,
         calibration_id: CalibrationId,
-    ) -> Result<Option<JobId>, sqlx::Error> {
+    ) -> Result<Option<JobId>, StoreError> {
         let mut tx = self.write_transaction().await?;
         let changed = sqlx::query("UPDATE sequences SET calibration_id = $1 WHERE id = $2")
             .bind(calibration_id)
@@ -101,7 +102,7 @@ impl Store {
         sequence_id: SequenceId,
         (first, last): (FrameNumber, FrameNumber),
         cameras: i64,
-    ) -> Result<Vec<FrameNumber>, sqlx::Error> {
+    ) -> Result<Vec<FrameNumber>, StoreError> {
         let rows: Vec<(FrameNumber,)> = sqlx::query_as(
             "SELECT frame FROM targets WHERE sequence_id = $1 AND frame BETWEEN $2 AND $3 \
              GROUP BY frame HAVING count(*) = $4 ORDER BY frame",
@@ -122,7 +123,7 @@ impl Store {
         &self,
         sequence_id: SequenceId,
         (first, last): (FrameNumber, FrameNumber),
-    ) -> Result<i64, sqlx::Error> {
+    ) -> Result<i64, StoreError> {
         let (count,): (Option<i64>,) = sqlx::query_as(
             "SELECT CAST(SUM(count) AS BIGINT) FROM targets \
              WHERE sequence_id = $1 AND frame BETWEEN $2 AND $3",
@@ -141,7 +142,7 @@ impl Store {
         &self,
         sequence_id: SequenceId,
         calibration_id: CalibrationId,
-    ) -> Result<Vec<FrameNumber>, sqlx::Error> {
+    ) -> Result<Vec<FrameNumber>, StoreError> {
         let rows: Vec<(FrameNumber,)> = sqlx::query_as(
             "SELECT frame FROM particles WHERE sequence_id = $1 \
              AND (calibration_id IS NULL OR calibration_id != $2) ORDER BY frame",

@@ -6,9 +6,15 @@ use sqlx::{Any, FromRow, Row, Transaction};
 
 use super::calibrations::{insert_calibration, CalibrationRow};
 use super::jobs::{enqueue, finish, ClaimedJob, JobState};
+use super::StoreError;
+use crate::service::infra::codec::CameraTargets;
+use crate::service::model::parameters::SequenceParameters;
+use crate::service::model::tracking_settings::TrackingSettings;
+
 use super::{
-    decode_text, file_in_use, stored_as_text, text_column, CalibrationId, CompleteError,
-    FrameNumber, InsertFrameError, JobId, OnUniqueViolation, SequenceId, Store, TextColumn,
+    decode_text, file_in_use, json_column, json_text, stored_as_text, text_column, CalibrationId,
+    CompleteError, FrameNumber, InsertFrameError, JobId, OnUniqueViolation, SequenceId, Store,
+    TextColumn,
 };
 
 /// A stored sequence.
@@ -20,8 +26,8 @@ pub struct SequenceRow {
     pub calibration_id: CalibrationId,
     /// Its name.
     pub name: String,
-    /// Detection and matching parameters (JSON).
-    pub parameters: String,
+    /// Detection and matching parameters.
+    pub parameters: SequenceParameters,
     /// Whether images are kept after processing.
     pub keep_images: bool,
     /// When it was created.
@@ -53,10 +59,56 @@ pub struct NewFrame {
     pub input: FrameInputKind,
     /// The raw images' layout (JSON), if raw.
     pub raw_layout: Option<String>,
-    /// Per camera, the image's hash and size.
-    pub images: Vec<(i64, String, i64)>,
-    /// Per camera, uploaded targets: count and blob.
-    pub targets: Vec<(i64, i64, Vec<u8>)>,
+    /// Per camera, the image file.
+    pub images: Vec<CameraImage>,
+    /// Per camera, uploaded targets.
+    pub targets: Vec<CameraTargets>,
+}
+
+/// One camera's image file of a frame: the file's hash in the image store
+/// and its size (bytes).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct CameraImage {
+    /// The camera, from 0 (0 for a splitter's one image of all cameras).
+    pub camera: i64,
+    /// The file's hash in the image store.
+    pub sha256: String,
+    /// Its size (bytes).
+    pub size: i64,
+}
+
+/// A background or mask image of a camera, to store: the file's hash in
+/// the image store, its size (bytes) and its bits per sample (8 or 16).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct NewSequenceImage {
+    /// The camera, from 0.
+    pub camera: i64,
+    /// The file's hash in the image store.
+    pub sha256: String,
+    /// Its size (bytes).
+    pub size: i64,
+    /// Bits per sample, 8 or 16.
+    pub bits: i64,
+}
+
+impl FromRow<'_, AnyRow> for CameraImage {
+    fn from_row(row: &AnyRow) -> Result<Self, sqlx::Error> {
+        Ok(CameraImage {
+            camera: row.try_get("camera")?,
+            sha256: row.try_get("sha256")?,
+            size: row.try_get("size")?,
+        })
+    }
+}
+
+impl FromRow<'_, AnyRow> for CameraTargets {
+    fn from_row(row: &AnyRow) -> Result<Self, sqlx::Error> {
+        Ok(CameraTargets {
+            camera: row.try_get("camera")?,
+            count: row.try_get("count")?,
+            data: row.try_get("data")?,
+        })
+    }
 }
 
 /// What a process_frame job needs.
@@ -172,7 +224,7 @@ pub enum SequenceImagesError {
     Exists(SequenceId, SequenceImageKind),
     /// The database failed.
     #[error(transparent)]
-    Database(#[from] sqlx::Error),
+    Database(#[from] StoreError),
 }
 
 impl FromRow<'_, AnyRow> for SequenceRow {
@@ -181,7 +233,7 @@ impl FromRow<'_, AnyRow> for SequenceRow {
             id: row.try_get("id")?,
             calibration_id: row.try_get("calibration_id")?,
             name: row.try_get("name")?,
-            parameters: row.try_get("parameters")?,
+            parameters: json_column(row, "parameters")?,
             keep_images: row.try_get::<i64, _>("keep_images")? != 0,
             created_at: row.try_get("created_at")?,
         })
@@ -201,17 +253,18 @@ impl FromRow<'_, AnyRow> for FrameInput {
 }
 
 impl Store {
-    /// Stores a sequence and, with `tracking` settings (JSON), its first
+    /// Stores a sequence and, with `tracking` settings, its first
     /// tracking run, in one transaction; `None` if its calibration does not
     /// exist.
     pub async fn insert_sequence(
         &self,
         calibration_id: CalibrationId,
         name: &str,
-        parameters: &str,
+        parameters: &SequenceParameters,
         keep_images: bool,
-        tracking: Option<&str>,
-    ) -> Result<Option<SequenceRow>, sqlx::Error> {
+        tracking: Option<&TrackingSettings>,
+    ) -> Result<Option<SequenceRow>, StoreError> {
+        let parameters = json_text(parameters)?;
         let mut tx = self.write_transaction().await?;
         let result: Option<SequenceRow> = sqlx::query_as(
             "INSERT INTO sequences (calibration_id, name, parameters, keep_images) \
@@ -239,10 +292,11 @@ impl Store {
         model: &str,
         cameras: i64,
         name: &str,
-        parameters: &str,
+        parameters: &SequenceParameters,
         keep_images: bool,
-        backgrounds: &[(i64, String, i64, i64)],
-    ) -> Result<(CalibrationRow, SequenceRow), sqlx::Error> {
+        backgrounds: &[NewSequenceImage],
+    ) -> Result<(CalibrationRow, SequenceRow), StoreError> {
+        let parameters = json_text(parameters)?;
         let mut tx = self.write_transaction().await?;
         let calibration = insert_calibration(&mut tx, model, cameras, None, None).await?;
         let sequence: SequenceRow = sqlx::query_as(
@@ -256,24 +310,16 @@ impl Store {
         .bind(i64::from(keep_images))
         .fetch_one(&mut *tx)
         .await?;
-        for (camera, sha256, size, bits) in backgrounds {
-            insert_sequence_image(
-                &mut tx,
-                sequence.id,
-                SequenceImageKind::Background,
-                *camera,
-                sha256,
-                *size,
-                *bits,
-            )
-            .await?;
+        for image in backgrounds {
+            insert_sequence_image(&mut tx, sequence.id, SequenceImageKind::Background, image)
+                .await?;
         }
         tx.commit().await?;
         Ok((calibration, sequence))
     }
 
     /// A sequence by id.
-    pub async fn sequence(&self, id: SequenceId) -> Result<Option<SequenceRow>, sqlx::Error> {
+    pub async fn sequence(&self, id: SequenceId) -> Result<Option<SequenceRow>, StoreError> {
         sqlx::query_as(
             "SELECT id, calibration_id, name, parameters, keep_images, created_at \
              FROM sequences WHERE id = $1",
@@ -281,6 +327,7 @@ impl Store {
         .bind(id)
         .fetch_optional(&self.reader)
         .await
+        .map_err(StoreError::from)
     }
 
     /// Sequences newest first (highest id first), below `before` if given,
@@ -289,7 +336,7 @@ impl Store {
         &self,
         before: Option<SequenceId>,
         limit: u32,
-    ) -> Result<Vec<SequenceRow>, sqlx::Error> {
+    ) -> Result<Vec<SequenceRow>, StoreError> {
         sqlx::query_as(
             "SELECT id, calibration_id, name, parameters, keep_images, created_at \
              FROM sequences WHERE id < $1 ORDER BY id DESC LIMIT $2",
@@ -298,6 +345,7 @@ impl Store {
         .bind(i64::from(limit))
         .fetch_all(&self.reader)
         .await
+        .map_err(StoreError::from)
     }
 
     /// A sequence's frames in order, after `after` if given, at most
@@ -308,7 +356,7 @@ impl Store {
         sequence_id: SequenceId,
         after: Option<FrameNumber>,
         limit: u32,
-    ) -> Result<Vec<FrameSummary>, sqlx::Error> {
+    ) -> Result<Vec<FrameSummary>, StoreError> {
         sqlx::query_as(
             "SELECT f.frame, f.job_id, j.state, p.count AS particles \
              FROM frames f JOIN jobs j ON j.id = f.job_id \
@@ -320,10 +368,11 @@ impl Store {
         .bind(i64::from(limit))
         .fetch_all(&self.reader)
         .await
+        .map_err(StoreError::from)
     }
 
     /// A sequence's frames counted by their job's state.
-    pub async fn frame_counts(&self, sequence_id: SequenceId) -> Result<FrameCounts, sqlx::Error> {
+    pub async fn frame_counts(&self, sequence_id: SequenceId) -> Result<FrameCounts, StoreError> {
         let rows: Vec<(String, i64)> = sqlx::query_as(
             "SELECT j.state, count(*) FROM frames f JOIN jobs j ON j.id = f.job_id \
              WHERE f.sequence_id = $1 GROUP BY j.state",
@@ -370,7 +419,12 @@ impl Store {
             sequence_id: frame.sequence_id,
             frame: frame.frame,
         })?;
-        for (camera, sha256, size) in &frame.images {
+        for CameraImage {
+            camera,
+            sha256,
+            size,
+        } in &frame.images
+        {
             sqlx::query(
                 "INSERT INTO images (sequence_id, frame, camera, sha256, size) \
                  VALUES ($1, $2, $3, $4, $5)",
@@ -383,16 +437,8 @@ impl Store {
             .execute(&mut *tx)
             .await?;
         }
-        for (camera, count, data) in &frame.targets {
-            insert_targets(
-                &mut tx,
-                frame.sequence_id,
-                frame.frame,
-                *camera,
-                *count,
-                data,
-            )
-            .await?;
+        for targets in &frame.targets {
+            insert_targets(&mut tx, frame.sequence_id, frame.frame, targets).await?;
         }
         tx.commit().await?;
         Ok(job_id)
@@ -403,7 +449,7 @@ impl Store {
         &self,
         sequence_id: SequenceId,
         frame: FrameNumber,
-    ) -> Result<Option<FrameInput>, sqlx::Error> {
+    ) -> Result<Option<FrameInput>, StoreError> {
         sqlx::query_as(
             "SELECT f.sequence_id, f.frame, f.input, f.raw_layout, s.calibration_id \
              FROM frames f JOIN sequences s ON s.id = f.sequence_id \
@@ -413,30 +459,32 @@ impl Store {
         .bind(frame)
         .fetch_optional(&self.reader)
         .await
+        .map_err(StoreError::from)
     }
 
-    /// A frame's images: camera and hash, in camera order.
+    /// A frame's image files, in camera order.
     pub async fn frame_images(
         &self,
         sequence_id: SequenceId,
         frame: FrameNumber,
-    ) -> Result<Vec<(i64, String)>, sqlx::Error> {
+    ) -> Result<Vec<CameraImage>, StoreError> {
         sqlx::query_as(
-            "SELECT camera, sha256 FROM images WHERE sequence_id = $1 AND frame = $2 \
+            "SELECT camera, sha256, size FROM images WHERE sequence_id = $1 AND frame = $2 \
              ORDER BY camera",
         )
         .bind(sequence_id)
         .bind(frame)
         .fetch_all(&self.reader)
         .await
+        .map_err(StoreError::from)
     }
 
-    /// A frame's targets per camera (count and blob), in camera order.
+    /// A frame's targets per camera, in camera order.
     pub async fn frame_targets(
         &self,
         sequence_id: SequenceId,
         frame: FrameNumber,
-    ) -> Result<Vec<(i64, i64, Vec<u8>)>, sqlx::Error> {
+    ) -> Result<Vec<CameraTargets>, StoreError> {
         sqlx::query_as(
             "SELECT camera, count, data FROM targets WHERE sequence_id = $1 AND frame = $2 \
              ORDER BY camera",
@@ -445,6 +493,7 @@ impl Store {
         .bind(frame)
         .fetch_all(&self.reader)
         .await
+        .map_err(StoreError::from)
     }
 
     /// Whether the frame exists.
@@ -452,7 +501,7 @@ impl Store {
         &self,
         sequence_id: SequenceId,
         frame: FrameNumber,
-    ) -> Result<bool, sqlx::Error> {
+    ) -> Result<bool, StoreError> {
         let row: Option<(i64,)> =
             sqlx::query_as("SELECT job_id FROM frames WHERE sequence_id = $1 AND frame = $2")
                 .bind(sequence_id)
@@ -468,7 +517,7 @@ impl Store {
         &self,
         sequence_id: SequenceId,
         frame: FrameNumber,
-    ) -> Result<Option<(i64, Vec<u8>, CalibrationId)>, sqlx::Error> {
+    ) -> Result<Option<(i64, Vec<u8>, CalibrationId)>, StoreError> {
         sqlx::query_as(
             "SELECT count, data, calibration_id FROM particles WHERE sequence_id = $1 AND frame = $2",
         )
@@ -476,13 +525,14 @@ impl Store {
         .bind(frame)
         .fetch_optional(&self.reader)
         .await
+        .map_err(StoreError::from)
     }
 
     /// The processed frames of a sequence, in order.
     pub async fn processed_frames(
         &self,
         sequence_id: SequenceId,
-    ) -> Result<Vec<FrameNumber>, sqlx::Error> {
+    ) -> Result<Vec<FrameNumber>, StoreError> {
         let rows: Vec<(FrameNumber,)> =
             sqlx::query_as("SELECT frame FROM particles WHERE sequence_id = $1 ORDER BY frame")
                 .bind(sequence_id)
@@ -506,7 +556,7 @@ impl Store {
         &self,
         job: &ClaimedJob,
         input: &FrameInput,
-        targets: &[(i64, i64, Vec<u8>)],
+        targets: &[CameraTargets],
         (particles, health): ((i64, &[u8]), &[super::HealthRow]),
         drop_images: bool,
         duration_s: f64,
@@ -514,8 +564,8 @@ impl Store {
         let (sequence_id, frame) = (input.sequence_id, input.frame);
         let mut tx = self.write_transaction().await?;
         finish(&mut tx, self.dialect, job, None, duration_s).await?;
-        for (camera, count, data) in targets {
-            insert_targets(&mut tx, sequence_id, frame, *camera, *count, data).await?;
+        for targets in targets {
+            insert_targets(&mut tx, sequence_id, frame, targets).await?;
         }
         sqlx::query(
             "INSERT INTO particles (sequence_id, frame, count, data, calibration_id) \
@@ -553,7 +603,7 @@ impl Store {
     pub async fn sequence_images(
         &self,
         sequence_id: SequenceId,
-    ) -> Result<Vec<SequenceImage>, sqlx::Error> {
+    ) -> Result<Vec<SequenceImage>, StoreError> {
         sqlx::query_as(
             "SELECT kind, camera, sha256, size, bits FROM sequence_images \
              WHERE sequence_id = $1 ORDER BY kind, camera",
@@ -561,16 +611,17 @@ impl Store {
         .bind(sequence_id)
         .fetch_all(&self.reader)
         .await
+        .map_err(StoreError::from)
     }
 
-    /// Stores uploaded backgrounds or masks (camera, hash, size, bits) of a
+    /// Stores uploaded backgrounds or masks of a
     /// sequence that has no frames and none of this kind yet, in one
     /// transaction.
     pub async fn insert_sequence_images(
         &self,
         sequence_id: SequenceId,
         kind: SequenceImageKind,
-        images: &[(i64, String, i64, i64)],
+        images: &[NewSequenceImage],
     ) -> Result<(), SequenceImagesError> {
         let mut tx = self.write_transaction().await?;
         super::dialect::lock_sequence(&mut tx, self.dialect, sequence_id).await?;
@@ -592,23 +643,22 @@ impl Store {
         if existing > 0 {
             return Err(SequenceImagesError::Exists(sequence_id, kind));
         }
-        for (camera, sha256, size, bits) in images {
-            insert_sequence_image(&mut tx, sequence_id, kind, *camera, sha256, *size, *bits)
-                .await?;
+        for image in images {
+            insert_sequence_image(&mut tx, sequence_id, kind, image).await?;
         }
         tx.commit().await?;
         Ok(())
     }
 
-    /// Stores a background the service computed (camera, hash, size, bits);
+    /// Stores a background the service computed;
     /// a background stored meanwhile (by another worker, from the same
     /// frames) is kept. Returns the hashes of the files no row refers to
     /// afterwards, whose files may go.
     pub async fn insert_computed_background(
         &self,
         sequence_id: SequenceId,
-        images: &[(i64, String, i64, i64)],
-    ) -> Result<Vec<String>, sqlx::Error> {
+        images: &[NewSequenceImage],
+    ) -> Result<Vec<String>, StoreError> {
         let mut tx = self.write_transaction().await?;
         super::dialect::lock_sequence(&mut tx, self.dialect, sequence_id).await?;
         let (existing,): (i64,) = sqlx::query_as(
@@ -618,23 +668,15 @@ impl Store {
         .fetch_one(&mut *tx)
         .await?;
         if existing == 0 {
-            for (camera, sha256, size, bits) in images {
-                insert_sequence_image(
-                    &mut tx,
-                    sequence_id,
-                    SequenceImageKind::Background,
-                    *camera,
-                    sha256,
-                    *size,
-                    *bits,
-                )
-                .await?;
+            for image in images {
+                insert_sequence_image(&mut tx, sequence_id, SequenceImageKind::Background, image)
+                    .await?;
             }
         }
         let mut orphans = Vec::new();
-        for (_, hash, _, _) in images {
-            if !file_in_use(&mut tx, hash).await? {
-                orphans.push(hash.clone());
+        for image in images {
+            if !file_in_use(&mut tx, &image.sha256).await? {
+                orphans.push(image.sha256.clone());
             }
         }
         tx.commit().await?;
@@ -647,7 +689,7 @@ impl Store {
         &self,
         sequence_id: SequenceId,
         limit: u32,
-    ) -> Result<(Vec<FrameNumber>, i64), sqlx::Error> {
+    ) -> Result<(Vec<FrameNumber>, i64), StoreError> {
         let frames: Vec<(FrameNumber,)> = sqlx::query_as(
             "SELECT frame FROM frames WHERE sequence_id = $1 AND input = 'images' \
              ORDER BY frame LIMIT $2",
@@ -670,18 +712,16 @@ async fn insert_targets(
     tx: &mut Transaction<'_, Any>,
     sequence_id: SequenceId,
     frame: FrameNumber,
-    camera: i64,
-    count: i64,
-    data: &[u8],
-) -> Result<(), sqlx::Error> {
+    targets: &CameraTargets,
+) -> Result<(), StoreError> {
     sqlx::query(
         "INSERT INTO targets (sequence_id, frame, camera, count, data) VALUES ($1, $2, $3, $4, $5)",
     )
     .bind(sequence_id)
     .bind(frame)
-    .bind(camera)
-    .bind(count)
-    .bind(data)
+    .bind(targets.camera)
+    .bind(targets.count)
+    .bind(&targets.data)
     .execute(&mut **tx)
     .await?;
     Ok(())
@@ -691,21 +731,18 @@ async fn insert_sequence_image(
     tx: &mut Transaction<'_, Any>,
     sequence_id: SequenceId,
     kind: SequenceImageKind,
-    camera: i64,
-    sha256: &str,
-    size: i64,
-    bits: i64,
-) -> Result<(), sqlx::Error> {
+    image: &NewSequenceImage,
+) -> Result<(), StoreError> {
     sqlx::query(
         "INSERT INTO sequence_images (sequence_id, kind, camera, sha256, size, bits) \
          VALUES ($1, $2, $3, $4, $5, $6)",
     )
     .bind(sequence_id)
     .bind(kind.as_str())
-    .bind(camera)
-    .bind(sha256)
-    .bind(size)
-    .bind(bits)
+    .bind(image.camera)
+    .bind(&image.sha256)
+    .bind(image.size)
+    .bind(image.bits)
     .execute(&mut **tx)
     .await?;
     Ok(())

@@ -94,7 +94,7 @@ async fn database_of_version_2(data_dir: &Path) {
 }
 
 /// A calibration row of `size` bytes.
-async fn write(store: &Store, size: usize) -> Result<CalibrationRow, sqlx::Error> {
+async fn write(store: &Store, size: usize) -> Result<CalibrationRow, StoreError> {
     store.insert_calibration(&"x".repeat(size), 2, None).await
 }
 
@@ -164,12 +164,12 @@ async fn writes_fail_as_storage_full_at_the_page_limit_and_recover_when_lifted()
         }
     }
     let failure = failure.expect("the page limit was reached");
-    assert!(is_storage_full(&failure), "{failure:?}");
+    assert!(failure.is_storage_full(), "{failure:?}");
     // Still full, and still failing as full (not as a stuck
     // transaction), on every write.
     for _ in 0..3 {
         let error = write(&store, 3000).await.unwrap_err();
-        assert!(is_storage_full(&error), "{error:?}");
+        assert!(error.is_storage_full(), "{error:?}");
     }
     store.set_max_page_count(None).await.unwrap();
     for _ in 0..3 {
@@ -276,11 +276,9 @@ async fn tracking_runs_before_migration_7_have_no_calibration_and_new_ones_their
     let store = Store::open(dir.path(), 1).await.unwrap();
     let old = store.tracking_run(TrackingRunId(1)).await.unwrap().unwrap();
     assert_eq!(old.calibration_id, None);
-    let settings: crate::service::model::tracking_settings::TrackingSettings =
-        serde_json::from_str(&old.parameters).unwrap();
-    assert!(!settings.recovers());
+    assert!(!old.parameters.recovers());
     let new = store
-        .insert_tracking_run(SequenceId(1), old_settings)
+        .insert_tracking_run(SequenceId(1), &old.parameters)
         .await
         .unwrap()
         .unwrap();

@@ -17,9 +17,12 @@ use sqlx::{Any, FromRow, Row, Transaction};
 
 use std::time::Duration;
 
+use super::StoreError;
+use crate::service::model::tracking_settings::TrackingSettings;
+
 use super::{
-    stored_as_text, text_column, CalibrationId, FrameNumber, LeaseToken, SequenceId, Store,
-    TrackingRunId,
+    json_column, json_text, stored_as_text, text_column, CalibrationId, FrameNumber, LeaseToken,
+    SequenceId, Store, TrackingRunId,
 };
 
 /// Where a tracking run stands (`tracking_runs.state`).
@@ -50,8 +53,8 @@ pub struct TrackingRunRow {
     pub id: TrackingRunId,
     /// Its sequence.
     pub sequence_id: SequenceId,
-    /// Its settings (JSON).
-    pub parameters: String,
+    /// Its settings.
+    pub parameters: TrackingSettings,
     /// The last frame its tracker took.
     pub tracked_through: Option<FrameNumber>,
     /// Whether the client said the sequence has all its frames.
@@ -89,7 +92,7 @@ impl FromRow<'_, AnyRow> for TrackingRunRow {
         Ok(TrackingRunRow {
             id: row.try_get("id")?,
             sequence_id: row.try_get("sequence_id")?,
-            parameters: row.try_get("parameters")?,
+            parameters: json_column(row, "parameters")?,
             tracked_through: row.try_get("tracked_through")?,
             finish_requested: row.try_get::<i64, _>("finish_requested")? != 0,
             state: text_column(row, "state")?,
@@ -207,13 +210,14 @@ impl Store {
     pub async fn tracking_run(
         &self,
         id: TrackingRunId,
-    ) -> Result<Option<TrackingRunRow>, sqlx::Error> {
+    ) -> Result<Option<TrackingRunRow>, StoreError> {
         sqlx::query_as(&format!(
             "SELECT {RUN_COLUMNS} FROM tracking_runs WHERE id = $1"
         ))
         .bind(id)
         .fetch_optional(&self.reader)
         .await
+        .map_err(StoreError::from)
     }
 
     /// A sequence's tracking runs, oldest first (the last is its current
@@ -221,20 +225,21 @@ impl Store {
     pub async fn tracking_runs(
         &self,
         sequence_id: SequenceId,
-    ) -> Result<Vec<TrackingRunRow>, sqlx::Error> {
+    ) -> Result<Vec<TrackingRunRow>, StoreError> {
         sqlx::query_as(&format!(
             "SELECT {RUN_COLUMNS} FROM tracking_runs WHERE sequence_id = $1 ORDER BY id"
         ))
         .bind(sequence_id)
         .fetch_all(&self.reader)
         .await
+        .map_err(StoreError::from)
     }
 
     /// A sequence's current (newest) tracking run.
     pub async fn current_tracking_run(
         &self,
         sequence_id: SequenceId,
-    ) -> Result<Option<TrackingRunRow>, sqlx::Error> {
+    ) -> Result<Option<TrackingRunRow>, StoreError> {
         sqlx::query_as(&format!(
             "SELECT {RUN_COLUMNS} FROM tracking_runs WHERE sequence_id = $1 \
              ORDER BY id DESC LIMIT 1"
@@ -242,6 +247,7 @@ impl Store {
         .bind(sequence_id)
         .fetch_optional(&self.reader)
         .await
+        .map_err(StoreError::from)
     }
 
     /// Runs still tracking that `owner` holds or may take (their lease
@@ -249,7 +255,7 @@ impl Store {
     pub async fn tracking_runs_to_advance(
         &self,
         owner: &str,
-    ) -> Result<Vec<TrackingRunId>, sqlx::Error> {
+    ) -> Result<Vec<TrackingRunId>, StoreError> {
         let rows: Vec<(TrackingRunId,)> = sqlx::query_as(&format!(
             "SELECT id FROM tracking_runs WHERE state = 'tracking' \
              AND (lease_owner IS NULL OR lease_owner = $1 OR {expired}) ORDER BY id",
@@ -270,7 +276,7 @@ impl Store {
         id: TrackingRunId,
         owner: &str,
         lease: Duration,
-    ) -> Result<Option<LeaseToken>, sqlx::Error> {
+    ) -> Result<Option<LeaseToken>, StoreError> {
         let row: Option<(LeaseToken,)> = sqlx::query_as(&format!(
             "UPDATE tracking_runs SET \
              lease_token = CASE WHEN lease_owner IS NOT DISTINCT FROM $1 THEN lease_token \
@@ -292,7 +298,7 @@ impl Store {
 
     /// Gives up the tracking leases `owner` holds (a process stopping), so
     /// that another process takes its runs over at once.
-    pub async fn release_tracking_leases(&self, owner: &str) -> Result<u64, sqlx::Error> {
+    pub async fn release_tracking_leases(&self, owner: &str) -> Result<u64, StoreError> {
         Ok(sqlx::query(
             "UPDATE tracking_runs SET lease_owner = NULL, lease_until = NULL \
              WHERE lease_owner = $1",
@@ -311,8 +317,8 @@ impl Store {
     pub async fn insert_tracking_run(
         &self,
         sequence_id: SequenceId,
-        parameters: &str,
-    ) -> Result<Option<TrackingRunRow>, sqlx::Error> {
+        parameters: &TrackingSettings,
+    ) -> Result<Option<TrackingRunRow>, StoreError> {
         let mut tx = self.write_transaction().await?;
         // Held to the end: two new runs at once supersede one another in
         // turn, never both stay tracking.
@@ -348,13 +354,14 @@ impl Store {
     pub async fn request_tracking_finish(
         &self,
         id: TrackingRunId,
-    ) -> Result<Option<TrackingRunRow>, sqlx::Error> {
+    ) -> Result<Option<TrackingRunRow>, StoreError> {
         sqlx::query_as(&format!(
             "UPDATE tracking_runs SET finish_requested = 1 WHERE id = $1 RETURNING {RUN_COLUMNS}"
         ))
         .bind(id)
         .fetch_optional(&self.writer)
         .await
+        .map_err(StoreError::from)
     }
 
     /// The sequence's frames from `from` on (at most `limit`), in order,
@@ -364,7 +371,7 @@ impl Store {
         sequence_id: SequenceId,
         from: FrameNumber,
         limit: u32,
-    ) -> Result<Vec<(FrameNumber, FrameReadiness)>, sqlx::Error> {
+    ) -> Result<Vec<(FrameNumber, FrameReadiness)>, StoreError> {
         let rows: Vec<(FrameNumber, String, i64)> = sqlx::query_as(
             "SELECT f.frame, j.state, CASE WHEN p.frame IS NULL THEN 0 ELSE 1 END FROM frames f \
              JOIN jobs j ON j.id = f.job_id \
@@ -397,13 +404,14 @@ impl Store {
     pub async fn tracked_frames(
         &self,
         id: TrackingRunId,
-    ) -> Result<Vec<(FrameNumber, Option<i64>)>, sqlx::Error> {
+    ) -> Result<Vec<(FrameNumber, Option<i64>)>, StoreError> {
         sqlx::query_as(
             "SELECT frame, particles FROM tracking_frames WHERE run_id = $1 ORDER BY frame",
         )
         .bind(id)
         .fetch_all(&self.reader)
         .await
+        .map_err(StoreError::from)
     }
 
     /// Stores what tracking `frame` gave (`particles`: how many the tracker
@@ -418,7 +426,7 @@ impl Store {
         frame: FrameNumber,
         particles: Option<i64>,
         points: &[PointRow],
-    ) -> Result<bool, sqlx::Error> {
+    ) -> Result<bool, StoreError> {
         let mut tx = self.write_transaction().await?;
         let advanced = sqlx::query(
             "UPDATE tracking_runs SET tracked_through = $1 \
@@ -453,7 +461,7 @@ impl Store {
         run: (TrackingRunId, LeaseToken),
         through: Option<FrameNumber>,
         points: &[PointRow],
-    ) -> Result<bool, sqlx::Error> {
+    ) -> Result<bool, StoreError> {
         self.finish_tracking_run_with(run, through, points, None)
             .await
     }
@@ -471,7 +479,7 @@ impl Store {
         through: Option<FrameNumber>,
         points: &[PointRow],
         backward: Option<BackwardRow>,
-    ) -> Result<bool, sqlx::Error> {
+    ) -> Result<bool, StoreError> {
         let mut tx = self.write_transaction().await?;
         let done = sqlx::query(
             "UPDATE tracking_runs SET state = 'finished', lease_owner = NULL, lease_until = NULL \
@@ -511,7 +519,7 @@ impl Store {
 
     /// How many particles the run's tracker was given over its frames, and
     /// how many points it stored: what its backward pass holds.
-    pub async fn tracking_run_size(&self, id: TrackingRunId) -> Result<(i64, i64), sqlx::Error> {
+    pub async fn tracking_run_size(&self, id: TrackingRunId) -> Result<(i64, i64), StoreError> {
         let (particles, points): (Option<i64>, Option<i64>) = sqlx::query_as(
             // PostgreSQL's sum of BIGINT is NUMERIC: cast back.
             "SELECT (SELECT CAST(sum(particles) AS BIGINT) FROM tracking_frames WHERE run_id = $1), \
@@ -529,7 +537,7 @@ impl Store {
         &self,
         id: TrackingRunId,
         error: &str,
-    ) -> Result<(), sqlx::Error> {
+    ) -> Result<(), StoreError> {
         sqlx::query(
             "UPDATE tracking_runs SET state = 'failed', error = $1 \
              WHERE id = $2 AND state = 'tracking'",
@@ -542,7 +550,7 @@ impl Store {
     }
 
     /// How many trajectories the run has stored.
-    pub async fn trajectory_count(&self, id: TrackingRunId) -> Result<i64, sqlx::Error> {
+    pub async fn trajectory_count(&self, id: TrackingRunId) -> Result<i64, StoreError> {
         let (n,): (i64,) = sqlx::query_as("SELECT count(*) FROM trajectories WHERE run_id = $1")
             .bind(id)
             .fetch_one(&self.reader)
@@ -560,7 +568,7 @@ impl Store {
         frames: (FrameNumber, FrameNumber),
         after: i64,
         limit: u32,
-    ) -> Result<Vec<TrajectoryRow>, sqlx::Error> {
+    ) -> Result<Vec<TrajectoryRow>, StoreError> {
         sqlx::query_as(
             "SELECT id, first_frame, last_frame, length FROM trajectories \
              WHERE run_id = $1 AND length >= $2 AND last_frame >= $3 AND first_frame <= $4 AND id > $5 \
@@ -574,6 +582,7 @@ impl Store {
         .bind(i64::from(limit))
         .fetch_all(&self.reader)
         .await
+        .map_err(StoreError::from)
     }
 
     /// One trajectory's extent.
@@ -581,7 +590,7 @@ impl Store {
         &self,
         id: TrackingRunId,
         trajectory: i64,
-    ) -> Result<Option<TrajectoryRow>, sqlx::Error> {
+    ) -> Result<Option<TrajectoryRow>, StoreError> {
         sqlx::query_as(
             "SELECT id, first_frame, last_frame, length FROM trajectories \
              WHERE run_id = $1 AND id = $2",
@@ -590,6 +599,7 @@ impl Store {
         .bind(trajectory)
         .fetch_optional(&self.reader)
         .await
+        .map_err(StoreError::from)
     }
 
     /// The points of the run's trajectories numbered `ids.0..=ids.1` within
@@ -607,7 +617,7 @@ impl Store {
         id: TrackingRunId,
         ids: (i64, i64),
         frames: (FrameNumber, FrameNumber),
-    ) -> Result<Vec<PointRow>, sqlx::Error> {
+    ) -> Result<Vec<PointRow>, StoreError> {
         let extent: (Option<FrameNumber>, Option<FrameNumber>) = sqlx::query_as(
             "SELECT min(first_frame), max(last_frame) FROM trajectories \
              WHERE run_id = $1 AND id BETWEEN $2 AND $3",
@@ -645,6 +655,7 @@ impl Store {
         .bind(frames.1)
         .fetch_all(&self.reader)
         .await
+        .map_err(StoreError::from)
     }
 
     /// The trajectory of each particle of a frame that has one: (particle,
@@ -653,7 +664,7 @@ impl Store {
         &self,
         id: TrackingRunId,
         frame: FrameNumber,
-    ) -> Result<Vec<(i64, i64)>, sqlx::Error> {
+    ) -> Result<Vec<(i64, i64)>, StoreError> {
         sqlx::query_as(
             "SELECT particle, trajectory FROM trajectory_points WHERE run_id = $1 AND frame = $2 \
              ORDER BY particle",
@@ -662,6 +673,7 @@ impl Store {
         .bind(frame)
         .fetch_all(&self.reader)
         .await
+        .map_err(StoreError::from)
     }
 }
 
@@ -670,9 +682,10 @@ impl Store {
 pub(super) async fn insert_run(
     tx: &mut Transaction<'_, Any>,
     sequence_id: SequenceId,
-    parameters: &str,
+    parameters: &TrackingSettings,
     finish_requested: bool,
-) -> Result<TrackingRunRow, sqlx::Error> {
+) -> Result<TrackingRunRow, StoreError> {
+    let parameters = json_text(parameters)?;
     sqlx::query_as(&format!(
         "INSERT INTO tracking_runs (sequence_id, parameters, finish_requested, calibration_id) \
          VALUES ($1, $2, $3, (SELECT calibration_id FROM sequences WHERE id = $4)) \
@@ -684,6 +697,7 @@ pub(super) async fn insert_run(
     .bind(sequence_id)
     .fetch_one(&mut **tx)
     .await
+    .map_err(StoreError::from)
 }
 
 /// Inserts trajectory points and brings their trajectories' extents up to
@@ -697,7 +711,7 @@ async fn insert_points(
     dialect: super::Dialect,
     id: TrackingRunId,
     points: &[PointRow],
-) -> Result<(), sqlx::Error> {
+) -> Result<(), StoreError> {
     for chunk in super::statement_chunks(dialect, points) {
         let sql = format!(
             "INSERT INTO trajectory_points (run_id, {POINT_COLUMNS}) VALUES {}",

@@ -7,7 +7,7 @@ use std::time::{Duration, Instant};
 use crate::service::infra::budget::BudgetError;
 use crate::service::infra::config::JobLimits;
 use crate::service::infra::errors::error_chain;
-use crate::service::store::{ClaimedJob, CompleteError};
+use crate::service::store::{ClaimedJob, CompleteError, StoreError};
 
 /// Why a job attempt did not succeed.
 #[derive(Debug, thiserror::Error)]
@@ -82,13 +82,13 @@ impl JobError {
     }
 }
 
-impl From<sqlx::Error> for JobError {
+impl From<StoreError> for JobError {
     /// A full disk, or a database that cannot be reached for now, is not
     /// the job's fault: its attempt is given back uncounted
     /// (the worker pausing before its next claim); any other database error a passing failure.
-    fn from(error: sqlx::Error) -> Self {
+    fn from(error: StoreError) -> Self {
         use crate::service::store::ErrorKind;
-        match crate::service::store::error_kind(&error) {
+        match error.kind() {
             ErrorKind::StorageFull => {
                 JobError::StorageFull(format!("the disk is full; waiting for space: {error}"))
             }

@@ -11,13 +11,12 @@ use crate::formats::{self, FormatError};
 use crate::photogrammetry::correspond::{MatchError, Particle};
 use crate::photogrammetry::health::FrameHealth;
 use crate::photogrammetry::{Cancel, FramePipeline, PipelineError, SplitterError, Target};
-use crate::service::infra::codec;
-use crate::service::infra::codec::DamagedBlob;
+use crate::service::infra::codec::{self, CameraTargets, DamagedBlob};
 use crate::service::model::raw_layout::StoredRawLayout;
 use crate::service::ops::health::{frame_health, rows_of};
 use crate::service::ops::images::remove_unused_images;
 use crate::service::ops::state::AppState;
-use crate::service::store::{FrameInputKind, FrameNumber, SequenceId};
+use crate::service::store::{CameraImage, FrameInputKind, FrameNumber, SequenceId};
 use serde::Deserialize;
 use std::sync::Arc;
 
@@ -53,7 +52,7 @@ pub enum FrameError {
 
 /// A frame's results: its targets (encoded per camera, for images; none
 /// for uploaded targets), particles and calibration health.
-type FrameResults = (Vec<(i64, i64, Vec<u8>)>, Vec<Particle>, FrameHealth);
+type FrameResults = (Vec<CameraTargets>, Vec<Particle>, FrameHealth);
 
 /// The calibration health of a frame matched by `pipeline`
 /// ([`crate::service::ops::health`]).
@@ -120,19 +119,21 @@ async fn frame_work(
         // rather than once per camera; they are still decoded one at a
         // time, each dropped once detected.
         cancel.check().map_err(JobError::failed)?;
-        let files = futures_util::future::try_join_all(images.iter().map(|(camera, sha256)| {
-            let camera = *camera;
+        let files = futures_util::future::try_join_all(images.iter().map(|image| {
+            let camera = image.camera;
             async move {
                 state
                     .images
-                    .read(sha256)
+                    .read(&image.sha256)
                     .await
                     .map_err(|e| JobError::image(&format!("the image of camera {camera}"), e))
             }
         }))
         .await?;
         let mut targets = Vec::with_capacity(cameras);
-        for (index, ((camera, _), bytes)) in images.into_iter().zip(files).enumerate() {
+        for (index, (CameraImage { camera, .. }, bytes)) in
+            images.into_iter().zip(files).enumerate()
+        {
             cancel.check().map_err(JobError::failed)?;
             let (pipeline, work_cancel) = (pipeline.clone(), cancel.clone());
             let found = state
@@ -185,7 +186,7 @@ async fn frame_work(
             .await?;
         size.1 = stored
             .iter()
-            .map(|(_, count, _)| u64::try_from(*count).unwrap_or(0))
+            .map(|t| u64::try_from(t.count).unwrap_or(0))
             .sum();
         cancel.set_limit(limit.for_work(0, size.1));
         let (pipeline, work_cancel) = (pipeline.clone(), cancel.clone());
@@ -194,7 +195,7 @@ async fn frame_work(
             .run_until(cancel, move || {
                 let targets = stored
                     .iter()
-                    .map(|(_, _, blob)| codec::decode_targets(blob))
+                    .map(CameraTargets::decode)
                     .collect::<Result<Vec<_>, _>>()?;
                 let particles = pipeline
                     .matcher()

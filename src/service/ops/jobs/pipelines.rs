@@ -66,8 +66,7 @@ pub async fn sequence_parameters(
         .sequence(sequence_id)
         .await?
         .ok_or_else(|| JobError::Failed(format!("sequence {sequence_id} does not exist")))?;
-    serde_json::from_str(&sequence.parameters)
-        .map_err(|e| JobError::Failed(format!("the sequence's stored parameters: {e}")))
+    Ok(sequence.parameters)
 }
 
 /// The sequence's pipeline, from the cache or prepared now, with its

@@ -207,7 +207,7 @@ pub(super) fn point_row(p: &TrackPoint, targets: String) -> PointRow {
 pub enum TrackingError {
     /// The database failed (the next kick tries again).
     #[error("database: {0}")]
-    Database(#[from] sqlx::Error),
+    Database(#[from] crate::service::store::StoreError),
     /// The CPU pool failed.
     #[error("tracking {0}")]
     Cpu(#[from] CpuError),

@@ -96,9 +96,8 @@ pub mod live;
 use self::live::{hold_recovered, rows, FrameInput, Live, TrackingError};
 use crate::formats;
 use crate::photogrammetry::track::ImageSpaceRecovery;
-use crate::service::infra::codec;
+use crate::service::infra::codec::{self, CameraTargets};
 use crate::service::infra::errors::error_chain;
-use crate::service::model::parameters::SequenceParameters;
 use crate::service::model::tracking_settings::TrackingSettings;
 use crate::service::ops::events::Change;
 use crate::service::ops::state::AppState;
@@ -244,7 +243,7 @@ pub async fn advance(state: &Arc<AppState>, id: TrackingRunId) -> Result<(), Tra
         state.trackers.forget(id);
         return Ok(());
     }
-    let settings: TrackingSettings = serde_json::from_str(&run.parameters)?;
+    let settings = run.parameters.clone();
     if guard.as_ref().map(|l| l.through) != Some(run.tracked_through) {
         *guard = None;
         *guard = Some(rebuild(state, &run, &settings).await?);
@@ -326,7 +325,7 @@ enum Taken {
 }
 
 /// A frame's store, running.
-type Storing = Option<tokio::task::JoinHandle<Result<bool, sqlx::Error>>>;
+type Storing = Option<tokio::task::JoinHandle<Result<bool, crate::service::store::StoreError>>>;
 
 /// Waits for the frame being stored: false if the run had moved (nothing
 /// was stored).
@@ -483,8 +482,7 @@ async fn recovery(
         .sequence(run.sequence_id)
         .await?
         .ok_or_else(|| TrackingError::Internal(format!("sequence {} is gone", run.sequence_id)))?;
-    let parameters: SequenceParameters = serde_json::from_str(&sequence.parameters)?;
-    let recovery = ImageSpaceRecovery::new(cameras, parameters.matching().tolerance)
+    let recovery = ImageSpaceRecovery::new(cameras, sequence.parameters.matching().tolerance)
         .map_err(|e| TrackingError::Recovery(e.to_string()))?;
     Ok(Some(recovery))
 }
@@ -529,7 +527,9 @@ async fn load_frame(
     let particles = codec::decode_particles(&blob, cameras)?;
     let targets = if targets {
         let mut per_camera = vec![Vec::new(); cameras];
-        for (camera, _, blob) in state.store.frame_targets(sequence_id, frame).await? {
+        for CameraTargets { camera, data, .. } in
+            state.store.frame_targets(sequence_id, frame).await?
+        {
             let slot = usize::try_from(camera)
                 .ok()
                 .and_then(|c| per_camera.get_mut(c))
@@ -539,7 +539,7 @@ async fn load_frame(
                          cameras"
                     ))
                 })?;
-            *slot = codec::decode_targets(&blob)?;
+            *slot = codec::decode_targets(&data)?;
         }
         Some(per_camera)
     } else {
