@@ -13,10 +13,11 @@
 //! figure: IPR exists to do better than the 1993 pipeline (detection,
 //! then epipolar matching, `FramePipeline` with `ptv process`'s defaults
 //! and a 0.5 px band) where particle images overlap, so at 0.02 particles
-//! per pixel it must find more particles, with a smaller ghost fraction
+//! per pixel of the sensor (more of the volume's footprint, which is what
+//! docs/ipr.md's densities count) it must find more particles, with a smaller ghost fraction
 //! and a smaller reprojected position error. A broken shaking (no
 //! convergence), ghost removal or residual bookkeeping loses at least one
-//! of the three. (At 1280x1024 and 0.02 ppp the two score 93.8% / 3.2% ghosts
+//! of the three. (At 1280x1024 and 0.02 ppp of the sensor the two score 93.8% / 3.2% ghosts
 //! and 17% / 64% ghosts, here 93.8% / 2.7% and 19.7% / 60.7%: see
 //! docs/ipr.md. The sparse case against the
 //! issue's goals, noise-derived, is in `tests/cli/reconstruct.rs`.)
