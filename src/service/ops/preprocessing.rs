@@ -117,11 +117,7 @@ pub async fn ensure_computed_background(
     splitter: Option<Splitter>,
 ) -> Result<(), JobError> {
     let cameras = sensors.len();
-    let stored = state.store.sequence_images(sequence_id).await?;
-    if stored
-        .iter()
-        .any(|i| i.kind == SequenceImageKind::Background)
-    {
+    if has_background(state, sequence_id).await? {
         return Ok(());
     }
     let (frames, arrived) = state
@@ -143,7 +139,49 @@ pub async fn ensure_computed_background(
             "waiting for the sequence's background: another worker computes it".to_owned(),
         ));
     };
-    // Each frame's layout and image files (names only).
+    let inputs = frame_files(state, sequence_id, frames).await?;
+    let (need, sample) =
+        computed_background_need(state, computed, sensors, splitter, &inputs).await?;
+    let _grant = state.budget.acquire(&need).await?;
+    // Another worker of this process may have computed it while this one
+    // waited for the memory.
+    if has_background(state, sequence_id).await? {
+        return Ok(());
+    }
+    let mut files = Vec::new();
+    for camera in 0..cameras {
+        let from = (&inputs[..], splitter, sample);
+        let Some((png, bits)) = camera_background(state, computed, camera, cameras, from).await?
+        else {
+            continue;
+        };
+        // Written out at once, so that only one camera's PNG is held.
+        let mut upload = state.images.create_upload().await.map_err(io_error)?;
+        upload.write(&png).await.map_err(io_error)?;
+        drop(png);
+        let file = upload.finish().await.map_err(io_error)?;
+        files.push((camera as i64, file, bits));
+    }
+    store_backgrounds(state, sequence_id, files).await
+}
+
+/// Whether the sequence has a background (uploaded, or computed by any
+/// worker).
+async fn has_background(state: &AppState, sequence_id: SequenceId) -> Result<bool, JobError> {
+    Ok(state
+        .store
+        .sequence_images(sequence_id)
+        .await?
+        .iter()
+        .any(|i| i.kind == SequenceImageKind::Background))
+}
+
+/// Each frame's raw layout (if raw) and image files (names only).
+async fn frame_files(
+    state: &AppState,
+    sequence_id: SequenceId,
+    frames: Vec<FrameNumber>,
+) -> Result<Vec<FrameFiles>, JobError> {
     let mut inputs = Vec::with_capacity(frames.len());
     for frame in frames {
         let input = state
@@ -163,112 +201,101 @@ pub async fn ensure_computed_background(
         let images = state.store.frame_images(sequence_id, frame).await?;
         inputs.push((frame, layout, images));
     }
-    let (need, sample) =
-        computed_background_need(state, computed, sensors, splitter, &inputs).await?;
-    let _grant = state.budget.acquire(&need).await?;
-    // Another worker of this process may have computed it while this one
-    // waited for the memory.
-    if state
-        .store
-        .sequence_images(sequence_id)
-        .await?
-        .iter()
-        .any(|i| i.kind == SequenceImageKind::Background)
-    {
-        return Ok(());
-    }
+    Ok(inputs)
+}
 
-    let mut files = Vec::new();
-    for camera in 0..cameras {
-        let mut builder: Option<BackgroundBuilder> = None;
-        for (frame, layout, images) in &inputs {
-            let (frame, layout) = (*frame, *layout);
-            // With a splitter, the one image holds every camera's view.
-            let image = images
-                .iter()
-                .find(|i| splitter.is_some() || usize::try_from(i.camera).ok() == Some(camera));
-            let Some(CameraImage {
-                camera: stored_camera,
-                sha256,
-                ..
-            }) = image
-            else {
-                continue;
-            };
-            let stored_camera = *stored_camera;
-            let bytes = state.images.read(sha256).await.map_err(|e| {
-                JobError::image(
-                    &format!("the image of camera {stored_camera} of frame {frame}"),
-                    e,
-                )
-            })?;
-            let taken = builder.take();
-            let mode = computed.mode;
-            let updated = state
-                .cpu
-                .run(move || {
-                    let source = format!("cam{stored_camera} of frame {frame}");
-                    let image = match &layout {
-                        Some(layout) => formats::image::decode_raw(&bytes, layout, &source),
-                        None => formats::image::decode_image(&bytes, &source),
-                    }
-                    .map_err(JobError::failed)?;
-                    drop(bytes);
-                    let view = match splitter {
-                        Some(splitter) => splitter
-                            .view(&image, camera)
-                            .map_err(JobError::failed)?
-                            .ok_or_else(|| {
-                                JobError::Failed(format!(
-                                    "the calibration has {cameras} cameras but its splitter \
-                                     `{}` cuts {} views",
-                                    splitter.name(),
-                                    splitter.views()
-                                ))
-                            })?,
-                        None => image,
-                    };
-                    let mut builder = match taken {
-                        Some(builder) => builder,
-                        None => BackgroundBuilder::new(
-                            mode,
-                            view.width(),
-                            view.height(),
-                            view.bit_depth(),
-                        )
-                        .with_sample_limit(sample)
-                        .map_err(JobError::failed)?,
-                    };
-                    builder.add(&view).map_err(|e| {
-                        JobError::Failed(format!("computing the background from {source}: {e}"))
-                    })?;
-                    Ok::<_, JobError>(builder)
-                })
-                .await
-                .map_err(|e| JobError::Retry(format!("computing the background: {e}")))??;
-            builder = Some(updated);
-        }
-        let Some(builder) = builder else { continue };
-        let (png, bits) = state
+/// One camera's background from the frames' images (`from`: the frames'
+/// files, the splitter, the most frames a median keeps), as a PNG and its
+/// bits per sample; `None` where no frame has an image of the camera.
+/// Each image is read, decoded, cut to the camera's view, added and
+/// dropped before the next.
+async fn camera_background(
+    state: &AppState,
+    computed: &ComputedBackground,
+    camera: usize,
+    cameras: usize,
+    (inputs, splitter, sample): (&[FrameFiles], Option<Splitter>, usize),
+) -> Result<Option<(Vec<u8>, i64)>, JobError> {
+    let mut builder: Option<BackgroundBuilder> = None;
+    for (frame, layout, images) in inputs {
+        let (frame, layout) = (*frame, *layout);
+        // With a splitter, the one image holds every camera's view.
+        let image = images
+            .iter()
+            .find(|i| splitter.is_some() || usize::try_from(i.camera).ok() == Some(camera));
+        let Some(CameraImage {
+            camera: stored_camera,
+            sha256,
+            ..
+        }) = image
+        else {
+            continue;
+        };
+        let stored_camera = *stored_camera;
+        let bytes = state.images.read(sha256).await.map_err(|e| {
+            JobError::image(
+                &format!("the image of camera {stored_camera} of frame {frame}"),
+                e,
+            )
+        })?;
+        let taken = builder.take();
+        let mode = computed.mode;
+        let updated = state
             .cpu
             .run(move || {
-                let background: GreyImage = builder.finish().map_err(JobError::failed)?;
-                let bits = i64::from(background.bit_depth().bits());
-                let source = format!("the background of camera {camera}");
-                let png =
-                    formats::image::encode_png(&background, &source).map_err(JobError::failed)?;
-                Ok::<_, JobError>((png, bits))
+                let source = format!("cam{stored_camera} of frame {frame}");
+                let image = match &layout {
+                    Some(layout) => formats::image::decode_raw(&bytes, layout, &source),
+                    None => formats::image::decode_image(&bytes, &source),
+                }
+                .map_err(JobError::failed)?;
+                drop(bytes);
+                let view = match splitter {
+                    Some(splitter) => splitter
+                        .view(&image, camera)
+                        .map_err(JobError::failed)?
+                        .ok_or_else(|| {
+                            JobError::Failed(format!(
+                                "the calibration has {cameras} cameras but its splitter \
+                                     `{}` cuts {} views",
+                                splitter.name(),
+                                splitter.views()
+                            ))
+                        })?,
+                    None => image,
+                };
+                let mut builder = match taken {
+                    Some(builder) => builder,
+                    None => {
+                        BackgroundBuilder::new(mode, view.width(), view.height(), view.bit_depth())
+                            .with_sample_limit(sample)
+                            .map_err(JobError::failed)?
+                    }
+                };
+                builder.add(&view).map_err(|e| {
+                    JobError::Failed(format!("computing the background from {source}: {e}"))
+                })?;
+                Ok::<_, JobError>(builder)
             })
             .await
             .map_err(|e| JobError::Retry(format!("computing the background: {e}")))??;
-        // Written out at once, so that only one camera's PNG is held.
-        let mut upload = state.images.create_upload().await.map_err(io_error)?;
-        upload.write(&png).await.map_err(io_error)?;
-        drop(png);
-        let file = upload.finish().await.map_err(io_error)?;
-        files.push((camera as i64, file, bits));
+        builder = Some(updated);
     }
-    store_backgrounds(state, sequence_id, files).await
+    let Some(builder) = builder else {
+        return Ok(None);
+    };
+    let png_and_bits = state
+        .cpu
+        .run(move || {
+            let background: GreyImage = builder.finish().map_err(JobError::failed)?;
+            let bits = i64::from(background.bit_depth().bits());
+            let source = format!("the background of camera {camera}");
+            let png = formats::image::encode_png(&background, &source).map_err(JobError::failed)?;
+            Ok::<_, JobError>((png, bits))
+        })
+        .await
+        .map_err(|e| JobError::Retry(format!("computing the background: {e}")))??;
+    Ok(Some(png_and_bits))
 }
 
 /// A frame's number, raw layout (if raw) and (camera, SHA-256) of its
