@@ -454,19 +454,22 @@ impl CameraParameters {
     /// (`formats::calibration`, the OpenPTV import). The error names the
     /// field, the value and the range.
     pub fn check_physical(&self) -> Result<(), InvalidCamera> {
-        let outside = |field: &str, value: f64, range: String| {
-            Err(InvalidCamera::new(
-                field,
-                format!("{} is outside the range {range}", readable(value)),
-            ))
-        };
-        let within = |field: &str, value: f64, (low, high): (f64, f64), unit: &str, why: &str| {
-            if value.is_finite() && (low..=high).contains(&value) {
-                Ok(())
-            } else {
-                outside(field, value, format!("{low}..{high}{unit} {why}"))
-            }
-        };
+        self.check_interior()?;
+        self.check_exterior()?;
+        self.check_distortion()?;
+        self.check_media()
+    }
+
+    /// The half-diagonal of the sensor (mm), to which the distortion is
+    /// held and around whose centre the principal point must lie (within
+    /// twice it).
+    fn half_diagonal(&self) -> f64 {
+        let s = &self.sensor;
+        (f64::from(s.width) * s.pixel_size_x).hypot(f64::from(s.height) * s.pixel_size_y) / 2.0
+    }
+
+    /// The pixel pitch, the principal distance and the principal point.
+    fn check_interior(&self) -> Result<(), InvalidCamera> {
         let s = &self.sensor;
         for (field, value) in [
             ("pixel_size[0]", s.pixel_size_x),
@@ -487,8 +490,7 @@ impl CameraParameters {
             " mm",
             "(real lenses have about 1 to 5,000 mm; give c in mm)",
         )?;
-        let diagonal =
-            (f64::from(s.width) * s.pixel_size_x).hypot(f64::from(s.height) * s.pixel_size_y);
+        let diagonal = 2.0 * self.half_diagonal();
         for (field, value) in [
             ("principal_point[0]", self.interior.xh),
             ("principal_point[1]", self.interior.yh),
@@ -501,6 +503,11 @@ impl CameraParameters {
                 "(within one sensor diagonal of the sensor's centre)",
             )?;
         }
+        Ok(())
+    }
+
+    /// The angles and the position.
+    fn check_exterior(&self) -> Result<(), InvalidCamera> {
         let e = &self.exterior;
         for (field, value) in [
             ("angles[0]", e.omega),
@@ -524,6 +531,12 @@ impl CameraParameters {
                 "(1,000 km either way)",
             )?;
         }
+        Ok(())
+    }
+
+    /// The affine scale, and the radial and decentering distortion over
+    /// the sensor.
+    fn check_distortion(&self) -> Result<(), InvalidCamera> {
         let d = &self.distortion;
         within(
             "affine[0]",
@@ -532,7 +545,7 @@ impl CameraParameters {
             "",
             "(the x scale of a real sensor differs from 1 by under 1%)",
         )?;
-        let half = diagonal / 2.0;
+        let half = self.half_diagonal();
         let end = half * half;
         if [d.k1, d.k2, d.k3].iter().all(|k| k.is_finite()) {
             let (low, high) = cubic_range([0.0, d.k1, d.k2, d.k3], end);
@@ -571,6 +584,11 @@ impl CameraParameters {
                 ),
             ));
         }
+        Ok(())
+    }
+
+    /// The refractive indices, the walls' thicknesses and the glass vector.
+    fn check_media(&self) -> Result<(), InvalidCamera> {
         let m = &self.media;
         let index = |field: &str, value: f64| {
             within(
@@ -603,6 +621,28 @@ impl CameraParameters {
             )?;
         }
         Ok(())
+    }
+}
+
+/// `Ok` where `value` is finite and within `low..=high`; else the error
+/// that names the field, the value and the range in `unit`, and `why`.
+fn within(
+    field: &str,
+    value: f64,
+    (low, high): (f64, f64),
+    unit: &str,
+    why: &str,
+) -> Result<(), InvalidCamera> {
+    if value.is_finite() && (low..=high).contains(&value) {
+        Ok(())
+    } else {
+        Err(InvalidCamera::new(
+            field,
+            format!(
+                "{} is outside the range {low}..{high}{unit} {why}",
+                readable(value)
+            ),
+        ))
     }
 }
 
