@@ -327,13 +327,46 @@ fn manual_ids(nr: &[i64], cameras: usize, file: &Path) -> Result<Vec<Vec<u64>>, 
         .collect()
 }
 
+/// Where each key of the `.par` files was read (for errors found later).
+type Places = std::collections::BTreeMap<String, (PathBuf, usize)>;
+
+/// Each camera's manually identified points: number and pixel position.
+type ManualPoints = Vec<Vec<(u64, Point2<f64>)>>;
+
 fn read_legacy(
     files: &dyn ExperimentFiles,
     dir: &Path,
     cameras: usize,
 ) -> Result<CalibrationSettings, ExperimentError> {
-    let mut places = std::collections::BTreeMap::new();
-    let mut f = ParFile::open(files, dir, "cal_ori.par", "cal_ori", &mut places)?;
+    let mut places = Places::new();
+    let (control, images) = legacy_cal_ori(files, dir, cameras, &mut places)?;
+    let detection = legacy_detect_plate(files, dir, cameras, &mut places)?;
+    let (fixed, pnfo) = legacy_orient(files, dir, &mut places)?;
+    let (manual, man_ori) = legacy_man_ori(files, dir, cameras, &mut places)?;
+    let mut unmapped = vec![pnfo];
+    let (planes, planes_source) = legacy_planes(files, dir, cameras, &mut places, &mut unmapped)?;
+    Ok(CalibrationSettings {
+        control,
+        images,
+        detection,
+        fixed,
+        manual,
+        planes,
+        planes_source,
+        unmapped,
+        manual_source: man_ori.display().to_string(),
+    })
+}
+
+/// `cal_ori.par`: the control points' file and each camera's calibration
+/// image, resolved.
+fn legacy_cal_ori(
+    files: &dyn ExperimentFiles,
+    dir: &Path,
+    cameras: usize,
+    places: &mut Places,
+) -> Result<(PathBuf, Vec<PathBuf>), ExperimentError> {
+    let mut f = ParFile::open(files, dir, "cal_ori.par", "cal_ori", places)?;
     let fixp = f.text("fixp_name")?;
     let mut names = Vec::new();
     for i in 0..cameras {
@@ -355,8 +388,17 @@ fn read_legacy(
             )
         })
         .collect::<Result<Vec<_>, _>>()?;
+    Ok((control, images))
+}
 
-    let mut f = ParFile::open(files, dir, "detect_plate.par", "detect_plate", &mut places)?;
+/// `detect_plate.par`: the marks' detection per camera.
+fn legacy_detect_plate(
+    files: &dyn ExperimentFiles,
+    dir: &Path,
+    cameras: usize,
+    places: &mut Places,
+) -> Result<Vec<DetectionParameters>, ExperimentError> {
+    let mut f = ParFile::open(files, dir, "detect_plate.par", "detect_plate", places)?;
     let mut gvth = Vec::new();
     for i in 1..=4 {
         gvth.push(f.integer(&format!("gvth_{i}"))?);
@@ -384,12 +426,20 @@ fn read_legacy(
     d.max_npix_y = f.integer("max_npix_y")?;
     d.sum_grey = f.integer("sum_grey")?;
     let detect_file = f.path.clone();
-    let detection = thresholds(&d, cameras)
+    thresholds(&d, cameras)
         .into_iter()
         .map(|t| plate_detection(t, &d, &detect_file))
-        .collect::<Result<Vec<_>, _>>()?;
+        .collect()
+}
 
-    let mut f = ParFile::open(files, dir, "orient.par", "orient", &mut places)?;
+/// `orient.par`: the parameters held, and its `pnfo` as an unmapped
+/// setting.
+fn legacy_orient(
+    files: &dyn ExperimentFiles,
+    dir: &Path,
+    places: &mut Places,
+) -> Result<(Vec<Parameter>, UnmappedSetting), ExperimentError> {
+    let mut f = ParFile::open(files, dir, "orient.par", "orient", places)?;
     let pnfo = f.integer("pnfo")?;
     let mut flags = std::collections::BTreeMap::new();
     for (key, _) in ORIENT_FLAGS {
@@ -397,8 +447,26 @@ fn read_legacy(
     }
     let orient_file = f.path.clone();
     let fixed = fixed_from_flags(|key| Ok(flags[key]))?;
+    let pnfo = UnmappedSetting {
+        file: orient_file.display().to_string(),
+        key: "orient.pnfo".into(),
+        value: pnfo.to_string(),
+        reason: "OpenPTV's choice of points for the orientation; ptv uses every identified mark \
+                 and excludes gross errors by data snooping"
+            .into(),
+    };
+    Ok((fixed, pnfo))
+}
 
-    let mut f = ParFile::open(files, dir, "man_ori.par", "man_ori", &mut places)?;
+/// `man_ori.par` and `man_ori.dat`: each camera's manually identified
+/// points (number and pixel position), and the `.par`'s path.
+fn legacy_man_ori(
+    files: &dyn ExperimentFiles,
+    dir: &Path,
+    cameras: usize,
+    places: &mut Places,
+) -> Result<(ManualPoints, PathBuf), ExperimentError> {
+    let mut f = ParFile::open(files, dir, "man_ori.par", "man_ori", places)?;
     let mut nr = Vec::new();
     for i in 0..MANUAL_POINTS * cameras {
         nr.push(f.integer(&format!("nr[{i}]"))?);
@@ -407,33 +475,7 @@ fn read_legacy(
     let ids = manual_ids(&nr, cameras, &man_ori)?;
     // man_ori.dat: `x y` per line, 4 lines per camera, beside the .par.
     let dat = dir.join("parameters").join("man_ori.dat");
-    let text = files.read_text(&dat)?;
-    let coordinates: Vec<Point2<f64>> = text
-        .lines()
-        .enumerate()
-        .filter(|(_, l)| !l.trim().is_empty())
-        .map(|(n, l)| {
-            let v: Vec<f64> = l
-                .split_whitespace()
-                .map(str::parse)
-                .collect::<Result<_, _>>()
-                .map_err(|_| {
-                    count_error(
-                        &dat,
-                        &format!("line {}", n + 1),
-                        "not `x y` (pixels)".into(),
-                    )
-                })?;
-            match v.as_slice() {
-                [x, y] if x.is_finite() && y.is_finite() => Ok(Point2::new(*x, *y)),
-                _ => Err(count_error(
-                    &dat,
-                    &format!("line {}", n + 1),
-                    "not `x y` (two finite numbers, pixels)".into(),
-                )),
-            }
-        })
-        .collect::<Result<_, _>>()?;
+    let coordinates = manual_coordinates(&files.read_text(&dat)?, &dat)?;
     if coordinates.len() < MANUAL_POINTS * cameras {
         return Err(count_error(
             &dat,
@@ -451,26 +493,54 @@ fn read_legacy(
         .zip(coordinates.chunks(MANUAL_POINTS))
         .map(|(ids, xy)| ids.iter().copied().zip(xy.iter().copied()).collect())
         .collect();
+    Ok((manual, man_ori))
+}
 
-    let mut unmapped = vec![UnmappedSetting {
-        file: orient_file.display().to_string(),
-        key: "orient.pnfo".into(),
-        value: pnfo.to_string(),
-        reason: "OpenPTV's choice of points for the orientation; ptv uses every identified mark \
-                 and excludes gross errors by data snooping"
-            .into(),
-    }];
+/// The points of `man_ori.dat` (`x y` per line, pixels).
+fn manual_coordinates(text: &str, dat: &Path) -> Result<Vec<Point2<f64>>, ExperimentError> {
+    text.lines()
+        .enumerate()
+        .filter(|(_, l)| !l.trim().is_empty())
+        .map(|(n, l)| {
+            let v: Vec<f64> = l
+                .split_whitespace()
+                .map(str::parse)
+                .collect::<Result<_, _>>()
+                .map_err(|_| {
+                    count_error(dat, &format!("line {}", n + 1), "not `x y` (pixels)".into())
+                })?;
+            match v.as_slice() {
+                [x, y] if x.is_finite() && y.is_finite() => Ok(Point2::new(*x, *y)),
+                _ => Err(count_error(
+                    dat,
+                    &format!("line {}", n + 1),
+                    "not `x y` (two finite numbers, pixels)".into(),
+                )),
+            }
+        })
+        .collect()
+}
+
+/// `examine.par` and `multi_planes.par`: the planes of a multi-plane
+/// calibration where OpenPTV would combine them, and the `.par`'s path.
+fn legacy_planes(
+    files: &dyn ExperimentFiles,
+    dir: &Path,
+    cameras: usize,
+    places: &mut Places,
+    unmapped: &mut Vec<UnmappedSetting>,
+) -> Result<(Vec<PlaneFiles>, PathBuf), ExperimentError> {
     let planes_source = dir.join("parameters").join("multi_planes.par");
     let examine = dir.join("parameters").join("examine.par");
     let combine = if files.is_file(&examine) {
-        let mut f = ParFile::open(files, dir, "examine.par", "examine", &mut places)?;
+        let mut f = ParFile::open(files, dir, "examine.par", "examine", places)?;
         f.integer("Examine_Flag")?;
         f.integer("Combine_Flag")? != 0
     } else {
         false
     };
     let names = if files.is_file(&planes_source) {
-        let mut f = ParFile::open(files, dir, "multi_planes.par", "multi_planes", &mut places)?;
+        let mut f = ParFile::open(files, dir, "multi_planes.par", "multi_planes", places)?;
         let n = f.integer("n_planes")?;
         let n = plane_count(n, &planes_source)?;
         let mut names = Vec::with_capacity(n);
@@ -488,19 +558,9 @@ fn read_legacy(
         (&examine, &planes_source),
         dir,
         cameras,
-        &mut unmapped,
-    )?;
-    Ok(CalibrationSettings {
-        control,
-        images,
-        detection,
-        fixed,
-        manual,
-        planes,
-        planes_source,
         unmapped,
-        manual_source: man_ori.display().to_string(),
-    })
+    )?;
+    Ok((planes, planes_source))
 }
 
 /// The most planes `multi_planes` may name (liboptv reads at most 10).
