@@ -320,7 +320,8 @@ pub enum CompleteError {
 }
 
 /// The store's error enums that wrap a database failure take sqlx's error
-/// as [`StoreError`] (so that `?` works on a statement inside the store).
+/// as [`StoreError`] (so that `?` works on a statement inside the store);
+/// `sequences.rs`'s `SequenceImagesError` does so itself.
 macro_rules! database_failure_from_sqlx {
     ($($type:ty),+) => {
         $(impl From<sqlx::Error> for $type {
@@ -330,7 +331,7 @@ macro_rules! database_failure_from_sqlx {
         })+
     };
 }
-database_failure_from_sqlx!(InsertFrameError, CompleteError, SequenceImagesError);
+database_failure_from_sqlx!(InsertFrameError, CompleteError);
 
 /// A stored text that names none of a column's values (a database written
 /// by a newer version, or edited by hand).

@@ -227,6 +227,12 @@ pub enum SequenceImagesError {
     Database(#[from] StoreError),
 }
 
+impl From<sqlx::Error> for SequenceImagesError {
+    fn from(error: sqlx::Error) -> Self {
+        SequenceImagesError::Database(error.into())
+    }
+}
+
 impl FromRow<'_, AnyRow> for SequenceRow {
     fn from_row(row: &AnyRow) -> Result<Self, sqlx::Error> {
         Ok(SequenceRow {
