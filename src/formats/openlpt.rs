@@ -109,185 +109,34 @@ impl OpenlptCamera {
 /// Reads an OpenLPT camera file (the `PINHOLE` model). Errors name the
 /// source and the line.
 pub fn parse(text: &str, source: &str) -> Result<OpenlptCamera, FormatError> {
-    let lines: Vec<(usize, &str)> = text
-        .lines()
-        .enumerate()
-        .map(|(i, l)| (i + 1, l.trim()))
-        .filter(|(_, l)| !l.is_empty() && !l.starts_with('#'))
-        .collect();
-    let last_line = text.lines().count().max(1);
-    let mut cursor = 0;
-    let mut next = |what: &str| {
-        let line = lines.get(cursor).copied().ok_or_else(|| {
-            FormatError::invalid(
-                source,
-                format!("line {last_line}"),
-                format!("the file ends where {what} was expected"),
-            )
-        });
-        cursor += 1;
-        line
-    };
-    let at =
-        |line: usize, reason: String| FormatError::invalid(source, format!("line {line}"), reason);
-    let fields = |text: &str| -> Vec<String> {
-        text.split([',', ' ', '\t'])
-            .filter(|t| !t.is_empty())
-            .map(str::to_owned)
-            .collect()
-    };
-    let numbers = |(line, text): (usize, &str), count: Option<usize>, what: &str| {
-        let values = fields(text);
-        if let Some(count) = count {
-            if values.len() != count {
-                return Err(at(
-                    line,
-                    format!("expected {what}: {count} numbers, found {}", values.len()),
-                ));
-            }
-        }
-        values
-            .iter()
-            .map(|v| super::openptv::finite_number(v, source, line, what))
-            .collect::<Result<Vec<f64>, _>>()
-    };
-    let (line, model) = next("the camera model")?;
-    match model {
-        "PINHOLE" => {}
-        "PINPLATE" => {
-            return Err(at(
-                line,
-                "OpenLPT's PINPLATE model (a pinhole behind refracting plates) is not read yet; \
-                 export the calibration from ptv instead, or give OpenLPT's PINHOLE camera"
-                    .to_owned(),
-            ))
-        }
-        "POLYNOMIAL" => {
-            return Err(at(
-                line,
-                "OpenLPT's POLYNOMIAL model maps world to image by polynomials, not a physical \
-                 camera; ptv's model cannot take it"
-                    .to_owned(),
-            ))
-        }
-        other => {
-            return Err(at(
-                line,
-                format!("expected the camera model PINHOLE, got `{other}`"),
-            ))
-        }
-    }
-    next("the camera calibration error")?;
-    next("the pose calibration error")?;
-    let size_line = next("the image size `n_row,n_col`")?;
-    let size = fields(size_line.1);
-    let side = |t: &String| t.parse::<u32>().ok().filter(|&v| v > 0);
-    let (n_row, n_col) = match size.as_slice() {
-        [r, c] => match (side(r), side(c)) {
-            (Some(r), Some(c)) => (r, c),
-            _ => {
-                return Err(at(
-                    size_line.0,
-                    format!(
-                        "the image size must be two positive whole numbers n_row,n_col, got `{}`",
-                        size_line.1
-                    ),
-                ))
-            }
-        },
-        _ => {
-            return Err(at(
-                size_line.0,
-                format!(
-                    "expected the image size `n_row,n_col`, got `{}`",
-                    size_line.1
-                ),
-            ))
-        }
-    };
-    let rows =
-        |read: [(usize, &str); 3], what: &str| -> Result<(Matrix3<f64>, usize), FormatError> {
-            let mut m = Matrix3::zeros();
-            for (r, line) in read.into_iter().enumerate() {
-                let row = numbers(line, Some(3), what)?;
-                for c in 0..3 {
-                    m[(r, c)] = row[c];
-                }
-            }
-            Ok((m, read[0].0))
-        };
-    let what = "a row of the camera matrix";
-    let (matrix, _) = rows([next(what)?, next(what)?, next(what)?], what)?;
-    let distortion_line = next("the distortion coefficients")?;
-    let distortion = numbers(distortion_line, None, "a distortion coefficient")?;
-    match distortion.len() {
-        0 | 4 | 5 | 8 => {}
-        12 | 14 => {
-            return Err(at(
-                distortion_line.0,
-                format!(
-                    "{} distortion coefficients: OpenCV's thin-prism terms, which neither OpenLPT \
-                     nor ptv applies; give 4, 5 or 8",
-                    distortion.len()
-                ),
-            ))
-        }
-        n => {
-            return Err(at(
-                distortion_line.0,
-                format!("expected 4, 5 or 8 distortion coefficients, found {n}"),
-            ))
-        }
-    }
-    next("the rotation vector")?;
-    let what = "a row of the rotation matrix";
-    let (rotation, rotation_line) = rows([next(what)?, next(what)?, next(what)?], what)?;
-    let what = "a row of the inverse rotation matrix";
-    let (inverse, _) = rows([next(what)?, next(what)?, next(what)?], what)?;
-    let translation_line = next("the translation vector")?;
-    let translation = Vector3::from_vec(numbers(
-        translation_line,
-        Some(3),
-        "the translation vector",
-    )?);
-    let position_line = next("the inverse translation vector")?;
-    let position = Vector3::from_vec(numbers(
+    let mut file = CameraFile::new(text, source);
+    let (line, model) = file.next("the camera model")?;
+    file.check_model(line, model)?;
+    file.next("the camera calibration error")?;
+    file.next("the pose calibration error")?;
+    let (n_row, n_col) = file.image_size()?;
+    let (matrix, _) = file.matrix("a row of the camera matrix")?;
+    let distortion = file.distortion()?;
+    file.next("the rotation vector")?;
+    let (rotation, rotation_line) = file.matrix("a row of the rotation matrix")?;
+    let (inverse, _) = file.matrix("a row of the inverse rotation matrix")?;
+    let translation_line = file.next("the translation vector")?;
+    let translation =
+        Vector3::from_vec(file.numbers(translation_line, Some(3), "the translation vector")?);
+    let position_line = file.next("the inverse translation vector")?;
+    let position = Vector3::from_vec(file.numbers(
         position_line,
         Some(3),
         "the inverse translation vector",
     )?);
-    // The rotation must be one, to the precision it is written with (the
-    // example files print 6 digits: 1e-5 leaves a margin of 10).
-    let rotation_error = (rotation * rotation.transpose() - Matrix3::identity())
-        .abs()
-        .max();
-    if rotation_error > 1e-5 || rotation.determinant() < 0.0 {
-        return Err(at(
-            rotation_line,
-            format!(
-                "the rotation matrix is not a rotation (R Rᵀ differs from the identity by \
-                 {rotation_error:.1e}, determinant {:.6})",
-                rotation.determinant()
-            ),
-        ));
-    }
-    // The inverses must agree with R and t: OpenLPT uses them for the
-    // lines of sight. To the written precision: 1e-5 relative.
-    let inverse_error = (inverse - rotation.transpose()).abs().max();
-    let expected_position = -(rotation.transpose() * translation);
-    let position_error = (position - expected_position).norm();
-    if inverse_error > 1e-5 || position_error > 1e-5 * expected_position.norm().max(1.0) {
-        return Err(at(
-            position_line.0,
-            format!(
-                "the inverse rotation and translation do not match R and t (off by {inverse_error:.1e} \
-                 and {position_error:.1e} mm); OpenLPT would project and trace rays with different \
-                 cameras"
-            ),
-        ));
-    }
-    if let Ok((line, extra)) = next("nothing") {
-        return Err(at(
+    file.check_pose(
+        (&rotation, rotation_line),
+        &inverse,
+        &translation,
+        (&position, position_line.0),
+    )?;
+    if let Ok((line, extra)) = file.next("nothing") {
+        return Err(file.at(
             line,
             format!("unexpected `{extra}` after the inverse translation vector"),
         ));
@@ -300,6 +149,204 @@ pub fn parse(text: &str, source: &str) -> Result<OpenlptCamera, FormatError> {
         rotation,
         translation,
     })
+}
+
+/// An OpenLPT camera file's lines, read in order: the non-empty ones that
+/// are not comments, each with its line number for errors.
+struct CameraFile<'a> {
+    source: &'a str,
+    lines: Vec<(usize, &'a str)>,
+    cursor: usize,
+    last_line: usize,
+}
+
+impl<'a> CameraFile<'a> {
+    fn new(text: &'a str, source: &'a str) -> Self {
+        CameraFile {
+            source,
+            lines: text
+                .lines()
+                .enumerate()
+                .map(|(i, l)| (i + 1, l.trim()))
+                .filter(|(_, l)| !l.is_empty() && !l.starts_with('#'))
+                .collect(),
+            cursor: 0,
+            last_line: text.lines().count().max(1),
+        }
+    }
+
+    /// The next line, where `what` is expected.
+    fn next(&mut self, what: &str) -> Result<(usize, &'a str), FormatError> {
+        let line = self.lines.get(self.cursor).copied().ok_or_else(|| {
+            FormatError::invalid(
+                self.source,
+                format!("line {}", self.last_line),
+                format!("the file ends where {what} was expected"),
+            )
+        });
+        self.cursor += 1;
+        line
+    }
+
+    /// The error at `line`.
+    fn at(&self, line: usize, reason: String) -> FormatError {
+        FormatError::invalid(self.source, format!("line {line}"), reason)
+    }
+
+    /// A line's numbers (`count` of them where given).
+    fn numbers(
+        &self,
+        (line, text): (usize, &str),
+        count: Option<usize>,
+        what: &str,
+    ) -> Result<Vec<f64>, FormatError> {
+        let values = fields(text);
+        if let Some(count) = count {
+            if values.len() != count {
+                return Err(self.at(
+                    line,
+                    format!("expected {what}: {count} numbers, found {}", values.len()),
+                ));
+            }
+        }
+        values
+            .iter()
+            .map(|v| super::openptv::finite_number(v, self.source, line, what))
+            .collect()
+    }
+
+    /// A 3x3 matrix from the next three lines, and its first line.
+    fn matrix(&mut self, what: &str) -> Result<(Matrix3<f64>, usize), FormatError> {
+        let read = [self.next(what)?, self.next(what)?, self.next(what)?];
+        let mut m = Matrix3::zeros();
+        for (r, line) in read.into_iter().enumerate() {
+            let row = self.numbers(line, Some(3), what)?;
+            for c in 0..3 {
+                m[(r, c)] = row[c];
+            }
+        }
+        Ok((m, read[0].0))
+    }
+
+    /// The camera model must be `PINHOLE`; the others are told apart.
+    fn check_model(&self, line: usize, model: &str) -> Result<(), FormatError> {
+        match model {
+            "PINHOLE" => Ok(()),
+            "PINPLATE" => Err(self.at(
+                line,
+                "OpenLPT's PINPLATE model (a pinhole behind refracting plates) is not read yet; \
+                 export the calibration from ptv instead, or give OpenLPT's PINHOLE camera"
+                    .to_owned(),
+            )),
+            "POLYNOMIAL" => Err(self.at(
+                line,
+                "OpenLPT's POLYNOMIAL model maps world to image by polynomials, not a physical \
+                 camera; ptv's model cannot take it"
+                    .to_owned(),
+            )),
+            other => Err(self.at(
+                line,
+                format!("expected the camera model PINHOLE, got `{other}`"),
+            )),
+        }
+    }
+
+    /// The image size line, `n_row,n_col`.
+    fn image_size(&mut self) -> Result<(u32, u32), FormatError> {
+        let size_line = self.next("the image size `n_row,n_col`")?;
+        let size = fields(size_line.1);
+        let side = |t: &String| t.parse::<u32>().ok().filter(|&v| v > 0);
+        match size.as_slice() {
+            [r, c] => match (side(r), side(c)) {
+                (Some(r), Some(c)) => Ok((r, c)),
+                _ => Err(self.at(
+                    size_line.0,
+                    format!(
+                        "the image size must be two positive whole numbers n_row,n_col, got `{}`",
+                        size_line.1
+                    ),
+                )),
+            },
+            _ => Err(self.at(
+                size_line.0,
+                format!(
+                    "expected the image size `n_row,n_col`, got `{}`",
+                    size_line.1
+                ),
+            )),
+        }
+    }
+
+    /// The distortion coefficients: 4, 5 or 8 of OpenCV's (or none).
+    fn distortion(&mut self) -> Result<Vec<f64>, FormatError> {
+        let distortion_line = self.next("the distortion coefficients")?;
+        let distortion = self.numbers(distortion_line, None, "a distortion coefficient")?;
+        match distortion.len() {
+            0 | 4 | 5 | 8 => Ok(distortion),
+            12 | 14 => Err(self.at(
+                distortion_line.0,
+                format!(
+                    "{} distortion coefficients: OpenCV's thin-prism terms, which neither OpenLPT \
+                     nor ptv applies; give 4, 5 or 8",
+                    distortion.len()
+                ),
+            )),
+            n => Err(self.at(
+                distortion_line.0,
+                format!("expected 4, 5 or 8 distortion coefficients, found {n}"),
+            )),
+        }
+    }
+
+    /// The rotation must be one, and the inverse rotation and the
+    /// position (the inverse translation) must agree with it and the
+    /// translation, to the precision they are written with.
+    fn check_pose(
+        &self,
+        (rotation, rotation_line): (&Matrix3<f64>, usize),
+        inverse: &Matrix3<f64>,
+        translation: &Vector3<f64>,
+        (position, position_line): (&Vector3<f64>, usize),
+    ) -> Result<(), FormatError> {
+        // The example files print 6 digits: 1e-5 leaves a margin of 10.
+        let rotation_error = (rotation * rotation.transpose() - Matrix3::identity())
+            .abs()
+            .max();
+        if rotation_error > 1e-5 || rotation.determinant() < 0.0 {
+            return Err(self.at(
+                rotation_line,
+                format!(
+                    "the rotation matrix is not a rotation (R Rᵀ differs from the identity by \
+                     {rotation_error:.1e}, determinant {:.6})",
+                    rotation.determinant()
+                ),
+            ));
+        }
+        // OpenLPT uses the inverses for the lines of sight. To the written
+        // precision: 1e-5 relative.
+        let inverse_error = (inverse - rotation.transpose()).abs().max();
+        let expected_position = -(rotation.transpose() * translation);
+        let position_error = (position - expected_position).norm();
+        if inverse_error > 1e-5 || position_error > 1e-5 * expected_position.norm().max(1.0) {
+            return Err(self.at(
+                position_line,
+                format!(
+                    "the inverse rotation and translation do not match R and t (off by \
+                     {inverse_error:.1e} and {position_error:.1e} mm); OpenLPT would project and \
+                     trace rays with different cameras"
+                ),
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// A line's fields, split at commas, spaces and tabs.
+fn fields(text: &str) -> Vec<String> {
+    text.split([',', ' ', '\t'])
+        .filter(|t| !t.is_empty())
+        .map(str::to_owned)
+        .collect()
 }
 
 /// The file's text as OpenLPT's `saveParameters` writes it (numbers in
