@@ -69,7 +69,7 @@ impl Application {
         );
         let metrics = Arc::new(Metrics::default());
         let connections = Arc::new(Registry::new(max_connections, metrics.clone()));
-        let state = AppState::start(config, store, images, cpu, metrics);
+        let state = AppState::start(config.config(), store, images, cpu, metrics);
         Ok(Application {
             listener,
             connections,
@@ -240,7 +240,7 @@ fn start_workers(
     state: &Arc<AppState>,
     stopped: watch::Receiver<bool>,
 ) -> tokio::task::JoinSet<()> {
-    let count = state.config.worker_count();
+    let count = state.config.workers;
     let workers = jobs::spawn_workers(state.clone(), count, stopped.clone());
     if count > 0 {
         tracing::info!(
@@ -296,7 +296,7 @@ pub async fn run_worker(
         .with_fsync(config.storage.durability.fsync);
     let cpu = CpuPool::new(workers).map_err(|e| ServiceError::Start(e.to_string()))?;
     let metrics = Arc::new(Metrics::default());
-    let state = AppState::start(config, store, images, cpu, metrics);
+    let state = AppState::start(config.config(), store, images, cpu, metrics);
     tracing::info!(instance = %state.instance, workers, "worker started");
     // Its changes reach the serving processes' streams through the log.
     let (stop_workers, stopped) = watch::channel(false);

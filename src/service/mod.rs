@@ -36,7 +36,7 @@ use std::net::SocketAddr;
 use std::path::Path;
 
 pub use app::Application;
-pub use infra::config::{JobLimits, Lease, ServeArgs, Timeouts, WorkerArgs};
+pub use infra::config::{Config, JobLimits, Lease, ServeArgs, Timeouts, WorkerArgs};
 pub use ops::state::AppState;
 
 /// Why the service could not start or stopped with an error.

@@ -84,7 +84,7 @@ use tower_http::LatencyUnit;
 use tracing::{Level, Span};
 
 use super::problem::ApiError;
-use crate::service::infra::config::ServeArgs;
+use crate::service::infra::config::Config;
 use crate::service::infra::connections::{BodyTooSlow, RefusedFraming};
 use crate::service::infra::metrics::Metrics;
 
@@ -99,12 +99,12 @@ const CPU_ROUTES: [(Method, &str); 3] = [
 /// module's documentation for the order and why).
 pub fn apply<S: Clone + Send + Sync + 'static>(
     router: Router<S>,
-    config: &ServeArgs,
+    config: &Config,
     metrics: Arc<Metrics>,
 ) -> Router<S> {
-    let limit = config.max_upload_bytes();
+    let limit = config.max_upload_bytes;
     let request_secs = config.timeouts.request_secs;
-    let cpu = Arc::new(Semaphore::new(config.cpu_request_limit()));
+    let cpu = Arc::new(Semaphore::new(config.cpu_request_limit));
     let stack = ServiceBuilder::new()
         .layer(SetRequestIdLayer::x_request_id(MakeRequestUuid))
         .layer(PropagateRequestIdLayer::x_request_id())
@@ -632,8 +632,8 @@ mod tests {
     use super::*;
     use crate::service::infra::config::Timeouts;
 
-    fn config(request_secs: u64, max_cpu_requests: u32) -> ServeArgs {
-        ServeArgs {
+    fn config(request_secs: u64, max_cpu_requests: u32) -> Config {
+        crate::service::infra::config::ServeArgs {
             bind: "127.0.0.1:0".parse().unwrap(),
             storage: crate::service::infra::config::Storage::in_directory("unused"),
             workers: Some(1),
@@ -649,6 +649,7 @@ mod tests {
             job_limits: Default::default(),
             lease: Default::default(),
         }
+        .config()
     }
 
     async fn panics() -> &'static str {
@@ -656,7 +657,7 @@ mod tests {
     }
 
     /// The routes under test, in the service's stack.
-    fn app(config: &ServeArgs) -> Router {
+    fn app(config: &Config) -> Router {
         let slow = || async {
             tokio::time::sleep(Duration::from_millis(1500)).await;
             "done"

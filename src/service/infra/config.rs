@@ -1,5 +1,8 @@
 //! The service's settings: `ptv serve`'s flags, each also an environment
-//! variable.
+//! variable ([`ServeArgs`], parsed by clap), and what a running process
+//! reads of them, resolved once at start ([`Config`]: counts with their
+//! defaults applied, sizes in bytes). The store and the listener are opened
+//! from the flags; everything after reads the [`Config`].
 
 use std::net::SocketAddr;
 use std::path::PathBuf;
@@ -484,7 +487,48 @@ impl Default for Timeouts {
     }
 }
 
+/// What a running process (`ptv serve`, `ptv worker`) reads of its
+/// settings: the flags resolved once at start ([`ServeArgs::config`]),
+/// defaults applied, so nothing downstream falls back on its own.
+#[derive(Clone, Debug)]
+pub struct Config {
+    /// Jobs run at once in this process (0: it serves only).
+    pub workers: usize,
+    /// Threads of the CPU pool: the workers', and at least one for the
+    /// CPU-heavy requests.
+    pub cpu_threads: usize,
+    /// CPU-heavy requests run at once.
+    pub cpu_request_limit: usize,
+    /// The largest request body (bytes).
+    pub max_upload_bytes: usize,
+    /// The most points one VTK or HDF5 export builds in memory.
+    pub max_export_points: u64,
+    /// The bearer token every /api route needs, if one is set.
+    pub api_token: Option<String>,
+    /// Time limits on connections and requests.
+    pub timeouts: Timeouts,
+    /// Time and memory limits on jobs.
+    pub job_limits: JobLimits,
+    /// How long a worker holds a job or a tracking run it claimed.
+    pub lease: Lease,
+}
+
 impl ServeArgs {
+    /// What the running process reads of these flags, resolved.
+    pub fn config(&self) -> Config {
+        Config {
+            workers: self.worker_count(),
+            cpu_threads: self.cpu_threads(),
+            cpu_request_limit: self.cpu_request_limit(),
+            max_upload_bytes: self.max_upload_bytes(),
+            max_export_points: self.max_export_points,
+            api_token: self.api_token.clone(),
+            timeouts: self.timeouts.clone(),
+            job_limits: self.job_limits.clone(),
+            lease: self.lease.clone(),
+        }
+    }
+
     /// The number of workers: the flag (0: serve only), or the cores.
     pub fn worker_count(&self) -> usize {
         self.workers.unwrap_or_else(cores)

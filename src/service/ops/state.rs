@@ -7,7 +7,7 @@ use std::sync::Arc;
 use tokio::sync::Notify;
 
 use crate::service::infra::budget::MemoryBudget;
-use crate::service::infra::config::ServeArgs;
+use crate::service::infra::config::Config;
 use crate::service::infra::metrics::Metrics;
 use crate::service::infra::process::host_name;
 use crate::service::ops::computing::Computing;
@@ -21,8 +21,8 @@ use crate::service::store::{Store, WorkerId};
 /// What handlers and workers share.
 #[derive(Debug)]
 pub struct AppState {
-    /// The settings.
-    pub config: ServeArgs,
+    /// The settings, resolved from the flags.
+    pub config: Config,
     /// The database.
     pub store: Store,
     /// The image files.
@@ -55,7 +55,7 @@ impl AppState {
     /// of its events running (`service::events`; it ends with the
     /// runtime).
     pub fn start(
-        config: ServeArgs,
+        config: Config,
         store: Store,
         images: ImageStore,
         cpu: CpuPool,

@@ -99,7 +99,7 @@ use tokio::net::{TcpListener, TcpStream};
 use tokio::sync::watch;
 use tower::ServiceExt;
 
-use crate::service::infra::config::ServeArgs;
+use crate::service::infra::config::Config;
 
 /// The largest request head hyper buffers (request line and header
 /// fields); the service's own limits (`http::layers`: 8 KiB of request
@@ -131,11 +131,11 @@ pub struct Settings {
 
 impl Settings {
     /// From the service's settings.
-    pub fn new(config: &ServeArgs) -> Settings {
+    pub fn new(config: &Config) -> Settings {
         let timeouts = &config.timeouts;
         Settings {
             header_timeout: timeouts.header(),
-            linger_bytes: config.max_upload_bytes() as u64,
+            linger_bytes: config.max_upload_bytes as u64,
             linger_pause: timeouts.body(),
             linger_total: timeouts.request(),
             body_rate: (timeouts.min_body_rate > 0).then(|| BodyRate {

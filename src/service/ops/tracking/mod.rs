@@ -111,7 +111,7 @@ use crate::service::store::{
 /// A process without workers (`ptv serve --workers 0`) tracks nothing:
 /// the worker processes' polls find the run.
 pub fn kick(state: &Arc<AppState>, sequence_id: SequenceId) {
-    if state.config.worker_count() == 0 {
+    if state.config.workers == 0 {
         return;
     }
     let state = state.clone();
