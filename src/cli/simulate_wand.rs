@@ -29,7 +29,7 @@ use rand::Rng;
 use super::simulate::{write_png, SimulateArgs};
 use super::{write_stderr_line, CliError};
 use crate::formats::{self, FormatError};
-use crate::photogrammetry::simulate::wand::{wand_frames, wand_positions};
+use crate::photogrammetry::simulate::wand::{wand_frames, wand_positions, WandFrame};
 use crate::photogrammetry::simulate::{self, RenderSpec, RigSpec, TargetShape};
 use crate::photogrammetry::{Camera, Volume};
 
@@ -42,6 +42,72 @@ pub(super) fn run(
     length: f64,
     stderr: &mut dyn Write,
 ) -> Result<(), CliError> {
+    let spec = RigSpec::convergent(args.cameras);
+    check_args(args, length, &spec.volume)?;
+    let mut rng = simulate::rng(args.seed);
+    let (truth, setup) = rigs(&spec, &mut rng)?;
+    std::fs::create_dir_all(&args.out).map_err(|reason| FormatError::Io {
+        path: args.out.clone(),
+        reason,
+    })?;
+    let mut lines = Vec::new();
+    let mut write = |name: String, text: String| -> Result<(), CliError> {
+        let path = args.out.join(&name);
+        formats::write_text(&path, &text)?;
+        lines.push(path.display().to_string());
+        Ok(())
+    };
+    write("truth.json".into(), formats::calibration::to_json(&truth))?;
+    write("setup.json".into(), formats::calibration::to_json(&setup))?;
+    write_plate(args, &spec.volume, &truth, &mut rng, &mut write)?;
+    let wands =
+        wand_positions(&spec.volume, length, args.wand_positions, &mut rng).ok_or_else(|| {
+            CliError::Flag {
+                flag: "--wand",
+                reason: format!("a {length} mm wand does not fit the volume"),
+            }
+        })?;
+    let frames = wand_frames(&truth, &wands, args.noise, args.wand_gross, &mut rng);
+    let table = write_wand_frames(args, &truth, (&frames, &wands), &mut rng)?;
+    write("wand_truth.csv".into(), table)?;
+    let last = frames.len() - 1;
+    for camera in &truth {
+        lines.push(format!(
+            "{}/{}_targets.%05d.csv (frames 0..{last})",
+            args.out.display(),
+            camera.name()
+        ));
+        if !args.no_images {
+            lines.push(format!(
+                "{}/{}.%05d.png (frames 0..{last})",
+                args.out.display(),
+                camera.name()
+            ));
+        }
+    }
+    for line in lines {
+        write_stderr_line(stderr, &line)?;
+    }
+    let v = &spec.volume;
+    write_stderr_line(
+        stderr,
+        &format!(
+            "wand {length} mm, {} positions ({} with a gross error); volume {},{},{},{},{},{} (mm)",
+            frames.len(),
+            frames.iter().filter(|f| f.gross).count(),
+            v.min.x,
+            v.max.x,
+            v.min.y,
+            v.max.y,
+            v.min.z,
+            v.max.z
+        ),
+    )
+}
+
+/// The flags' ranges: the positions, the fraction of gross errors, and a
+/// wand that fits the volume.
+fn check_args(args: &SimulateArgs, length: f64, volume: &Volume) -> Result<(), CliError> {
     let flag = |flag: &'static str, reason: String| CliError::Flag { flag, reason };
     if !(1..=MAX_POSITIONS).contains(&args.wand_positions) {
         return Err(flag(
@@ -55,8 +121,7 @@ pub(super) fn run(
             format!("expected a fraction from 0 to 1, got {}", args.wand_gross),
         ));
     }
-    let spec = RigSpec::convergent(args.cameras);
-    let extent = spec.volume.max - spec.volume.min;
+    let extent = volume.max - volume.min;
     if !(length > 0.0 && length < extent.min()) {
         return Err(flag(
             "--wand",
@@ -67,13 +132,20 @@ pub(super) fn run(
             ),
         ));
     }
-    let mut rng = simulate::rng(args.seed);
+    Ok(())
+}
+
+/// The true rig (the spec's cameras with lens errors and an off-centre
+/// principal point) and the setup a lab would start from (no distortion,
+/// the principal point centred, positions off by up to 5 mm and angles by
+/// up to 10 mrad).
+fn rigs(spec: &RigSpec, rng: &mut impl Rng) -> Result<(Vec<Camera>, Vec<Camera>), CliError> {
     let truth: Vec<Camera> = spec
         .build()?
         .into_iter()
         .map(|c| {
             let mut p = c.parameters().clone();
-            p.distortion = simulate::lens_errors(&mut rng);
+            p.distortion = simulate::lens_errors(rng);
             p.interior.xh = rng.random_range(-0.1..0.1);
             p.interior.yh = rng.random_range(-0.1..0.1);
             Camera::new(p)
@@ -93,26 +165,25 @@ pub(super) fn run(
             Camera::new(p)
         })
         .collect::<Result<_, _>>()?;
-    std::fs::create_dir_all(&args.out).map_err(|reason| FormatError::Io {
-        path: args.out.clone(),
-        reason,
-    })?;
-    let mut lines = Vec::new();
-    let mut write = |name: String, text: String| -> Result<(), CliError> {
-        let path = args.out.join(&name);
-        formats::write_text(&path, &text)?;
-        lines.push(path.display().to_string());
-        Ok(())
-    };
-    write("truth.json".into(), formats::calibration::to_json(&truth))?;
-    write("setup.json".into(), formats::calibration::to_json(&setup))?;
-    let v = &spec.volume;
+    Ok((truth, setup))
+}
+
+/// A two-plane plate across the middle of the volume, its control points
+/// and each camera's marks (`plate_control.txt`, `plate_CAM.txt`): the
+/// plate calibration the wand's is compared with.
+fn write_plate(
+    args: &SimulateArgs,
+    v: &Volume,
+    truth: &[Camera],
+    rng: &mut impl Rng,
+    write: &mut impl FnMut(String, String) -> Result<(), CliError>,
+) -> Result<(), CliError> {
     let plate = Volume {
         min: Point3::new(0.6 * v.min.x, 0.6 * v.min.y, -5.0),
         max: Point3::new(0.6 * v.max.x, 0.6 * v.max.y, 5.0),
     };
-    let control = simulate::calibration_target(TargetShape::TwoPlanes, &plate, 162, &mut rng);
-    let marks = simulate::observe_target(&truth, &control, args.noise, &mut rng);
+    let control = simulate::calibration_target(TargetShape::TwoPlanes, &plate, 162, rng);
+    let marks = simulate::observe_target(truth, &control, args.noise, rng);
     write(
         "plate_control.txt".into(),
         control
@@ -134,17 +205,21 @@ pub(super) fn run(
                 .collect(),
         )?;
     }
-    let wands =
-        wand_positions(&spec.volume, length, args.wand_positions, &mut rng).ok_or_else(|| {
-            flag(
-                "--wand",
-                format!("a {length} mm wand does not fit the volume"),
-            )
-        })?;
-    let frames = wand_frames(&truth, &wands, args.noise, args.wand_gross, &mut rng);
+    Ok(())
+}
+
+/// Each frame's targets per camera (`CAM_targets.FFFFF.csv`) and, unless
+/// `--no-images`, its rendered images; returns the wand's true ends per
+/// frame as `wand_truth.csv`'s text.
+fn write_wand_frames(
+    args: &SimulateArgs,
+    truth: &[Camera],
+    (frames, wands): (&[WandFrame], &[[Point3<f64>; 2]]),
+    rng: &mut impl Rng,
+) -> Result<String, CliError> {
     let render = RenderSpec::eight_bit(args.diameter);
     let mut table = String::from("frame,ax,ay,az,bx,by,bz,gross\n");
-    for (f, (frame, w)) in frames.iter().zip(&wands).enumerate() {
+    for (f, (frame, w)) in frames.iter().zip(wands).enumerate() {
         for (camera, targets) in truth.iter().zip(&frame.targets) {
             let path = args
                 .out
@@ -156,8 +231,7 @@ pub(super) fn run(
                     .map(|t| nalgebra::Point2::new(t.x, t.y))
                     .collect();
                 let sensor = camera.sensor();
-                let image =
-                    simulate::render(sensor.width, sensor.height, &positions, &render, &mut rng);
+                let image = simulate::render(sensor.width, sensor.height, &positions, &render, rng);
                 write_png(
                     &args.out.join(format!("{}.{f:05}.png", camera.name())),
                     &image,
@@ -169,37 +243,5 @@ pub(super) fn run(
             w[0].x, w[0].y, w[0].z, w[1].x, w[1].y, w[1].z, frame.gross as u8
         ));
     }
-    write("wand_truth.csv".into(), table)?;
-    let last = frames.len() - 1;
-    for camera in &truth {
-        lines.push(format!(
-            "{}/{}_targets.%05d.csv (frames 0..{last})",
-            args.out.display(),
-            camera.name()
-        ));
-        if !args.no_images {
-            lines.push(format!(
-                "{}/{}.%05d.png (frames 0..{last})",
-                args.out.display(),
-                camera.name()
-            ));
-        }
-    }
-    for line in lines {
-        write_stderr_line(stderr, &line)?;
-    }
-    write_stderr_line(
-        stderr,
-        &format!(
-            "wand {length} mm, {} positions ({} with a gross error); volume {},{},{},{},{},{} (mm)",
-            frames.len(),
-            frames.iter().filter(|f| f.gross).count(),
-            v.min.x,
-            v.max.x,
-            v.min.y,
-            v.max.y,
-            v.min.z,
-            v.max.z
-        ),
-    )
+    Ok(table)
 }
