@@ -309,6 +309,28 @@ fn mean_length(cell: &Cell) -> f64 {
 /// Draws the disparity maps of `report` on `canvas`, laid out by
 /// `layout` ([`DisparityLayout::of`] the same maps).
 pub fn draw_disparity(canvas: &mut dyn Draw, report: &DisparityMaps, layout: &DisparityLayout) {
+    let y = draw_header(canvas, report);
+    draw_legend(canvas, layout, y);
+    draw_layer_headers(canvas, report, layout);
+    for (c, camera) in report.cameras.iter().enumerate() {
+        let (_, py) = layout.panel(c, 0, false);
+        let panel_h = layout.grid[1] as i64 * layout.cell_px as i64;
+        canvas.text(
+            MARGIN as i64,
+            py as i64 + panel_h / 2 - text_height(2) as i64 / 2,
+            &camera.name,
+            2,
+            BLACK,
+        );
+        for (after, map) in [(false, &camera.map_before), (true, &camera.map_after)] {
+            draw_map(canvas, layout, (c, after), map);
+        }
+    }
+}
+
+/// The title, each camera's RMS before and after, and how to read the
+/// maps; returns the row below them.
+fn draw_header(canvas: &mut dyn Draw, report: &DisparityMaps) -> i64 {
     let (m, mut y) = (MARGIN as i64, MARGIN as i64);
     canvas.text(
         m,
@@ -345,8 +367,12 @@ pub fn draw_disparity(canvas: &mut dyn Draw, report: &DisparityMaps, layout: &Di
         1,
         BLACK,
     );
-    y += text_height(1) as i64 + 14;
-    // Scale bar.
+    y + text_height(1) as i64 + 14
+}
+
+/// The arrows' scale bar and the colours' bar, on row `y`.
+fn draw_legend(canvas: &mut dyn Draw, layout: &DisparityLayout, y: i64) {
+    let m = MARGIN as i64;
     let bar = nice(layout.max_disparity_px);
     let bar_px = bar * layout.arrow_scale;
     canvas.text(m, y, "Scale:", 1, BLACK);
@@ -355,7 +381,6 @@ pub fn draw_disparity(canvas: &mut dyn Draw, report: &DisparityMaps, layout: &Di
     canvas.arrow((x0, yc), (x0 + bar_px, yc), 2.0, 6.0, ARROW);
     let label = format!("= {} px", format_value(bar));
     canvas.text((x0 + bar_px + 8.0) as i64, y, &label, 1, BLACK);
-    // Colour bar.
     let cx = (x0 + bar_px + 8.0) as i64 + text_width(&label, 1) as i64 + 30;
     canvas.text(cx, y, "Length: 0", 1, BLACK);
     let gx = cx + text_width("Length: 0 ", 1) as i64;
@@ -376,7 +401,10 @@ pub fn draw_disparity(canvas: &mut dyn Draw, report: &DisparityMaps, layout: &Di
         1,
         BLACK,
     );
-    // Column headers: the z layers.
+}
+
+/// The columns' headers: the z layers.
+fn draw_layer_headers(canvas: &mut dyn Draw, report: &DisparityMaps, layout: &DisparityLayout) {
     let header_y = layout.top as i64 - text_height(1) as i64 - 16;
     for k in 0..layout.grid[2] {
         let (px, _) = layout.panel(0, k, false);
@@ -391,76 +419,64 @@ pub fn draw_disparity(canvas: &mut dyn Draw, report: &DisparityMaps, layout: &Di
             BLACK,
         );
     }
+}
+
+/// Camera `c`'s map before or `after` self-calibration, one panel per z
+/// layer: the panels, the cells coloured by their mean disparity's length,
+/// the grid, then the arrows.
+fn draw_map(canvas: &mut dyn Draw, layout: &DisparityLayout, (c, after): (usize, bool), map: &Map) {
     let panel_w = layout.grid[0] as i64 * layout.cell_px as i64;
     let panel_h = layout.grid[1] as i64 * layout.cell_px as i64;
-    for (c, camera) in report.cameras.iter().enumerate() {
-        let (_, py) = layout.panel(c, 0, false);
+    for k in 0..layout.grid[2] {
+        let (px, py) = layout.panel(c, k, after);
         canvas.text(
-            MARGIN as i64,
-            py as i64 + panel_h / 2 - text_height(2) as i64 / 2,
-            &camera.name,
-            2,
+            px as i64,
+            py as i64 - text_height(1) as i64 - 4,
+            if after { "After" } else { "Before" },
+            1,
             BLACK,
         );
-        for (after, map) in [(false, &camera.map_before), (true, &camera.map_after)] {
-            for k in 0..layout.grid[2] {
-                let (px, py) = layout.panel(c, k, after);
-                canvas.text(
-                    px as i64,
-                    py as i64 - text_height(1) as i64 - 4,
-                    if after { "After" } else { "Before" },
-                    1,
-                    BLACK,
-                );
-                canvas.fill_rect(px as i64, py as i64, panel_w, panel_h, EMPTY);
-            }
-            let half = layout.cell_px as f64 / 2.0;
-            for cell in &map.cells {
-                if cell.index.iter().zip(layout.grid).any(|(i, g)| *i >= g) {
-                    continue;
-                }
-                let (x, y) = layout.cell_centre(c, after, cell.index);
-                canvas.fill_rect(
-                    (x - half) as i64,
-                    (y - half) as i64,
-                    layout.cell_px as i64,
-                    layout.cell_px as i64,
-                    heat(mean_length(cell) / layout.max_disparity_px),
-                );
-            }
-            for k in 0..layout.grid[2] {
-                let (px, py) = layout.panel(c, k, after);
-                for i in 0..=layout.grid[0] as i64 {
-                    canvas.fill_rect(
-                        px as i64 + (i * layout.cell_px as i64).min(panel_w - 1),
-                        py as i64,
-                        1,
-                        panel_h,
-                        GREY,
-                    );
-                }
-                for j in 0..=layout.grid[1] as i64 {
-                    canvas.fill_rect(
-                        px as i64,
-                        py as i64 + (j * layout.cell_px as i64).min(panel_h - 1),
-                        panel_w,
-                        1,
-                        GREY,
-                    );
-                }
-            }
-            let width = if layout.cell_px >= 20 { 2.0 } else { 1.0 };
-            let head = (layout.cell_px as f64 * 0.2).max(3.0);
-            for cell in &map.cells {
-                if cell.index.iter().zip(layout.grid).any(|(i, g)| *i >= g) {
-                    continue;
-                }
-                let from = layout.cell_centre(c, after, cell.index);
-                let tip =
-                    layout.arrow_tip(c, after, cell.index, (cell.mean_dx_px, cell.mean_dy_px));
-                canvas.arrow(from, tip, width, head, ARROW);
-            }
+        canvas.fill_rect(px as i64, py as i64, panel_w, panel_h, EMPTY);
+    }
+    let inside = |cell: &&Cell| cell.index.iter().zip(layout.grid).all(|(i, g)| *i < g);
+    let half = layout.cell_px as f64 / 2.0;
+    for cell in map.cells.iter().filter(inside) {
+        let (x, y) = layout.cell_centre(c, after, cell.index);
+        canvas.fill_rect(
+            (x - half) as i64,
+            (y - half) as i64,
+            layout.cell_px as i64,
+            layout.cell_px as i64,
+            heat(mean_length(cell) / layout.max_disparity_px),
+        );
+    }
+    for k in 0..layout.grid[2] {
+        let (px, py) = layout.panel(c, k, after);
+        for i in 0..=layout.grid[0] as i64 {
+            canvas.fill_rect(
+                px as i64 + (i * layout.cell_px as i64).min(panel_w - 1),
+                py as i64,
+                1,
+                panel_h,
+                GREY,
+            );
         }
+        for j in 0..=layout.grid[1] as i64 {
+            canvas.fill_rect(
+                px as i64,
+                py as i64 + (j * layout.cell_px as i64).min(panel_h - 1),
+                panel_w,
+                1,
+                GREY,
+            );
+        }
+    }
+    let width = if layout.cell_px >= 20 { 2.0 } else { 1.0 };
+    let head = (layout.cell_px as f64 * 0.2).max(3.0);
+    for cell in map.cells.iter().filter(inside) {
+        let from = layout.cell_centre(c, after, cell.index);
+        let tip = layout.arrow_tip(c, after, cell.index, (cell.mean_dx_px, cell.mean_dy_px));
+        canvas.arrow(from, tip, width, head, ARROW);
     }
 }
 
