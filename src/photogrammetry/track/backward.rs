@@ -262,7 +262,6 @@ fn extend_paths(
     let index_of = |number: i64| frames.binary_search_by_key(&number, |f| f.number).ok();
     let (mut paths, mut holder) = paths_of(frames, gathered);
     let p = parameters;
-    let w = p.fit_half_window;
     let mut summary = BackwardSummary::default();
     let mut scratch = Scratch::default();
     let mut links: Vec<Link> = Vec::new();
@@ -270,18 +269,7 @@ fn extend_paths(
     for k in (0..frames.len().saturating_sub(1)).rev() {
         let frame = &frames[k];
         let n = frame.number;
-        // The trajectories that may gain a point here.
-        let starting: Vec<usize> = paths
-            .iter()
-            .enumerate()
-            .filter(|(_, path)| {
-                !path.gone
-                    && path.points.len() >= 2
-                    && path.points[0].frame > n
-                    && path.points[0].frame <= n + 1 + p.max_gap as i64
-            })
-            .map(|(s, _)| s)
-            .collect();
+        let starting = starting_at(&paths, n, p.max_gap);
         // Grids of this frame and the one before it (the look-ahead, in
         // reverse); those of later frames are no longer needed.
         for g in [k, k.wrapping_sub(1)] {
@@ -304,21 +292,7 @@ fn extend_paths(
         });
         links.clear();
         for (l, &s) in starting.iter().enumerate() {
-            let path = &paths[s];
-            let (first, second) = (&path.points[0], &path.points[1]);
-            let dt = (first.frame - n) as f64;
-            // Its velocity backwards in time (mm per frame).
-            let velocity = (first.position - second.position) / (second.frame - first.frame) as f64;
-            let floor = noise_floor(&path.sigma[0]);
-            let search = Search {
-                predicted: first.position + velocity * dt,
-                radius: p.max_acceleration * dt * dt + floor,
-                from: first.position,
-                dt,
-                velocity: Some(velocity),
-                floor,
-                source: 0,
-            };
+            let search = backward_search(&paths[s], n, p.max_acceleration);
             // Free particles, and the last points of other trajectories
             // ending here.
             let holder = &holder[k];
@@ -354,25 +328,8 @@ fn extend_paths(
                 sigma: particle.sigma,
             };
             let h = holder[k][link.particle];
-            // The first window with the new point: one smooth path.
-            let path = &paths[s];
-            let mut window = [point; MAX_SAMPLES];
-            let len = (2 * w + 1).min(path.points.len() + 1).min(MAX_SAMPLES);
-            for (i, slot) in window.iter_mut().enumerate().take(len).skip(1) {
-                *slot = path.sample(i - 1);
-            }
-            // And the new point no gross error at the start (the test
-            // the forward pass gives a trajectory's first point). And the
-            // window its velocity will be fitted from consistent at the
-            // fits' own level (module docs: the links that pass only the
-            // gross-error tests are where the added points' error was).
-            if !is_smooth(&window[..len], 3)
-                || end_is_intruder(&window[..len], true, w, p.fit_order)
-                || !is_consistent(&window[..len], p.fit_order)
-            {
-                continue;
-            }
-            if h != FREE && !joins_smoothly(point, &paths[h as usize], path, w) {
+            let other = (h != FREE).then(|| &paths[h as usize]);
+            if !accepts_start(point, &paths[s], other, p) {
                 continue;
             }
             taken_path[link.live] = true;
@@ -395,32 +352,101 @@ fn extend_paths(
                 holder[k][link.particle] = s as u32;
                 summary.points += 1;
             } else {
-                // The other trajectory takes this one's points after its
-                // own; this one is gone.
-                let h = h as usize;
-                let moved = std::mem::take(&mut paths[s].points);
-                let moved_sigma = std::mem::take(&mut paths[s].sigma);
-                let moved_fresh = std::mem::take(&mut paths[s].fresh);
-                paths[s].gone = true;
-                if std::mem::take(&mut paths[s].lengthened) {
+                join(&mut paths, (s, h as usize), &mut holder, &index_of);
+                summary.joined += 1;
+                if paths[s].lengthened {
+                    paths[s].lengthened = false;
                     summary.lengthened -= 1;
                 }
-                for q in &moved {
-                    let f = index_of(q.frame).expect("a point of a frame linked");
-                    holder[f][q.particle] = h as u32;
-                }
-                let other = &mut paths[h];
-                if let Some(last) = other.fresh.back_mut() {
-                    *last = true;
-                }
-                other.points.extend(moved);
-                other.sigma.extend(moved_sigma);
-                other.fresh.extend(moved_fresh);
-                summary.joined += 1;
             }
         }
     }
     (paths, summary)
+}
+
+/// The trajectories that may gain a point at frame `n`: of two points or
+/// more, starting after `n` by at most the bridged gap.
+fn starting_at(paths: &[Path], n: i64, max_gap: usize) -> Vec<usize> {
+    paths
+        .iter()
+        .enumerate()
+        .filter(|(_, path)| {
+            !path.gone
+                && path.points.len() >= 2
+                && path.points[0].frame > n
+                && path.points[0].frame <= n + 1 + max_gap as i64
+        })
+        .map(|(s, _)| s)
+        .collect()
+}
+
+/// Where `path`'s point at frame `n` is looked for: its first point moved
+/// back by its first velocity, within the acceleration bound over the
+/// frames between (and its position's noise).
+fn backward_search(path: &Path, n: i64, max_acceleration: f64) -> Search {
+    let (first, second) = (&path.points[0], &path.points[1]);
+    let dt = (first.frame - n) as f64;
+    // Its velocity backwards in time (mm per frame).
+    let velocity = (first.position - second.position) / (second.frame - first.frame) as f64;
+    let floor = noise_floor(&path.sigma[0]);
+    Search {
+        predicted: first.position + velocity * dt,
+        radius: max_acceleration * dt * dt + floor,
+        from: first.position,
+        dt,
+        velocity: Some(velocity),
+        floor,
+        source: 0,
+    }
+}
+
+/// Whether `point` may start `path`: the first window with it is one
+/// smooth path, the point no gross error at the start (the test the
+/// forward pass gives a trajectory's first point), and the window its
+/// velocity will be fitted from consistent at the fits' own level (module
+/// docs: the links that pass only the gross-error tests are where the
+/// added points' error was); and where the point is the last of `other`,
+/// the two join smoothly.
+fn accepts_start(point: Sample, path: &Path, other: Option<&Path>, p: &TrackingParameters) -> bool {
+    let w = p.fit_half_window;
+    let mut window = [point; MAX_SAMPLES];
+    let len = (2 * w + 1).min(path.points.len() + 1).min(MAX_SAMPLES);
+    for (i, slot) in window.iter_mut().enumerate().take(len).skip(1) {
+        *slot = path.sample(i - 1);
+    }
+    if !is_smooth(&window[..len], 3)
+        || end_is_intruder(&window[..len], true, w, p.fit_order)
+        || !is_consistent(&window[..len], p.fit_order)
+    {
+        return false;
+    }
+    other.map_or(true, |other| joins_smoothly(point, other, path, w))
+}
+
+/// Path `s` joins path `h` (which ends at `s`'s new first point): `h`
+/// takes `s`'s points after its own, their particles' holder becomes `h`,
+/// and `s` is gone.
+fn join(
+    paths: &mut [Path],
+    (s, h): (usize, usize),
+    holder: &mut [Vec<u32>],
+    index_of: &impl Fn(i64) -> Option<usize>,
+) {
+    let moved = std::mem::take(&mut paths[s].points);
+    let moved_sigma = std::mem::take(&mut paths[s].sigma);
+    let moved_fresh = std::mem::take(&mut paths[s].fresh);
+    paths[s].gone = true;
+    for q in &moved {
+        let f = index_of(q.frame).expect("a point of a frame linked");
+        holder[f][q.particle] = h as u32;
+    }
+    let other = &mut paths[h];
+    if let Some(last) = other.fresh.back_mut() {
+        *last = true;
+    }
+    other.points.extend(moved);
+    other.sigma.extend(moved_sigma);
+    other.fresh.extend(moved_fresh);
 }
 
 /// Whether `path`, starting with `point`, may join `other` (which ends
