@@ -64,20 +64,12 @@ pub(super) fn robust_adjustment(
     let mut previous_sigma = f64::INFINITY;
     for pass in 0..MAX_PASSES {
         cancel.check()?;
-        let mut bundle = Bundle {
-            cameras: state.cameras.clone(),
-            free: state.free.clone(),
-            tracks,
-            gauge,
-            media: state.media.clone(),
-        };
-        let Some(mut solution) = bundle.adjust(30) else {
+        let Some((mut solution, adjusted)) = adjust_once(state, tracks, gauge) else {
             return Ok(None);
         };
         iterations += solution.iterations;
         solution.iterations = iterations;
-        state.cameras = bundle.cameras;
-        tracks = bundle.tracks;
+        tracks = adjusted;
         let Some(models) = models_or_diverged(&state.cameras) else {
             return Ok(None);
         };
@@ -110,6 +102,20 @@ pub(super) fn robust_adjustment(
         }
     }
     // The passes ran out: one last adjustment with the final weights.
+    let Some((mut solution, tracks)) = adjust_once(state, tracks, gauge) else {
+        return Ok(None);
+    };
+    solution.iterations += iterations;
+    Ok(Some((tracks, solution, rejected, previous_sigma)))
+}
+
+/// One bundle adjustment of `tracks` from the state's cameras (at most 30
+/// iterations); the state takes the adjusted cameras. `None` if it failed.
+fn adjust_once(
+    state: &mut State,
+    tracks: Vec<Track>,
+    gauge: &Gauge,
+) -> Option<(bundle::Solution, Vec<Track>)> {
     let mut bundle = Bundle {
         cameras: state.cameras.clone(),
         free: state.free.clone(),
@@ -117,12 +123,9 @@ pub(super) fn robust_adjustment(
         gauge,
         media: state.media.clone(),
     };
-    let Some(mut solution) = bundle.adjust(30) else {
-        return Ok(None);
-    };
-    solution.iterations += iterations;
+    let solution = bundle.adjust(30)?;
     state.cameras = bundle.cameras;
-    Ok(Some((bundle.tracks, solution, rejected, previous_sigma)))
+    Some((solution, bundle.tracks))
 }
 
 /// `track` with each observation's Huber weight at `sigma`: 1 within
